@@ -1,0 +1,38 @@
+# Set-up and the two everyday commands. `make run` runs the main job on the default config,
+# `make test` runs the whole test suite; both install libtorch first if this machine lacks it.
+#
+# libtorch comes from PyPI's torch wheel, installed once into a virtualenv outside the repo
+# (TORCH_VENV) and reused by every later build; torch-sys finds it through that interpreter.
+
+TORCH_VERSION := 2.13.0
+TORCH_VENV ?= $(HOME)/.cache/uavmeta/torch-$(TORCH_VERSION)
+CONFIG ?= configs/default.toml
+
+export VIRTUAL_ENV := $(TORCH_VENV)
+export PATH := $(TORCH_VENV)/bin:$(PATH)
+export LIBTORCH_USE_PYTORCH := 1
+
+.PHONY: run test build bench libtorch env
+
+run: build
+	target/release/uavmeta launch --config $(CONFIG)
+
+test: libtorch
+	cargo test --workspace --release --all-targets
+
+build: libtorch
+	cargo build --release
+
+bench: libtorch
+	cargo bench --workspace
+
+libtorch: $(TORCH_VENV)/.installed
+
+$(TORCH_VENV)/.installed:
+	python3 -m venv $(TORCH_VENV)
+	$(TORCH_VENV)/bin/pip install --no-input --disable-pip-version-check torch==$(TORCH_VERSION)
+	touch $@
+
+# `eval "$(make -s env)"` sets up a shell for plain cargo commands.
+env:
+	@echo 'export VIRTUAL_ENV=$(TORCH_VENV) LIBTORCH_USE_PYTORCH=1 PATH=$(TORCH_VENV)/bin:$$PATH'

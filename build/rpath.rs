@@ -1,0 +1,10 @@
+//! Build script shared by every package that links libtorch: bakes the directory of the libtorch
+//! that torch-sys built against into the package's binaries, tests and benchmarks as an rpath, so
+//! that they run with no LD_LIBRARY_PATH set.
+
+fn main() {
+    // torch-sys has `links = "tch"` and exports its lib dir to direct dependents as this variable.
+    if let Ok(dir) = std::env::var("DEP_TCH_LIBTORCH_LIB") {
+        println!("cargo:rustc-link-arg=-Wl,-rpath,{dir}");
+    }
+}

@@ -1,0 +1,1 @@
+//! Q-network, DQN and CQL: being written.

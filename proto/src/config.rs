@@ -1,0 +1,743 @@
+//! Experiment configuration: SPEC section 7's TOML layout with every default of SPEC sections 1-5.
+//!
+//! A file names only what it changes; [`Config::load`] reads it, applies `--set KEY=VALUE`
+//! overrides, and validates the result. Every error names the file (or the override), the key, the
+//! offending value and what was expected.
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
+
+use serde::{Deserialize, Serialize};
+
+/// The largest number of devices a world may have: the zero-copy transition slot of
+/// `proto::transport` stores observations in fixed-size arrays of `2 + MAX_DEVICES` entries.
+pub const MAX_DEVICES: usize = 64;
+
+/// A config error. `origin` is the file path, or `--set KEY=VALUE` for an override.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("{origin}: cannot read: {error}")]
+    Read { origin: String, error: std::io::Error },
+    #[error("{origin}: {message}")]
+    Parse { origin: String, message: String },
+    #[error("{origin}: key `{key}` = {value}: expected {expected}")]
+    Invalid { origin: String, key: String, value: String, expected: String },
+    #[error("{origin}: no task named `{name}`; the config defines: {known}")]
+    UnknownTask { origin: String, name: String, known: String },
+}
+
+/// One experiment: the world, its tasks, and the settings of every stage.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    #[serde(default)]
+    pub world: WorldConfig,
+    #[serde(default = "default_tasks")]
+    pub tasks: Vec<TaskConfig>,
+    #[serde(default)]
+    pub collect: CollectConfig,
+    #[serde(default)]
+    pub learner: LearnerConfig,
+    #[serde(default)]
+    pub meta: MetaConfig,
+    #[serde(default)]
+    pub run: RunConfig,
+    /// Where the config was read from; not part of the TOML.
+    #[serde(skip)]
+    pub origin: String,
+}
+
+/// SPEC section 1: the grid, the devices, the UAV, the channel and the rain model.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct WorldConfig {
+    /// Cells per side, L.
+    pub grid_cells: u32,
+    /// Side of a cell in metres, r.
+    pub cell_m: f64,
+    /// Number of IoT devices, K.
+    pub devices: usize,
+    /// Explicit device cells `[[x, y], ...]`; when absent, `layout_seed` draws distinct cells.
+    pub device_cells: Option<Vec<[u32; 2]>>,
+    /// Seed of the device layout when `device_cells` is absent.
+    pub layout_seed: u64,
+    /// Importance weight delta_k: one number for every device, or one per device.
+    pub delta: Delta,
+    /// UAV height h in metres.
+    pub height_m: f64,
+    /// Episode length T in steps; the end of an episode is a time limit, not a terminal state.
+    pub horizon: u32,
+    /// AoI cap A_max.
+    pub aoi_max: u32,
+    /// Fixed start cell of the UAV; uniform at random each episode when absent.
+    pub start_cell: Option<[u32; 2]>,
+    /// Channel gain at 1 m, g0, in dB.
+    pub g0_db: f64,
+    /// Bandwidth B in Hz.
+    pub bandwidth_hz: f64,
+    /// Bits per update M.
+    pub bits: f64,
+    /// Noise power sigma^2 in dBm.
+    pub noise_dbm: f64,
+    /// Which powers enter the reward: the scheduled device's only, or all K devices'.
+    pub power_term: PowerTerm,
+    /// Rain rate R in mm/h.
+    pub rain_mm_per_h: f64,
+    /// ITU-R P.838 coefficient phi (k).
+    pub rain_phi: f64,
+    /// ITU-R P.838 exponent varphi (alpha).
+    pub rain_varphi: f64,
+}
+
+impl Default for WorldConfig {
+    fn default() -> Self {
+        Self {
+            grid_cells: 10,
+            cell_m: 100.0,
+            devices: 10,
+            device_cells: None,
+            layout_seed: 0,
+            delta: Delta::Uniform(1.0),
+            height_m: 100.0,
+            horizon: 100,
+            aoi_max: 100,
+            start_cell: None,
+            g0_db: -30.0,
+            bandwidth_hz: 1e6,
+            bits: 5e6,
+            noise_dbm: -100.0,
+            power_term: PowerTerm::Scheduled,
+            rain_mm_per_h: 12.5,
+            rain_phi: 0.2051,
+            rain_varphi: 0.9679,
+        }
+    }
+}
+
+impl WorldConfig {
+    /// Length of an observation, 2 + K.
+    pub fn observation_len(&self) -> usize {
+        2 + self.devices
+    }
+
+    /// Number of discrete actions, 5 moves x K devices.
+    pub fn action_count(&self) -> usize {
+        5 * self.devices
+    }
+
+    /// Divisors that normalise a raw observation for the networks: x/(L-1), y/(L-1), A/aoi_max.
+    pub fn observation_scale(&self) -> Vec<f32> {
+        let span = (self.grid_cells.max(2) - 1) as f32;
+        let mut scale = vec![span, span];
+        scale.resize(self.observation_len(), self.aoi_max as f32);
+        scale
+    }
+
+    /// delta_k for every device.
+    pub fn delta_per_device(&self) -> Vec<f64> {
+        match &self.delta {
+            Delta::Uniform(d) => vec![*d; self.devices],
+            Delta::PerDevice(d) => d.clone(),
+        }
+    }
+
+    /// Rain-specific attenuation gamma_R = phi * R^varphi in dB/km.
+    pub fn rain_attenuation_db_per_km(&self) -> f64 {
+        self.rain_phi * self.rain_mm_per_h.powf(self.rain_varphi)
+    }
+}
+
+/// delta: a number for every device, or a list with one per device.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum Delta {
+    Uniform(f64),
+    PerDevice(Vec<f64>),
+}
+
+/// Which transmit powers the reward charges.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PowerTerm {
+    /// Only the scheduled device transmits, so the sum over devices is its one power.
+    Scheduled,
+    /// The literal reading: the sum over all K devices of the power each would need.
+    AllDevices,
+}
+
+/// A rectangle of cells, both corners inclusive.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RainZone {
+    pub x0: u32,
+    pub y0: u32,
+    pub x1: u32,
+    pub y1: u32,
+}
+
+impl RainZone {
+    pub fn contains(&self, x: u32, y: u32) -> bool {
+        (self.x0..=self.x1).contains(&x) && (self.y0..=self.y1).contains(&y)
+    }
+}
+
+impl FromStr for RainZone {
+    type Err = String;
+
+    /// Parses `x0,y0,x1,y1`, the form of the `--rain` flag.
+    fn from_str(s: &str) -> Result<Self, String> {
+        let parts: Vec<u32> = s
+            .split(',')
+            .map(|p| p.trim().parse::<u32>())
+            .collect::<Result<_, _>>()
+            .map_err(|_| format!("`{s}`: expected four cell indices x0,y0,x1,y1"))?;
+        match parts[..] {
+            [x0, y0, x1, y1] => Ok(Self { x0, y0, x1, y1 }),
+            _ => Err(format!("`{s}`: expected four cell indices x0,y0,x1,y1")),
+        }
+    }
+}
+
+/// Whether a task is used for meta-training or held out for meta-testing.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum TaskRole {
+    MetaTrain,
+    MetaTest,
+}
+
+/// SPEC sections 2-3: one task is the world with its lambda and optional rain.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TaskConfig {
+    pub name: String,
+    /// The AoI-power trade-off.
+    pub lambda: f64,
+    pub role: TaskRole,
+    #[serde(default)]
+    pub rain: Option<RainZone>,
+    /// Relocate the rain zone uniformly at random every this many steps.
+    #[serde(default)]
+    pub rain_moves_every: Option<u32>,
+}
+
+impl TaskConfig {
+    /// A task given on the command line (`--lambda X [--rain x0,y0,x1,y1]`) instead of by name.
+    pub fn one_off(lambda: f64, rain: Option<RainZone>) -> Self {
+        let name = match rain {
+            None => format!("lambda-{lambda}"),
+            Some(r) => format!("lambda-{lambda}-rain-{}-{}-{}-{}", r.x0, r.y0, r.x1, r.y1),
+        };
+        Self { name, lambda, role: TaskRole::MetaTest, rain, rain_moves_every: None }
+    }
+}
+
+/// The paper's setting (SPEC section 2): meta-train on eight lambdas, meta-test on lambda = 300.
+fn default_tasks() -> Vec<TaskConfig> {
+    let mut tasks: Vec<TaskConfig> = [0.0, 100.0, 200.0, 400.0, 500.0, 600.0, 800.0, 1000.0]
+        .into_iter()
+        .map(|lambda| TaskConfig {
+            name: format!("lambda-{lambda}"),
+            lambda,
+            role: TaskRole::MetaTrain,
+            rain: None,
+            rain_moves_every: None,
+        })
+        .collect();
+    tasks.push(TaskConfig::one_off(300.0, None));
+    tasks
+}
+
+/// SPEC section 4: how each task's dataset is collected, and the online DQN behaviour policy.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CollectConfig {
+    /// Behaviour policy: `dqn-online`, `random`, `stalest`, `greedy` or `eps:P` (stalest with
+    /// probability 1-P, uniform random with probability P).
+    pub policy: String,
+    /// Transitions kept per task (the paper's datasets hold 500).
+    pub transitions: usize,
+    /// Actor processes per task in a launched run.
+    pub actors_per_task: usize,
+    /// Base seed of the behaviour policies and their worlds.
+    pub seed: u64,
+    /// Environment steps the online DQN agent trains for before its replay buffer is sampled.
+    pub dqn_steps: usize,
+    /// Replay buffer capacity of the online DQN agent.
+    pub replay_capacity: usize,
+    /// Steps of uniform random actions before the first gradient step.
+    pub learning_starts: usize,
+    /// Environment steps between gradient steps.
+    pub train_every: usize,
+    /// Epsilon-greedy schedule: linear from `eps_start` to `eps_end` over `eps_decay_steps`.
+    pub eps_start: f64,
+    pub eps_end: f64,
+    pub eps_decay_steps: usize,
+}
+
+impl Default for CollectConfig {
+    fn default() -> Self {
+        Self {
+            policy: "dqn-online".into(),
+            transitions: 500,
+            actors_per_task: 1,
+            seed: 0,
+            dqn_steps: 50_000,
+            replay_capacity: 50_000,
+            learning_starts: 1_000,
+            train_every: 1,
+            eps_start: 1.0,
+            eps_end: 0.05,
+            eps_decay_steps: 25_000,
+        }
+    }
+}
+
+/// SPEC section 5: the Q-network and the DQN / CQL training settings shared by every method.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LearnerConfig {
+    /// Hidden layer widths of the Q-network MLP.
+    pub hidden: Vec<usize>,
+    /// Discount factor gamma.
+    pub gamma: f64,
+    /// CQL conservative weight alpha (eq. 8).
+    pub alpha: f64,
+    /// Minibatch size.
+    pub batch: usize,
+    /// Adam learning rate of offline training and fine-tuning (eta_outer, so every method
+    /// shares the meta-learner's optimiser settings).
+    pub lr: f64,
+    /// Training epochs E.
+    pub epochs: usize,
+    /// Gradient steps per epoch; 0 means one pass over the dataset, ceil(N / batch).
+    pub steps_per_epoch: usize,
+    /// Gradient steps between hard target-network updates.
+    pub target_update_every: usize,
+    /// Double DQN targets (d3rlpy's choice); off to match eq. 7.
+    pub double_dqn: bool,
+    /// Huber instead of squared TD error (d3rlpy's choice); off to match eq. 7.
+    pub huber: bool,
+    /// Monte-Carlo episodes of each evaluation of a greedy policy.
+    pub eval_episodes: usize,
+    /// Seed of the evaluation episodes, the same for every method and epoch.
+    pub eval_seed: u64,
+}
+
+impl Default for LearnerConfig {
+    fn default() -> Self {
+        Self {
+            hidden: vec![256, 256],
+            gamma: 0.99,
+            alpha: 1.0,
+            batch: 64,
+            lr: 1e-3,
+            epochs: 100,
+            steps_per_epoch: 0,
+            target_update_every: 100,
+            double_dqn: false,
+            huber: false,
+            eval_episodes: 20,
+            eval_seed: 12345,
+        }
+    }
+}
+
+/// The inner-loop loss of MAML.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum InnerLoss {
+    Cql,
+    Dqn,
+}
+
+/// SPEC section 5: MAML over CQL (Algorithm 4).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MetaConfig {
+    /// Meta-epochs E_meta.
+    pub meta_epochs: usize,
+    /// Tasks sampled per meta-epoch; 0 means every meta-train task.
+    pub tasks_per_meta_epoch: usize,
+    /// k: transitions of a task's support set per inner step.
+    pub shots: usize,
+    /// Transitions of a task's query set per meta-loss evaluation.
+    pub query_shots: usize,
+    /// Share of each task's dataset that forms its support set; the rest is its query set.
+    pub support_fraction: f64,
+    /// SGD steps of the inner loop.
+    pub inner_steps: usize,
+    pub eta_inner: f64,
+    pub eta_outer: f64,
+    /// First-order MAML: do not differentiate through the inner steps.
+    pub first_order: bool,
+    /// CQL-MAML (the paper's method) or DQN-MAML (its baseline).
+    pub inner_loss: InnerLoss,
+    /// Meta-epochs between w0 checkpoints.
+    pub checkpoint_every: usize,
+}
+
+impl Default for MetaConfig {
+    fn default() -> Self {
+        Self {
+            meta_epochs: 150,
+            tasks_per_meta_epoch: 0,
+            shots: 64,
+            query_shots: 64,
+            support_fraction: 0.5,
+            inner_steps: 1,
+            eta_inner: 1e-2,
+            eta_outer: 1e-3,
+            first_order: false,
+            inner_loss: InnerLoss::Cql,
+            checkpoint_every: 10,
+        }
+    }
+}
+
+/// Where a run writes, its seeds, its metrics endpoints and its iceoryx2 capacities.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RunConfig {
+    /// Run directory: datasets, checkpoints, CSV files, port files.
+    pub dir: PathBuf,
+    /// Seeds of repeated runs; the first is the seed of a single run.
+    pub seeds: Vec<u64>,
+    /// Address every /metrics endpoint binds.
+    pub metrics_host: String,
+    /// Port of the launcher's /metrics; children get 0 (an ephemeral port written to the run dir).
+    pub metrics_port: u16,
+    /// Transitions per zero-copy batch.
+    pub batch_size: usize,
+    /// Batches a subscriber buffers before publishers wait.
+    pub subscriber_buffer: usize,
+    /// Publishers (actors) a transition service admits.
+    pub max_publishers: usize,
+    /// Restarts of a crashed child before the launcher gives up.
+    pub max_restarts: u32,
+}
+
+impl Default for RunConfig {
+    fn default() -> Self {
+        Self {
+            dir: PathBuf::from("runs/default"),
+            seeds: vec![0],
+            metrics_host: "127.0.0.1".into(),
+            metrics_port: 0,
+            batch_size: 64,
+            subscriber_buffer: 64,
+            max_publishers: 64,
+            max_restarts: 5,
+        }
+    }
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Self {
+            world: WorldConfig::default(),
+            tasks: default_tasks(),
+            collect: CollectConfig::default(),
+            learner: LearnerConfig::default(),
+            meta: MetaConfig::default(),
+            run: RunConfig::default(),
+            origin: "<defaults>".into(),
+        }
+    }
+}
+
+impl Config {
+    /// Reads `path`, applies `overrides` (`KEY=VALUE`, dotted keys as in the file, TOML values;
+    /// a value that is not TOML is taken as a string) and validates the result.
+    pub fn load(path: &Path, overrides: &[String]) -> Result<Self, ConfigError> {
+        let source = path.display().to_string();
+        let text = std::fs::read_to_string(path)
+            .map_err(|error| ConfigError::Read { origin: source.clone(), error })?;
+        Self::from_toml_str(&text, &source, overrides)
+    }
+
+    /// As [`Config::load`], from text already read; `source` names it in errors.
+    pub fn from_toml_str(text: &str, source: &str, overrides: &[String]) -> Result<Self, ConfigError> {
+        let mut doc = text.parse::<toml_edit::DocumentMut>().map_err(|e| ConfigError::Parse {
+            origin: source.to_string(),
+            message: e.to_string(),
+        })?;
+        for assignment in overrides {
+            apply_override(&mut doc, assignment)?;
+        }
+        let source_desc = if overrides.is_empty() {
+            source.to_string()
+        } else {
+            format!("{source} (with --set {})", overrides.join(" --set "))
+        };
+        let mut config: Config = toml::from_str(&doc.to_string()).map_err(|e| ConfigError::Parse {
+            origin: source_desc.clone(),
+            message: e.to_string().trim_end().to_string(),
+        })?;
+        config.origin = source_desc;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// The config as TOML, every key written out: saved beside datasets and checkpoints.
+    pub fn to_toml_string(&self) -> String {
+        toml::to_string(self).expect("a validated config always serialises")
+    }
+
+    /// A stable 64-bit fingerprint (FNV-1a) of the world: checkpoints and datasets record it so a
+    /// mismatched world is caught before a network or a file is used with it.
+    pub fn world_hash(&self) -> u64 {
+        let text = toml::to_string(&self.world).expect("a world config always serialises");
+        text.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ b as u64).wrapping_mul(0x100_0000_01b3))
+    }
+
+    /// The task called `name`.
+    pub fn task(&self, name: &str) -> Result<&TaskConfig, ConfigError> {
+        self.tasks.iter().find(|t| t.name == name).ok_or_else(|| ConfigError::UnknownTask {
+            origin: self.origin.clone(),
+            name: name.to_string(),
+            known: self.tasks.iter().map(|t| t.name.as_str()).collect::<Vec<_>>().join(", "),
+        })
+    }
+
+    /// The index of the task called `name` in `tasks`, its id in datasets and payloads.
+    pub fn task_id(&self, name: &str) -> Result<usize, ConfigError> {
+        let task = self.task(name)?;
+        Ok(self.tasks.iter().position(|t| std::ptr::eq(t, task)).expect("found above"))
+    }
+
+    pub fn tasks_with_role(&self, role: TaskRole) -> impl Iterator<Item = &TaskConfig> {
+        self.tasks.iter().filter(move |t| t.role == role)
+    }
+
+    /// Checks every constraint a config must meet beyond its types.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let invalid = |key: &str, value: &dyn fmt::Debug, expected: &str| ConfigError::Invalid {
+            origin: self.origin.clone(),
+            key: key.to_string(),
+            value: format!("{value:?}"),
+            expected: expected.to_string(),
+        };
+        let w = &self.world;
+        let cells = (w.grid_cells as usize) * (w.grid_cells as usize);
+        if w.grid_cells == 0 {
+            return Err(invalid("world.grid_cells", &w.grid_cells, "at least 1 cell per side"));
+        }
+        if w.devices == 0 || w.devices > cells {
+            return Err(invalid(
+                "world.devices",
+                &w.devices,
+                &format!("between 1 and the number of cells, grid_cells^2 = {cells}"),
+            ));
+        }
+        if w.devices > MAX_DEVICES {
+            return Err(invalid("world.devices", &w.devices, &format!("at most {MAX_DEVICES}")));
+        }
+        if let Some(device_cells) = &w.device_cells {
+            if device_cells.len() != w.devices {
+                return Err(invalid(
+                    "world.device_cells",
+                    device_cells,
+                    &format!("one cell per device: {} cells (world.devices)", w.devices),
+                ));
+            }
+            for (i, c) in device_cells.iter().enumerate() {
+                if c[0] >= w.grid_cells || c[1] >= w.grid_cells {
+                    return Err(invalid(
+                        &format!("world.device_cells[{i}]"),
+                        c,
+                        &format!("a cell inside the grid, each index below grid_cells = {}", w.grid_cells),
+                    ));
+                }
+                if device_cells[..i].contains(c) {
+                    return Err(invalid(
+                        &format!("world.device_cells[{i}]"),
+                        c,
+                        "a cell no other device occupies",
+                    ));
+                }
+            }
+        }
+        if let Delta::PerDevice(d) = &w.delta {
+            if d.len() != w.devices {
+                return Err(invalid("world.delta", d, &format!("one weight or {} weights", w.devices)));
+            }
+        }
+        if w.delta_per_device().iter().any(|d| !d.is_finite() || *d < 0.0) {
+            return Err(invalid("world.delta", &w.delta, "finite weights >= 0"));
+        }
+        if let Some(c) = w.start_cell {
+            if c[0] >= w.grid_cells || c[1] >= w.grid_cells {
+                return Err(invalid("world.start_cell", &c, "a cell inside the grid"));
+            }
+        }
+        for (key, value) in [
+            ("world.cell_m", w.cell_m),
+            ("world.height_m", w.height_m),
+            ("world.bandwidth_hz", w.bandwidth_hz),
+            ("world.bits", w.bits),
+            ("world.rain_mm_per_h", w.rain_mm_per_h),
+            ("world.rain_phi", w.rain_phi),
+            ("world.rain_varphi", w.rain_varphi),
+        ] {
+            if !value.is_finite() || value < 0.0 {
+                return Err(invalid(key, &value, "a finite number >= 0"));
+            }
+        }
+        for (key, value) in [("world.g0_db", w.g0_db), ("world.noise_dbm", w.noise_dbm)] {
+            if !value.is_finite() {
+                return Err(invalid(key, &value, "a finite number of dB"));
+            }
+        }
+        if w.horizon == 0 {
+            return Err(invalid("world.horizon", &w.horizon, "at least 1 step"));
+        }
+        if w.aoi_max == 0 || w.aoi_max > u16::MAX as u32 {
+            return Err(invalid("world.aoi_max", &w.aoi_max, "between 1 and 65535"));
+        }
+        if self.tasks.is_empty() {
+            return Err(invalid("tasks", &"[]", "at least one [[tasks]] table"));
+        }
+        for (i, t) in self.tasks.iter().enumerate() {
+            if !t.lambda.is_finite() || t.lambda < 0.0 {
+                return Err(invalid(&format!("tasks[{i}].lambda"), &t.lambda, "a finite number >= 0"));
+            }
+            if t.name.is_empty() || self.tasks[..i].iter().any(|o| o.name == t.name) {
+                return Err(invalid(&format!("tasks[{i}].name"), &t.name, "a non-empty name no other task has"));
+            }
+            if let Some(r) = t.rain {
+                if r.x0 > r.x1 || r.y0 > r.y1 || r.x1 >= w.grid_cells || r.y1 >= w.grid_cells {
+                    return Err(invalid(
+                        &format!("tasks[{i}].rain"),
+                        &r,
+                        &format!(
+                            "a rectangle inside the grid: x0 <= x1 < {0}, y0 <= y1 < {0}",
+                            w.grid_cells
+                        ),
+                    ));
+                }
+            }
+            if t.rain_moves_every == Some(0) {
+                return Err(invalid(&format!("tasks[{i}].rain_moves_every"), &0, "at least 1 step"));
+            }
+            if t.rain_moves_every.is_some() && t.rain.is_none() {
+                return Err(invalid(
+                    &format!("tasks[{i}].rain_moves_every"),
+                    &t.rain_moves_every,
+                    "a `rain` zone to move",
+                ));
+            }
+        }
+        let c = &self.collect;
+        if c.transitions == 0 {
+            return Err(invalid("collect.transitions", &c.transitions, "at least 1"));
+        }
+        if c.actors_per_task == 0 {
+            return Err(invalid("collect.actors_per_task", &c.actors_per_task, "at least 1"));
+        }
+        for (key, value) in [("collect.eps_start", c.eps_start), ("collect.eps_end", c.eps_end)] {
+            if !(0.0..=1.0).contains(&value) {
+                return Err(invalid(key, &value, "a probability in [0, 1]"));
+            }
+        }
+        if c.replay_capacity == 0 || c.train_every == 0 {
+            return Err(invalid("collect.replay_capacity / collect.train_every", &(c.replay_capacity, c.train_every), "both at least 1"));
+        }
+        let l = &self.learner;
+        if l.hidden.is_empty() || l.hidden.contains(&0) {
+            return Err(invalid("learner.hidden", &l.hidden, "a non-empty list of widths >= 1"));
+        }
+        if !(0.0..=1.0).contains(&l.gamma) {
+            return Err(invalid("learner.gamma", &l.gamma, "a discount in [0, 1]"));
+        }
+        if !l.alpha.is_finite() || l.alpha < 0.0 {
+            return Err(invalid("learner.alpha", &l.alpha, "a finite number >= 0"));
+        }
+        if l.batch == 0 {
+            return Err(invalid("learner.batch", &l.batch, "at least 1"));
+        }
+        if !l.lr.is_finite() || l.lr <= 0.0 {
+            return Err(invalid("learner.lr", &l.lr, "a learning rate > 0"));
+        }
+        if l.target_update_every == 0 {
+            return Err(invalid("learner.target_update_every", &l.target_update_every, "at least 1"));
+        }
+        let m = &self.meta;
+        if m.shots == 0 || m.query_shots == 0 {
+            return Err(invalid("meta.shots / meta.query_shots", &(m.shots, m.query_shots), "both at least 1"));
+        }
+        if !(m.support_fraction > 0.0 && m.support_fraction < 1.0) {
+            return Err(invalid("meta.support_fraction", &m.support_fraction, "a share strictly between 0 and 1"));
+        }
+        if m.inner_steps == 0 {
+            return Err(invalid("meta.inner_steps", &m.inner_steps, "at least 1"));
+        }
+        for (key, value) in [("meta.eta_inner", m.eta_inner), ("meta.eta_outer", m.eta_outer)] {
+            if !value.is_finite() || value <= 0.0 {
+                return Err(invalid(key, &value, "a learning rate > 0"));
+            }
+        }
+        let r = &self.run;
+        if r.seeds.is_empty() {
+            return Err(invalid("run.seeds", &r.seeds, "at least one seed"));
+        }
+        if r.batch_size == 0 || r.subscriber_buffer == 0 || r.max_publishers == 0 {
+            return Err(invalid(
+                "run.batch_size / run.subscriber_buffer / run.max_publishers",
+                &(r.batch_size, r.subscriber_buffer, r.max_publishers),
+                "all at least 1",
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Applies one `KEY=VALUE` override to the parsed document. `KEY` is dotted (`world.devices`);
+/// a numeric part indexes an array of tables (`tasks.0.lambda`).
+fn apply_override(doc: &mut toml_edit::DocumentMut, assignment: &str) -> Result<(), ConfigError> {
+    let source = format!("--set {assignment}");
+    let err = |message: String| ConfigError::Parse { origin: source.clone(), message };
+    let (key, raw) = assignment
+        .split_once('=')
+        .ok_or_else(|| err("expected KEY=VALUE, e.g. world.devices=20".into()))?;
+    let key = key.trim();
+    let raw = raw.trim();
+    let value = raw
+        .parse::<toml_edit::Value>()
+        .unwrap_or_else(|_| toml_edit::Value::from(raw));
+    let parts: Vec<&str> = key.split('.').collect();
+    if parts.iter().any(|p| p.is_empty()) {
+        return Err(err(format!("key `{key}`: expected dotted names such as world.devices")));
+    }
+    let (last, path) = parts.split_last().expect("split yields at least one part");
+    let mut table: &mut dyn toml_edit::TableLike = doc.as_table_mut();
+    let mut steps = path.iter().peekable();
+    while let Some(part) = steps.next() {
+        if !table.contains_key(part) {
+            table.insert(part, toml_edit::Item::Table(toml_edit::Table::new()));
+        }
+        let item = table.get_mut(part).expect("inserted above");
+        let index = steps.peek().and_then(|p| p.parse::<usize>().ok());
+        table = match index {
+            Some(index) => {
+                steps.next();
+                let tables = item.as_array_of_tables_mut().ok_or_else(|| {
+                    err(format!("key `{key}`: `{part}` is not a list of tables to index"))
+                })?;
+                let len = tables.len();
+                tables.get_mut(index).ok_or_else(|| {
+                    err(format!("key `{key}`: index {index} is out of range; `{part}` has {len} entries"))
+                })?
+            }
+            None => item.as_table_like_mut().ok_or_else(|| {
+                err(format!("key `{key}`: `{part}` is not a table"))
+            })?,
+        };
+    }
+    if last.parse::<usize>().is_ok() {
+        return Err(err(format!("key `{key}`: cannot replace a whole table")));
+    }
+    table.insert(last, toml_edit::Item::Value(value));
+    Ok(())
+}

@@ -1,0 +1,17 @@
+//! The contract between uavmeta's processes, and nothing else.
+//!
+//! - [`config`]: the experiment configuration (SPEC section 7), read from TOML with every SPEC
+//!   default, `--set` overrides and validation errors that name the file, key and value.
+//! - `dataset`: the on-disk dataset format that collectors and the store write and learners read.
+//! - `transport`: the zero-copy payload types and iceoryx2 service names shared by the actor,
+//!   store, meta-learner and evaluator processes, with the schema version they must agree on.
+//!
+//! ```
+//! use uavmeta_proto::config::Config;
+//! let config = Config::from_toml_str("[world]\ndevices = 5", "example.toml", &["tasks.0.lambda=7".into()]).unwrap();
+//! assert_eq!(config.world.observation_len(), 7);
+//! assert_eq!(config.tasks[0].lambda, 7.0);
+//! ```
+
+pub mod config;
+pub mod stats;

@@ -1,0 +1,66 @@
+//! Flags every command shares: the config file, `--set` overrides, and one-off tasks.
+
+use std::path::PathBuf;
+
+use anyhow::Result;
+use clap::Args;
+use uavmeta_proto::config::{Config, RainZone, TaskConfig};
+
+/// `--config FILE` and any number of `--set KEY=VALUE`.
+#[derive(Args, Debug, Clone)]
+pub struct ConfigArgs {
+    /// Experiment config (TOML, SPEC section 7).
+    #[arg(long, default_value = "configs/default.toml")]
+    pub config: PathBuf,
+    /// Override one key, dotted as in the file: `--set world.devices=20`, `--set tasks.0.lambda=50`.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub overrides: Vec<String>,
+}
+
+impl ConfigArgs {
+    pub fn load(&self) -> Result<Config> {
+        Ok(Config::load(&self.config, &self.overrides)?)
+    }
+}
+
+/// `--task NAME`, or a one-off task from `--lambda X [--rain x0,y0,x1,y1]`.
+#[derive(Args, Debug, Clone)]
+pub struct TaskArgs {
+    /// A task named in the config.
+    #[arg(long, conflicts_with = "lambda")]
+    pub task: Option<String>,
+    /// The lambda of a one-off task.
+    #[arg(long)]
+    pub lambda: Option<f64>,
+    /// The rain zone of a one-off task, cells x0,y0,x1,y1 inclusive.
+    #[arg(long, requires = "lambda", value_parser = clap::value_parser!(RainZoneArg))]
+    pub rain: Option<RainZoneArg>,
+}
+
+#[derive(Debug, Clone)]
+pub struct RainZoneArg(pub RainZone);
+
+impl std::str::FromStr for RainZoneArg {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        s.parse().map(RainZoneArg)
+    }
+}
+
+impl TaskArgs {
+    /// The task these flags name, validated against the config's world like a task of the file.
+    pub fn resolve(&self, config: &mut Config) -> Result<TaskConfig> {
+        match (&self.task, self.lambda) {
+            (Some(name), _) => Ok(config.task(name)?.clone()),
+            (None, Some(lambda)) => {
+                let task = TaskConfig::one_off(lambda, self.rain.as_ref().map(|r| r.0));
+                if config.task(&task.name).is_err() {
+                    config.tasks.push(task.clone());
+                    config.validate()?;
+                }
+                Ok(task)
+            }
+            (None, None) => anyhow::bail!("name a task with --task NAME, or define one with --lambda X [--rain x0,y0,x1,y1]"),
+        }
+    }
+}

@@ -1,0 +1,4 @@
+//! One module per subcommand: each parses its flags and calls library code.
+
+pub mod common;
+pub mod env;
