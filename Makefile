@@ -18,7 +18,7 @@ run: build
 	target/release/uavmeta launch --config $(CONFIG)
 
 test: libtorch
-	cargo test --workspace --release --all-targets
+	cargo test --workspace --release
 
 build: libtorch
 	cargo build --release

@@ -302,6 +302,11 @@ pub struct LearnerConfig {
     pub hidden: Vec<usize>,
     /// Discount factor gamma.
     pub gamma: f64,
+    /// Rewards are multiplied by this before any loss sees them. A step costs around 100 (the
+    /// AoI sum alone is K times the mean AoI), so unscaled Q-values reach -10^4 and Adam at
+    /// lr = 1e-3 needs tens of thousands of steps just to move the output that far; 0.01 is the
+    /// paper's own plotting scale (reward / 100). Reported Q-values are divided back.
+    pub reward_scale: f64,
     /// CQL conservative weight alpha (eq. 8).
     pub alpha: f64,
     /// Minibatch size.
@@ -330,6 +335,7 @@ impl Default for LearnerConfig {
         Self {
             hidden: vec![256, 256],
             gamma: 0.99,
+            reward_scale: 0.01,
             alpha: 1.0,
             batch: 64,
             lr: 1e-3,
@@ -360,7 +366,8 @@ pub struct MetaConfig {
     pub meta_epochs: usize,
     /// Tasks sampled per meta-epoch; 0 means every meta-train task.
     pub tasks_per_meta_epoch: usize,
-    /// k: transitions of a task's support set per inner step.
+    /// k: transitions drawn from a task's support set each meta-epoch; every inner step uses the
+    /// same k, as in MAML.
     pub shots: usize,
     /// Transitions of a task's query set per meta-loss evaluation.
     pub query_shots: usize,
@@ -376,6 +383,12 @@ pub struct MetaConfig {
     pub inner_loss: InnerLoss,
     /// Meta-epochs between w0 checkpoints.
     pub checkpoint_every: usize,
+    /// Meta-epochs between refreshes of the target network Qhat from w0; Qhat is held constant
+    /// through the inner and outer losses in between (see `meta/src/maml.rs`).
+    pub target_update_every: usize,
+    /// Meta-epochs between evaluations of each task's adapted greedy policy on its environment
+    /// (costly: `learner.eval_episodes` episodes per task); 0 evaluates only after the last.
+    pub eval_every: usize,
 }
 
 impl Default for MetaConfig {
@@ -392,6 +405,8 @@ impl Default for MetaConfig {
             first_order: false,
             inner_loss: InnerLoss::Cql,
             checkpoint_every: 10,
+            target_update_every: 1,
+            eval_every: 10,
         }
     }
 }
@@ -416,6 +431,9 @@ pub struct RunConfig {
     pub max_publishers: usize,
     /// Restarts of a crashed child before the launcher gives up.
     pub max_restarts: u32,
+    /// Announcements (dataset ready, checkpoint ready, shutdown) a control subscriber buffers;
+    /// also the history a process joining late receives.
+    pub control_buffer: usize,
 }
 
 impl Default for RunConfig {
@@ -429,6 +447,7 @@ impl Default for RunConfig {
             subscriber_buffer: 64,
             max_publishers: 64,
             max_restarts: 5,
+            control_buffer: 256,
         }
     }
 }
@@ -463,8 +482,15 @@ impl Config {
             origin: source.to_string(),
             message: e.to_string(),
         })?;
+        if !doc.contains_key("tasks") && overrides.iter().any(|o| o.trim_start().starts_with("tasks.")) {
+            // The file keeps the default tasks, which are not in the document: write them in so
+            // that `tasks.N.KEY` has a table to index.
+            let defaults: toml_edit::DocumentMut =
+                Config::default().to_toml_string().parse().expect("the default config is valid TOML");
+            doc.insert("tasks", defaults["tasks"].clone());
+        }
         for assignment in overrides {
-            apply_override(&mut doc, assignment)?;
+            apply_override(&mut doc, source, assignment)?;
         }
         let source_desc = if overrides.is_empty() {
             source.to_string()
@@ -651,6 +677,9 @@ impl Config {
         if !(0.0..=1.0).contains(&l.gamma) {
             return Err(invalid("learner.gamma", &l.gamma, "a discount in [0, 1]"));
         }
+        if !l.reward_scale.is_finite() || l.reward_scale <= 0.0 {
+            return Err(invalid("learner.reward_scale", &l.reward_scale, "a finite number > 0"));
+        }
         if !l.alpha.is_finite() || l.alpha < 0.0 {
             return Err(invalid("learner.alpha", &l.alpha, "a finite number >= 0"));
         }
@@ -673,6 +702,13 @@ impl Config {
         if m.inner_steps == 0 {
             return Err(invalid("meta.inner_steps", &m.inner_steps, "at least 1"));
         }
+        if m.checkpoint_every == 0 || m.target_update_every == 0 {
+            return Err(invalid(
+                "meta.checkpoint_every / meta.target_update_every",
+                &(m.checkpoint_every, m.target_update_every),
+                "both at least 1 meta-epoch",
+            ));
+        }
         for (key, value) in [("meta.eta_inner", m.eta_inner), ("meta.eta_outer", m.eta_outer)] {
             if !value.is_finite() || value <= 0.0 {
                 return Err(invalid(key, &value, "a learning rate > 0"));
@@ -681,6 +717,9 @@ impl Config {
         let r = &self.run;
         if r.seeds.is_empty() {
             return Err(invalid("run.seeds", &r.seeds, "at least one seed"));
+        }
+        if r.control_buffer == 0 {
+            return Err(invalid("run.control_buffer", &r.control_buffer, "at least 1"));
         }
         if r.batch_size == 0 || r.subscriber_buffer == 0 || r.max_publishers == 0 {
             return Err(invalid(
@@ -695,8 +734,8 @@ impl Config {
 
 /// Applies one `KEY=VALUE` override to the parsed document. `KEY` is dotted (`world.devices`);
 /// a numeric part indexes an array of tables (`tasks.0.lambda`).
-fn apply_override(doc: &mut toml_edit::DocumentMut, assignment: &str) -> Result<(), ConfigError> {
-    let source = format!("--set {assignment}");
+fn apply_override(doc: &mut toml_edit::DocumentMut, file: &str, assignment: &str) -> Result<(), ConfigError> {
+    let source = format!("{file}: --set {assignment}");
     let err = |message: String| ConfigError::Parse { origin: source.clone(), message };
     let (key, raw) = assignment
         .split_once('=')

@@ -1,6 +1,164 @@
-//! `uavmeta env`: being written.
-use anyhow::Result;
-use clap::Subcommand;
+//! `uavmeta env`: look at the world through a policy's episodes.
+
+use std::io::{self, Write};
+
+use anyhow::{Context, Result};
+use clap::{Args, Subcommand};
+use serde::Serialize;
+use uavmeta_actors::heuristics::PolicySpec;
+use uavmeta_actors::rollout::{rollout, StepRecord};
+use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
+
+use super::common::{ConfigArgs, TaskArgs};
+
 #[derive(Subcommand)]
-pub enum EnvCommand {}
-pub fn run(c: EnvCommand) -> Result<()> { match c {} }
+pub enum EnvCommand {
+    /// Roll out a policy and print each episode's return, AoI, power and outages with their means.
+    Rollout(RolloutArgs),
+}
+
+#[derive(Args)]
+pub struct RolloutArgs {
+    #[command(flatten)]
+    config: ConfigArgs,
+    #[command(flatten)]
+    task: TaskArgs,
+    /// random | stalest | greedy | eps:P | actions:FILE (one action index per line, replayed
+    /// across episodes).
+    #[arg(long, default_value = "stalest", value_parser = clap::value_parser!(PolicySpecArg))]
+    policy: PolicySpecArg,
+    /// Monte-Carlo episodes.
+    #[arg(long, default_value_t = 20)]
+    episodes: usize,
+    /// Seed of the episodes (start cells, rain moves) and of the policy's own randomness.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Print one JSON object per step on stdout; the table then goes to stderr.
+    #[arg(long)]
+    trace: bool,
+    /// Print the summary as JSON on stdout instead of a table.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Clone)]
+struct PolicySpecArg(PolicySpec);
+
+impl std::str::FromStr for PolicySpecArg {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        s.parse().map(PolicySpecArg).map_err(|e| e.to_string())
+    }
+}
+
+pub fn run(command: EnvCommand) -> Result<()> {
+    match command {
+        EnvCommand::Rollout(args) => run_rollout(args),
+    }
+}
+
+/// A step of `--trace`, tagged with its episode.
+#[derive(Serialize)]
+struct TraceLine<'a> {
+    episode: usize,
+    #[serde(flatten)]
+    step: &'a StepRecord<'a>,
+}
+
+/// What `--json` prints.
+#[derive(Serialize)]
+struct Summary<'a> {
+    config: &'a str,
+    task: &'a str,
+    lambda: f64,
+    policy: String,
+    seed: u64,
+    episodes: &'a [EpisodeMetrics],
+    mean: PolicyMetrics,
+}
+
+fn run_rollout(args: RolloutArgs) -> Result<()> {
+    anyhow::ensure!(
+        args.episodes > 0,
+        "--episodes {}: expected at least 1 episode",
+        args.episodes
+    );
+    let mut config = args.config.load()?;
+    let task = args.task.resolve(&mut config)?;
+    let spec = &args.policy.0;
+    let steps = args.episodes * config.world.horizon as usize;
+    let mut policy = spec.build(config.world.action_count(), args.seed, steps)?;
+
+    let stdout = io::stdout();
+    let mut out = io::BufWriter::new(stdout.lock());
+    let mut trace_error = None;
+    let episodes = rollout(
+        &config.world,
+        &task,
+        policy.as_mut(),
+        args.episodes,
+        args.seed,
+        |episode, step| {
+            if args.trace && trace_error.is_none() {
+                let line = TraceLine { episode, step };
+                if let Err(e) = serde_json::to_writer(&mut out, &line)
+                    .map_err(io::Error::from)
+                    .and_then(|()| writeln!(out))
+                {
+                    trace_error = Some(e);
+                }
+            }
+        },
+    );
+    if let Some(e) = trace_error {
+        return Err(e).context("writing the trace");
+    }
+    let mean = PolicyMetrics::from_episodes(&episodes);
+
+    if args.json {
+        let summary = Summary {
+            config: &config.origin,
+            task: &task.name,
+            lambda: task.lambda,
+            policy: spec.to_string(),
+            seed: args.seed,
+            episodes: &episodes,
+            mean,
+        };
+        serde_json::to_writer(&mut out, &summary)?;
+        writeln!(out)?;
+    } else {
+        let header = format!(
+            "{} on task {} (lambda = {}), seed {}, {} episodes of {} steps",
+            spec, task.name, task.lambda, args.seed, args.episodes, config.world.horizon
+        );
+        let table = table(&header, &episodes, &mean);
+        if args.trace {
+            out.flush()?;
+            eprint!("{table}");
+        } else {
+            write!(out, "{table}")?;
+        }
+    }
+    out.flush()?;
+    Ok(())
+}
+
+/// The per-episode rows and the means with their 95% confidence half-widths.
+fn table(header: &str, episodes: &[EpisodeMetrics], mean: &PolicyMetrics) -> String {
+    let mut s = format!(
+        "{header}\n{:>8} {:>12} {:>9} {:>11} {:>8}\n",
+        "episode", "return", "AoI", "power mW", "outages"
+    );
+    for (i, e) in episodes.iter().enumerate() {
+        s += &format!(
+            "{:>8} {:>12.2} {:>9.3} {:>11.4} {:>8}\n",
+            i, e.ret, e.aoi, e.power_mw, e.outages
+        );
+    }
+    s += &format!(
+        "mean ± 95% CI: return {:.2}, AoI {:.3}, power {:.4} mW, outages {:.2}\n",
+        mean.ret, mean.aoi, mean.power_mw, mean.outages
+    );
+    s
+}

@@ -1,0 +1,308 @@
+//! Heuristic behaviour policies: the baselines that calibrate every learning curve, and the
+//! `--policy` parser that names them.
+//!
+//! - [`RandomPolicy`]: uniform over the 5K actions.
+//! - [`StalestPolicy`]: serve the device with the largest delta_k A_k, fly towards it.
+//! - [`GreedyPolicy`]: serve the device that makes this step cheapest, fly towards the stalest.
+//! - [`EpsilonPolicy`]: stalest, with a uniform random action with probability P.
+//! - [`ReplayPolicy`]: a fixed list of action indices read from a file.
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use crate::rollout::Policy;
+use crate::world::{Move, World};
+
+/// A policy that cannot be parsed or built.
+#[derive(Debug, thiserror::Error)]
+pub enum PolicyError {
+    #[error("policy `{spec}`: {expected}")]
+    Spec { spec: String, expected: String },
+    #[error("{path}: cannot read: {error}")]
+    Read {
+        path: PathBuf,
+        error: std::io::Error,
+    },
+    #[error("{path}, line {line}: `{value}`: expected an action index below {actions}")]
+    Line {
+        path: PathBuf,
+        line: usize,
+        value: String,
+        actions: usize,
+    },
+    #[error("{path}: holds {have} actions, but the rollout needs {need}")]
+    TooShort {
+        path: PathBuf,
+        have: usize,
+        need: usize,
+    },
+}
+
+/// Uniform random actions from a seeded stream.
+#[derive(Debug, Clone)]
+pub struct RandomPolicy {
+    rng: ChaCha8Rng,
+}
+
+impl RandomPolicy {
+    pub fn new(seed: u64) -> Self {
+        Self {
+            rng: ChaCha8Rng::seed_from_u64(seed),
+        }
+    }
+}
+
+impl Policy for RandomPolicy {
+    fn act(&mut self, world: &World) -> usize {
+        self.rng.random_range(0..world.action_count())
+    }
+}
+
+/// Serve the device with the largest delta_k A_k (ties to the lowest index) and fly towards it.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct StalestPolicy;
+
+impl Policy for StalestPolicy {
+    fn act(&mut self, world: &World) -> usize {
+        let device = stalest_device(world);
+        towards(world, device).index() * world.devices() + device
+    }
+}
+
+/// Serve the device that minimises this step's cost from the current cell (ties to the lowest
+/// index); fly towards the stalest device, which the next steps will want to serve.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct GreedyPolicy;
+
+impl Policy for GreedyPolicy {
+    fn act(&mut self, world: &World) -> usize {
+        let device = (0..world.devices())
+            .map(|k| (k, world.cost_of(k)))
+            .fold(
+                (0, f64::INFINITY),
+                |best, (k, c)| if c < best.1 { (k, c) } else { best },
+            )
+            .0;
+        towards(world, stalest_device(world)).index() * world.devices() + device
+    }
+}
+
+/// Stalest with probability 1 - epsilon, uniform random with probability epsilon.
+#[derive(Debug, Clone)]
+pub struct EpsilonPolicy {
+    epsilon: f64,
+    coin: ChaCha8Rng,
+    random: RandomPolicy,
+}
+
+impl EpsilonPolicy {
+    /// `epsilon` in [0, 1].
+    pub fn new(epsilon: f64, seed: u64) -> Self {
+        let mut coin = ChaCha8Rng::seed_from_u64(seed);
+        // A stream of its own, so the coin flips do not shift the random actions.
+        coin.set_stream(1);
+        Self {
+            epsilon,
+            coin,
+            random: RandomPolicy::new(seed),
+        }
+    }
+}
+
+impl Policy for EpsilonPolicy {
+    fn act(&mut self, world: &World) -> usize {
+        if self.coin.random_bool(self.epsilon) {
+            self.random.act(world)
+        } else {
+            StalestPolicy.act(world)
+        }
+    }
+}
+
+/// Replays a fixed list of action indices, continuing across episodes.
+#[derive(Debug, Clone)]
+pub struct ReplayPolicy {
+    actions: Vec<usize>,
+    next: usize,
+}
+
+impl ReplayPolicy {
+    /// Replays `actions` in order.
+    pub fn new(actions: Vec<usize>) -> Self {
+        Self { actions, next: 0 }
+    }
+
+    /// Reads one action index per line (blank lines are skipped); each must be below
+    /// `action_count`.
+    pub fn from_file(path: &Path, action_count: usize) -> Result<Self, PolicyError> {
+        let text = std::fs::read_to_string(path).map_err(|error| PolicyError::Read {
+            path: path.to_path_buf(),
+            error,
+        })?;
+        let actions = text
+            .lines()
+            .enumerate()
+            .filter(|(_, line)| !line.trim().is_empty())
+            .map(|(i, line)| {
+                let value = line.trim();
+                value
+                    .parse::<usize>()
+                    .ok()
+                    .filter(|&a| a < action_count)
+                    .ok_or_else(|| PolicyError::Line {
+                        path: path.to_path_buf(),
+                        line: i + 1,
+                        value: value.to_string(),
+                        actions: action_count,
+                    })
+            })
+            .collect::<Result<_, _>>()?;
+        Ok(Self::new(actions))
+    }
+
+    /// Actions the list holds.
+    pub fn len(&self) -> usize {
+        self.actions.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.actions.is_empty()
+    }
+}
+
+impl Policy for ReplayPolicy {
+    /// Panics past the end of the list: [`PolicySpec::build`] checks the length up front.
+    fn act(&mut self, _world: &World) -> usize {
+        let action = *self
+            .actions
+            .get(self.next)
+            .unwrap_or_else(|| panic!("replayed all {} actions", self.actions.len()));
+        self.next += 1;
+        action
+    }
+}
+
+/// A behaviour policy named on the command line or in `collect.policy`.
+#[derive(Debug, Clone, PartialEq)]
+pub enum PolicySpec {
+    Random,
+    Stalest,
+    Greedy,
+    /// `eps:P`
+    Epsilon(f64),
+    /// `actions:FILE`
+    Actions(PathBuf),
+    /// `dqn-online`: an online DQN agent (`crate::dqn_online`), which learns in the task's world
+    /// and is therefore trained by `collect`, not built here.
+    DqnOnline,
+}
+
+const SPEC_FORMS: &str = "random, stalest, greedy, dqn-online, eps:P (0 <= P <= 1) or actions:FILE";
+
+impl FromStr for PolicySpec {
+    type Err = PolicyError;
+
+    fn from_str(s: &str) -> Result<Self, PolicyError> {
+        let bad = |expected: String| PolicyError::Spec {
+            spec: s.to_string(),
+            expected,
+        };
+        match s.split_once(':') {
+            None => match s {
+                "random" => Ok(Self::Random),
+                "stalest" => Ok(Self::Stalest),
+                "greedy" => Ok(Self::Greedy),
+                "dqn-online" => Ok(Self::DqnOnline),
+                _ => Err(bad(format!("expected {SPEC_FORMS}"))),
+            },
+            Some(("eps", p)) => match p.trim().parse::<f64>() {
+                Ok(p) if (0.0..=1.0).contains(&p) => Ok(Self::Epsilon(p)),
+                _ => Err(bad(format!(
+                    "`{p}` is not a probability: expected eps:P with 0 <= P <= 1"
+                ))),
+            },
+            Some(("actions", "")) => Err(bad("expected a file after `actions:`".into())),
+            Some(("actions", file)) => Ok(Self::Actions(PathBuf::from(file))),
+            Some(_) => Err(bad(format!("expected {SPEC_FORMS}"))),
+        }
+    }
+}
+
+impl fmt::Display for PolicySpec {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Random => write!(f, "random"),
+            Self::Stalest => write!(f, "stalest"),
+            Self::Greedy => write!(f, "greedy"),
+            Self::Epsilon(p) => write!(f, "eps:{p}"),
+            Self::Actions(path) => write!(f, "actions:{}", path.display()),
+            Self::DqnOnline => write!(f, "dqn-online"),
+        }
+    }
+}
+
+impl PolicySpec {
+    /// The policy, its random stream seeded by `seed`, for a world of `action_count` actions that
+    /// will be asked for `steps` actions in all (a replayed list must hold that many).
+    pub fn build(
+        &self,
+        action_count: usize,
+        seed: u64,
+        steps: usize,
+    ) -> Result<Box<dyn Policy>, PolicyError> {
+        Ok(match self {
+            Self::Random => Box::new(RandomPolicy::new(seed)),
+            Self::Stalest => Box::new(StalestPolicy),
+            Self::Greedy => Box::new(GreedyPolicy),
+            Self::Epsilon(p) => Box::new(EpsilonPolicy::new(*p, seed)),
+            Self::Actions(path) => {
+                let replay = ReplayPolicy::from_file(path, action_count)?;
+                if replay.len() < steps {
+                    return Err(PolicyError::TooShort { path: path.clone(), have: replay.len(), need: steps });
+                }
+                Box::new(replay)
+            }
+            Self::DqnOnline => {
+                return Err(PolicyError::Spec {
+                    spec: self.to_string(),
+                    expected: "a fixed policy; dqn-online must first be trained in the task's world (`uavmeta collect --policy dqn-online`)".into(),
+                })
+            }
+        })
+    }
+}
+
+/// The device with the largest delta_k A_k, ties to the lowest index.
+fn stalest_device(world: &World) -> usize {
+    world
+        .aoi()
+        .iter()
+        .zip(world.delta())
+        .map(|(&a, &d)| d * a as f64)
+        .enumerate()
+        .fold((0, f64::NEG_INFINITY), |best, (k, v)| {
+            if v > best.1 {
+                (k, v)
+            } else {
+                best
+            }
+        })
+        .0
+}
+
+/// One step towards `device`'s cell, x first; hover above it.
+fn towards(world: &World, device: usize) -> Move {
+    let (ux, uy) = world.uav();
+    let (dx, dy) = world.device_cells()[device];
+    match (ux.cmp(&dx), uy.cmp(&dy)) {
+        (std::cmp::Ordering::Less, _) => Move::East,
+        (std::cmp::Ordering::Greater, _) => Move::West,
+        (_, std::cmp::Ordering::Less) => Move::North,
+        (_, std::cmp::Ordering::Greater) => Move::South,
+        _ => Move::Hover,
+    }
+}

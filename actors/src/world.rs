@@ -1,0 +1,403 @@
+//! The UAV world of one task: SPEC section 1 (grid, devices, channel, AoI, reward) and section 3
+//! (rain zones and outages).
+//!
+//! Everything that depends only on the UAV's cell and the scheduled device — the power the device
+//! needs, with and without rain — is computed once in [`World::new`] into per-cell tables, so a
+//! [`World::step`] is two table lookups, one pass over the K AoI counters and a move: it never
+//! allocates.
+//!
+//! Two choices SPEC leaves open are made here:
+//! - `power_term = "all_devices"` charges the sum over all K devices of the power each would need
+//!   at the UAV's cell; when the UAV is in rain, every one of those powers is rain-attenuated (each
+//!   device would transmit through the same rain), while the outage is still that of the
+//!   scheduled device's transmission.
+//! - A task with `rain_moves_every = N` starts every episode with its configured zone and moves
+//!   it after every N-th step of the episode to a uniformly random place of the same size, drawn
+//!   from the world's seeded RNG.
+
+use std::sync::Arc;
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+use uavmeta_proto::config::{PowerTerm, RainZone, TaskConfig, WorldConfig};
+
+/// The UAV's move in one step. An action index is `move * K + device`, moves in this order.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Move {
+    /// (0, +1)
+    North,
+    /// (0, -1)
+    South,
+    /// (+1, 0)
+    East,
+    /// (-1, 0)
+    West,
+    /// (0, 0)
+    Hover,
+}
+
+impl Move {
+    /// Every move in action-index order.
+    pub const ALL: [Move; 5] = [
+        Move::North,
+        Move::South,
+        Move::East,
+        Move::West,
+        Move::Hover,
+    ];
+
+    /// The move of action-index block `index` (0..5).
+    pub fn from_index(index: usize) -> Move {
+        Self::ALL[index]
+    }
+
+    /// This move's block in the action index, `a = index * K + device`.
+    pub fn index(self) -> usize {
+        self as usize
+    }
+}
+
+/// What one step did.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Step {
+    /// r(t) = -( sum_j delta_j A_j + (lambda / K) * P_mW ).
+    pub reward: f64,
+    /// The power charged in this step, in milliwatts (rain-attenuated in outage).
+    pub power_mw: f64,
+    /// The UAV was inside a rain zone, so the transmission failed.
+    pub outage: bool,
+    /// The scheduled device w(t).
+    pub device: usize,
+    /// The move made after the transmission.
+    pub mv: Move,
+    /// Mean over devices of A_j after the AoI update: an episode's AoI metric averages this.
+    pub aoi_mean: f64,
+    /// The step counter reached the horizon: the episode ends by time limit, not in a terminal
+    /// state.
+    pub truncated: bool,
+}
+
+/// One task's environment. A clone shares the power tables; [`World::reseed`] gives it episodes
+/// of its own.
+#[derive(Debug, Clone)]
+pub struct World {
+    grid: u32,
+    devices: usize,
+    horizon: u32,
+    aoi_max: u16,
+    delta: Vec<f64>,
+    /// The one delta of every device, if they share it: the AoI cost is then delta times the
+    /// integer sum of the AoI, a loop the compiler vectorises.
+    uniform_delta: Option<f64>,
+    /// (move, device) of every action index, sparing the step an integer division.
+    action_parts: Vec<(Move, u32)>,
+    /// lambda / K: the reward's weight of one milliwatt.
+    power_weight: f64,
+    device_cells: Vec<(u32, u32)>,
+    start_cell: Option<(u32, u32)>,
+    /// Milliwatts charged when device k is scheduled with the UAV above cell c, at `[c * K + k]`;
+    /// with `power_term = "all_devices"` every k of a cell holds the cell's total. Shared by clones,
+    /// so a batch of worlds of one task keeps one copy in cache.
+    clear_mw: Arc<[f64]>,
+    /// As `clear_mw`, with every power rain-attenuated.
+    rain_mw: Arc<[f64]>,
+    task_rain: Option<RainZone>,
+    rain: Option<RainZone>,
+    rain_moves_every: Option<u32>,
+    /// 1 / (L-1), 1 / (L-1), 1 / aoi_max, ...: turns the raw observation into the network input.
+    inv_scale: Vec<f32>,
+    rng: ChaCha8Rng,
+    t: u32,
+    /// s(t) = [x_u, y_u, A_1..A_K].
+    obs: Vec<u16>,
+}
+
+impl World {
+    /// The world of `task` under `world`, whose episodes draw their randomness (start cells, rain
+    /// moves) from `seed`. The config must have passed `Config::validate`.
+    pub fn new(world: &WorldConfig, task: &TaskConfig, seed: u64) -> World {
+        let k = world.devices;
+        let grid = world.grid_cells;
+        let device_cells = match &world.device_cells {
+            Some(cells) => cells.iter().map(|c| (c[0], c[1])).collect(),
+            None => draw_layout(grid, k, world.layout_seed),
+        };
+
+        // SPEC section 1, step 1: P = (2^(M/B) - 1) * sigma^2 / g0 * (h^2 + d^2), in watts.
+        let noise_w = 10f64.powf((world.noise_dbm - 30.0) / 10.0);
+        let g0 = 10f64.powf(world.g0_db / 10.0);
+        let watts_per_m2 = (2f64.powf(world.bits / world.bandwidth_hz) - 1.0) * noise_w / g0;
+        // SPEC section 3: rain multiplies the power by 10^(gamma_R * d_slant_km / 10).
+        let gamma_r = world.rain_attenuation_db_per_km();
+        let h2 = world.height_m * world.height_m;
+        let cells = (grid as usize) * (grid as usize);
+        let mut clear_mw = vec![0.0; cells * k];
+        let mut rain_mw = vec![0.0; cells * k];
+        for c in 0..cells {
+            let (ux, uy) = (c as u32 % grid, c as u32 / grid);
+            for (j, &(dx, dy)) in device_cells.iter().enumerate() {
+                // Cell centres are ((i + 0.5) r, (j + 0.5) r): the half cells cancel.
+                let ex = (ux as f64 - dx as f64) * world.cell_m;
+                let ey = (uy as f64 - dy as f64) * world.cell_m;
+                let slant2 = h2 + ex * ex + ey * ey;
+                let mw = watts_per_m2 * slant2 * 1e3;
+                clear_mw[c * k + j] = mw;
+                rain_mw[c * k + j] = mw * 10f64.powf(gamma_r * slant2.sqrt() / 1e3 / 10.0);
+            }
+            if world.power_term == PowerTerm::AllDevices {
+                for table in [&mut clear_mw, &mut rain_mw] {
+                    let row = &mut table[c * k..(c + 1) * k];
+                    let total: f64 = row.iter().sum();
+                    row.fill(total);
+                }
+            }
+        }
+
+        let inv_scale = world.observation_scale().iter().map(|s| 1.0 / s).collect();
+        let delta = world.delta_per_device();
+        let uniform_delta = delta.iter().all(|&d| d == delta[0]).then_some(delta[0]);
+        let action_parts = (0..5 * k)
+            .map(|a| (Move::from_index(a / k), (a % k) as u32))
+            .collect();
+        let mut w = World {
+            grid,
+            devices: k,
+            horizon: world.horizon,
+            aoi_max: world.aoi_max as u16,
+            delta,
+            uniform_delta,
+            action_parts,
+            power_weight: task.lambda / k as f64,
+            device_cells,
+            start_cell: world.start_cell.map(|c| (c[0], c[1])),
+            clear_mw: clear_mw.into(),
+            rain_mw: rain_mw.into(),
+            task_rain: task.rain,
+            rain: task.rain,
+            rain_moves_every: task.rain_moves_every,
+            inv_scale,
+            rng: ChaCha8Rng::seed_from_u64(seed),
+            t: 0,
+            obs: vec![0; 2 + k],
+        };
+        w.reset();
+        w
+    }
+
+    /// Restarts the world's random stream, so the next episodes are those of `seed`.
+    pub fn reseed(&mut self, seed: u64) {
+        self.rng = ChaCha8Rng::seed_from_u64(seed);
+    }
+
+    /// A new episode: the start cell (fixed, or uniform at random), every A_k = 1, t = 0, and the
+    /// task's own rain zone.
+    pub fn reset(&mut self) {
+        let (x, y) = match self.start_cell {
+            Some(cell) => cell,
+            None => (
+                self.rng.random_range(0..self.grid),
+                self.rng.random_range(0..self.grid),
+            ),
+        };
+        self.obs[0] = x as u16;
+        self.obs[1] = y as u16;
+        self.obs[2..].fill(1);
+        self.rain = self.task_rain;
+        self.t = 0;
+    }
+
+    /// The raw observation s(t) = [x_u, y_u, A_1..A_K].
+    pub fn observation(&self) -> &[u16] {
+        &self.obs
+    }
+
+    /// The observation as the networks see it: x/(L-1), y/(L-1), A/aoi_max.
+    pub fn write_normalised(&self, out: &mut [f32]) {
+        assert_eq!(
+            out.len(),
+            self.obs.len(),
+            "normalised observation buffer length"
+        );
+        for ((o, &raw), &inv) in out.iter_mut().zip(&self.obs).zip(&self.inv_scale) {
+            *o = raw as f32 * inv;
+        }
+    }
+
+    /// One step of SPEC section 1 with action `a = move * K + device`.
+    pub fn step(&mut self, action: usize) -> Step {
+        let Some(&(mv, device)) = self.action_parts.get(action) else {
+            panic!("action {action} is not below {}", self.action_count());
+        };
+        let device = device as usize;
+
+        // 1-2. The scheduled device transmits; in rain it is in outage and spends more.
+        let (power_mw, outage) = self.transmission(device);
+
+        // 3. Every AoI ages by one, then the device heard from restarts at 1.
+        let cap = self.aoi_max;
+        // At most 64 devices of at most 65535 each: the sum fits in u32.
+        let mut total = 0u32;
+        for a in self.obs[2..].iter_mut() {
+            *a = a.saturating_add(1).min(cap);
+            total += *a as u32;
+        }
+        if !outage {
+            let a = &mut self.obs[2 + device];
+            total -= (*a - 1) as u32;
+            *a = 1;
+        }
+        let weighted = match self.uniform_delta {
+            Some(d) => d * total as f64,
+            None => self.obs[2..]
+                .iter()
+                .zip(&self.delta)
+                .map(|(&a, &d)| d * a as f64)
+                .sum(),
+        };
+
+        // 4. Reward.
+        let reward = -self.cost(weighted, power_mw);
+
+        // 5. The move; one that would leave the grid leaves the UAV where it is (P1b).
+        let (x, y) = (self.obs[0], self.obs[1]);
+        let last = (self.grid - 1) as u16;
+        match mv {
+            Move::North if y < last => self.obs[1] = y + 1,
+            Move::South if y > 0 => self.obs[1] = y - 1,
+            Move::East if x < last => self.obs[0] = x + 1,
+            Move::West if x > 0 => self.obs[0] = x - 1,
+            _ => {}
+        }
+
+        self.t += 1;
+        if let Some(every) = self.rain_moves_every {
+            if self.t % every == 0 {
+                self.move_rain();
+            }
+        }
+        Step {
+            reward,
+            power_mw,
+            outage,
+            device,
+            mv,
+            aoi_mean: total as f64 / self.devices as f64,
+            truncated: self.t >= self.horizon,
+        }
+    }
+
+    /// This step's cost -r(t) if `device` were scheduled now. The move happens after the
+    /// transmission, so it does not enter; the greedy heuristic minimises this.
+    pub fn cost_of(&self, device: usize) -> f64 {
+        let (power_mw, outage) = self.transmission(device);
+        let cap = self.aoi_max;
+        let aged = |a: u16| a.saturating_add(1).min(cap);
+        let mut weighted: f64 = self.obs[2..]
+            .iter()
+            .zip(&self.delta)
+            .map(|(&a, &d)| d * aged(a) as f64)
+            .sum();
+        if !outage {
+            weighted -= self.delta[device] * (aged(self.obs[2 + device]) - 1) as f64;
+        }
+        self.cost(weighted, power_mw)
+    }
+
+    /// sum_j delta_j A_j + (lambda / K) * P_mW: the negative reward (step 4).
+    fn cost(&self, weighted_aoi: f64, power_mw: f64) -> f64 {
+        weighted_aoi + self.power_weight * power_mw
+    }
+
+    /// Steps 1-2: the power charged for scheduling `device` from the current cell, and whether the
+    /// transmission is in outage.
+    fn transmission(&self, device: usize) -> (f64, bool) {
+        let (x, y) = (self.obs[0] as u32, self.obs[1] as u32);
+        let at = (y * self.grid + x) as usize * self.devices + device;
+        if self.rain.is_some_and(|z| z.contains(x, y)) {
+            (self.rain_mw[at], true)
+        } else {
+            (self.clear_mw[at], false)
+        }
+    }
+
+    /// Places the rain zone uniformly at random, keeping its size.
+    fn move_rain(&mut self) {
+        if let Some(z) = self.rain {
+            let (w, h) = (z.x1 - z.x0, z.y1 - z.y0);
+            let x0 = self.rng.random_range(0..self.grid - w);
+            let y0 = self.rng.random_range(0..self.grid - h);
+            self.rain = Some(RainZone {
+                x0,
+                y0,
+                x1: x0 + w,
+                y1: y0 + h,
+            });
+        }
+    }
+
+    /// Steps taken in this episode.
+    pub fn t(&self) -> u32 {
+        self.t
+    }
+
+    /// The UAV's cell (x, y).
+    pub fn uav(&self) -> (u32, u32) {
+        (self.obs[0] as u32, self.obs[1] as u32)
+    }
+
+    /// A_1..A_K.
+    pub fn aoi(&self) -> &[u16] {
+        &self.obs[2..]
+    }
+
+    /// delta_1..delta_K.
+    pub fn delta(&self) -> &[f64] {
+        &self.delta
+    }
+
+    pub fn device_cells(&self) -> &[(u32, u32)] {
+        &self.device_cells
+    }
+
+    /// The rain zone now (it moves during an episode if the task says so).
+    pub fn rain_zone(&self) -> Option<RainZone> {
+        self.rain
+    }
+
+    /// K.
+    pub fn devices(&self) -> usize {
+        self.devices
+    }
+
+    /// 5K.
+    pub fn action_count(&self) -> usize {
+        5 * self.devices
+    }
+
+    /// Cells per side, L.
+    pub fn grid_cells(&self) -> u32 {
+        self.grid
+    }
+
+    /// T.
+    pub fn horizon(&self) -> u32 {
+        self.horizon
+    }
+}
+
+/// K distinct cells from `layout_seed` alone (a partial Fisher-Yates shuffle of the cells), so
+/// every task of an experiment shares the layout whatever its own seed.
+fn draw_layout(grid: u32, devices: usize, layout_seed: u64) -> Vec<(u32, u32)> {
+    let mut rng = ChaCha8Rng::seed_from_u64(layout_seed);
+    let mut cells: Vec<u32> = (0..grid * grid).collect();
+    for i in 0..devices {
+        let j = rng.random_range(i..cells.len());
+        cells.swap(i, j);
+    }
+    cells[..devices]
+        .iter()
+        .map(|&c| (c % grid, c / grid))
+        .collect()
+}

@@ -1,0 +1,266 @@
+//! Config files as users write them: SPEC defaults, `--set` overrides, and every validation error
+//! naming the file, the key and the value.
+
+use std::io::Write;
+use std::path::PathBuf;
+
+use uavmeta_proto::config::{Config, PowerTerm, TaskRole};
+
+/// Writes `text` to a temporary file and loads it with `overrides`; returns the file's path with
+/// the result so errors can be checked for it.
+fn load(text: &str, overrides: &[&str]) -> (PathBuf, Result<Config, String>) {
+    let mut file = tempfile::Builder::new()
+        .suffix(".toml")
+        .tempfile()
+        .expect("temp file");
+    file.write_all(text.as_bytes()).expect("write temp config");
+    let path = file.path().to_path_buf();
+    let overrides: Vec<String> = overrides.iter().map(|s| s.to_string()).collect();
+    let result = Config::load(&path, &overrides).map_err(|e| e.to_string());
+    (path, result)
+}
+
+/// The error of `text`, which must name the file and every one of `parts`.
+fn error_of(text: &str, overrides: &[&str], parts: &[&str]) -> String {
+    let (path, result) = load(text, overrides);
+    let message = result.expect_err("config should be rejected");
+    assert!(
+        message.contains(&path.display().to_string()),
+        "no file name in: {message}"
+    );
+    for part in parts {
+        assert!(message.contains(part), "`{part}` missing from: {message}");
+    }
+    message
+}
+
+#[test]
+fn more_devices_than_cells() {
+    error_of(
+        "[world]\ngrid_cells = 2\ndevices = 5\n",
+        &[],
+        &["world.devices", "5", "4"],
+    );
+}
+
+#[test]
+fn two_devices_on_one_cell() {
+    error_of(
+        "[world]\ndevices = 3\ndevice_cells = [[0, 0], [4, 2], [4, 2]]\n",
+        &[],
+        &["world.device_cells[2]", "[4, 2]", "no other device"],
+    );
+}
+
+#[test]
+fn device_outside_the_grid() {
+    error_of(
+        "[world]\ndevices = 1\ndevice_cells = [[3, 10]]\n",
+        &[],
+        &["world.device_cells[0]", "[3, 10]"],
+    );
+}
+
+#[test]
+fn device_cells_length_must_match_devices() {
+    error_of(
+        "[world]\ndevices = 3\ndevice_cells = [[0, 0], [1, 1]]\n",
+        &[],
+        &["world.device_cells", "[[0, 0], [1, 1]]", "3"],
+    );
+}
+
+#[test]
+fn rain_zone_outside_the_grid() {
+    let text = "[[tasks]]\nname = \"wet\"\nlambda = 300.0\nrole = \"meta-test\"\nrain = { x0 = 8, y0 = 2, x1 = 10, y1 = 3 }\n";
+    error_of(text, &[], &["tasks[0].rain", "x1: 10", "inside the grid"]);
+}
+
+#[test]
+fn negative_lambda() {
+    let text = "[[tasks]]\nname = \"a\"\nlambda = 1.0\nrole = \"meta-train\"\n\n[[tasks]]\nname = \"b\"\nlambda = -5.0\nrole = \"meta-test\"\n";
+    error_of(text, &[], &["tasks[1].lambda", "-5", ">= 0"]);
+}
+
+#[test]
+fn unknown_key() {
+    error_of(
+        "[world]\ndevices = 10\nheight = 120.0\n",
+        &[],
+        &["height", "120.0", "unknown field"],
+    );
+}
+
+#[test]
+fn wrong_type() {
+    error_of(
+        "[world]\ndevices = \"ten\"\n",
+        &[],
+        &["devices", "\"ten\"", "invalid type"],
+    );
+}
+
+#[test]
+fn bad_set_overrides() {
+    error_of(
+        "",
+        &["world.devices"],
+        &["--set world.devices", "KEY=VALUE"],
+    );
+    error_of(
+        "",
+        &["world.devices=many"],
+        &["--set world.devices=many", "devices", "many"],
+    );
+    error_of(
+        "",
+        &["world..devices=3"],
+        &["--set world..devices=3", "dotted"],
+    );
+    error_of(
+        "",
+        &["tasks.99.lambda=1"],
+        &["--set tasks.99.lambda=1", "99", "out of range"],
+    );
+    error_of(
+        "",
+        &["world.nonsense=1"],
+        &["--set world.nonsense=1", "nonsense", "unknown field"],
+    );
+    error_of(
+        "",
+        &["tasks.0.lambda=-2"],
+        &["--set tasks.0.lambda=-2", "tasks[0].lambda", "-2"],
+    );
+}
+
+#[test]
+fn an_empty_file_has_the_spec_defaults() {
+    let (path, result) = load("", &[]);
+    let c = result.expect("an empty file is a valid config");
+    assert_eq!(c.origin, path.display().to_string());
+    let w = &c.world;
+    assert_eq!(
+        (w.grid_cells, w.cell_m, w.devices, w.height_m),
+        (10, 100.0, 10, 100.0)
+    );
+    assert_eq!(
+        (w.horizon, w.aoi_max, w.start_cell, w.device_cells.clone()),
+        (100, 100, None, None)
+    );
+    assert_eq!(
+        (w.g0_db, w.bandwidth_hz, w.bits, w.noise_dbm),
+        (-30.0, 1e6, 5e6, -100.0)
+    );
+    assert_eq!(w.power_term, PowerTerm::Scheduled);
+    assert_eq!(w.delta_per_device(), vec![1.0; 10]);
+    assert!((w.rain_attenuation_db_per_km() - 2.36).abs() < 0.01);
+    let train: Vec<f64> = c
+        .tasks_with_role(TaskRole::MetaTrain)
+        .map(|t| t.lambda)
+        .collect();
+    assert_eq!(
+        train,
+        [0.0, 100.0, 200.0, 400.0, 500.0, 600.0, 800.0, 1000.0]
+    );
+    let test: Vec<f64> = c
+        .tasks_with_role(TaskRole::MetaTest)
+        .map(|t| t.lambda)
+        .collect();
+    assert_eq!(test, [300.0]);
+    assert_eq!(
+        (c.learner.hidden.clone(), c.learner.gamma, c.learner.alpha),
+        (vec![256, 256], 0.99, 1.0)
+    );
+    assert_eq!(
+        (c.meta.meta_epochs, c.meta.eta_inner, c.meta.eta_outer),
+        (150, 1e-2, 1e-3)
+    );
+}
+
+#[test]
+fn a_file_names_only_what_it_changes() {
+    let text = "[world]\ndevices = 4\ndevice_cells = [[0, 0], [1, 0], [2, 0], [3, 3]]\n\n\
+                [[tasks]]\nname = \"wet\"\nlambda = 250.0\nrole = \"meta-test\"\n\
+                rain = { x0 = 1, y0 = 1, x1 = 2, y1 = 2 }\nrain_moves_every = 5\n";
+    let c = load(text, &[]).1.expect("valid config");
+    assert_eq!(
+        c.world.device_cells.as_deref(),
+        Some(&[[0, 0], [1, 0], [2, 0], [3, 3]][..])
+    );
+    assert_eq!(c.world.horizon, 100);
+    let wet = c.task("wet").expect("task defined");
+    assert_eq!((wet.lambda, wet.rain_moves_every), (250.0, Some(5)));
+    assert!(wet.rain.expect("rain zone").contains(2, 1));
+    assert_eq!(c.tasks.len(), 1);
+}
+
+#[test]
+fn set_overrides_dotted_keys_and_task_entries() {
+    let c = load(
+        "[world]\ndevices = 4\n",
+        &[
+            "world.devices=20",
+            "tasks.0.lambda=7.5",
+            "world.power_term=all_devices",
+            "meta.first_order=true",
+        ],
+    )
+    .1
+    .expect("overrides are valid");
+    assert_eq!(c.world.devices, 20);
+    assert_eq!(c.tasks[0].lambda, 7.5);
+    assert_eq!(
+        c.tasks.len(),
+        9,
+        "the default tasks stay when one of them is overridden"
+    );
+    assert_eq!(c.tasks[8].lambda, 300.0);
+    assert_eq!(c.world.power_term, PowerTerm::AllDevices);
+    assert!(c.meta.first_order);
+    assert!(c.origin.contains("--set world.devices=20"));
+}
+
+#[test]
+fn set_indexes_the_tasks_of_the_file() {
+    let text = "[[tasks]]\nname = \"a\"\nlambda = 1.0\nrole = \"meta-train\"\n\n\
+                [[tasks]]\nname = \"b\"\nlambda = 2.0\nrole = \"meta-test\"\n";
+    let c = load(
+        text,
+        &[
+            "tasks.1.lambda=20",
+            "tasks.1.rain={ x0 = 1, y0 = 1, x1 = 2, y1 = 3 }",
+        ],
+    )
+    .1
+    .expect("valid");
+    assert_eq!((c.tasks[0].lambda, c.tasks[1].lambda), (1.0, 20.0));
+    assert!(c.tasks[1].rain.expect("rain set").contains(2, 3));
+    error_of(
+        text,
+        &["tasks.2.lambda=1"],
+        &["--set tasks.2.lambda=1", "out of range", "2 entries"],
+    );
+}
+
+#[test]
+fn config_round_trips_through_its_toml() {
+    let c = load(
+        "[world]\ndevices = 3\nstart_cell = [1, 2]\n",
+        &["tasks.2.lambda=42"],
+    )
+    .1
+    .expect("valid");
+    let again = Config::from_toml_str(&c.to_toml_string(), "saved.toml", &[])
+        .expect("saved config reloads");
+    assert_eq!(
+        Config {
+            origin: String::new(),
+            ..again
+        },
+        Config {
+            origin: String::new(),
+            ..c
+        }
+    );
+}

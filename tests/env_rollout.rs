@@ -1,0 +1,140 @@
+//! `uavmeta env rollout` as a user runs it: the table, `--trace`, `--json`, determinism and errors.
+
+use std::io::Write;
+use std::process::{Command, Output};
+
+const WORLD: &str =
+    "[world]\ndevices = 3\ndevice_cells = [[0, 0], [9, 9], [5, 2]]\nhorizon = 7\n\n\
+                     [[tasks]]\nname = \"wet\"\nlambda = 300.0\nrole = \"meta-test\"\n\
+                     rain = { x0 = 0, y0 = 0, x1 = 4, y1 = 9 }\n";
+
+fn config_file() -> tempfile::NamedTempFile {
+    let mut file = tempfile::Builder::new()
+        .suffix(".toml")
+        .tempfile()
+        .expect("temp file");
+    file.write_all(WORLD.as_bytes()).expect("write config");
+    file
+}
+
+fn rollout(config: &tempfile::NamedTempFile, extra: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_uavmeta"))
+        .args(["env", "rollout", "--config"])
+        .arg(config.path())
+        .args(["--task", "wet", "--seed", "3"])
+        .args(extra)
+        .args(if extra.contains(&"--episodes") {
+            &[][..]
+        } else {
+            &["--episodes", "4"][..]
+        })
+        .output()
+        .expect("run uavmeta")
+}
+
+fn stdout(output: &Output) -> String {
+    assert!(
+        output.status.success(),
+        "uavmeta failed: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    String::from_utf8(output.stdout.clone()).expect("utf-8 output")
+}
+
+#[test]
+fn table_lists_every_episode_and_the_means() {
+    let config = config_file();
+    let text = stdout(&rollout(&config, &["--policy", "random"]));
+    let lines: Vec<&str> = text.lines().collect();
+    assert!(
+        lines[0].starts_with("random on task wet (lambda = 300)"),
+        "{text}"
+    );
+    assert_eq!(lines.len(), 2 + 4 + 1, "{text}");
+    for (i, row) in lines[2..6].iter().enumerate() {
+        assert_eq!(
+            row.split_whitespace().next(),
+            Some(i.to_string().as_str()),
+            "{row}"
+        );
+    }
+    assert!(lines[6].starts_with("mean ± 95% CI: return "), "{text}");
+    assert_eq!(
+        text,
+        stdout(&rollout(&config, &["--policy", "random"])),
+        "same seed, same table"
+    );
+}
+
+#[test]
+fn trace_has_one_object_per_step_and_agrees_with_the_summary() {
+    let config = config_file();
+    let output = rollout(&config, &["--policy", "stalest", "--trace"]);
+    let text = stdout(&output);
+    let steps: Vec<serde_json::Value> = text
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("each trace line is JSON"))
+        .collect();
+    assert_eq!(steps.len(), 4 * 7);
+    assert!(
+        String::from_utf8_lossy(&output.stderr).contains("mean ± 95% CI"),
+        "the table goes to stderr"
+    );
+    for (i, step) in steps.iter().enumerate() {
+        assert_eq!(step["episode"], i / 7);
+        assert_eq!(step["t"], i % 7);
+        assert_eq!(step["aoi"].as_array().expect("aoi vector").len(), 3);
+        let outage = step["outage"].as_bool().expect("outage flag");
+        assert_eq!(
+            outage,
+            step["position"][0].as_u64().expect("x") <= 4,
+            "rain covers x <= 4: {step}"
+        );
+        let action = step["action"].as_u64().expect("action");
+        assert_eq!(step["device"], action % 3);
+    }
+
+    let summary: serde_json::Value = serde_json::from_str(&stdout(&rollout(
+        &config,
+        &["--policy", "stalest", "--json"],
+    )))
+    .expect("JSON");
+    for (e, episode) in summary["episodes"]
+        .as_array()
+        .expect("episodes")
+        .iter()
+        .enumerate()
+    {
+        let of_episode = || steps.iter().filter(move |s| s["episode"] == e);
+        let ret: f64 = of_episode()
+            .map(|s| s["reward"].as_f64().expect("reward"))
+            .sum();
+        let outages = of_episode().filter(|s| s["outage"] == true).count();
+        assert!((ret - episode["ret"].as_f64().expect("ret")).abs() < 1e-9);
+        assert_eq!(episode["outages"], outages);
+    }
+    assert_eq!(summary["mean"]["episodes"], 4);
+    assert_eq!(summary["policy"], "stalest");
+}
+
+#[test]
+fn bad_input_fails_with_a_clear_message() {
+    let config = config_file();
+    let mut actions = tempfile::NamedTempFile::new().expect("temp file");
+    actions.write_all(b"4\n99\n").expect("write actions");
+    let replay = format!("actions:{}", actions.path().display());
+    for (args, expected) in [
+        (
+            vec!["--policy", replay.as_str()],
+            "line 2: `99`: expected an action index below 15",
+        ),
+        (vec!["--policy", "eps:-1"], "is not a probability"),
+        (vec!["--episodes", "0"], "--episodes 0"),
+        (vec!["--set", "world.devices=200"], "world.devices"),
+    ] {
+        let output = rollout(&config, &args);
+        assert!(!output.status.success(), "{args:?} should fail");
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(stderr.contains(expected), "{args:?}: {stderr}");
+    }
+}
