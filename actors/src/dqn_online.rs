@@ -1,0 +1,270 @@
+//! Online DQN (SPEC sections 4-5): the paper's behaviour policy, whose replay buffer is sampled
+//! for the offline datasets, and its "online" reference line.
+//!
+//! Settings: the `[collect]` section (`dqn_steps`, `replay_capacity`, `learning_starts`,
+//! `train_every`, `eps_start`, `eps_end`, `eps_decay_steps`) and the network and optimiser of
+//! `[learner]` (`hidden`, `gamma`, `reward_scale`, `batch`, `lr`, `target_update_every`,
+//! `double_dqn`, `huber`), so the online agent and the offline learners share one network.
+//!
+//! Loop, per environment step: epsilon-greedy action (uniform random during the first
+//! `learning_starts` steps, then epsilon falls linearly from `eps_start` to `eps_end` over
+//! `eps_decay_steps`), store the transition, and every `train_every` steps one Adam step on
+//! eq. 7 over a uniform minibatch of the buffer; hard target update every
+//! `target_update_every` gradient steps. Time limits are not terminal: the last transition of an
+//! episode is stored with `truncated = true` and still bootstraps.
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use tch::nn::{self, OptimizerConfig};
+use uavmeta_learner::batch::{Batch, BatchError};
+use uavmeta_learner::dqn::{td_loss_with, TdConfig};
+use uavmeta_learner::qnet::QNetwork;
+use uavmeta_proto::config::{CollectConfig, Config, LearnerConfig, TaskConfig, WorldConfig};
+use uavmeta_proto::dataset::Transition;
+
+use crate::q_policy::QPolicy;
+use crate::rollout::Policy;
+use crate::world::World;
+
+/// A fixed-capacity FIFO of transitions: once full, each new transition replaces the oldest.
+#[derive(Debug, Clone)]
+pub struct ReplayBuffer {
+    items: Vec<Transition>,
+    capacity: usize,
+    /// Where the next transition goes once the buffer is full (the oldest one's slot).
+    next: usize,
+}
+
+impl ReplayBuffer {
+    pub fn new(capacity: usize) -> Self {
+        Self {
+            items: Vec::with_capacity(capacity),
+            capacity,
+            next: 0,
+        }
+    }
+
+    pub fn push(&mut self, t: Transition) {
+        if self.items.len() < self.capacity {
+            self.items.push(t);
+        } else {
+            self.items[self.next] = t;
+            self.next = (self.next + 1) % self.capacity;
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.items.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.items.is_empty()
+    }
+
+    pub fn capacity(&self) -> usize {
+        self.capacity
+    }
+
+    /// The stored transitions, oldest first.
+    pub fn iter(&self) -> impl Iterator<Item = &Transition> {
+        let (newer, older) = self.items.split_at(self.next);
+        older.iter().chain(newer)
+    }
+
+    /// `n` transitions drawn uniformly with replacement.
+    fn sample<'a>(&'a self, rng: &mut ChaCha8Rng, n: usize) -> Vec<&'a Transition> {
+        (0..n)
+            .map(|_| &self.items[rng.random_range(0..self.items.len())])
+            .collect()
+    }
+}
+
+/// Linear epsilon schedule from `eps_start` to `eps_end` over `eps_decay_steps`, counted from the
+/// end of the uniform-random warm-up.
+fn epsilon(c: &CollectConfig, step: usize) -> f64 {
+    if step < c.learning_starts {
+        return 1.0;
+    }
+    let progress = if c.eps_decay_steps == 0 {
+        1.0
+    } else {
+        ((step - c.learning_starts) as f64 / c.eps_decay_steps as f64).min(1.0)
+    };
+    c.eps_start + (c.eps_end - c.eps_start) * progress
+}
+
+/// One online DQN agent training in one task's world.
+pub struct OnlineDqn {
+    collect: CollectConfig,
+    learner: LearnerConfig,
+    world_cfg: WorldConfig,
+    td: TdConfig,
+    world: World,
+    q: QNetwork,
+    target: QNetwork,
+    opt: nn::Optimizer,
+    replay: ReplayBuffer,
+    rng: ChaCha8Rng,
+    task: u32,
+    actor: u32,
+    /// Environment steps taken.
+    steps: usize,
+    gradient_steps: usize,
+    episode: u64,
+    /// Return of the episode in progress.
+    episode_return: f64,
+    /// Returns of every finished episode, in order.
+    returns: Vec<f64>,
+}
+
+impl OnlineDqn {
+    /// An untrained agent for task `task` (index `task_id` in the config's `[[tasks]]`), acting as
+    /// actor `actor`. Its network, world and exploration all derive from `seed`.
+    pub fn new(config: &Config, task: &TaskConfig, task_id: u32, actor: u32, seed: u64) -> Self {
+        let w = &config.world;
+        let l = &config.learner;
+        let mut seeds = ChaCha8Rng::seed_from_u64(seed);
+        let q = QNetwork::new(
+            w.observation_len(),
+            w.action_count(),
+            &l.hidden,
+            seeds.random(),
+        );
+        let target = q.duplicate();
+        let opt = nn::Adam::default()
+            .build(&q.vs, l.lr)
+            .expect("Adam over a CPU VarStore always builds");
+        let world = World::new(w, task, seeds.random());
+        Self {
+            collect: config.collect.clone(),
+            learner: l.clone(),
+            world_cfg: w.clone(),
+            td: TdConfig::from(l),
+            world,
+            q,
+            target,
+            opt,
+            replay: ReplayBuffer::new(config.collect.replay_capacity),
+            rng: ChaCha8Rng::seed_from_u64(seeds.random()),
+            task: task_id,
+            actor,
+            steps: 0,
+            gradient_steps: 0,
+            episode: 0,
+            episode_return: 0.0,
+            returns: Vec::new(),
+        }
+    }
+
+    /// Trains for `collect.dqn_steps` environment steps.
+    pub fn train(&mut self) -> Result<(), BatchError> {
+        self.train_steps(self.collect.dqn_steps)
+    }
+
+    /// Trains for `steps` more environment steps, logging the recent return every 20 episodes.
+    pub fn train_steps(&mut self, steps: usize) -> Result<(), BatchError> {
+        for _ in 0..steps {
+            if self.step()?.is_some() && self.returns.len() % 20 == 0 {
+                let recent = &self.returns[self.returns.len() - 20..];
+                tracing::info!(
+                    task = self.task,
+                    actor = self.actor,
+                    steps = self.steps,
+                    episodes = self.returns.len(),
+                    epsilon = epsilon(&self.collect, self.steps),
+                    mean_return = recent.iter().sum::<f64>() / recent.len() as f64,
+                    "online DQN"
+                );
+            }
+        }
+        Ok(())
+    }
+
+    /// One environment step (and the gradient step it is due); the episode's return when the step
+    /// ended an episode.
+    pub fn step(&mut self) -> Result<Option<f64>, BatchError> {
+        // ALGO: epsilon-greedy behaviour.
+        let action = if self.rng.random_bool(epsilon(&self.collect, self.steps)) {
+            self.rng.random_range(0..self.world.action_count())
+        } else {
+            QPolicy::new(&self.q).act(&self.world)
+        };
+        let obs = self.world.observation().to_vec();
+        let step_index = self.world.t();
+        let step = self.world.step(action);
+        self.replay.push(Transition {
+            task: self.task,
+            actor: self.actor,
+            episode: self.episode,
+            step: step_index,
+            seq: self.steps as u64,
+            obs,
+            action: action as u16,
+            reward: step.reward as f32,
+            next_obs: self.world.observation().to_vec(),
+            truncated: step.truncated,
+        });
+        self.steps += 1;
+        self.episode_return += step.reward;
+
+        if self.steps >= self.collect.learning_starts && self.steps % self.collect.train_every == 0
+        {
+            self.gradient_step()?;
+        }
+
+        if !step.truncated {
+            return Ok(None);
+        }
+        let finished = self.episode_return;
+        self.returns.push(finished);
+        self.episode += 1;
+        self.episode_return = 0.0;
+        self.world.reset();
+        Ok(Some(finished))
+    }
+
+    /// ALGO: one Adam step on eq. 7 over a uniform minibatch of the replay buffer.
+    fn gradient_step(&mut self) -> Result<(), BatchError> {
+        let sample = self.replay.sample(&mut self.rng, self.learner.batch);
+        let mb = Batch::new(&sample, &self.world_cfg, self.learner.reward_scale)?;
+        let q_all = self.q.forward(&mb.obs); // [B, A]
+        let next_q_target = tch::no_grad(|| self.target.forward(&mb.next_obs)); // [B, A]
+        let next_q_online = self
+            .td
+            .double_dqn
+            .then(|| tch::no_grad(|| self.q.forward(&mb.next_obs)));
+        let loss = td_loss_with(
+            &q_all,
+            &next_q_target,
+            next_q_online.as_ref(),
+            &mb,
+            &self.td,
+        );
+        self.opt.backward_step(&loss);
+        self.gradient_steps += 1;
+        if self.gradient_steps % self.learner.target_update_every == 0 {
+            self.target.copy_from(&self.q);
+        }
+        Ok(())
+    }
+
+    /// The replay buffer, from which the paper's offline dataset of this task is sampled.
+    pub fn replay_buffer(&self) -> &ReplayBuffer {
+        &self.replay
+    }
+
+    /// The online Q-network; its greedy policy ([`QPolicy`]) is the "online DQN" reference.
+    pub fn q_network(&self) -> &QNetwork {
+        &self.q
+    }
+
+    /// Returns of the finished training episodes, in order.
+    pub fn episode_returns(&self) -> &[f64] {
+        &self.returns
+    }
+
+    /// Environment steps taken so far.
+    pub fn steps(&self) -> usize {
+        self.steps
+    }
+}

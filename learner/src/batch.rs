@@ -1,0 +1,139 @@
+//! Transitions as tensors: the normalised `(s, a, r, s')` columns every loss reads.
+//!
+//! A training set is turned into one [`Batch`] once; minibatches are row selections of it
+//! ([`Batch::select`]), so sampling costs one `index_select` per column instead of re-encoding
+//! transitions every step. There is no `done` column: an episode ends by a time limit, which is
+//! never terminal, so every transition bootstraps (SPEC section 5).
+
+use std::borrow::Borrow;
+
+use tch::Tensor;
+use uavmeta_proto::config::WorldConfig;
+use uavmeta_proto::dataset::Transition;
+
+/// A transition that does not fit the world the network is built for.
+#[derive(Debug, thiserror::Error)]
+pub enum BatchError {
+    #[error("transition {index} (task {task}, actor {actor}, episode {episode}, step {step}): {what} has {got} values, expected {expected} (2 + world.devices)")]
+    ObservationLength {
+        index: usize,
+        task: u32,
+        actor: u32,
+        episode: u64,
+        step: u32,
+        what: &'static str,
+        got: usize,
+        expected: usize,
+    },
+    #[error("transition {index} (task {task}, actor {actor}, episode {episode}, step {step}): action {action} is out of range, expected below {actions} (5 * world.devices)")]
+    Action {
+        index: usize,
+        task: u32,
+        actor: u32,
+        episode: u64,
+        step: u32,
+        action: u16,
+        actions: usize,
+    },
+    #[error("an empty set of transitions cannot form a batch")]
+    Empty,
+}
+
+/// Transitions as tensors on the CPU, one row each.
+pub struct Batch {
+    /// `s`, normalised (x/(L-1), y/(L-1), A/aoi_max): [B, D] f32.
+    pub obs: Tensor,
+    /// `a`: [B] i64.
+    pub actions: Tensor,
+    /// `r * reward_scale`: [B] f32.
+    pub rewards: Tensor,
+    /// `s'`, normalised like `obs`: [B, D] f32.
+    pub next_obs: Tensor,
+}
+
+impl Batch {
+    /// Encodes `transitions` for `world`, multiplying rewards by `reward_scale`
+    /// (`learner.reward_scale`). Every transition is checked against the world's sizes first.
+    /// Takes owned transitions or references (a replay buffer's sampled rows).
+    pub fn new<T: Borrow<Transition>>(
+        transitions: &[T],
+        world: &WorldConfig,
+        reward_scale: f64,
+    ) -> Result<Batch, BatchError> {
+        if transitions.is_empty() {
+            return Err(BatchError::Empty);
+        }
+        let d = world.observation_len();
+        let actions_n = world.action_count();
+        let scale = world.observation_scale();
+        let rows = transitions.len();
+        let mut obs = Vec::with_capacity(rows * d);
+        let mut next_obs = Vec::with_capacity(rows * d);
+        let mut actions = Vec::with_capacity(rows);
+        let mut rewards = Vec::with_capacity(rows);
+        for (index, t) in transitions.iter().enumerate() {
+            let t: &Transition = t.borrow();
+            for (what, values) in [("obs", &t.obs), ("next_obs", &t.next_obs)] {
+                if values.len() != d {
+                    return Err(BatchError::ObservationLength {
+                        index,
+                        task: t.task,
+                        actor: t.actor,
+                        episode: t.episode,
+                        step: t.step,
+                        what,
+                        got: values.len(),
+                        expected: d,
+                    });
+                }
+            }
+            if usize::from(t.action) >= actions_n {
+                return Err(BatchError::Action {
+                    index,
+                    task: t.task,
+                    actor: t.actor,
+                    episode: t.episode,
+                    step: t.step,
+                    action: t.action,
+                    actions: actions_n,
+                });
+            }
+            obs.extend(t.obs.iter().zip(&scale).map(|(&v, &s)| f32::from(v) / s));
+            next_obs.extend(
+                t.next_obs
+                    .iter()
+                    .zip(&scale)
+                    .map(|(&v, &s)| f32::from(v) / s),
+            );
+            actions.push(i64::from(t.action));
+            rewards.push((f64::from(t.reward) * reward_scale) as f32);
+        }
+        let shape = [rows as i64, d as i64];
+        Ok(Batch {
+            obs: Tensor::from_slice(&obs).view(shape),
+            actions: Tensor::from_slice(&actions),
+            rewards: Tensor::from_slice(&rewards),
+            next_obs: Tensor::from_slice(&next_obs).view(shape),
+        })
+    }
+
+    /// Number of transitions, B.
+    pub fn len(&self) -> usize {
+        self.actions.size()[0] as usize
+    }
+
+    /// Never true: [`Batch::new`] refuses an empty set.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The rows `index` ([M] i64) of every column: a minibatch.
+    pub fn select(&self, index: &Tensor) -> Batch {
+        Batch {
+            obs: self.obs.index_select(0, index),
+            actions: self.actions.index_select(0, index),
+            rewards: self.rewards.index_select(0, index),
+            next_obs: self.next_obs.index_select(0, index),
+        }
+    }
+}

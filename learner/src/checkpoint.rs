@@ -1,0 +1,313 @@
+//! Checkpoints: a Q-network's weights with enough metadata to rebuild and check it.
+//!
+//! A checkpoint named `P` is three files side by side:
+//! - `P.safetensors`: the VarStore (`layer{i}.weight` [out, in], `layer{i}.bias` [out]);
+//! - `P.json`: [`CheckpointMeta`] (algorithm, sizes, world hash, epoch, and the length and CRC32
+//!   of the weights file, so truncation and corruption are caught before libtorch reads it);
+//! - `P.toml`: the full config of the run that wrote it, to rebuild or reproduce it.
+//!
+//! Every file is written to a temporary name in the same directory, fsynced and renamed, so a
+//! crash leaves either the old checkpoint or the new one, never a torn file under the real name.
+//! The metadata goes last: a weights file without metadata is never taken for a checkpoint.
+
+use std::fs::File;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+use uavmeta_proto::config::Config;
+
+use crate::qnet::QNetwork;
+
+/// Version of the metadata layout; bumped when [`CheckpointMeta`] changes meaning.
+pub const FORMAT_VERSION: u32 = 1;
+
+/// What a checkpoint holds, stored as `P.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CheckpointMeta {
+    pub format_version: u32,
+    /// The method that trained the weights: `cql`, `dqn`, `cql-maml`, `dqn-online`, ...
+    pub algorithm: String,
+    /// Network input size, 2 + K.
+    pub obs_len: usize,
+    /// Network output size, 5K.
+    pub actions: usize,
+    pub hidden: Vec<usize>,
+    /// `Config::world_hash` of the world it was trained in.
+    pub world_hash: u64,
+    /// Epochs (or meta-epochs) of training behind these weights.
+    pub epoch: usize,
+    /// Length in bytes of `P.safetensors`.
+    pub weights_len: u64,
+    /// CRC32 of `P.safetensors`.
+    pub weights_crc32: u32,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum CheckpointError {
+    #[error("{}: cannot {action}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        action: &'static str,
+        source: std::io::Error,
+    },
+    #[error("{}: not checkpoint metadata: {source}", path.display())]
+    Meta {
+        path: PathBuf,
+        source: serde_json::Error,
+    },
+    #[error("{}: checkpoint format version {found}, this build reads version {FORMAT_VERSION}", path.display())]
+    FormatVersion { path: PathBuf, found: u32 },
+    #[error("{}: truncated: the file ends at offset {len}, its metadata records {expected} bytes", path.display())]
+    Truncated {
+        path: PathBuf,
+        len: u64,
+        expected: u64,
+    },
+    #[error("{}: corrupt: {len} bytes with CRC32 {found:#010x}, its metadata records {expected_len} bytes with CRC32 {expected:#010x}", path.display())]
+    Corrupt {
+        path: PathBuf,
+        len: u64,
+        found: u32,
+        expected_len: u64,
+        expected: u32,
+    },
+    #[error("{}: cannot load the weights: {source}", path.display())]
+    Weights {
+        path: PathBuf,
+        source: tch::TchError,
+    },
+    /// `key` is the config key whose value differs from the checkpoint's; `detail` says how.
+    #[error("{}: {detail}", path.display())]
+    SizeMismatch {
+        path: PathBuf,
+        key: &'static str,
+        detail: String,
+    },
+}
+
+/// The three files of checkpoint `path` (any extension of `path` is replaced).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct CheckpointPaths {
+    pub weights: PathBuf,
+    pub meta: PathBuf,
+    pub config: PathBuf,
+}
+
+impl CheckpointPaths {
+    pub fn new(path: &Path) -> Self {
+        Self {
+            weights: path.with_extension("safetensors"),
+            meta: path.with_extension("json"),
+            config: path.with_extension("toml"),
+        }
+    }
+}
+
+/// Saves `q` as checkpoint `path` (see the module doc), trained by `algorithm` for `epoch`
+/// epochs under `config`. Returns the metadata written.
+pub fn save(
+    path: &Path,
+    q: &QNetwork,
+    algorithm: &str,
+    epoch: usize,
+    config: &Config,
+) -> Result<CheckpointMeta, CheckpointError> {
+    let paths = CheckpointPaths::new(path);
+    let dir = paths
+        .weights
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    std::fs::create_dir_all(dir).map_err(|source| CheckpointError::Io {
+        path: dir.to_path_buf(),
+        action: "create the directory",
+        source,
+    })?;
+
+    // VarStore::save picks the format from the extension, so the temporary name keeps it.
+    let tmp_weights = temp_name(&paths.weights, "safetensors");
+    q.vs.save(&tmp_weights)
+        .map_err(|source| CheckpointError::Weights {
+            path: tmp_weights.clone(),
+            source,
+        })?;
+    let bytes = std::fs::read(&tmp_weights).map_err(|source| CheckpointError::Io {
+        path: tmp_weights.clone(),
+        action: "read back",
+        source,
+    })?;
+    sync_file(&tmp_weights)?;
+
+    let meta = CheckpointMeta {
+        format_version: FORMAT_VERSION,
+        algorithm: algorithm.to_string(),
+        obs_len: q.obs_len(),
+        actions: q.actions(),
+        hidden: q.hidden().to_vec(),
+        world_hash: config.world_hash(),
+        epoch,
+        weights_len: bytes.len() as u64,
+        weights_crc32: crc32fast::hash(&bytes),
+    };
+    let meta_text =
+        serde_json::to_string_pretty(&meta).expect("checkpoint metadata always serialises");
+    write_atomic(&paths.config, config.to_toml_string().as_bytes())?;
+    rename(&tmp_weights, &paths.weights)?;
+    write_atomic(&paths.meta, meta_text.as_bytes())?;
+    // The renames are durable only once the directory entry is.
+    sync_file(dir)?;
+    Ok(meta)
+}
+
+/// Reads and checks the metadata of checkpoint `path`.
+pub fn read_meta(path: &Path) -> Result<CheckpointMeta, CheckpointError> {
+    let meta_path = CheckpointPaths::new(path).meta;
+    let text = std::fs::read(&meta_path).map_err(|source| CheckpointError::Io {
+        path: meta_path.clone(),
+        action: "read",
+        source,
+    })?;
+    let meta: CheckpointMeta =
+        serde_json::from_slice(&text).map_err(|source| CheckpointError::Meta {
+            path: meta_path.clone(),
+            source,
+        })?;
+    if meta.format_version != FORMAT_VERSION {
+        return Err(CheckpointError::FormatVersion {
+            path: meta_path,
+            found: meta.format_version,
+        });
+    }
+    Ok(meta)
+}
+
+/// Loads checkpoint `path` into a new network sized by `config` (`world.devices`,
+/// `learner.hidden`). Sizes that differ from the checkpoint's, a truncated or corrupt weights
+/// file, or unreadable metadata are errors naming the file.
+pub fn load(path: &Path, config: &Config) -> Result<(QNetwork, CheckpointMeta), CheckpointError> {
+    let paths = CheckpointPaths::new(path);
+    let meta = read_meta(path)?;
+    let mismatch = |what: &str, checkpoint: String, config_value: String, key| {
+        CheckpointError::SizeMismatch {
+        path: paths.meta.clone(),
+        key,
+        detail: format!(
+            "the checkpoint's network has {what} {checkpoint}, but {} gives {config_value} ({key}); \
+             use the config it was trained with (saved beside it as {})",
+            config.origin,
+            paths.config.display()
+        ),
+    }
+    };
+    let (obs_len, actions) = (config.world.observation_len(), config.world.action_count());
+    if meta.obs_len != obs_len {
+        return Err(mismatch(
+            "input size (2 + K)",
+            meta.obs_len.to_string(),
+            obs_len.to_string(),
+            "world.devices",
+        ));
+    }
+    if meta.actions != actions {
+        return Err(mismatch(
+            "output size (5K)",
+            meta.actions.to_string(),
+            actions.to_string(),
+            "world.devices",
+        ));
+    }
+    if meta.hidden != config.learner.hidden {
+        return Err(mismatch(
+            "hidden widths",
+            format!("{:?}", meta.hidden),
+            format!("{:?}", config.learner.hidden),
+            "learner.hidden",
+        ));
+    }
+    if meta.world_hash != config.world_hash() {
+        tracing::warn!(
+            checkpoint = %paths.weights.display(),
+            "trained in a different world (hash {:#018x}) than {} ({:#018x}); the sizes match, so it loads",
+            meta.world_hash,
+            config.origin,
+            config.world_hash()
+        );
+    }
+
+    let bytes = std::fs::read(&paths.weights).map_err(|source| CheckpointError::Io {
+        path: paths.weights.clone(),
+        action: "read",
+        source,
+    })?;
+    let len = bytes.len() as u64;
+    if len < meta.weights_len {
+        return Err(CheckpointError::Truncated {
+            path: paths.weights,
+            len,
+            expected: meta.weights_len,
+        });
+    }
+    let crc = crc32fast::hash(&bytes);
+    if len != meta.weights_len || crc != meta.weights_crc32 {
+        return Err(CheckpointError::Corrupt {
+            path: paths.weights,
+            len,
+            found: crc,
+            expected_len: meta.weights_len,
+            expected: meta.weights_crc32,
+        });
+    }
+    let mut q = QNetwork::new(obs_len, actions, &meta.hidden, 0);
+    q.vs.load(&paths.weights)
+        .map_err(|source| CheckpointError::Weights {
+            path: paths.weights.clone(),
+            source,
+        })?;
+    Ok((q, meta))
+}
+
+/// `dir/.name.tmp-PID.ext`: hidden, unique per process, same directory (so rename is atomic).
+fn temp_name(path: &Path, ext: &str) -> PathBuf {
+    let stem = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    path.with_file_name(format!(".{stem}.tmp-{}.{ext}", std::process::id()))
+}
+
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), CheckpointError> {
+    let ext = path
+        .extension()
+        .map(|e| e.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let tmp = temp_name(path, &ext);
+    let io = |action, source| CheckpointError::Io {
+        path: tmp.clone(),
+        action,
+        source,
+    };
+    let mut file = File::create(&tmp).map_err(|e| io("create", e))?;
+    file.write_all(bytes).map_err(|e| io("write", e))?;
+    file.sync_all().map_err(|e| io("fsync", e))?;
+    rename(&tmp, path)
+}
+
+fn sync_file(path: &Path) -> Result<(), CheckpointError> {
+    File::open(path)
+        .and_then(|f| f.sync_all())
+        .map_err(|source| CheckpointError::Io {
+            path: path.to_path_buf(),
+            action: "fsync",
+            source,
+        })
+}
+
+fn rename(from: &Path, to: &Path) -> Result<(), CheckpointError> {
+    std::fs::rename(from, to).map_err(|source| CheckpointError::Io {
+        path: to.to_path_buf(),
+        action: "rename into place",
+        source,
+    })
+}

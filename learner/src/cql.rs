@@ -1,0 +1,56 @@
+//! The CQL loss, paper eq. 8 (CQL(H) for discrete actions):
+//!
+//! ```text
+//! L_CQL(w) = 0.5 * L_DQN(w) + alpha * mean_batch [ log sum_a exp Q_w(s, a) - Q_w(s, a_data) ]
+//! ```
+//!
+//! The second term pushes down a soft maximum over all actions and pushes up the actions the data
+//! took, so actions the dataset never tried cannot look better than the logged ones; that is what
+//! keeps offline Q-values from the overestimation plain DQN suffers. Its gradient with respect to
+//! `Q(s, .)` is `(softmax(Q(s, .)) - onehot(a_data)) / B` per row.
+
+use tch::Tensor;
+
+use crate::batch::Batch;
+use crate::dqn::{dqn_loss, q_taken};
+
+/// The terms of eq. 8, each a scalar; `total` carries the graph for `backward`.
+pub struct CqlLoss {
+    /// `0.5 * td + alpha * conservative`.
+    pub total: Tensor,
+    /// The DQN loss of eq. 7.
+    pub td: Tensor,
+    /// `mean_batch [logsumexp_a Q(s, a) - Q(s, a_data)]`, before the factor alpha.
+    pub conservative: Tensor,
+}
+
+impl CqlLoss {
+    /// Eq. 8 from a TD loss already formed (eq. 7, or its double-DQN / Huber variants).
+    pub fn from_td(q: &Tensor, td: Tensor, batch: &Batch, alpha: f64) -> CqlLoss {
+        let conservative = conservative_term(q, batch);
+        let total = &td * 0.5 + &conservative * alpha;
+        CqlLoss {
+            total,
+            td,
+            conservative,
+        }
+    }
+}
+
+/// `mean_batch [logsumexp_a Q(s, a) - Q(s, a_data)]`, scalar, from `q` [B, A].
+pub fn conservative_term(q: &Tensor, batch: &Batch) -> Tensor {
+    (q.logsumexp([-1i64], false) - q_taken(q, batch)).mean(None)
+}
+
+/// Paper eq. 8: `0.5 * L_DQN + alpha * mean(logsumexp_a Q(s, a) - Q(s, a_data))`.
+///
+/// `q` is `Q_w(s, .)` [B, A] (with its graph), `next_q_target` is `Qhat(s', .)` [B, A].
+pub fn cql_loss(
+    q: &Tensor,
+    next_q_target: &Tensor,
+    batch: &Batch,
+    gamma: f64,
+    alpha: f64,
+) -> CqlLoss {
+    CqlLoss::from_td(q, dqn_loss(q, next_q_target, batch, gamma), batch, alpha)
+}

@@ -1,0 +1,138 @@
+//! The Q-network of SPEC section 5: an MLP from the normalised observation (2 + K values) through
+//! ReLU hidden layers to one Q-value per action (5K).
+//!
+//! The parameters live in a `VarStore` (for Adam and safetensors checkpoints) and are also kept in
+//! layer order, so that the same forward pass runs on an explicit parameter list: MAML's fast
+//! weights `w_i = w0 - eta_inner * grad` are plain tensors, not variables of a store.
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use tch::{nn, Device, Tensor};
+
+/// An MLP Q-function `Q(s, .)`.
+pub struct QNetwork {
+    /// Holds every parameter under the names `layer{i}.weight` / `layer{i}.bias`; optimisers and
+    /// checkpoints work on it.
+    pub vs: nn::VarStore,
+    /// `[w1, b1, w2, b2, ..]`, shallow handles onto the variables of `vs`, in layer order.
+    params: Vec<Tensor>,
+    obs_len: usize,
+    actions: usize,
+    hidden: Vec<usize>,
+}
+
+impl QNetwork {
+    /// A network `obs_len -> hidden[0] -> .. -> actions`, initialised from `seed` alone.
+    ///
+    /// The scheme is PyTorch's `nn.Linear` default (Kaiming-uniform with a = sqrt(5), which for
+    /// both weight and bias is U(-1/sqrt(fan_in), 1/sqrt(fan_in))), but the draws come from a
+    /// ChaCha8 stream rather than libtorch's global generator, so two networks built with the
+    /// same seed are identical whatever else the process has drawn, on any thread.
+    pub fn new(obs_len: usize, actions: usize, hidden: &[usize], seed: u64) -> QNetwork {
+        let vs = nn::VarStore::new(Device::Cpu);
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let widths: Vec<usize> = std::iter::once(obs_len)
+            .chain(hidden.iter().copied())
+            .chain(std::iter::once(actions))
+            .collect();
+        let mut params = Vec::with_capacity(2 * (widths.len() - 1));
+        let root = vs.root();
+        for (i, pair) in widths.windows(2).enumerate() {
+            let (fan_in, fan_out) = (pair[0], pair[1]);
+            let bound = 1.0 / (fan_in as f32).sqrt();
+            let mut uniform = |n: usize| -> Vec<f32> {
+                (0..n).map(|_| rng.random_range(-bound..=bound)).collect()
+            };
+            // weight: [fan_out, fan_in], as torch.nn.Linear stores it (y = x W^T + b).
+            let w = Tensor::from_slice(&uniform(fan_out * fan_in))
+                .view([fan_out as i64, fan_in as i64]);
+            // bias: [fan_out].
+            let b = Tensor::from_slice(&uniform(fan_out));
+            // `layer{i}.weight`: the path separator joins the layer and the variable name.
+            let layer = &root / format!("layer{i}");
+            params.push(layer.var_copy("weight", &w));
+            params.push(layer.var_copy("bias", &b));
+        }
+        QNetwork {
+            vs,
+            params,
+            obs_len,
+            actions,
+            hidden: hidden.to_vec(),
+        }
+    }
+
+    /// Q-values of every action: `obs` [B, obs_len] f32 (normalised) -> [B, actions].
+    pub fn forward(&self, obs: &Tensor) -> Tensor {
+        Self::forward_with(&self.params, obs)
+    }
+
+    /// The parameters `[w1, b1, w2, b2, ..]` in layer order (handles that share storage with the
+    /// network's variables and require grad).
+    pub fn parameters(&self) -> Vec<Tensor> {
+        self.params.iter().map(Tensor::shallow_clone).collect()
+    }
+
+    /// The same MLP on an explicit parameter list laid out as [`QNetwork::parameters`] returns
+    /// it: `obs` [B, obs_len] -> [B, actions]. Gradients flow into whatever `params` came from,
+    /// which is how MAML differentiates the query loss through the inner-loop updates.
+    pub fn forward_with(params: &[Tensor], obs: &Tensor) -> Tensor {
+        let layers = params.len() / 2;
+        let mut x = obs.shallow_clone();
+        for (i, wb) in params.chunks_exact(2).enumerate() {
+            // [B, fan_in] -> [B, fan_out]
+            x = x.linear(&wb[0], Some(&wb[1]));
+            if i + 1 < layers {
+                x = x.relu();
+            }
+        }
+        x
+    }
+
+    /// Greedy actions `argmax_a Q(s, a)`: `obs` [B, obs_len] -> [B] i64, computed without a graph.
+    pub fn greedy(&self, obs: &Tensor) -> Tensor {
+        tch::no_grad(|| self.forward(obs).argmax(-1, false))
+    }
+
+    /// Overwrites this network's parameters with `other`'s: the hard target-network update.
+    ///
+    /// # Panics
+    /// If the two networks have different architectures; a target network is always built from
+    /// the same sizes as its online network.
+    pub fn copy_from(&mut self, other: &QNetwork) {
+        assert_eq!(
+            (self.obs_len, self.actions, &self.hidden),
+            (other.obs_len, other.actions, &other.hidden),
+            "copy_from between Q-networks of different architectures"
+        );
+        tch::no_grad(|| {
+            for (dst, src) in self.params.iter_mut().zip(&other.params) {
+                dst.copy_(src);
+            }
+        });
+    }
+
+    /// A new network with the same architecture and a copy of this one's parameter values.
+    pub fn duplicate(&self) -> QNetwork {
+        let mut copy = QNetwork::new(self.obs_len, self.actions, &self.hidden, 0);
+        copy.copy_from(self);
+        copy
+    }
+
+    pub fn obs_len(&self) -> usize {
+        self.obs_len
+    }
+
+    pub fn actions(&self) -> usize {
+        self.actions
+    }
+
+    pub fn hidden(&self) -> &[usize] {
+        &self.hidden
+    }
+
+    /// Number of scalar parameters.
+    pub fn parameter_count(&self) -> usize {
+        self.params.iter().map(Tensor::numel).sum()
+    }
+}

@@ -1,0 +1,341 @@
+//! Offline training of a Q-network on a fixed set of transitions, with DQN (eq. 7) or CQL (eq. 8).
+//!
+//! One run: Adam(`learner.lr`) on the network, `learner.epochs` epochs of `learner.steps_per_epoch`
+//! gradient steps (0 = one pass, ceil(N / batch)), each on a minibatch drawn from the N shots by a
+//! seeded shuffle, and a hard target-network update every `learner.target_update_every` gradient
+//! steps. After every epoch the greedy policy is evaluated through [`EvaluatePolicy`] (the world
+//! lives in `uavmeta-actors`, which implements it) and one row is written: to a table on stderr,
+//! to `train.csv` in the output directory, and to the returned list.
+
+use std::fmt;
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
+use std::time::Instant;
+
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use rand::seq::SliceRandom;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use tch::{nn, nn::OptimizerConfig, Tensor};
+use uavmeta_proto::config::Config;
+use uavmeta_proto::stats::PolicyMetrics;
+
+use crate::batch::Batch;
+use crate::checkpoint::{self, CheckpointError};
+use crate::cql::{conservative_term, CqlLoss};
+use crate::dqn::{td_loss_with, TdConfig};
+use crate::qnet::QNetwork;
+
+/// Measures the greedy policy of a Q-network on the true environment.
+pub trait EvaluatePolicy {
+    fn evaluate(&mut self, q: &QNetwork) -> PolicyMetrics;
+}
+
+/// The offline loss.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Algorithm {
+    /// Paper eq. 8.
+    Cql,
+    /// Paper eq. 7 on a fixed dataset: the baseline that overestimates.
+    Dqn,
+}
+
+impl fmt::Display for Algorithm {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Algorithm::Cql => "cql",
+            Algorithm::Dqn => "dqn",
+        })
+    }
+}
+
+impl FromStr for Algorithm {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "cql" => Ok(Algorithm::Cql),
+            "dqn" => Ok(Algorithm::Dqn),
+            _ => Err(format!("`{s}`: expected `cql` or `dqn`")),
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    #[error("{}: cannot {action}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        action: &'static str,
+        source: std::io::Error,
+    },
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
+}
+
+/// One run's settings beyond the config's `[learner]` section.
+pub struct TrainOptions<'a> {
+    pub algorithm: Algorithm,
+    /// The run's config: `[learner]` drives training, the whole is saved beside checkpoints.
+    pub config: &'a Config,
+    /// Seed of the minibatch order.
+    pub seed: u64,
+    /// Where `train.csv` and the `final` checkpoint go; `None` writes neither.
+    pub out_dir: Option<&'a Path>,
+    /// Draw a progress bar on stderr (when it is a terminal).
+    pub progress: bool,
+}
+
+/// One epoch's figures.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EpochRow {
+    pub epoch: usize,
+    /// Gradient steps so far.
+    pub steps: usize,
+    /// Mean over the epoch's steps of the TD loss (eq. 7, on scaled rewards).
+    pub td_loss: f64,
+    /// Mean over the epoch's steps of `mean(logsumexp_a Q - Q(s, a_data))` (eq. 8's term, before
+    /// alpha); reported for DQN too, where it shows how far unseen actions drift above seen ones.
+    pub conservative_loss: f64,
+    /// Mean over the epoch's minibatch states of `max_a Q(s, a)`, in unscaled reward units: the
+    /// value the greedy policy believes it gets, comparable to its measured return.
+    pub mean_q: f64,
+    /// The greedy policy on the true environment after the epoch.
+    pub policy: PolicyMetrics,
+    /// Wall-clock seconds since training started.
+    pub seconds: f64,
+}
+
+const CSV_HEADER: &str = "epoch,steps,td_loss,conservative_loss,mean_q,return,return_ci95,aoi,aoi_ci95,power_mw,power_mw_ci95,outages,outages_ci95,episodes,seconds";
+
+impl EpochRow {
+    fn csv(&self) -> String {
+        let p = &self.policy;
+        format!(
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{:.3}",
+            self.epoch,
+            self.steps,
+            self.td_loss,
+            self.conservative_loss,
+            self.mean_q,
+            p.ret.mean,
+            p.ret.ci95,
+            p.aoi.mean,
+            p.aoi.ci95,
+            p.power_mw.mean,
+            p.power_mw.ci95,
+            p.outages.mean,
+            p.outages.ci95,
+            p.episodes,
+            self.seconds
+        )
+    }
+
+    fn table_header() -> String {
+        format!(
+            "{:>5} {:>7} {:>10} {:>10} {:>10} {:>22} {:>14} {:>14} {:>12}",
+            "epoch",
+            "steps",
+            "td_loss",
+            "cons_loss",
+            "mean_q",
+            "return",
+            "aoi",
+            "power_mw",
+            "outages"
+        )
+    }
+
+    fn table_line(&self) -> String {
+        let p = &self.policy;
+        format!(
+            "{:>5} {:>7} {:>10.4} {:>10.4} {:>10.1} {:>22} {:>14} {:>14} {:>12}",
+            self.epoch,
+            self.steps,
+            self.td_loss,
+            self.conservative_loss,
+            self.mean_q,
+            format!("{:.1}", p.ret),
+            format!("{:.2}", p.aoi),
+            format!("{:.3}", p.power_mw),
+            format!("{:.1}", p.outages)
+        )
+    }
+}
+
+/// Trains `q` in place on `data` (every transition of the N shots) and returns one row per epoch.
+pub fn train(
+    q: &mut QNetwork,
+    data: &Batch,
+    opts: &TrainOptions,
+    evaluator: &mut dyn EvaluatePolicy,
+) -> Result<Vec<EpochRow>, TrainError> {
+    let cfg = &opts.config.learner;
+    let n = data.len();
+    let batch = cfg.batch.min(n);
+    let steps_per_epoch = if cfg.steps_per_epoch == 0 {
+        n.div_ceil(batch)
+    } else {
+        cfg.steps_per_epoch
+    };
+    let td = TdConfig::from(cfg);
+
+    let mut opt = nn::Adam::default()
+        .build(&q.vs, cfg.lr)
+        .expect("Adam over a CPU VarStore always builds");
+    let mut target = q.duplicate();
+    let mut order = MinibatchOrder::new(n, batch, opts.seed);
+
+    let mut csv = match opts.out_dir {
+        Some(dir) => Some(CsvLog::create(&dir.join("train.csv"))?),
+        None => None,
+    };
+    let bar = progress_bar(opts.progress, (cfg.epochs * steps_per_epoch) as u64);
+    bar.suspend(|| eprintln!("{}", EpochRow::table_header()));
+
+    let started = Instant::now();
+    let mut rows = Vec::with_capacity(cfg.epochs);
+    let mut steps = 0;
+    for epoch in 1..=cfg.epochs {
+        let (mut td_sum, mut cons_sum, mut q_sum) = (0.0, 0.0, 0.0);
+        for _ in 0..steps_per_epoch {
+            let mb = data.select(&order.next_indices());
+            // ALGO: Q_w(s, .) with its graph; Qhat(s', .) from the frozen target network.
+            let q_all = q.forward(&mb.obs); // [b, A]
+            let next_q_target = tch::no_grad(|| target.forward(&mb.next_obs)); // [b, A]
+            let next_q_online = td
+                .double_dqn
+                .then(|| tch::no_grad(|| q.forward(&mb.next_obs)));
+            let td_loss = td_loss_with(&q_all, &next_q_target, next_q_online.as_ref(), &mb, &td); // eq. 7
+            let (loss, conservative) = match opts.algorithm {
+                Algorithm::Cql => {
+                    let l = CqlLoss::from_td(&q_all, td_loss.shallow_clone(), &mb, cfg.alpha); // eq. 8
+                    (l.total, l.conservative)
+                }
+                Algorithm::Dqn => (
+                    td_loss.shallow_clone(),
+                    tch::no_grad(|| conservative_term(&q_all, &mb)),
+                ),
+            };
+            opt.backward_step(&loss);
+            steps += 1;
+            if steps % cfg.target_update_every == 0 {
+                target.copy_from(q);
+            }
+            // PLUMBING: epoch means of the logged figures.
+            td_sum += td_loss.double_value(&[]);
+            cons_sum += conservative.double_value(&[]);
+            q_sum += tch::no_grad(|| q_all.amax(-1, false).mean(None)).double_value(&[]);
+            bar.inc(1);
+        }
+        let k = steps_per_epoch as f64;
+        let row = EpochRow {
+            epoch,
+            steps,
+            td_loss: td_sum / k,
+            conservative_loss: cons_sum / k,
+            mean_q: q_sum / k / cfg.reward_scale,
+            policy: evaluator.evaluate(q),
+            seconds: started.elapsed().as_secs_f64(),
+        };
+        bar.suspend(|| eprintln!("{}", row.table_line()));
+        if let Some(csv) = csv.as_mut() {
+            csv.write(&row)?;
+        }
+        rows.push(row);
+    }
+    bar.finish_and_clear();
+    if let Some(dir) = opts.out_dir {
+        checkpoint::save(
+            &dir.join("final"),
+            q,
+            &opts.algorithm.to_string(),
+            cfg.epochs,
+            opts.config,
+        )?;
+    }
+    Ok(rows)
+}
+
+/// Minibatch indices: consecutive slices of a seeded permutation of the N rows, reshuffled each
+/// time it runs out, so every row is seen once per pass whatever the steps per epoch.
+struct MinibatchOrder {
+    perm: Vec<i64>,
+    pos: usize,
+    batch: usize,
+    rng: ChaCha8Rng,
+}
+
+impl MinibatchOrder {
+    fn new(n: usize, batch: usize, seed: u64) -> Self {
+        let mut order = Self {
+            perm: (0..n as i64).collect(),
+            pos: n,
+            batch,
+            rng: ChaCha8Rng::seed_from_u64(seed),
+        };
+        order.reshuffle_if_spent();
+        order
+    }
+
+    fn reshuffle_if_spent(&mut self) {
+        if self.pos + self.batch > self.perm.len() {
+            self.perm.shuffle(&mut self.rng);
+            self.pos = 0;
+        }
+    }
+
+    /// [batch] i64 row indices.
+    fn next_indices(&mut self) -> Tensor {
+        let index = Tensor::from_slice(&self.perm[self.pos..self.pos + self.batch]);
+        self.pos += self.batch;
+        self.reshuffle_if_spent();
+        index
+    }
+}
+
+fn progress_bar(enabled: bool, len: u64) -> ProgressBar {
+    if !enabled {
+        return ProgressBar::with_draw_target(Some(len), ProgressDrawTarget::hidden());
+    }
+    ProgressBar::new(len).with_style(
+        ProgressStyle::with_template("{bar:40} {pos}/{len} steps {per_sec} eta {eta}")
+            .expect("the template is valid"),
+    )
+}
+
+/// `train.csv`: one line per epoch, flushed as it is written so an interrupted run keeps its rows.
+struct CsvLog {
+    path: PathBuf,
+    file: BufWriter<File>,
+}
+
+impl CsvLog {
+    fn create(path: &Path) -> Result<Self, TrainError> {
+        let io = |action, source| TrainError::Io {
+            path: path.to_path_buf(),
+            action,
+            source,
+        };
+        if let Some(dir) = path.parent() {
+            std::fs::create_dir_all(dir).map_err(|e| io("create the directory of", e))?;
+        }
+        let mut file = BufWriter::new(File::create(path).map_err(|e| io("create", e))?);
+        writeln!(file, "{CSV_HEADER}").map_err(|e| io("write", e))?;
+        Ok(Self {
+            path: path.to_path_buf(),
+            file,
+        })
+    }
+
+    fn write(&mut self, row: &EpochRow) -> Result<(), TrainError> {
+        writeln!(self.file, "{}", row.csv())
+            .and_then(|()| self.file.flush())
+            .map_err(|source| TrainError::Io {
+                path: self.path.clone(),
+                action: "write",
+                source,
+            })
+    }
+}

@@ -1,0 +1,97 @@
+//! `uavmeta train`: offline DQN or CQL on N shots of one task's dataset, evaluating the greedy
+//! policy in the task's world after every epoch.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use clap::Args;
+use uavmeta_actors::q_policy::Evaluator;
+use uavmeta_learner::checkpoint;
+use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::train::{train, Algorithm, TrainOptions};
+use uavmeta_meta::meta_test::load_shots;
+
+use super::common::{ConfigArgs, TaskArgs};
+
+#[derive(Args)]
+pub struct TrainArgs {
+    #[command(flatten)]
+    config: ConfigArgs,
+    #[command(flatten)]
+    task: TaskArgs,
+    /// The offline loss: cql (eq. 8) or dqn (eq. 7).
+    #[arg(long, value_parser = |s: &str| s.parse::<Algorithm>())]
+    algo: Algorithm,
+    /// The task's dataset file.
+    #[arg(long)]
+    dataset: PathBuf,
+    /// N: transitions drawn from the dataset to train on.
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+    shots: u64,
+    /// Training epochs [default: learner.epochs].
+    #[arg(long)]
+    epochs: Option<usize>,
+    /// `random` (a network seeded by --seed) or a checkpoint to start from.
+    #[arg(long, default_value = "random")]
+    init: String,
+    /// Output directory: train.csv and the `final` checkpoint.
+    #[arg(long)]
+    out: PathBuf,
+    /// Seed of the random init, the shot draw and the minibatch order [default: run.seeds[0]].
+    #[arg(long)]
+    seed: Option<u64>,
+}
+
+pub fn run(args: TrainArgs) -> Result<()> {
+    // The Q-networks are small: one libtorch thread is as fast as two on an idle machine and
+    // immune to OpenMP spin-waiting on a busy one (25x slower in actors/tests/learning.rs).
+    tch::set_num_threads(1);
+    let mut config = args.config.load()?;
+    let task = args.task.resolve(&mut config)?;
+    // Saved beside the final checkpoint, so the flags that change training go into the config.
+    if let Some(epochs) = args.epochs {
+        config.learner.epochs = epochs;
+    }
+    let seed = args.seed.unwrap_or(config.run.seeds[0]);
+    let shots = usize::try_from(args.shots).context("--shots does not fit in memory")?;
+    let data = load_shots(&config, &task, &args.dataset, shots, seed)?;
+    let mut q = if args.init == "random" {
+        QNetwork::new(
+            config.world.observation_len(),
+            config.world.action_count(),
+            &config.learner.hidden,
+            seed,
+        )
+    } else {
+        checkpoint::load(args.init.as_ref(), &config)?.0
+    };
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("{}: cannot create the directory", args.out.display()))?;
+    let opts = TrainOptions {
+        algorithm: args.algo,
+        config: &config,
+        seed,
+        out_dir: Some(&args.out),
+        progress: true,
+    };
+    let rows = train(
+        &mut q,
+        &data,
+        &opts,
+        &mut Evaluator::from_config(&config, &task),
+    )?;
+    if let Some(last) = rows.last() {
+        println!(
+            "{} on {} shots of `{}`, epoch {}: return {:.1}, AoI {:.2}, power {:.3} mW, outages {:.1}, mean Q {:.1}",
+            args.algo, shots, task.name, last.epoch, last.policy.ret, last.policy.aoi, last.policy.power_mw, last.policy.outages, last.mean_q
+        );
+    }
+    println!(
+        "per-epoch figures: {}; checkpoint: {}",
+        args.out.join("train.csv").display(),
+        checkpoint::CheckpointPaths::new(&args.out.join("final"))
+            .weights
+            .display()
+    );
+    Ok(())
+}
