@@ -1,0 +1,336 @@
+//! MAML over a CQL or DQN inner loop: the paper's Algorithm 4 with eqs. 14-16.
+//!
+//! ```text
+//! for each meta-epoch:
+//!     sample tasks tau_1..tau_T                                  (meta.tasks_per_meta_epoch, 0 = all)
+//!     for each task tau_i:
+//!         sample k shots of its support set                      (meta.shots)
+//!         w_i = w0;  repeat inner_steps:  w_i <- w_i - eta_inner * grad L(w_i; shots)     (eq. 14)
+//!     L_meta = sum_i L(w_i; query shots of tau_i)                                          (eq. 15)
+//!     w0 <- Adam(eta_outer) step on grad_w0 L_meta, through the inner steps                (eq. 16)
+//! ```
+//!
+//! `L` is the CQL loss of eq. 8 (CQL-MAML, the paper's method) or the DQN loss of eq. 7 (DQN-MAML,
+//! its baseline), with the learner's TD options (`learner.double_dqn`, `learner.huber`) so that
+//! MAML and plain offline training optimise the same loss. Second-order MAML differentiates the
+//! query loss through every inner step (the inner gradients are built with `create_graph`);
+//! first-order MAML (`meta.first_order`) treats the inner gradients as constants, so the
+//! meta-gradient of a task is the gradient of its query loss at `w_i`.
+//!
+//! # The target network Qhat
+//!
+//! Both losses bootstrap from a target network `Qhat` (eqs. 7-8). Here `Qhat` is a detached copy of
+//! `w0`, refreshed at the start of every `meta.target_update_every`-th meta-epoch, and one and the
+//! same `Qhat` serves the inner loss (eq. 14) and the query loss (eq. 15) of every task of the
+//! meta-epoch. Three reasons:
+//!
+//! 1. The inner loop rehearses meta-test. Fine-tuning (SPEC section 5) starts with its target
+//!    network equal to the initial weights `w0` and keeps it for `learner.target_update_every`
+//!    gradient steps, far more than MAML's 1-5 inner steps. With `Qhat = w0` held constant through
+//!    the inner steps, `w_i` is exactly what the first steps of fine-tuning would produce, so `w0`
+//!    is trained for the adaptation it will actually get. Using the fast weights as their own
+//!    target would rehearse a fine-tuning that does not exist.
+//! 2. Eq. 16 stays a true gradient step. Between refreshes, the regression targets
+//!    `r + gamma * max_a' Qhat(s', a')` are constants, so the meta-loss is an ordinary function of
+//!    `w0` and the meta-gradient computed here is its exact derivative (`meta/tests/maml.rs`
+//!    checks it against finite differences). Bootstrapping the query loss from `w_i` (or from `w0`
+//!    with gradient) would make the objective depend on `w0` through the targets too, which the
+//!    semi-gradient convention of eq. 7 deliberately ignores: the meta-gradient would then be the
+//!    gradient of nothing, and differentiating through the targets instead (a residual gradient
+//!    through a max) is known to learn worse values.
+//! 3. Stability. A target that follows `w0` at every Adam step is DQN without a target network; a
+//!    refresh interval above 1 is the usual cure, and is a config key for that reason. The default
+//!    of 1 makes `Qhat` the `w0` the meta-epoch starts from, which matches point 1 exactly.
+//!
+//! The observation does not contain lambda, so `w0` is one Q-function for all tasks; its target is
+//! a task-average value, and the per-task part of each `Q_{w_i}` comes from the adaptation.
+
+use rand::seq::index;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use tch::nn::{self, OptimizerConfig};
+use tch::Tensor;
+use uavmeta_learner::batch::Batch;
+use uavmeta_learner::cql::CqlLoss;
+use uavmeta_learner::dqn::{td_loss_with, TdConfig};
+use uavmeta_learner::qnet::QNetwork;
+use uavmeta_proto::config::{Config, InnerLoss};
+
+use crate::MetaError;
+
+/// The settings of Algorithm 4, gathered from `[meta]` and `[learner]`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MamlConfig {
+    /// CQL-MAML (eq. 8) or DQN-MAML (eq. 7).
+    pub inner_loss: InnerLoss,
+    /// Discount and TD options shared with offline training (`[learner]`).
+    pub td: TdConfig,
+    /// CQL's conservative weight alpha.
+    pub alpha: f64,
+    /// Tasks per meta-epoch; 0 = every task.
+    pub tasks_per_meta_epoch: usize,
+    /// k: support shots per task and meta-epoch.
+    pub shots: usize,
+    /// Query shots per task and meta-epoch.
+    pub query_shots: usize,
+    /// SGD steps of eq. 14.
+    pub inner_steps: usize,
+    pub eta_inner: f64,
+    pub eta_outer: f64,
+    /// Treat the inner gradients as constants (first-order MAML).
+    pub first_order: bool,
+    /// Meta-epochs between refreshes of the target network from `w0`.
+    pub target_update_every: usize,
+}
+
+impl MamlConfig {
+    pub fn from_config(config: &Config) -> Self {
+        let m = &config.meta;
+        Self {
+            inner_loss: m.inner_loss,
+            td: TdConfig::from(&config.learner),
+            alpha: config.learner.alpha,
+            tasks_per_meta_epoch: m.tasks_per_meta_epoch,
+            shots: m.shots,
+            query_shots: m.query_shots,
+            inner_steps: m.inner_steps,
+            eta_inner: m.eta_inner,
+            eta_outer: m.eta_outer,
+            first_order: m.first_order,
+            target_update_every: m.target_update_every,
+        }
+    }
+
+    /// `L(w; batch)`: eq. 8 (CQL) or eq. 7 (DQN) for the network with weights `params`,
+    /// bootstrapping from the target network `target`, which no gradient reaches. Scalar.
+    pub fn task_loss(&self, params: &[Tensor], target: &[Tensor], batch: &Batch) -> Tensor {
+        let q = QNetwork::forward_with(params, &batch.obs); // Q_w(s, .) [B, A], graph back to params
+        let (next_q_target, next_q_online) = tch::no_grad(|| {
+            let target_q = QNetwork::forward_with(target, &batch.next_obs); // Qhat(s', .) [B, A]
+            let online_q = self
+                .td
+                .double_dqn
+                .then(|| QNetwork::forward_with(params, &batch.next_obs));
+            (target_q, online_q)
+        });
+        let td = td_loss_with(&q, &next_q_target, next_q_online.as_ref(), batch, &self.td);
+        match self.inner_loss {
+            // eq. 7: mean (r + gamma max_a' Qhat(s', a') - Q(s, a))^2
+            InnerLoss::Dqn => td,
+            // eq. 8: 0.5 * eq. 7 + alpha * mean(logsumexp_a Q(s, a) - Q(s, a_data))
+            InnerLoss::Cql => CqlLoss::from_td(&q, td, batch, self.alpha).total,
+        }
+    }
+
+    /// Eq. 14, `inner_steps` times: `w <- w - eta_inner * grad_w L(w; support)` from `w0`.
+    ///
+    /// Second order keeps the graph of every inner gradient, so the returned fast weights are
+    /// differentiable functions of `w0` through the Hessian-vector terms; first order detaches the
+    /// gradients, so `d w_i / d w0` is the identity.
+    pub fn adapt(&self, w0: &[Tensor], target: &[Tensor], support: &Batch) -> Vec<Tensor> {
+        let second_order = !self.first_order;
+        let mut w: Vec<Tensor> = w0.iter().map(Tensor::shallow_clone).collect();
+        for _ in 0..self.inner_steps {
+            let loss = self.task_loss(&w, target, support);
+            // torch.autograd.grad(loss, w, retain_graph=create_graph=second_order)
+            let grads = Tensor::run_backward(&[&loss], &w, second_order, second_order);
+            w = w
+                .iter()
+                .zip(&grads)
+                .map(|(w, g)| w - g * self.eta_inner)
+                .collect();
+        }
+        w
+    }
+
+    /// Eq. 15 and its gradient: adapts to each task's support shots, evaluates `L(w_i; query)`,
+    /// and accumulates `d L(w_i; query) / d w0` into the `.grad` of `w0` (which must be leaves
+    /// that require grad). The sum over tasks of those gradients is `grad_w0 L_meta`; going task
+    /// by task keeps one task's graph alive at a time. Returns each task's query loss.
+    pub fn backward_meta_loss(
+        &self,
+        w0: &[Tensor],
+        target: &[Tensor],
+        tasks: &[TaskShots],
+    ) -> Vec<f64> {
+        tasks
+            .iter()
+            .map(|task| {
+                let w_i = self.adapt(w0, target, &task.support); // eq. 14
+                let query_loss = self.task_loss(&w_i, target, &task.query); // a term of eq. 15
+                query_loss.backward();
+                query_loss.double_value(&[])
+            })
+            .collect()
+    }
+}
+
+/// One meta-train task's data: its support set (inner loop) and query set (meta-loss), each
+/// encoded once; the shots of a meta-epoch are row selections of them.
+pub struct MetaTask {
+    pub name: String,
+    pub support: Batch,
+    pub query: Batch,
+}
+
+/// The shots one task contributes to one meta-epoch.
+pub struct TaskShots {
+    /// k shots of the support set.
+    pub support: Batch,
+    /// Shots of the query set.
+    pub query: Batch,
+}
+
+impl MetaTask {
+    /// `shots` support rows and `query_shots` query rows drawn without replacement (all rows of a
+    /// set smaller than asked for).
+    pub fn sample(&self, shots: usize, query_shots: usize, rng: &mut ChaCha8Rng) -> TaskShots {
+        TaskShots {
+            support: sample_rows(&self.support, shots, rng),
+            query: sample_rows(&self.query, query_shots, rng),
+        }
+    }
+}
+
+fn sample_rows(batch: &Batch, amount: usize, rng: &mut ChaCha8Rng) -> Batch {
+    let rows: Vec<i64> = index::sample(rng, batch.len(), amount.min(batch.len()))
+        .into_iter()
+        .map(|i| i as i64)
+        .collect();
+    batch.select(&Tensor::from_slice(&rows))
+}
+
+/// What one meta-epoch did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MetaEpoch {
+    /// The meta-epoch, counting from 1.
+    pub epoch: usize,
+    /// `L_meta` of eq. 15, at the `w0` the epoch started from.
+    pub meta_loss: f64,
+    /// `(task index, L(w_i; query))` of each sampled task, in task order.
+    pub task_losses: Vec<(usize, f64)>,
+}
+
+/// The meta-learner: `w0`, its target network and the outer Adam optimiser.
+pub struct Maml {
+    config: MamlConfig,
+    w0: QNetwork,
+    target: QNetwork,
+    optimizer: nn::Optimizer,
+    rng: ChaCha8Rng,
+    epochs_done: usize,
+}
+
+impl Maml {
+    /// Meta-trains `w0` (its current weights are the starting point); task and shot sampling
+    /// draw from `seed` alone.
+    pub fn new(w0: QNetwork, config: MamlConfig, seed: u64) -> Result<Self, MetaError> {
+        let optimizer = nn::Adam::default().build(&w0.vs, config.eta_outer)?;
+        let target = w0.duplicate();
+        Ok(Self {
+            config,
+            w0,
+            target,
+            optimizer,
+            rng: ChaCha8Rng::seed_from_u64(seed),
+            epochs_done: 0,
+        })
+    }
+
+    pub fn config(&self) -> &MamlConfig {
+        &self.config
+    }
+
+    /// The meta-learned initial weights.
+    pub fn w0(&self) -> &QNetwork {
+        &self.w0
+    }
+
+    /// Meta-epochs run so far.
+    pub fn epochs_done(&self) -> usize {
+        self.epochs_done
+    }
+
+    /// One meta-epoch of Algorithm 4 over `tasks`.
+    pub fn meta_epoch(&mut self, tasks: &[MetaTask]) -> Result<MetaEpoch, MetaError> {
+        if tasks.is_empty() {
+            return Err(MetaError::NoTasks);
+        }
+        let c = &self.config;
+        if self.epochs_done % c.target_update_every == 0 {
+            self.target.copy_from(&self.w0); // Qhat <- w0, constant until the next refresh
+        }
+        // Sample the tasks of this meta-epoch (all of them when tasks_per_meta_epoch is 0).
+        let count = match c.tasks_per_meta_epoch {
+            0 => tasks.len(),
+            n => n.min(tasks.len()),
+        };
+        let mut picked = index::sample(&mut self.rng, tasks.len(), count).into_vec();
+        picked.sort_unstable();
+        // Sample k support shots and the query shots of each.
+        let shots: Vec<TaskShots> = picked
+            .iter()
+            .map(|&i| tasks[i].sample(c.shots, c.query_shots, &mut self.rng))
+            .collect();
+        // Eqs. 14-15, with the meta-gradient accumulated into w0's gradients.
+        self.optimizer.zero_grad();
+        let w0 = self.w0.parameters();
+        let target = self.target.parameters();
+        let losses = c.backward_meta_loss(&w0, &target, &shots);
+        // Eq. 16: Adam(eta_outer) on w0.
+        self.optimizer.step();
+        let epoch = MetaEpoch {
+            epoch: self.epochs_done + 1,
+            meta_loss: losses.iter().sum(),
+            task_losses: picked.into_iter().zip(losses).collect(),
+        };
+        self.epochs_done += 1;
+        Ok(epoch)
+    }
+
+    /// `L_meta` (eq. 15) of `w0` on the given shots, without changing anything: the adaptation
+    /// runs as in training, but no gradient reaches `w0`.
+    pub fn meta_loss(&self, shots: &[TaskShots]) -> f64 {
+        let w0 = self.w0.parameters();
+        let target = self.target.parameters();
+        shots
+            .iter()
+            .map(|task| {
+                let w_i = self.adapt_detached(&w0, &target, &task.support);
+                tch::no_grad(|| {
+                    self.config
+                        .task_loss(&w_i, &target, &task.query)
+                        .double_value(&[])
+                })
+            })
+            .sum()
+    }
+
+    /// The network `w0` adapts to on `support` (eq. 14 with the meta-epoch's target), as a plain
+    /// Q-network: what meta-train evaluates on each task's environment.
+    pub fn adapted(&self, support: &Batch) -> QNetwork {
+        let w0 = self.w0.parameters();
+        let target = self.target.parameters();
+        let w_i = self.adapt_detached(&w0, &target, support);
+        let network = self.w0.duplicate();
+        tch::no_grad(|| {
+            for (dst, src) in network.parameters().iter_mut().zip(&w_i) {
+                dst.copy_(src);
+            }
+        });
+        network
+    }
+
+    /// Eq. 14 with first-order gradients: the same fast weights, without keeping graphs.
+    fn adapt_detached(&self, w0: &[Tensor], target: &[Tensor], support: &Batch) -> Vec<Tensor> {
+        let first_order = MamlConfig {
+            first_order: true,
+            ..self.config.clone()
+        };
+        first_order
+            .adapt(w0, target, support)
+            .into_iter()
+            .map(|w| w.detach())
+            .collect()
+    }
+}

@@ -1,0 +1,123 @@
+//! Meta-test (`uavmeta meta-test`), SPEC section 5: from a meta-learned `w0` checkpoint, fine-tune
+//! on N shots of an unseen task for E epochs, evaluating the greedy policy after every epoch.
+//!
+//! Fine-tuning is the learner's offline training ([`uavmeta_learner::train::train`]) started from
+//! `w0` instead of a random init, so it has the same optimiser settings, target-network schedule
+//! and `train.csv` columns as `uavmeta train`, which is what makes the methods comparable. The
+//! loss follows the checkpoint: a `cql-maml` init is fine-tuned with CQL (eq. 8), a `dqn-maml`
+//! init with DQN (eq. 7).
+
+use std::path::Path;
+
+use uavmeta_actors::q_policy::Evaluator;
+use uavmeta_learner::batch::Batch;
+use uavmeta_learner::checkpoint;
+use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::train::{train, Algorithm, EpochRow, TrainOptions};
+use uavmeta_proto::config::{Config, InnerLoss, TaskConfig};
+use uavmeta_proto::dataset::{self, DatasetReader};
+
+use crate::meta_train::algorithm_name;
+use crate::MetaError;
+
+/// The settings of one fine-tuning run, shared by meta-test and the baselines it is compared to.
+pub struct FineTune<'a> {
+    /// `[learner]` drives fine-tuning; its `epochs` is replaced by `epochs`.
+    pub config: &'a Config,
+    /// The unseen task: its environment scores the policy after every epoch.
+    pub task: &'a TaskConfig,
+    pub epochs: usize,
+    /// Seed of the minibatch order.
+    pub seed: u64,
+    /// Where `train.csv` and the `final` checkpoint go.
+    pub out_dir: Option<&'a Path>,
+    pub progress: bool,
+}
+
+/// One meta-test run.
+pub struct MetaTestOptions<'a> {
+    pub fine_tune: FineTune<'a>,
+    /// The w0 checkpoint written by meta-train.
+    pub init: &'a Path,
+    /// The task's dataset file; `shots` transitions are drawn from it, seeded by `fine_tune.seed`.
+    pub dataset: &'a Path,
+    pub shots: usize,
+}
+
+/// `shots` transitions of `task` drawn (seeded) from the dataset file `path`, encoded for the
+/// config's world. The file must come from this world and this task.
+pub fn load_shots(
+    config: &Config,
+    task: &TaskConfig,
+    path: &Path,
+    shots: usize,
+    seed: u64,
+) -> Result<Batch, MetaError> {
+    let reader = DatasetReader::open(path)?;
+    reader.check_world(config)?;
+    if reader.header().task_name != task.name {
+        return Err(MetaError::WrongTask {
+            path: path.to_path_buf(),
+            found: reader.header().task_name.clone(),
+            expected: task.name.clone(),
+        });
+    }
+    let picked = dataset::sample_shots(reader.transitions(), shots, seed).map_err(|source| {
+        MetaError::Shots {
+            path: path.to_path_buf(),
+            source,
+        }
+    })?;
+    Batch::new(&picked, &config.world, config.learner.reward_scale).map_err(|source| {
+        MetaError::Batch {
+            path: path.to_path_buf(),
+            source,
+        }
+    })
+}
+
+/// The loss that fine-tunes a checkpoint written by meta-train.
+pub fn fine_tune_algorithm(init: &Path, algorithm: &str) -> Result<Algorithm, MetaError> {
+    [
+        (InnerLoss::Cql, Algorithm::Cql),
+        (InnerLoss::Dqn, Algorithm::Dqn),
+    ]
+    .into_iter()
+    .find(|(inner, _)| algorithm_name(*inner) == algorithm)
+    .map(|(_, fine_tune)| fine_tune)
+    .ok_or_else(|| MetaError::NotMetaTrained {
+        path: init.to_path_buf(),
+        algorithm: algorithm.to_string(),
+    })
+}
+
+/// Offline training of `q` on `shots` with the config's settings for `epochs` epochs, evaluated on
+/// the task after every epoch: the common fine-tuning of every method of the paper's comparison.
+pub fn fine_tune(
+    q: &mut QNetwork,
+    shots: &Batch,
+    algorithm: Algorithm,
+    run: &FineTune,
+) -> Result<Vec<EpochRow>, MetaError> {
+    let mut config = run.config.clone();
+    config.learner.epochs = run.epochs;
+    let mut evaluator = Evaluator::from_config(&config, run.task);
+    let train_opts = TrainOptions {
+        algorithm,
+        config: &config,
+        seed: run.seed,
+        out_dir: run.out_dir,
+        progress: run.progress,
+    };
+    Ok(train(q, shots, &train_opts, &mut evaluator)?)
+}
+
+/// Loads `w0` from `opts.init` and fine-tunes it; returns one row per epoch (also in
+/// `<out_dir>/train.csv`).
+pub fn meta_test(opts: &MetaTestOptions) -> Result<Vec<EpochRow>, MetaError> {
+    let run = &opts.fine_tune;
+    let (mut q, meta) = checkpoint::load(opts.init, run.config)?;
+    let algorithm = fine_tune_algorithm(opts.init, &meta.algorithm)?;
+    let shots = load_shots(run.config, run.task, opts.dataset, opts.shots, run.seed)?;
+    fine_tune(&mut q, &shots, algorithm, run)
+}

@@ -1,0 +1,311 @@
+//! MAML correctness: the meta-gradient against finite differences, first versus second order, and
+//! meta-training lowering the meta-loss on held-out query data.
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use tch::{Kind, Tensor};
+use uavmeta_learner::batch::Batch;
+use uavmeta_learner::dqn::TdConfig;
+use uavmeta_learner::qnet::QNetwork;
+use uavmeta_meta::maml::{Maml, MamlConfig, MetaTask, TaskShots};
+use uavmeta_proto::config::InnerLoss;
+
+const OBS: usize = 3;
+const ACTIONS: usize = 5;
+
+/// These networks are tiny: libtorch's intra-op threads only contend with each other (and with
+/// everything else on a shared machine), which made this file 20x slower.
+fn single_threaded() {
+    tch::set_num_threads(1);
+}
+
+fn config(inner_loss: InnerLoss, inner_steps: usize, first_order: bool) -> MamlConfig {
+    MamlConfig {
+        inner_loss,
+        td: TdConfig::eq7(0.9),
+        alpha: 1.0,
+        tasks_per_meta_epoch: 0,
+        shots: 8,
+        query_shots: 8,
+        inner_steps,
+        // Large enough that the second-order term is far above finite-difference noise.
+        eta_inner: 0.3,
+        eta_outer: 1e-2,
+        first_order,
+        target_update_every: 1,
+    }
+}
+
+/// `rows` random transitions of a task whose reward weighs the observation by `lambda`, in `kind`.
+fn batch(rows: usize, lambda: f64, kind: Kind, rng: &mut ChaCha8Rng) -> Batch {
+    let mut uniform =
+        |n: usize| -> Vec<f64> { (0..n).map(|_| rng.random_range(0.0..1.0)).collect() };
+    let obs = uniform(rows * OBS);
+    let next_obs = uniform(rows * OBS);
+    let actions: Vec<i64> = uniform(rows)
+        .iter()
+        .map(|u| (u * ACTIONS as f64) as i64)
+        .collect();
+    let rewards: Vec<f64> = (0..rows)
+        .map(|i| {
+            -(obs[i * OBS] + lambda * obs[i * OBS + 1]) * (1.0 + actions[i] as f64 / ACTIONS as f64)
+        })
+        .collect();
+    let shape = [rows as i64, OBS as i64];
+    Batch {
+        obs: Tensor::from_slice(&obs).view(shape).to_kind(kind),
+        actions: Tensor::from_slice(&actions),
+        rewards: Tensor::from_slice(&rewards).to_kind(kind),
+        next_obs: Tensor::from_slice(&next_obs).view(shape).to_kind(kind),
+    }
+}
+
+fn shots(tasks: usize, rows: usize, kind: Kind, rng: &mut ChaCha8Rng) -> Vec<TaskShots> {
+    (0..tasks)
+        .map(|i| {
+            let lambda = i as f64;
+            TaskShots {
+                support: batch(rows, lambda, kind, rng),
+                query: batch(rows, lambda, kind, rng),
+            }
+        })
+        .collect()
+}
+
+/// The parameters of a seeded network as f64 leaves that require grad.
+fn leaves(seed: u64) -> Vec<Tensor> {
+    QNetwork::new(OBS, ACTIONS, &[6], seed)
+        .parameters()
+        .iter()
+        .map(|p| p.to_kind(Kind::Double).detach().set_requires_grad(true))
+        .collect()
+}
+
+/// Eq. 15's value at `w0`.
+fn meta_loss(c: &MamlConfig, w0: &[Tensor], target: &[Tensor], tasks: &[TaskShots]) -> f64 {
+    tasks
+        .iter()
+        .map(|t| {
+            c.task_loss(&c.adapt(w0, target, &t.support), target, &t.query)
+                .double_value(&[])
+        })
+        .sum()
+}
+
+/// What `backward_meta_loss` leaves in the gradients of fresh copies of `w0`, flattened.
+fn meta_gradient(
+    c: &MamlConfig,
+    w0: &[Tensor],
+    target: &[Tensor],
+    tasks: &[TaskShots],
+) -> Vec<f64> {
+    let w0: Vec<Tensor> = w0
+        .iter()
+        .map(|w| w.detach().set_requires_grad(true))
+        .collect();
+    c.backward_meta_loss(&w0, target, tasks);
+    flatten(&w0.iter().map(Tensor::grad).collect::<Vec<_>>())
+}
+
+fn flatten(tensors: &[Tensor]) -> Vec<f64> {
+    tensors
+        .iter()
+        .flat_map(|t| Vec::<f64>::try_from(t.flatten(0, -1)).expect("f64 tensor"))
+        .collect()
+}
+
+/// Central differences of eq. 15 with respect to every scalar of `w0`.
+fn finite_difference(
+    c: &MamlConfig,
+    w0: &[Tensor],
+    target: &[Tensor],
+    tasks: &[TaskShots],
+) -> Vec<f64> {
+    let eps = 1e-6;
+    let mut grad = Vec::new();
+    for (p, w) in w0.iter().enumerate() {
+        for j in 0..w.numel() as i64 {
+            let at = |delta: f64| {
+                let moved: Vec<Tensor> = w0
+                    .iter()
+                    .enumerate()
+                    .map(|(q, v)| {
+                        let v = v.detach().copy();
+                        if q == p {
+                            let flat = v.view(-1);
+                            let _ = flat.get(j).g_add_scalar_(delta);
+                        }
+                        v.set_requires_grad(true)
+                    })
+                    .collect();
+                meta_loss(c, &moved, target, tasks)
+            };
+            grad.push((at(eps) - at(-eps)) / (2.0 * eps));
+        }
+    }
+    grad
+}
+
+fn norm(v: &[f64]) -> f64 {
+    v.iter().map(|x| x * x).sum::<f64>().sqrt()
+}
+
+fn relative_error(a: &[f64], b: &[f64]) -> f64 {
+    let diff: Vec<f64> = a.iter().zip(b).map(|(x, y)| x - y).collect();
+    norm(&diff) / norm(a).max(norm(b))
+}
+
+#[test]
+fn second_order_meta_gradient_matches_finite_differences() {
+    single_threaded();
+    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    let tasks = shots(3, 16, Kind::Double, &mut rng);
+    let w0 = leaves(2);
+    let target = leaves(3);
+    for inner_loss in [InnerLoss::Cql, InnerLoss::Dqn] {
+        for inner_steps in [1, 3] {
+            let c = config(inner_loss, inner_steps, false);
+            let analytic = meta_gradient(&c, &w0, &target, &tasks);
+            let numeric = finite_difference(&c, &w0, &target, &tasks);
+            let error = relative_error(&analytic, &numeric);
+            println!("{inner_loss:?}, {inner_steps} inner steps: relative error {error:.3e}, |grad| {:.3e}", norm(&numeric));
+            assert!(
+                error < 1e-3,
+                "{inner_loss:?}, {inner_steps} inner steps: relative error {error:e}"
+            );
+        }
+    }
+}
+
+#[test]
+fn first_order_gradient_is_the_query_gradient_at_the_adapted_weights() {
+    single_threaded();
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    let tasks = shots(2, 16, Kind::Double, &mut rng);
+    let w0 = leaves(5);
+    let target = leaves(6);
+    for inner_steps in [1, 3] {
+        let first = config(InnerLoss::Cql, inner_steps, true);
+        // sum_i grad_w L(w; query_i) evaluated at w = w_i, with w_i taken as a constant point.
+        let mut expected = vec![0.0; flatten(&w0).len()];
+        for task in &tasks {
+            let w_i: Vec<Tensor> = first
+                .adapt(&w0, &target, &task.support)
+                .iter()
+                .map(|w| w.detach().set_requires_grad(true))
+                .collect();
+            let loss = first.task_loss(&w_i, &target, &task.query);
+            let grads = Tensor::run_backward(&[&loss], &w_i, false, false);
+            for (e, g) in expected.iter_mut().zip(flatten(&grads)) {
+                *e += g;
+            }
+        }
+        let fo = meta_gradient(&first, &w0, &target, &tasks);
+        let error = relative_error(&fo, &expected);
+        assert!(
+            error < 1e-12,
+            "{inner_steps} inner steps: first order is not the query gradient at w_i ({error:e})"
+        );
+
+        // It is not the true meta-gradient: that one carries the curvature of the inner loss.
+        let second = meta_gradient(
+            &config(InnerLoss::Cql, inner_steps, false),
+            &w0,
+            &target,
+            &tasks,
+        );
+        let gap = relative_error(&fo, &second);
+        println!("{inner_steps} inner steps: first vs second order relative difference {gap:.3e}");
+        assert!(
+            gap > 1e-2,
+            "{inner_steps} inner steps: first and second order agree to {gap:e}"
+        );
+    }
+}
+
+#[test]
+fn one_step_second_order_term_is_the_inner_hessian_times_the_query_gradient() {
+    single_threaded();
+    // For one inner step, d w1 / d w0 = I - eta H_s(w0), so
+    // second order - first order = -eta H_s(w0) grad L_q(w1), per task. H_s v comes from central
+    // differences of the support gradient along v, independently of the code under test.
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let tasks = shots(1, 16, Kind::Double, &mut rng);
+    let w0 = leaves(8);
+    let target = leaves(9);
+    let first = config(InnerLoss::Cql, 1, true);
+    let fo = meta_gradient(&first, &w0, &target, &tasks);
+    let so = meta_gradient(&config(InnerLoss::Cql, 1, false), &w0, &target, &tasks);
+    let support_gradient = |w: &[Tensor]| {
+        let loss = first.task_loss(w, &target, &tasks[0].support);
+        Tensor::run_backward(&[&loss], w, false, false)
+    };
+    let eps = 1e-6;
+    let along = |sign: f64| -> Vec<f64> {
+        let mut offset = 0;
+        let moved: Vec<Tensor> = w0
+            .iter()
+            .map(|w| {
+                let n = w.numel();
+                let v = Tensor::from_slice(&fo[offset..offset + n]).view(w.size().as_slice());
+                offset += n;
+                (w.detach() + v * (sign * eps)).set_requires_grad(true)
+            })
+            .collect();
+        flatten(&support_gradient(&moved))
+    };
+    let (plus, minus) = (along(1.0), along(-1.0));
+    let expected: Vec<f64> = plus
+        .iter()
+        .zip(&minus)
+        .map(|(p, m)| -first.eta_inner * (p - m) / (2.0 * eps))
+        .collect();
+    let difference: Vec<f64> = so.iter().zip(&fo).map(|(s, f)| s - f).collect();
+    let error = relative_error(&difference, &expected);
+    println!(
+        "second - first order vs -eta H v: relative error {error:.3e}, |difference| {:.3e}",
+        norm(&difference)
+    );
+    assert!(
+        norm(&difference) > 1e-3 * norm(&fo),
+        "the curvature term vanished"
+    );
+    assert!(
+        error < 1e-4,
+        "second - first order is not -eta H v: relative error {error:e}"
+    );
+}
+
+#[test]
+fn meta_training_lowers_the_meta_loss_on_held_out_query_data() {
+    single_threaded();
+    let mut rng = ChaCha8Rng::seed_from_u64(10);
+    let tasks: Vec<MetaTask> = (0..4)
+        .map(|i| MetaTask {
+            name: format!("task-{i}"),
+            support: batch(128, i as f64, Kind::Float, &mut rng),
+            query: batch(128, i as f64, Kind::Float, &mut rng),
+        })
+        .collect();
+    // Fresh transitions of the same tasks that meta-training never sees.
+    let held_out = shots(4, 128, Kind::Float, &mut ChaCha8Rng::seed_from_u64(11));
+    for first_order in [false, true] {
+        let mut c = config(InnerLoss::Cql, 1, first_order);
+        c.eta_inner = 0.05;
+        c.eta_outer = 3e-3;
+        // Qhat stays the initial w0, so before and after are the same objective.
+        c.target_update_every = 1000;
+        let mut maml =
+            Maml::new(QNetwork::new(OBS, ACTIONS, &[32, 32], 12), c, 13).expect("optimiser");
+        let before = maml.meta_loss(&held_out);
+        for _ in 0..200 {
+            maml.meta_epoch(&tasks).expect("tasks");
+        }
+        let after = maml.meta_loss(&held_out);
+        println!("first_order = {first_order}: held-out meta-loss {before:.4} -> {after:.4}");
+        assert!(
+            after < 0.6 * before,
+            "first_order = {first_order}: held-out meta-loss {before} -> {after}"
+        );
+    }
+}

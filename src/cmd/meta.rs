@@ -1,0 +1,186 @@
+//! `uavmeta meta-train` and `uavmeta meta-test`: MAML's two phases (Algorithm 4), and
+//! `uavmeta experiment`: the paper's main claim measured with both.
+
+use std::path::PathBuf;
+
+use anyhow::{bail, Result};
+use clap::Args;
+use uavmeta_meta::experiment::{quick_config, run, ExperimentOptions};
+use uavmeta_meta::meta_test::{meta_test, FineTune, MetaTestOptions};
+use uavmeta_meta::meta_train::{meta_train, MetaTrainOptions};
+use uavmeta_proto::config::TaskRole;
+
+use super::common::{ConfigArgs, TaskArgs};
+
+#[derive(Args)]
+pub struct MetaTrainArgs {
+    #[command(flatten)]
+    config: ConfigArgs,
+    /// Directory with one dataset per meta-train task of the config, named `<task-name>.uavds`
+    /// (as `uavmeta collect --out DIR/<task-name>.uavds` writes it).
+    #[arg(long)]
+    datasets: PathBuf,
+    /// Output directory: config.toml, meta_train.csv, w0 checkpoints.
+    #[arg(long)]
+    out: PathBuf,
+    /// Seed of w0's init, the support/query split and the sampling [default: run.seeds[0]].
+    #[arg(long)]
+    seed: Option<u64>,
+}
+
+#[derive(Args)]
+pub struct MetaTestArgs {
+    #[command(flatten)]
+    config: ConfigArgs,
+    #[command(flatten)]
+    task: TaskArgs,
+    /// The w0 checkpoint meta-train wrote (`OUT/w0`; any extension is ignored).
+    #[arg(long)]
+    init: PathBuf,
+    /// The unseen task's dataset file.
+    #[arg(long)]
+    dataset: PathBuf,
+    /// N: transitions drawn from the dataset to fine-tune on.
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+    shots: u64,
+    /// Fine-tuning epochs [default: learner.epochs].
+    #[arg(long)]
+    epochs: Option<usize>,
+    /// Output directory: train.csv and the final checkpoint.
+    #[arg(long)]
+    out: PathBuf,
+    /// Seed of the shot draw and the minibatch order [default: run.seeds[0]].
+    #[arg(long)]
+    seed: Option<u64>,
+}
+
+pub fn run_train(args: MetaTrainArgs) -> Result<()> {
+    single_threaded_torch();
+    let config = args.config.load()?;
+    let seed = args.seed.unwrap_or(config.run.seeds[0]);
+    let result = meta_train(&MetaTrainOptions {
+        config: &config,
+        datasets: &args.datasets,
+        out_dir: &args.out,
+        seed,
+        progress: true,
+    })?;
+    if let Some(last) = result.rows.last() {
+        println!(
+            "meta-epoch {}: meta-loss {:.4}",
+            last.epoch.epoch, last.epoch.meta_loss
+        );
+        if let Some(returns) = &last.returns {
+            for (task, ret) in result.tasks.iter().zip(returns) {
+                println!("  {}: greedy return after adaptation {ret:.1}", task.name);
+            }
+        }
+    }
+    println!(
+        "w0: {}; per-meta-epoch figures: {}",
+        result.w0.display(),
+        args.out.join("meta_train.csv").display()
+    );
+    Ok(())
+}
+
+pub fn run_test(args: MetaTestArgs) -> Result<()> {
+    single_threaded_torch();
+    let mut config = args.config.load()?;
+    let task = args.task.resolve(&mut config)?;
+    let seed = args.seed.unwrap_or(config.run.seeds[0]);
+    let rows = meta_test(&MetaTestOptions {
+        fine_tune: FineTune {
+            config: &config,
+            task: &task,
+            epochs: args.epochs.unwrap_or(config.learner.epochs),
+            seed,
+            out_dir: Some(&args.out),
+            progress: true,
+        },
+        init: &args.init,
+        dataset: &args.dataset,
+        shots: usize::try_from(args.shots)?,
+    })?;
+    if let Some(last) = rows.last() {
+        println!(
+            "epoch {}: return {:.1}, AoI {:.2}, power {:.3} mW",
+            last.epoch, last.policy.ret, last.policy.aoi, last.policy.power_mw
+        );
+    }
+    println!(
+        "per-epoch figures: {}",
+        args.out.join("train.csv").display()
+    );
+    Ok(())
+}
+
+#[derive(Args)]
+pub struct ExperimentArgs {
+    #[command(flatten)]
+    config: ConfigArgs,
+    /// The unseen task [default: the config's first task with role = "meta-test"].
+    #[arg(long)]
+    task: Option<String>,
+    /// Output directory: datasets/, seed-S/, curves.csv, summary.md.
+    #[arg(long)]
+    out: PathBuf,
+    /// N shots of the unseen task.
+    #[arg(long, default_value_t = 500)]
+    shots: usize,
+    /// Fine-tuning epochs [default: learner.epochs].
+    #[arg(long)]
+    epochs: Option<usize>,
+    /// Seeds [default: run.seeds].
+    #[arg(long, value_delimiter = ',')]
+    seeds: Vec<u64>,
+    /// A minute-long run of the whole pipeline (first seed, few steps): checks plumbing only.
+    #[arg(long)]
+    quick: bool,
+}
+
+pub fn run_experiment(args: ExperimentArgs) -> Result<()> {
+    single_threaded_torch();
+    let mut config = args.config.load()?;
+    if args.quick {
+        config = quick_config(&config);
+    }
+    let task = match &args.task {
+        Some(name) => config.task(name)?.clone(),
+        None => match config.tasks_with_role(TaskRole::MetaTest).next() {
+            Some(task) => task.clone(),
+            None => bail!(
+                "{}: no task has role = \"meta-test\"; name the unseen task with --task",
+                config.origin
+            ),
+        },
+    };
+    let mut seeds = if args.seeds.is_empty() {
+        config.run.seeds.clone()
+    } else {
+        args.seeds.clone()
+    };
+    let mut epochs = args.epochs.unwrap_or(config.learner.epochs);
+    if args.quick {
+        seeds.truncate(1);
+        epochs = epochs.min(5);
+    }
+    let report = run(&ExperimentOptions {
+        config: &config,
+        task: &task,
+        out_dir: &args.out,
+        seeds: &seeds,
+        shots: args.shots,
+        epochs,
+        progress: true,
+    })?;
+    print!("{}", report.summary);
+    Ok(())
+}
+
+/// The networks are small: libtorch's intra-op threads only spin-wait on each other on a shared
+/// machine (docs/BENCHMARKS.md, "Meta-learning": 3-9x slower meta-epochs), so MAML and
+/// fine-tuning run on one.
+fn single_threaded_torch() {
+    tch::set_num_threads(1);
+}
