@@ -18,6 +18,28 @@ enum Command {
     /// Inspect the UAV world: roll out a policy and print episode metrics.
     #[command(subcommand)]
     Env(cmd::env::EnvCommand),
+    /// Collect one task's offline dataset with a behaviour policy.
+    Collect(cmd::collect::CollectArgs),
+    /// Train a Q-network offline (CQL or DQN) on N shots of one task's dataset.
+    Train(cmd::train::TrainArgs),
+    /// Evaluate a checkpoint's greedy policy on a task, with 95% confidence intervals.
+    Eval(cmd::eval::EvalArgs),
+    /// Meta-train w0 with MAML over CQL or DQN (Algorithm 4) from one dataset per meta-train task.
+    MetaTrain(cmd::meta::MetaTrainArgs),
+    /// Fine-tune a meta-trained w0 on N shots of an unseen task, evaluating every epoch.
+    MetaTest(cmd::meta::MetaTestArgs),
+    /// The paper's main claim: collect, meta-train, and compare CQL-MAML, CQL, DQN, DQN-MAML.
+    Experiment(cmd::meta::ExperimentArgs),
+    /// Run everything (store, actors, meta-learner, evaluator) as one supervised run.
+    Launch(cmd::launch::LaunchArgs),
+    /// One actor of a run: roll out a behaviour policy and publish its transitions.
+    Actor(cmd::actor::ActorArgs),
+    /// The dataset store of a run: append every task's transitions to its dataset file.
+    Store(cmd::store::StoreArgs),
+    /// The meta-learner of a run: MAML over the run's datasets, then meta-test.
+    MetaLearner(cmd::meta_learner::MetaLearnerArgs),
+    /// The evaluator of a run: score every announced checkpoint in the true world.
+    Evaluator(cmd::evaluator::EvaluatorArgs),
 }
 
 fn main() -> ExitCode {
@@ -31,6 +53,17 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Env(c) => cmd::env::run(c),
+        Command::Collect(c) => cmd::collect::run(c),
+        Command::Train(c) => cmd::train::run(c),
+        Command::Eval(c) => cmd::eval::run(c),
+        Command::MetaTrain(c) => cmd::meta::run_train(c),
+        Command::MetaTest(c) => cmd::meta::run_test(c),
+        Command::Experiment(c) => cmd::meta::run_experiment(c),
+        Command::Launch(c) => cmd::launch::run(c),
+        Command::Actor(c) => cmd::actor::run(c),
+        Command::Store(c) => cmd::store::run(c),
+        Command::MetaLearner(c) => cmd::meta_learner::run(c),
+        Command::Evaluator(c) => cmd::evaluator::run(c),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -1,1 +1,35 @@
-//! placeholder
+//! The UAV side of uavmeta: the world, the policies that act in it, and the processes that run
+//! them.
+//!
+//! - [`world`]: [`world::World`], one task's environment (SPEC sections 1 and 3), built from
+//!   `uavmeta_proto::config`'s `WorldConfig` and `TaskConfig`; a step allocates nothing.
+//! - [`rollout`]: the [`rollout::Policy`] trait, single episodes with their
+//!   `uavmeta_proto::stats::EpisodeMetrics`, and Monte-Carlo evaluation over fixed episode seeds.
+//! - [`heuristics`]: random, stalest-first, greedy, epsilon-mixed and replayed policies, and the
+//!   `PolicySpec` parser behind `--policy` and `collect.policy`.
+//! - [`dqn_online`]: the online DQN agent (epsilon-greedy, replay buffer, target network) whose
+//!   replay buffer becomes the paper's datasets.
+//! - [`q_policy`]: a `uavmeta_learner` Q-network's greedy policy, and the evaluator that scores it
+//!   for `uavmeta_learner::train`.
+//! - [`actor_process`]: behaviour policies publishing transitions to the store over iceoryx2.
+//! - [`evaluator_process`]: greedy Q-policies of announced checkpoints scored in the true world.
+//!
+//! ```
+//! use uavmeta_actors::heuristics::StalestPolicy;
+//! use uavmeta_actors::rollout::evaluate;
+//! use uavmeta_proto::config::{Config, TaskConfig};
+//!
+//! let config = Config::default();
+//! let task = TaskConfig::one_off(300.0, None);
+//! let metrics = evaluate(&config.world, &task, &mut StalestPolicy, 5, 0);
+//! assert!(metrics.aoi.mean >= 1.0);
+//! ```
+
+pub mod actor_process;
+pub mod collect;
+pub mod dqn_online;
+pub mod evaluator_process;
+pub mod heuristics;
+pub mod q_policy;
+pub mod rollout;
+pub mod world;

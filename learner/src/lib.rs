@@ -1,1 +1,54 @@
-//! Q-network, DQN and CQL: being written.
+//! Q-network, DQN and CQL: everything that learns from transitions, and nothing about the world.
+//!
+//! - [`qnet`]: [`qnet::QNetwork`], the MLP of SPEC section 5 with a seeded, global-state-free
+//!   initialisation and a functional forward pass on explicit (fast) weights for MAML.
+//! - [`batch`]: [`batch::Batch`], `proto::dataset` transitions as normalised tensors.
+//! - [`dqn`]: the DQN loss, paper eq. 7 (double DQN and Huber as options, off by default).
+//! - [`cql`]: the CQL loss, paper eq. 8.
+//! - [`train`]: offline training with either loss, evaluated each epoch through the
+//!   [`train::EvaluatePolicy`] hook; per-epoch table on stderr and `train.csv`.
+//! - [`checkpoint`]: safetensors weights + JSON metadata + the run's config, written atomically
+//!   and checked (sizes, length, CRC32) on load.
+//! - [`store`]: the dataset store process, appending each task's transitions to its dataset file.
+//! - [`metrics`]: the /metrics endpoint every process serves.
+//!
+//! It consumes transitions from `uavmeta-proto`'s dataset files and the `[learner]` config
+//! section. Evaluating a policy needs the world, which lives in `uavmeta-actors`; the actors crate
+//! implements the evaluation hook and the online DQN agent on top of these types.
+//!
+//! One CQL gradient step by hand (offline training, [`train::train`], loops this):
+//!
+//! ```
+//! use tch::nn::OptimizerConfig;
+//! use uavmeta_learner::{batch::Batch, cql::cql_loss, qnet::QNetwork};
+//! use uavmeta_proto::{config::WorldConfig, dataset::Transition};
+//!
+//! // K = 2 devices: observations [x, y, A_1, A_2], 2 + K = 4 inputs, 5K = 10 actions.
+//! let world = WorldConfig { devices: 2, ..WorldConfig::default() };
+//! let t = Transition {
+//!     task: 0, actor: 0, episode: 0, step: 0, seq: 0,
+//!     obs: vec![4, 5, 1, 1], action: 3, reward: -2.0, next_obs: vec![4, 6, 2, 1], truncated: false,
+//! };
+//! let batch = Batch::new(&[t], &world, 0.01).unwrap();
+//! let q = QNetwork::new(world.observation_len(), world.action_count(), &[16, 16], 7);
+//! let target = q.duplicate();
+//! let mut adam = tch::nn::Adam::default().build(&q.vs, 1e-3).unwrap();
+//!
+//! let next_q_target = tch::no_grad(|| target.forward(&batch.next_obs)); // [1, 10]
+//! let loss = cql_loss(&q.forward(&batch.obs), &next_q_target, &batch, 0.99, 1.0); // eq. 8
+//! adam.backward_step(&loss.total);
+//! // The conservative term is never negative: logsumexp over actions bounds every Q(s, a).
+//! assert!(loss.conservative.double_value(&[]) >= 0.0);
+//! // MAML's fast weights run through the same network function.
+//! let same = QNetwork::forward_with(&q.parameters(), &batch.obs);
+//! assert!(same.equal(&q.forward(&batch.obs)));
+//! ```
+
+pub mod batch;
+pub mod checkpoint;
+pub mod cql;
+pub mod dqn;
+pub mod metrics;
+pub mod qnet;
+pub mod store;
+pub mod train;

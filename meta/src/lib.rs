@@ -1,1 +1,101 @@
-//! placeholder
+//! MAML over CQL or DQN inner loops: the paper's contribution, and its experiments.
+//!
+//! - [`maml`]: Algorithm 4 (eqs. 14-16) on [`uavmeta_learner::qnet::QNetwork`] fast weights, with
+//!   the CQL loss (CQL-MAML) or the DQN loss (DQN-MAML), second or first order; its module doc
+//!   says how the target network is handled and why.
+//! - [`meta_train`]: meta-training from one dataset file per meta-train task
+//!   (`<task-name>.uavds`), with a per-meta-epoch CSV, adapted-policy returns and `w0` checkpoints.
+//! - [`meta_test`]: fine-tuning a `w0` checkpoint on N shots of an unseen task, through the
+//!   learner's offline training so every method shares its settings and CSV columns.
+//! - [`experiment`]: the paper's main claim measured: collection with online DQN, meta-training,
+//!   and CQL-MAML / CQL / DQN / DQN-MAML fine-tuned on the unseen task over several seeds.
+//! - [`process`]: the meta-learner process of a run; [`launch`]: `uavmeta launch`, the supervisor
+//!   of a run's processes.
+//!
+//! It consumes datasets (`uavmeta_proto::dataset`), the Q-network, losses, training loop and
+//! checkpoints of `uavmeta-learner`, and the world and greedy-policy evaluator of
+//! `uavmeta-actors`; its results go to CSV files and checkpoints in an output directory.
+//!
+//! ```
+//! use tch::Tensor;
+//! use uavmeta_learner::batch::Batch;
+//! use uavmeta_learner::qnet::QNetwork;
+//! use uavmeta_meta::maml::{Maml, MamlConfig, MetaTask};
+//! use uavmeta_proto::config::Config;
+//!
+//! // Two transitions of a world with 1 device: 3 inputs, 5 actions.
+//! let rows = |scale: f64| Batch {
+//!     obs: Tensor::from_slice(&[0.1f32, 0.2, 0.3, 0.4, 0.5, 0.6]).view([2, 3]) * scale,
+//!     actions: Tensor::from_slice(&[0i64, 4]),
+//!     rewards: Tensor::from_slice(&[-0.5f32, -0.2]),
+//!     next_obs: Tensor::from_slice(&[0.2f32, 0.2, 0.1, 0.5, 0.4, 0.6]).view([2, 3]),
+//! };
+//! let tasks = vec![MetaTask { name: "a".into(), support: rows(1.0), query: rows(0.5) }];
+//! // CQL-MAML with the SPEC defaults: one second-order inner step, eta_inner = 1e-2.
+//! let settings = MamlConfig::from_config(&Config::default());
+//! let mut maml = Maml::new(QNetwork::new(3, 5, &[8], 1), settings, 0).unwrap();
+//! let epoch = maml.meta_epoch(&tasks).unwrap();
+//! assert_eq!(epoch.task_losses.len(), 1);
+//! assert!(epoch.meta_loss.is_finite());
+//! // The adapted network of a task: what its greedy policy is evaluated with.
+//! let adapted = maml.adapted(&tasks[0].support);
+//! assert_eq!(adapted.forward(&tasks[0].query.obs).size(), [2, 5]);
+//! ```
+
+pub mod experiment;
+pub mod launch;
+pub mod maml;
+pub mod meta_test;
+pub mod meta_train;
+pub mod process;
+
+use std::path::PathBuf;
+
+use uavmeta_actors::collect::CollectError;
+use uavmeta_learner::batch::BatchError;
+use uavmeta_learner::checkpoint::CheckpointError;
+use uavmeta_learner::train::TrainError;
+use uavmeta_proto::config::ConfigError;
+use uavmeta_proto::dataset::DatasetError;
+
+/// Everything meta-training and meta-testing can fail on.
+#[derive(Debug, thiserror::Error)]
+pub enum MetaError {
+    #[error("meta-training needs at least one task")]
+    NoTasks,
+    #[error("{origin}: no task has role = \"meta-train\"; meta-training needs at least one")]
+    NoMetaTrainTasks { origin: String },
+    #[error("{}: holds task `{found}`, expected task `{expected}`", path.display())]
+    WrongTask {
+        path: PathBuf,
+        found: String,
+        expected: String,
+    },
+    // The source is not in the message: `{:#}` prints the cause chain after it.
+    #[error("{}", path.display())]
+    Shots { path: PathBuf, source: DatasetError },
+    #[error("{}", path.display())]
+    Batch { path: PathBuf, source: BatchError },
+    #[error("{}: trained by `{algorithm}`, expected a meta-trained w0 (`cql-maml` or `dqn-maml`)", path.display())]
+    NotMetaTrained { path: PathBuf, algorithm: String },
+    #[error("{}: cannot {action}", path.display())]
+    Io {
+        path: PathBuf,
+        action: &'static str,
+        source: std::io::Error,
+    },
+    #[error("the online DQN reference agent")]
+    OnlineDqn(#[source] BatchError),
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error(transparent)]
+    Collect(#[from] CollectError),
+    #[error(transparent)]
+    Dataset(#[from] DatasetError),
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
+    #[error(transparent)]
+    Train(#[from] TrainError),
+    #[error(transparent)]
+    Torch(#[from] tch::TchError),
+}

@@ -2,8 +2,8 @@
 //!
 //! - [`config`]: the experiment configuration (SPEC section 7), read from TOML with every SPEC
 //!   default, `--set` overrides and validation errors that name the file, key and value.
-//! - `dataset`: the on-disk dataset format that collectors and the store write and learners read.
-//! - `transport`: the zero-copy payload types and iceoryx2 service names shared by the actor,
+//! - [`dataset`]: the on-disk dataset format that collectors and the store write and learners read.
+//! - [`transport`]: the zero-copy payload types and iceoryx2 service names shared by the actor,
 //!   store, meta-learner and evaluator processes, with the schema version they must agree on.
 //!
 //! ```
@@ -14,4 +14,6 @@
 //! ```
 
 pub mod config;
+pub mod dataset;
 pub mod stats;
+pub mod transport;

@@ -1,4 +1,13 @@
 //! One module per subcommand: each parses its flags and calls library code.
 
+pub mod actor;
+pub mod collect;
 pub mod common;
 pub mod env;
+pub mod evaluator;
+pub mod launch;
+pub mod eval;
+pub mod meta;
+pub mod meta_learner;
+pub mod store;
+pub mod train;

@@ -1,0 +1,420 @@
+//! The actor process (`uavmeta actor --run R --task T --policy P [--seed S]`): rolls a behaviour
+//! policy out in one task's world and publishes its transitions to the store.
+//!
+//! Each step is written into a fixed-layout slot of the actor's batch (`proto::transport`),
+//! `run.batch_size` steps per batch, numbered 0, 1, 2, ... by a per-actor sequence number; the
+//! batch goes into shared memory with one copy. When the store's buffer is full the actor waits
+//! (backpressure); when no store takes a batch it sends it again once one does; both waits are
+//! counted. With `dqn-online` (the paper's behaviour policy) the actor first trains an online DQN
+//! agent and then publishes `collect.transitions` transitions sampled from its replay buffer.
+//!
+//! An actor's identity is a hash of its task, policy and seed: the same actor restarted (by the
+//! launcher after a crash) makes the same transitions under the same numbers, and the store keeps
+//! one copy. Two actors with different seeds add different data, so actors can be started and
+//! stopped by hand at any time. An actor ends when its task's dataset is announced complete, when
+//! a shutdown is announced, after `--transitions N`, or on SIGINT/SIGTERM.
+
+use std::time::{Duration, Instant};
+
+use iceoryx2::prelude::*;
+use uavmeta_learner::metrics::{MetricsError, MetricsServer};
+use uavmeta_proto::config::{Config, ConfigError, TaskConfig};
+use uavmeta_proto::dataset::Transition;
+use uavmeta_proto::stats::EpisodeMetrics;
+use uavmeta_proto::transport::{
+    self, RunDir, ServiceNames, TransitionPublisher, TransitionSlot, TransportError, SCHEMA_VERSION,
+};
+
+use crate::collect::{online_dqn_dataset, CollectError};
+use crate::heuristics::{PolicyError, PolicySpec};
+use crate::rollout::{episode_seed, Policy};
+use crate::world::World;
+
+/// How often an actor with nothing to send (no store yet, or its replay sample all sent) looks
+/// for news.
+const POLL: Duration = Duration::from_millis(10);
+
+/// How often a publishing actor looks for signals and announcements.
+const CONTROL_EVERY: Duration = Duration::from_millis(5);
+
+#[derive(Debug, thiserror::Error)]
+pub enum ActorError {
+    #[error(transparent)]
+    Transport(#[from] TransportError),
+    #[error(transparent)]
+    Metrics(#[from] MetricsError),
+    #[error("--policy {spec}: {error}")]
+    Policy { spec: String, error: PolicyError },
+    #[error(transparent)]
+    Collect(#[from] CollectError),
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error("iceoryx2: cannot {action}: {message}")]
+    Receive {
+        action: &'static str,
+        message: String,
+    },
+}
+
+/// What to run: the flags of `uavmeta actor`.
+#[derive(Debug, Clone)]
+pub struct ActorOptions {
+    pub task: String,
+    pub policy: PolicySpec,
+    /// Seeds the episodes' worlds and the policy's random stream.
+    pub seed: u64,
+    /// Stop after publishing this many transitions; `None` runs until the dataset is complete.
+    pub transitions: Option<u64>,
+}
+
+impl ActorOptions {
+    /// The actor's id: an FNV-1a hash of task, policy and seed, so a restarted actor keeps its id.
+    pub fn actor_id(&self) -> u32 {
+        let key = format!("{}\0{}\0{}", self.task, self.policy, self.seed);
+        key.bytes().fold(0x811c_9dc5u32, |h, b| {
+            (h ^ b as u32).wrapping_mul(0x0100_0193)
+        })
+    }
+
+    /// The process name: node, port file and metrics snapshot.
+    pub fn process_name(&self) -> String {
+        format!("actor-{}-{:08x}", self.task, self.actor_id())
+    }
+}
+
+/// What an actor run did.
+#[derive(Debug, Default, Clone, Copy, PartialEq)]
+pub struct ActorSummary {
+    pub actor: u32,
+    pub steps: u64,
+    pub published: u64,
+    pub episodes: u64,
+    pub backpressure: Duration,
+}
+
+/// The actor's metrics: every name it exports, in one place. The registry labels them all with
+/// the actor's task and id.
+mod metrics {
+    use std::collections::HashMap;
+
+    use prometheus::{Counter, Gauge, Histogram, IntCounter, Opts, Registry};
+
+    use uavmeta_learner::metrics::{counter, latency_histogram, register};
+
+    pub struct ActorMetrics {
+        pub registry: Registry,
+        pub steps: IntCounter,
+        pub transitions_published: IntCounter,
+        pub batches_published: IntCounter,
+        pub episodes: IntCounter,
+        pub episode_return: Gauge,
+        pub episode_aoi: Gauge,
+        pub episode_power: Gauge,
+        pub episode_outages: Gauge,
+        pub backpressure_wait: Counter,
+        pub batch_duration: Histogram,
+    }
+
+    impl ActorMetrics {
+        pub fn new(task: &str, actor: u32) -> Self {
+            let labels = HashMap::from([
+                ("task".to_string(), task.to_string()),
+                ("actor".to_string(), format!("{actor:08x}")),
+            ]);
+            let registry = Registry::new_custom(Some("uavmeta".into()), Some(labels))
+                .expect("valid prefix and labels");
+            let gauge = |name: &str, help: &str| {
+                register(
+                    &registry,
+                    Gauge::with_opts(Opts::new(name, help)).expect("valid gauge"),
+                )
+            };
+            Self {
+                steps: counter(&registry, "actor_steps_total", "Environment steps taken (for dqn-online, training steps included)."),
+                transitions_published: counter(&registry, "actor_transitions_published_total", "Transitions sent to the store's service."),
+                batches_published: counter(&registry, "actor_batches_published_total", "Batches sent to the store's service."),
+                episodes: counter(&registry, "actor_episodes_total", "Episodes finished by the behaviour policy."),
+                episode_return: gauge("actor_episode_return", "Return of the last finished episode."),
+                episode_aoi: gauge("actor_episode_aoi", "Mean AoI over steps and devices of the last finished episode."),
+                episode_power: gauge("actor_episode_power_watts", "Mean transmit power per step of the last finished episode, in watts."),
+                episode_outages: gauge("actor_episode_outages", "Steps in outage of the last finished episode."),
+                backpressure_wait: register(
+                    &registry,
+                    Counter::with_opts(Opts::new(
+                        "actor_backpressure_wait_seconds_total",
+                        "Time blocked because the store's buffer was full or no store was connected.",
+                    ))
+                    .expect("valid counter"),
+                ),
+                batch_duration: latency_histogram(&registry, "actor_batch_duration_seconds", "Time to roll out and send one batch."),
+                registry,
+            }
+        }
+    }
+}
+
+/// A behaviour policy rolled out episode after episode, written slot by slot.
+struct Rollout {
+    world: World,
+    policy: Box<dyn Policy>,
+    seed: u64,
+    episode: u64,
+    in_episode: bool,
+    /// Sums of the episode in progress, and its steps.
+    current: EpisodeMetrics,
+    current_steps: u32,
+    finished: Vec<EpisodeMetrics>,
+}
+
+impl Rollout {
+    fn new(config: &Config, task: &TaskConfig, policy: Box<dyn Policy>, seed: u64) -> Self {
+        Self {
+            world: World::new(&config.world, task, seed),
+            policy,
+            seed,
+            episode: 0,
+            in_episode: false,
+            current: EpisodeMetrics::default(),
+            current_steps: 0,
+            finished: Vec::new(),
+        }
+    }
+
+    /// One step as a slot. The i-th episode runs in the world of `episode_seed(seed, i)`, as in
+    /// `collect` and evaluation.
+    fn next_slot(&mut self) -> TransitionSlot {
+        if !self.in_episode {
+            self.world
+                .reseed(episode_seed(self.seed, self.episode as usize));
+            self.world.reset();
+            self.in_episode = true;
+        }
+        let t = self.world.t();
+        let mut slot = TransitionSlot::new(
+            self.episode,
+            t,
+            self.world.observation(),
+            0,
+            0.0,
+            &[],
+            false,
+        );
+        let action = self.policy.act(&self.world);
+        let step = self.world.step(action);
+        // Below 5K <= 5 * MAX_DEVICES, checked by the world's step.
+        slot.action = action as u16;
+        slot.reward = step.reward as f32;
+        slot.truncated = step.truncated as u8;
+        let next = self.world.observation();
+        slot.next_obs[..next.len()].copy_from_slice(next);
+        self.current.ret += step.reward;
+        self.current.aoi += step.aoi_mean;
+        self.current.power_mw += step.power_mw;
+        self.current.outages += step.outage as u32;
+        self.current_steps += 1;
+        if step.truncated {
+            let n = self.current_steps as f64;
+            self.finished.push(EpisodeMetrics {
+                aoi: self.current.aoi / n,
+                power_mw: self.current.power_mw / n,
+                ..self.current
+            });
+            self.current = EpisodeMetrics::default();
+            self.current_steps = 0;
+            self.episode += 1;
+            self.in_episode = false;
+        }
+        slot
+    }
+}
+
+/// Where the actor's transitions come from.
+enum Source {
+    Rollout(Box<Rollout>),
+    /// A fixed list (the online DQN agent's replay sample), published in order once.
+    Fixed(Vec<Transition>),
+}
+
+/// Runs an actor of `run` until its task's dataset is complete, a shutdown, its transition limit,
+/// or SIGINT/SIGTERM.
+pub fn run(
+    run: &RunDir,
+    config: &Config,
+    options: &ActorOptions,
+) -> Result<ActorSummary, ActorError> {
+    let task = config.task(&options.task)?.clone();
+    let task_id = config.task_id(&task.name)? as u32;
+    let actor = options.actor_id();
+    let process = options.process_name();
+    let node = transport::node(&format!("{}-{process}", run.id()))?;
+    let names = ServiceNames::new(run);
+    let metrics = metrics::ActorMetrics::new(&task.name, actor);
+    let _server = MetricsServer::start(
+        metrics.registry.clone(),
+        &config.run.metrics_host,
+        0,
+        run,
+        &process,
+    )?;
+    let service = transport::transition_service(&node, &names, &task.name, &config.run)?;
+    let publisher = TransitionPublisher::new(&service, run, config, task_id, actor)?;
+    let ready = transport::control_subscriber(
+        &transport::dataset_ready_service(&node, &names, config)?,
+        config,
+    )?;
+    let shutdown = transport::control_subscriber(
+        &transport::shutdown_service(&node, &names, config)?,
+        config,
+    )?;
+    let mut summary = ActorSummary {
+        actor,
+        ..ActorSummary::default()
+    };
+    tracing::info!(task = %task.name, actor = format!("{actor:08x}"), policy = %options.policy, seed = options.seed, "actor started");
+
+    let mut source = match &options.policy {
+        PolicySpec::DqnOnline => {
+            let trained = online_dqn_dataset(config, &task, task_id, actor, options.seed, |n| {
+                metrics.steps.inc_by(n as u64);
+                transport::keep_running(&node, Duration::ZERO)
+            });
+            match trained {
+                Ok((sample, steps)) => {
+                    summary.steps = steps;
+                    Source::Fixed(sample)
+                }
+                Err(CollectError::Interrupted { steps }) => {
+                    tracing::info!(steps, "stopped while training the online DQN agent");
+                    return Ok(summary);
+                }
+                Err(error) => return Err(error.into()),
+            }
+        }
+        spec => {
+            let policy = spec
+                .build(config.world.action_count(), options.seed, usize::MAX)
+                .map_err(|error| ActorError::Policy {
+                    spec: spec.to_string(),
+                    error,
+                })?;
+            Source::Rollout(Box::new(Rollout::new(config, &task, policy, options.seed)))
+        }
+    };
+
+    let limit = options.transitions.unwrap_or(u64::MAX);
+    let mut seq = 0u64;
+    let mut outbox: Vec<TransitionSlot> = Vec::with_capacity(publisher.batch_size());
+    let mut next_look = Instant::now();
+    'publishing: loop {
+        // Signals and announcements are looked at every CONTROL_EVERY, not every batch: a look
+        // costs a syscall and two receives, a batch of 64 steps a few microseconds.
+        if Instant::now() >= next_look {
+            if !transport::keep_running(&node, Duration::ZERO)
+                || announced(&ready, &shutdown, task_id)?
+            {
+                break;
+            }
+            next_look = Instant::now() + CONTROL_EVERY;
+        }
+        let left = match &source {
+            Source::Rollout(_) => limit - seq,
+            Source::Fixed(list) => limit.min(list.len() as u64).saturating_sub(seq),
+        };
+        let count = left.min(publisher.batch_size() as u64) as usize;
+        if count == 0 {
+            if seq >= limit {
+                tracing::info!(published = seq, "published the requested transitions");
+                break;
+            }
+            // Everything sampled is sent; stay until the store announces the dataset.
+            transport::keep_running(&node, POLL);
+            continue;
+        }
+        let start = Instant::now();
+        outbox.clear();
+        match &mut source {
+            Source::Rollout(rollout) => outbox.extend((0..count).map(|_| rollout.next_slot())),
+            // Published numbers count the sample, not the agent's training steps.
+            Source::Fixed(list) => outbox.extend(
+                list[seq as usize..seq as usize + count]
+                    .iter()
+                    .map(TransitionSlot::from_transition),
+            ),
+        }
+        let mut waited = Duration::ZERO;
+        loop {
+            match publisher.publish(seq, &outbox) {
+                Ok(delivery) => {
+                    waited += delivery.backpressure;
+                    if delivery.recipients > 0 {
+                        break;
+                    }
+                }
+                Err(_) if transport::termination_requested() => break 'publishing,
+                Err(error) => return Err(error.into()),
+            }
+            // No store took the batch (none attached yet, or it died and its successor is not up):
+            // send it again once one is there.
+            let pause = Instant::now();
+            let alive = transport::keep_running(&node, POLL);
+            waited += pause.elapsed();
+            if !alive || announced(&ready, &shutdown, task_id)? {
+                break 'publishing;
+            }
+        }
+        seq += count as u64;
+        summary.published += count as u64;
+        metrics
+            .batch_duration
+            .observe(start.elapsed().as_secs_f64());
+        metrics.transitions_published.inc_by(count as u64);
+        metrics.batches_published.inc();
+        summary.backpressure += waited;
+        metrics.backpressure_wait.inc_by(waited.as_secs_f64());
+        if let Source::Rollout(rollout) = &mut source {
+            summary.steps += count as u64;
+            metrics.steps.inc_by(count as u64);
+            for episode in rollout.finished.drain(..) {
+                summary.episodes += 1;
+                metrics.episodes.inc();
+                metrics.episode_return.set(episode.ret);
+                metrics.episode_aoi.set(episode.aoi);
+                metrics.episode_power.set(episode.power_mw * 1e-3);
+                metrics.episode_outages.set(episode.outages as f64);
+            }
+        }
+    }
+    tracing::info!(
+        published = summary.published,
+        steps = summary.steps,
+        episodes = summary.episodes,
+        "actor stopped"
+    );
+    Ok(summary)
+}
+
+/// True once the task's dataset is announced complete or a shutdown is announced.
+fn announced(
+    ready: &iceoryx2::port::subscriber::Subscriber<ipc::Service, transport::DatasetReady, ()>,
+    shutdown: &iceoryx2::port::subscriber::Subscriber<ipc::Service, transport::Shutdown, ()>,
+    task: u32,
+) -> Result<bool, ActorError> {
+    let receive_error = |e: iceoryx2::port::ReceiveError| ActorError::Receive {
+        action: "receive an announcement",
+        message: e.to_string(),
+    };
+    let mut done = false;
+    while let Some(message) = ready.receive().map_err(receive_error)? {
+        if message.schema_version == SCHEMA_VERSION && message.task == task {
+            tracing::info!(
+                transitions = message.transitions,
+                "the task's dataset is complete"
+            );
+            done = true;
+        }
+    }
+    while let Some(message) = shutdown.receive().map_err(receive_error)? {
+        done |= message.schema_version == SCHEMA_VERSION;
+    }
+    Ok(done)
+}

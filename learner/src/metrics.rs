@@ -1,0 +1,373 @@
+//! The /metrics endpoint every uavmeta process serves, and the client side the launcher and the
+//! tests use to read one.
+//!
+//! It lives here because `learner` is the lowest crate that every process links (the store is in
+//! `learner`, actors and evaluator in `actors`, meta-learner and launcher in `meta`), while
+//! `proto` stays the contract between processes and carries no runtime code. Each process kind
+//! declares its own metrics in one place (a `metrics` module beside its loop) and registers them
+//! in a [`registry`]; [`MetricsServer`] serves them.
+//!
+//! Naming (Prometheus conventions, checked by `promtool check metrics` in the end-to-end tests):
+//! every name starts with `uavmeta_` (the registry adds it), then the process kind, then what is
+//! measured, in base units (`_seconds`, `_watts`), with `_total` on counters only; latencies are
+//! histograms; label values come from small fixed sets (task names, method names, reasons).
+//!
+//! The endpoint binds `run.metrics_host`; port 0 takes an ephemeral port, which is written to
+//! [`RunDir::port_file`] (atomically, so a reader never sees half a number). When the server is
+//! dropped it writes the final values to [`RunDir::metrics_snapshot`], so a finished run keeps the
+//! figures of processes that are gone, and removes its port file.
+
+use std::io::{Read, Write};
+use std::net::TcpStream;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use prometheus::{Encoder, Histogram, HistogramOpts, IntCounter, Opts, Registry, TextEncoder};
+use uavmeta_proto::transport::{write_atomic, RunDir, TransportError};
+
+/// Everything serving or reading metrics can fail on.
+#[derive(Debug, thiserror::Error)]
+pub enum MetricsError {
+    #[error("cannot serve /metrics on {addr}: {message}")]
+    Bind { addr: String, message: String },
+    #[error(transparent)]
+    Run(#[from] TransportError),
+    #[error("{}: no metrics port after {waited:?}; is the process running?", path.display())]
+    NoPort { path: PathBuf, waited: Duration },
+    #[error("{}: expected a port number, found `{text}`", path.display())]
+    BadPort { path: PathBuf, text: String },
+    #[error("GET http://{addr}/metrics: {message}")]
+    Scrape { addr: String, message: String },
+    #[error("line {line} of the metrics text: expected `name{{labels}} value`, found `{text}`")]
+    Parse { line: usize, text: String },
+}
+
+/// A registry whose metric names all start with `uavmeta_`.
+pub fn registry() -> Registry {
+    Registry::new_custom(Some("uavmeta".into()), None)
+        .expect("the prefix `uavmeta` is a valid metric name")
+}
+
+/// Registers `metric` in `registry` and returns it. Names are fixed strings in each process's
+/// metrics module, so a duplicate or invalid name is a programming error.
+pub fn register<M: prometheus::core::Collector + Clone + 'static>(
+    registry: &Registry,
+    metric: M,
+) -> M {
+    registry
+        .register(Box::new(metric.clone()))
+        .expect("metric names of a process are distinct and valid");
+    metric
+}
+
+/// A counter named `name` (it must end in `_total`).
+pub fn counter(registry: &Registry, name: &str, help: &str) -> IntCounter {
+    debug_assert!(name.ends_with("_total"));
+    register(
+        registry,
+        IntCounter::with_opts(Opts::new(name, help)).expect("valid counter name"),
+    )
+}
+
+/// A latency histogram in seconds, buckets from 10 microseconds to about 10 seconds.
+pub fn latency_histogram(registry: &Registry, name: &str, help: &str) -> Histogram {
+    debug_assert!(name.ends_with("_seconds"));
+    let buckets = prometheus::exponential_buckets(1e-5, 4.0, 11).expect("valid buckets");
+    register(
+        registry,
+        Histogram::with_opts(HistogramOpts::new(name, help).buckets(buckets))
+            .expect("valid histogram name"),
+    )
+}
+
+/// A process's /metrics endpoint, served from a background thread until dropped.
+pub struct MetricsServer {
+    registry: Registry,
+    server: Arc<tiny_http::Server>,
+    thread: Option<JoinHandle<()>>,
+    port: u16,
+    port_file: PathBuf,
+    snapshot: PathBuf,
+}
+
+impl MetricsServer {
+    /// Serves `registry` on `host:port` (0: any free port) for process `process` of `run`.
+    pub fn start(
+        registry: Registry,
+        host: &str,
+        port: u16,
+        run: &RunDir,
+        process: &str,
+    ) -> Result<Self, MetricsError> {
+        let addr = format!("{host}:{port}");
+        let server = tiny_http::Server::http(&addr).map_err(|e| MetricsError::Bind {
+            addr: addr.clone(),
+            message: e.to_string(),
+        })?;
+        let port = server
+            .server_addr()
+            .to_ip()
+            .map(|a| a.port())
+            .ok_or_else(|| MetricsError::Bind {
+                addr: addr.clone(),
+                message: "not an IP socket".into(),
+            })?;
+        let server = Arc::new(server);
+        let thread = {
+            let server = Arc::clone(&server);
+            let registry = registry.clone();
+            std::thread::Builder::new()
+                .name("metrics".into())
+                .spawn(move || serve(&server, &registry))
+                .map_err(|e| MetricsError::Bind {
+                    addr,
+                    message: e.to_string(),
+                })?
+        };
+        let port_file = run.port_file(process);
+        write_atomic(&port_file, format!("{port}\n").as_bytes())?;
+        Ok(Self {
+            registry,
+            server,
+            thread: Some(thread),
+            port,
+            port_file,
+            snapshot: run.metrics_snapshot(process),
+        })
+    }
+
+    pub fn port(&self) -> u16 {
+        self.port
+    }
+
+    /// The current metrics in the text exposition format.
+    pub fn render(&self) -> String {
+        render(&self.registry)
+    }
+}
+
+impl Drop for MetricsServer {
+    fn drop(&mut self) {
+        self.server.unblock();
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+        let _ = std::fs::remove_file(&self.port_file);
+        if let Err(error) = write_atomic(&self.snapshot, render(&self.registry).as_bytes()) {
+            tracing::warn!("cannot keep the final metrics: {error}");
+        }
+    }
+}
+
+fn render(registry: &Registry) -> String {
+    let mut buffer = Vec::new();
+    TextEncoder::new()
+        .encode(&registry.gather(), &mut buffer)
+        .expect("text encoding into memory cannot fail");
+    String::from_utf8(buffer).expect("the text format is UTF-8")
+}
+
+fn serve(server: &tiny_http::Server, registry: &Registry) {
+    for request in server.incoming_requests() {
+        let response = if request.url() == "/metrics" {
+            let header =
+                tiny_http::Header::from_bytes("Content-Type", TextEncoder::new().format_type())
+                    .expect("a static header is valid");
+            tiny_http::Response::from_string(render(registry)).with_header(header)
+        } else {
+            tiny_http::Response::from_string("uavmeta serves /metrics only\n").with_status_code(404)
+        };
+        // A client that hung up mid-response is its own problem, not the process's.
+        let _ = request.respond(response);
+    }
+}
+
+/// Waits up to `timeout` for process `process` of `run` to publish its metrics port.
+pub fn wait_for_port(run: &RunDir, process: &str, timeout: Duration) -> Result<u16, MetricsError> {
+    let path = run.port_file(process);
+    let start = Instant::now();
+    loop {
+        if let Ok(text) = std::fs::read_to_string(&path) {
+            return text
+                .trim()
+                .parse()
+                .map_err(|_| MetricsError::BadPort { path, text });
+        }
+        if start.elapsed() >= timeout {
+            return Err(MetricsError::NoPort {
+                path,
+                waited: timeout,
+            });
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// `GET /metrics` from `host:port`: the body, in the text exposition format.
+pub fn scrape(host: &str, port: u16) -> Result<String, MetricsError> {
+    let addr = format!("{host}:{port}");
+    let error = |message: String| MetricsError::Scrape {
+        addr: addr.clone(),
+        message,
+    };
+    let mut stream = TcpStream::connect(&addr).map_err(|e| error(e.to_string()))?;
+    stream
+        .set_read_timeout(Some(Duration::from_secs(5)))
+        .map_err(|e| error(e.to_string()))?;
+    write!(stream, "GET /metrics HTTP/1.0\r\nHost: {addr}\r\n\r\n")
+        .map_err(|e| error(e.to_string()))?;
+    let mut response = String::new();
+    stream
+        .read_to_string(&mut response)
+        .map_err(|e| error(e.to_string()))?;
+    let (head, body) = response
+        .split_once("\r\n\r\n")
+        .ok_or_else(|| error("no end of headers".into()))?;
+    if !head.starts_with("HTTP/1.")
+        || !head
+            .split_whitespace()
+            .nth(1)
+            .is_some_and(|code| code == "200")
+    {
+        return Err(error(format!(
+            "unexpected status: {}",
+            head.lines().next().unwrap_or("")
+        )));
+    }
+    Ok(body.to_string())
+}
+
+/// One sample of the text format: `name{labels} value`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Sample {
+    pub name: String,
+    pub labels: Vec<(String, String)>,
+    pub value: f64,
+}
+
+impl Sample {
+    pub fn label(&self, key: &str) -> Option<&str> {
+        self.labels
+            .iter()
+            .find(|(k, _)| k == key)
+            .map(|(_, v)| v.as_str())
+    }
+}
+
+/// Parses the samples of a text exposition (comments skipped). Label values may not contain
+/// `,` or `"` escapes, which uavmeta's fixed label sets never do.
+pub fn parse(text: &str) -> Result<Vec<Sample>, MetricsError> {
+    let mut samples = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let bad = || MetricsError::Parse {
+            line: i + 1,
+            text: line.to_string(),
+        };
+        let (series, value) = line.rsplit_once(' ').ok_or_else(bad)?;
+        let value: f64 = match value {
+            "+Inf" => f64::INFINITY,
+            "-Inf" => f64::NEG_INFINITY,
+            v => v.parse().map_err(|_| bad())?,
+        };
+        let (name, labels) = match series.split_once('{') {
+            None => (series, Vec::new()),
+            Some((name, rest)) => {
+                let inner = rest.strip_suffix('}').ok_or_else(bad)?;
+                let labels = inner
+                    .split(',')
+                    .filter(|pair| !pair.is_empty())
+                    .map(|pair| {
+                        let (k, v) = pair.split_once('=').ok_or_else(bad)?;
+                        let v = v
+                            .strip_prefix('"')
+                            .and_then(|v| v.strip_suffix('"'))
+                            .ok_or_else(bad)?;
+                        Ok((k.to_string(), v.to_string()))
+                    })
+                    .collect::<Result<Vec<_>, MetricsError>>()?;
+                (name, labels)
+            }
+        };
+        if name.is_empty()
+            || !name
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == ':')
+        {
+            return Err(bad());
+        }
+        samples.push(Sample {
+            name: name.to_string(),
+            labels,
+            value,
+        });
+    }
+    Ok(samples)
+}
+
+/// The sum of every sample named `name` whose labels include all of `labels`.
+pub fn sum(samples: &[Sample], name: &str, labels: &[(&str, &str)]) -> f64 {
+    samples
+        .iter()
+        .filter(|s| s.name == name && labels.iter().all(|(k, v)| s.label(k) == Some(v)))
+        .map(|s| s.value)
+        .sum()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn serves_scrapes_and_parses_then_keeps_a_snapshot() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let run = RunDir::create(dir.path()).expect("run dir");
+        let registry = registry();
+        let steps = counter(&registry, "test_steps_total", "Steps.");
+        let latency = latency_histogram(&registry, "test_latency_seconds", "Latency.");
+        steps.inc_by(41);
+        latency.observe(0.003);
+        let server = MetricsServer::start(registry, "127.0.0.1", 0, &run, "unit").expect("start");
+        let port = wait_for_port(&run, "unit", Duration::from_secs(1)).expect("port file");
+        assert_eq!(port, server.port());
+        steps.inc();
+        let samples = parse(&scrape("127.0.0.1", port).expect("scrape")).expect("parse");
+        assert_eq!(sum(&samples, "uavmeta_test_steps_total", &[]), 42.0);
+        assert_eq!(
+            sum(&samples, "uavmeta_test_latency_seconds_count", &[]),
+            1.0
+        );
+        assert_eq!(
+            sum(
+                &samples,
+                "uavmeta_test_latency_seconds_bucket",
+                &[("le", "+Inf")]
+            ),
+            1.0
+        );
+        drop(server);
+        assert!(!run.port_file("unit").exists());
+        let snapshot = std::fs::read_to_string(run.metrics_snapshot("unit")).expect("snapshot");
+        assert_eq!(
+            sum(
+                &parse(&snapshot).expect("parse snapshot"),
+                "uavmeta_test_steps_total",
+                &[]
+            ),
+            42.0
+        );
+    }
+
+    #[test]
+    fn parse_rejects_garbage_with_its_line() {
+        let err = parse("# HELP x y\nok_total 1\nbroken{a=\"b\" 2\n")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("line 3"), "{err}");
+    }
+}

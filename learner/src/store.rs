@@ -1,0 +1,453 @@
+//! The dataset store process (`uavmeta store --run R`): subscribes to every task's transitions,
+//! appends each task's dataset file, and announces a task's dataset once it is complete.
+//!
+//! **Exactly once, or counted.** Every actor numbers its transitions 0, 1, 2, ... and the store
+//! remembers, per task and actor, the next number it expects. A transition below it is a
+//! duplicate (an actor restarted with the same seed replays its episodes) and is dropped; a jump
+//! above it is a gap, counted as missing. On start the store rebuilds these numbers from its own
+//! files, so a store killed and restarted keeps one copy of everything and counts whatever the
+//! crash lost (the batches in its buffer).
+//!
+//! **Durability.** Each received batch becomes one chunk of the crash-safe dataset format and is
+//! flushed to the operating system before the next batch is read, so killing the store loses
+//! only what its buffer held. A dataset is fsynced before it is announced.
+//!
+//! **Size.** A task's file holds exactly `collect.transitions` transitions; later ones are dropped
+//! as surplus. With one actor per task the file is therefore the same bytes for the same config
+//! and seed, whatever the timing.
+//!
+//! Accounting, checked by the end-to-end tests: transitions the actors published = stored +
+//! dropped (duplicate, surplus, foreign), and missing counts transitions that never arrived.
+
+use std::collections::HashMap;
+use std::time::{Duration, Instant};
+
+use iceoryx2::prelude::*;
+use uavmeta_proto::config::{Config, ConfigError};
+use uavmeta_proto::dataset::{
+    DatasetError, DatasetHeader, DatasetReader, DatasetWriter, Transition,
+};
+use uavmeta_proto::transport::{
+    self, DatasetReady, RunDir, ServiceNames, TransportError, SCHEMA_VERSION,
+};
+
+use crate::metrics::{MetricsError, MetricsServer};
+
+/// The store's process name: its node, port file and metrics snapshot.
+pub const PROCESS: &str = "store";
+
+/// How long the loop sleeps when no batch arrived; bounds the added latency when idle.
+const IDLE_WAIT: Duration = Duration::from_micros(200);
+
+/// Interval between sweeps for dead processes' iceoryx2 resources: a dead subscriber of a control
+/// service would otherwise hold a full buffer.
+const CLEANUP_EVERY: Duration = Duration::from_secs(2);
+
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    #[error(transparent)]
+    Transport(#[from] TransportError),
+    #[error(transparent)]
+    Dataset(#[from] DatasetError),
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error(transparent)]
+    Metrics(#[from] MetricsError),
+    #[error("iceoryx2: cannot {action}: {message}")]
+    Receive {
+        action: &'static str,
+        message: String,
+    },
+}
+
+/// The store's metrics: every name it exports, in one place.
+mod metrics {
+    use prometheus::{Histogram, IntCounterVec, IntGaugeVec, Opts, Registry};
+
+    use crate::metrics::{latency_histogram, register};
+
+    pub struct StoreMetrics {
+        pub registry: Registry,
+        pub batches_received: IntCounterVec,
+        pub transitions_received: IntCounterVec,
+        pub transitions_stored: IntCounterVec,
+        pub transitions_dropped: IntCounterVec,
+        pub transitions_missing: IntCounterVec,
+        pub dataset_transitions: IntGaugeVec,
+        pub dataset_ready: IntGaugeVec,
+        pub batch_latency: Histogram,
+        pub append_duration: Histogram,
+    }
+
+    /// Why a received transition was not stored; the `reason` label's fixed set.
+    pub const DUPLICATE: &str = "duplicate";
+    pub const SURPLUS: &str = "surplus";
+    pub const FOREIGN: &str = "foreign";
+
+    impl StoreMetrics {
+        pub fn new() -> Self {
+            let registry = crate::metrics::registry();
+            let counters = |name: &str, help: &str, labels: &[&str]| {
+                register(
+                    &registry,
+                    IntCounterVec::new(Opts::new(name, help), labels).expect("valid counter"),
+                )
+            };
+            let gauges = |name: &str, help: &str| {
+                register(
+                    &registry,
+                    IntGaugeVec::new(Opts::new(name, help), &["task"]).expect("valid gauge"),
+                )
+            };
+            Self {
+                batches_received: counters("store_batches_received_total", "Batches received from actors.", &["task"]),
+                transitions_received: counters("store_transitions_received_total", "Transitions received from actors.", &["task"]),
+                transitions_stored: counters("store_transitions_stored_total", "Transitions appended to the dataset file by this store process.", &["task"]),
+                transitions_dropped: counters(
+                    "store_transitions_dropped_total",
+                    "Received transitions not stored: duplicate (sequence number already stored), surplus (the dataset was complete), foreign (another run, world or schema).",
+                    &["task", "reason"],
+                ),
+                transitions_missing: counters(
+                    "store_transitions_missing_total",
+                    "Sequence numbers skipped by an actor's batches: transitions lost in transit, counted from the dataset file on start.",
+                    &["task"],
+                ),
+                dataset_transitions: gauges("store_dataset_transitions", "Transitions in the task's dataset file."),
+                dataset_ready: gauges("store_dataset_ready", "1 once the task's dataset holds collect.transitions and is announced."),
+                batch_latency: latency_histogram(&registry, "store_batch_latency_seconds", "Time from an actor's send to the store's receive of a batch."),
+                append_duration: latency_histogram(&registry, "store_append_duration_seconds", "Time to append and flush one batch to its dataset file."),
+                registry,
+            }
+        }
+    }
+}
+
+/// One task's file and the sequence numbers it holds.
+struct TaskStore {
+    name: String,
+    id: u32,
+    writer: DatasetWriter,
+    /// Per actor, the next sequence number not yet stored.
+    next_seq: HashMap<u32, u64>,
+    announced: bool,
+}
+
+/// What a store run did, for its log line.
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct StoreSummary {
+    pub stored: u64,
+    pub dropped: u64,
+    pub missing: u64,
+}
+
+/// Runs the store of `run` until SIGINT/SIGTERM or a shutdown announcement.
+pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
+    let node = transport::node(&format!("{}-{PROCESS}", run.id()))?;
+    // A predecessor killed mid-run left its ports in every service; without this sweep the actors
+    // stay blocked on its full buffer.
+    let cleanup = node.try_cleanup_dead_nodes();
+    if cleanup.cleanups > 0 {
+        tracing::info!(
+            cleaned = cleanup.cleanups,
+            "removed iceoryx2 resources of dead processes"
+        );
+    }
+    let names = ServiceNames::new(run);
+    let metrics = metrics::StoreMetrics::new();
+
+    let mut tasks = Vec::with_capacity(config.tasks.len());
+    let mut subscribers = Vec::with_capacity(config.tasks.len());
+    for (id, task) in config.tasks.iter().enumerate() {
+        let store = open_task(run, config, &task.name, id as u32, &metrics)?;
+        let service = transport::transition_service(&node, &names, &task.name, &config.run)?;
+        subscribers.push(transport::transition_subscriber(&service, &config.run)?);
+        tasks.push(store);
+    }
+    let ready =
+        transport::control_publisher(&transport::dataset_ready_service(&node, &names, config)?)?;
+    let shutdown = transport::control_subscriber(
+        &transport::shutdown_service(&node, &names, config)?,
+        config,
+    )?;
+    let target = config.collect.transitions as u64;
+    for task in tasks.iter_mut() {
+        announce_if_complete(task, target, &ready, &metrics)?;
+    }
+    // The port file is the launcher's sign that the store is ready, so it comes after the
+    // subscribers: actors started then find a connected store.
+    let _server = MetricsServer::start(
+        metrics.registry.clone(),
+        &config.run.metrics_host,
+        0,
+        run,
+        PROCESS,
+    )?;
+    tracing::info!(run = run.id(), tasks = tasks.len(), "store ready");
+
+    let mut summary = StoreSummary::default();
+    let mut buffer = Vec::with_capacity(config.run.batch_size);
+    let mut idle = false;
+    let mut last_cleanup = Instant::now();
+    while transport::keep_running(&node, if idle { IDLE_WAIT } else { Duration::ZERO }) {
+        transport::serve_history(&ready)?;
+        if shutdown_requested(&shutdown)? {
+            tracing::info!("shutdown announced");
+            break;
+        }
+        idle = drain(
+            &subscribers,
+            &mut tasks,
+            run,
+            config,
+            &metrics,
+            &ready,
+            &mut buffer,
+            &mut summary,
+        )? == 0;
+        if last_cleanup.elapsed() >= CLEANUP_EVERY {
+            node.try_cleanup_dead_nodes();
+            last_cleanup = Instant::now();
+        }
+    }
+    // Batches already delivered are written before exiting: actors stop first in an orderly
+    // shutdown, so this empties the buffers.
+    while drain(
+        &subscribers,
+        &mut tasks,
+        run,
+        config,
+        &metrics,
+        &ready,
+        &mut buffer,
+        &mut summary,
+    )? > 0
+    {}
+    for task in tasks.iter_mut() {
+        task.writer.sync()?;
+    }
+    tracing::info!(
+        stored = summary.stored,
+        dropped = summary.dropped,
+        missing = summary.missing,
+        "store stopped"
+    );
+    Ok(summary)
+}
+
+/// Opens (or creates) a task's file and rebuilds its per-actor sequence numbers from it.
+fn open_task(
+    run: &RunDir,
+    config: &Config,
+    name: &str,
+    id: u32,
+    metrics: &metrics::StoreMetrics,
+) -> Result<TaskStore, StoreError> {
+    let path = run.dataset(config.task(name)?);
+    let header = DatasetHeader::for_task(config, name)?;
+    let (writer, recovery) = DatasetWriter::open_or_create(&path, header)?;
+    if let Some(r) = recovery {
+        tracing::warn!(file = %path.display(), cut_bytes = r.cut_bytes, offset = r.offset, reason = %r.reason, "cut a torn tail left by a crash");
+    }
+    let mut next_seq: HashMap<u32, u64> = HashMap::new();
+    let mut held: HashMap<u32, u64> = HashMap::new();
+    if writer.transitions() > 0 {
+        for t in DatasetReader::open(&path)?.transitions() {
+            let next = next_seq.entry(t.actor).or_default();
+            *next = (*next).max(t.seq + 1);
+            *held.entry(t.actor).or_default() += 1;
+        }
+    }
+    // Sequence numbers start at 0, so what an actor's file lacks below its highest is missing.
+    let missing: u64 = next_seq
+        .iter()
+        .map(|(actor, next)| next - held[actor])
+        .sum();
+    metrics
+        .transitions_missing
+        .with_label_values(&[name])
+        .inc_by(missing);
+    metrics
+        .dataset_transitions
+        .with_label_values(&[name])
+        .set(writer.transitions() as i64);
+    metrics.dataset_ready.with_label_values(&[name]).set(0);
+    for reason in [metrics::DUPLICATE, metrics::SURPLUS, metrics::FOREIGN] {
+        metrics
+            .transitions_dropped
+            .with_label_values(&[name, reason]);
+    }
+    for family in [
+        &metrics.batches_received,
+        &metrics.transitions_received,
+        &metrics.transitions_stored,
+    ] {
+        family.with_label_values(&[name]);
+    }
+    if writer.transitions() > 0 {
+        tracing::info!(
+            task = name,
+            transitions = writer.transitions(),
+            actors = next_seq.len(),
+            missing,
+            "resuming the dataset"
+        );
+    }
+    Ok(TaskStore {
+        name: name.to_string(),
+        id,
+        writer,
+        next_seq,
+        announced: false,
+    })
+}
+
+fn shutdown_requested(
+    shutdown: &iceoryx2::port::subscriber::Subscriber<ipc::Service, transport::Shutdown, ()>,
+) -> Result<bool, StoreError> {
+    let mut requested = false;
+    while let Some(message) = shutdown.receive().map_err(|e| StoreError::Receive {
+        action: "receive a shutdown",
+        message: e.to_string(),
+    })? {
+        requested |= message.schema_version == SCHEMA_VERSION;
+    }
+    Ok(requested)
+}
+
+/// Receives and stores everything waiting on every task's service; returns the batches handled.
+#[allow(clippy::too_many_arguments)]
+fn drain(
+    subscribers: &[iceoryx2::port::subscriber::Subscriber<
+        ipc::Service,
+        [transport::TransitionSlot],
+        transport::BatchHeader,
+    >],
+    tasks: &mut [TaskStore],
+    run: &RunDir,
+    config: &Config,
+    metrics: &metrics::StoreMetrics,
+    ready: &iceoryx2::port::publisher::Publisher<ipc::Service, DatasetReady, ()>,
+    buffer: &mut Vec<Transition>,
+    summary: &mut StoreSummary,
+) -> Result<usize, StoreError> {
+    let target = config.collect.transitions as u64;
+    let obs_len = config.world.observation_len();
+    let world = config.world_hash();
+    let mut batches = 0;
+    for (subscriber, task) in subscribers.iter().zip(tasks.iter_mut()) {
+        let name = task.name.clone();
+        let name = name.as_str();
+        while let Some(sample) = subscriber.receive().map_err(|e| StoreError::Receive {
+            action: "receive a batch",
+            message: e.to_string(),
+        })? {
+            batches += 1;
+            let header = *sample.user_header();
+            let slots = sample.payload();
+            metrics.batches_received.with_label_values(&[name]).inc();
+            metrics
+                .transitions_received
+                .with_label_values(&[name])
+                .inc_by(slots.len() as u64);
+            metrics.batch_latency.observe(header.age_seconds());
+            if let Err(error) = header.check(run.hash(), world, task.id, obs_len, slots.len()) {
+                tracing::warn!("dropped a batch: {error}");
+                metrics
+                    .transitions_dropped
+                    .with_label_values(&[name, metrics::FOREIGN])
+                    .inc_by(slots.len() as u64);
+                summary.dropped += slots.len() as u64;
+                continue;
+            }
+            let next = task.next_seq.entry(header.actor).or_default();
+            buffer.clear();
+            let (mut duplicates, mut surplus) = (0u64, 0u64);
+            for (i, slot) in slots.iter().enumerate() {
+                let seq = header.first_seq + i as u64;
+                if seq < *next {
+                    duplicates += 1;
+                    continue;
+                }
+                if seq > *next {
+                    let gap = seq - *next;
+                    tracing::warn!(
+                        task = name,
+                        actor = header.actor,
+                        from = *next,
+                        to = seq,
+                        "sequence gap: {gap} transitions missing"
+                    );
+                    metrics
+                        .transitions_missing
+                        .with_label_values(&[name])
+                        .inc_by(gap);
+                    summary.missing += gap;
+                }
+                *next = seq + 1;
+                if task.writer.transitions() + buffer.len() as u64 >= target {
+                    surplus += 1;
+                } else {
+                    buffer.push(slot.to_transition(&header, i));
+                }
+            }
+            drop(sample);
+            metrics
+                .transitions_dropped
+                .with_label_values(&[name, metrics::DUPLICATE])
+                .inc_by(duplicates);
+            metrics
+                .transitions_dropped
+                .with_label_values(&[name, metrics::SURPLUS])
+                .inc_by(surplus);
+            summary.dropped += duplicates + surplus;
+            if !buffer.is_empty() {
+                let start = Instant::now();
+                task.writer.append(buffer)?;
+                task.writer.flush()?;
+                metrics
+                    .append_duration
+                    .observe(start.elapsed().as_secs_f64());
+                metrics
+                    .transitions_stored
+                    .with_label_values(&[name])
+                    .inc_by(buffer.len() as u64);
+                metrics
+                    .dataset_transitions
+                    .with_label_values(&[name])
+                    .set(task.writer.transitions() as i64);
+                summary.stored += buffer.len() as u64;
+            }
+            announce_if_complete(task, target, ready, metrics)?;
+        }
+    }
+    Ok(batches)
+}
+
+/// Syncs and announces a task's dataset the first time it holds `target` transitions.
+fn announce_if_complete(
+    task: &mut TaskStore,
+    target: u64,
+    ready: &iceoryx2::port::publisher::Publisher<ipc::Service, DatasetReady, ()>,
+    metrics: &metrics::StoreMetrics,
+) -> Result<(), StoreError> {
+    if task.announced || task.writer.transitions() < target {
+        return Ok(());
+    }
+    task.writer.sync()?;
+    transport::announce(
+        ready,
+        DatasetReady {
+            schema_version: SCHEMA_VERSION,
+            task: task.id,
+            transitions: task.writer.transitions(),
+        },
+    )?;
+    metrics
+        .dataset_ready
+        .with_label_values(&[&task.name])
+        .set(1);
+    task.announced = true;
+    tracing::info!(task = %task.name, transitions = task.writer.transitions(), file = %task.writer.path().display(), "dataset ready");
+    Ok(())
+}

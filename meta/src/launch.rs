@@ -1,0 +1,745 @@
+//! `uavmeta launch`: one run on one host, supervised.
+//!
+//! The launcher makes the run directory (config, `prometheus.yml`), then starts, as children of
+//! its own: the store, `collect.actors_per_task` actors per task, the meta-learner and the
+//! evaluator. Each child runs the same `uavmeta` binary with `--run DIR`, in its own process group
+//! (so a terminal's Ctrl-C reaches only the launcher, which then stops the children in order), with
+//! `PR_SET_PDEATHSIG` so that it gets SIGTERM if the launcher dies (no orphans), and with its
+//! output in `logs/<name>.log`.
+//!
+//! Supervision: a child that exits with failure (or is killed) is restarted after a backoff of
+//! 0.5 s, 1 s, 2 s, ... (at most 10 s), up to `run.max_restarts` times; the dead process's iceoryx2
+//! resources are removed first, so survivors never wait on its buffers. A child that exits
+//! successfully is done: actors end when their task's dataset is complete, the meta-learner when
+//! it has meta-tested. Then the launcher announces a shutdown, the evaluator finishes the
+//! checkpoints it was told about, the store syncs its files, and the launcher prints a results
+//! table from the evaluator's CSV.
+//!
+//! On SIGINT/SIGTERM it stops the children gracefully: actors first (so the store receives
+//! everything they sent), then the meta-learner and the evaluator, then the store; a child still
+//! running after a grace period is killed.
+
+use std::collections::BTreeMap;
+use std::fs::OpenOptions;
+use std::os::unix::process::CommandExt;
+use std::path::PathBuf;
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::time::{Duration, Instant};
+
+use iceoryx2::prelude::*;
+use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
+use uavmeta_actors::actor_process::ActorOptions;
+use uavmeta_actors::evaluator_process::{self, EvaluationRow};
+use uavmeta_actors::heuristics::PolicySpec;
+use uavmeta_learner::metrics::{self, MetricsServer};
+use uavmeta_learner::store;
+use uavmeta_proto::config::{Config, TaskRole};
+use uavmeta_proto::transport::{
+    self, write_atomic, Method, RunDir, ServiceNames, Shutdown, TransportError, SCHEMA_VERSION,
+};
+
+use crate::process as meta_learner;
+
+/// How often the supervisor looks at its children and the run's announcements.
+const TICK: Duration = Duration::from_millis(100);
+/// How long the store may take to come up (its port file is the sign).
+const STORE_START: Duration = Duration::from_secs(30);
+/// How long a child may take to stop after SIGTERM (or, at the end, after the shutdown
+/// announcement) before it is killed.
+const GRACE: Duration = Duration::from_secs(20);
+const BACKOFF_FIRST: Duration = Duration::from_millis(500);
+const BACKOFF_MAX: Duration = Duration::from_secs(10);
+
+/// The launcher's process name: node, port file, metrics snapshot.
+pub const PROCESS: &str = "launcher";
+
+#[derive(Debug, thiserror::Error)]
+pub enum LaunchError {
+    #[error(transparent)]
+    Transport(#[from] TransportError),
+    #[error(transparent)]
+    Metrics(#[from] metrics::MetricsError),
+    #[error("{}: cannot {action}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        action: &'static str,
+        source: std::io::Error,
+    },
+    #[error("cannot start `{name}` ({exe}): {source}", exe = exe.display())]
+    Spawn {
+        name: String,
+        exe: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("`{name}` failed {failures} times (last: {status}); giving up after run.max_restarts = {max}; its log: {}", log.display())]
+    GaveUp {
+        name: String,
+        failures: u32,
+        status: String,
+        max: u32,
+        log: PathBuf,
+    },
+    #[error("iceoryx2: cannot {action}: {message}")]
+    Receive {
+        action: &'static str,
+        message: String,
+    },
+    #[error("{origin}: key `collect.policy`: {message}")]
+    Policy { origin: String, message: String },
+    #[error("stopped by a termination request")]
+    Interrupted,
+}
+
+/// What kind of child a process is: decides the stop order and when the run is done.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+enum Role {
+    Actor,
+    MetaLearner,
+    Evaluator,
+    Store,
+}
+
+struct Supervised {
+    name: String,
+    role: Role,
+    args: Vec<String>,
+    child: Option<Child>,
+    /// Failures so far; each one is followed by a restart until `run.max_restarts`.
+    failures: u32,
+    restart_at: Option<Instant>,
+    /// Exited successfully: not restarted.
+    done: bool,
+}
+
+/// The launcher's metrics: every name it exports, in one place.
+mod launch_metrics {
+    use prometheus::{IntCounterVec, IntGauge, Opts, Registry};
+    use uavmeta_learner::metrics::register;
+
+    pub struct LauncherMetrics {
+        pub registry: Registry,
+        pub restarts: IntCounterVec,
+        pub children_running: IntGauge,
+        pub datasets_ready: IntGauge,
+        pub checkpoints_announced: IntGauge,
+    }
+
+    impl LauncherMetrics {
+        pub fn new() -> Self {
+            let registry = uavmeta_learner::metrics::registry();
+            Self {
+                restarts: register(
+                    &registry,
+                    IntCounterVec::new(
+                        Opts::new(
+                            "launcher_child_restarts_total",
+                            "Restarts of a crashed child process.",
+                        ),
+                        &["process"],
+                    )
+                    .expect("valid counter"),
+                ),
+                children_running: register(
+                    &registry,
+                    IntGauge::with_opts(Opts::new(
+                        "launcher_children_running",
+                        "Child processes running.",
+                    ))
+                    .expect("valid gauge"),
+                ),
+                datasets_ready: register(
+                    &registry,
+                    IntGauge::with_opts(Opts::new(
+                        "launcher_datasets_ready",
+                        "Tasks whose dataset the store announced complete.",
+                    ))
+                    .expect("valid gauge"),
+                ),
+                checkpoints_announced: register(
+                    &registry,
+                    IntGauge::with_opts(Opts::new(
+                        "launcher_checkpoints_announced",
+                        "Checkpoints the meta-learner announced.",
+                    ))
+                    .expect("valid gauge"),
+                ),
+                registry,
+            }
+        }
+    }
+}
+
+/// What a finished launch reports.
+#[derive(Debug, Clone)]
+pub struct LaunchReport {
+    pub run: PathBuf,
+    pub restarts: u32,
+    /// The last evaluation of every (task, method).
+    pub results: Vec<EvaluationRow>,
+}
+
+/// Runs `config` as one supervised run in `config.run.dir`, children started from `exe` (the
+/// `uavmeta` binary). `show_progress` draws progress bars on stderr.
+pub fn launch(
+    exe: PathBuf,
+    config: &Config,
+    show_progress: bool,
+) -> Result<LaunchReport, LaunchError> {
+    let run = RunDir::create(&config.run.dir)?;
+    write_atomic(&run.config_file(), config.to_toml_string().as_bytes())?;
+    write_prometheus_yml(&run)?;
+    let node = transport::node(&format!("{}-{PROCESS}", run.id()))?;
+    node.try_cleanup_dead_nodes();
+    let names = ServiceNames::new(&run);
+    let launcher_metrics = launch_metrics::LauncherMetrics::new();
+    let _server = MetricsServer::start(
+        launcher_metrics.registry.clone(),
+        &config.run.metrics_host,
+        config.run.metrics_port,
+        &run,
+        PROCESS,
+    )?;
+    let dataset_ready = transport::control_subscriber(
+        &transport::dataset_ready_service(&node, &names, config)?,
+        config,
+    )?;
+    let checkpoint_ready = transport::control_subscriber(
+        &transport::checkpoint_ready_service(&node, &names, config)?,
+        config,
+    )?;
+    let shutdown =
+        transport::control_publisher(&transport::shutdown_service(&node, &names, config)?)?;
+
+    let mut children = plan(&run, config)?;
+    for child in &children {
+        launcher_metrics.restarts.with_label_values(&[&child.name]);
+    }
+    let mut progress = Progress::new(config, show_progress);
+    let supervisor = Supervisor {
+        exe,
+        run: run.clone(),
+        max_restarts: config.run.max_restarts,
+        metrics: &launcher_metrics,
+    };
+
+    // The store first, and ready, so the actors' first batches have a subscriber.
+    let store_index = children
+        .iter()
+        .position(|c| c.role == Role::Store)
+        .expect("the plan has a store");
+    supervisor.start(&mut children[store_index])?;
+    metrics::wait_for_port(&run, store::PROCESS, STORE_START)?;
+    for child in children.iter_mut().filter(|c| c.role != Role::Store) {
+        supervisor.start(child)?;
+    }
+    tracing::info!(run = %run.root().display(), children = children.len(), "launched");
+
+    let mut ready_tasks = vec![false; config.tasks.len()];
+    let mut shutdown_sent = false;
+    let mut shutdown_at = Instant::now();
+    let mut last_targets = String::new();
+    let outcome = loop {
+        if !transport::keep_running(&node, TICK) {
+            break Err(LaunchError::Interrupted);
+        }
+        if let Err(error) = supervisor.poll(&mut children, &node) {
+            break Err(error);
+        }
+        while let Some(m) = dataset_ready.receive().map_err(|e| LaunchError::Receive {
+            action: "receive a dataset announcement",
+            message: e.to_string(),
+        })? {
+            if m.schema_version == SCHEMA_VERSION {
+                if let Some(ready) = ready_tasks.get_mut(m.task as usize) {
+                    *ready = true;
+                }
+                progress.dataset_ready(m.task as usize, m.transitions);
+            }
+        }
+        launcher_metrics
+            .datasets_ready
+            .set(ready_tasks.iter().filter(|r| **r).count() as i64);
+        while let Some(m) = checkpoint_ready
+            .receive()
+            .map_err(|e| LaunchError::Receive {
+                action: "receive a checkpoint announcement",
+                message: e.to_string(),
+            })?
+        {
+            launcher_metrics.checkpoints_announced.inc();
+            if let (Some(method), Some(task)) = (
+                Method::from_code(m.method),
+                config.tasks.get(m.task as usize),
+            ) {
+                progress.checkpoint(method, &task.name, m.epoch);
+            }
+        }
+        progress.transitions(&run, config);
+        if let Some(row) = evaluator_process::read_rows(&run.evaluations_csv())
+            .ok()
+            .and_then(|rows| rows.last().cloned())
+        {
+            progress.evaluation(&row);
+        }
+        last_targets = write_targets(&run, &children, last_targets)?;
+        launcher_metrics
+            .children_running
+            .set(children.iter().filter(|c| c.child.is_some()).count() as i64);
+
+        let learning_done = children
+            .iter()
+            .filter(|c| c.role == Role::MetaLearner)
+            .all(|c| c.done);
+        let collecting_done = ready_tasks.iter().all(|r| *r)
+            && children
+                .iter()
+                .filter(|c| c.role == Role::Actor)
+                .all(|c| c.done || c.child.is_none());
+        if learning_done && collecting_done && !shutdown_sent {
+            tracing::info!("meta-learning finished; announcing the shutdown");
+            transport::announce(
+                &shutdown,
+                Shutdown {
+                    schema_version: SCHEMA_VERSION,
+                    reserved: 0,
+                },
+            )?;
+            shutdown_sent = true;
+            shutdown_at = Instant::now();
+        }
+        if shutdown_sent
+            && children
+                .iter()
+                .all(|c| c.child.is_none() && c.restart_at.is_none())
+        {
+            break Ok(());
+        }
+        if shutdown_sent && shutdown_at.elapsed() > GRACE {
+            tracing::warn!("children still running {GRACE:?} after the shutdown; stopping them");
+            break Ok(());
+        }
+    };
+    // Orderly stop of whatever still runs: actors, then learners, then the store.
+    for role in [Role::Actor, Role::MetaLearner, Role::Evaluator, Role::Store] {
+        stop_role(&mut children, role);
+    }
+    node.try_cleanup_dead_nodes();
+    progress.finish();
+    outcome?;
+    let results = latest_results(&run)?;
+    Ok(LaunchReport {
+        run: run.root().to_path_buf(),
+        restarts: children.iter().map(|c| c.failures).sum(),
+        results,
+    })
+}
+
+/// The children of a run: store, actors, meta-learner, evaluator.
+fn plan(run: &RunDir, config: &Config) -> Result<Vec<Supervised>, LaunchError> {
+    let policy: PolicySpec =
+        config
+            .collect
+            .policy
+            .parse()
+            .map_err(
+                |e: uavmeta_actors::heuristics::PolicyError| LaunchError::Policy {
+                    origin: config.origin.clone(),
+                    message: e.to_string(),
+                },
+            )?;
+    let run_arg = run.root().display().to_string();
+    let child = |name: String, role: Role, args: Vec<String>| Supervised {
+        name,
+        role,
+        args,
+        child: None,
+        failures: 0,
+        restart_at: None,
+        done: false,
+    };
+    let mut children = vec![child(
+        store::PROCESS.into(),
+        Role::Store,
+        vec!["store".into(), "--run".into(), run_arg.clone()],
+    )];
+    for task in &config.tasks {
+        for i in 0..config.collect.actors_per_task {
+            let seed = config.collect.seed.wrapping_add(i as u64);
+            let options = ActorOptions {
+                task: task.name.clone(),
+                policy: policy.clone(),
+                seed,
+                transitions: None,
+            };
+            let args = vec![
+                "actor".into(),
+                "--run".into(),
+                run_arg.clone(),
+                "--task".into(),
+                task.name.clone(),
+                "--seed".into(),
+                seed.to_string(),
+            ];
+            children.push(child(options.process_name(), Role::Actor, args));
+        }
+    }
+    if config.tasks_with_role(TaskRole::MetaTrain).next().is_some()
+        && config.tasks_with_role(TaskRole::MetaTest).next().is_some()
+    {
+        children.push(child(
+            meta_learner::PROCESS.into(),
+            Role::MetaLearner,
+            vec!["meta-learner".into(), "--run".into(), run_arg.clone()],
+        ));
+        children.push(child(
+            evaluator_process::PROCESS.into(),
+            Role::Evaluator,
+            vec!["evaluator".into(), "--run".into(), run_arg],
+        ));
+    }
+    Ok(children)
+}
+
+struct Supervisor<'a> {
+    exe: PathBuf,
+    run: RunDir,
+    max_restarts: u32,
+    metrics: &'a launch_metrics::LauncherMetrics,
+}
+
+impl Supervisor<'_> {
+    fn start(&self, child: &mut Supervised) -> Result<(), LaunchError> {
+        let log_path = self.run.log_file(&child.name);
+        let log = OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&log_path)
+            .map_err(|source| LaunchError::Io {
+                path: log_path.clone(),
+                action: "open the log",
+                source,
+            })?;
+        let err_log = log.try_clone().map_err(|source| LaunchError::Io {
+            path: log_path.clone(),
+            action: "open the log",
+            source,
+        })?;
+        let parent = std::process::id() as libc::pid_t;
+        let mut command = Command::new(&self.exe);
+        command
+            .args(&child.args)
+            .stdin(Stdio::null())
+            .stdout(log)
+            .stderr(err_log)
+            .process_group(0);
+        // SAFETY: the closure runs in the child between fork and exec and calls only
+        // async-signal-safe functions (prctl, getppid).
+        unsafe {
+            command.pre_exec(move || {
+                // The child gets SIGTERM when the launcher dies, however it dies.
+                if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM) != 0 {
+                    return Err(std::io::Error::last_os_error());
+                }
+                // The launcher may have died before prctl took effect.
+                if libc::getppid() != parent {
+                    return Err(std::io::Error::other(
+                        "the launcher exited while starting this child",
+                    ));
+                }
+                Ok(())
+            });
+        }
+        let process = command.spawn().map_err(|source| LaunchError::Spawn {
+            name: child.name.clone(),
+            exe: self.exe.clone(),
+            source,
+        })?;
+        tracing::debug!(name = %child.name, pid = process.id(), "started");
+        child.child = Some(process);
+        child.restart_at = None;
+        Ok(())
+    }
+
+    /// Reaps exited children, schedules restarts of failed ones and starts those that are due.
+    fn poll(
+        &self,
+        children: &mut [Supervised],
+        node: &Node<ipc::Service>,
+    ) -> Result<(), LaunchError> {
+        for c in children.iter_mut() {
+            let Some(process) = c.child.as_mut() else {
+                if c.restart_at.is_some_and(|at| Instant::now() >= at) {
+                    self.metrics.restarts.with_label_values(&[&c.name]).inc();
+                    tracing::warn!(name = %c.name, attempt = c.failures, "restarting");
+                    self.start(c)?;
+                }
+                continue;
+            };
+            let status = match process.try_wait() {
+                Ok(Some(status)) => status,
+                Ok(None) => continue,
+                Err(source) => {
+                    return Err(LaunchError::Io {
+                        path: self.run.log_file(&c.name),
+                        action: "wait for a child",
+                        source,
+                    })
+                }
+            };
+            c.child = None;
+            if status.success() {
+                tracing::info!(name = %c.name, "finished");
+                c.done = true;
+                continue;
+            }
+            c.failures += 1;
+            // The dead child's ports still sit in the services; remove them before anyone
+            // (its successor included) waits on them.
+            node.try_cleanup_dead_nodes();
+            if c.failures > self.max_restarts {
+                return Err(LaunchError::GaveUp {
+                    name: c.name.clone(),
+                    failures: c.failures,
+                    status: describe(status),
+                    max: self.max_restarts,
+                    log: self.run.log_file(&c.name),
+                });
+            }
+            let backoff = (BACKOFF_FIRST * 2u32.saturating_pow(c.failures - 1)).min(BACKOFF_MAX);
+            tracing::warn!(name = %c.name, status = %describe(status), ?backoff, "child failed");
+            c.restart_at = Some(Instant::now() + backoff);
+        }
+        Ok(())
+    }
+}
+
+fn describe(status: ExitStatus) -> String {
+    use std::os::unix::process::ExitStatusExt;
+    match (status.code(), status.signal()) {
+        (Some(code), _) => format!("exit code {code}"),
+        (None, Some(signal)) => format!("killed by signal {signal}"),
+        _ => status.to_string(),
+    }
+}
+
+/// SIGTERM to every running child of `role` (its whole process group), then waits up to
+/// [`GRACE`], then SIGKILL.
+fn stop_role(children: &mut [Supervised], role: Role) {
+    let group: Vec<&mut Supervised> = children.iter_mut().filter(|c| c.role == role).collect();
+    for c in group {
+        c.restart_at = None;
+        let Some(mut process) = c.child.take() else {
+            continue;
+        };
+        let pid = process.id() as libc::pid_t;
+        // SAFETY: plain syscalls on the child's own process group (its pid, set by
+        // process_group(0)).
+        unsafe { libc::killpg(pid, libc::SIGTERM) };
+        let start = Instant::now();
+        loop {
+            match process.try_wait() {
+                Ok(Some(_)) | Err(_) => break,
+                Ok(None) if start.elapsed() > GRACE => {
+                    tracing::warn!(name = %c.name, "did not stop within {GRACE:?}; killing it");
+                    unsafe { libc::killpg(pid, libc::SIGKILL) };
+                    let _ = process.wait();
+                    break;
+                }
+                Ok(None) => std::thread::sleep(Duration::from_millis(20)),
+            }
+        }
+    }
+}
+
+fn write_prometheus_yml(run: &RunDir) -> Result<(), LaunchError> {
+    let text = format!(
+        "# Scrapes every process of uavmeta run {id}. Ports are ephemeral; the launcher rewrites\n\
+         # the targets file as processes (re)start: prometheus --config.file={yml}\n\
+         global:\n  scrape_interval: 5s\nscrape_configs:\n  - job_name: uavmeta\n    file_sd_configs:\n      - files: ['{targets}']\n",
+        id = run.id(),
+        yml = run.prometheus_yml().display(),
+        targets = run.prometheus_targets().display(),
+    );
+    Ok(write_atomic(&run.prometheus_yml(), text.as_bytes())?)
+}
+
+/// Rewrites the Prometheus targets file when the set of live ports changed; returns its text.
+fn write_targets(
+    run: &RunDir,
+    children: &[Supervised],
+    last: String,
+) -> Result<String, LaunchError> {
+    let mut targets = Vec::new();
+    for name in std::iter::once(PROCESS).chain(children.iter().map(|c| c.name.as_str())) {
+        if let Ok(port) = std::fs::read_to_string(run.port_file(name)) {
+            targets.push(serde_json::json!({
+                "targets": [format!("127.0.0.1:{}", port.trim())],
+                "labels": { "process": name, "run": run.id() },
+            }));
+        }
+    }
+    let text = serde_json::to_string_pretty(&targets).expect("JSON values always serialise");
+    if text != last {
+        write_atomic(&run.prometheus_targets(), text.as_bytes())?;
+    }
+    Ok(text)
+}
+
+/// The last row of every (task, method) in the evaluator's CSV.
+fn latest_results(run: &RunDir) -> Result<Vec<EvaluationRow>, LaunchError> {
+    let path = run.evaluations_csv();
+    if !path.exists() {
+        return Ok(Vec::new());
+    }
+    let rows = evaluator_process::read_rows(&path).map_err(|source| LaunchError::Io {
+        path: path.clone(),
+        action: "read",
+        source,
+    })?;
+    let mut latest: BTreeMap<(String, String), EvaluationRow> = BTreeMap::new();
+    for row in rows {
+        latest.insert((row.task.clone(), row.method.clone()), row);
+    }
+    Ok(latest.into_values().collect())
+}
+
+/// The results table `uavmeta launch` ends with.
+pub fn results_table(report: &LaunchReport) -> String {
+    let mut out = format!(
+        "run {} ({} restarts)\n",
+        report.run.display(),
+        report.restarts
+    );
+    if report.results.is_empty() {
+        out.push_str("no evaluations\n");
+        return out;
+    }
+    out.push_str(&format!(
+        "{:<14} {:<10} {:>6} {:>22} {:>16} {:>22} {:>14}\n",
+        "task", "method", "epoch", "return", "AoI", "power (W)", "outages"
+    ));
+    for r in &report.results {
+        out.push_str(&format!(
+            "{:<14} {:<10} {:>6} {:>22} {:>16} {:>22} {:>14}\n",
+            r.task,
+            r.method,
+            r.epoch,
+            format!("{:.1} ± {:.1}", r.ret, r.ret_ci95),
+            format!("{:.2} ± {:.2}", r.aoi, r.aoi_ci95),
+            format!("{:.3e} ± {:.1e}", r.power_watts, r.power_ci95),
+            format!("{:.1} ± {:.1}", r.outages, r.outages_ci95),
+        ));
+    }
+    out
+}
+
+/// The progress bars: transitions per task, meta-epochs, the latest evaluation.
+struct Progress {
+    bars: MultiProgress,
+    tasks: Vec<ProgressBar>,
+    meta: ProgressBar,
+    evaluation: ProgressBar,
+    store_port: Option<u16>,
+    last_scrape: Instant,
+    host: String,
+}
+
+impl Progress {
+    fn new(config: &Config, show: bool) -> Self {
+        let bars = MultiProgress::new();
+        if !show {
+            bars.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+        }
+        let style = ProgressStyle::with_template("{prefix:>14} [{bar:30}] {pos}/{len} {msg}")
+            .expect("valid template")
+            .progress_chars("=> ");
+        let tasks = config
+            .tasks
+            .iter()
+            .map(|t| {
+                let bar = bars.add(
+                    ProgressBar::new(config.collect.transitions as u64)
+                        .with_style(style.clone())
+                        .with_prefix(t.name.clone()),
+                );
+                bar.set_message("transitions");
+                bar
+            })
+            .collect();
+        let meta = bars.add(
+            ProgressBar::new(config.meta.meta_epochs as u64)
+                .with_style(style)
+                .with_prefix("meta-epochs"),
+        );
+        let evaluation = bars.add(ProgressBar::new_spinner().with_prefix("evaluation"));
+        evaluation
+            .set_style(ProgressStyle::with_template("{prefix:>14} {msg}").expect("valid template"));
+        evaluation.set_message("waiting for the first checkpoint");
+        Self {
+            bars,
+            tasks,
+            meta,
+            evaluation,
+            store_port: None,
+            last_scrape: Instant::now(),
+            host: config.run.metrics_host.clone(),
+        }
+    }
+
+    /// Transitions per task from the store's /metrics, at most twice a second.
+    fn transitions(&mut self, run: &RunDir, config: &Config) {
+        if self.last_scrape.elapsed() < Duration::from_millis(500) {
+            return;
+        }
+        self.last_scrape = Instant::now();
+        if self.store_port.is_none() {
+            self.store_port = std::fs::read_to_string(run.port_file(store::PROCESS))
+                .ok()
+                .and_then(|p| p.trim().parse().ok());
+        }
+        let Some(port) = self.store_port else { return };
+        match metrics::scrape(&self.host, port).and_then(|text| metrics::parse(&text)) {
+            Ok(samples) => {
+                for (task, bar) in config.tasks.iter().zip(&self.tasks) {
+                    bar.set_position(metrics::sum(
+                        &samples,
+                        "uavmeta_store_dataset_transitions",
+                        &[("task", &task.name)],
+                    ) as u64);
+                }
+            }
+            // The store restarted on another port.
+            Err(_) => self.store_port = None,
+        }
+    }
+
+    fn dataset_ready(&self, task: usize, transitions: u64) {
+        if let Some(bar) = self.tasks.get(task) {
+            bar.set_position(transitions);
+            bar.finish_with_message("ready");
+        }
+    }
+
+    fn checkpoint(&self, method: Method, task: &str, epoch: u32) {
+        match method {
+            Method::MetaInit => self.meta.set_position(epoch as u64),
+            _ => self
+                .meta
+                .set_message(format!("meta-test {method} on {task}: epoch {epoch}")),
+        }
+    }
+
+    fn evaluation(&self, row: &EvaluationRow) {
+        self.evaluation.set_message(format!(
+            "{} {} epoch {}: return {:.1}, AoI {:.2}, power {:.2e} W, outages {:.1}",
+            row.task, row.method, row.epoch, row.ret, row.aoi, row.power_watts, row.outages
+        ));
+    }
+
+    fn finish(&self) {
+        for bar in self.tasks.iter().chain([&self.meta, &self.evaluation]) {
+            bar.abandon();
+        }
+        let _ = self.bars.clear();
+    }
+}

@@ -1,0 +1,1098 @@
+//! What uavmeta's processes say to each other over iceoryx2, and where a run keeps its files.
+//!
+//! **Transitions** travel from actors to the store as a slice of fixed-layout
+//! [`TransitionSlot`]s under one [`BatchHeader`] (`publish_subscribe::<[TransitionSlot]>()` with a
+//! user header): an actor copies its batch into a loaned shared-memory sample with one memcpy and
+//! the store reads it in place; nothing is serialised per transition. (The actor keeps its own
+//! copy because iceoryx2 0.10 can report a batch as delivered to nobody, for instance before the
+//! store's subscriber has attached to a new publisher; the actor then sends it again.) There is one service per
+//! task, `uavmeta/<run>/transitions/<task>` ([`ServiceNames`]).
+//!
+//! **Delivery.** Safe overflow is off and publishers use `RetryUntilDelivered`: when the store's
+//! buffer is full, an actor waits (backpressure) instead of overwriting a batch the store has not
+//! read. An actor publishes only while a store is connected. Transition services keep no history:
+//! in iceoryx2 0.10 a subscriber that joins a publisher with history gets that history into its
+//! buffer and afterwards the blocking publisher silently loses batches (measured: 39 296 of
+//! 43 456 transitions of one actor). What a killed store held unwritten is therefore lost, and the
+//! restarted store counts it as missing from the actors' sequence numbers.
+//!
+//! **Control** messages ([`DatasetReady`], [`CheckpointReady`], [`Shutdown`]) each have their own
+//! service under `uavmeta/<run>/control/`, with history, so a process that joins late (or
+//! restarts) still hears what was announced before.
+//!
+//! **Schema version.** Every service is created with the attribute
+//! `uavmeta.schema_version = SCHEMA_VERSION`, and every opener requires it. A process built with
+//! another version therefore cannot open a run's services: it fails with
+//! [`TransportError::SchemaMismatch`], which names the service and both versions. The version is
+//! deliberately not in the service name: two versions would then share a run silently, each
+//! waiting forever for the other's messages. The payload type names carry the version too, and
+//! every header repeats it, so a mismatch can never be read as data.
+//!
+//! **Run directory** ([`RunDir`]): the config every process of the run reads, the datasets,
+//! checkpoints, metrics port files and final metrics snapshots, logs and evaluation rows.
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+use iceoryx2::node::{Node, NodeWaitFailure};
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::port::{BackpressureAction, BackpressureInfo};
+use iceoryx2::prelude::*;
+use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
+use iceoryx2_bb_posix::signal::SignalHandler;
+
+use crate::config::{Config, RunConfig, TaskConfig, MAX_DEVICES};
+use crate::dataset::Transition;
+
+/// The version of every payload below and of the service settings; bump it on any change.
+pub const SCHEMA_VERSION: u32 = 1;
+
+/// The service attribute that carries [`SCHEMA_VERSION`].
+pub const SCHEMA_ATTRIBUTE: &str = "uavmeta.schema_version";
+
+/// Entries of an observation array: 2 + the largest K a config admits.
+pub const OBS_CAPACITY: usize = 2 + MAX_DEVICES;
+
+/// Subscribers a transition service admits: the store, plus room for a benchmark or a monitor.
+const TRANSITION_SUBSCRIBERS: usize = 4;
+
+/// Processes besides the actors that open a control service: store, meta-learner, evaluator,
+/// launcher, and room for a hand-started one of each.
+const CONTROL_PEERS: usize = 8;
+
+/// A control publisher blocked this long on one subscriber's full buffer gives up on that
+/// subscriber: it is dead or stuck, and announcements must not stall the run.
+const CONTROL_DELIVERY_TIMEOUT: Duration = Duration::from_secs(5);
+
+/// Everything opening or using a service can fail on.
+#[derive(Debug, thiserror::Error)]
+pub enum TransportError {
+    #[error(
+        "service `{service}` belongs to schema version {theirs}, but this uavmeta build speaks \
+         version {SCHEMA_VERSION}; run every process of a run from the same build"
+    )]
+    SchemaMismatch { service: String, theirs: String },
+    #[error("service `{service}`: cannot {action}: {message}")]
+    Service {
+        service: String,
+        action: &'static str,
+        message: String,
+    },
+    #[error("`{name}` is not a valid iceoryx2 service name: {message}")]
+    ServiceName { name: String, message: String },
+    #[error("{}: cannot {action}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        action: &'static str,
+        source: std::io::Error,
+    },
+    #[error(
+        "batch from actor {actor} of task {task}: {problem}; the actor runs another config or \
+         another run than this process"
+    )]
+    ForeignBatch {
+        actor: u32,
+        task: u32,
+        problem: String,
+    },
+}
+
+/// The header of one batch of transitions.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
+#[type_name("uavmeta.BatchHeader.v1")]
+#[repr(C)]
+pub struct BatchHeader {
+    pub schema_version: u32,
+    /// The task's index in the config's `[[tasks]]`.
+    pub task: u32,
+    /// [`RunDir::hash`] of the run the actor joined.
+    pub run: u64,
+    /// `Config::world_hash` of the actor's world.
+    pub world: u64,
+    /// The actor that made the batch.
+    pub actor: u32,
+    /// Used entries of every observation array, 2 + K.
+    pub obs_len: u32,
+    /// Sequence number of the first slot; slot i has `first_seq + i`.
+    pub first_seq: u64,
+    /// Slots in the batch, equal to the slice length.
+    pub count: u32,
+    /// Explicit padding, so the layout has no uninitialised bytes.
+    pub reserved: u32,
+    /// Wall-clock send time in nanoseconds since the Unix epoch, for publish-to-receive latency
+    /// (both ends run on one host, so they share the clock).
+    pub sent_unix_ns: u64,
+}
+
+impl Default for BatchHeader {
+    fn default() -> Self {
+        Self {
+            schema_version: SCHEMA_VERSION,
+            task: 0,
+            run: 0,
+            world: 0,
+            actor: 0,
+            obs_len: 0,
+            first_seq: 0,
+            count: 0,
+            reserved: 0,
+            sent_unix_ns: 0,
+        }
+    }
+}
+
+impl BatchHeader {
+    /// Checks that a received batch belongs to this run, world and task, and that its count and
+    /// observation length fit its slice.
+    pub fn check(
+        &self,
+        run: u64,
+        world: u64,
+        task: u32,
+        obs_len: usize,
+        slots: usize,
+    ) -> Result<(), TransportError> {
+        let problem = if self.schema_version != SCHEMA_VERSION {
+            Some(format!(
+                "schema version {} (this build: {SCHEMA_VERSION})",
+                self.schema_version
+            ))
+        } else if self.run != run {
+            Some(format!(
+                "run hash {:#018x} (this run: {run:#018x})",
+                self.run
+            ))
+        } else if self.world != world {
+            Some(format!(
+                "world hash {:#018x} (this config: {world:#018x})",
+                self.world
+            ))
+        } else if self.task != task {
+            Some(format!(
+                "task id {} on the service of task id {task}",
+                self.task
+            ))
+        } else if self.obs_len as usize != obs_len {
+            Some(format!(
+                "observations of {} values (this config: {obs_len})",
+                self.obs_len
+            ))
+        } else if self.count as usize != slots {
+            Some(format!(
+                "a header count of {} over {slots} slots",
+                self.count
+            ))
+        } else {
+            None
+        };
+        match problem {
+            Some(problem) => Err(TransportError::ForeignBatch {
+                actor: self.actor,
+                task: self.task,
+                problem,
+            }),
+            None => Ok(()),
+        }
+    }
+
+    /// Seconds from this batch's send time to now, clamped at zero.
+    pub fn age_seconds(&self) -> f64 {
+        unix_ns().saturating_sub(self.sent_unix_ns) as f64 * 1e-9
+    }
+}
+
+/// Nanoseconds since the Unix epoch.
+pub fn unix_ns() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
+}
+
+/// One transition in shared memory: (s, a, r, s', truncated) with its episode and step. The
+/// task, actor and sequence number are the batch's ([`BatchHeader`]).
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[type_name("uavmeta.TransitionSlot.v1")]
+#[repr(C)]
+pub struct TransitionSlot {
+    pub episode: u64,
+    pub step: u32,
+    pub reward: f32,
+    pub action: u16,
+    /// 1 when the step reached the horizon (a time limit, not a terminal state).
+    pub truncated: u8,
+    /// Explicit padding, so the layout has no uninitialised bytes.
+    pub reserved: u8,
+    /// s(t); entries past the header's `obs_len` are zero.
+    pub obs: [u16; OBS_CAPACITY],
+    /// s(t+1); entries past the header's `obs_len` are zero.
+    pub next_obs: [u16; OBS_CAPACITY],
+}
+
+impl TransitionSlot {
+    /// A slot from one step; `obs` and `next_obs` hold 2 + K values, K <= `MAX_DEVICES`.
+    pub fn new(
+        episode: u64,
+        step: u32,
+        obs: &[u16],
+        action: u16,
+        reward: f32,
+        next_obs: &[u16],
+        truncated: bool,
+    ) -> Self {
+        let mut slot = Self {
+            episode,
+            step,
+            reward,
+            action,
+            truncated: truncated as u8,
+            reserved: 0,
+            obs: [0; OBS_CAPACITY],
+            next_obs: [0; OBS_CAPACITY],
+        };
+        slot.obs[..obs.len()].copy_from_slice(obs);
+        slot.next_obs[..next_obs.len()].copy_from_slice(next_obs);
+        slot
+    }
+
+    /// The slot of a dataset transition (its task, actor and seq go into the batch header).
+    pub fn from_transition(t: &Transition) -> Self {
+        Self::new(
+            t.episode,
+            t.step,
+            &t.obs,
+            t.action,
+            t.reward,
+            &t.next_obs,
+            t.truncated,
+        )
+    }
+
+    /// Slot `index` of the batch under `header`, as a dataset transition.
+    pub fn to_transition(&self, header: &BatchHeader, index: usize) -> Transition {
+        let len = header.obs_len as usize;
+        Transition {
+            task: header.task,
+            actor: header.actor,
+            episode: self.episode,
+            step: self.step,
+            seq: header.first_seq + index as u64,
+            obs: self.obs[..len].to_vec(),
+            action: self.action,
+            reward: self.reward,
+            next_obs: self.next_obs[..len].to_vec(),
+            truncated: self.truncated != 0,
+        }
+    }
+}
+
+/// The store holds `transitions` transitions of `task`: its dataset file is complete and synced.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
+#[type_name("uavmeta.DatasetReady.v1")]
+#[repr(C)]
+pub struct DatasetReady {
+    pub schema_version: u32,
+    pub task: u32,
+    pub transitions: u64,
+}
+
+/// The method that trained a checkpoint; `u32` on the wire.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Method {
+    /// MAML's meta-initialisation w0 after a meta-epoch (Algorithm 4), not adapted to a task.
+    MetaInit,
+    /// w0 fine-tuned with CQL on the few shots of an unseen task: the paper's method.
+    CqlMaml,
+    /// CQL from a random initialisation on the same shots: the paper's main baseline.
+    Cql,
+}
+
+impl Method {
+    pub const ALL: [Method; 3] = [Method::MetaInit, Method::CqlMaml, Method::Cql];
+
+    /// The name used in file paths, metric labels and CSV rows.
+    pub fn name(self) -> &'static str {
+        match self {
+            Method::MetaInit => "maml-init",
+            Method::CqlMaml => "cql-maml",
+            Method::Cql => "cql",
+        }
+    }
+
+    pub fn code(self) -> u32 {
+        self as u32
+    }
+
+    pub fn from_code(code: u32) -> Option<Method> {
+        Self::ALL.into_iter().find(|m| m.code() == code)
+    }
+}
+
+impl fmt::Display for Method {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// A checkpoint is on disk (written atomically) at [`RunDir::checkpoint`] of these fields.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
+#[type_name("uavmeta.CheckpointReady.v1")]
+#[repr(C)]
+pub struct CheckpointReady {
+    pub schema_version: u32,
+    /// [`Method::code`].
+    pub method: u32,
+    /// The task it was trained for (meta-test) or is scored on; for [`Method::MetaInit`] the
+    /// meta-test task whose zero-shot score it reports.
+    pub task: u32,
+    /// Epochs (meta-epochs for [`Method::MetaInit`]) behind it.
+    pub epoch: u32,
+}
+
+/// Every process of the run finishes what it is doing and exits.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
+#[type_name("uavmeta.Shutdown.v1")]
+#[repr(C)]
+pub struct Shutdown {
+    pub schema_version: u32,
+    pub reserved: u32,
+}
+
+/// The iceoryx2 service names of one run; the run id makes two runs on a host disjoint.
+#[derive(Debug, Clone)]
+pub struct ServiceNames {
+    prefix: String,
+}
+
+impl ServiceNames {
+    pub fn new(run: &RunDir) -> Self {
+        Self {
+            prefix: format!("uavmeta/{}", run.id()),
+        }
+    }
+
+    pub fn transitions(&self, task: &str) -> String {
+        format!("{}/transitions/{task}", self.prefix)
+    }
+
+    pub fn dataset_ready(&self) -> String {
+        format!("{}/control/dataset-ready", self.prefix)
+    }
+
+    pub fn checkpoint_ready(&self) -> String {
+        format!("{}/control/checkpoint-ready", self.prefix)
+    }
+
+    pub fn shutdown(&self) -> String {
+        format!("{}/control/shutdown", self.prefix)
+    }
+}
+
+/// A run's directory and the layout of everything in it.
+#[derive(Debug, Clone)]
+pub struct RunDir {
+    root: PathBuf,
+    id: String,
+    hash: u64,
+}
+
+impl RunDir {
+    /// Opens `path`, creating it and its subdirectories when missing. The run id is the
+    /// directory's name plus a hash of its absolute path: readable in service names, and
+    /// distinct for two runs whose directories share a name.
+    pub fn create(path: &Path) -> Result<Self, TransportError> {
+        let io = |path: &Path, action, source| TransportError::Io {
+            path: path.to_path_buf(),
+            action,
+            source,
+        };
+        std::fs::create_dir_all(path).map_err(|e| io(path, "create the run directory", e))?;
+        let root = path
+            .canonicalize()
+            .map_err(|e| io(path, "resolve the run directory", e))?;
+        for sub in ["datasets", "checkpoints", "ports", "metrics", "logs"] {
+            let dir = root.join(sub);
+            std::fs::create_dir_all(&dir).map_err(|e| io(&dir, "create", e))?;
+        }
+        let hash = fnv1a(root.to_string_lossy().as_bytes());
+        let name: String = root
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "root".into())
+            .chars()
+            .map(|c| {
+                if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                    c
+                } else {
+                    '_'
+                }
+            })
+            .take(64)
+            .collect();
+        Ok(Self {
+            id: format!("{name}-{:08x}", hash as u32),
+            root,
+            hash,
+        })
+    }
+
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    /// The run's name in service names: `<dir name>-<hash>`.
+    pub fn id(&self) -> &str {
+        &self.id
+    }
+
+    /// A 64-bit fingerprint of the run's absolute path, carried by every batch.
+    pub fn hash(&self) -> u64 {
+        self.hash
+    }
+
+    /// The config every process of the run uses, written by the first process to start.
+    pub fn config_file(&self) -> PathBuf {
+        self.root.join("config.toml")
+    }
+
+    /// Task `task`'s dataset file, appended by the store.
+    pub fn dataset(&self, task: &TaskConfig) -> PathBuf {
+        self.root
+            .join("datasets")
+            .join(format!("{}.{}", task.name, crate::dataset::FILE_EXTENSION))
+    }
+
+    /// The checkpoint (in `uavmeta_learner::checkpoint`'s naming) of `method` on `task` after
+    /// `epoch` epochs; [`Method::MetaInit`] checkpoints belong to no task and ignore it.
+    pub fn checkpoint(&self, method: Method, task: &TaskConfig, epoch: u32) -> PathBuf {
+        let dir = self.root.join("checkpoints").join(method.name());
+        let dir = if method == Method::MetaInit {
+            dir
+        } else {
+            dir.join(&task.name)
+        };
+        dir.join(format!("epoch-{epoch:05}"))
+    }
+
+    /// Where process `process` writes the port of its /metrics endpoint.
+    pub fn port_file(&self, process: &str) -> PathBuf {
+        self.root.join("ports").join(format!("{process}.port"))
+    }
+
+    /// Where process `process` writes its last metrics when it exits.
+    pub fn metrics_snapshot(&self, process: &str) -> PathBuf {
+        self.root.join("metrics").join(format!("{process}.prom"))
+    }
+
+    /// The log file of a child process started by the launcher.
+    pub fn log_file(&self, process: &str) -> PathBuf {
+        self.root.join("logs").join(format!("{process}.log"))
+    }
+
+    /// The evaluator's rows, one per evaluated checkpoint.
+    pub fn evaluations_csv(&self) -> PathBuf {
+        self.root.join("evaluations.csv")
+    }
+
+    /// A Prometheus config that scrapes this run.
+    pub fn prometheus_yml(&self) -> PathBuf {
+        self.root.join("prometheus.yml")
+    }
+
+    /// The scrape targets (Prometheus file service discovery), rewritten as processes start.
+    pub fn prometheus_targets(&self) -> PathBuf {
+        self.root.join("prometheus-targets.json")
+    }
+
+    /// Reads the run's config, or, on the run's first start, writes `fallback` as the run's config
+    /// (atomically, so two processes starting together agree) and returns it.
+    pub fn load_or_init_config(
+        &self,
+        fallback: impl FnOnce() -> Result<Config, crate::config::ConfigError>,
+    ) -> Result<Config, RunConfigError> {
+        let path = self.config_file();
+        if path.exists() {
+            return Ok(Config::load(&path, &[])?);
+        }
+        let config = fallback()?;
+        write_atomic(&path, config.to_toml_string().as_bytes())?;
+        Ok(Config::load(&path, &[])?)
+    }
+}
+
+/// Reading or writing a run's config.
+#[derive(Debug, thiserror::Error)]
+pub enum RunConfigError {
+    #[error(transparent)]
+    Config(#[from] crate::config::ConfigError),
+    #[error(transparent)]
+    Transport(#[from] TransportError),
+}
+
+/// Writes `bytes` to `path` through a temporary file in the same directory, fsynced and renamed,
+/// so readers see the old content or the new, never a torn file.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), TransportError> {
+    use std::io::Write;
+    let io = |path: &Path, action, source| TransportError::Io {
+        path: path.to_path_buf(),
+        action,
+        source,
+    };
+    let tmp = path.with_extension(format!("tmp.{}", std::process::id()));
+    let mut file = std::fs::File::create(&tmp).map_err(|e| io(&tmp, "create", e))?;
+    file.write_all(bytes).map_err(|e| io(&tmp, "write", e))?;
+    file.sync_all().map_err(|e| io(&tmp, "sync", e))?;
+    std::fs::rename(&tmp, path).map_err(|e| io(path, "rename into place", e))
+}
+
+fn fnv1a(bytes: &[u8]) -> u64 {
+    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+        (h ^ *b as u64).wrapping_mul(0x100_0000_01b3)
+    })
+}
+
+/// The iceoryx2 node of a process, named after it so `iox2 node list` shows who is who.
+pub fn node(process: &str) -> Result<Node<ipc::Service>, TransportError> {
+    // iceoryx2 warns on every start that it runs on its built-in defaults, which uavmeta means
+    // to; its own errors still show (IOX2_LOG_LEVEL overrides).
+    set_log_level_from_env_or(LogLevel::Error);
+    let service_error = |message: String| TransportError::Service {
+        service: process.into(),
+        action: "create the node",
+        message,
+    };
+    let name = NodeName::new(process).map_err(|e| service_error(format!("{e:?}")))?;
+    let node = NodeBuilder::new()
+        .name(&name)
+        .create::<ipc::Service>()
+        .map_err(|e| service_error(e.to_string()))?;
+    // The first wait registers iceoryx2's SIGINT/SIGTERM handler, so a termination request that
+    // arrives while a publisher is blocked on backpressure is seen by `termination_requested`.
+    let _ = node.wait(Duration::ZERO);
+    Ok(node)
+}
+
+/// Set once a termination request was seen: iceoryx2's signal state forgets a signal once read.
+static TERMINATING: AtomicBool = AtomicBool::new(false);
+
+/// True once SIGINT or SIGTERM arrived (iceoryx2's handler records it), for good.
+pub fn termination_requested() -> bool {
+    if TERMINATING.load(Ordering::Relaxed) {
+        return true;
+    }
+    let requested = SignalHandler::termination_requested();
+    if requested {
+        TERMINATING.store(true, Ordering::Relaxed);
+    }
+    requested
+}
+
+/// Sleeps `cycle` on `node`; false once the process should stop. `Node::wait` also fails when any
+/// other signal iceoryx2 catches (SIGCONT after a stop, SIGURG, ...) interrupts its sleep, which is
+/// no reason to end a process, so only a termination request counts.
+pub fn keep_running(node: &Node<ipc::Service>, cycle: Duration) -> bool {
+    match node.wait(cycle) {
+        Err(NodeWaitFailure::TerminationRequest) => {
+            TERMINATING.store(true, Ordering::Relaxed);
+            false
+        }
+        _ => !termination_requested(),
+    }
+}
+
+fn service_name(name: &str) -> Result<ServiceName, TransportError> {
+    ServiceName::new(name).map_err(|e| TransportError::ServiceName {
+        name: name.into(),
+        message: format!("{e:?}"),
+    })
+}
+
+fn schema_verifier(service: &str) -> Result<AttributeVerifier, TransportError> {
+    let key = SCHEMA_ATTRIBUTE
+        .try_into()
+        .map_err(|e| TransportError::ServiceName {
+            name: service.into(),
+            message: format!("{e:?}"),
+        })?;
+    let value = SCHEMA_VERSION.to_string();
+    let value = value
+        .as_str()
+        .try_into()
+        .map_err(|e| TransportError::ServiceName {
+            name: service.into(),
+            message: format!("{e:?}"),
+        })?;
+    AttributeVerifier::new()
+        .require(&key, &value)
+        .map_err(|e| TransportError::Service {
+            service: service.into(),
+            action: "require the schema attribute",
+            message: format!("{e:?}"),
+        })
+}
+
+/// Turns an open-or-create failure into an error, reading the existing service's schema version
+/// when the attributes were the problem.
+fn open_error(
+    name: &ServiceName,
+    service: &str,
+    error: impl fmt::Debug + fmt::Display,
+) -> TransportError {
+    if format!("{error:?}").contains("IncompatibleAttributes") {
+        let theirs = <ipc::Service as iceoryx2::service::Service>::details(
+            name,
+            iceoryx2::config::Config::global_config(),
+            MessagingPattern::PublishSubscribe,
+        )
+        .ok()
+        .flatten()
+        .and_then(|details| {
+            let key = SCHEMA_ATTRIBUTE.try_into().ok()?;
+            details
+                .static_details
+                .attributes()
+                .key_value(&key, 0)
+                .map(|v| v.to_string())
+        })
+        .unwrap_or_else(|| "<none>".into());
+        return TransportError::SchemaMismatch {
+            service: service.into(),
+            theirs,
+        };
+    }
+    TransportError::Service {
+        service: service.into(),
+        action: "open or create",
+        message: error.to_string(),
+    }
+}
+
+/// A task's transition service.
+pub type TransitionService = PubSubFactory<ipc::Service, [TransitionSlot], BatchHeader>;
+/// A control service carrying `T`.
+pub type ControlService<T> = PubSubFactory<ipc::Service, T, ()>;
+
+/// Opens (or creates) the transition service of `task`, with capacities from `[run]`.
+pub fn transition_service(
+    node: &Node<ipc::Service>,
+    names: &ServiceNames,
+    task: &str,
+    run: &RunConfig,
+) -> Result<TransitionService, TransportError> {
+    let service = names.transitions(task);
+    let name = service_name(&service)?;
+    node.service_builder(&name)
+        .publish_subscribe::<[TransitionSlot]>()
+        .user_header::<BatchHeader>()
+        // A full store buffer must make actors wait, never overwrite an unread batch.
+        .enable_safe_overflow(false)
+        .subscriber_max_buffer_size(run.subscriber_buffer)
+        .max_publishers(run.max_publishers)
+        .max_subscribers(TRANSITION_SUBSCRIBERS)
+        .max_nodes(run.max_publishers + TRANSITION_SUBSCRIBERS)
+        .open_or_create_with_attributes(&schema_verifier(&service)?)
+        .map_err(|e| open_error(&name, &service, e))
+}
+
+/// Opens (or creates) a control service, whose history lets late joiners catch up.
+fn control_service<T: fmt::Debug + ZeroCopySend + 'static>(
+    node: &Node<ipc::Service>,
+    service: String,
+    config: &Config,
+) -> Result<ControlService<T>, TransportError> {
+    let name = service_name(&service)?;
+    let peers = config.tasks.len() * config.collect.actors_per_task
+        + config.run.max_publishers
+        + CONTROL_PEERS;
+    node.service_builder(&name)
+        .publish_subscribe::<T>()
+        // Announcements must reach everyone; a stuck subscriber is skipped after a timeout.
+        .enable_safe_overflow(false)
+        .subscriber_max_buffer_size(config.run.control_buffer)
+        .history_size(config.run.control_buffer)
+        .max_publishers(CONTROL_PEERS)
+        .max_subscribers(peers)
+        .max_nodes(peers + CONTROL_PEERS)
+        .open_or_create_with_attributes(&schema_verifier(&service)?)
+        .map_err(|e| open_error(&name, &service, e))
+}
+
+pub fn dataset_ready_service(
+    node: &Node<ipc::Service>,
+    names: &ServiceNames,
+    config: &Config,
+) -> Result<ControlService<DatasetReady>, TransportError> {
+    control_service(node, names.dataset_ready(), config)
+}
+
+pub fn checkpoint_ready_service(
+    node: &Node<ipc::Service>,
+    names: &ServiceNames,
+    config: &Config,
+) -> Result<ControlService<CheckpointReady>, TransportError> {
+    control_service(node, names.checkpoint_ready(), config)
+}
+
+pub fn shutdown_service(
+    node: &Node<ipc::Service>,
+    names: &ServiceNames,
+    config: &Config,
+) -> Result<ControlService<Shutdown>, TransportError> {
+    control_service(node, names.shutdown(), config)
+}
+
+/// A subscriber that also receives the service's history.
+pub fn control_subscriber<T: fmt::Debug + ZeroCopySend>(
+    service: &ControlService<T>,
+    config: &Config,
+) -> Result<Subscriber<ipc::Service, T, ()>, TransportError> {
+    service
+        .subscriber_builder()
+        .history_request(config.run.control_buffer)
+        .create()
+        .map_err(|e| TransportError::Service {
+            service: format!("{:?}", service.name()),
+            action: "create a subscriber",
+            message: e.to_string(),
+        })
+}
+
+/// A control publisher that skips a subscriber stuck for [`CONTROL_DELIVERY_TIMEOUT`].
+pub fn control_publisher<T: fmt::Debug + ZeroCopySend>(
+    service: &ControlService<T>,
+) -> Result<Publisher<ipc::Service, T, ()>, TransportError> {
+    service
+        .publisher_builder()
+        .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
+        .set_backpressure_handler(|info: &BackpressureInfo| {
+            if info.elapsed_time >= CONTROL_DELIVERY_TIMEOUT || termination_requested() {
+                BackpressureAction::DiscardData
+            } else {
+                BackpressureAction::Retry
+            }
+        })
+        .create()
+        .map_err(|e| TransportError::Service {
+            service: format!("{:?}", service.name()),
+            action: "create a publisher",
+            message: e.to_string(),
+        })
+}
+
+/// Connects subscribers that joined since the last send and hands them the service's history.
+/// iceoryx2 does this only inside `send`, so a process whose announcements are all made must
+/// call this in its loop, or a process joining later never hears them.
+pub fn serve_history<T: fmt::Debug + ZeroCopySend>(
+    publisher: &Publisher<ipc::Service, T, ()>,
+) -> Result<(), TransportError> {
+    use iceoryx2::port::update_connections::UpdateConnections;
+    publisher
+        .update_connections()
+        .map_err(|e| TransportError::Service {
+            service: "control".into(),
+            action: "connect new subscribers",
+            message: e.to_string(),
+        })
+}
+
+/// Sends one control message by copy (they are a few bytes).
+pub fn announce<T: fmt::Debug + ZeroCopySend>(
+    publisher: &Publisher<ipc::Service, T, ()>,
+    message: T,
+) -> Result<usize, TransportError> {
+    publisher
+        .send_copy(message)
+        .map_err(|e| TransportError::Service {
+            service: "control".into(),
+            action: "send",
+            message: e.to_string(),
+        })
+}
+
+/// The store's subscriber on a task's transition service.
+pub fn transition_subscriber(
+    service: &TransitionService,
+    run: &RunConfig,
+) -> Result<Subscriber<ipc::Service, [TransitionSlot], BatchHeader>, TransportError> {
+    service
+        .subscriber_builder()
+        .buffer_size(run.subscriber_buffer)
+        .create()
+        .map_err(|e| TransportError::Service {
+            service: format!("{:?}", service.name()),
+            action: "create a subscriber",
+            message: e.to_string(),
+        })
+}
+
+/// What one publish cost and reached.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Delivery {
+    /// Subscribers the batch reached; 0 means no store took it (none attached yet, or it died).
+    pub recipients: usize,
+    /// Time spent blocked on a full subscriber buffer.
+    pub backpressure: Duration,
+}
+
+/// An actor's publisher: blocking backpressure, and the blocked time measured.
+pub struct TransitionPublisher {
+    publisher: Publisher<ipc::Service, [TransitionSlot], BatchHeader>,
+    /// Longest `elapsed_time` the backpressure handler saw during the current send, in ns.
+    blocked_ns: Arc<AtomicU64>,
+    header: BatchHeader,
+    batch_size: usize,
+}
+
+impl TransitionPublisher {
+    /// A publisher on `service` for `actor`'s batches of `run.batch_size` transitions of task
+    /// `task` (its index) in a world with `obs_len` observation entries.
+    pub fn new(
+        service: &TransitionService,
+        run_dir: &RunDir,
+        config: &Config,
+        task: u32,
+        actor: u32,
+    ) -> Result<Self, TransportError> {
+        let blocked_ns = Arc::new(AtomicU64::new(0));
+        let handler_blocked = Arc::clone(&blocked_ns);
+        let publisher = service
+            .publisher_builder()
+            .initial_max_slice_len(config.run.batch_size)
+            .max_loaned_samples(1)
+            // Backpressure: wait for the store instead of dropping or overwriting.
+            .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
+            .set_backpressure_handler(move |info: &BackpressureInfo| {
+                handler_blocked.fetch_max(info.elapsed_time.as_nanos() as u64, Ordering::Relaxed);
+                // SIGINT/SIGTERM must end an actor even while the store is gone or stuck.
+                if termination_requested() {
+                    BackpressureAction::DiscardDataAndFail
+                } else {
+                    BackpressureAction::Retry
+                }
+            })
+            .create()
+            .map_err(|e| TransportError::Service {
+                service: format!("{:?}", service.name()),
+                action: "create a publisher",
+                message: e.to_string(),
+            })?;
+        let header = BatchHeader {
+            task,
+            run: run_dir.hash(),
+            world: config.world_hash(),
+            actor,
+            obs_len: config.world.observation_len() as u32,
+            ..BatchHeader::default()
+        };
+        Ok(Self {
+            publisher,
+            blocked_ns,
+            header,
+            batch_size: config.run.batch_size,
+        })
+    }
+
+    pub fn batch_size(&self) -> usize {
+        self.batch_size
+    }
+
+    /// Copies `slots` into a loaned shared-memory batch (one memcpy, no encoding) and sends them
+    /// as sequence numbers `first_seq..first_seq + slots.len()`. Blocks while the store's buffer
+    /// is full; fails if termination is requested meanwhile. The caller keeps `slots`, so a batch
+    /// that reached nobody (`recipients == 0`) can be sent again.
+    pub fn publish(
+        &self,
+        first_seq: u64,
+        slots: &[TransitionSlot],
+    ) -> Result<Delivery, TransportError> {
+        let send_error = |action, message: String| TransportError::Service {
+            service: format!("{:?}", self.publisher.id()),
+            action,
+            message,
+        };
+        let mut sample = self
+            .publisher
+            .loan_slice_uninit(slots.len())
+            .map_err(|e| send_error("loan a batch", e.to_string()))?;
+        *sample.user_header_mut() = BatchHeader {
+            first_seq,
+            count: slots.len() as u32,
+            ..self.header
+        };
+        let mut sample = sample.write_from_slice(slots);
+        sample.user_header_mut().sent_unix_ns = unix_ns();
+        self.blocked_ns.store(0, Ordering::Relaxed);
+        let recipients = sample
+            .send()
+            .map_err(|e| send_error("send a batch", e.to_string()))?;
+        Ok(Delivery {
+            recipients,
+            backpressure: Duration::from_nanos(self.blocked_ns.swap(0, Ordering::Relaxed)),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn transition() -> Transition {
+        Transition {
+            task: 3,
+            actor: 9,
+            episode: 12,
+            step: 99,
+            seq: 1_000_001,
+            obs: vec![1, 2, 3, 4, 5],
+            action: 14,
+            reward: -12.5,
+            next_obs: vec![2, 2, 1, 5, 6],
+            truncated: true,
+        }
+    }
+
+    #[test]
+    fn slot_round_trips_a_transition() {
+        let t = transition();
+        let header = BatchHeader {
+            task: 3,
+            actor: 9,
+            obs_len: 5,
+            first_seq: 1_000_000,
+            count: 2,
+            ..BatchHeader::default()
+        };
+        let slot = TransitionSlot::from_transition(&t);
+        assert_eq!(slot.obs[5..], [0; OBS_CAPACITY - 5]);
+        assert_eq!(slot.to_transition(&header, 1), t);
+        assert_ne!(slot.to_transition(&header, 0), t);
+    }
+
+    #[test]
+    fn header_check_names_the_mismatch() {
+        let header = BatchHeader {
+            task: 1,
+            run: 7,
+            world: 8,
+            actor: 2,
+            obs_len: 12,
+            count: 4,
+            ..BatchHeader::default()
+        };
+        assert!(header.check(7, 8, 1, 12, 4).is_ok());
+        let err = header.check(7, 9, 1, 12, 4).unwrap_err().to_string();
+        assert!(err.contains("world hash"), "{err}");
+        let err = header.check(7, 8, 1, 12, 3).unwrap_err().to_string();
+        assert!(err.contains("count"), "{err}");
+        let old = BatchHeader {
+            schema_version: SCHEMA_VERSION + 1,
+            ..header
+        };
+        let err = old.check(7, 8, 1, 12, 4).unwrap_err().to_string();
+        assert!(err.contains("schema version"), "{err}");
+    }
+
+    #[test]
+    fn method_codes_round_trip() {
+        for m in Method::ALL {
+            assert_eq!(Method::from_code(m.code()), Some(m));
+        }
+        assert_eq!(Method::from_code(99), None);
+    }
+
+    fn test_run(name: &str) -> (tempfile::TempDir, RunDir) {
+        let dir = tempfile::Builder::new()
+            .prefix(name)
+            .tempdir()
+            .expect("temp dir");
+        let run = RunDir::create(dir.path()).expect("run dir");
+        (dir, run)
+    }
+
+    #[test]
+    fn another_schema_version_is_refused_with_both_versions() {
+        let (_dir, run) = test_run("schema");
+        let names = ServiceNames::new(&run);
+        let config = Config::default();
+        let node = node("schema-test").expect("node");
+        // A "future build": the same service created with the next schema version.
+        let service = names.transitions("t");
+        let foreign = (SCHEMA_VERSION + 1).to_string();
+        let _theirs = node
+            .service_builder(&service_name(&service).unwrap())
+            .publish_subscribe::<[TransitionSlot]>()
+            .user_header::<BatchHeader>()
+            .create_with_attributes(
+                &AttributeSpecifier::new()
+                    .define(
+                        &SCHEMA_ATTRIBUTE.try_into().unwrap(),
+                        &foreign.as_str().try_into().unwrap(),
+                    )
+                    .unwrap(),
+            )
+            .expect("create the foreign service");
+        let err = transition_service(&node, &names, "t", &config.run)
+            .err()
+            .expect("must refuse");
+        match &err {
+            TransportError::SchemaMismatch { theirs, .. } => assert_eq!(theirs, &foreign),
+            other => panic!("expected a schema mismatch, got {other}"),
+        }
+        assert!(
+            err.to_string()
+                .contains(&format!("version {SCHEMA_VERSION}")),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn batches_arrive_in_place_with_their_header() {
+        let (_dir, run) = test_run("batches");
+        let names = ServiceNames::new(&run);
+        let mut config = Config::default();
+        config.world.devices = 3;
+        let node = node("batch-test").expect("node");
+        let service = transition_service(&node, &names, "t", &config.run).expect("service");
+        let subscriber = transition_subscriber(&service, &config.run).expect("subscriber");
+        let publisher = TransitionPublisher::new(&service, &run, &config, 0, 5).expect("publisher");
+        let obs = [1u16, 2, 3, 4, 5];
+        let slots: Vec<TransitionSlot> = (0..3)
+            .map(|i| TransitionSlot::new(1, i as u32, &obs, i as u16, -1.0, &obs, false))
+            .collect();
+        let delivery = publisher.publish(40, &slots).expect("publish");
+        assert_eq!(delivery.recipients, 1);
+        let sample = subscriber.receive().expect("receive").expect("a batch");
+        let header = *sample.user_header();
+        header
+            .check(
+                run.hash(),
+                config.world_hash(),
+                0,
+                5,
+                sample.payload().len(),
+            )
+            .expect("own batch");
+        let seqs: Vec<u64> = sample
+            .payload()
+            .iter()
+            .enumerate()
+            .map(|(i, s)| s.to_transition(&header, i).seq)
+            .collect();
+        assert_eq!(seqs, [40, 41, 42]);
+        assert_eq!(sample.payload()[2].action, 2);
+    }
+
+    #[test]
+    fn two_runs_do_not_share_services() {
+        let (_a, run_a) = test_run("run-a");
+        let (_b, run_b) = test_run("run-b");
+        assert_ne!(
+            ServiceNames::new(&run_a).transitions("t"),
+            ServiceNames::new(&run_b).transitions("t")
+        );
+        assert_ne!(run_a.hash(), run_b.hash());
+    }
+}

@@ -1,0 +1,46 @@
+//! `uavmeta actor --run R --task T [--policy P] [--seed S] [--transitions N]`: one actor of a run
+//! (see `uavmeta_actors::actor_process`).
+
+use anyhow::{Context, Result};
+use clap::Args;
+use uavmeta_actors::actor_process::{self, ActorOptions};
+use uavmeta_actors::heuristics::PolicySpec;
+
+use super::launch::RunArgs;
+
+#[derive(Args, Debug)]
+pub struct ActorArgs {
+    #[command(flatten)]
+    pub run: RunArgs,
+    /// The task to act in, named in the run's config.
+    #[arg(long)]
+    pub task: String,
+    /// Behaviour policy: dqn-online, random, stalest, greedy, eps:P or actions:FILE; default
+    /// `collect.policy`.
+    #[arg(long)]
+    pub policy: Option<String>,
+    /// Seed of the episodes and the policy; default `collect.seed`. Actors of one task with
+    /// different seeds add different data; the same seed makes the same transitions, kept once.
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Stop after publishing this many transitions (default: until the dataset is complete).
+    #[arg(long)]
+    pub transitions: Option<u64>,
+}
+
+pub fn run(args: ActorArgs) -> Result<()> {
+    let (run, config) = args.run.open()?;
+    // A run puts many processes on few cores: libtorch's own thread pool in each would only
+    // oversubscribe them.
+    tch::set_num_threads(1);
+    let spec = args.policy.as_deref().unwrap_or(&config.collect.policy);
+    let policy: PolicySpec = spec.parse().with_context(|| format!("--policy {spec}"))?;
+    let options = ActorOptions {
+        task: args.task,
+        policy,
+        seed: args.seed.unwrap_or(config.collect.seed),
+        transitions: args.transitions,
+    };
+    actor_process::run(&run, &config, &options)?;
+    Ok(())
+}

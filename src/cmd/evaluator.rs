@@ -1,0 +1,22 @@
+//! `uavmeta evaluator --run R`: scores every checkpoint the run announces (see
+//! `uavmeta_actors::evaluator_process`).
+
+use anyhow::Result;
+use clap::Args;
+
+use super::launch::RunArgs;
+
+#[derive(Args, Debug)]
+pub struct EvaluatorArgs {
+    #[command(flatten)]
+    pub run: RunArgs,
+}
+
+pub fn run(args: EvaluatorArgs) -> Result<()> {
+    let (run, config) = args.run.open()?;
+    // A run puts many processes on few cores: libtorch's own thread pool in each would only
+    // oversubscribe them.
+    tch::set_num_threads(1);
+    uavmeta_actors::evaluator_process::run(&run, &config)?;
+    Ok(())
+}

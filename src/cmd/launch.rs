@@ -1,0 +1,55 @@
+//! `uavmeta launch --config F`: a whole run, supervised (see `uavmeta_meta::launch`); and the
+//! `--run DIR` flags every process of a run shares.
+
+use std::io::IsTerminal;
+use std::path::PathBuf;
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use uavmeta_proto::config::Config;
+use uavmeta_proto::transport::RunDir;
+
+use super::common::ConfigArgs;
+
+/// `--run DIR`, plus the config flags used when the run does not exist yet.
+#[derive(Args, Debug)]
+pub struct RunArgs {
+    /// The run directory. Its `config.toml` (written by `uavmeta launch`, or by the first process
+    /// started by hand, from --config and --set) is the config of every process of the run.
+    #[arg(long)]
+    pub run: PathBuf,
+    #[command(flatten)]
+    pub config: ConfigArgs,
+}
+
+impl RunArgs {
+    /// The run directory and its config.
+    pub fn open(&self) -> Result<(RunDir, Config)> {
+        let run = RunDir::create(&self.run)?;
+        if run.config_file().exists() && !self.config.overrides.is_empty() {
+            bail!(
+                "{}: the run's config is fixed when the run starts; --set {} cannot change it",
+                run.config_file().display(),
+                self.config.overrides.join(" --set ")
+            );
+        }
+        let config =
+            run.load_or_init_config(|| Config::load(&self.config.config, &self.config.overrides))?;
+        Ok((run, config))
+    }
+}
+
+#[derive(Args, Debug)]
+pub struct LaunchArgs {
+    #[command(flatten)]
+    pub config: ConfigArgs,
+}
+
+pub fn run(args: LaunchArgs) -> Result<()> {
+    let config = args.config.load()?;
+    let exe = std::env::current_exe()
+        .context("cannot find the uavmeta binary to start the run's processes")?;
+    let report = uavmeta_meta::launch::launch(exe, &config, std::io::stderr().is_terminal())?;
+    print!("{}", uavmeta_meta::launch::results_table(&report));
+    Ok(())
+}

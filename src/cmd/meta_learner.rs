@@ -1,0 +1,22 @@
+//! `uavmeta meta-learner --run R`: MAML over the run's datasets, then meta-test (see
+//! `uavmeta_meta::process`).
+
+use anyhow::Result;
+use clap::Args;
+
+use super::launch::RunArgs;
+
+#[derive(Args, Debug)]
+pub struct MetaLearnerArgs {
+    #[command(flatten)]
+    pub run: RunArgs,
+}
+
+pub fn run(args: MetaLearnerArgs) -> Result<()> {
+    let (run, config) = args.run.open()?;
+    // A run puts many processes on few cores: libtorch's own thread pool in each would only
+    // oversubscribe them.
+    tch::set_num_threads(1);
+    uavmeta_meta::process::run(&run, &config)?;
+    Ok(())
+}

@@ -1,0 +1,705 @@
+//! End-to-end tests of the multi-process runtime: the real `uavmeta` binary, as separate
+//! processes talking over iceoryx2, scraped over HTTP.
+//!
+//! Every test runs in its own temporary run directory (so its iceoryx2 services are its own),
+//! on a small config, and kills what it started when it ends, even on failure.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use uavmeta_learner::metrics::{self, Sample};
+use uavmeta_proto::dataset::DatasetReader;
+
+const BIN: &str = env!("CARGO_BIN_EXE_uavmeta");
+/// A small, quick run: two meta-train tasks and the unseen one, heuristic actors, a tiny network.
+const SMALL: &str = r#"
+[world]
+layout_seed = 7
+
+[[tasks]]
+name = "lambda-0"
+lambda = 0.0
+role = "meta-train"
+
+[[tasks]]
+name = "lambda-100"
+lambda = 100.0
+role = "meta-train"
+
+[[tasks]]
+name = "lambda-300"
+lambda = 300.0
+role = "meta-test"
+
+[collect]
+policy = "random"
+transitions = 300
+
+[learner]
+hidden = [16, 16]
+epochs = 2
+eval_episodes = 2
+
+[meta]
+meta_epochs = 4
+checkpoint_every = 2
+shots = 16
+query_shots = 16
+eval_every = 0
+
+[run]
+batch_size = 16
+"#;
+
+/// `--config` (the small config, written into `dir`), `--set run.dir=<run>` and `overrides`.
+fn config_args(dir: &Path, run: &Path, overrides: &[&str]) -> Vec<String> {
+    let config = dir.join("small.toml");
+    std::fs::write(&config, SMALL).expect("write the test config");
+    let mut args = vec![
+        "--config".to_string(),
+        config.display().to_string(),
+        "--set".into(),
+        format!("run.dir={}", run.display()),
+    ];
+    for o in overrides {
+        args.push("--set".into());
+        args.push(o.to_string());
+    }
+    args
+}
+
+/// A process the test started; killed (with its process group) when dropped. Its output goes to
+/// files, so a chatty process never blocks on a full pipe.
+struct Proc {
+    child: Child,
+    name: String,
+    out: tempfile::NamedTempFile,
+    err: tempfile::NamedTempFile,
+}
+
+/// What a finished process printed.
+struct Finished {
+    status: std::process::ExitStatus,
+    stdout: String,
+    stderr: String,
+}
+
+impl Proc {
+    fn spawn(name: &str, args: &[String]) -> Proc {
+        use std::os::unix::process::CommandExt;
+        let out = tempfile::NamedTempFile::new().expect("stdout file");
+        let err = tempfile::NamedTempFile::new().expect("stderr file");
+        let child = Command::new(BIN)
+            .args(args)
+            .stdout(out.reopen().expect("stdout"))
+            .stderr(err.reopen().expect("stderr"))
+            .process_group(0)
+            .spawn()
+            .unwrap_or_else(|e| panic!("cannot start {name}: {e}"));
+        Proc {
+            child,
+            name: name.to_string(),
+            out,
+            err,
+        }
+    }
+
+    fn pid(&self) -> i32 {
+        self.child.id() as i32
+    }
+
+    /// Waits for the process to exit, at most `timeout`.
+    fn wait(mut self, timeout: Duration) -> Finished {
+        let start = Instant::now();
+        let status = loop {
+            if let Some(status) = self.child.try_wait().expect("try_wait") {
+                break status;
+            }
+            let stderr = std::fs::read_to_string(self.err.path()).unwrap_or_default();
+            assert!(
+                start.elapsed() < timeout,
+                "{} still running after {timeout:?}; its stderr:\n{stderr}",
+                self.name
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        };
+        Finished {
+            status,
+            stdout: std::fs::read_to_string(self.out.path()).expect("stdout"),
+            stderr: std::fs::read_to_string(self.err.path()).expect("stderr"),
+        }
+    }
+
+    fn signal(&self, signal: i32) {
+        // SAFETY: a signal to the process group this test created.
+        unsafe { libc::killpg(self.pid(), signal) };
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        if let Ok(None) = self.child.try_wait() {
+            self.signal(libc::SIGKILL);
+            let _ = self.child.wait();
+        }
+    }
+}
+
+fn run_dir(prefix: &str) -> tempfile::TempDir {
+    tempfile::Builder::new()
+        .prefix(prefix)
+        .tempdir()
+        .expect("temp dir")
+}
+
+fn stderr(finished: &Finished) -> String {
+    finished.stderr.clone()
+}
+
+/// The samples of a process's final metrics snapshot, checked by promtool when installed.
+fn snapshot(run: &Path, process: &str) -> Vec<Sample> {
+    let path = run.join("metrics").join(format!("{process}.prom"));
+    let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    promtool_check(&text, &path.display().to_string());
+    metrics::parse(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+/// `promtool check metrics` on `text`, when promtool is installed (Debian: `prometheus`).
+fn promtool_check(text: &str, what: &str) {
+    use std::io::Write;
+    let Ok(mut child) = Command::new("promtool")
+        .args(["check", "metrics"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+    else {
+        return;
+    };
+    child
+        .stdin
+        .take()
+        .expect("stdin")
+        .write_all(text.as_bytes())
+        .expect("write to promtool");
+    let out = child.wait_with_output().expect("promtool");
+    assert!(
+        out.status.success(),
+        "promtool check metrics {what}:\n{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// Scrapes a live process over HTTP, via the port it wrote, and parses (and lints) the answer.
+fn scrape(run: &Path, process: &str) -> Vec<Sample> {
+    let port_file = run.join("ports").join(format!("{process}.port"));
+    let start = Instant::now();
+    let port: u16 = loop {
+        if let Some(port) = std::fs::read_to_string(&port_file)
+            .ok()
+            .and_then(|p| p.trim().parse().ok())
+        {
+            break port;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "{} never appeared",
+            port_file.display()
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let text = metrics::scrape("127.0.0.1", port).unwrap_or_else(|e| panic!("{process}: {e}"));
+    promtool_check(&text, process);
+    metrics::parse(&text).unwrap_or_else(|e| panic!("{process}: {e}"))
+}
+
+fn wait_until(what: &str, timeout: Duration, mut done: impl FnMut() -> bool) {
+    let start = Instant::now();
+    while !done() {
+        assert!(
+            start.elapsed() < timeout,
+            "timed out after {timeout:?} waiting for {what}"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+/// Every dataset file of a run: per task, per actor, the sorted sequence numbers.
+fn dataset_seqs(run: &Path) -> BTreeMap<String, BTreeMap<u32, Vec<u64>>> {
+    let mut out = BTreeMap::new();
+    for entry in std::fs::read_dir(run.join("datasets")).expect("datasets dir") {
+        let path = entry.expect("entry").path();
+        let reader = DatasetReader::open(&path).unwrap_or_else(|e| panic!("{e}"));
+        let mut per_actor: BTreeMap<u32, Vec<u64>> = BTreeMap::new();
+        for t in reader.transitions() {
+            per_actor.entry(t.actor).or_default().push(t.seq);
+        }
+        for seqs in per_actor.values_mut() {
+            let n = seqs.len();
+            seqs.sort_unstable();
+            seqs.dedup();
+            assert_eq!(
+                seqs.len(),
+                n,
+                "{}: a transition is stored twice",
+                path.display()
+            );
+        }
+        out.insert(reader.header().task_name.clone(), per_actor);
+    }
+    out
+}
+
+/// Transitions missing from a file: below each actor's highest stored number, not stored.
+fn missing_in_files(seqs: &BTreeMap<u32, Vec<u64>>) -> u64 {
+    seqs.values()
+        .map(|s| s.last().map_or(0, |last| last + 1) - s.len() as u64)
+        .sum()
+}
+
+fn launch(dir: &Path, run: &Path, overrides: &[&str]) -> Proc {
+    let mut args = vec!["launch".to_string()];
+    args.extend(config_args(dir, run, overrides));
+    Proc::spawn("launch", &args)
+}
+
+fn actor_names(run: &Path) -> Vec<String> {
+    std::fs::read_dir(run.join("metrics"))
+        .expect("metrics dir")
+        .filter_map(|e| e.ok()?.path().file_stem()?.to_str().map(str::to_string))
+        .filter(|n| n.starts_with("actor-"))
+        .collect()
+}
+
+#[test]
+fn a_small_launch_completes_and_accounts_for_every_transition() {
+    let dir = run_dir("e2e-launch-");
+    let run = dir.path().join("run");
+    let out = launch(dir.path(), &run, &[]).wait(Duration::from_secs(240));
+    assert!(out.status.success(), "launch failed:\n{}", stderr(&out));
+    let table = out.stdout.clone();
+    for method in ["maml-init", "cql-maml", "cql"] {
+        assert!(
+            table
+                .lines()
+                .any(|l| l.starts_with("lambda-300") && l.contains(method)),
+            "no {method} row in:\n{table}"
+        );
+    }
+
+    let store = snapshot(&run, "store");
+    let published: f64 = actor_names(&run)
+        .iter()
+        .map(|a| {
+            metrics::sum(
+                &snapshot(&run, a),
+                "uavmeta_actor_transitions_published_total",
+                &[],
+            )
+        })
+        .sum();
+    let stored = metrics::sum(&store, "uavmeta_store_transitions_stored_total", &[]);
+    let dropped = metrics::sum(&store, "uavmeta_store_transitions_dropped_total", &[]);
+    let missing = metrics::sum(&store, "uavmeta_store_transitions_missing_total", &[]);
+    assert!(published >= 3.0 * 300.0, "published {published}");
+    assert_eq!(published, stored + dropped, "published = stored + dropped");
+    assert_eq!(missing, 0.0);
+    assert_eq!(
+        metrics::sum(
+            &store,
+            "uavmeta_store_transitions_dropped_total",
+            &[("reason", "foreign")]
+        ),
+        0.0
+    );
+    let seqs = dataset_seqs(&run);
+    assert_eq!(seqs.len(), 3);
+    for (task, per_actor) in &seqs {
+        assert_eq!(
+            per_actor.values().map(Vec::len).sum::<usize>(),
+            300,
+            "{task}"
+        );
+        assert_eq!(missing_in_files(per_actor), 0, "{task}");
+    }
+    for process in ["launcher", "meta-learner", "evaluator"] {
+        snapshot(&run, process);
+    }
+    let evaluator = snapshot(&run, "evaluator");
+    assert!(
+        metrics::sum(
+            &evaluator,
+            "uavmeta_evaluator_checkpoints_evaluated_total",
+            &[]
+        ) >= 2.0 + 2.0 * 2.0
+    );
+    assert!(run.join("prometheus.yml").exists());
+}
+
+#[test]
+fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
+    let dir = run_dir("e2e-hand-");
+    let run = dir.path().join("run");
+    let run_arg = run.display().to_string();
+    let mut store_args = vec!["store".to_string(), "--run".into(), run_arg.clone()];
+    store_args.extend(config_args(
+        dir.path(),
+        &run,
+        &["collect.transitions=1000000"],
+    ));
+    let store = Proc::spawn("store", &store_args);
+    wait_until("the store", Duration::from_secs(60), || {
+        run.join("ports/store.port").exists()
+    });
+
+    let actor = |seed: &str, limit: Option<&str>| {
+        let mut args = vec![
+            "actor".to_string(),
+            "--run".into(),
+            run_arg.clone(),
+            "--task".into(),
+            "lambda-100".into(),
+            "--seed".into(),
+            seed.into(),
+        ];
+        if let Some(n) = limit {
+            args.extend(["--transitions".to_string(), n.to_string()]);
+        }
+        Proc::spawn(&format!("actor {seed}"), &args)
+    };
+    let first = actor("1", Some("400")).wait(Duration::from_secs(60));
+    assert!(first.status.success(), "{}", stderr(&first));
+    wait_until("400 stored", Duration::from_secs(30), || {
+        metrics::sum(
+            &scrape(&run, "store"),
+            "uavmeta_store_dataset_transitions",
+            &[("task", "lambda-100")],
+        ) == 400.0
+    });
+
+    // A second actor joins the running store, is scraped while it runs, and is stopped by hand.
+    let second = actor("2", None);
+    let names = || actor_names_live(&run);
+    wait_until("the second actor's port", Duration::from_secs(60), || {
+        !names().is_empty()
+    });
+    let live = scrape(&run, &names()[0]);
+    assert!(metrics::sum(&live, "uavmeta_actor_steps_total", &[]) >= 0.0);
+    wait_until("the second actor's data", Duration::from_secs(30), || {
+        metrics::sum(
+            &scrape(&run, "store"),
+            "uavmeta_store_dataset_transitions",
+            &[("task", "lambda-100")],
+        ) > 400.0
+    });
+    second.signal(libc::SIGTERM);
+    let second = second.wait(Duration::from_secs(30));
+    assert!(
+        second.status.success(),
+        "a stopped actor exits cleanly:\n{}",
+        stderr(&second)
+    );
+
+    // The meta-learner and the evaluator serve /metrics while they wait.
+    let learner = Proc::spawn(
+        "meta-learner",
+        &["meta-learner".to_string(), "--run".into(), run_arg.clone()],
+    );
+    let evaluator = Proc::spawn(
+        "evaluator",
+        &["evaluator".to_string(), "--run".into(), run_arg.clone()],
+    );
+    assert_eq!(
+        metrics::sum(
+            &scrape(&run, "meta-learner"),
+            "uavmeta_meta_learner_meta_epoch",
+            &[]
+        ),
+        0.0
+    );
+    assert_eq!(
+        metrics::sum(
+            &scrape(&run, "evaluator"),
+            "uavmeta_evaluator_checkpoints_evaluated_total",
+            &[]
+        ),
+        0.0
+    );
+    for p in [&learner, &evaluator, &store] {
+        p.signal(libc::SIGTERM);
+    }
+    for p in [learner, evaluator, store] {
+        let name = p.name.clone();
+        let out = p.wait(Duration::from_secs(30));
+        assert!(
+            out.status.success(),
+            "{name} exits cleanly on SIGTERM:\n{}",
+            stderr(&out)
+        );
+    }
+
+    let seqs = dataset_seqs(&run);
+    let per_actor = &seqs["lambda-100"];
+    assert_eq!(per_actor.len(), 2, "both actors' data is stored");
+    assert!(per_actor
+        .values()
+        .all(|s| s[0] == 0 && missing_in_files(&BTreeMap::from([(0, s.clone())])) == 0));
+    let store = snapshot(&run, "store");
+    let published: f64 = actor_names(&run)
+        .iter()
+        .map(|a| {
+            metrics::sum(
+                &snapshot(&run, a),
+                "uavmeta_actor_transitions_published_total",
+                &[],
+            )
+        })
+        .sum();
+    assert_eq!(
+        published,
+        metrics::sum(&store, "uavmeta_store_transitions_stored_total", &[])
+            + metrics::sum(&store, "uavmeta_store_transitions_dropped_total", &[])
+    );
+}
+
+/// Actors whose port file exists: the running ones.
+fn actor_names_live(run: &Path) -> Vec<String> {
+    std::fs::read_dir(run.join("ports"))
+        .map(|d| {
+            d.filter_map(|e| e.ok()?.path().file_stem()?.to_str().map(str::to_string))
+                .filter(|n| n.starts_with("actor-"))
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
+/// The pid of the launched child whose command line contains all of `needles`.
+fn child_pid(needles: &[&str]) -> Option<i32> {
+    for entry in std::fs::read_dir("/proc").ok()? {
+        let entry = entry.ok()?;
+        let Ok(pid) = entry.file_name().to_string_lossy().parse::<i32>() else {
+            continue;
+        };
+        let Ok(cmdline) = std::fs::read(entry.path().join("cmdline")) else {
+            continue;
+        };
+        let cmdline = String::from_utf8_lossy(&cmdline).replace('\0', " ");
+        if needles.iter().all(|n| cmdline.contains(n)) {
+            return Some(pid);
+        }
+    }
+    None
+}
+
+fn kill9(pid: i32) {
+    // SAFETY: a signal to a process this test's launcher started.
+    unsafe { libc::kill(pid, libc::SIGKILL) };
+}
+
+#[test]
+fn killed_actor_store_and_meta_learner_are_restarted_and_nothing_is_lost_unaccounted() {
+    let dir = run_dir("e2e-kill-");
+    let run = dir.path().join("run");
+    let run_arg = run.display().to_string();
+    // Long enough to be killed in the middle of each phase.
+    let launcher = launch(
+        dir.path(),
+        &run,
+        &[
+            "collect.transitions=150000",
+            "meta.meta_epochs=300",
+            "meta.checkpoint_every=10",
+        ],
+    );
+
+    // The store, mid-collection.
+    wait_until("collection under way", Duration::from_secs(60), || {
+        run.join("ports/store.port").exists()
+            && metrics::sum(
+                &scrape(&run, "store"),
+                "uavmeta_store_dataset_transitions",
+                &[],
+            ) > 20_000.0
+    });
+    kill9(child_pid(&[" store ", &run_arg]).expect("the store's pid"));
+    // An actor, mid-collection (after the store came back).
+    wait_until("the store restarted", Duration::from_secs(60), || {
+        run.join("ports/store.port").exists()
+    });
+    if let Some(pid) = child_pid(&[" actor ", &run_arg, "lambda-0"]) {
+        kill9(pid);
+    }
+    // The meta-learner, mid-training, once it has written a checkpoint.
+    wait_until("a w0 checkpoint", Duration::from_secs(180), || {
+        run.join("checkpoints/maml-init/epoch-00020.json").exists()
+    });
+    kill9(child_pid(&[" meta-learner ", &run_arg]).expect("the meta-learner's pid"));
+
+    let out = launcher.wait(Duration::from_secs(300));
+    assert!(out.status.success(), "launch failed:\n{}", stderr(&out));
+    let launcher_metrics = snapshot(&run, "launcher");
+    for process in ["store", "meta-learner"] {
+        assert!(
+            metrics::sum(
+                &launcher_metrics,
+                "uavmeta_launcher_child_restarts_total",
+                &[("process", process)]
+            ) >= 1.0,
+            "{process} was not restarted"
+        );
+    }
+    let learner_log =
+        std::fs::read_to_string(run.join("logs/meta-learner.log")).expect("meta-learner log");
+    assert!(
+        learner_log.contains("resuming meta-training from its checkpoint"),
+        "{learner_log}"
+    );
+
+    // Every file reads back, holds each transition once, and what it lacks is what the last store
+    // counted as missing.
+    let store = snapshot(&run, "store");
+    let seqs = dataset_seqs(&run);
+    for (task, per_actor) in &seqs {
+        assert_eq!(
+            per_actor.values().map(Vec::len).sum::<usize>(),
+            150_000,
+            "{task}"
+        );
+        let counted = metrics::sum(
+            &store,
+            "uavmeta_store_transitions_missing_total",
+            &[("task", task)],
+        );
+        assert_eq!(
+            missing_in_files(per_actor) as f64,
+            counted,
+            "{task}: missing transitions vs the store's count"
+        );
+    }
+    let table = out.stdout.clone();
+    assert!(table.contains("cql-maml"), "{table}");
+}
+
+#[test]
+fn two_runs_side_by_side_keep_their_data_apart() {
+    let dirs = [run_dir("e2e-side-a-"), run_dir("e2e-side-b-")];
+    let runs: Vec<PathBuf> = dirs.iter().map(|d| d.path().join("run")).collect();
+    let policies = ["random", "stalest"];
+    let launchers: Vec<Proc> = runs
+        .iter()
+        .zip(policies)
+        .zip(&dirs)
+        .map(|((run, policy), dir)| launch(dir.path(), run, &[&format!("collect.policy={policy}")]))
+        .collect();
+    for l in launchers {
+        let out = l.wait(Duration::from_secs(300));
+        assert!(out.status.success(), "{}", stderr(&out));
+    }
+    let actors: Vec<BTreeSet<u32>> = runs
+        .iter()
+        .map(|run| {
+            dataset_seqs(run)
+                .values()
+                .flat_map(|per_actor| per_actor.keys().copied())
+                .collect()
+        })
+        .collect();
+    assert!(
+        actors[0].is_disjoint(&actors[1]),
+        "a run stored another run's transitions"
+    );
+    for run in &runs {
+        let store = snapshot(run, "store");
+        assert_eq!(
+            metrics::sum(
+                &store,
+                "uavmeta_store_transitions_dropped_total",
+                &[("reason", "foreign")]
+            ),
+            0.0
+        );
+        assert_eq!(
+            dataset_seqs(run).values().map(|a| a.len()).sum::<usize>(),
+            3,
+            "one actor per task"
+        );
+    }
+}
+
+/// Processes whose command line names `run`, other than `except`.
+fn run_processes(run: &str, except: i32) -> Vec<i32> {
+    let Ok(entries) = std::fs::read_dir("/proc") else {
+        return Vec::new();
+    };
+    entries
+        .filter_map(|e| {
+            let e = e.ok()?;
+            let pid = e.file_name().to_string_lossy().parse::<i32>().ok()?;
+            let cmdline = String::from_utf8_lossy(&std::fs::read(e.path().join("cmdline")).ok()?)
+                .replace('\0', " ");
+            (pid != except && cmdline.contains(BIN) && cmdline.contains(run)).then_some(pid)
+        })
+        .collect()
+}
+
+#[test]
+fn children_stop_when_the_launcher_is_killed_or_stopped() {
+    for (signal, graceful) in [(libc::SIGKILL, false), (libc::SIGTERM, true)] {
+        let dir = run_dir("e2e-orphans-");
+        let run = dir.path().join("run");
+        let run_arg = run.display().to_string();
+        let launcher = launch(dir.path(), &run, &["meta.meta_epochs=100000"]);
+        wait_until("the meta-learner", Duration::from_secs(60), || {
+            run.join("ports/meta-learner.port").exists()
+        });
+        assert!(
+            run_processes(&run_arg, launcher.pid()).len() >= 3,
+            "the children run"
+        );
+        // SAFETY: a signal to the launcher this test started.
+        unsafe { libc::kill(launcher.pid(), signal) };
+        let out = launcher.wait(Duration::from_secs(60));
+        if graceful {
+            assert!(
+                out.stderr.contains("stopped by a termination request"),
+                "{}",
+                out.stderr
+            );
+        }
+        wait_until("every child to exit", Duration::from_secs(30), || {
+            run_processes(&run_arg, -1).is_empty()
+        });
+        // Stopped in order, every child wrote its final metrics.
+        if graceful {
+            for process in ["store", "meta-learner", "evaluator"] {
+                snapshot(&run, process);
+            }
+        }
+    }
+}
+
+#[test]
+fn the_same_config_and_seed_give_byte_identical_datasets() {
+    let dirs = [run_dir("e2e-same-a-"), run_dir("e2e-same-b-")];
+    let runs: Vec<PathBuf> = dirs.iter().map(|d| d.path().join("run")).collect();
+    for (dir, run) in dirs.iter().zip(&runs) {
+        let out =
+            launch(dir.path(), run, &["collect.policy=eps:0.3"]).wait(Duration::from_secs(240));
+        assert!(out.status.success(), "{}", out.stderr);
+    }
+    for task in ["lambda-0", "lambda-100", "lambda-300"] {
+        let file = format!("datasets/{task}.uavds");
+        let bytes: Vec<Vec<u8>> = runs
+            .iter()
+            .map(|r| std::fs::read(r.join(&file)).expect("dataset"))
+            .collect();
+        assert!(!bytes[0].is_empty());
+        assert!(
+            bytes[0] == bytes[1],
+            "{file} differs between two runs of one config"
+        );
+    }
+}
