@@ -1,5 +1,6 @@
 //! The `uavmeta` binary: parses arguments and calls library code, one subcommand per job.
 
+use std::io::IsTerminal;
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
@@ -7,8 +8,17 @@ use clap::{Parser, Subcommand};
 mod cmd;
 
 #[derive(Parser)]
-#[command(name = "uavmeta", version, about = "Few-shot meta-offline RL (CQL inside MAML) for UAV trajectory and scheduling")]
+#[command(
+    name = "uavmeta",
+    version,
+    about = "Few-shot meta-offline RL (CQL inside MAML) for UAV trajectory and scheduling"
+)]
 struct Cli {
+    /// libtorch intra-op threads. The Q-networks are small: one thread is as fast as two on an
+    /// idle machine and immune to OpenMP spin-waiting on a busy one, where more threads made
+    /// training 10-25x slower (docs/BENCHMARKS.md).
+    #[arg(long, global = true, default_value_t = 1, value_name = "N")]
+    torch_threads: i32,
     #[command(subcommand)]
     command: Command,
 }
@@ -49,8 +59,10 @@ fn main() -> ExitCode {
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
         )
         .with_writer(std::io::stderr)
+        .with_ansi(std::io::stderr().is_terminal())
         .init();
     let cli = Cli::parse();
+    tch::set_num_threads(cli.torch_threads.max(1));
     let result = match cli.command {
         Command::Env(c) => cmd::env::run(c),
         Command::Collect(c) => cmd::collect::run(c),

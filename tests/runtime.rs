@@ -509,22 +509,30 @@ fn killed_actor_store_and_meta_learner_are_restarted_and_nothing_is_lost_unaccou
         dir.path(),
         &run,
         &[
-            "collect.transitions=150000",
-            "meta.meta_epochs=300",
-            "meta.checkpoint_every=10",
+            "collect.transitions=600000",
+            "meta.meta_epochs=3000",
+            "meta.checkpoint_every=100",
         ],
     );
 
     // The store, mid-collection.
+    let mut held = 0.0;
     wait_until("collection under way", Duration::from_secs(60), || {
-        run.join("ports/store.port").exists()
-            && metrics::sum(
+        held = match run.join("ports/store.port").exists() {
+            true => metrics::sum(
                 &scrape(&run, "store"),
                 "uavmeta_store_dataset_transitions",
                 &[],
-            ) > 20_000.0
+            ),
+            false => 0.0,
+        };
+        held > 100_000.0
     });
     kill9(child_pid(&[" store ", &run_arg]).expect("the store's pid"));
+    assert!(
+        held < 3.0 * 600_000.0,
+        "the store was killed after collection ended"
+    );
     // An actor, mid-collection (after the store came back).
     wait_until("the store restarted", Duration::from_secs(60), || {
         run.join("ports/store.port").exists()
@@ -534,9 +542,13 @@ fn killed_actor_store_and_meta_learner_are_restarted_and_nothing_is_lost_unaccou
     }
     // The meta-learner, mid-training, once it has written a checkpoint.
     wait_until("a w0 checkpoint", Duration::from_secs(180), || {
-        run.join("checkpoints/maml-init/epoch-00020.json").exists()
+        run.join("checkpoints/maml-init/epoch-00200.json").exists()
     });
     kill9(child_pid(&[" meta-learner ", &run_arg]).expect("the meta-learner's pid"));
+    assert!(
+        !run.join("checkpoints/maml-init/epoch-03000.json").exists(),
+        "the meta-learner was killed after meta-training"
+    );
 
     let out = launcher.wait(Duration::from_secs(300));
     assert!(out.status.success(), "launch failed:\n{}", stderr(&out));
@@ -565,7 +577,7 @@ fn killed_actor_store_and_meta_learner_are_restarted_and_nothing_is_lost_unaccou
     for (task, per_actor) in &seqs {
         assert_eq!(
             per_actor.values().map(Vec::len).sum::<usize>(),
-            150_000,
+            600_000,
             "{task}"
         );
         let counted = metrics::sum(

@@ -225,12 +225,8 @@ pub fn scrape(host: &str, port: u16) -> Result<String, MetricsError> {
     let (head, body) = response
         .split_once("\r\n\r\n")
         .ok_or_else(|| error("no end of headers".into()))?;
-    if !head.starts_with("HTTP/1.")
-        || !head
-            .split_whitespace()
-            .nth(1)
-            .is_some_and(|code| code == "200")
-    {
+    let ok = head.starts_with("HTTP/1.") && head.split_whitespace().nth(1) == Some("200");
+    if !ok {
         return Err(error(format!(
             "unexpected status: {}",
             head.lines().next().unwrap_or("")

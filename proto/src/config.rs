@@ -14,17 +14,32 @@ use serde::{Deserialize, Serialize};
 /// `proto::transport` stores observations in fixed-size arrays of `2 + MAX_DEVICES` entries.
 pub const MAX_DEVICES: usize = 64;
 
+/// The largest grid side: the world precomputes a power table of grid_cells^2 x K entries.
+pub const MAX_GRID_CELLS: u32 = 1024;
+
 /// A config error. `origin` is the file path, or `--set KEY=VALUE` for an override.
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
     #[error("{origin}: cannot read: {error}")]
-    Read { origin: String, error: std::io::Error },
+    Read {
+        origin: String,
+        error: std::io::Error,
+    },
     #[error("{origin}: {message}")]
     Parse { origin: String, message: String },
     #[error("{origin}: key `{key}` = {value}: expected {expected}")]
-    Invalid { origin: String, key: String, value: String, expected: String },
+    Invalid {
+        origin: String,
+        key: String,
+        value: String,
+        expected: String,
+    },
     #[error("{origin}: no task named `{name}`; the config defines: {known}")]
-    UnknownTask { origin: String, name: String, known: String },
+    UnknownTask {
+        origin: String,
+        name: String,
+        known: String,
+    },
 }
 
 /// One experiment: the world, its tasks, and the settings of every stage.
@@ -229,7 +244,13 @@ impl TaskConfig {
             None => format!("lambda-{lambda}"),
             Some(r) => format!("lambda-{lambda}-rain-{}-{}-{}-{}", r.x0, r.y0, r.x1, r.y1),
         };
-        Self { name, lambda, role: TaskRole::MetaTest, rain, rain_moves_every: None }
+        Self {
+            name,
+            lambda,
+            role: TaskRole::MetaTest,
+            rain,
+            rain_moves_every: None,
+        }
     }
 }
 
@@ -471,22 +492,36 @@ impl Config {
     /// a value that is not TOML is taken as a string) and validates the result.
     pub fn load(path: &Path, overrides: &[String]) -> Result<Self, ConfigError> {
         let source = path.display().to_string();
-        let text = std::fs::read_to_string(path)
-            .map_err(|error| ConfigError::Read { origin: source.clone(), error })?;
+        let text = std::fs::read_to_string(path).map_err(|error| ConfigError::Read {
+            origin: source.clone(),
+            error,
+        })?;
         Self::from_toml_str(&text, &source, overrides)
     }
 
     /// As [`Config::load`], from text already read; `source` names it in errors.
-    pub fn from_toml_str(text: &str, source: &str, overrides: &[String]) -> Result<Self, ConfigError> {
-        let mut doc = text.parse::<toml_edit::DocumentMut>().map_err(|e| ConfigError::Parse {
-            origin: source.to_string(),
-            message: e.to_string(),
-        })?;
-        if !doc.contains_key("tasks") && overrides.iter().any(|o| o.trim_start().starts_with("tasks.")) {
+    pub fn from_toml_str(
+        text: &str,
+        source: &str,
+        overrides: &[String],
+    ) -> Result<Self, ConfigError> {
+        let mut doc = text
+            .parse::<toml_edit::DocumentMut>()
+            .map_err(|e| ConfigError::Parse {
+                origin: source.to_string(),
+                message: e.to_string(),
+            })?;
+        if !doc.contains_key("tasks")
+            && overrides
+                .iter()
+                .any(|o| o.trim_start().starts_with("tasks."))
+        {
             // The file keeps the default tasks, which are not in the document: write them in so
             // that `tasks.N.KEY` has a table to index.
-            let defaults: toml_edit::DocumentMut =
-                Config::default().to_toml_string().parse().expect("the default config is valid TOML");
+            let defaults: toml_edit::DocumentMut = Config::default()
+                .to_toml_string()
+                .parse()
+                .expect("the default config is valid TOML");
             doc.insert("tasks", defaults["tasks"].clone());
         }
         for assignment in overrides {
@@ -497,10 +532,11 @@ impl Config {
         } else {
             format!("{source} (with --set {})", overrides.join(" --set "))
         };
-        let mut config: Config = toml::from_str(&doc.to_string()).map_err(|e| ConfigError::Parse {
-            origin: source_desc.clone(),
-            message: e.to_string().trim_end().to_string(),
-        })?;
+        let mut config: Config =
+            toml::from_str(&doc.to_string()).map_err(|e| ConfigError::Parse {
+                origin: source_desc.clone(),
+                message: e.to_string().trim_end().to_string(),
+            })?;
         config.origin = source_desc;
         config.validate()?;
         Ok(config)
@@ -515,22 +551,36 @@ impl Config {
     /// mismatched world is caught before a network or a file is used with it.
     pub fn world_hash(&self) -> u64 {
         let text = toml::to_string(&self.world).expect("a world config always serialises");
-        text.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ b as u64).wrapping_mul(0x100_0000_01b3))
+        text.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+            (h ^ b as u64).wrapping_mul(0x100_0000_01b3)
+        })
     }
 
     /// The task called `name`.
     pub fn task(&self, name: &str) -> Result<&TaskConfig, ConfigError> {
-        self.tasks.iter().find(|t| t.name == name).ok_or_else(|| ConfigError::UnknownTask {
-            origin: self.origin.clone(),
-            name: name.to_string(),
-            known: self.tasks.iter().map(|t| t.name.as_str()).collect::<Vec<_>>().join(", "),
-        })
+        self.tasks
+            .iter()
+            .find(|t| t.name == name)
+            .ok_or_else(|| ConfigError::UnknownTask {
+                origin: self.origin.clone(),
+                name: name.to_string(),
+                known: self
+                    .tasks
+                    .iter()
+                    .map(|t| t.name.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", "),
+            })
     }
 
     /// The index of the task called `name` in `tasks`, its id in datasets and payloads.
     pub fn task_id(&self, name: &str) -> Result<usize, ConfigError> {
         let task = self.task(name)?;
-        Ok(self.tasks.iter().position(|t| std::ptr::eq(t, task)).expect("found above"))
+        Ok(self
+            .tasks
+            .iter()
+            .position(|t| std::ptr::eq(t, task))
+            .expect("found above"))
     }
 
     pub fn tasks_with_role(&self, role: TaskRole) -> impl Iterator<Item = &TaskConfig> {
@@ -547,8 +597,27 @@ impl Config {
         };
         let w = &self.world;
         let cells = (w.grid_cells as usize) * (w.grid_cells as usize);
-        if w.grid_cells == 0 {
-            return Err(invalid("world.grid_cells", &w.grid_cells, "at least 1 cell per side"));
+        // The world keeps a power table per cell and device, and observations are u16.
+        if w.grid_cells == 0 || w.grid_cells > MAX_GRID_CELLS {
+            return Err(invalid(
+                "world.grid_cells",
+                &w.grid_cells,
+                &format!("between 1 and {MAX_GRID_CELLS} cells per side"),
+            ));
+        }
+        // TOML integers are i64: a larger seed could not be saved beside a dataset or checkpoint.
+        let seeds = [
+            ("world.layout_seed", w.layout_seed),
+            ("collect.seed", self.collect.seed),
+            ("learner.eval_seed", self.learner.eval_seed),
+        ];
+        for (key, seed) in seeds
+            .into_iter()
+            .chain(self.run.seeds.iter().map(|s| ("run.seeds", *s)))
+        {
+            if seed > i64::MAX as u64 {
+                return Err(invalid(key, &seed, &format!("a seed at most {}", i64::MAX)));
+            }
         }
         if w.devices == 0 || w.devices > cells {
             return Err(invalid(
@@ -558,7 +627,11 @@ impl Config {
             ));
         }
         if w.devices > MAX_DEVICES {
-            return Err(invalid("world.devices", &w.devices, &format!("at most {MAX_DEVICES}")));
+            return Err(invalid(
+                "world.devices",
+                &w.devices,
+                &format!("at most {MAX_DEVICES}"),
+            ));
         }
         if let Some(device_cells) = &w.device_cells {
             if device_cells.len() != w.devices {
@@ -573,7 +646,10 @@ impl Config {
                     return Err(invalid(
                         &format!("world.device_cells[{i}]"),
                         c,
-                        &format!("a cell inside the grid, each index below grid_cells = {}", w.grid_cells),
+                        &format!(
+                            "a cell inside the grid, each index below grid_cells = {}",
+                            w.grid_cells
+                        ),
                     ));
                 }
                 if device_cells[..i].contains(c) {
@@ -587,10 +663,17 @@ impl Config {
         }
         if let Delta::PerDevice(d) = &w.delta {
             if d.len() != w.devices {
-                return Err(invalid("world.delta", d, &format!("one weight or {} weights", w.devices)));
+                return Err(invalid(
+                    "world.delta",
+                    d,
+                    &format!("one weight or {} weights", w.devices),
+                ));
             }
         }
-        if w.delta_per_device().iter().any(|d| !d.is_finite() || *d < 0.0) {
+        if w.delta_per_device()
+            .iter()
+            .any(|d| !d.is_finite() || *d < 0.0)
+        {
             return Err(invalid("world.delta", &w.delta, "finite weights >= 0"));
         }
         if let Some(c) = w.start_cell {
@@ -627,10 +710,18 @@ impl Config {
         }
         for (i, t) in self.tasks.iter().enumerate() {
             if !t.lambda.is_finite() || t.lambda < 0.0 {
-                return Err(invalid(&format!("tasks[{i}].lambda"), &t.lambda, "a finite number >= 0"));
+                return Err(invalid(
+                    &format!("tasks[{i}].lambda"),
+                    &t.lambda,
+                    "a finite number >= 0",
+                ));
             }
             if t.name.is_empty() || self.tasks[..i].iter().any(|o| o.name == t.name) {
-                return Err(invalid(&format!("tasks[{i}].name"), &t.name, "a non-empty name no other task has"));
+                return Err(invalid(
+                    &format!("tasks[{i}].name"),
+                    &t.name,
+                    "a non-empty name no other task has",
+                ));
             }
             if let Some(r) = t.rain {
                 if r.x0 > r.x1 || r.y0 > r.y1 || r.x1 >= w.grid_cells || r.y1 >= w.grid_cells {
@@ -645,7 +736,11 @@ impl Config {
                 }
             }
             if t.rain_moves_every == Some(0) {
-                return Err(invalid(&format!("tasks[{i}].rain_moves_every"), &0, "at least 1 step"));
+                return Err(invalid(
+                    &format!("tasks[{i}].rain_moves_every"),
+                    &0,
+                    "at least 1 step",
+                ));
             }
             if t.rain_moves_every.is_some() && t.rain.is_none() {
                 return Err(invalid(
@@ -660,25 +755,44 @@ impl Config {
             return Err(invalid("collect.transitions", &c.transitions, "at least 1"));
         }
         if c.actors_per_task == 0 {
-            return Err(invalid("collect.actors_per_task", &c.actors_per_task, "at least 1"));
+            return Err(invalid(
+                "collect.actors_per_task",
+                &c.actors_per_task,
+                "at least 1",
+            ));
         }
-        for (key, value) in [("collect.eps_start", c.eps_start), ("collect.eps_end", c.eps_end)] {
+        for (key, value) in [
+            ("collect.eps_start", c.eps_start),
+            ("collect.eps_end", c.eps_end),
+        ] {
             if !(0.0..=1.0).contains(&value) {
                 return Err(invalid(key, &value, "a probability in [0, 1]"));
             }
         }
         if c.replay_capacity == 0 || c.train_every == 0 {
-            return Err(invalid("collect.replay_capacity / collect.train_every", &(c.replay_capacity, c.train_every), "both at least 1"));
+            return Err(invalid(
+                "collect.replay_capacity / collect.train_every",
+                &(c.replay_capacity, c.train_every),
+                "both at least 1",
+            ));
         }
         let l = &self.learner;
         if l.hidden.is_empty() || l.hidden.contains(&0) {
-            return Err(invalid("learner.hidden", &l.hidden, "a non-empty list of widths >= 1"));
+            return Err(invalid(
+                "learner.hidden",
+                &l.hidden,
+                "a non-empty list of widths >= 1",
+            ));
         }
         if !(0.0..=1.0).contains(&l.gamma) {
             return Err(invalid("learner.gamma", &l.gamma, "a discount in [0, 1]"));
         }
         if !l.reward_scale.is_finite() || l.reward_scale <= 0.0 {
-            return Err(invalid("learner.reward_scale", &l.reward_scale, "a finite number > 0"));
+            return Err(invalid(
+                "learner.reward_scale",
+                &l.reward_scale,
+                "a finite number > 0",
+            ));
         }
         if !l.alpha.is_finite() || l.alpha < 0.0 {
             return Err(invalid("learner.alpha", &l.alpha, "a finite number >= 0"));
@@ -690,14 +804,26 @@ impl Config {
             return Err(invalid("learner.lr", &l.lr, "a learning rate > 0"));
         }
         if l.target_update_every == 0 {
-            return Err(invalid("learner.target_update_every", &l.target_update_every, "at least 1"));
+            return Err(invalid(
+                "learner.target_update_every",
+                &l.target_update_every,
+                "at least 1",
+            ));
         }
         let m = &self.meta;
         if m.shots == 0 || m.query_shots == 0 {
-            return Err(invalid("meta.shots / meta.query_shots", &(m.shots, m.query_shots), "both at least 1"));
+            return Err(invalid(
+                "meta.shots / meta.query_shots",
+                &(m.shots, m.query_shots),
+                "both at least 1",
+            ));
         }
         if !(m.support_fraction > 0.0 && m.support_fraction < 1.0) {
-            return Err(invalid("meta.support_fraction", &m.support_fraction, "a share strictly between 0 and 1"));
+            return Err(invalid(
+                "meta.support_fraction",
+                &m.support_fraction,
+                "a share strictly between 0 and 1",
+            ));
         }
         if m.inner_steps == 0 {
             return Err(invalid("meta.inner_steps", &m.inner_steps, "at least 1"));
@@ -709,7 +835,10 @@ impl Config {
                 "both at least 1 meta-epoch",
             ));
         }
-        for (key, value) in [("meta.eta_inner", m.eta_inner), ("meta.eta_outer", m.eta_outer)] {
+        for (key, value) in [
+            ("meta.eta_inner", m.eta_inner),
+            ("meta.eta_outer", m.eta_outer),
+        ] {
             if !value.is_finite() || value <= 0.0 {
                 return Err(invalid(key, &value, "a learning rate > 0"));
             }
@@ -719,7 +848,11 @@ impl Config {
             return Err(invalid("run.seeds", &r.seeds, "at least one seed"));
         }
         if r.control_buffer == 0 {
-            return Err(invalid("run.control_buffer", &r.control_buffer, "at least 1"));
+            return Err(invalid(
+                "run.control_buffer",
+                &r.control_buffer,
+                "at least 1",
+            ));
         }
         if r.batch_size == 0 || r.subscriber_buffer == 0 || r.max_publishers == 0 {
             return Err(invalid(
@@ -734,9 +867,16 @@ impl Config {
 
 /// Applies one `KEY=VALUE` override to the parsed document. `KEY` is dotted (`world.devices`);
 /// a numeric part indexes an array of tables (`tasks.0.lambda`).
-fn apply_override(doc: &mut toml_edit::DocumentMut, file: &str, assignment: &str) -> Result<(), ConfigError> {
+fn apply_override(
+    doc: &mut toml_edit::DocumentMut,
+    file: &str,
+    assignment: &str,
+) -> Result<(), ConfigError> {
     let source = format!("{file}: --set {assignment}");
-    let err = |message: String| ConfigError::Parse { origin: source.clone(), message };
+    let err = |message: String| ConfigError::Parse {
+        origin: source.clone(),
+        message,
+    };
     let (key, raw) = assignment
         .split_once('=')
         .ok_or_else(|| err("expected KEY=VALUE, e.g. world.devices=20".into()))?;
@@ -747,7 +887,9 @@ fn apply_override(doc: &mut toml_edit::DocumentMut, file: &str, assignment: &str
         .unwrap_or_else(|_| toml_edit::Value::from(raw));
     let parts: Vec<&str> = key.split('.').collect();
     if parts.iter().any(|p| p.is_empty()) {
-        return Err(err(format!("key `{key}`: expected dotted names such as world.devices")));
+        return Err(err(format!(
+            "key `{key}`: expected dotted names such as world.devices"
+        )));
     }
     let (last, path) = parts.split_last().expect("split yields at least one part");
     let mut table: &mut dyn toml_edit::TableLike = doc.as_table_mut();
@@ -762,16 +904,20 @@ fn apply_override(doc: &mut toml_edit::DocumentMut, file: &str, assignment: &str
             Some(index) => {
                 steps.next();
                 let tables = item.as_array_of_tables_mut().ok_or_else(|| {
-                    err(format!("key `{key}`: `{part}` is not a list of tables to index"))
+                    err(format!(
+                        "key `{key}`: `{part}` is not a list of tables to index"
+                    ))
                 })?;
                 let len = tables.len();
                 tables.get_mut(index).ok_or_else(|| {
-                    err(format!("key `{key}`: index {index} is out of range; `{part}` has {len} entries"))
+                    err(format!(
+                        "key `{key}`: index {index} is out of range; `{part}` has {len} entries"
+                    ))
                 })?
             }
-            None => item.as_table_like_mut().ok_or_else(|| {
-                err(format!("key `{key}`: `{part}` is not a table"))
-            })?,
+            None => item
+                .as_table_like_mut()
+                .ok_or_else(|| err(format!("key `{key}`: `{part}` is not a table")))?,
         };
     }
     if last.parse::<usize>().is_ok() {

@@ -28,14 +28,20 @@ impl Estimate {
         let samples: Vec<f64> = samples.into_iter().collect();
         let n = samples.len();
         if n == 0 {
-            return Self { mean: f64::NAN, ci95: f64::NAN };
+            return Self {
+                mean: f64::NAN,
+                ci95: f64::NAN,
+            };
         }
         let mean = samples.iter().sum::<f64>() / n as f64;
         if n == 1 {
             return Self { mean, ci95: 0.0 };
         }
         let var = samples.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
-        Self { mean, ci95: student_t_975(n - 1) * (var / n as f64).sqrt() }
+        Self {
+            mean,
+            ci95: student_t_975(n - 1) * (var / n as f64).sqrt(),
+        }
     }
 }
 

@@ -264,3 +264,27 @@ fn config_round_trips_through_its_toml() {
         }
     );
 }
+
+#[test]
+fn grid_too_large_for_the_power_tables() {
+    error_of(
+        "[world]\ngrid_cells = 5000\n",
+        &[],
+        &["world.grid_cells", "5000", "1024"],
+    );
+}
+
+#[test]
+fn seed_that_toml_cannot_hold() {
+    let (_, result) = load("", &[]);
+    let mut config = result.expect("empty file is all defaults");
+    config.collect.seed = u64::MAX;
+    let message = config
+        .validate()
+        .expect_err("seed above i64::MAX")
+        .to_string();
+    assert!(
+        message.contains("collect.seed") && message.contains(&u64::MAX.to_string()),
+        "{message}"
+    );
+}

@@ -30,9 +30,6 @@ pub struct ActorArgs {
 
 pub fn run(args: ActorArgs) -> Result<()> {
     let (run, config) = args.run.open()?;
-    // A run puts many processes on few cores: libtorch's own thread pool in each would only
-    // oversubscribe them.
-    tch::set_num_threads(1);
     let spec = args.policy.as_deref().unwrap_or(&config.collect.policy);
     let policy: PolicySpec = spec.parse().with_context(|| format!("--policy {spec}"))?;
     let options = ActorOptions {

@@ -60,7 +60,9 @@ impl TaskArgs {
                 }
                 Ok(task)
             }
-            (None, None) => anyhow::bail!("name a task with --task NAME, or define one with --lambda X [--rain x0,y0,x1,y1]"),
+            (None, None) => anyhow::bail!(
+                "name a task with --task NAME, or define one with --lambda X [--rain x0,y0,x1,y1]"
+            ),
         }
     }
 }

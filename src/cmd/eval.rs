@@ -29,9 +29,6 @@ pub struct EvalArgs {
 }
 
 pub fn run(args: EvalArgs) -> Result<()> {
-    // The Q-networks are small: one libtorch thread is as fast as two on an idle machine and
-    // immune to OpenMP spin-waiting on a busy one (25x slower in actors/tests/learning.rs).
-    tch::set_num_threads(1);
     let mut config = args.config.load()?;
     let task = args.task.resolve(&mut config)?;
     let (q, meta) = checkpoint::load(&args.checkpoint, &config)?;

@@ -14,9 +14,6 @@ pub struct EvaluatorArgs {
 
 pub fn run(args: EvaluatorArgs) -> Result<()> {
     let (run, config) = args.run.open()?;
-    // A run puts many processes on few cores: libtorch's own thread pool in each would only
-    // oversubscribe them.
-    tch::set_num_threads(1);
     uavmeta_actors::evaluator_process::run(&run, &config)?;
     Ok(())
 }

@@ -55,7 +55,6 @@ pub struct MetaTestArgs {
 }
 
 pub fn run_train(args: MetaTrainArgs) -> Result<()> {
-    single_threaded_torch();
     let config = args.config.load()?;
     let seed = args.seed.unwrap_or(config.run.seeds[0]);
     let result = meta_train(&MetaTrainOptions {
@@ -85,7 +84,6 @@ pub fn run_train(args: MetaTrainArgs) -> Result<()> {
 }
 
 pub fn run_test(args: MetaTestArgs) -> Result<()> {
-    single_threaded_torch();
     let mut config = args.config.load()?;
     let task = args.task.resolve(&mut config)?;
     let seed = args.seed.unwrap_or(config.run.seeds[0]);
@@ -140,7 +138,6 @@ pub struct ExperimentArgs {
 }
 
 pub fn run_experiment(args: ExperimentArgs) -> Result<()> {
-    single_threaded_torch();
     let mut config = args.config.load()?;
     if args.quick {
         config = quick_config(&config);
@@ -176,11 +173,4 @@ pub fn run_experiment(args: ExperimentArgs) -> Result<()> {
     })?;
     print!("{}", report.summary);
     Ok(())
-}
-
-/// The networks are small: libtorch's intra-op threads only spin-wait on each other on a shared
-/// machine (docs/BENCHMARKS.md, "Meta-learning": 3-9x slower meta-epochs), so MAML and
-/// fine-tuning run on one.
-fn single_threaded_torch() {
-    tch::set_num_threads(1);
 }

@@ -14,9 +14,6 @@ pub struct MetaLearnerArgs {
 
 pub fn run(args: MetaLearnerArgs) -> Result<()> {
     let (run, config) = args.run.open()?;
-    // A run puts many processes on few cores: libtorch's own thread pool in each would only
-    // oversubscribe them.
-    tch::set_num_threads(1);
     uavmeta_meta::process::run(&run, &config)?;
     Ok(())
 }

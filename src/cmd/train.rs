@@ -43,9 +43,6 @@ pub struct TrainArgs {
 }
 
 pub fn run(args: TrainArgs) -> Result<()> {
-    // The Q-networks are small: one libtorch thread is as fast as two on an idle machine and
-    // immune to OpenMP spin-waiting on a busy one (25x slower in actors/tests/learning.rs).
-    tch::set_num_threads(1);
     let mut config = args.config.load()?;
     let task = args.task.resolve(&mut config)?;
     // Saved beside the final checkpoint, so the flags that change training go into the config.
