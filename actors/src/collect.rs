@@ -35,7 +35,7 @@ pub enum CollectError {
     Policy { origin: String, error: PolicyError },
     #[error(transparent)]
     Dataset(#[from] DatasetError),
-    #[error("{}: cannot write the dataset's config: {source}", path.display())]
+    #[error("{}: cannot write the dataset's config", path.display())]
     WriteConfig {
         path: PathBuf,
         source: std::io::Error,

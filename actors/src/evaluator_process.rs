@@ -39,7 +39,7 @@ pub enum EvaluatorError {
     Metrics(#[from] MetricsError),
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
-    #[error("{}: cannot {action}: {source}", path.display())]
+    #[error("{}: cannot {action}", path.display())]
     Io {
         path: std::path::PathBuf,
         action: &'static str,

@@ -46,13 +46,13 @@ pub struct CheckpointMeta {
 
 #[derive(Debug, thiserror::Error)]
 pub enum CheckpointError {
-    #[error("{}: cannot {action}: {source}", path.display())]
+    #[error("{}: cannot {action}", path.display())]
     Io {
         path: PathBuf,
         action: &'static str,
         source: std::io::Error,
     },
-    #[error("{}: not checkpoint metadata: {source}", path.display())]
+    #[error("{}: not checkpoint metadata", path.display())]
     Meta {
         path: PathBuf,
         source: serde_json::Error,
@@ -73,7 +73,7 @@ pub enum CheckpointError {
         expected_len: u64,
         expected: u32,
     },
-    #[error("{}: cannot load the weights: {source}", path.display())]
+    #[error("{}: cannot load the weights", path.display())]
     Weights {
         path: PathBuf,
         source: tch::TchError,

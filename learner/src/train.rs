@@ -64,7 +64,7 @@ impl FromStr for Algorithm {
 
 #[derive(Debug, thiserror::Error)]
 pub enum TrainError {
-    #[error("{}: cannot {action}: {source}", path.display())]
+    #[error("{}: cannot {action}", path.display())]
     Io {
         path: PathBuf,
         action: &'static str,

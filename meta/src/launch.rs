@@ -59,13 +59,13 @@ pub enum LaunchError {
     Transport(#[from] TransportError),
     #[error(transparent)]
     Metrics(#[from] metrics::MetricsError),
-    #[error("{}: cannot {action}: {source}", path.display())]
+    #[error("{}: cannot {action}", path.display())]
     Io {
         path: PathBuf,
         action: &'static str,
         source: std::io::Error,
     },
-    #[error("cannot start `{name}` ({exe}): {source}", exe = exe.display())]
+    #[error("cannot start `{name}` ({exe})", exe = exe.display())]
     Spawn {
         name: String,
         exe: PathBuf,

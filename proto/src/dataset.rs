@@ -221,7 +221,7 @@ pub struct Recovery {
 /// Everything that can be wrong with a dataset file or a request on its contents.
 #[derive(Debug, thiserror::Error)]
 pub enum DatasetError {
-    #[error("{}: cannot {action}: {source}", path.display())]
+    #[error("{}: cannot {action}", path.display())]
     Io {
         path: PathBuf,
         action: &'static str,

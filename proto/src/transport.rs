@@ -84,7 +84,7 @@ pub enum TransportError {
     },
     #[error("`{name}` is not a valid iceoryx2 service name: {message}")]
     ServiceName { name: String, message: String },
-    #[error("{}: cannot {action}: {source}", path.display())]
+    #[error("{}: cannot {action}", path.display())]
     Io {
         path: PathBuf,
         action: &'static str,
