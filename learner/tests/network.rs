@@ -221,7 +221,9 @@ fn truncated_or_corrupt_checkpoint_names_the_file() {
         matches!(err, CheckpointError::Meta { .. }) && err.to_string().contains("epoch-7.json"),
         "{err}"
     );
-    let cause = std::error::Error::source(&err).map(|c| c.to_string()).unwrap_or_default();
+    let cause = std::error::Error::source(&err)
+        .map(|c| c.to_string())
+        .unwrap_or_default();
     assert!(
         cause.contains("line"),
         "serde_json's position is kept in the cause: {err}: {cause}"

@@ -532,11 +532,18 @@ impl Config {
         } else {
             format!("{source} (with --set {})", overrides.join(" --set "))
         };
-        let mut config: Config =
-            toml::from_str(&doc.to_string()).map_err(|e| ConfigError::Parse {
+        let mut config: Config = toml::from_str(&doc.to_string()).map_err(|e| {
+            let mut message = e.to_string().trim_end().to_string();
+            if !overrides.is_empty() {
+                // The parser saw the file with the overrides merged in, not the file itself.
+                message
+                    .push_str("\n(line numbers count the file with the --set overrides applied)");
+            }
+            ConfigError::Parse {
                 origin: source_desc.clone(),
-                message: e.to_string().trim_end().to_string(),
-            })?;
+                message,
+            }
+        })?;
         config.origin = source_desc;
         config.validate()?;
         Ok(config)

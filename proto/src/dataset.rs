@@ -324,12 +324,7 @@ impl DatasetWriter {
     /// error, because cutting there would throw good data away.
     pub fn open_append(path: impl AsRef<Path>) -> Result<(Self, Option<Recovery>), DatasetError> {
         let path = path.as_ref().to_path_buf();
-        let bytes = std::fs::read(&path).map_err(|source| DatasetError::Io {
-            path: path.clone(),
-            action: "read",
-            source,
-        })?;
-        let (header, header_len) = DatasetHeader::decode(&bytes, &path)?;
+        let (bytes, header, header_len) = read_with_header(&path)?;
         let mut scan = Scan {
             path: &path,
             bytes: &bytes,
@@ -513,17 +508,23 @@ pub struct DatasetReader {
     transitions: Vec<Transition>,
 }
 
+/// The whole file with its decoded header and the header's length: where every scan starts.
+fn read_with_header(path: &Path) -> Result<(Vec<u8>, DatasetHeader, usize), DatasetError> {
+    let bytes = std::fs::read(path).map_err(|source| DatasetError::Io {
+        path: path.to_path_buf(),
+        action: "read",
+        source,
+    })?;
+    let (header, header_len) = DatasetHeader::decode(&bytes, path)?;
+    Ok((bytes, header, header_len))
+}
+
 impl DatasetReader {
     /// Reads every chunk of `path`. Any damage, including a torn tail that
     /// [`DatasetWriter::open_append`] would cut, is an error naming the file and the offset.
     pub fn open(path: impl AsRef<Path>) -> Result<Self, DatasetError> {
         let path = path.as_ref().to_path_buf();
-        let bytes = std::fs::read(&path).map_err(|source| DatasetError::Io {
-            path: path.clone(),
-            action: "read",
-            source,
-        })?;
-        let (header, header_len) = DatasetHeader::decode(&bytes, &path)?;
+        let (bytes, header, header_len) = read_with_header(&path)?;
         let mut scan = Scan {
             path: &path,
             bytes: &bytes,
