@@ -49,11 +49,6 @@ pub enum ActorError {
     Collect(#[from] CollectError),
     #[error(transparent)]
     Config(#[from] ConfigError),
-    #[error("iceoryx2: cannot {action}: {message}")]
-    Receive {
-        action: &'static str,
-        message: String,
-    },
 }
 
 /// What to run: the flags of `uavmeta actor`.
@@ -399,12 +394,11 @@ fn announced(
     shutdown: &iceoryx2::port::subscriber::Subscriber<ipc::Service, transport::Shutdown, ()>,
     task: u32,
 ) -> Result<bool, ActorError> {
-    let receive_error = |e: iceoryx2::port::ReceiveError| ActorError::Receive {
-        action: "receive an announcement",
-        message: e.to_string(),
-    };
     let mut done = false;
-    while let Some(message) = ready.receive().map_err(receive_error)? {
+    while let Some(message) = ready
+        .receive()
+        .map_err(transport::receive_failed("receive a dataset announcement"))?
+    {
         if message.schema_version == SCHEMA_VERSION && message.task == task {
             tracing::info!(
                 transitions = message.transitions,
@@ -413,8 +407,5 @@ fn announced(
             done = true;
         }
     }
-    while let Some(message) = shutdown.receive().map_err(receive_error)? {
-        done |= message.schema_version == SCHEMA_VERSION;
-    }
-    Ok(done)
+    Ok(transport::shutdown_requested(shutdown)? || done)
 }

@@ -45,11 +45,6 @@ pub enum EvaluatorError {
         action: &'static str,
         source: std::io::Error,
     },
-    #[error("iceoryx2: cannot {action}: {message}")]
-    Receive {
-        action: &'static str,
-        message: String,
-    },
 }
 
 /// One evaluated checkpoint: a row of `evaluations.csv`. Power is in watts (base units).
@@ -240,23 +235,14 @@ pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
             Duration::ZERO
         },
     ) {
-        while let Some(m) = announcements
-            .receive()
-            .map_err(|e| EvaluatorError::Receive {
-                action: "receive a checkpoint announcement",
-                message: e.to_string(),
-            })?
-        {
+        while let Some(m) = announcements.receive().map_err(transport::receive_failed(
+            "receive a checkpoint announcement",
+        ))? {
             if m.schema_version == SCHEMA_VERSION {
                 queue.push_back(*m);
             }
         }
-        while let Some(m) = shutdown.receive().map_err(|e| EvaluatorError::Receive {
-            action: "receive a shutdown",
-            message: e.to_string(),
-        })? {
-            stopping |= m.schema_version == SCHEMA_VERSION;
-        }
+        stopping |= transport::shutdown_requested(&shutdown)?;
         let Some(next) = queue.pop_front() else {
             if stopping {
                 break;

@@ -53,11 +53,6 @@ pub enum StoreError {
     Config(#[from] ConfigError),
     #[error(transparent)]
     Metrics(#[from] MetricsError),
-    #[error("iceoryx2: cannot {action}: {message}")]
-    Receive {
-        action: &'static str,
-        message: String,
-    },
 }
 
 /// The store's metrics: every name it exports, in one place.
@@ -191,7 +186,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
     let mut last_cleanup = Instant::now();
     while transport::keep_running(&node, if idle { IDLE_WAIT } else { Duration::ZERO }) {
         transport::serve_history(&ready)?;
-        if shutdown_requested(&shutdown)? {
+        if transport::shutdown_requested(&shutdown)? {
             tracing::info!("shutdown announced");
             break;
         }
@@ -302,19 +297,6 @@ fn open_task(
     })
 }
 
-fn shutdown_requested(
-    shutdown: &iceoryx2::port::subscriber::Subscriber<ipc::Service, transport::Shutdown, ()>,
-) -> Result<bool, StoreError> {
-    let mut requested = false;
-    while let Some(message) = shutdown.receive().map_err(|e| StoreError::Receive {
-        action: "receive a shutdown",
-        message: e.to_string(),
-    })? {
-        requested |= message.schema_version == SCHEMA_VERSION;
-    }
-    Ok(requested)
-}
-
 /// Receives and stores everything waiting on every task's service; returns the batches handled.
 #[allow(clippy::too_many_arguments)]
 fn drain(
@@ -338,10 +320,10 @@ fn drain(
     for (subscriber, task) in subscribers.iter().zip(tasks.iter_mut()) {
         let name = task.name.clone();
         let name = name.as_str();
-        while let Some(sample) = subscriber.receive().map_err(|e| StoreError::Receive {
-            action: "receive a batch",
-            message: e.to_string(),
-        })? {
+        while let Some(sample) = subscriber
+            .receive()
+            .map_err(transport::receive_failed("receive a batch"))?
+        {
             batches += 1;
             let header = *sample.user_header();
             let slots = sample.payload();

@@ -79,11 +79,6 @@ pub enum LaunchError {
         max: u32,
         log: PathBuf,
     },
-    #[error("iceoryx2: cannot {action}: {message}")]
-    Receive {
-        action: &'static str,
-        message: String,
-    },
     #[error("{origin}: key `collect.policy`: {message}")]
     Policy { origin: String, message: String },
     #[error("stopped by a termination request")]
@@ -245,10 +240,10 @@ pub fn launch(
         if let Err(error) = supervisor.poll(&mut children, &node) {
             break Err(error);
         }
-        while let Some(m) = dataset_ready.receive().map_err(|e| LaunchError::Receive {
-            action: "receive a dataset announcement",
-            message: e.to_string(),
-        })? {
+        while let Some(m) = dataset_ready
+            .receive()
+            .map_err(transport::receive_failed("receive a dataset announcement"))?
+        {
             if m.schema_version == SCHEMA_VERSION {
                 if let Some(ready) = ready_tasks.get_mut(m.task as usize) {
                     *ready = true;
@@ -261,10 +256,9 @@ pub fn launch(
             .set(ready_tasks.iter().filter(|r| **r).count() as i64);
         while let Some(m) = checkpoint_ready
             .receive()
-            .map_err(|e| LaunchError::Receive {
-                action: "receive a checkpoint announcement",
-                message: e.to_string(),
-            })?
+            .map_err(transport::receive_failed(
+                "receive a checkpoint announcement",
+            ))?
         {
             launcher_metrics.checkpoints_announced.inc();
             if let (Some(method), Some(task)) = (

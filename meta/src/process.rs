@@ -51,11 +51,6 @@ pub enum MetaProcessError {
     Meta(#[from] MetaError),
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
-    #[error("iceoryx2: cannot {action}: {message}")]
-    Receive {
-        action: &'static str,
-        message: String,
-    },
 }
 
 /// How a meta-learner run ended.
@@ -119,14 +114,8 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
         transport::control_publisher(&transport::checkpoint_ready_service(&node, &names, config)?)?;
     let stop = || -> Result<bool, MetaProcessError> {
         transport::serve_history(&announce)?;
-        let mut stop = !transport::keep_running(&node, Duration::ZERO);
-        while let Some(m) = shutdown.receive().map_err(|e| MetaProcessError::Receive {
-            action: "receive a shutdown",
-            message: e.to_string(),
-        })? {
-            stop |= m.schema_version == SCHEMA_VERSION;
-        }
-        Ok(stop)
+        let signalled = !transport::keep_running(&node, Duration::ZERO);
+        Ok(transport::shutdown_requested(&shutdown)? || signalled)
     };
 
     // 1. Every task's dataset.
@@ -136,10 +125,10 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
         if stop()? || !transport::keep_running(&node, POLL) {
             return Ok(Outcome::Stopped);
         }
-        while let Some(m) = ready.receive().map_err(|e| MetaProcessError::Receive {
-            action: "receive a dataset announcement",
-            message: e.to_string(),
-        })? {
+        while let Some(m) = ready
+            .receive()
+            .map_err(transport::receive_failed("receive a dataset announcement"))?
+        {
             if let Some(w) = waiting
                 .get_mut(m.task as usize)
                 .filter(|_| m.schema_version == SCHEMA_VERSION)

@@ -82,6 +82,11 @@ pub enum TransportError {
         action: &'static str,
         message: String,
     },
+    #[error("iceoryx2: cannot {action}: {message}")]
+    Receive {
+        action: &'static str,
+        message: String,
+    },
     #[error("`{name}` is not a valid iceoryx2 service name: {message}")]
     ServiceName { name: String, message: String },
     #[error("{}: cannot {action}", path.display())]
@@ -742,6 +747,31 @@ pub fn shutdown_service(
     config: &Config,
 ) -> Result<ControlService<Shutdown>, TransportError> {
     control_service(node, names.shutdown(), config)
+}
+
+/// Maps a failed receive to a [`TransportError`] that says what was being received.
+pub fn receive_failed(
+    action: &'static str,
+) -> impl Fn(iceoryx2::port::ReceiveError) -> TransportError {
+    move |e| TransportError::Receive {
+        action,
+        message: e.to_string(),
+    }
+}
+
+/// Drains the shutdown service: true if this build's run was told to stop. A shutdown from a
+/// build of another schema version is not addressed to this run's processes.
+pub fn shutdown_requested(
+    shutdown: &iceoryx2::port::subscriber::Subscriber<ipc::Service, Shutdown, ()>,
+) -> Result<bool, TransportError> {
+    let mut requested = false;
+    while let Some(message) = shutdown
+        .receive()
+        .map_err(receive_failed("receive a shutdown"))?
+    {
+        requested |= message.schema_version == SCHEMA_VERSION;
+    }
+    Ok(requested)
 }
 
 /// A subscriber that also receives the service's history.
