@@ -1,19 +1,31 @@
 //! Transport benchmark: transitions per second from 1, 2 and 4 real `uavmeta actor` processes
 //! over iceoryx2 at batch sizes 1, 64 and 1024, with publish-to-receive latency percentiles, beside
-//! the raw speed of the same rollout without any transport.
+//! the speed of the same rollout without any transport.
+//!
+//! The transport's cost to an actor is its CPU time per transition over the environment's CPU time
+//! per step, minus one. The environment steps the same policy in the same world (same K, episodes
+//! seeded as the actor seeds them) and records nothing. An actor's CPU time is its main thread's
+//! run time (`/proc/PID/schedstat`) from the first batch received to the last, so it leaves out
+//! starting (loading libtorch alone takes about 0.25 s of CPU) and includes rolling out, writing
+//! each step into its shared-memory slot, sending, and the actor's metrics. CPU time, not wall
+//! time, because the machine is shared: another process taking turns on a core slows the wall
+//! clock but not the CPU time of the work measured. The in-process CPU rate of the actor's own
+//! rollout writing into a local batch splits the cost into writing and sending.
 //!
 //! The receiving side is this process: it subscribes to the task's transition service exactly as
 //! the store does (`proto::transport`), but only counts, so the figures are the transport's, not
-//! the dataset writer's. Run: `cargo bench --bench transport` (prints a Markdown table).
+//! the dataset writer's. Run: `cargo bench --bench transport` (prints Markdown tables); arguments
+//! `ACTORSxBATCH` (e.g. `-- 1x64`) run only those cases.
 
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use uavmeta_actors::heuristics::RandomPolicy;
-use uavmeta_actors::rollout::Policy;
+use uavmeta_actors::actor_process::{ActorOptions, Rollout};
+use uavmeta_actors::heuristics::{PolicySpec, RandomPolicy};
+use uavmeta_actors::rollout::{episode_seed, run_episode};
 use uavmeta_actors::world::World;
 use uavmeta_proto::config::Config;
-use uavmeta_proto::transport::{self, RunDir, ServiceNames, TransitionSlot};
+use uavmeta_proto::transport::{self, RunDir, ServiceNames, TransitionSlot, OBS_CAPACITY};
 
 const BIN: &str = env!("CARGO_BIN_EXE_uavmeta");
 
@@ -26,35 +38,100 @@ fn per_actor(batch: usize) -> u64 {
     }
 }
 
-/// Steps per second of the random policy in one task's world, writing each step into a slot as an
-/// actor does, but sending nothing.
-fn raw_rollout_speed(config: &Config) -> f64 {
-    let task = &config.tasks[0];
-    let mut world = World::new(&config.world, task, 1);
-    let mut policy = RandomPolicy::new(1);
-    let mut slots = vec![TransitionSlot::new(0, 0, &[], 0, 0.0, &[], false); 64];
-    let steps = 4_000_000;
-    let start = Instant::now();
-    world.reset();
-    for i in 0..steps {
-        let slot = &mut slots[i % 64];
-        *slot = TransitionSlot::new(0, world.t(), world.observation(), 0, 0.0, &[], false);
-        let action = policy.act(&world);
-        let step = world.step(action);
-        slot.action = action as u16;
-        slot.reward = step.reward as f32;
-        let next = world.observation();
-        slot.next_obs[..next.len()].copy_from_slice(next);
-        if step.truncated {
-            world.reset();
+/// Steps of each in-process measurement, and how many times it is repeated (the best counts:
+/// the machine is shared, and interference only ever slows a run down). The measurements being
+/// compared take turns, so that a spell of interference hits them alike.
+const RAW_STEPS: usize = 2_000_000;
+const RAW_REPEATS: usize = 8;
+
+/// CPU time of this thread.
+fn cpu_time() -> Duration {
+    // SAFETY: clock_gettime writes the struct it is given.
+    let t = unsafe {
+        let mut t = std::mem::zeroed::<libc::timespec>();
+        libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut t);
+        t
+    };
+    Duration::new(t.tv_sec as u64, t.tv_nsec as u32)
+}
+
+/// Time process `pid`'s main thread has run on a CPU so far.
+fn run_time(pid: u32) -> Duration {
+    let path = format!("/proc/{pid}/schedstat");
+    let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"));
+    let ns = text
+        .split_whitespace()
+        .next()
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("{path}: `{text}` does not start with nanoseconds"));
+    Duration::from_nanos(ns)
+}
+
+/// Steps per CPU-second of each of `runs` (each returns the steps it took), best of
+/// `RAW_REPEATS` rounds in which every run takes its turn.
+fn best_rates(runs: &mut [Box<dyn FnMut() -> usize + '_>]) -> Vec<f64> {
+    let mut best = vec![0.0f64; runs.len()];
+    for _ in 0..RAW_REPEATS {
+        for (run, best) in runs.iter_mut().zip(&mut best) {
+            let start = cpu_time();
+            let steps = run();
+            *best = best.max(steps as f64 / (cpu_time() - start).as_secs_f64());
         }
     }
-    std::hint::black_box(&slots);
-    steps as f64 / start.elapsed().as_secs_f64()
+    best
+}
+
+/// The environment alone: the random policy (an actor's `--seed 0`) in one task's world, episode
+/// i in the world of `episode_seed(0, i)` as an actor runs it, recording nothing.
+fn env_steps(config: &Config) -> impl FnMut() -> usize + '_ {
+    let task = &config.tasks[0];
+    let mut world = World::new(&config.world, task, 0);
+    let mut policy = RandomPolicy::new(0);
+    let horizon = config.world.horizon as usize;
+    let mut episode = 0;
+    move || {
+        for _ in 0..RAW_STEPS / horizon {
+            world.reseed(episode_seed(0, episode));
+            std::hint::black_box(run_episode(&mut world, &mut policy));
+            episode += 1;
+        }
+        RAW_STEPS / horizon * horizon
+    }
+}
+
+/// An actor's own rollout writing every step into a batch of `batch` slots in local memory,
+/// sending nothing.
+fn rollout_steps(config: &Config, batch: usize) -> impl FnMut() -> usize + '_ {
+    let task = &config.tasks[0];
+    let mut rollout = Rollout::new(config, task, Box::new(RandomPolicy::new(0)), 0);
+    let empty = TransitionSlot {
+        episode: 0,
+        step: 0,
+        reward: 0.0,
+        action: 0,
+        truncated: 0,
+        reserved: 0,
+        obs: [0; OBS_CAPACITY],
+        next_obs: [0; OBS_CAPACITY],
+    };
+    let mut slots = vec![empty; batch];
+    move || {
+        for _ in 0..RAW_STEPS / batch {
+            for slot in slots.iter_mut() {
+                rollout.write_step(slot);
+            }
+            std::hint::black_box(&mut slots);
+            rollout.drain_finished().for_each(drop);
+        }
+        RAW_STEPS / batch * batch
+    }
 }
 
 struct Figures {
+    /// Transitions per wall-clock second at the receiver.
     rate: f64,
+    /// CPU time per transition of the actors, each from its first batch received to its last.
+    cpu_per_transition: Duration,
     latencies: Vec<f64>,
 }
 
@@ -103,6 +180,19 @@ fn run_case(actors: usize, batch: usize) -> Figures {
     let total = n * actors as u64;
     let mut received = 0u64;
     let mut latencies = Vec::with_capacity((total / batch as u64) as usize + 1);
+    // Per actor (by id): its run time at its first batch, and the transitions received since.
+    let ids: Vec<u32> = (0..actors)
+        .map(|i| {
+            ActorOptions {
+                task: "bench".into(),
+                policy: PolicySpec::Random,
+                seed: i as u64,
+                transitions: Some(n),
+            }
+            .actor_id()
+        })
+        .collect();
+    let mut since_first: Vec<Option<(Duration, u64)>> = vec![None; actors];
     let mut first: Option<Instant> = None;
     let deadline = Instant::now() + Duration::from_secs(300);
     while received < total {
@@ -112,42 +202,91 @@ fn run_case(actors: usize, batch: usize) -> Figures {
         );
         match subscriber.receive().expect("receive") {
             Some(sample) => {
-                first.get_or_insert_with(Instant::now);
-                latencies.push(sample.user_header().age_seconds());
+                let header = sample.user_header();
+                latencies.push(header.age_seconds());
                 received += sample.payload().len() as u64;
+                first.get_or_insert_with(Instant::now);
+                let i = ids
+                    .iter()
+                    .position(|&id| id == header.actor)
+                    .expect("a batch of one of the bench's actors");
+                match &mut since_first[i] {
+                    Some((_, count)) => *count += sample.payload().len() as u64,
+                    none => *none = Some((run_time(children[i].id()), 0)),
+                }
             }
             None => std::hint::spin_loop(),
         }
     }
     let elapsed = first.map_or(Duration::ZERO, |f| f.elapsed());
+    // The actors have sent their last batch but are still alive: their exit is not counted.
+    let (mut cpu, mut measured) = (Duration::ZERO, 0u64);
+    for (child, since) in children.iter().zip(&since_first) {
+        let (start, count) = since.expect("every actor sent");
+        cpu += run_time(child.id()) - start;
+        measured += count;
+    }
     for mut child in children {
         let _ = child.wait();
     }
     latencies.sort_by(f64::total_cmp);
     Figures {
         rate: total as f64 / elapsed.as_secs_f64(),
+        cpu_per_transition: cpu / measured.max(1) as u32,
         latencies,
     }
 }
 
 fn main() {
     let config = Config::default();
-    let raw = raw_rollout_speed(&config);
+    let batches = [1, 64, 1024];
+    let mut runs: Vec<Box<dyn FnMut() -> usize>> = vec![Box::new(env_steps(&config))];
+    for batch in batches {
+        runs.push(Box::new(rollout_steps(&config, batch)));
+    }
+    let rates = best_rates(&mut runs);
+    drop(runs);
+    let env = rates[0];
     println!("## Transport\n");
     println!("Command: `cargo bench --bench transport` (2-core machine shared with other work; each actor a real `uavmeta actor --policy random` process, the receiver a busy-polling subscriber in the bench process).\n");
-    println!("Raw rollout in one process, random policy, K = 10, writing slots but sending nothing: {:.1} M transitions/s.\n", raw / 1e6);
     println!(
-        "| actors | batch | transitions/s | per actor vs raw | latency p50 | p90 | p99 | max |"
+        "Environment alone, random policy, K = {}: {:.1} M steps per CPU-second ({:.1} ns per step).\n",
+        config.world.devices,
+        env / 1e6,
+        1e9 / env
     );
-    println!("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |");
+    println!("| batch | rollout writing slots, in process (per CPU-second) | its cost over the environment |");
+    println!("| ---: | ---: | ---: |");
+    for (batch, rate) in batches.into_iter().zip(&rates[1..]) {
+        println!(
+            "| {batch} | {:.1} M/s | {:+.1}% |",
+            rate / 1e6,
+            100.0 * (env / rate - 1.0)
+        );
+    }
+    println!();
+    println!(
+        "| actors | batch | transitions/s | actor CPU per transition | transport cost per actor | latency p50 | p90 | p99 | max |"
+    );
+    println!("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |");
+    // `cargo bench` passes its own flags (`--bench`); case filters look like `1x64`.
+    let only: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| a.contains('x'))
+        .collect();
     for actors in [1, 2, 4] {
         for batch in [1, 64, 1024] {
+            if !only.is_empty() && !only.contains(&format!("{actors}x{batch}")) {
+                continue;
+            }
             let f = run_case(actors, batch);
             let l = &f.latencies;
+            let per_transition = f.cpu_per_transition.as_secs_f64();
             println!(
-                "| {actors} | {batch} | {:.2} M | {:.0}% | {:.1} µs | {:.1} µs | {:.1} µs | {:.1} µs |",
+                "| {actors} | {batch} | {:.2} M | {:.1} ns | {:+.0}% | {:.1} µs | {:.1} µs | {:.1} µs | {:.1} µs |",
                 f.rate / 1e6,
-                100.0 * f.rate / actors as f64 / raw,
+                per_transition * 1e9,
+                100.0 * (per_transition * env - 1.0),
                 percentile(l, 0.5) * 1e6,
                 percentile(l, 0.9) * 1e6,
                 percentile(l, 0.99) * 1e6,

@@ -596,6 +596,57 @@ fn killed_actor_store_and_meta_learner_are_restarted_and_nothing_is_lost_unaccou
 }
 
 #[test]
+fn an_evaluator_restarted_after_the_meta_learner_exited_catches_up_from_the_run_directory() {
+    let dir = run_dir("e2e-evaluator-");
+    let run = dir.path().join("run");
+    let out = launch(dir.path(), &run, &[]).wait(Duration::from_secs(240));
+    assert!(out.status.success(), "launch failed:\n{}", stderr(&out));
+    let csv = run.join("evaluations.csv");
+    let complete = std::fs::read_to_string(&csv).expect("evaluations.csv");
+    let lines: Vec<&str> = complete.lines().collect();
+    // Two w0 checkpoints, and two epochs of each meta-test method.
+    assert_eq!(lines.len(), 1 + 2 + 2 * 2, "{complete}");
+
+    // As if the evaluator had been killed after its first row and restarted once the whole run,
+    // meta-learner included, had exited: nobody announces anything any more.
+    std::fs::write(&csv, format!("{}\n{}\n", lines[0], lines[1])).expect("cut the CSV");
+    let run_arg = run.display().to_string();
+    let evaluator = Proc::spawn(
+        "evaluator",
+        &["evaluator".to_string(), "--run".into(), run_arg],
+    );
+    let rows = || {
+        std::fs::read_to_string(&csv)
+            .map(|t| t.lines().count())
+            .unwrap_or(0)
+    };
+    wait_until(
+        "the evaluator to catch up",
+        Duration::from_secs(120),
+        || rows() >= lines.len(),
+    );
+    evaluator.signal(libc::SIGTERM);
+    let finished = evaluator.wait(Duration::from_secs(30));
+    assert!(finished.status.success(), "{}", stderr(&finished));
+
+    // Every checkpoint exactly once, with the figures the first evaluator found (the episodes are
+    // seeded), the kept row first.
+    let after = std::fs::read_to_string(&csv).expect("evaluations.csv");
+    let after: Vec<&str> = after.lines().collect();
+    assert_eq!(after[..2], lines[..2]);
+    assert_eq!(
+        after.len(),
+        lines.len(),
+        "a checkpoint evaluated twice:\n{}",
+        after.join("\n")
+    );
+    assert_eq!(
+        after.iter().collect::<BTreeSet<_>>(),
+        lines.iter().collect::<BTreeSet<_>>()
+    );
+}
+
+#[test]
 fn two_runs_side_by_side_keep_their_data_apart() {
     let dirs = [run_dir("e2e-side-a-"), run_dir("e2e-side-b-")];
     let runs: Vec<PathBuf> = dirs.iter().map(|d| d.path().join("run")).collect();

@@ -1,12 +1,15 @@
 //! The actor process (`uavmeta actor --run R --task T --policy P [--seed S]`): rolls a behaviour
 //! policy out in one task's world and publishes its transitions to the store.
 //!
-//! Each step is written into a fixed-layout slot of the actor's batch (`proto::transport`),
-//! `run.batch_size` steps per batch, numbered 0, 1, 2, ... by a per-actor sequence number; the
-//! batch goes into shared memory with one copy. When the store's buffer is full the actor waits
-//! (backpressure); when no store takes a batch it sends it again once one does; both waits are
-//! counted. With `dqn-online` (the paper's behaviour policy) the actor first trains an online DQN
-//! agent and then publishes `collect.transitions` transitions sampled from its replay buffer.
+//! Each step is written straight into its fixed-layout slot of a batch loaned in shared memory
+//! (`proto::transport`), `run.batch_size` steps per batch, numbered 0, 1, 2, ... by a per-actor
+//! sequence number, and the batch is sent without a further copy. When the store's buffer is full
+//! the actor waits (backpressure); while no store is subscribed it holds its written batch and
+//! sends it once one is; both waits are counted. A batch that iceoryx2 reports delivered to nobody
+//! is sent again under the same numbers: from a copy the actor keeps of its last batch, or, for a
+//! replay sample, written again from the sample. With `dqn-online` (the
+//! paper's behaviour policy) the actor first trains an online DQN agent and then publishes
+//! `collect.transitions` transitions sampled from its replay buffer.
 //!
 //! An actor's identity is a hash of its task, policy and seed: the same actor restarted (by the
 //! launcher after a crash) makes the same transitions under the same numbers, and the store keeps
@@ -27,7 +30,7 @@ use uavmeta_proto::transport::{
 
 use crate::collect::{online_dqn_dataset, CollectError};
 use crate::heuristics::{PolicyError, PolicySpec};
-use crate::rollout::{episode_seed, Policy};
+use crate::rollout::{episode_seed, EpisodeTally, Policy};
 use crate::world::World;
 
 /// How often an actor with nothing to send (no store yet, or its replay sample all sent) looks
@@ -100,6 +103,7 @@ mod metrics {
         pub registry: Registry,
         pub steps: IntCounter,
         pub transitions_published: IntCounter,
+        pub batches_resent: IntCounter,
         pub batches_published: IntCounter,
         pub episodes: IntCounter,
         pub episode_return: Gauge,
@@ -126,7 +130,8 @@ mod metrics {
             };
             Self {
                 steps: counter(&registry, "actor_steps_total", "Environment steps taken (for dqn-online, training steps included)."),
-                transitions_published: counter(&registry, "actor_transitions_published_total", "Transitions sent to the store's service."),
+                transitions_published: counter(&registry, "actor_transitions_published_total", "Transitions delivered to the store's service."),
+                batches_resent: counter(&registry, "actor_batches_resent_total", "Batches sent again because iceoryx2 reported them delivered to no store."),
                 batches_published: counter(&registry, "actor_batches_published_total", "Batches sent to the store's service."),
                 episodes: counter(&registry, "actor_episodes_total", "Episodes finished by the behaviour policy."),
                 episode_return: gauge("actor_episode_return", "Return of the last finished episode."),
@@ -148,78 +153,63 @@ mod metrics {
     }
 }
 
-/// A behaviour policy rolled out episode after episode, written slot by slot.
-struct Rollout {
+/// A behaviour policy rolled out episode after episode, each step written into a slot: the whole
+/// of an actor's work besides sending (the transport benchmark times it alone too).
+pub struct Rollout {
     world: World,
     policy: Box<dyn Policy>,
     seed: u64,
     episode: u64,
     in_episode: bool,
-    /// Sums of the episode in progress, and its steps.
-    current: EpisodeMetrics,
-    current_steps: u32,
+    /// The episode in progress.
+    tally: EpisodeTally,
     finished: Vec<EpisodeMetrics>,
 }
 
 impl Rollout {
-    fn new(config: &Config, task: &TaskConfig, policy: Box<dyn Policy>, seed: u64) -> Self {
+    pub fn new(config: &Config, task: &TaskConfig, policy: Box<dyn Policy>, seed: u64) -> Self {
         Self {
             world: World::new(&config.world, task, seed),
             policy,
             seed,
             episode: 0,
             in_episode: false,
-            current: EpisodeMetrics::default(),
-            current_steps: 0,
+            tally: EpisodeTally::default(),
             finished: Vec::new(),
         }
     }
 
-    /// One step as a slot. The i-th episode runs in the world of `episode_seed(seed, i)`, as in
-    /// `collect` and evaluation.
-    fn next_slot(&mut self) -> TransitionSlot {
+    /// Takes one step, writing it into `slot` in place. The i-th episode runs in the world of
+    /// `episode_seed(seed, i)`, as in `collect` and evaluation.
+    #[inline]
+    pub fn write_step(&mut self, slot: &mut TransitionSlot) {
         if !self.in_episode {
             self.world
                 .reseed(episode_seed(self.seed, self.episode as usize));
             self.world.reset();
             self.in_episode = true;
         }
-        let t = self.world.t();
-        let mut slot = TransitionSlot::new(
-            self.episode,
-            t,
-            self.world.observation(),
-            0,
-            0.0,
-            &[],
-            false,
-        );
+        slot.set_state(self.episode, self.world.t(), self.world.observation());
         let action = self.policy.act(&self.world);
         let step = self.world.step(action);
         // Below 5K <= 5 * MAX_DEVICES, checked by the world's step.
-        slot.action = action as u16;
-        slot.reward = step.reward as f32;
-        slot.truncated = step.truncated as u8;
-        let next = self.world.observation();
-        slot.next_obs[..next.len()].copy_from_slice(next);
-        self.current.ret += step.reward;
-        self.current.aoi += step.aoi_mean;
-        self.current.power_mw += step.power_mw;
-        self.current.outages += step.outage as u32;
-        self.current_steps += 1;
+        slot.set_outcome(
+            action as u16,
+            step.reward as f32,
+            self.world.observation(),
+            step.truncated,
+        );
+        self.tally.add(&step);
         if step.truncated {
-            let n = self.current_steps as f64;
-            self.finished.push(EpisodeMetrics {
-                aoi: self.current.aoi / n,
-                power_mw: self.current.power_mw / n,
-                ..self.current
-            });
-            self.current = EpisodeMetrics::default();
-            self.current_steps = 0;
+            self.finished.push(std::mem::take(&mut self.tally).finish());
             self.episode += 1;
             self.in_episode = false;
         }
-        slot
+    }
+
+    /// The episodes finished since the last call.
+    pub fn drain_finished(&mut self) -> impl Iterator<Item = EpisodeMetrics> + '_ {
+        self.finished.drain(..)
     }
 }
 
@@ -326,50 +316,61 @@ pub fn run(
             continue;
         }
         let start = Instant::now();
-        outbox.clear();
+        let mut batch = publisher.loan(seq, count)?;
         match &mut source {
-            Source::Rollout(rollout) => outbox.extend((0..count).map(|_| rollout.next_slot())),
-            // Published numbers count the sample, not the agent's training steps.
-            Source::Fixed(list) => outbox.extend(
-                list[seq as usize..seq as usize + count]
-                    .iter()
-                    .map(TransitionSlot::from_transition),
-            ),
+            Source::Rollout(rollout) => {
+                for slot in batch.slots_mut() {
+                    rollout.write_step(slot);
+                }
+                // A rollout cannot be replayed: keep the batch until it is delivered (below).
+                outbox.clear();
+                outbox.extend_from_slice(batch.slots_mut());
+            }
+            Source::Fixed(list) => write_sample(batch.slots_mut(), list, seq),
         }
         let mut waited = Duration::ZERO;
         loop {
-            match publisher.publish(seq, &outbox) {
-                Ok(delivery) => {
-                    waited += delivery.backpressure;
-                    if delivery.recipients > 0 {
-                        break;
-                    }
+            // Sent while no store is subscribed, the batch would be lost: hold it until one is.
+            while !publisher.connected() {
+                let pause = Instant::now();
+                let alive = transport::keep_running(&node, POLL);
+                waited += pause.elapsed();
+                if !alive || announced(&ready, &shutdown, task_id)? {
+                    break 'publishing;
                 }
+            }
+            let delivery = match batch.send() {
+                Ok(delivery) => delivery,
                 Err(_) if transport::termination_requested() => break 'publishing,
                 Err(error) => return Err(error.into()),
+            };
+            waited += delivery.backpressure;
+            if delivery.recipients > 0 {
+                break;
             }
-            // No store took the batch (none attached yet, or it died and its successor is not up):
-            // send it again once one is there.
-            let pause = Instant::now();
-            let alive = transport::keep_running(&node, POLL);
-            waited += pause.elapsed();
-            if !alive || announced(&ready, &shutdown, task_id)? {
-                break 'publishing;
+            // iceoryx2 0.10 now and then reports a batch delivered to nobody although the store
+            // is subscribed, and a store can die during the send: send it again under the same
+            // numbers.
+            metrics.batches_resent.inc();
+            batch = publisher.loan(seq, count)?;
+            match &source {
+                Source::Rollout(_) => batch.slots_mut().copy_from_slice(&outbox),
+                Source::Fixed(list) => write_sample(batch.slots_mut(), list, seq),
             }
         }
-        seq += count as u64;
+        summary.backpressure += waited;
+        metrics.backpressure_wait.inc_by(waited.as_secs_f64());
         summary.published += count as u64;
+        metrics.transitions_published.inc_by(count as u64);
+        metrics.batches_published.inc();
         metrics
             .batch_duration
             .observe(start.elapsed().as_secs_f64());
-        metrics.transitions_published.inc_by(count as u64);
-        metrics.batches_published.inc();
-        summary.backpressure += waited;
-        metrics.backpressure_wait.inc_by(waited.as_secs_f64());
+        seq += count as u64;
         if let Source::Rollout(rollout) = &mut source {
             summary.steps += count as u64;
             metrics.steps.inc_by(count as u64);
-            for episode in rollout.finished.drain(..) {
+            for episode in rollout.drain_finished() {
                 summary.episodes += 1;
                 metrics.episodes.inc();
                 metrics.episode_return.set(episode.ret);
@@ -386,6 +387,14 @@ pub fn run(
         "actor stopped"
     );
     Ok(summary)
+}
+
+/// Writes the replay sample's transitions `first_seq..` into `slots`.
+fn write_sample(slots: &mut [TransitionSlot], sample: &[Transition], first_seq: u64) {
+    let range = first_seq as usize..first_seq as usize + slots.len();
+    for (slot, t) in slots.iter_mut().zip(&sample[range]) {
+        slot.set_transition(t);
+    }
 }
 
 /// True once the task's dataset is announced complete or a shutdown is announced.

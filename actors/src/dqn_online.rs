@@ -164,7 +164,7 @@ impl OnlineDqn {
     /// Trains for `steps` more environment steps, logging the recent return every 20 episodes.
     pub fn train_steps(&mut self, steps: usize) -> Result<(), BatchError> {
         for _ in 0..steps {
-            if self.step()?.is_some() && self.returns.len() % 20 == 0 {
+            if self.step()?.is_some() && self.returns.len().is_multiple_of(20) {
                 let recent = &self.returns[self.returns.len() - 20..];
                 tracing::info!(
                     task = self.task,
@@ -207,7 +207,7 @@ impl OnlineDqn {
         self.steps += 1;
         self.episode_return += step.reward;
 
-        if self.steps >= self.collect.learning_starts && self.steps % self.collect.train_every == 0
+        if self.steps >= self.collect.learning_starts && self.steps.is_multiple_of(self.collect.train_every)
         {
             self.gradient_step()?;
         }
@@ -242,7 +242,7 @@ impl OnlineDqn {
         );
         self.opt.backward_step(&loss);
         self.gradient_steps += 1;
-        if self.gradient_steps % self.learner.target_update_every == 0 {
+        if self.gradient_steps.is_multiple_of(self.learner.target_update_every) {
             self.target.copy_from(&self.q);
         }
         Ok(())

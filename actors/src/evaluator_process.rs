@@ -4,9 +4,13 @@
 //! For each `CheckpointReady` it loads the checkpoint, runs the greedy policy for
 //! `learner.eval_episodes` Monte-Carlo episodes seeded `learner.eval_seed` (the same episodes for
 //! every method and epoch, [`crate::q_policy::Evaluator`]), sets the per-task, per-method gauges
-//! and appends one row to the run's `evaluations.csv` for plots. A restarted evaluator skips the
-//! checkpoints its CSV already holds and catches up on the rest from the announcement history.
-//! A shutdown announcement makes it finish the checkpoints it was told about, then exit.
+//! and appends one row to the run's `evaluations.csv` for plots.
+//!
+//! **Restart.** An evaluator (re)started mid-run or after the meta-learner has exited first queues
+//! every complete checkpoint already in the run directory, in the order the meta-learner announces
+//! them, then listens. Each checkpoint is evaluated once: those its CSV already holds, and
+//! announcements (the history included) of checkpoints it has queued, are skipped. A shutdown
+//! announcement makes it finish the checkpoints it knows of, then exit.
 
 use std::collections::{BTreeSet, VecDeque};
 use std::fs::OpenOptions;
@@ -17,7 +21,7 @@ use std::time::{Duration, Instant};
 use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_learner::metrics::{MetricsError, MetricsServer};
 use uavmeta_learner::train::EvaluatePolicy;
-use uavmeta_proto::config::Config;
+use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
 use uavmeta_proto::stats::PolicyMetrics;
 use uavmeta_proto::transport::{
     self, CheckpointReady, Method, RunDir, ServiceNames, TransportError, SCHEMA_VERSION,
@@ -224,7 +228,13 @@ pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
         writeln!(csv, "{CSV_HEADER}").map_err(|e| io("write", e))?;
     }
 
-    let mut queue: VecDeque<CheckpointReady> = VecDeque::new();
+    let mut queue: VecDeque<CheckpointReady> = checkpoints_on_disk(run, config).into();
+    if !queue.is_empty() {
+        tracing::info!(
+            checkpoints = queue.len(),
+            "found checkpoints in the run directory"
+        );
+    }
     let mut stopping = false;
     let mut evaluated = 0u64;
     while transport::keep_running(
@@ -288,6 +298,44 @@ pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
         tracing::info!(task = %task.name, %method, epoch = next.epoch, ret = row.ret, aoi = row.aoi, power_watts = row.power_watts, outages = row.outages, "evaluated");
     }
     Ok(evaluated)
+}
+
+/// The complete checkpoints in `run`'s directory, as the meta-learner announces them: every w0
+/// checkpoint for each meta-test task, then each meta-test task's CQL-MAML and CQL epochs.
+fn checkpoints_on_disk(run: &RunDir, config: &Config) -> Vec<CheckpointReady> {
+    let test_tasks: Vec<(u32, &TaskConfig)> = config
+        .tasks
+        .iter()
+        .enumerate()
+        .filter(|(_, t)| t.role == TaskRole::MetaTest)
+        .map(|(i, t)| (i as u32, t))
+        .collect();
+    let message = |method: Method, task: u32, epoch: u32| CheckpointReady {
+        schema_version: SCHEMA_VERSION,
+        method: method.code(),
+        task,
+        epoch,
+    };
+    let complete =
+        |method, task, epoch| checkpoint::read_meta(&run.checkpoint(method, task, epoch)).is_ok();
+    let mut found = Vec::new();
+    for epoch in 1..=config.meta.meta_epochs as u32 {
+        for &(id, task) in &test_tasks {
+            if complete(Method::MetaInit, task, epoch) {
+                found.push(message(Method::MetaInit, id, epoch));
+            }
+        }
+    }
+    for &(id, task) in &test_tasks {
+        for method in [Method::CqlMaml, Method::Cql] {
+            for epoch in 1..=config.learner.epochs as u32 {
+                if complete(method, task, epoch) {
+                    found.push(message(method, id, epoch));
+                }
+            }
+        }
+    }
+    found
 }
 
 #[cfg(test)]

@@ -273,7 +273,7 @@ impl World {
 
         self.t += 1;
         if let Some(every) = self.rain_moves_every {
-            if self.t % every == 0 {
+            if self.t.is_multiple_of(every) {
                 self.move_rain();
             }
         }

@@ -9,12 +9,20 @@
 //! Every file is written to a temporary name in the same directory, fsynced and renamed, so a
 //! crash leaves either the old checkpoint or the new one, never a torn file under the real name.
 //! The metadata goes last: a weights file without metadata is never taken for a checkpoint.
+//!
+//! A trainer that must continue exactly where it stopped (the meta-learner process) also saves
+//! its **training state** beside `P` ([`save_state`]): `P.state.safetensors` (its tensors, such as
+//! optimiser moments) and `P.state.json` (the trainer's own fields, and the length and CRC32 of
+//! the tensors file), written the same way and before `P`'s metadata, so a complete checkpoint
+//! always has its state.
 
 use std::fs::File;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
+use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
+use tch::Tensor;
 use uavmeta_proto::config::Config;
 
 use crate::qnet::QNetwork;
@@ -115,16 +123,7 @@ pub fn save(
     config: &Config,
 ) -> Result<CheckpointMeta, CheckpointError> {
     let paths = CheckpointPaths::new(path);
-    let dir = paths
-        .weights
-        .parent()
-        .filter(|d| !d.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    std::fs::create_dir_all(dir).map_err(|source| CheckpointError::Io {
-        path: dir.to_path_buf(),
-        action: "create the directory",
-        source,
-    })?;
+    let dir = create_parent(&paths.weights)?;
 
     // VarStore::save picks the format from the extension, so the temporary name keeps it.
     let tmp_weights = temp_name(&paths.weights, "safetensors");
@@ -133,11 +132,7 @@ pub fn save(
             path: tmp_weights.clone(),
             source,
         })?;
-    let bytes = std::fs::read(&tmp_weights).map_err(|source| CheckpointError::Io {
-        path: tmp_weights.clone(),
-        action: "read back",
-        source,
-    })?;
+    let bytes = read(&tmp_weights, "read back")?;
     sync_file(&tmp_weights)?;
 
     let meta = CheckpointMeta {
@@ -157,18 +152,93 @@ pub fn save(
     rename(&tmp_weights, &paths.weights)?;
     write_atomic(&paths.meta, meta_text.as_bytes())?;
     // The renames are durable only once the directory entry is.
-    sync_file(dir)?;
+    sync_file(&dir)?;
     Ok(meta)
+}
+
+/// The metadata of a training state, stored as `P.state.json`.
+#[derive(Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct StateMeta<S> {
+    format_version: u32,
+    /// Length in bytes of `P.state.safetensors`.
+    tensors_len: u64,
+    /// CRC32 of `P.state.safetensors`.
+    tensors_crc32: u32,
+    /// The trainer's own fields.
+    state: S,
+}
+
+/// The two files of the training state beside checkpoint `path`: tensors, then metadata.
+pub fn state_paths(path: &Path) -> (PathBuf, PathBuf) {
+    (
+        path.with_extension("state.safetensors"),
+        path.with_extension("state.json"),
+    )
+}
+
+/// Saves a trainer's state beside checkpoint `path` (see the module doc): `tensors` bit for bit,
+/// and `state` as JSON. Call it before [`save`], whose metadata marks the checkpoint complete.
+pub fn save_state<S: Serialize>(
+    path: &Path,
+    tensors: &[(String, Tensor)],
+    state: &S,
+) -> Result<(), CheckpointError> {
+    let (tensors_path, meta_path) = state_paths(path);
+    let dir = create_parent(&tensors_path)?;
+    let tmp = temp_name(&tensors_path, "safetensors");
+    Tensor::write_safetensors(tensors, &tmp).map_err(|source| CheckpointError::Weights {
+        path: tmp.clone(),
+        source,
+    })?;
+    let bytes = read(&tmp, "read back")?;
+    sync_file(&tmp)?;
+    let meta = StateMeta {
+        format_version: FORMAT_VERSION,
+        tensors_len: bytes.len() as u64,
+        tensors_crc32: crc32fast::hash(&bytes),
+        state,
+    };
+    let text = serde_json::to_string_pretty(&meta).map_err(|source| CheckpointError::Meta {
+        path: meta_path.clone(),
+        source,
+    })?;
+    rename(&tmp, &tensors_path)?;
+    write_atomic(&meta_path, text.as_bytes())?;
+    sync_file(&dir)
+}
+
+/// Loads the training state saved beside checkpoint `path`: its tensors, by name, and the
+/// trainer's fields. A missing, truncated or corrupt file is an error naming it.
+pub fn load_state<S: DeserializeOwned>(
+    path: &Path,
+) -> Result<(Vec<(String, Tensor)>, S), CheckpointError> {
+    let (tensors_path, meta_path) = state_paths(path);
+    let text = read(&meta_path, "read")?;
+    let meta: StateMeta<S> =
+        serde_json::from_slice(&text).map_err(|source| CheckpointError::Meta {
+            path: meta_path.clone(),
+            source,
+        })?;
+    if meta.format_version != FORMAT_VERSION {
+        return Err(CheckpointError::FormatVersion {
+            path: meta_path,
+            found: meta.format_version,
+        });
+    }
+    verify(&tensors_path, meta.tensors_len, meta.tensors_crc32)?;
+    let tensors =
+        Tensor::read_safetensors(&tensors_path).map_err(|source| CheckpointError::Weights {
+            path: tensors_path,
+            source,
+        })?;
+    Ok((tensors, meta.state))
 }
 
 /// Reads and checks the metadata of checkpoint `path`.
 pub fn read_meta(path: &Path) -> Result<CheckpointMeta, CheckpointError> {
     let meta_path = CheckpointPaths::new(path).meta;
-    let text = std::fs::read(&meta_path).map_err(|source| CheckpointError::Io {
-        path: meta_path.clone(),
-        action: "read",
-        source,
-    })?;
+    let text = read(&meta_path, "read")?;
     let meta: CheckpointMeta =
         serde_json::from_slice(&text).map_err(|source| CheckpointError::Meta {
             path: meta_path.clone(),
@@ -236,29 +306,7 @@ pub fn load(path: &Path, config: &Config) -> Result<(QNetwork, CheckpointMeta), 
         );
     }
 
-    let bytes = std::fs::read(&paths.weights).map_err(|source| CheckpointError::Io {
-        path: paths.weights.clone(),
-        action: "read",
-        source,
-    })?;
-    let len = bytes.len() as u64;
-    if len < meta.weights_len {
-        return Err(CheckpointError::Truncated {
-            path: paths.weights,
-            len,
-            expected: meta.weights_len,
-        });
-    }
-    let crc = crc32fast::hash(&bytes);
-    if len != meta.weights_len || crc != meta.weights_crc32 {
-        return Err(CheckpointError::Corrupt {
-            path: paths.weights,
-            len,
-            found: crc,
-            expected_len: meta.weights_len,
-            expected: meta.weights_crc32,
-        });
-    }
+    verify(&paths.weights, meta.weights_len, meta.weights_crc32)?;
     let mut q = QNetwork::new(obs_len, actions, &meta.hidden, 0);
     q.vs.load(&paths.weights)
         .map_err(|source| CheckpointError::Weights {
@@ -266,6 +314,53 @@ pub fn load(path: &Path, config: &Config) -> Result<(QNetwork, CheckpointMeta), 
             source,
         })?;
     Ok((q, meta))
+}
+
+/// Checks that `path` holds `expected_len` bytes with CRC32 `expected_crc`.
+fn verify(path: &Path, expected_len: u64, expected_crc: u32) -> Result<(), CheckpointError> {
+    let bytes = read(path, "read")?;
+    let len = bytes.len() as u64;
+    if len < expected_len {
+        return Err(CheckpointError::Truncated {
+            path: path.to_path_buf(),
+            len,
+            expected: expected_len,
+        });
+    }
+    let crc = crc32fast::hash(&bytes);
+    if len != expected_len || crc != expected_crc {
+        return Err(CheckpointError::Corrupt {
+            path: path.to_path_buf(),
+            len,
+            found: crc,
+            expected_len,
+            expected: expected_crc,
+        });
+    }
+    Ok(())
+}
+
+fn read(path: &Path, action: &'static str) -> Result<Vec<u8>, CheckpointError> {
+    std::fs::read(path).map_err(|source| CheckpointError::Io {
+        path: path.to_path_buf(),
+        action,
+        source,
+    })
+}
+
+/// Creates the directory `path` goes into, and returns it.
+fn create_parent(path: &Path) -> Result<PathBuf, CheckpointError> {
+    let dir = path
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or(Path::new("."))
+        .to_path_buf();
+    std::fs::create_dir_all(&dir).map_err(|source| CheckpointError::Io {
+        path: dir.clone(),
+        action: "create the directory",
+        source,
+    })?;
+    Ok(dir)
 }
 
 /// `dir/.name.tmp-PID.ext`: hidden, unique per process, same directory (so rename is atomic).

@@ -44,13 +44,24 @@
 //!
 //! The observation does not contain lambda, so `w0` is one Q-function for all tasks; its target is
 //! a task-average value, and the per-task part of each `Q_{w_i}` comes from the adaptation.
+//!
+//! # Resuming
+//!
+//! Eq. 16's Adam is written out here ([`OuterAdam`], libtorch's update rule) rather than taken
+//! from `tch::nn::Optimizer`, whose moments cannot be read or restored. [`Maml::save_state`] stores
+//! the moments, the target network, the sampling stream and the epoch count beside a `w0`
+//! checkpoint, and [`Maml::resume`] continues from them exactly as if never interrupted.
+
+use std::collections::HashMap;
+use std::path::Path;
 
 use rand::seq::index;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use tch::nn::{self, OptimizerConfig};
+use serde::{Deserialize, Serialize};
 use tch::Tensor;
 use uavmeta_learner::batch::Batch;
+use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_learner::cql::CqlLoss;
 use uavmeta_learner::dqn::{td_loss_with, TdConfig};
 use uavmeta_learner::qnet::QNetwork;
@@ -211,21 +222,91 @@ pub struct MetaEpoch {
     pub task_losses: Vec<(usize, f64)>,
 }
 
+/// Eq. 16's optimiser: Adam with libtorch's defaults (beta1 0.9, beta2 0.999, eps 1e-8, no weight
+/// decay) and libtorch's update rule, over `w0`'s parameters, with moments that can be saved.
+struct OuterAdam {
+    lr: f64,
+    /// Updates made so far, t in the bias corrections.
+    steps: u64,
+    /// First and second moment estimates, one per parameter.
+    m: Vec<Tensor>,
+    v: Vec<Tensor>,
+}
+
+impl OuterAdam {
+    const BETA1: f64 = 0.9;
+    const BETA2: f64 = 0.999;
+    const EPS: f64 = 1e-8;
+
+    fn new(params: &[Tensor], lr: f64) -> Self {
+        Self {
+            lr,
+            steps: 0,
+            m: params.iter().map(Tensor::zeros_like).collect(),
+            v: params.iter().map(Tensor::zeros_like).collect(),
+        }
+    }
+
+    fn zero_grad(params: &[Tensor]) {
+        for p in params {
+            let mut grad = p.grad();
+            if grad.defined() {
+                let _ = grad.zero_();
+            }
+        }
+    }
+
+    /// w0 <- w0 - lr * m_hat / (sqrt(v_hat) + eps), from the gradients in `params`.
+    fn step(&mut self, params: &[Tensor]) {
+        self.steps += 1;
+        let t = self.steps as i32;
+        let bias1 = 1.0 - Self::BETA1.powi(t);
+        let bias2 = 1.0 - Self::BETA2.powi(t);
+        tch::no_grad(|| {
+            for ((p, m), v) in params.iter().zip(&mut self.m).zip(&mut self.v) {
+                let grad = p.grad();
+                let _ = m
+                    .g_mul_scalar_(Self::BETA1)
+                    .g_add_(&(&grad * (1.0 - Self::BETA1)));
+                let _ = v
+                    .g_mul_scalar_(Self::BETA2)
+                    .addcmul_(&grad, &(&grad * (1.0 - Self::BETA2)));
+                let denom = v.sqrt() / bias2.sqrt() + Self::EPS;
+                let _ = p
+                    .shallow_clone()
+                    .addcdiv_(&(&*m * (-self.lr / bias1)), &denom);
+            }
+        });
+    }
+}
+
 /// The meta-learner: `w0`, its target network and the outer Adam optimiser.
 pub struct Maml {
     config: MamlConfig,
     w0: QNetwork,
     target: QNetwork,
-    optimizer: nn::Optimizer,
+    optimizer: OuterAdam,
     rng: ChaCha8Rng,
     epochs_done: usize,
+}
+
+/// What [`Maml::save_state`] stores besides tensors: the counters and the sampling stream's
+/// position (ChaCha8's seed, stream and word position).
+#[derive(Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct MamlProgress {
+    epochs_done: usize,
+    adam_steps: u64,
+    rng_seed: [u8; 32],
+    rng_stream: u64,
+    rng_word_pos: u128,
 }
 
 impl Maml {
     /// Meta-trains `w0` (its current weights are the starting point); task and shot sampling
     /// draw from `seed` alone.
     pub fn new(w0: QNetwork, config: MamlConfig, seed: u64) -> Result<Self, MetaError> {
-        let optimizer = nn::Adam::default().build(&w0.vs, config.eta_outer)?;
+        let optimizer = OuterAdam::new(&w0.parameters(), config.eta_outer);
         let target = w0.duplicate();
         Ok(Self {
             config,
@@ -234,6 +315,81 @@ impl Maml {
             optimizer,
             rng: ChaCha8Rng::seed_from_u64(seed),
             epochs_done: 0,
+        })
+    }
+
+    /// Saves everything besides `w0` that the next meta-epochs depend on (Adam's moments, the
+    /// target network, the sampling stream, the epoch count) beside the `w0` checkpoint `path`,
+    /// before `w0` itself is saved there.
+    pub fn save_state(&self, path: &Path) -> Result<(), CheckpointError> {
+        let mut tensors = Vec::new();
+        for (i, ((m, v), target)) in self
+            .optimizer
+            .m
+            .iter()
+            .zip(&self.optimizer.v)
+            .zip(self.target.parameters())
+            .enumerate()
+        {
+            tensors.push((format!("adam.m.{i}"), m.shallow_clone()));
+            tensors.push((format!("adam.v.{i}"), v.shallow_clone()));
+            tensors.push((format!("target.{i}"), target));
+        }
+        let progress = MamlProgress {
+            epochs_done: self.epochs_done,
+            adam_steps: self.optimizer.steps,
+            rng_seed: self.rng.get_seed(),
+            rng_stream: self.rng.get_stream(),
+            rng_word_pos: self.rng.get_word_pos(),
+        };
+        checkpoint::save_state(path, &tensors, &progress)
+    }
+
+    /// Continues a meta-training from `w0` (loaded from checkpoint `path`) and the state saved
+    /// beside it by [`save_state`](Self::save_state), under `config`.
+    pub fn resume(w0: QNetwork, config: MamlConfig, path: &Path) -> Result<Self, MetaError> {
+        let (tensors, progress): (_, MamlProgress) = checkpoint::load_state(path)?;
+        let params = w0.parameters();
+        let mut named: HashMap<String, Tensor> = tensors.into_iter().collect();
+        // The tensors passed the CRC check, so a missing or misshapen one was saved for another
+        // network than the checkpoint beside it.
+        let mut take = |name: String, like: &Tensor| -> Result<Tensor, CheckpointError> {
+            let mismatch = |detail| CheckpointError::SizeMismatch {
+                path: checkpoint::state_paths(path).0,
+                key: "learner.hidden",
+                detail,
+            };
+            let t = named
+                .remove(&name)
+                .ok_or_else(|| mismatch(format!("no tensor `{name}` in the training state")))?;
+            if t.size() != like.size() {
+                return Err(mismatch(format!(
+                    "`{name}` has shape {:?}, the network's parameter {:?}",
+                    t.size(),
+                    like.size()
+                )));
+            }
+            Ok(t.to_kind(like.kind()))
+        };
+        let mut optimizer = OuterAdam::new(&params, config.eta_outer);
+        let target = w0.duplicate();
+        for (i, (p, mut t)) in params.iter().zip(target.parameters()).enumerate() {
+            optimizer.m[i] = take(format!("adam.m.{i}"), p)?;
+            optimizer.v[i] = take(format!("adam.v.{i}"), p)?;
+            let saved = take(format!("target.{i}"), p)?;
+            tch::no_grad(|| t.copy_(&saved));
+        }
+        optimizer.steps = progress.adam_steps;
+        let mut rng = ChaCha8Rng::from_seed(progress.rng_seed);
+        rng.set_stream(progress.rng_stream);
+        rng.set_word_pos(progress.rng_word_pos);
+        Ok(Self {
+            config,
+            w0,
+            target,
+            optimizer,
+            rng,
+            epochs_done: progress.epochs_done,
         })
     }
 
@@ -257,7 +413,7 @@ impl Maml {
             return Err(MetaError::NoTasks);
         }
         let c = &self.config;
-        if self.epochs_done % c.target_update_every == 0 {
+        if self.epochs_done.is_multiple_of(c.target_update_every) {
             self.target.copy_from(&self.w0); // Qhat <- w0, constant until the next refresh
         }
         // Sample the tasks of this meta-epoch (all of them when tasks_per_meta_epoch is 0).
@@ -273,12 +429,12 @@ impl Maml {
             .map(|&i| tasks[i].sample(c.shots, c.query_shots, &mut self.rng))
             .collect();
         // Eqs. 14-15, with the meta-gradient accumulated into w0's gradients.
-        self.optimizer.zero_grad();
         let w0 = self.w0.parameters();
+        OuterAdam::zero_grad(&w0);
         let target = self.target.parameters();
         let losses = c.backward_meta_loss(&w0, &target, &shots);
         // Eq. 16: Adam(eta_outer) on w0.
-        self.optimizer.step();
+        self.optimizer.step(&w0);
         let epoch = MetaEpoch {
             epoch: self.epochs_done + 1,
             meta_loss: losses.iter().sum(),

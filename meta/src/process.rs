@@ -11,10 +11,11 @@
 //!    (CQL-MAML) and, as the paper's baseline, CQL from a random init on the same shots, each for
 //!    `learner.epochs` epochs (the settings of `meta_test::fine_tune`), checkpointing and announcing every epoch.
 //!
-//! **Restart.** A restarted meta-learner resumes meta-training from its latest w0 checkpoint (the
-//! outer Adam moments are not checkpointed and start afresh; task sampling continues on a stream
-//! derived from the resumed epoch) and skips every meta-test whose last epoch is on disk; a
-//! meta-test cut short is run again from its start, its checkpoints overwritten atomically.
+//! **Restart.** Every w0 checkpoint carries MAML's training state (the outer Adam moments, the
+//! target network, the sampling stream: [`Maml::save_state`]), so a restarted meta-learner resumes
+//! meta-training from its latest w0 checkpoint exactly as an uninterrupted run continues. It skips
+//! every meta-test whose last epoch is on disk; a meta-test cut short is run again from its start
+//! (the fine-tuning is seeded, so to the same result), its checkpoints overwritten atomically.
 
 use std::time::{Duration, Instant};
 
@@ -154,23 +155,24 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
     let (_, tasks) = load_tasks(config, &run.root().join("datasets"), seed)?;
     let final_epoch = config.meta.meta_epochs as u32;
     let start_epoch = latest_epoch(run, Method::MetaInit, &anchor, final_epoch);
-    let w0 = match start_epoch {
-        0 => QNetwork::new(
-            config.world.observation_len(),
-            config.world.action_count(),
-            &config.learner.hidden,
+    let mut maml = match start_epoch {
+        0 => Maml::new(
+            QNetwork::new(
+                config.world.observation_len(),
+                config.world.action_count(),
+                &config.learner.hidden,
+                seed,
+            ),
+            MamlConfig::from_config(config),
             seed,
-        ),
+        )?,
         epoch => {
             tracing::info!(epoch, "resuming meta-training from its checkpoint");
-            checkpoint::load(&run.checkpoint(Method::MetaInit, &anchor, epoch), config)?.0
+            let path = run.checkpoint(Method::MetaInit, &anchor, epoch);
+            let w0 = checkpoint::load(&path, config)?.0;
+            Maml::resume(w0, MamlConfig::from_config(config), &path)?
         }
     };
-    let mut maml = Maml::new(
-        w0,
-        MamlConfig::from_config(config),
-        seed.wrapping_add(start_epoch as u64),
-    )?;
     metrics.meta_epoch.set(start_epoch as i64);
     for epoch in start_epoch + 1..=final_epoch {
         if stop()? {
@@ -184,8 +186,11 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
         metrics.meta_epoch.set(epoch as i64);
         metrics.meta_loss.set(figures.meta_loss);
         if epoch % config.meta.checkpoint_every as u32 == 0 || epoch == final_epoch {
+            let path = run.checkpoint(Method::MetaInit, &anchor, epoch);
+            // The state first: the checkpoint's metadata, written last, marks both complete.
+            maml.save_state(&path)?;
             checkpoint::save(
-                &run.checkpoint(Method::MetaInit, &anchor, epoch),
+                &path,
                 maml.w0(),
                 algorithm_name(config.meta.inner_loss),
                 epoch as usize,

@@ -1,10 +1,12 @@
-//! MAML correctness: the meta-gradient against finite differences, first versus second order, and
-//! meta-training lowering the meta-loss on held-out query data.
+//! MAML correctness: the meta-gradient against finite differences, first versus second order,
+//! meta-training lowering the meta-loss on held-out query data, and a resumed meta-training
+//! continuing exactly as an uninterrupted one.
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use tch::{Kind, Tensor};
 use uavmeta_learner::batch::Batch;
+use uavmeta_learner::checkpoint;
 use uavmeta_learner::dqn::TdConfig;
 use uavmeta_learner::qnet::QNetwork;
 use uavmeta_meta::maml::{Maml, MamlConfig, MetaTask, TaskShots};
@@ -308,4 +310,99 @@ fn meta_training_lowers_the_meta_loss_on_held_out_query_data() {
             "first_order = {first_order}: held-out meta-loss {before} -> {after}"
         );
     }
+}
+
+/// w0's weights, exactly (f32 widens to f64 without rounding).
+fn weights(maml: &Maml) -> Vec<f64> {
+    let params: Vec<Tensor> = maml
+        .w0()
+        .parameters()
+        .iter()
+        .map(|p| p.to_kind(Kind::Double))
+        .collect();
+    flatten(&params)
+}
+
+#[test]
+fn an_interrupted_and_resumed_meta_training_ends_at_the_uninterrupted_w0() {
+    single_threaded();
+    let mut rng = ChaCha8Rng::seed_from_u64(20);
+    let tasks: Vec<MetaTask> = (0..3)
+        .map(|i| MetaTask {
+            name: format!("task-{i}"),
+            support: batch(64, i as f64, Kind::Float, &mut rng),
+            query: batch(64, i as f64, Kind::Float, &mut rng),
+        })
+        .collect();
+    let mut c = config(InnerLoss::Cql, 2, false);
+    c.eta_inner = 0.05;
+    c.eta_outer = 3e-3;
+    // The target network (refreshed at epochs 0, 4, 8) and the task sampling (2 of 3 tasks) both
+    // carry state across the interruption after epoch 6, besides Adam's moments.
+    c.target_update_every = 4;
+    c.tasks_per_meta_epoch = 2;
+    let hidden = [16];
+    let network = || QNetwork::new(OBS, ACTIONS, &hidden, 21);
+    let (seed, epochs, interrupted_at) = (22, 10, 6);
+
+    let mut straight = Maml::new(network(), c.clone(), seed).expect("maml");
+    for _ in 0..epochs {
+        straight.meta_epoch(&tasks).expect("tasks");
+    }
+
+    let mut config = uavmeta_proto::config::Config::default();
+    config.world.devices = 1; // 2 + K = OBS inputs, 5K = ACTIONS outputs
+    config.learner.hidden = hidden.to_vec();
+    let dir = tempfile::tempdir().expect("temp dir");
+    let path = dir.path().join("epoch-00006");
+    let mut first = Maml::new(network(), c.clone(), seed).expect("maml");
+    for _ in 0..interrupted_at {
+        first.meta_epoch(&tasks).expect("tasks");
+    }
+    first.save_state(&path).expect("save the state");
+    checkpoint::save(&path, first.w0(), "cql-maml", interrupted_at, &config).expect("save w0");
+    drop(first);
+
+    let (w0, _) = checkpoint::load(&path, &config).expect("load w0");
+    let mut resumed = Maml::resume(w0, c.clone(), &path).expect("resume");
+    assert_eq!(resumed.epochs_done(), interrupted_at);
+    for _ in interrupted_at..epochs {
+        resumed.meta_epoch(&tasks).expect("tasks");
+    }
+    assert_eq!(
+        weights(&resumed),
+        weights(&straight),
+        "resumed != uninterrupted"
+    );
+
+    // The same w0 without its state (fresh moments, target and sampling) ends elsewhere: the
+    // comparison above can fail.
+    let (w0, _) = checkpoint::load(&path, &config).expect("load w0");
+    let mut restarted = Maml::new(w0, c, seed).expect("maml");
+    for _ in interrupted_at..epochs {
+        restarted.meta_epoch(&tasks).expect("tasks");
+    }
+    assert_ne!(weights(&restarted), weights(&straight));
+}
+
+#[test]
+fn a_corrupt_training_state_is_refused_naming_the_file() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let path = dir.path().join("epoch-00001");
+    let c = config(InnerLoss::Cql, 1, true);
+    let maml = Maml::new(QNetwork::new(OBS, ACTIONS, &[4], 1), c.clone(), 2).expect("maml");
+    maml.save_state(&path).expect("save the state");
+    let tensors = checkpoint::state_paths(&path).0;
+    let mut bytes = std::fs::read(&tensors).expect("read");
+    let last = bytes.len() - 1;
+    bytes[last] ^= 0xff;
+    std::fs::write(&tensors, bytes).expect("write");
+    let err = Maml::resume(QNetwork::new(OBS, ACTIONS, &[4], 1), c, &path)
+        .err()
+        .expect("a corrupt state must be refused")
+        .to_string();
+    assert!(
+        err.contains("corrupt") && err.contains("state.safetensors"),
+        "{err}"
+    );
 }

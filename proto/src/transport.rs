@@ -2,19 +2,24 @@
 //!
 //! **Transitions** travel from actors to the store as a slice of fixed-layout
 //! [`TransitionSlot`]s under one [`BatchHeader`] (`publish_subscribe::<[TransitionSlot]>()` with a
-//! user header): an actor copies its batch into a loaned shared-memory sample with one memcpy and
-//! the store reads it in place; nothing is serialised per transition. (The actor keeps its own
-//! copy because iceoryx2 0.10 can report a batch as delivered to nobody, for instance before the
-//! store's subscriber has attached to a new publisher; the actor then sends it again.) There is one service per
-//! task, `uavmeta/<run>/transitions/<task>` ([`ServiceNames`]).
+//! user header): an actor loans a batch of slots in shared memory, writes every step straight into
+//! its slot ([`TransitionPublisher::loan`]) and sends it; the store reads it in place. Nothing is
+//! serialised per transition. A slot's observation arrays have room for the largest K,
+//! but only their first `obs_len` (= 2 + K, in the header) entries are written: **receivers must
+//! never read past `obs_len`**; the rest holds whatever an earlier batch left in that memory.
+//! There is one service per task, `uavmeta/<run>/transitions/<task>` ([`ServiceNames`]).
 //!
 //! **Delivery.** Safe overflow is off and publishers use `RetryUntilDelivered`: when the store's
 //! buffer is full, an actor waits (backpressure) instead of overwriting a batch the store has not
-//! read. An actor publishes only while a store is connected. Transition services keep no history:
-//! in iceoryx2 0.10 a subscriber that joins a publisher with history gets that history into its
-//! buffer and afterwards the blocking publisher silently loses batches (measured: 39 296 of
-//! 43 456 transitions of one actor). What a killed store held unwritten is therefore lost, and the
-//! restarted store counts it as missing from the actors' sequence numbers.
+//! read. An actor sends only while a store is subscribed ([`TransitionPublisher::connected`]),
+//! holding its written batch until then, since iceoryx2 0.10 drops a batch sent to nobody. A send
+//! can still report no recipient: when the store went away meanwhile, and now and then (0.4% of
+//! the batches of one transport benchmark run) with the store subscribed; the actor then sends the
+//! batch again ([`Delivery::recipients`]). What a killed store held unwritten is lost, and the
+//! restarted store counts it as missing from the actors' sequence numbers. Transition services
+//! keep no history: in iceoryx2 0.10 a subscriber that joins a publisher with history gets that
+//! history into its buffer and afterwards the blocking publisher silently loses batches (measured:
+//! 39 296 of 43 456 transitions of one actor).
 //!
 //! **Control** messages ([`DatasetReady`], [`CheckpointReady`], [`Shutdown`]) each have their own
 //! service under `uavmeta/<run>/control/`, with history, so a process that joins late (or
@@ -49,7 +54,7 @@ use crate::config::{Config, RunConfig, TaskConfig, MAX_DEVICES};
 use crate::dataset::Transition;
 
 /// The version of every payload below and of the service settings; bump it on any change.
-pub const SCHEMA_VERSION: u32 = 1;
+pub const SCHEMA_VERSION: u32 = 2;
 
 /// The service attribute that carries [`SCHEMA_VERSION`].
 pub const SCHEMA_ATTRIBUTE: &str = "uavmeta.schema_version";
@@ -108,7 +113,7 @@ pub enum TransportError {
 
 /// The header of one batch of transitions.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
-#[type_name("uavmeta.BatchHeader.v1")]
+#[type_name("uavmeta.BatchHeader.v2")]
 #[repr(C)]
 pub struct BatchHeader {
     pub schema_version: u32,
@@ -219,8 +224,13 @@ pub fn unix_ns() -> u64 {
 
 /// One transition in shared memory: (s, a, r, s', truncated) with its episode and step. The
 /// task, actor and sequence number are the batch's ([`BatchHeader`]).
+///
+/// Writers fill a slot in place with [`set_state`](Self::set_state) and
+/// [`set_outcome`](Self::set_outcome) (or [`set_transition`](Self::set_transition)), which touch
+/// only the header's `obs_len` entries of each array; readers use
+/// [`to_transition`](Self::to_transition), which reads only those.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("uavmeta.TransitionSlot.v1")]
+#[type_name("uavmeta.TransitionSlot.v2")]
 #[repr(C)]
 pub struct TransitionSlot {
     pub episode: u64,
@@ -229,54 +239,41 @@ pub struct TransitionSlot {
     pub action: u16,
     /// 1 when the step reached the horizon (a time limit, not a terminal state).
     pub truncated: u8,
-    /// Explicit padding, so the layout has no uninitialised bytes.
+    /// Explicit padding, never read.
     pub reserved: u8,
-    /// s(t); entries past the header's `obs_len` are zero.
+    /// s(t) in the first `obs_len` entries; the others are unspecified.
     pub obs: [u16; OBS_CAPACITY],
-    /// s(t+1); entries past the header's `obs_len` are zero.
+    /// s(t+1) in the first `obs_len` entries; the others are unspecified.
     pub next_obs: [u16; OBS_CAPACITY],
 }
 
 impl TransitionSlot {
-    /// A slot from one step; `obs` and `next_obs` hold 2 + K values, K <= `MAX_DEVICES`.
-    pub fn new(
-        episode: u64,
-        step: u32,
-        obs: &[u16],
-        action: u16,
-        reward: f32,
-        next_obs: &[u16],
-        truncated: bool,
-    ) -> Self {
-        let mut slot = Self {
-            episode,
-            step,
-            reward,
-            action,
-            truncated: truncated as u8,
-            reserved: 0,
-            obs: [0; OBS_CAPACITY],
-            next_obs: [0; OBS_CAPACITY],
-        };
-        slot.obs[..obs.len()].copy_from_slice(obs);
-        slot.next_obs[..next_obs.len()].copy_from_slice(next_obs);
-        slot
+    /// Writes the state half of a step: its episode, step index and s(t) (2 + K values,
+    /// K <= `MAX_DEVICES`). Called before the step, since stepping overwrites the observation.
+    #[inline]
+    pub fn set_state(&mut self, episode: u64, step: u32, obs: &[u16]) {
+        self.episode = episode;
+        self.step = step;
+        self.obs[..obs.len()].copy_from_slice(obs);
     }
 
-    /// The slot of a dataset transition (its task, actor and seq go into the batch header).
-    pub fn from_transition(t: &Transition) -> Self {
-        Self::new(
-            t.episode,
-            t.step,
-            &t.obs,
-            t.action,
-            t.reward,
-            &t.next_obs,
-            t.truncated,
-        )
+    /// Writes the outcome half of a step: a, r, s(t+1) and whether the horizon was reached.
+    #[inline]
+    pub fn set_outcome(&mut self, action: u16, reward: f32, next_obs: &[u16], truncated: bool) {
+        self.action = action;
+        self.reward = reward;
+        self.truncated = truncated as u8;
+        self.next_obs[..next_obs.len()].copy_from_slice(next_obs);
     }
 
-    /// Slot `index` of the batch under `header`, as a dataset transition.
+    /// Writes a dataset transition (its task, actor and seq go into the batch header).
+    pub fn set_transition(&mut self, t: &Transition) {
+        self.set_state(t.episode, t.step, &t.obs);
+        self.set_outcome(t.action, t.reward, &t.next_obs, t.truncated);
+    }
+
+    /// Slot `index` of the batch under `header`, as a dataset transition. Reads only the
+    /// header's `obs_len` entries of each array.
     pub fn to_transition(&self, header: &BatchHeader, index: usize) -> Transition {
         let len = header.obs_len as usize;
         Transition {
@@ -296,7 +293,7 @@ impl TransitionSlot {
 
 /// The store holds `transitions` transitions of `task`: its dataset file is complete and synced.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
-#[type_name("uavmeta.DatasetReady.v1")]
+#[type_name("uavmeta.DatasetReady.v2")]
 #[repr(C)]
 pub struct DatasetReady {
     pub schema_version: u32,
@@ -344,7 +341,7 @@ impl fmt::Display for Method {
 
 /// A checkpoint is on disk (written atomically) at [`RunDir::checkpoint`] of these fields.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
-#[type_name("uavmeta.CheckpointReady.v1")]
+#[type_name("uavmeta.CheckpointReady.v2")]
 #[repr(C)]
 pub struct CheckpointReady {
     pub schema_version: u32,
@@ -359,7 +356,7 @@ pub struct CheckpointReady {
 
 /// Every process of the run finishes what it is doing and exits.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
-#[type_name("uavmeta.Shutdown.v1")]
+#[type_name("uavmeta.Shutdown.v2")]
 #[repr(C)]
 pub struct Shutdown {
     pub schema_version: u32,
@@ -861,14 +858,16 @@ pub fn transition_subscriber(
 /// What one publish cost and reached.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Delivery {
-    /// Subscribers the batch reached; 0 means no store took it (none attached yet, or it died).
+    /// Subscribers the batch reached. 0 means the batch is lost and must be sent again: the store
+    /// went away during the send, or iceoryx2 0.10 dropped it (see the module doc).
     pub recipients: usize,
     /// Time spent blocked on a full subscriber buffer.
     pub backpressure: Duration,
 }
 
 /// An actor's publisher: blocking backpressure, and the blocked time measured.
-pub struct TransitionPublisher {
+pub struct TransitionPublisher<'s> {
+    service: &'s TransitionService,
     publisher: Publisher<ipc::Service, [TransitionSlot], BatchHeader>,
     /// Longest `elapsed_time` the backpressure handler saw during the current send, in ns.
     blocked_ns: Arc<AtomicU64>,
@@ -876,11 +875,11 @@ pub struct TransitionPublisher {
     batch_size: usize,
 }
 
-impl TransitionPublisher {
+impl<'s> TransitionPublisher<'s> {
     /// A publisher on `service` for `actor`'s batches of `run.batch_size` transitions of task
     /// `task` (its index) in a world with `obs_len` observation entries.
     pub fn new(
-        service: &TransitionService,
+        service: &'s TransitionService,
         run_dir: &RunDir,
         config: &Config,
         task: u32,
@@ -918,6 +917,7 @@ impl TransitionPublisher {
             ..BatchHeader::default()
         };
         Ok(Self {
+            service,
             publisher,
             blocked_ns,
             header,
@@ -929,38 +929,75 @@ impl TransitionPublisher {
         self.batch_size
     }
 
-    /// Copies `slots` into a loaned shared-memory batch (one memcpy, no encoding) and sends them
-    /// as sequence numbers `first_seq..first_seq + slots.len()`. Blocks while the store's buffer
-    /// is full; fails if termination is requested meanwhile. The caller keeps `slots`, so a batch
-    /// that reached nobody (`recipients == 0`) can be sent again.
-    pub fn publish(
+    /// True while a subscriber (the store) is attached to the service, so that a batch sent now
+    /// reaches it. A dead store's subscriber counts until it is cleaned up.
+    pub fn connected(&self) -> bool {
+        self.service.dynamic_config().number_of_subscribers() > 0
+    }
+
+    /// Loans `count` slots of shared memory for sequence numbers `first_seq..first_seq + count`,
+    /// to be written in place and sent with [`LoanedBatch::send`]. Dropping the batch unsent
+    /// returns the memory and sends nothing.
+    pub fn loan(
         &self,
         first_seq: u64,
-        slots: &[TransitionSlot],
-    ) -> Result<Delivery, TransportError> {
-        let send_error = |action, message: String| TransportError::Service {
-            service: format!("{:?}", self.publisher.id()),
-            action,
-            message,
-        };
-        let mut sample = self
+        count: usize,
+    ) -> Result<LoanedBatch<'_, 's>, TransportError> {
+        let sample = self
             .publisher
-            .loan_slice_uninit(slots.len())
-            .map_err(|e| send_error("loan a batch", e.to_string()))?;
+            .loan_slice_uninit(count)
+            .map_err(|e| self.error("loan a batch", e.to_string()))?;
+        // SAFETY: every byte of the loaned memory is initialised: iceoryx2 zero-fills a data
+        // segment when it creates it, and its chunks only ever hold earlier batches' slots.
+        // TransitionSlot is plain integers and a float, for which every bit pattern is valid, so
+        // the stale slots are valid values; writers overwrite what receivers read.
+        let mut sample = unsafe { sample.assume_init() };
         *sample.user_header_mut() = BatchHeader {
             first_seq,
-            count: slots.len() as u32,
+            count: count as u32,
             ..self.header
         };
-        let mut sample = sample.write_from_slice(slots);
-        sample.user_header_mut().sent_unix_ns = unix_ns();
-        self.blocked_ns.store(0, Ordering::Relaxed);
-        let recipients = sample
+        Ok(LoanedBatch {
+            sample,
+            publisher: self,
+        })
+    }
+
+    fn error(&self, action: &'static str, message: String) -> TransportError {
+        TransportError::Service {
+            service: format!("{:?}", self.service.name()),
+            action,
+            message,
+        }
+    }
+}
+
+/// A batch of slots in shared memory, loaned by [`TransitionPublisher::loan`].
+pub struct LoanedBatch<'p, 's> {
+    sample: iceoryx2::sample_mut::SampleMut<ipc::Service, [TransitionSlot], BatchHeader>,
+    publisher: &'p TransitionPublisher<'s>,
+}
+
+impl LoanedBatch<'_, '_> {
+    /// The slots to write in place; each holds stale data until written (see [`TransitionSlot`]).
+    pub fn slots_mut(&mut self) -> &mut [TransitionSlot] {
+        self.sample.payload_mut()
+    }
+
+    /// Stamps the send time and sends the batch without copying it. Blocks while the store's
+    /// buffer is full; fails if termination is requested meanwhile. Check
+    /// [`Delivery::recipients`].
+    pub fn send(mut self) -> Result<Delivery, TransportError> {
+        self.sample.user_header_mut().sent_unix_ns = unix_ns();
+        let blocked = &self.publisher.blocked_ns;
+        blocked.store(0, Ordering::Relaxed);
+        let recipients = self
+            .sample
             .send()
-            .map_err(|e| send_error("send a batch", e.to_string()))?;
+            .map_err(|e| self.publisher.error("send a batch", e.to_string()))?;
         Ok(Delivery {
             recipients,
-            backpressure: Duration::from_nanos(self.blocked_ns.swap(0, Ordering::Relaxed)),
+            backpressure: Duration::from_nanos(blocked.swap(0, Ordering::Relaxed)),
         })
     }
 }
@@ -984,8 +1021,22 @@ mod tests {
         }
     }
 
+    /// A slot as shared memory may hand it out: every entry left over from an earlier batch.
+    fn stale_slot() -> TransitionSlot {
+        TransitionSlot {
+            episode: u64::MAX,
+            step: u32::MAX,
+            reward: f32::NAN,
+            action: u16::MAX,
+            truncated: 1,
+            reserved: u8::MAX,
+            obs: [u16::MAX; OBS_CAPACITY],
+            next_obs: [u16::MAX; OBS_CAPACITY],
+        }
+    }
+
     #[test]
-    fn slot_round_trips_a_transition() {
+    fn slot_round_trips_a_transition_over_stale_memory() {
         let t = transition();
         let header = BatchHeader {
             task: 3,
@@ -995,10 +1046,18 @@ mod tests {
             count: 2,
             ..BatchHeader::default()
         };
-        let slot = TransitionSlot::from_transition(&t);
-        assert_eq!(slot.obs[5..], [0; OBS_CAPACITY - 5]);
+        let mut slot = stale_slot();
+        slot.set_transition(&t);
+        // Only the used entries are written; what lies past them is never read back.
+        assert_eq!(slot.obs[5..], [u16::MAX; OBS_CAPACITY - 5]);
         assert_eq!(slot.to_transition(&header, 1), t);
         assert_ne!(slot.to_transition(&header, 0), t);
+        let untruncated = Transition {
+            truncated: false,
+            ..t.clone()
+        };
+        slot.set_transition(&untruncated);
+        assert_eq!(slot.to_transition(&header, 1), untruncated);
     }
 
     #[test]
@@ -1065,8 +1124,7 @@ mod tests {
             )
             .expect("create the foreign service");
         let err = transition_service(&node, &names, "t", &config.run)
-            .err()
-            .expect("must refuse");
+            .expect_err("must refuse");
         match &err {
             TransportError::SchemaMismatch { theirs, .. } => assert_eq!(theirs, &foreign),
             other => panic!("expected a schema mismatch, got {other}"),
@@ -1079,40 +1137,47 @@ mod tests {
     }
 
     #[test]
-    fn batches_arrive_in_place_with_their_header() {
+    fn batches_written_in_place_arrive_with_their_header() {
         let (_dir, run) = test_run("batches");
         let names = ServiceNames::new(&run);
         let mut config = Config::default();
         config.world.devices = 3;
         let node = node("batch-test").expect("node");
         let service = transition_service(&node, &names, "t", &config.run).expect("service");
-        let subscriber = transition_subscriber(&service, &config.run).expect("subscriber");
         let publisher = TransitionPublisher::new(&service, &run, &config, 0, 5).expect("publisher");
-        let obs = [1u16, 2, 3, 4, 5];
-        let slots: Vec<TransitionSlot> = (0..3)
-            .map(|i| TransitionSlot::new(1, i as u32, &obs, i as u16, -1.0, &obs, false))
-            .collect();
-        let delivery = publisher.publish(40, &slots).expect("publish");
-        assert_eq!(delivery.recipients, 1);
-        let sample = subscriber.receive().expect("receive").expect("a batch");
-        let header = *sample.user_header();
-        header
-            .check(
-                run.hash(),
-                config.world_hash(),
-                0,
-                5,
-                sample.payload().len(),
-            )
-            .expect("own batch");
-        let seqs: Vec<u64> = sample
-            .payload()
-            .iter()
-            .enumerate()
-            .map(|(i, s)| s.to_transition(&header, i).seq)
-            .collect();
-        assert_eq!(seqs, [40, 41, 42]);
-        assert_eq!(sample.payload()[2].action, 2);
+        assert!(!publisher.connected(), "no subscriber yet");
+        let subscriber = transition_subscriber(&service, &config.run).expect("subscriber");
+        assert!(publisher.connected());
+        // Two batches, so the second may reuse the first one's memory.
+        for (first_seq, count) in [(40u64, 3usize), (43, 2)] {
+            let mut batch = publisher.loan(first_seq, count).expect("loan");
+            for (i, slot) in batch.slots_mut().iter_mut().enumerate() {
+                let seq = first_seq as u16 + i as u16;
+                slot.set_state(1, seq as u32, &[seq, 2, 3, 4, 5]);
+                slot.set_outcome(seq, -1.0, &[5, 4, 3, 2, seq], false);
+            }
+            let delivery = batch.send().expect("send");
+            assert_eq!(delivery.recipients, 1);
+            let sample = subscriber.receive().expect("receive").expect("a batch");
+            let header = *sample.user_header();
+            header
+                .check(
+                    run.hash(),
+                    config.world_hash(),
+                    0,
+                    5,
+                    sample.payload().len(),
+                )
+                .expect("own batch");
+            for (i, slot) in sample.payload().iter().enumerate() {
+                let t = slot.to_transition(&header, i);
+                let seq = first_seq as u16 + i as u16;
+                assert_eq!(t.seq, seq as u64);
+                assert_eq!((t.action, t.step), (seq, seq as u32));
+                assert_eq!(t.obs, [seq, 2, 3, 4, 5]);
+                assert_eq!(t.next_obs, [5, 4, 3, 2, seq]);
+            }
+        }
     }
 
     #[test]
