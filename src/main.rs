@@ -38,8 +38,8 @@ enum Command {
     MetaTrain(cmd::meta::MetaTrainArgs),
     /// Fine-tune a meta-trained w0 on N shots of an unseen task, evaluating every epoch.
     MetaTest(cmd::meta::MetaTestArgs),
-    /// The paper's main claim: collect, meta-train, and compare CQL-MAML, CQL, DQN, DQN-MAML.
-    Experiment(cmd::meta::ExperimentArgs),
+    /// Reproduce the paper's figures 4-9 over several seeds, each beside the claim it tests.
+    Reproduce(cmd::reproduce::ReproduceArgs),
     /// Run everything (store, actors, meta-learner, evaluator) as one supervised run.
     Launch(cmd::launch::LaunchArgs),
     /// One actor of a run: roll out a behaviour policy and publish its transitions.
@@ -70,7 +70,7 @@ fn main() -> ExitCode {
         Command::Eval(c) => cmd::eval::run(c),
         Command::MetaTrain(c) => cmd::meta::run_train(c),
         Command::MetaTest(c) => cmd::meta::run_test(c),
-        Command::Experiment(c) => cmd::meta::run_experiment(c),
+        Command::Reproduce(c) => cmd::reproduce::run(c),
         Command::Launch(c) => cmd::launch::run(c),
         Command::Actor(c) => cmd::actor::run(c),
         Command::Store(c) => cmd::store::run(c),

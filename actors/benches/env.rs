@@ -1,13 +1,22 @@
 //! Environment steps per second: one world, and a batch of 64 worlds of one task (clones sharing
 //! the power tables, each reseeded) stepped round-robin as a vectorised actor would, at K = 10 and
 //! K = 50. Actions come from a precomputed list so the figure is the world's cost alone.
+//!
+//! `evaluate_greedy`: one greedy Q-policy evaluation (default world and network, one libtorch
+//! thread) over 10 and 40 episodes, episode by episode (`rollout::evaluate` with a `QPolicy`, one
+//! forward pass per step and episode) against the lockstep `q_policy::Evaluator` (one forward pass
+//! per step over all episodes).
 
 use std::hint::black_box;
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use uavmeta_actors::q_policy::{Evaluator, QPolicy};
+use uavmeta_actors::rollout::evaluate;
 use uavmeta_actors::world::World;
+use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_proto::config::{Config, RainZone, TaskConfig};
 
 const STEPS: usize = 1 << 16;
@@ -73,11 +82,37 @@ fn bench(c: &mut Criterion) {
     group.finish();
 }
 
+fn bench_evaluate_greedy(c: &mut Criterion) {
+    tch::set_num_threads(1);
+    let config = Config::default();
+    let task = TaskConfig::one_off(300.0, None);
+    let q = QNetwork::new(
+        config.world.observation_len(),
+        config.world.action_count(),
+        &config.learner.hidden,
+        0,
+    );
+    let mut group = c.benchmark_group("evaluate_greedy");
+    for episodes in [10, 40] {
+        group.throughput(Throughput::Elements(
+            (episodes * config.world.horizon as usize) as u64,
+        ));
+        group.bench_function(format!("episode by episode, {episodes} episodes"), |b| {
+            b.iter(|| evaluate(&config.world, &task, &mut QPolicy::new(&q), episodes, 0))
+        });
+        let mut evaluator = Evaluator::new(&config.world, &task, episodes, 0);
+        group.bench_function(format!("lockstep, {episodes} episodes"), |b| {
+            b.iter(|| evaluator.evaluate(&q))
+        });
+    }
+    group.finish();
+}
+
 criterion_group! {
     name = benches;
     config = Criterion::default()
         .warm_up_time(std::time::Duration::from_millis(500))
         .measurement_time(std::time::Duration::from_secs(2));
-    targets = bench
+    targets = bench, bench_evaluate_greedy
 }
 criterion_main!(benches);

@@ -1,13 +1,17 @@
 //! A Q-network acting in the world: its greedy policy, and the evaluator that scores it on the true
 //! environment for `uavmeta_learner::train` (SPEC section 5, "Evaluation").
+//!
+//! The evaluator runs the same episodes as [`crate::rollout::evaluate`] with a [`QPolicy`], but
+//! steps all of them in lockstep (every episode lasts the horizon) so that each step is one
+//! forward pass over an `[episodes, D]` batch rather than `episodes` passes over one row.
 
 use tch::Tensor;
 use uavmeta_learner::qnet::QNetwork;
 use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_proto::config::{Config, TaskConfig, WorldConfig};
-use uavmeta_proto::stats::PolicyMetrics;
+use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 
-use crate::rollout::{evaluate, Policy};
+use crate::rollout::{episode_worlds, EpisodeTally, Policy};
 use crate::world::World;
 
 /// `argmax_a Q(s, a)` on the normalised observation.
@@ -66,12 +70,85 @@ impl Evaluator {
 
 impl EvaluatePolicy for Evaluator {
     fn evaluate(&mut self, q: &QNetwork) -> PolicyMetrics {
-        evaluate(
-            &self.world,
-            &self.task,
-            &mut QPolicy::new(q),
-            self.episodes,
-            self.seed,
-        )
+        let mut worlds: Vec<World> =
+            episode_worlds(&self.world, &self.task, self.episodes, self.seed).collect();
+        if worlds.is_empty() {
+            return PolicyMetrics::from_episodes(&[]);
+        }
+        worlds.iter_mut().for_each(World::reset);
+        let (e, d) = (worlds.len(), q.obs_len());
+        let mut obs = vec![0f32; e * d];
+        let mut actions = vec![0i64; e];
+        let mut tallies = vec![EpisodeTally::default(); e];
+        for _ in 0..self.world.horizon {
+            for (world, row) in worlds.iter().zip(obs.chunks_exact_mut(d)) {
+                world.write_normalised(row);
+            }
+            let batch = Tensor::from_slice(&obs).view([e as i64, d as i64]); // [E, D]
+            q.greedy(&batch).copy_data(&mut actions, e); // [E]
+            for ((world, &action), tally) in worlds.iter_mut().zip(&actions).zip(&mut tallies) {
+                tally.add(&world.step(action as usize));
+            }
+        }
+        let episodes: Vec<EpisodeMetrics> = tallies.into_iter().map(EpisodeTally::finish).collect();
+        PolicyMetrics::from_episodes(&episodes)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use uavmeta_proto::config::{Config, RainZone};
+
+    use super::*;
+    use crate::rollout::evaluate;
+
+    fn assert_metrics_close(batched: &PolicyMetrics, single: &PolicyMetrics) {
+        assert_eq!(batched.episodes, single.episodes);
+        let pairs = [
+            (batched.ret, single.ret),
+            (batched.aoi, single.aoi),
+            (batched.power_mw, single.power_mw),
+            (batched.outages, single.outages),
+        ];
+        for (b, s) in pairs {
+            assert!(
+                (b.mean - s.mean).abs() <= 1e-9 && (b.ci95 - s.ci95).abs() <= 1e-9,
+                "batched {batched:?}\nsingle  {single:?}"
+            );
+        }
+    }
+
+    /// The lockstep evaluation runs exactly the episodes of `rollout::evaluate` with a `QPolicy`:
+    /// on a clear task and on a rain task whose zone moves (so the worlds' random streams matter).
+    #[test]
+    fn batched_evaluation_equals_episode_by_episode() {
+        tch::set_num_threads(1);
+        let config = Config::default();
+        let rain = TaskConfig {
+            rain_moves_every: Some(10),
+            ..TaskConfig::one_off(
+                300.0,
+                Some(RainZone {
+                    x0: 3,
+                    y0: 3,
+                    x1: 6,
+                    y1: 6,
+                }),
+            )
+        };
+        let tasks = [TaskConfig::one_off(100.0, None), rain];
+        let (obs_len, actions) = (config.world.observation_len(), config.world.action_count());
+        for (net_seed, task) in tasks.iter().enumerate() {
+            let q = QNetwork::new(obs_len, actions, &config.learner.hidden, net_seed as u64);
+            for episodes in [1, 7] {
+                let seed = 31 + episodes as u64;
+                let batched = Evaluator::new(&config.world, task, episodes, seed).evaluate(&q);
+                let single = evaluate(&config.world, task, &mut QPolicy::new(&q), episodes, seed);
+                assert_eq!(batched.episodes, episodes);
+                assert_metrics_close(&batched, &single);
+                // The rain task's episodes do fly through rain, so outages are compared too.
+                assert_eq!(single.outages.mean > 0.0, task.rain.is_some());
+            }
+        }
     }
 }

@@ -8,7 +8,7 @@ use serde::Serialize;
 use uavmeta_proto::config::{TaskConfig, WorldConfig};
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 
-use crate::world::{Move, World};
+use crate::world::{Move, Step, World};
 
 /// Chooses an action index `move * K + device` for the world's current state. Heuristics may read
 /// the whole world; learned policies read only `world.observation()`.
@@ -46,8 +46,7 @@ pub fn run_episode_observed(
     mut observe: impl FnMut(&StepRecord<'_>),
 ) -> EpisodeMetrics {
     world.reset();
-    let mut metrics = EpisodeMetrics::default();
-    let mut steps = 0u32;
+    let mut tally = EpisodeTally::default();
     loop {
         let t = world.t();
         let position = world.uav();
@@ -64,18 +63,38 @@ pub fn run_episode_observed(
             outage: step.outage,
             aoi: world.aoi(),
         });
-        metrics.ret += step.reward;
-        metrics.aoi += step.aoi_mean;
-        metrics.power_mw += step.power_mw;
-        metrics.outages += step.outage as u32;
-        steps += 1;
+        tally.add(&step);
         if step.truncated {
             break;
         }
     }
-    metrics.aoi /= steps as f64;
-    metrics.power_mw /= steps as f64;
-    metrics
+    tally.finish()
+}
+
+/// An episode's metrics as its steps come in: sums, and per-step means at the end.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct EpisodeTally {
+    sums: EpisodeMetrics,
+    steps: u32,
+}
+
+impl EpisodeTally {
+    pub fn add(&mut self, step: &Step) {
+        self.sums.ret += step.reward;
+        self.sums.aoi += step.aoi_mean;
+        self.sums.power_mw += step.power_mw;
+        self.sums.outages += step.outage as u32;
+        self.steps += 1;
+    }
+
+    /// The return and outages summed, AoI and power averaged over the steps taken.
+    pub fn finish(self) -> EpisodeMetrics {
+        EpisodeMetrics {
+            aoi: self.sums.aoi / self.steps as f64,
+            power_mw: self.sums.power_mw / self.steps as f64,
+            ..self.sums
+        }
+    }
 }
 
 /// The world seed of episode `episode` of an evaluation seeded `seed` (SplitMix64 of the pair, so
@@ -98,13 +117,27 @@ pub fn rollout(
     seed: u64,
     mut observe: impl FnMut(usize, &StepRecord<'_>),
 ) -> Vec<EpisodeMetrics> {
-    let mut world = World::new(world_cfg, task, seed);
-    (0..episodes)
-        .map(|i| {
-            world.reseed(episode_seed(seed, i));
-            run_episode_observed(&mut world, policy, |step| observe(i, step))
-        })
+    episode_worlds(world_cfg, task, episodes, seed)
+        .enumerate()
+        .map(|(i, mut world)| run_episode_observed(&mut world, policy, |step| observe(i, step)))
         .collect()
+}
+
+/// The worlds of episodes 0..episodes of an evaluation seeded `seed`, in order: clones of one
+/// world (sharing its power tables), world i reseeded with `episode_seed(seed, i)`, so that its
+/// next reset starts episode i. Every evaluation path builds its episodes here.
+pub fn episode_worlds(
+    world_cfg: &WorldConfig,
+    task: &TaskConfig,
+    episodes: usize,
+    seed: u64,
+) -> impl Iterator<Item = World> {
+    let template = World::new(world_cfg, task, seed);
+    (0..episodes).map(move |i| {
+        let mut world = template.clone();
+        world.reseed(episode_seed(seed, i));
+        world
+    })
 }
 
 /// Monte-Carlo evaluation of `policy` on `task` over `episodes` fixed episodes.
@@ -116,4 +149,77 @@ pub fn evaluate(
     seed: u64,
 ) -> PolicyMetrics {
     PolicyMetrics::from_episodes(&rollout(world_cfg, task, policy, episodes, seed, |_, _| {}))
+}
+
+/// One episode's path through the grid, for drawing.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Trajectory {
+    /// The UAV's cell at t = 0..=horizon: the start cell, then the cell after every move.
+    pub cells: Vec<(u32, u32)>,
+    pub metrics: EpisodeMetrics,
+}
+
+/// Runs `policy` for the first episode of an evaluation seeded `seed` (the episode
+/// [`evaluate`] runs first) and records where the UAV flew.
+pub fn record_trajectory(
+    world_cfg: &WorldConfig,
+    task: &TaskConfig,
+    policy: &mut dyn Policy,
+    seed: u64,
+) -> Trajectory {
+    let mut world = episode_worlds(world_cfg, task, 1, seed)
+        .next()
+        .expect("episode_worlds yields one world per episode");
+    let mut cells = Vec::with_capacity(world.horizon() as usize + 1);
+    let metrics = run_episode_observed(&mut world, policy, |step| cells.push(step.position));
+    cells.push(world.uav());
+    Trajectory { cells, metrics }
+}
+
+#[cfg(test)]
+mod tests {
+    use uavmeta_proto::config::{Config, RainZone};
+
+    use super::*;
+    use crate::heuristics::RandomPolicy;
+
+    #[test]
+    fn trajectory_is_the_first_evaluation_episode() {
+        let config = Config::default();
+        let task = TaskConfig {
+            rain_moves_every: Some(7),
+            ..TaskConfig::one_off(
+                300.0,
+                Some(RainZone {
+                    x0: 2,
+                    y0: 2,
+                    x1: 5,
+                    y1: 6,
+                }),
+            )
+        };
+        let trajectory = record_trajectory(&config.world, &task, &mut RandomPolicy::new(4), 11);
+
+        assert_eq!(trajectory.cells.len(), config.world.horizon as usize + 1);
+        for pair in trajectory.cells.windows(2) {
+            let (a, b) = (pair[0], pair[1]);
+            assert!(a.0.abs_diff(b.0) + a.1.abs_diff(b.1) <= 1, "{a:?} -> {b:?}");
+        }
+        let grid = config.world.grid_cells;
+        assert!(trajectory.cells.iter().all(|&(x, y)| x < grid && y < grid));
+        // A random policy on a 10 x 10 grid does not hover for a whole episode.
+        assert!(trajectory.cells.iter().any(|&c| c != trajectory.cells[0]));
+
+        let mut positions = vec![];
+        let episodes = rollout(
+            &config.world,
+            &task,
+            &mut RandomPolicy::new(4),
+            1,
+            11,
+            |_, step| positions.push(step.position),
+        );
+        assert_eq!(trajectory.metrics, episodes[0]);
+        assert_eq!(positions, trajectory.cells[..positions.len()]);
+    }
 }

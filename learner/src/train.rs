@@ -83,7 +83,8 @@ pub struct TrainOptions<'a> {
     pub seed: u64,
     /// Where `train.csv` and the `final` checkpoint go; `None` writes neither.
     pub out_dir: Option<&'a Path>,
-    /// Draw a progress bar on stderr (when it is a terminal).
+    /// Draw a progress bar on stderr (when it is a terminal) and print the per-epoch table there;
+    /// off for runs inside a larger job (`uavmeta reproduce` fine-tunes hundreds of them).
     pub progress: bool,
 }
 
@@ -192,7 +193,9 @@ pub fn train(
         None => None,
     };
     let bar = progress_bar(opts.progress, (cfg.epochs * steps_per_epoch) as u64);
-    bar.suspend(|| eprintln!("{}", EpochRow::table_header()));
+    if opts.progress {
+        bar.suspend(|| eprintln!("{}", EpochRow::table_header()));
+    }
 
     let started = Instant::now();
     let mut rows = Vec::with_capacity(cfg.epochs);
@@ -239,7 +242,9 @@ pub fn train(
             policy: evaluator.evaluate(q),
             seconds: started.elapsed().as_secs_f64(),
         };
-        bar.suspend(|| eprintln!("{}", row.table_line()));
+        if opts.progress {
+            bar.suspend(|| eprintln!("{}", row.table_line()));
+        }
         if let Some(csv) = csv.as_mut() {
             csv.write(&row)?;
         }

@@ -7,8 +7,9 @@
 //!   (`<task-name>.uavds`), with a per-meta-epoch CSV, adapted-policy returns and `w0` checkpoints.
 //! - [`meta_test`]: fine-tuning a `w0` checkpoint on N shots of an unseen task, through the
 //!   learner's offline training so every method shares its settings and CSV columns.
-//! - [`experiment`]: the paper's main claim measured: collection with online DQN, meta-training,
-//!   and CQL-MAML / CQL / DQN / DQN-MAML fine-tuned on the unseen task over several seeds.
+//! - [`reproduce`]: `uavmeta reproduce`, the paper's figures 4-9 over several seeds (collection
+//!   with online DQN, meta-training, fine-tuning, evaluation), with CSV files, PNG charts and a
+//!   summary that says which claims of SPEC section 6 hold.
 //! - [`process`]: the meta-learner process of a run; [`launch`]: `uavmeta launch`, the supervisor
 //!   of a run's processes.
 //!
@@ -42,12 +43,12 @@
 //! assert_eq!(adapted.forward(&tasks[0].query.obs).size(), [2, 5]);
 //! ```
 
-pub mod experiment;
 pub mod launch;
 pub mod maml;
 pub mod meta_test;
 pub mod meta_train;
 pub mod process;
+pub mod reproduce;
 
 use std::path::PathBuf;
 
@@ -86,6 +87,10 @@ pub enum MetaError {
     },
     #[error("the online DQN reference agent")]
     OnlineDqn(#[source] BatchError),
+    #[error("{origin}: the resilience experiment needs rain tasks (role = \"meta-test\" with a `rain` zone); the config has none")]
+    NoRainTasks { origin: String },
+    #[error(transparent)]
+    Plot(#[from] reproduce::plot::PlotError),
     #[error(transparent)]
     Config(#[from] ConfigError),
     #[error(transparent)]

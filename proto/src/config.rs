@@ -58,6 +58,8 @@ pub struct Config {
     pub meta: MetaConfig,
     #[serde(default)]
     pub run: RunConfig,
+    #[serde(default)]
+    pub reproduce: ReproduceConfig,
     /// Where the config was read from; not part of the TOML.
     #[serde(skip)]
     pub origin: String,
@@ -473,6 +475,60 @@ impl Default for RunConfig {
     }
 }
 
+/// `uavmeta reproduce`: the sizes of the paper's section V experiments (SPEC section 6). Keys that
+/// name tasks or counts of tasks are checked against `[[tasks]]` by
+/// [`Config::validate_reproduce`], when a reproduction starts, so that other commands accept a
+/// config whose tasks do not fit them.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ReproduceConfig {
+    /// Seeds 0..seeds-1 behind every curve; seed s collects its own datasets with
+    /// `collect.seed + s`, so the spread covers the data as well as the learning.
+    pub seeds: usize,
+    /// The main experiments meta-train on the first this many meta-train tasks, in config order.
+    pub meta_tasks: usize,
+    /// Figure 7: meta-train on the first n meta-train tasks for each n.
+    pub task_counts: Vec<usize>,
+    /// Figure 6: the shot counts CQL and CQL-MAML are fine-tuned on.
+    pub shots: Vec<usize>,
+    /// Shots of every other experiment (the paper's 500).
+    pub main_shots: usize,
+    /// The unseen task of figures 5-8 (role `meta-test`).
+    pub unseen_task: String,
+    /// Figures 5 and 6: fine-tuning epochs.
+    pub convergence_epochs: usize,
+    /// Figure 7: fine-tuning epochs after which the task counts are compared.
+    pub tasks_epochs: usize,
+    /// Figure 8: the epoch whose AoI and power are compared.
+    pub aoi_power_epoch: usize,
+    /// Figure 9: fine-tuning epochs on each rain task (meta-test tasks with a rain zone).
+    pub resilience_epochs: usize,
+    /// Figure 9: Monte-Carlo episodes of each evaluation on a rain task.
+    pub resilience_eval_episodes: usize,
+    /// Figure 4: meta-epochs between evaluations of the adapted policies; 0 evaluates only after
+    /// the last.
+    pub meta_eval_every: usize,
+}
+
+impl Default for ReproduceConfig {
+    fn default() -> Self {
+        Self {
+            seeds: 5,
+            meta_tasks: 8,
+            task_counts: vec![2, 4, 6, 8, 10],
+            shots: vec![100, 300, 500],
+            main_shots: 500,
+            unseen_task: "lambda-300".into(),
+            convergence_epochs: 100,
+            tasks_epochs: 40,
+            aoi_power_epoch: 50,
+            resilience_epochs: 200,
+            resilience_eval_episodes: 40,
+            meta_eval_every: 10,
+        }
+    }
+}
+
 impl Default for Config {
     fn default() -> Self {
         Self {
@@ -482,6 +538,7 @@ impl Default for Config {
             learner: LearnerConfig::default(),
             meta: MetaConfig::default(),
             run: RunConfig::default(),
+            reproduce: ReproduceConfig::default(),
             origin: "<defaults>".into(),
         }
     }
@@ -866,6 +923,116 @@ impl Config {
                 "run.batch_size / run.subscriber_buffer / run.max_publishers",
                 &(r.batch_size, r.subscriber_buffer, r.max_publishers),
                 "all at least 1",
+            ));
+        }
+        let p = &self.reproduce;
+        if p.seeds == 0
+            || (p.seeds as u64 - 1)
+                .checked_add(self.collect.seed)
+                .is_none_or(|s| s > i64::MAX as u64)
+        {
+            return Err(invalid(
+                "reproduce.seeds",
+                &p.seeds,
+                &format!(
+                    "at least 1, with collect.seed + seeds - 1 at most {}",
+                    i64::MAX
+                ),
+            ));
+        }
+        for (key, value) in [
+            ("reproduce.meta_tasks", p.meta_tasks),
+            ("reproduce.main_shots", p.main_shots),
+            ("reproduce.convergence_epochs", p.convergence_epochs),
+            ("reproduce.tasks_epochs", p.tasks_epochs),
+            ("reproduce.aoi_power_epoch", p.aoi_power_epoch),
+            ("reproduce.resilience_epochs", p.resilience_epochs),
+            (
+                "reproduce.resilience_eval_episodes",
+                p.resilience_eval_episodes,
+            ),
+        ] {
+            if value == 0 {
+                return Err(invalid(key, &value, "at least 1"));
+            }
+        }
+        if p.task_counts.is_empty()
+            || p.task_counts.contains(&0)
+            || p.task_counts.windows(2).any(|w| w[0] >= w[1])
+        {
+            return Err(invalid(
+                "reproduce.task_counts",
+                &p.task_counts,
+                "a non-empty, strictly increasing list of task counts >= 1",
+            ));
+        }
+        if p.shots.is_empty() || p.shots.contains(&0) || p.shots.windows(2).any(|w| w[0] >= w[1]) {
+            return Err(invalid(
+                "reproduce.shots",
+                &p.shots,
+                "a non-empty, strictly increasing list of shot counts >= 1",
+            ));
+        }
+        if p.unseen_task.is_empty() {
+            return Err(invalid(
+                "reproduce.unseen_task",
+                &p.unseen_task,
+                "a task name",
+            ));
+        }
+        Ok(())
+    }
+
+    /// Checks the `[reproduce]` keys that refer to `[[tasks]]` and `[collect]`: run by
+    /// `uavmeta reproduce` only, so that other commands take configs without such tasks.
+    pub fn validate_reproduce(&self) -> Result<(), ConfigError> {
+        let invalid = |key: &str, value: &dyn fmt::Debug, expected: String| ConfigError::Invalid {
+            origin: self.origin.clone(),
+            key: key.to_string(),
+            value: format!("{value:?}"),
+            expected,
+        };
+        let p = &self.reproduce;
+        let meta_train = self.tasks_with_role(TaskRole::MetaTrain).count();
+        if p.meta_tasks > meta_train {
+            return Err(invalid(
+                "reproduce.meta_tasks",
+                &p.meta_tasks,
+                format!("at most the {meta_train} tasks with role = \"meta-train\""),
+            ));
+        }
+        if p.task_counts.iter().any(|&n| n > meta_train) {
+            return Err(invalid(
+                "reproduce.task_counts",
+                &p.task_counts,
+                format!("counts of at most the {meta_train} tasks with role = \"meta-train\""),
+            ));
+        }
+        match self.tasks.iter().find(|t| t.name == p.unseen_task) {
+            Some(t) if t.role == TaskRole::MetaTest => {}
+            _ => {
+                return Err(invalid(
+                    "reproduce.unseen_task",
+                    &p.unseen_task,
+                    "the name of a task with role = \"meta-test\"".to_string(),
+                ))
+            }
+        }
+        let most = p
+            .shots
+            .iter()
+            .copied()
+            .chain([p.main_shots])
+            .max()
+            .unwrap_or(0);
+        if most > self.collect.transitions {
+            return Err(invalid(
+                "reproduce.shots / reproduce.main_shots",
+                &(&p.shots, p.main_shots),
+                format!(
+                    "at most collect.transitions = {}, the size of each task's dataset",
+                    self.collect.transitions
+                ),
             ));
         }
         Ok(())

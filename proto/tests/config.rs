@@ -288,3 +288,57 @@ fn seed_that_toml_cannot_hold() {
         "{message}"
     );
 }
+
+#[test]
+fn reproduce_section_is_checked_alone_and_against_the_tasks() {
+    error_of(
+        "[reproduce]\ntask_counts = [4, 2]\n",
+        &[],
+        &["reproduce.task_counts", "[4, 2]", "strictly increasing"],
+    );
+    error_of(
+        "[reproduce]\nresilience_eval_episodes = 0\n",
+        &[],
+        &["reproduce.resilience_eval_episodes", "0", "at least 1"],
+    );
+    // The default tasks have eight meta-train tasks and no `lambda-700`: other commands accept
+    // such a file; only a reproduction refuses it, naming the key.
+    let (_, result) = load(
+        "[reproduce]\ntask_counts = [2, 10]\nunseen_task = \"lambda-700\"\n",
+        &[],
+    );
+    let config = result.expect("the cross-checks are reproduce's own");
+    let message = config.validate_reproduce().unwrap_err().to_string();
+    assert!(
+        message.contains("reproduce.task_counts") && message.contains("8 tasks"),
+        "{message}"
+    );
+    let (_, result) = load(
+        "[reproduce]\ntask_counts = [2]\nunseen_task = \"lambda-0\"\n",
+        &[],
+    );
+    let message = result
+        .unwrap()
+        .validate_reproduce()
+        .unwrap_err()
+        .to_string();
+    assert!(
+        message.contains("reproduce.unseen_task") && message.contains("meta-test"),
+        "{message}"
+    );
+    let (_, result) = load("[reproduce]\ntask_counts = [2]\nmain_shots = 501\n", &[]);
+    let message = result
+        .unwrap()
+        .validate_reproduce()
+        .unwrap_err()
+        .to_string();
+    assert!(message.contains("collect.transitions = 500"), "{message}");
+    let (_, result) = load("", &[]);
+    let defaults = result.unwrap();
+    assert_eq!(defaults.reproduce.seeds, 5);
+    // Ten task counts need ten meta-train tasks: the defaults' eight are refused.
+    assert!(defaults.validate_reproduce().is_err());
+    let mut eight = defaults.clone();
+    eight.reproduce.task_counts = vec![2, 4, 8];
+    eight.validate_reproduce().expect("fits the default tasks");
+}

@@ -1,14 +1,11 @@
-//! `uavmeta meta-train` and `uavmeta meta-test`: MAML's two phases (Algorithm 4), and
-//! `uavmeta experiment`: the paper's main claim measured with both.
+//! `uavmeta meta-train` and `uavmeta meta-test`: MAML's two phases (Algorithm 4).
 
 use std::path::PathBuf;
 
-use anyhow::{bail, Result};
+use anyhow::Result;
 use clap::Args;
-use uavmeta_meta::experiment::{quick_config, run, ExperimentOptions};
 use uavmeta_meta::meta_test::{meta_test, FineTune, MetaTestOptions};
 use uavmeta_meta::meta_train::{meta_train, MetaTrainOptions};
-use uavmeta_proto::config::TaskRole;
 
 use super::common::{ConfigArgs, TaskArgs};
 
@@ -110,67 +107,5 @@ pub fn run_test(args: MetaTestArgs) -> Result<()> {
         "per-epoch figures: {}",
         args.out.join("train.csv").display()
     );
-    Ok(())
-}
-
-#[derive(Args)]
-pub struct ExperimentArgs {
-    #[command(flatten)]
-    config: ConfigArgs,
-    /// The unseen task [default: the config's first task with role = "meta-test"].
-    #[arg(long)]
-    task: Option<String>,
-    /// Output directory: datasets/, seed-S/, curves.csv, summary.md.
-    #[arg(long)]
-    out: PathBuf,
-    /// N shots of the unseen task.
-    #[arg(long, default_value_t = 500)]
-    shots: usize,
-    /// Fine-tuning epochs [default: learner.epochs].
-    #[arg(long)]
-    epochs: Option<usize>,
-    /// Seeds [default: run.seeds].
-    #[arg(long, value_delimiter = ',')]
-    seeds: Vec<u64>,
-    /// A minute-long run of the whole pipeline (first seed, few steps): checks plumbing only.
-    #[arg(long)]
-    quick: bool,
-}
-
-pub fn run_experiment(args: ExperimentArgs) -> Result<()> {
-    let mut config = args.config.load()?;
-    if args.quick {
-        config = quick_config(&config);
-    }
-    let task = match &args.task {
-        Some(name) => config.task(name)?.clone(),
-        None => match config.tasks_with_role(TaskRole::MetaTest).next() {
-            Some(task) => task.clone(),
-            None => bail!(
-                "{}: no task has role = \"meta-test\"; name the unseen task with --task",
-                config.origin
-            ),
-        },
-    };
-    let mut seeds = if args.seeds.is_empty() {
-        config.run.seeds.clone()
-    } else {
-        args.seeds.clone()
-    };
-    let mut epochs = args.epochs.unwrap_or(config.learner.epochs);
-    if args.quick {
-        seeds.truncate(1);
-        epochs = epochs.min(5);
-    }
-    let report = run(&ExperimentOptions {
-        config: &config,
-        task: &task,
-        out_dir: &args.out,
-        seeds: &seeds,
-        shots: args.shots,
-        epochs,
-        progress: true,
-    })?;
-    print!("{}", report.summary);
     Ok(())
 }

@@ -9,5 +9,6 @@ pub mod evaluator;
 pub mod launch;
 pub mod meta;
 pub mod meta_learner;
+pub mod reproduce;
 pub mod store;
 pub mod train;

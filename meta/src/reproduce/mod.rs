@@ -1,0 +1,537 @@
+//! `uavmeta reproduce`: the paper's section V experiments (figures 4-9) over several seeds, each
+//! figure beside the claim of SPEC section 6 it supports, decided from the measured numbers.
+//!
+//! It owns the orchestration; the pieces are:
+//! - [`runs`]: one seed's pipeline and its cache under `OUT/cache/seed-S/` (datasets, online DQN
+//!   agents, meta-trained w0s), and the plan of fine-tuning runs shared between experiments;
+//! - [`figures`]: per experiment, its CSV files, PNG charts ([`plot`]) and `summary.md`;
+//! - [`claims`]: curve statistics and the yes / partly / no rules.
+//!
+//! Pipeline of [`run`]:
+//! 1. Check `[reproduce]` against the tasks, and build one [`runs::Plan`] for the selected
+//!    experiments: every dataset, reference agent, w0 and fine-tuning run they need, each once
+//!    (CQL-MAML on the first `meta_tasks` tasks is meta-trained once per seed and serves figures
+//!    4, 5, 6, 8 and 9).
+//! 2. The heuristics' reference lines (random, stalest, greedy), which depend on no seed.
+//! 3. Seeds 0..N-1 on up to `jobs` threads, each through the same code paths as the runtime:
+//!    `collect` with the online DQN behaviour policy (`collect.seed + s`), its agent as the online
+//!    reference, `meta_train`, and `meta_test`'s `fine_tune` with the greedy policy evaluated
+//!    after every epoch. Results are kept in seed order, so they do not depend on `jobs`.
+//! 4. Each experiment writes `OUT/<experiment>/` and returns its claims; `OUT/summary.md` gathers
+//!    every claim table.
+
+mod claims;
+mod figures;
+pub mod plot;
+mod runs;
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
+use uavmeta_actors::heuristics::PolicySpec;
+use uavmeta_actors::rollout::evaluate;
+use uavmeta_proto::config::{Config, InnerLoss, TaskConfig, TaskRole};
+use uavmeta_proto::stats::PolicyMetrics;
+
+use crate::MetaError;
+use claims::Claim;
+use runs::{InitKey, Method, Plan, SeedResult};
+
+/// One of the paper's experiments.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Experiment {
+    /// Figure 4: CQL-MAML's meta-training.
+    MetaTraining,
+    /// Figure 5: the four methods on the unseen task.
+    Convergence,
+    /// Figure 6: CQL and CQL-MAML on 100, 300 and 500 shots.
+    Shots,
+    /// Figure 7: CQL-MAML meta-trained on 2 to 10 tasks.
+    Tasks,
+    /// Figure 8: AoI and power after 50 epochs.
+    AoiPower,
+    /// Figure 9: the rain tasks.
+    Resilience,
+}
+
+impl Experiment {
+    pub const ALL: [Experiment; 6] = [
+        Experiment::MetaTraining,
+        Experiment::Convergence,
+        Experiment::Shots,
+        Experiment::Tasks,
+        Experiment::AoiPower,
+        Experiment::Resilience,
+    ];
+
+    /// What `--experiment` accepts: `all` or one experiment's name.
+    pub const CHOICES: [&'static str; 7] = [
+        "all",
+        "meta-training",
+        "convergence",
+        "shots",
+        "tasks",
+        "aoi-power",
+        "resilience",
+    ];
+
+    /// Its name on the command line and its output directory.
+    pub fn name(self) -> &'static str {
+        Self::CHOICES[1 + self as usize]
+    }
+
+    pub fn figure(self) -> &'static str {
+        match self {
+            Experiment::MetaTraining => "4",
+            Experiment::Convergence => "5",
+            Experiment::Shots => "6",
+            Experiment::Tasks => "7",
+            Experiment::AoiPower => "8",
+            Experiment::Resilience => "9",
+        }
+    }
+
+    /// The experiments one of [`Experiment::CHOICES`] selects.
+    pub fn select(choice: &str) -> Option<Vec<Experiment>> {
+        if choice == "all" {
+            return Some(Self::ALL.to_vec());
+        }
+        Self::ALL
+            .into_iter()
+            .find(|e| e.name() == choice)
+            .map(|e| vec![e])
+    }
+}
+
+/// One reproduction.
+pub struct ReproduceOptions<'a> {
+    /// `[reproduce]` sizes the experiments; [`quick_config`] already applied for `--quick`.
+    pub config: &'a Config,
+    pub experiments: &'a [Experiment],
+    /// The run checks plumbing only; summaries say so.
+    pub quick: bool,
+    pub out_dir: &'a Path,
+    /// Seeds run at the same time, each on its own thread.
+    pub jobs: usize,
+    pub progress: bool,
+    /// The command line, and the git commit of the build, for the summaries' headers.
+    pub command: &'a str,
+    pub commit: &'a str,
+}
+
+/// What a reproduction wrote.
+pub struct ReproduceReport {
+    /// `OUT/summary.md`'s text.
+    pub summary: String,
+    pub summary_path: PathBuf,
+    pub wall: Duration,
+}
+
+/// The `--quick` variant of `config`: the same pipeline at a size that runs in well under a
+/// minute (online DQN for 1000 steps, 3 meta-epochs, a handful of fine-tuning epochs, 2 seeds,
+/// 2 evaluation episodes), to check the plumbing, not the claims.
+pub fn quick_config(config: &Config) -> Config {
+    let mut quick = config.clone();
+    let c = &mut quick.collect;
+    c.dqn_steps = c.dqn_steps.min(1000).max(c.transitions);
+    c.replay_capacity = c.replay_capacity.min(1000).max(c.transitions);
+    c.learning_starts = c.learning_starts.min(200);
+    c.eps_decay_steps = c.eps_decay_steps.min(500);
+    quick.learner.eval_episodes = quick.learner.eval_episodes.min(2);
+    quick.learner.steps_per_epoch = quick.learner.steps_per_epoch.min(10);
+    quick.meta.meta_epochs = quick.meta.meta_epochs.min(3);
+    let r = &mut quick.reproduce;
+    r.seeds = r.seeds.min(2);
+    r.convergence_epochs = r.convergence_epochs.min(5);
+    r.tasks_epochs = r.tasks_epochs.min(3);
+    r.aoi_power_epoch = r.aoi_power_epoch.min(3);
+    r.resilience_epochs = r.resilience_epochs.min(4);
+    r.resilience_eval_episodes = r.resilience_eval_episodes.min(2);
+    r.meta_eval_every = 1;
+    quick
+}
+
+/// The rain tasks of figure 9: meta-test tasks with a rain zone.
+pub fn rain_tasks(config: &Config) -> impl Iterator<Item = &TaskConfig> {
+    config
+        .tasks_with_role(TaskRole::MetaTest)
+        .filter(|t| t.rain.is_some())
+}
+
+/// Heuristic reference lines.
+const HEURISTICS: [&str; 3] = ["random", "stalest", "greedy"];
+
+/// The heuristics' figures on a task over a number of episodes.
+#[derive(Debug, Clone)]
+pub struct HeuristicRef {
+    pub task: String,
+    pub episodes: usize,
+    pub policies: Vec<(&'static str, PolicyMetrics)>,
+}
+
+/// Runs the selected experiments; see the module doc.
+pub fn run(opts: &ReproduceOptions) -> Result<ReproduceReport, MetaError> {
+    let started = Instant::now();
+    let config = opts.config;
+    config.validate_reproduce()?;
+    if opts.experiments.contains(&Experiment::Resilience) && rain_tasks(config).next().is_none() {
+        return Err(MetaError::NoRainTasks {
+            origin: config.origin.clone(),
+        });
+    }
+    let plan = plan(config, opts.experiments);
+    let heuristics = heuristic_refs(config, &plan);
+    let seeds = run_seeds(opts, &plan)?;
+
+    let ctx = figures::Context {
+        config,
+        seeds: &seeds,
+        heuristics: &heuristics,
+    };
+    let mut sections = Vec::new();
+    for &experiment in opts.experiments {
+        let dir = opts.out_dir.join(experiment.name());
+        create_dir(&dir)?;
+        let section = figures::write(&ctx, experiment, &dir)?;
+        let text = format!(
+            "{}\n{}",
+            header(opts, experiment_title(experiment), started.elapsed()),
+            section.body
+        );
+        write_file(&dir.join("summary.md"), &text)?;
+        sections.push((experiment, section));
+    }
+    let wall = started.elapsed();
+    let mut summary = header(opts, "Reproduction of the paper's section V", wall);
+    let claims: Vec<Claim> = sections
+        .iter()
+        .flat_map(|(_, s)| s.claims.iter().cloned())
+        .collect();
+    let _ = writeln!(summary, "## Every claim (SPEC section 6)\n");
+    summary.push_str(&claims::table(&claims));
+    for (experiment, _) in &sections {
+        let _ = write!(
+            summary,
+            "\n- {}: [`{name}/summary.md`]({name}/summary.md)",
+            experiment_title(*experiment),
+            name = experiment.name()
+        );
+    }
+    summary.push('\n');
+    let summary_path = opts.out_dir.join("summary.md");
+    write_file(&summary_path, &summary)?;
+    Ok(ReproduceReport {
+        summary,
+        summary_path,
+        wall,
+    })
+}
+
+fn experiment_title(experiment: Experiment) -> &'static str {
+    match experiment {
+        Experiment::MetaTraining => "Figure 4: meta-training",
+        Experiment::Convergence => "Figure 5: convergence on the unseen task",
+        Experiment::Shots => "Figure 6: number of shots",
+        Experiment::Tasks => "Figure 7: number of meta-training tasks",
+        Experiment::AoiPower => "Figure 8: AoI and power",
+        Experiment::Resilience => "Figure 9: resilience to rain",
+    }
+}
+
+/// The header of every summary: how it was made.
+fn header(opts: &ReproduceOptions, title: &str, wall: Duration) -> String {
+    let r = &opts.config.reproduce;
+    let mut s = format!("# {title}\n\n");
+    let _ = writeln!(s, "- command: `{}`", opts.command);
+    let _ = writeln!(s, "- commit: {}", opts.commit);
+    let _ = writeln!(
+        s,
+        "- config: {} (meta-train tasks {}, unseen task `{}`, {} meta-epochs, {} gradient steps per epoch, \
+         {} evaluation episodes; datasets of {} transitions by `{}` after {} online steps)",
+        opts.config.origin,
+        r.meta_tasks,
+        r.unseen_task,
+        opts.config.meta.meta_epochs,
+        match opts.config.learner.steps_per_epoch {
+            0 => "one pass of".to_string(),
+            n => n.to_string(),
+        },
+        opts.config.learner.eval_episodes,
+        opts.config.collect.transitions,
+        opts.config.collect.policy,
+        opts.config.collect.dqn_steps,
+    );
+    let _ = writeln!(
+        s,
+        "- seeds: 0..{} (seed s collects with collect.seed + s = {}..{}); every figure is a mean over seeds with a 95% confidence band",
+        r.seeds - 1,
+        opts.config.collect.seed,
+        opts.config.collect.seed + r.seeds as u64 - 1
+    );
+    let _ = writeln!(s, "- wall time: {:.1} min", wall.as_secs_f64() / 60.0);
+    if opts.quick {
+        let _ = writeln!(
+            s,
+            "\n**`--quick`: a tiny run that checks the plumbing only; its numbers say nothing about the claims.**"
+        );
+    }
+    s.push('\n');
+    s
+}
+
+/// Every item the selected experiments need from each seed.
+fn plan(config: &Config, experiments: &[Experiment]) -> Plan {
+    let r = &config.reproduce;
+    let mut plan = Plan::default();
+    let unseen = |method, shots, meta_tasks| figures::unseen_key(config, method, shots, meta_tasks);
+    let episodes = config.learner.eval_episodes;
+    for &e in experiments {
+        match e {
+            Experiment::MetaTraining => plan.init(
+                config,
+                InitKey {
+                    inner: InnerLoss::Cql,
+                    tasks: r.meta_tasks,
+                },
+                e,
+            ),
+            Experiment::Convergence => {
+                for method in Method::ALL {
+                    let key = unseen(method, r.main_shots, r.meta_tasks);
+                    plan.run(config, key, r.convergence_epochs, false, e);
+                }
+                plan.reference(&r.unseen_task, episodes, e);
+            }
+            Experiment::Shots => {
+                for &shots in &r.shots {
+                    for method in [Method::CqlMaml, Method::Cql] {
+                        let key = unseen(method, shots, r.meta_tasks);
+                        plan.run(config, key, r.convergence_epochs, false, e);
+                    }
+                }
+            }
+            Experiment::Tasks => {
+                for &n in &r.task_counts {
+                    let key = unseen(Method::CqlMaml, r.main_shots, n);
+                    plan.run(config, key, r.tasks_epochs, false, e);
+                }
+                let key = unseen(Method::Cql, r.main_shots, 0);
+                plan.run(config, key, r.tasks_epochs, false, e);
+                plan.reference(&r.unseen_task, episodes, e);
+            }
+            Experiment::AoiPower => {
+                for method in [Method::CqlMaml, Method::Cql] {
+                    let key = unseen(method, r.main_shots, r.meta_tasks);
+                    plan.run(config, key, r.aoi_power_epoch, false, e);
+                }
+                plan.reference(&r.unseen_task, episodes, e);
+            }
+            Experiment::Resilience => {
+                for (i, task) in rain_tasks(config).enumerate() {
+                    for method in [Method::CqlMaml, Method::Cql] {
+                        let key = figures::rain_key(config, task, method);
+                        // Figure 9c draws the first rain task's paths.
+                        plan.run(config, key, r.resilience_epochs, i == 0, e);
+                    }
+                    plan.reference(&task.name, r.resilience_eval_episodes, e);
+                }
+            }
+        }
+    }
+    plan
+}
+
+/// The heuristics on every reference task of the plan: seed-free, so computed once.
+fn heuristic_refs(config: &Config, plan: &Plan) -> Vec<HeuristicRef> {
+    plan.references
+        .iter()
+        .map(|need| {
+            let task = config
+                .task(&need.key.task)
+                .expect("validate_reproduce and rain_tasks name existing tasks");
+            let episodes = need.key.episodes;
+            let policies = HEURISTICS
+                .into_iter()
+                .map(|name| {
+                    let spec: PolicySpec = name.parse().expect("the heuristics' names parse");
+                    let mut policy = spec
+                        .build(
+                            config.world.action_count(),
+                            config.learner.eval_seed,
+                            episodes * config.world.horizon as usize,
+                        )
+                        .expect("heuristics build for any world");
+                    let metrics = evaluate(
+                        &config.world,
+                        task,
+                        policy.as_mut(),
+                        episodes,
+                        config.learner.eval_seed,
+                    );
+                    (name, metrics)
+                })
+                .collect();
+            HeuristicRef {
+                task: task.name.clone(),
+                episodes,
+                policies,
+            }
+        })
+        .collect()
+}
+
+/// Runs every seed's pipeline on up to `opts.jobs` threads; results in seed order.
+fn run_seeds(opts: &ReproduceOptions, plan: &Plan) -> Result<Vec<SeedResult>, MetaError> {
+    let seeds = opts.config.reproduce.seeds;
+    let multi = MultiProgress::with_draw_target(if opts.progress {
+        ProgressDrawTarget::stderr()
+    } else {
+        ProgressDrawTarget::hidden()
+    });
+    let style = ProgressStyle::with_template("{prefix:>14} {bar:30} {pos}/{len} {elapsed}/{eta}")
+        .expect("the template is valid");
+    let bars: Vec<(Experiment, ProgressBar)> = opts
+        .experiments
+        .iter()
+        .map(|&e| {
+            let bar = multi.add(ProgressBar::new(plan.units(e) * seeds as u64));
+            bar.set_style(style.clone());
+            bar.set_prefix(e.name());
+            (e, bar)
+        })
+        .collect();
+    let advance = |users: &[Experiment]| {
+        for (e, bar) in &bars {
+            if users.contains(e) {
+                bar.inc(1);
+            }
+        }
+    };
+
+    // libtorch's OpenMP thread count is a per-thread setting: a new thread starts with one per
+    // core, and two seeds spin-waiting on each other's cores ran no faster than one
+    // (docs/BENCHMARKS.md, "Threads"). Each worker takes the count main set.
+    let torch_threads = tch::get_num_threads();
+    let next = AtomicUsize::new(0);
+    let results: Mutex<Vec<Option<Result<SeedResult, MetaError>>>> =
+        Mutex::new((0..seeds).map(|_| None).collect());
+    std::thread::scope(|scope| {
+        for _ in 0..opts.jobs.clamp(1, seeds) {
+            scope.spawn(|| {
+                tch::set_num_threads(torch_threads);
+                loop {
+                    let seed = next.fetch_add(1, Ordering::SeqCst);
+                    if seed >= seeds {
+                        break;
+                    }
+                    let result =
+                        runs::run_seed(opts.config, plan, opts.out_dir, seed as u64, &advance);
+                    let failed = result.is_err();
+                    results.lock().expect("no thread panics holding the lock")[seed] = Some(result);
+                    if failed {
+                        // Leave the remaining seeds undone: the run fails anyway.
+                        next.store(seeds, Ordering::SeqCst);
+                    }
+                }
+            });
+        }
+    });
+    for (_, bar) in &bars {
+        bar.finish_and_clear();
+    }
+    let mut out = Vec::with_capacity(seeds);
+    for result in results
+        .into_inner()
+        .expect("no thread panics holding the lock")
+        .into_iter()
+        .flatten()
+    {
+        out.push(result?);
+    }
+    Ok(out)
+}
+
+fn create_dir(dir: &Path) -> Result<(), MetaError> {
+    std::fs::create_dir_all(dir).map_err(|source| MetaError::Io {
+        path: dir.to_path_buf(),
+        action: "create",
+        source,
+    })
+}
+
+fn write_file(path: &Path, text: &str) -> Result<(), MetaError> {
+    std::fs::write(path, text).map_err(|source| MetaError::Io {
+        path: path.to_path_buf(),
+        action: "write",
+        source,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn choices_select_their_experiments() {
+        assert_eq!(Experiment::select("all").unwrap(), Experiment::ALL.to_vec());
+        for e in Experiment::ALL {
+            assert_eq!(Experiment::select(e.name()).unwrap(), vec![e]);
+        }
+        assert_eq!(Experiment::AoiPower.name(), "aoi-power");
+        assert!(Experiment::select("bogus").is_none());
+    }
+
+    #[test]
+    fn all_experiments_share_one_cql_maml_init_and_its_runs() {
+        let mut config = Config::default();
+        config.reproduce.task_counts = vec![2, 8];
+        config.tasks.push(TaskConfig::one_off(
+            300.0,
+            Some(uavmeta_proto::config::RainZone {
+                x0: 1,
+                y0: 1,
+                x1: 2,
+                y1: 2,
+            }),
+        ));
+        let plan = plan(&config, &Experiment::ALL);
+        // CQL-MAML on 2 and 8 tasks, DQN-MAML on 8.
+        assert_eq!(plan.inits.len(), 3);
+        let main = plan
+            .runs
+            .iter()
+            .find(|r| {
+                r.need.key.method == Method::CqlMaml
+                    && r.need.key.task == "lambda-300"
+                    && r.need.key.shots == 500
+                    && r.need.key.meta_tasks == 8
+            })
+            .unwrap();
+        assert_eq!(main.epochs, 100);
+        assert_eq!(
+            main.need.users,
+            vec![
+                Experiment::Convergence,
+                Experiment::Shots,
+                Experiment::Tasks,
+                Experiment::AoiPower
+            ]
+        );
+        // 4 methods + 2 x 2 more shot counts + CQL-MAML on 2 tasks + 2 on the rain task.
+        assert_eq!(plan.runs.len(), 4 + 4 + 1 + 2);
+        assert_eq!(plan.runs.iter().filter(|r| r.trajectory).count(), 2);
+    }
+
+    #[test]
+    fn quick_keeps_datasets_collectable() {
+        let quick = quick_config(&Config::default());
+        assert!(quick.collect.dqn_steps >= quick.collect.transitions);
+        assert!(quick.collect.replay_capacity >= quick.collect.transitions);
+        quick.validate().unwrap();
+        assert_eq!(quick.reproduce.seeds, 2);
+    }
+}

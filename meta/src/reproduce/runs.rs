@@ -1,0 +1,582 @@
+//! What one seed of a reproduction computes, and the artefacts it caches under
+//! `OUT/cache/seed-S/`: every task's dataset, the online DQN reference agents, the meta-trained
+//! w0s, then every fine-tuning run the selected experiments need (each run once, as long as the
+//! longest experiment using it asks: a fine-tuning run's first E epochs do not depend on how many
+//! epochs follow, so shorter experiments read a prefix).
+//!
+//! A cached artefact is reused only when the config saved beside it (`collect`'s
+//! `FILE.config.toml`, a checkpoint's `P.toml`) is the text of the config that would make it now;
+//! anything else is made again, so a changed key can never leave a stale dataset or w0 in use.
+
+use std::path::{Path, PathBuf};
+
+use indicatif::ProgressBar;
+use uavmeta_actors::collect::{collect, config_path};
+use uavmeta_actors::dqn_online::OnlineDqn;
+use uavmeta_actors::q_policy::{Evaluator, QPolicy};
+use uavmeta_actors::rollout::{record_trajectory, Trajectory};
+use uavmeta_learner::checkpoint::{self, CheckpointPaths};
+use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::train::{Algorithm, EpochRow, EvaluatePolicy};
+use uavmeta_proto::config::{
+    Config, InnerLoss, MetaConfig, ReproduceConfig, RunConfig, TaskConfig, TaskRole,
+};
+use uavmeta_proto::dataset::DatasetReader;
+use uavmeta_proto::stats::PolicyMetrics;
+
+use super::Experiment;
+use crate::meta_test::{fine_tune, load_shots, FineTune};
+use crate::meta_train::{algorithm_name, dataset_path, meta_train, MetaTrainOptions};
+use crate::MetaError;
+
+/// The four methods of the paper's comparison on an unseen task.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Method {
+    CqlMaml,
+    Cql,
+    Dqn,
+    DqnMaml,
+}
+
+impl Method {
+    pub const ALL: [Method; 4] = [Method::CqlMaml, Method::Cql, Method::Dqn, Method::DqnMaml];
+
+    /// The name in CSV files and checkpoints.
+    pub fn name(self) -> &'static str {
+        match self {
+            Method::CqlMaml => algorithm_name(InnerLoss::Cql),
+            Method::Cql => "cql",
+            Method::Dqn => "dqn",
+            Method::DqnMaml => algorithm_name(InnerLoss::Dqn),
+        }
+    }
+
+    /// The name in figures and tables, as the paper writes it.
+    pub fn label(self) -> &'static str {
+        match self {
+            Method::CqlMaml => "CQL-MAML",
+            Method::Cql => "CQL",
+            Method::Dqn => "DQN",
+            Method::DqnMaml => "DQN-MAML",
+        }
+    }
+
+    /// The fine-tuning loss.
+    fn algorithm(self) -> Algorithm {
+        match self {
+            Method::CqlMaml | Method::Cql => Algorithm::Cql,
+            Method::Dqn | Method::DqnMaml => Algorithm::Dqn,
+        }
+    }
+
+    /// The inner loss of the meta-training that makes its init; `None` for a random init.
+    pub fn meta_trained(self) -> Option<InnerLoss> {
+        match self {
+            Method::CqlMaml => Some(InnerLoss::Cql),
+            Method::DqnMaml => Some(InnerLoss::Dqn),
+            Method::Cql | Method::Dqn => None,
+        }
+    }
+}
+
+/// A meta-trained w0: its inner loss and the number of meta-train tasks (the first n).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct InitKey {
+    pub inner: InnerLoss,
+    pub tasks: usize,
+}
+
+/// One fine-tuning run, whatever its length.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RunKey {
+    pub task: String,
+    pub method: Method,
+    pub shots: usize,
+    /// Meta-train tasks behind the init; 0 for a random init.
+    pub meta_tasks: usize,
+    pub eval_episodes: usize,
+}
+
+impl RunKey {
+    pub fn init(&self) -> Option<InitKey> {
+        self.method.meta_trained().map(|inner| InitKey {
+            inner,
+            tasks: self.meta_tasks,
+        })
+    }
+}
+
+/// A reference line on a task: the online DQN agent, evaluated over `episodes`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RefKey {
+    pub task: String,
+    pub episodes: usize,
+}
+
+/// Something a seed computes, with the experiments that use it (whose progress bars it moves).
+#[derive(Debug, Clone)]
+pub struct Need<K> {
+    pub key: K,
+    pub users: Vec<Experiment>,
+}
+
+/// A fine-tuning run to do: as many epochs as its longest user asks for.
+#[derive(Debug, Clone)]
+pub struct RunNeed {
+    pub need: Need<RunKey>,
+    pub epochs: usize,
+    /// Record the final greedy policy's path (figure 9c).
+    pub trajectory: bool,
+}
+
+/// Everything every seed computes for the selected experiments, each item once.
+#[derive(Debug, Clone, Default)]
+pub struct Plan {
+    /// Task names, collected in this order.
+    pub datasets: Vec<Need<String>>,
+    pub references: Vec<Need<RefKey>>,
+    pub inits: Vec<Need<InitKey>>,
+    pub runs: Vec<RunNeed>,
+}
+
+fn add<K: PartialEq>(needs: &mut Vec<Need<K>>, key: K, user: Experiment) -> usize {
+    match needs.iter().position(|n| n.key == key) {
+        Some(i) => {
+            if !needs[i].users.contains(&user) {
+                needs[i].users.push(user);
+            }
+            i
+        }
+        None => {
+            needs.push(Need {
+                key,
+                users: vec![user],
+            });
+            needs.len() - 1
+        }
+    }
+}
+
+impl Plan {
+    pub fn dataset(&mut self, task: &str, user: Experiment) {
+        add(&mut self.datasets, task.to_string(), user);
+    }
+
+    /// A meta-trained w0 and the datasets of its tasks.
+    pub fn init(&mut self, config: &Config, key: InitKey, user: Experiment) {
+        for task in meta_train_tasks(config, key.tasks) {
+            self.dataset(&task.name, user);
+        }
+        add(&mut self.inits, key, user);
+    }
+
+    pub fn reference(&mut self, task: &str, episodes: usize, user: Experiment) {
+        self.dataset(task, user);
+        let key = RefKey {
+            task: task.to_string(),
+            episodes,
+        };
+        add(&mut self.references, key, user);
+    }
+
+    pub fn run(
+        &mut self,
+        config: &Config,
+        key: RunKey,
+        epochs: usize,
+        trajectory: bool,
+        user: Experiment,
+    ) {
+        self.dataset(&key.task, user);
+        if let Some(init) = key.init() {
+            self.init(config, init, user);
+        }
+        match self.runs.iter_mut().find(|r| r.need.key == key) {
+            Some(run) => {
+                run.epochs = run.epochs.max(epochs);
+                run.trajectory |= trajectory;
+                if !run.need.users.contains(&user) {
+                    run.need.users.push(user);
+                }
+            }
+            None => self.runs.push(RunNeed {
+                need: Need {
+                    key,
+                    users: vec![user],
+                },
+                epochs,
+                trajectory,
+            }),
+        }
+    }
+
+    /// Units of work of `experiment` in one seed, the length of its progress bar per seed.
+    pub fn units(&self, experiment: Experiment) -> u64 {
+        let uses = |users: &[Experiment]| users.contains(&experiment) as u64;
+        self.datasets.iter().map(|n| uses(&n.users)).sum::<u64>()
+            + self.references.iter().map(|n| uses(&n.users)).sum::<u64>()
+            + self.inits.iter().map(|n| uses(&n.users)).sum::<u64>()
+            + self.runs.iter().map(|r| uses(&r.need.users)).sum::<u64>()
+    }
+}
+
+/// The first `n` meta-train tasks in config order.
+pub fn meta_train_tasks(config: &Config, n: usize) -> impl Iterator<Item = &TaskConfig> {
+    config.tasks_with_role(TaskRole::MetaTrain).take(n)
+}
+
+/// The meta-train curve of a w0 (figure 4): meta-loss per meta-epoch, and per evaluated
+/// meta-epoch each task's greedy return after adaptation.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct MetaCurve {
+    pub meta_loss: Vec<f64>,
+    pub returns: Vec<(usize, Vec<f64>)>,
+}
+
+/// A finished fine-tuning run.
+#[derive(Debug, Clone)]
+pub struct RunResult {
+    pub rows: Vec<EpochRow>,
+    pub trajectory: Option<Trajectory>,
+}
+
+/// What one seed measured.
+#[derive(Debug, Clone)]
+pub struct SeedResult {
+    pub seed: u64,
+    pub inits: Vec<(InitKey, MetaCurve)>,
+    /// The online DQN agent of each reference task.
+    pub references: Vec<(RefKey, PolicyMetrics)>,
+    pub runs: Vec<(RunKey, RunResult)>,
+}
+
+impl SeedResult {
+    pub fn run(&self, key: &RunKey) -> &RunResult {
+        self.runs
+            .iter()
+            .find(|(k, _)| k == key)
+            .map(|(_, r)| r)
+            .expect("every run an experiment reads is in the plan it built")
+    }
+
+    pub fn reference(&self, task: &str, episodes: usize) -> &PolicyMetrics {
+        self.references
+            .iter()
+            .find(|(k, _)| k.task == task && k.episodes == episodes)
+            .map(|(_, m)| m)
+            .expect("every reference an experiment reads is in the plan it built")
+    }
+
+    pub fn meta_curve(&self, key: InitKey) -> &MetaCurve {
+        self.inits
+            .iter()
+            .find(|(k, _)| *k == key)
+            .map(|(_, c)| c)
+            .expect("every init an experiment reads is in the plan it built")
+    }
+}
+
+/// The config that collects seed `seed`'s datasets and trains its online DQN agents: the run's,
+/// with `collect.seed` offset by the seed and the sections that cannot change a dataset
+/// (`[meta]`, `[run]`, `[reproduce]`) at their defaults, so changing them keeps the cache.
+fn collection_config(config: &Config, seed: u64) -> Config {
+    let mut c = config.clone();
+    c.collect.seed = config.collect.seed + seed;
+    c.meta = MetaConfig::default();
+    c.run = RunConfig::default();
+    c.reproduce = ReproduceConfig::default();
+    c
+}
+
+/// The config of one meta-training: the run's, with its tasks cut to the first `key.tasks`
+/// meta-train tasks, the inner loss of `key`, figure 4's evaluation interval (evaluating does not
+/// change training, so every w0 shares it and one w0 serves every figure) and `[reproduce]` at
+/// its defaults, which meta-training does not read.
+fn meta_config(config: &Config, key: InitKey, seed: u64) -> Config {
+    let mut c = collection_config(config, seed);
+    c.meta = config.meta.clone();
+    c.meta.inner_loss = key.inner;
+    c.meta.eval_every = config.reproduce.meta_eval_every;
+    c.tasks = meta_train_tasks(config, key.tasks).cloned().collect();
+    c
+}
+
+/// Whether a config saved at `path` has exactly the text `config` would save.
+fn saved_config_matches(path: &Path, config: &Config) -> bool {
+    std::fs::read_to_string(path).is_ok_and(|text| text == config.to_toml_string())
+}
+
+/// Where seed `seed` caches its artefacts.
+pub fn seed_dir(out: &Path, seed: u64) -> PathBuf {
+    out.join("cache").join(format!("seed-{seed}"))
+}
+
+/// One seed's whole pipeline; `bars` is told the users of every item done, to move their
+/// progress bars.
+pub fn run_seed(
+    config: &Config,
+    plan: &Plan,
+    out: &Path,
+    seed: u64,
+    bars: &dyn Fn(&[Experiment]),
+) -> Result<SeedResult, MetaError> {
+    let dir = seed_dir(out, seed);
+    let datasets = dir.join("datasets");
+    create_dir(&datasets)?;
+    let collection = collection_config(config, seed);
+    for need in &plan.datasets {
+        ensure_dataset(&collection, &need.key, &dataset_path(&datasets, &need.key))?;
+        bars(&need.users);
+    }
+    let mut references = Vec::with_capacity(plan.references.len());
+    for need in &plan.references {
+        let task = config.task(&need.key.task)?;
+        // A directory per task: checkpoint names drop anything after a dot, task names may not.
+        let path = dir.join("online-dqn").join(&task.name).join("agent");
+        let agent = online_dqn(&collection, task, &path)?;
+        let metrics = Evaluator::new(
+            &config.world,
+            task,
+            need.key.episodes,
+            config.learner.eval_seed,
+        )
+        .evaluate(&agent);
+        tracing::info!(seed, task = %task.name, ret = %metrics.ret, aoi = %metrics.aoi, power_mw = %metrics.power_mw, "online DQN reference");
+        references.push((need.key.clone(), metrics));
+        bars(&need.users);
+    }
+    let mut inits = Vec::with_capacity(plan.inits.len());
+    for need in &plan.inits {
+        let (w0, curve) = ensure_w0(config, need.key, &datasets, &dir, seed)?;
+        inits.push((need.key, w0, curve));
+        bars(&need.users);
+    }
+    let mut runs = Vec::with_capacity(plan.runs.len());
+    for run in &plan.runs {
+        let key = &run.need.key;
+        let task = config.task(&key.task)?;
+        let shots = load_shots(
+            config,
+            task,
+            &dataset_path(&datasets, &task.name),
+            key.shots,
+            seed,
+        )?;
+        let mut q = match key.init() {
+            Some(init) => {
+                let (_, w0, _) = inits
+                    .iter()
+                    .find(|(k, _, _)| *k == init)
+                    .expect("Plan::run adds the init of every meta-trained run");
+                checkpoint::load(w0, config)?.0
+            }
+            None => QNetwork::new(
+                config.world.observation_len(),
+                config.world.action_count(),
+                &config.learner.hidden,
+                seed,
+            ),
+        };
+        let mut run_config = config.clone();
+        run_config.learner.eval_episodes = key.eval_episodes;
+        let rows = fine_tune(
+            &mut q,
+            &shots,
+            key.method.algorithm(),
+            &FineTune {
+                config: &run_config,
+                task,
+                epochs: run.epochs,
+                seed,
+                out_dir: None,
+                progress: false,
+            },
+        )?;
+        let trajectory = run.trajectory.then(|| {
+            record_trajectory(
+                &config.world,
+                task,
+                &mut QPolicy::new(&q),
+                config.learner.eval_seed,
+            )
+        });
+        if let Some(last) = rows.last() {
+            tracing::info!(seed, task = %task.name, method = key.method.name(), shots = key.shots, meta_tasks = key.meta_tasks, epochs = run.epochs, ret = %last.policy.ret, "fine-tuned");
+        }
+        runs.push((key.clone(), RunResult { rows, trajectory }));
+        bars(&run.need.users);
+    }
+    Ok(SeedResult {
+        seed,
+        inits: inits.into_iter().map(|(k, _, c)| (k, c)).collect(),
+        references,
+        runs,
+    })
+}
+
+fn create_dir(dir: &Path) -> Result<(), MetaError> {
+    std::fs::create_dir_all(dir).map_err(|source| MetaError::Io {
+        path: dir.to_path_buf(),
+        action: "create",
+        source,
+    })
+}
+
+/// Collects `task`'s dataset into `path` with `collection` (the actors' code path), unless the
+/// file there is complete and was collected with exactly this config.
+fn ensure_dataset(collection: &Config, task: &str, path: &Path) -> Result<(), MetaError> {
+    if saved_config_matches(&config_path(path), collection) {
+        let complete = DatasetReader::open(path).is_ok_and(|reader| {
+            reader.check_world(collection).is_ok()
+                && reader.transitions().len() == collection.collect.transitions
+        });
+        if complete {
+            tracing::debug!(dataset = %path.display(), "reusing");
+            return Ok(());
+        }
+    }
+    collect(collection, task, path, &ProgressBar::hidden())?;
+    Ok(())
+}
+
+/// The online DQN agent of `task`: the behaviour agent of its dataset (same config, task id,
+/// actor 0 and seed as `collect`, so the same network), cached as checkpoint `path`.
+fn online_dqn(collection: &Config, task: &TaskConfig, path: &Path) -> Result<QNetwork, MetaError> {
+    if saved_config_matches(&CheckpointPaths::new(path).config, collection) {
+        if let Ok((q, _)) = checkpoint::load(path, collection) {
+            return Ok(q);
+        }
+    }
+    let task_id = collection.task_id(&task.name)? as u32;
+    let mut agent = OnlineDqn::new(collection, task, task_id, 0, collection.collect.seed);
+    agent.train().map_err(MetaError::OnlineDqn)?;
+    checkpoint::save(
+        path,
+        agent.q_network(),
+        "dqn-online",
+        collection.collect.dqn_steps,
+        collection,
+    )?;
+    Ok(agent.q_network().duplicate())
+}
+
+/// Meta-trains the w0 of `key` into `DIR/<cql-maml|dqn-maml>-tasks-N/`, unless that directory
+/// holds one made with the same config; returns its checkpoint and meta-train curve.
+fn ensure_w0(
+    config: &Config,
+    key: InitKey,
+    datasets: &Path,
+    dir: &Path,
+    seed: u64,
+) -> Result<(PathBuf, MetaCurve), MetaError> {
+    let meta = meta_config(config, key, seed);
+    let out = dir.join(format!("{}-tasks-{}", algorithm_name(key.inner), key.tasks));
+    let w0 = out.join("w0");
+    if saved_config_matches(&CheckpointPaths::new(&w0).config, &meta) {
+        let csv = out.join("meta_train.csv");
+        match std::fs::read_to_string(&csv)
+            .ok()
+            .and_then(|text| parse_meta_csv(&text, key.tasks))
+        {
+            Some(curve) if curve.meta_loss.len() == meta.meta.meta_epochs => {
+                return Ok((w0, curve))
+            }
+            _ => {
+                tracing::warn!(csv = %csv.display(), "unreadable or incomplete; meta-training again")
+            }
+        }
+    }
+    let result = meta_train(&MetaTrainOptions {
+        config: &meta,
+        datasets,
+        out_dir: &out,
+        seed,
+        progress: false,
+    })?;
+    let curve = MetaCurve {
+        meta_loss: result.rows.iter().map(|r| r.epoch.meta_loss).collect(),
+        returns: result
+            .rows
+            .iter()
+            .filter_map(|r| r.returns.clone().map(|ret| (r.epoch.epoch, ret)))
+            .collect(),
+    };
+    Ok((result.w0, curve))
+}
+
+/// Reads back `meta_train.csv` of `tasks` tasks (columns: meta_epoch, meta_loss, one loss and
+/// then one return per task, seconds; empty returns on meta-epochs that were not evaluated).
+fn parse_meta_csv(text: &str, tasks: usize) -> Option<MetaCurve> {
+    let mut curve = MetaCurve::default();
+    for line in text.lines().skip(1) {
+        let cells: Vec<&str> = line.split(',').collect();
+        if cells.len() != 3 + 2 * tasks {
+            return None;
+        }
+        let epoch: usize = cells[0].parse().ok()?;
+        curve.meta_loss.push(cells[1].parse().ok()?);
+        let returns = &cells[2 + tasks..2 + 2 * tasks];
+        if returns.iter().all(|c| !c.is_empty()) {
+            let parsed = returns
+                .iter()
+                .map(|c| c.parse().ok())
+                .collect::<Option<_>>()?;
+            curve.returns.push((epoch, parsed));
+        }
+    }
+    Some(curve)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn meta_csv_reads_back_losses_and_evaluated_returns() {
+        let text = "meta_epoch,meta_loss,loss_a,loss_b,return_a,return_b,seconds\n\
+                    1,2.5,1,1.5,,,0.1\n\
+                    2,2.0,0.9,1.1,-800,-900.5,0.2\n";
+        let curve = parse_meta_csv(text, 2).unwrap();
+        assert_eq!(curve.meta_loss, vec![2.5, 2.0]);
+        assert_eq!(curve.returns, vec![(2, vec![-800.0, -900.5])]);
+        // A file of another task count is not this w0's.
+        assert!(parse_meta_csv(text, 3).is_none());
+    }
+
+    #[test]
+    fn a_run_needed_twice_is_planned_once_at_its_longest() {
+        let config = Config::default();
+        let key = RunKey {
+            task: "lambda-300".into(),
+            method: Method::CqlMaml,
+            shots: 500,
+            meta_tasks: 8,
+            eval_episodes: 20,
+        };
+        let mut plan = Plan::default();
+        plan.run(&config, key.clone(), 100, false, Experiment::Convergence);
+        plan.run(&config, key.clone(), 50, false, Experiment::AoiPower);
+        plan.run(
+            &config,
+            RunKey {
+                method: Method::Cql,
+                meta_tasks: 0,
+                ..key
+            },
+            40,
+            false,
+            Experiment::AoiPower,
+        );
+        assert_eq!(plan.runs.len(), 2);
+        assert_eq!(plan.runs[0].epochs, 100);
+        assert_eq!(
+            plan.runs[0].need.users,
+            vec![Experiment::Convergence, Experiment::AoiPower]
+        );
+        // The init of the CQL-MAML run and the datasets of its eight tasks plus the unseen one.
+        assert_eq!(plan.inits.len(), 1);
+        assert_eq!(plan.datasets.len(), 9);
+        assert_eq!(plan.units(Experiment::AoiPower), 9 + 1 + 2);
+        assert_eq!(plan.units(Experiment::Convergence), 9 + 1 + 1);
+    }
+}

@@ -1,0 +1,253 @@
+//! `uavmeta reproduce --quick` end to end, as CI runs it: every CSV, PNG and summary exists and is
+//! well-formed (not the numbers: `--quick` checks plumbing), a rerun reuses the cache, and bad
+//! input is refused with a message rather than a panic.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+use uavmeta_meta::reproduce::quick_config;
+use uavmeta_proto::config::Config;
+
+const CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/configs/reproduce.toml");
+
+fn uavmeta(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_uavmeta"))
+        .arg("reproduce")
+        .args(["--config", CONFIG])
+        .args(args)
+        .output()
+        .expect("run uavmeta")
+}
+
+fn succeed(output: &Output) {
+    assert!(
+        output.status.success(),
+        "uavmeta failed: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+}
+
+fn read(path: &Path) -> String {
+    std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+/// Checks `path` has exactly `header` and `rows` data rows, each with the header's column count.
+fn check_csv(path: &Path, header: &str, rows: usize) {
+    let text = read(path);
+    let mut lines = text.lines();
+    assert_eq!(lines.next(), Some(header), "{}", path.display());
+    let columns = header.split(',').count();
+    let data: Vec<&str> = lines.collect();
+    assert_eq!(data.len(), rows, "{}", path.display());
+    for line in data {
+        assert_eq!(
+            line.split(',').count(),
+            columns,
+            "{}: {line}",
+            path.display()
+        );
+    }
+}
+
+fn check_png(path: &Path) {
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    assert!(
+        bytes.starts_with(b"\x89PNG\r\n\x1a\n"),
+        "{}: not a PNG",
+        path.display()
+    );
+    assert!(
+        bytes.len() > 1000,
+        "{}: {} bytes",
+        path.display(),
+        bytes.len()
+    );
+}
+
+/// The claims of SPEC section 6, one table row each.
+const CLAIMS: [&str; 13] = [
+    "DQN and DQN-MAML trained offline fail to converge",
+    "CQL from a random init needs more than 100 epochs",
+    "CQL-MAML converges in fewer than 40 epochs",
+    "both end above the online DQN agent",
+    "CQL-MAML beats CQL at every number of shots",
+    "CQL depends on the number of shots far more",
+    "More meta-training tasks, better",
+    "At least 8 tasks are needed to beat online DQN",
+    "Even 2 meta-training tasks beat plain CQL",
+    "lambda = 300 after 50 epochs",
+    "CQL-MAML converges within 100 epochs and reaches about zero outages",
+    "CQL does not converge in 200 epochs",
+    "CQL-MAML flying around the rain zone",
+];
+
+#[test]
+fn quick_reproduction_writes_every_figure_table_and_claim() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path();
+    let out_arg = out.to_str().unwrap();
+    succeed(&uavmeta(&[
+        "--experiment",
+        "all",
+        "--quick",
+        "--out",
+        out_arg,
+    ]));
+
+    // The sizes the files must have, from the same config and quick reduction the binary used.
+    let config = quick_config(&Config::load(Path::new(CONFIG), &[]).unwrap());
+    let r = &config.reproduce;
+    let seeds = r.seeds;
+    let rain = config.tasks.iter().filter(|t| t.rain.is_some()).count();
+    let meta_tasks = r.meta_tasks;
+    let curve = "seed,epoch,return,return_ci95,aoi,power_mw,outages";
+
+    let meta = out.join("meta-training");
+    check_csv(
+        &meta.join("fig4a_meta_loss.csv"),
+        "seed,meta_epoch,meta_loss",
+        seeds * config.meta.meta_epochs,
+    );
+    check_csv(
+        &meta.join("fig4b_returns.csv"),
+        "seed,meta_epoch,task,return",
+        seeds * config.meta.meta_epochs * meta_tasks,
+    );
+    check_csv(
+        &out.join("convergence/curves.csv"),
+        &format!("method,{curve}"),
+        4 * seeds * r.convergence_epochs,
+    );
+    check_csv(
+        &out.join("convergence/references.csv"),
+        "reference,task,seed,return,aoi,power_mw,outages",
+        seeds + 3,
+    );
+    check_csv(
+        &out.join("shots/curves.csv"),
+        &format!("method,shots,{curve}"),
+        r.shots.len() * 2 * seeds * r.convergence_epochs,
+    );
+    check_csv(
+        &out.join("tasks/curves.csv"),
+        &format!("method,tasks,{curve}"),
+        (r.task_counts.len() + 1) * seeds * r.tasks_epochs,
+    );
+    check_csv(
+        &out.join("aoi-power/bars.csv"),
+        "method,seed,aoi,power_mw",
+        3 * seeds + 3,
+    );
+    check_csv(
+        &out.join("resilience/curves.csv"),
+        &format!("method,task,{curve}"),
+        2 * rain * seeds * r.resilience_epochs,
+    );
+    check_csv(
+        &out.join("resilience/fig9c_trajectories.csv"),
+        "method,t,x,y",
+        2 * (config.world.horizon as usize + 1),
+    );
+    for png in [
+        "meta-training/fig4a_meta_loss.png",
+        "meta-training/fig4b_returns.png",
+        "convergence/fig5.png",
+        "shots/fig6.png",
+        "tasks/fig7.png",
+        "aoi-power/fig8a_aoi.png",
+        "aoi-power/fig8b_power.png",
+        "resilience/fig9a_return.png",
+        "resilience/fig9b_outages.png",
+        "resilience/fig9c_trajectories.png",
+    ] {
+        check_png(&out.join(png));
+    }
+
+    for experiment in [
+        "meta-training",
+        "convergence",
+        "shots",
+        "tasks",
+        "aoi-power",
+        "resilience",
+    ] {
+        let summary = read(&out.join(experiment).join("summary.md"));
+        assert!(summary.starts_with("# Figure"), "{experiment}: {summary}");
+        for part in [
+            "- command: `",
+            "--quick",
+            "- commit: ",
+            "- seeds: 0..1",
+            "- wall time: ",
+        ] {
+            assert!(
+                summary.contains(part),
+                "{experiment}: no `{part}` in {summary}"
+            );
+        }
+    }
+    let summary = read(&out.join("summary.md"));
+    for claim in CLAIMS {
+        let rows: Vec<&str> = summary
+            .lines()
+            .filter(|l| l.starts_with('|') && l.contains(claim))
+            .collect();
+        assert_eq!(rows.len(), 1, "claim `{claim}` in {summary}");
+        let cells: Vec<&str> = rows[0].split('|').map(str::trim).collect();
+        // | fig. | paper | measured | holds? | why |
+        assert_eq!(cells.len(), 7, "{}", rows[0]);
+        assert!(!cells[3].is_empty(), "{}", rows[0]);
+        assert!(
+            ["yes", "partly", "no", "untested"].contains(&cells[4]),
+            "{}",
+            rows[0]
+        );
+        assert_eq!(cells[5].is_empty(), cells[4] == "yes", "{}", rows[0]);
+    }
+
+    // A second run reuses the seeds' datasets and w0s: same files, same figures.
+    let dataset = out.join("cache/seed-0/datasets/lambda-0.uavds");
+    let w0 = out.join("cache/seed-0/cql-maml-tasks-8/w0.safetensors");
+    let stamps =
+        |paths: [&Path; 2]| paths.map(|p| std::fs::metadata(p).unwrap().modified().unwrap());
+    let before = stamps([&dataset, &w0]);
+    let loss = read(&meta.join("fig4a_meta_loss.csv"));
+    succeed(&uavmeta(&[
+        "--experiment",
+        "meta-training",
+        "--quick",
+        "--out",
+        out_arg,
+    ]));
+    assert_eq!(stamps([&dataset, &w0]), before);
+    assert_eq!(read(&meta.join("fig4a_meta_loss.csv")), loss);
+}
+
+#[test]
+fn unknown_experiments_and_bad_sections_are_refused_by_name() {
+    let output = uavmeta(&["--experiment", "bogus", "--quick"]);
+    assert_eq!(output.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    for choice in ["bogus", "all", "meta-training", "aoi-power", "resilience"] {
+        assert!(stderr.contains(choice), "`{choice}` missing from: {stderr}");
+    }
+
+    let dir = tempfile::tempdir().unwrap();
+    let output = uavmeta(&[
+        "--quick",
+        "--set",
+        "reproduce.unseen_task=\"lambda-0\"",
+        "--out",
+        dir.path().to_str().unwrap(),
+    ]);
+    assert_eq!(output.status.code(), Some(1));
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.starts_with("uavmeta: ")
+            && stderr.contains("reproduce.toml")
+            && stderr.contains("reproduce.unseen_task")
+            && stderr.contains("meta-test")
+            && !stderr.contains("panicked"),
+        "{stderr}"
+    );
+}
