@@ -207,7 +207,8 @@ impl OnlineDqn {
         self.steps += 1;
         self.episode_return += step.reward;
 
-        if self.steps >= self.collect.learning_starts && self.steps.is_multiple_of(self.collect.train_every)
+        if self.steps >= self.collect.learning_starts
+            && self.steps.is_multiple_of(self.collect.train_every)
         {
             self.gradient_step()?;
         }
@@ -242,7 +243,10 @@ impl OnlineDqn {
         );
         self.opt.backward_step(&loss);
         self.gradient_steps += 1;
-        if self.gradient_steps.is_multiple_of(self.learner.target_update_every) {
+        if self
+            .gradient_steps
+            .is_multiple_of(self.learner.target_update_every)
+        {
             self.target.copy_from(&self.q);
         }
         Ok(())

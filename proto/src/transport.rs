@@ -1123,8 +1123,7 @@ mod tests {
                     .unwrap(),
             )
             .expect("create the foreign service");
-        let err = transition_service(&node, &names, "t", &config.run)
-            .expect_err("must refuse");
+        let err = transition_service(&node, &names, "t", &config.run).expect_err("must refuse");
         match &err {
             TransportError::SchemaMismatch { theirs, .. } => assert_eq!(theirs, &foreign),
             other => panic!("expected a schema mismatch, got {other}"),

@@ -455,7 +455,7 @@ fn run_seeds(opts: &ReproduceOptions, plan: &Plan) -> Result<Vec<SeedResult>, Me
     Ok(out)
 }
 
-fn create_dir(dir: &Path) -> Result<(), MetaError> {
+pub(super) fn create_dir(dir: &Path) -> Result<(), MetaError> {
     std::fs::create_dir_all(dir).map_err(|source| MetaError::Io {
         path: dir.to_path_buf(),
         action: "create",

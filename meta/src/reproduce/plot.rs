@@ -153,6 +153,8 @@ pub fn line_chart(path: &Path, chart: &LineChart) -> Result<(), PlotError> {
         ctx.configure_mesh()
             .x_desc(chart.x_label)
             .y_desc(chart.y_label)
+            .x_label_formatter(&|&x| axis_tick(x))
+            .y_label_formatter(&|&y| axis_tick(y))
             .label_style((FONT, 14))
             .axis_desc_style((FONT, 16))
             .light_line_style(WHITE.mix(0.0))
@@ -537,6 +539,15 @@ fn first_appearance<'a>(items: impl Iterator<Item = &'a str>) -> Vec<&'a str> {
     seen
 }
 
+/// An axis tick: whole numbers without decimals (epoch 10, not 10.0), others as [`significant`].
+fn axis_tick(value: f64) -> String {
+    if value == value.round() {
+        format!("{value:.0}")
+    } else {
+        significant(value)
+    }
+}
+
 /// `value` to three significant digits, without exponent: 0.634, 5.41, -452.
 fn significant(value: f64) -> String {
     let magnitude = if value == 0.0 {
@@ -849,6 +860,13 @@ mod tests {
             err.to_string().starts_with(&path.display().to_string()),
             "{err}"
         );
+    }
+
+    #[test]
+    fn axis_ticks_print_whole_numbers_without_decimals() {
+        assert_eq!(axis_tick(10.0), "10");
+        assert_eq!(axis_tick(-450.0), "-450");
+        assert_eq!(axis_tick(0.25), "0.250");
     }
 
     #[test]

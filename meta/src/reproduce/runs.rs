@@ -24,7 +24,7 @@ use uavmeta_proto::config::{
 use uavmeta_proto::dataset::DatasetReader;
 use uavmeta_proto::stats::PolicyMetrics;
 
-use super::Experiment;
+use super::{create_dir, Experiment};
 use crate::meta_test::{fine_tune, load_shots, FineTune};
 use crate::meta_train::{algorithm_name, dataset_path, meta_train, MetaTrainOptions};
 use crate::MetaError;
@@ -411,14 +411,6 @@ pub fn run_seed(
         inits: inits.into_iter().map(|(k, _, c)| (k, c)).collect(),
         references,
         runs,
-    })
-}
-
-fn create_dir(dir: &Path) -> Result<(), MetaError> {
-    std::fs::create_dir_all(dir).map_err(|source| MetaError::Io {
-        path: dir.to_path_buf(),
-        action: "create",
-        source,
     })
 }
 
