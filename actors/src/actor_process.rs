@@ -25,7 +25,8 @@ use uavmeta_proto::config::{Config, ConfigError, TaskConfig};
 use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::stats::EpisodeMetrics;
 use uavmeta_proto::transport::{
-    self, RunDir, ServiceNames, TransitionPublisher, TransitionSlot, TransportError, SCHEMA_VERSION,
+    self, RunDir, ServiceNames, SubscriberSet, TransitionPublisher, TransitionSlot, TransportError,
+    SCHEMA_VERSION,
 };
 
 use crate::collect::{online_dqn_dataset, CollectError};
@@ -104,6 +105,7 @@ mod metrics {
         pub steps: IntCounter,
         pub transitions_published: IntCounter,
         pub batches_resent: IntCounter,
+        pub transitions_lost: IntCounter,
         pub batches_published: IntCounter,
         pub episodes: IntCounter,
         pub episode_return: Gauge,
@@ -132,6 +134,7 @@ mod metrics {
                 steps: counter(&registry, "actor_steps_total", "Environment steps taken (for dqn-online, training steps included)."),
                 transitions_published: counter(&registry, "actor_transitions_published_total", "Transitions delivered to the store's service."),
                 batches_resent: counter(&registry, "actor_batches_resent_total", "Batches sent again because iceoryx2 reported them delivered to no store."),
+                transitions_lost: counter(&registry, "actor_transitions_lost_total", "Transitions delivered to no store because the connected store went away during the send; the restarted store counts them as missing."),
                 batches_published: counter(&registry, "actor_batches_published_total", "Batches sent to the store's service."),
                 episodes: counter(&registry, "actor_episodes_total", "Episodes finished by the behaviour policy."),
                 episode_return: gauge("actor_episode_return", "Return of the last finished episode."),
@@ -288,6 +291,7 @@ pub fn run(
 
     let limit = options.transitions.unwrap_or(u64::MAX);
     let mut seq = 0u64;
+    let mut link = StoreLink::default();
     let mut outbox: Vec<TransitionSlot> = Vec::with_capacity(publisher.batch_size());
     let mut next_look = Instant::now();
     'publishing: loop {
@@ -317,19 +321,23 @@ pub fn run(
         }
         let start = Instant::now();
         let mut batch = publisher.loan(seq, count)?;
+        // A rollout cannot be replayed: while the store may not be connected yet, keep a copy of
+        // the batch to send again if iceoryx2 drops it (below).
+        let keep = !link.confirmed(publisher.subscriber_buffer());
         match &mut source {
             Source::Rollout(rollout) => {
                 for slot in batch.slots_mut() {
                     rollout.write_step(slot);
                 }
-                // A rollout cannot be replayed: keep the batch until it is delivered (below).
-                outbox.clear();
-                outbox.extend_from_slice(batch.slots_mut());
+                if keep {
+                    outbox.clear();
+                    outbox.extend_from_slice(batch.slots_mut());
+                }
             }
             Source::Fixed(list) => write_sample(batch.slots_mut(), list, seq),
         }
         let mut waited = Duration::ZERO;
-        loop {
+        let delivered = loop {
             // Sent while no store is subscribed, the batch would be lost: hold it until one is.
             while !publisher.connected() {
                 let pause = Instant::now();
@@ -339,6 +347,7 @@ pub fn run(
                     break 'publishing;
                 }
             }
+            link.observe(publisher.subscribers());
             let delivery = match batch.send() {
                 Ok(delivery) => delivery,
                 Err(_) if transport::termination_requested() => break 'publishing,
@@ -346,23 +355,31 @@ pub fn run(
             };
             waited += delivery.backpressure;
             if delivery.recipients > 0 {
-                break;
+                link.delivered();
+                break true;
             }
-            // iceoryx2 0.10 now and then reports a batch delivered to nobody although the store
-            // is subscribed, and a store can die during the send: send it again under the same
-            // numbers.
+            if !keep && matches!(source, Source::Rollout(_)) {
+                // The connected store went away during the send: what its queue held is lost
+                // with it, and so is this batch; the restarted store counts both as missing.
+                break false;
+            }
+            // Not yet connected (or the store died): send it again under the same numbers.
             metrics.batches_resent.inc();
             batch = publisher.loan(seq, count)?;
             match &source {
                 Source::Rollout(_) => batch.slots_mut().copy_from_slice(&outbox),
                 Source::Fixed(list) => write_sample(batch.slots_mut(), list, seq),
             }
-        }
+        };
         summary.backpressure += waited;
         metrics.backpressure_wait.inc_by(waited.as_secs_f64());
-        summary.published += count as u64;
-        metrics.transitions_published.inc_by(count as u64);
-        metrics.batches_published.inc();
+        if delivered {
+            summary.published += count as u64;
+            metrics.transitions_published.inc_by(count as u64);
+            metrics.batches_published.inc();
+        } else {
+            metrics.transitions_lost.inc_by(count as u64);
+        }
         metrics
             .batch_duration
             .observe(start.elapsed().as_secs_f64());
@@ -387,6 +404,39 @@ pub fn run(
         "actor stopped"
     );
     Ok(summary)
+}
+
+/// What the actor knows of its connection to the store. iceoryx2 0.10 connects a subscriber to a
+/// new publisher only when the subscriber next looks for data; until then a batch sent into its
+/// full queue is dropped (0 recipients). A subscriber that has received more batches than its
+/// queue holds has taken some, so it is connected, and stays so until it goes away.
+#[derive(Debug, Default)]
+struct StoreLink {
+    /// Subscribers attached when the last batch was sent.
+    subscribers: SubscriberSet,
+    /// Batches delivered since that set last changed.
+    delivered: usize,
+}
+
+impl StoreLink {
+    /// A new store (or a dead one cleaned up) changes the set: its connection is unproven.
+    fn observe(&mut self, subscribers: SubscriberSet) {
+        if subscribers != self.subscribers {
+            *self = StoreLink {
+                subscribers,
+                delivered: 0,
+            };
+        }
+    }
+
+    fn delivered(&mut self) {
+        self.delivered = self.delivered.saturating_add(1);
+    }
+
+    /// True once the store has provably taken batches from this publisher's queue.
+    fn confirmed(&self, subscriber_buffer: usize) -> bool {
+        !self.subscribers.is_empty() && self.delivered > subscriber_buffer
+    }
 }
 
 /// Writes the replay sample's transitions `first_seq..` into `slots`.

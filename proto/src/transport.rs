@@ -13,13 +13,18 @@
 //! buffer is full, an actor waits (backpressure) instead of overwriting a batch the store has not
 //! read. An actor sends only while a store is subscribed ([`TransitionPublisher::connected`]),
 //! holding its written batch until then, since iceoryx2 0.10 drops a batch sent to nobody. A send
-//! can still report no recipient: when the store went away meanwhile, and now and then (0.4% of
-//! the batches of one transport benchmark run) with the store subscribed; the actor then sends the
-//! batch again ([`Delivery::recipients`]). What a killed store held unwritten is lost, and the
-//! restarted store counts it as missing from the actors' sequence numbers. Transition services
-//! keep no history: in iceoryx2 0.10 a subscriber that joins a publisher with history gets that
-//! history into its buffer and afterwards the blocking publisher silently loses batches (measured:
-//! 39 296 of 43 456 transitions of one actor).
+//! can still report no recipient ([`Delivery::recipients`]) although the store is subscribed:
+//! iceoryx2 connects a subscriber to a new publisher only when the subscriber next looks for data,
+//! and a batch sent into its full queue before that is dropped. So an actor keeps a copy of each
+//! batch, and sends it again, until more batches than the queue holds
+//! ([`TransitionPublisher::subscriber_buffer`]) have reached the same subscribers
+//! ([`TransitionPublisher::subscribers`]): the store has then taken some, so it is connected.
+//! After that the only loss is a store that goes away: what it held unwritten, and the batch being
+//! sent, are lost, the actor counts that batch, and the restarted store counts all of it as
+//! missing from the actors' sequence numbers. Transition services keep no history: in iceoryx2
+//! 0.10 a subscriber that joins a publisher with history gets that history into its buffer and
+//! afterwards the blocking publisher silently loses batches (measured: 39 296 of 43 456
+//! transitions of one actor).
 //!
 //! **Control** messages ([`DatasetReady`], [`CheckpointReady`], [`Shutdown`]) each have their own
 //! service under `uavmeta/<run>/control/`, with history, so a process that joins late (or
@@ -855,6 +860,33 @@ pub fn transition_subscriber(
         })
 }
 
+/// The identities of the subscribers attached to a service, folded into one value that changes
+/// whenever one joins or leaves.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct SubscriberSet {
+    count: usize,
+    /// XOR of the identities' hashes, so the order iceoryx2 lists them in does not matter.
+    fingerprint: u64,
+}
+
+impl SubscriberSet {
+    fn add(&mut self, id: &impl std::hash::Hash) {
+        use std::hash::{BuildHasher, BuildHasherDefault, DefaultHasher};
+        self.count += 1;
+        self.fingerprint ^= BuildHasherDefault::<DefaultHasher>::default().hash_one(id);
+    }
+
+    /// Number of subscribers in the set.
+    pub fn len(&self) -> usize {
+        self.count
+    }
+
+    /// True when no subscriber is attached.
+    pub fn is_empty(&self) -> bool {
+        self.count == 0
+    }
+}
+
 /// What one publish cost and reached.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Delivery {
@@ -873,6 +905,7 @@ pub struct TransitionPublisher<'s> {
     blocked_ns: Arc<AtomicU64>,
     header: BatchHeader,
     batch_size: usize,
+    subscriber_buffer: usize,
 }
 
 impl<'s> TransitionPublisher<'s> {
@@ -922,6 +955,7 @@ impl<'s> TransitionPublisher<'s> {
             blocked_ns,
             header,
             batch_size: config.run.batch_size,
+            subscriber_buffer: config.run.subscriber_buffer,
         })
     }
 
@@ -933,6 +967,24 @@ impl<'s> TransitionPublisher<'s> {
     /// reaches it. A dead store's subscriber counts until it is cleaned up.
     pub fn connected(&self) -> bool {
         self.service.dynamic_config().number_of_subscribers() > 0
+    }
+
+    /// Which subscribers are attached to the service, a dead store's included until it is cleaned
+    /// up. Compared by identity, not count: a restarted store that replaced a dead one is new.
+    pub fn subscribers(&self) -> SubscriberSet {
+        let mut set = SubscriberSet::default();
+        self.service.dynamic_config().list_subscribers(|details| {
+            set.add(&details.subscriber_id);
+            CallbackProgression::Continue
+        });
+        set
+    }
+
+    /// Batches a subscriber's queue holds ([`RunConfig::subscriber_buffer`]): once more than this
+    /// many sent batches have reached one subscriber, it has taken some, so it is connected and
+    /// no later batch can be dropped as sent to an unconnected subscriber (see the module doc).
+    pub fn subscriber_buffer(&self) -> usize {
+        self.subscriber_buffer
     }
 
     /// Loans `count` slots of shared memory for sequence numbers `first_seq..first_seq + count`,

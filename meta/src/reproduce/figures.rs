@@ -193,26 +193,39 @@ impl Refs {
         lines
     }
 
-    /// Why a method that should end above the online agent (or learn at all) does not.
-    fn shortfall(&self, label: &str, final_ret: f64) -> String {
-        if final_ret < self.random {
-            format!(
-                "{label} ends below the uniform random policy ({final_ret:.0} vs {:.0}): it learns nothing \
-                 useful from these shots, {:.0}% of which the online agent took while epsilon still fell from {} \
+    /// Why methods that should end above the online agent (or learn at all) do not, from their
+    /// (label, final return); those that fall short in the same way share one sentence.
+    fn shortfall(&self, finals: &[(&str, f64)]) -> String {
+        let listed = |pick: &dyn Fn(f64) -> bool| {
+            let picked: Vec<String> = finals
+                .iter()
+                .filter(|(_, ret)| pick(*ret))
+                .map(|(label, ret)| format!("{label} ({ret:.0})"))
+                .collect();
+            let verb = if picked.len() == 1 { "ends" } else { "end" };
+            (picked.join(" and "), verb)
+        };
+        let mut why = Vec::new();
+        let (below_random, verb) = listed(&|ret| ret < self.random);
+        if !below_random.is_empty() {
+            why.push(format!(
+                "{below_random} {verb} below the uniform random policy ({:.0}): nothing useful is learned \
+                 from these shots, {:.0}% of which the online agent took while epsilon still fell from {} \
                  (docs/EXPERIMENTS.md: the same code learns from near-greedy shots)",
                 self.random,
                 100.0 * self.exploratory,
                 self.eps_start
-            )
-        } else if final_ret < self.online.mean {
-            format!(
-                "{label} learns (above the random policy's {:.0}) but ends at {final_ret:.0}, below the online \
-                 DQN agent that made its data ({:.0})",
-                self.random, self.online.mean
-            )
-        } else {
-            String::new()
+            ));
         }
+        let (below_online, verb) = listed(&|ret| ret >= self.random && ret < self.online.mean);
+        if !below_online.is_empty() {
+            why.push(format!(
+                "{below_online} {verb} above the random policy's {:.0} but below the online DQN agent \
+                 that made the data ({:.0})",
+                self.random, self.online.mean
+            ));
+        }
+        why.join("; ")
     }
 }
 
@@ -249,6 +262,7 @@ fn return_series(label: String, runs: &[Vec<f64>]) -> Series {
     }
 }
 
+/// A chart of returns per epoch.
 fn line_chart(
     path: &Path,
     title: &str,
@@ -264,6 +278,7 @@ fn line_chart(
             y_label,
             series,
             references,
+            floor: None,
         },
     )?;
     Ok(())
@@ -327,6 +342,8 @@ fn meta_training(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
                 band: Band::from_runs(epochs_x(meta_epochs), &losses),
             }],
             references: &[],
+            // TD errors squared plus eq. 8's log-sum-exp gap: never negative.
+            floor: Some(0.0),
         },
     )?;
     let evaluated: Vec<f64> = curves
@@ -355,6 +372,7 @@ fn meta_training(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
             y_label: "return / 100",
             series: &series,
             references: &[],
+            floor: None,
         },
     )?;
 
@@ -567,7 +585,7 @@ fn convergence(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
         format!("CQL-MAML converged in {cell}; final {maml_final:.0}"),
         Verdict::all_of(cases),
         || {
-            let short = refs.shortfall("CQL-MAML", maml_final.mean);
+            let short = refs.shortfall(&[("CQL-MAML", maml_final.mean)]);
             if short.is_empty() {
                 format!(
                     "its returns swing by {maml_swing:.0} between epochs, wider than the 5% band ({:.0}) around its final return",
@@ -591,16 +609,7 @@ fn convergence(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
             refs.online
         ),
         Verdict::all_of(verdicts),
-        || {
-            [
-                refs.shortfall("CQL-MAML", maml_final.mean),
-                refs.shortfall("CQL", cql_final.mean),
-            ]
-            .into_iter()
-            .filter(|s| !s.is_empty())
-            .collect::<Vec<_>>()
-            .join("; ")
-        },
+        || refs.shortfall(&[("CQL-MAML", maml_final.mean), ("CQL", cql_final.mean)]),
     ));
     finish(body, found)
 }
@@ -893,7 +902,7 @@ fn tasks(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
                     .iter()
                     .map(|(_, v)| v.mean)
                     .fold(f64::NEG_INFINITY, f64::max);
-                refs.shortfall("CQL-MAML with >= 8 tasks", best)
+                refs.shortfall(&[("CQL-MAML with >= 8 tasks", best)])
             }
         },
     ));
@@ -1160,18 +1169,22 @@ fn resilience(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
             }
         })
         .collect();
-    line_chart(
+    plot::line_chart(
         &dir.join("fig9b_outages.png"),
-        &format!(
-            "Figure 9b: outages per episode ({} episodes per point)",
-            tasks.len() * seeds * episodes
-        ),
-        "outages per episode",
-        &outages,
-        &[Reference {
-            label: "online DQN".into(),
-            value: refs.online_outages.mean,
-        }],
+        &LineChart {
+            title: &format!(
+                "Figure 9b: outages per episode ({} episodes per point)",
+                tasks.len() * seeds * episodes
+            ),
+            x_label: "epoch",
+            y_label: "outages per episode",
+            series: &outages,
+            references: &[Reference {
+                label: "online DQN".into(),
+                value: refs.online_outages.mean,
+            }],
+            floor: Some(0.0),
+        },
     )?;
 
     // Figure 9c: the first seed's final greedy paths on the first rain task.
@@ -1268,7 +1281,7 @@ fn resilience(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
         || {
             let mut why = vec![];
             if converged != Verdict::Yes {
-                why.push(refs.shortfall("CQL-MAML", maml_final.mean));
+                why.push(refs.shortfall(&[("CQL-MAML", maml_final.mean)]));
             }
             if quiet == Verdict::No {
                 why.push(format!(
@@ -1368,6 +1381,40 @@ fn cells_from(zone: RainZone, x: u32, y: u32) -> u32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn shortfalls_of_the_same_kind_share_one_sentence() {
+        let estimate = |mean| Estimate { mean, ci95: 0.0 };
+        let refs = Refs {
+            online: estimate(-9000.0),
+            online_outages: estimate(0.0),
+            random: -13000.0,
+            heuristics: vec![],
+            exploratory: 0.55,
+            eps_start: 1.0,
+        };
+        let both = refs.shortfall(&[("CQL-MAML", -36000.0), ("CQL", -32000.0)]);
+        assert_eq!(
+            both.matches("below the uniform random policy").count(),
+            1,
+            "{both}"
+        );
+        assert!(
+            both.starts_with("CQL-MAML (-36000) and CQL (-32000) end below"),
+            "{both}"
+        );
+        assert!(both.contains("55%"), "{both}");
+        let mixed = refs.shortfall(&[("CQL-MAML", -10000.0), ("CQL", -32000.0)]);
+        assert!(
+            mixed.starts_with("CQL (-32000) ends below the uniform random"),
+            "{mixed}"
+        );
+        assert!(
+            mixed.contains("; CQL-MAML (-10000) ends above the random policy's -13000 but below"),
+            "{mixed}"
+        );
+        assert_eq!(refs.shortfall(&[("CQL-MAML", -8000.0)]), "");
+    }
 
     #[test]
     fn cells_from_a_zone_count_king_moves() {

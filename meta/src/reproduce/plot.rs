@@ -127,6 +127,9 @@ pub struct LineChart<'a> {
     pub y_label: &'a str,
     pub series: &'a [Series],
     pub references: &'a [Reference],
+    /// The least value the plotted quantity can take (0 for counts and losses): a band is cut
+    /// there rather than reaching into values that cannot occur.
+    pub floor: Option<f64>,
 }
 
 /// Writes `chart` to the PNG file `path`: each series its mean line over a shaded band of the same
@@ -134,10 +137,15 @@ pub struct LineChart<'a> {
 pub fn line_chart(path: &Path, chart: &LineChart) -> Result<(), PlotError> {
     let segments: Vec<_> = chart.series.iter().map(|s| s.band.segments()).collect();
     let points = || segments.iter().flatten().flatten();
+    let lower = |mean: f64, ci: f64| {
+        chart
+            .floor
+            .map_or(mean - ci, |floor| (mean - ci).max(floor))
+    };
     let x_range = span(points().map(|&(x, _, _)| x), 0.0);
     let y_range = span(
         points()
-            .flat_map(|&(_, mean, ci)| [mean - ci, mean + ci])
+            .flat_map(|&(_, mean, ci)| [lower(mean, ci), mean + ci])
             .chain(chart.references.iter().map(|r| r.value)),
         0.05,
     );
@@ -167,7 +175,12 @@ pub fn line_chart(path: &Path, chart: &LineChart) -> Result<(), PlotError> {
                 let outline: Vec<(f64, f64)> = segment
                     .iter()
                     .map(|&(x, mean, ci)| (x, mean + ci))
-                    .chain(segment.iter().rev().map(|&(x, mean, ci)| (x, mean - ci)))
+                    .chain(
+                        segment
+                            .iter()
+                            .rev()
+                            .map(|&(x, mean, ci)| (x, lower(mean, ci))),
+                    )
                     .collect();
                 ctx.draw_series([Polygon::new(outline, colour.mix(BAND_ALPHA).filled())])?;
                 ctx.draw_series(LineSeries::new(
@@ -272,6 +285,7 @@ pub fn bar_chart(path: &Path, title: &str, y_label: &str, bars: &[Bar]) -> Resul
             // Asking for as many labels as groups puts them at the integers: the group centres.
             .x_labels(groups.len())
             .x_label_formatter(&|&x| tick_name(x, &groups))
+            .y_label_formatter(&|&y| axis_tick(y))
             .y_desc(y_label)
             .label_style((FONT, 14))
             .axis_desc_style((FONT, 16))
@@ -679,6 +693,7 @@ mod tests {
             y_label: "reward",
             series: &all,
             references: &references,
+            floor: None,
         };
         line_chart(&path, &chart).unwrap();
 
@@ -797,6 +812,7 @@ mod tests {
             y_label: "reward",
             series: &all,
             references: &references,
+            floor: None,
         };
         let line = dir.path().join("line.png");
         line_chart(&line, &chart).unwrap();
