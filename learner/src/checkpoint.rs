@@ -214,18 +214,7 @@ pub fn load_state<S: DeserializeOwned>(
     path: &Path,
 ) -> Result<(Vec<(String, Tensor)>, S), CheckpointError> {
     let (tensors_path, meta_path) = state_paths(path);
-    let text = read(&meta_path, "read")?;
-    let meta: StateMeta<S> =
-        serde_json::from_slice(&text).map_err(|source| CheckpointError::Meta {
-            path: meta_path.clone(),
-            source,
-        })?;
-    if meta.format_version != FORMAT_VERSION {
-        return Err(CheckpointError::FormatVersion {
-            path: meta_path,
-            found: meta.format_version,
-        });
-    }
+    let meta: StateMeta<S> = read_json(&meta_path, |m: &StateMeta<S>| m.format_version)?;
     verify(&tensors_path, meta.tensors_len, meta.tensors_crc32)?;
     let tensors =
         Tensor::read_safetensors(&tensors_path).map_err(|source| CheckpointError::Weights {
@@ -237,17 +226,26 @@ pub fn load_state<S: DeserializeOwned>(
 
 /// Reads and checks the metadata of checkpoint `path`.
 pub fn read_meta(path: &Path) -> Result<CheckpointMeta, CheckpointError> {
-    let meta_path = CheckpointPaths::new(path).meta;
-    let text = read(&meta_path, "read")?;
-    let meta: CheckpointMeta =
-        serde_json::from_slice(&text).map_err(|source| CheckpointError::Meta {
-            path: meta_path.clone(),
-            source,
-        })?;
-    if meta.format_version != FORMAT_VERSION {
+    read_json(&CheckpointPaths::new(path).meta, |m: &CheckpointMeta| {
+        m.format_version
+    })
+}
+
+/// Reads a JSON metadata file and checks that `format_version` of it is the one this build writes.
+fn read_json<T: DeserializeOwned>(
+    path: &Path,
+    format_version: impl Fn(&T) -> u32,
+) -> Result<T, CheckpointError> {
+    let text = read(path, "read")?;
+    let meta: T = serde_json::from_slice(&text).map_err(|source| CheckpointError::Meta {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let found = format_version(&meta);
+    if found != FORMAT_VERSION {
         return Err(CheckpointError::FormatVersion {
-            path: meta_path,
-            found: meta.format_version,
+            path: path.to_path_buf(),
+            found,
         });
     }
     Ok(meta)

@@ -229,3 +229,28 @@ fn truncated_or_corrupt_checkpoint_names_the_file() {
         "serde_json's position is kept in the cause: {err}: {cause}"
     );
 }
+
+#[test]
+fn checkpoint_of_another_format_version_is_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, path) = saved(dir.path());
+    let meta_path = CheckpointPaths::new(&path).meta;
+    let mut meta: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&meta_path).unwrap()).unwrap();
+    meta["format_version"] = serde_json::json!(999);
+    std::fs::write(&meta_path, serde_json::to_vec(&meta).unwrap()).unwrap();
+
+    let err = checkpoint::read_meta(&path).err().expect("version differs");
+    assert!(
+        matches!(err, CheckpointError::FormatVersion { found: 999, .. }),
+        "{err}"
+    );
+    assert!(err.to_string().contains("epoch-7.json"), "{err}");
+    let err = checkpoint::load(&path, &config(4, "[16, 8]"))
+        .err()
+        .expect("version differs");
+    assert!(
+        matches!(err, CheckpointError::FormatVersion { found: 999, .. }),
+        "{err}"
+    );
+}

@@ -213,12 +213,7 @@ pub fn line_chart(path: &Path, chart: &LineChart) -> Result<(), PlotError> {
                 .legend(move |(x, y)| DashedPathElement::new([(x, y), (x + 24, y)], 6, 3, style));
         }
 
-        ctx.configure_series_labels()
-            .position(corner)
-            .label_font((FONT, 14))
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK.mix(0.4))
-            .draw()
+        draw_legend(&mut ctx, corner)
     })
 }
 
@@ -334,12 +329,7 @@ pub fn bar_chart(path: &Path, title: &str, y_label: &str, bars: &[Bar]) -> Resul
             }))?;
         }
 
-        ctx.configure_series_labels()
-            .position(corner)
-            .label_font((FONT, 14))
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK.mix(0.4))
-            .draw()
+        draw_legend(&mut ctx, corner)
     })
 }
 
@@ -505,6 +495,19 @@ fn span(values: impl IntoIterator<Item = f64>, margin: f64) -> Range<f64> {
         let pad = margin * (hi - lo);
         lo - pad..hi + pad
     }
+}
+
+/// The legend box of every chart, at `corner`.
+fn draw_legend<'a, DB: DrawingBackend + 'a, CT: CoordTranslate>(
+    ctx: &mut ChartContext<'a, DB, CT>,
+    corner: SeriesLabelPosition,
+) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
+    ctx.configure_series_labels()
+        .position(corner)
+        .label_font((FONT, 14))
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK.mix(0.4))
+        .draw()
 }
 
 /// Upper or lower right, whichever the curves' right halves leave emptier.
