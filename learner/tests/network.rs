@@ -240,7 +240,7 @@ fn checkpoint_of_another_format_version_is_refused_by_name() {
     meta["format_version"] = serde_json::json!(999);
     std::fs::write(&meta_path, serde_json::to_vec(&meta).unwrap()).unwrap();
 
-    let err = checkpoint::read_meta(&path).err().expect("version differs");
+    let err = checkpoint::read_meta(&path).expect_err("version differs");
     assert!(
         matches!(err, CheckpointError::FormatVersion { found: 999, .. }),
         "{err}"
