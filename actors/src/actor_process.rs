@@ -6,10 +6,10 @@
 //! sequence number, and the batch is sent without a further copy. When the store's buffer is full
 //! the actor waits (backpressure); while no store is subscribed it holds its written batch and
 //! sends it once one is; both waits are counted. A batch that iceoryx2 reports delivered to nobody
-//! is sent again under the same numbers: from a copy the actor keeps of its last batch, or, for a
-//! replay sample, written again from the sample. With `dqn-online` (the
-//! paper's behaviour policy) the actor first trains an online DQN agent and then publishes
-//! `collect.transitions` transitions sampled from its replay buffer.
+//! is sent again under the same numbers: from a copy the actor keeps until the store is proven
+//! connected (`StoreLink`), or, for a replay sample, written again from the sample. With
+//! `dqn-online` (the paper's behaviour policy) the actor first trains an online DQN agent and then
+//! publishes `collect.transitions` transitions sampled from its replay buffer.
 //!
 //! An actor's identity is a hash of its task, policy and seed: the same actor restarted (by the
 //! launcher after a crash) makes the same transitions under the same numbers, and the store keeps
@@ -291,7 +291,7 @@ pub fn run(
 
     let limit = options.transitions.unwrap_or(u64::MAX);
     let mut seq = 0u64;
-    let mut link = StoreLink::default();
+    let mut link = StoreLink::new(publisher.subscriber_buffer());
     let mut outbox: Vec<TransitionSlot> = Vec::with_capacity(publisher.batch_size());
     let mut next_look = Instant::now();
     'publishing: loop {
@@ -323,7 +323,7 @@ pub fn run(
         let mut batch = publisher.loan(seq, count)?;
         // A rollout cannot be replayed: while the store may not be connected yet, keep a copy of
         // the batch to send again if iceoryx2 drops it (below).
-        let keep = !link.confirmed(publisher.subscriber_buffer());
+        let keep = !link.confirmed();
         match &mut source {
             Source::Rollout(rollout) => {
                 for slot in batch.slots_mut() {
@@ -339,15 +339,19 @@ pub fn run(
         let mut waited = Duration::ZERO;
         let delivered = loop {
             // Sent while no store is subscribed, the batch would be lost: hold it until one is.
-            while !publisher.connected() {
+            let subscribers = loop {
+                let subscribers = publisher.subscribers();
+                if !subscribers.is_empty() {
+                    break subscribers;
+                }
                 let pause = Instant::now();
                 let alive = transport::keep_running(&node, POLL);
                 waited += pause.elapsed();
                 if !alive || announced(&ready, &shutdown, task_id)? {
                     break 'publishing;
                 }
-            }
-            link.observe(publisher.subscribers());
+            };
+            link.observe(subscribers);
             let delivery = match batch.send() {
                 Ok(delivery) => delivery,
                 Err(_) if transport::termination_requested() => break 'publishing,
@@ -410,8 +414,10 @@ pub fn run(
 /// new publisher only when the subscriber next looks for data; until then a batch sent into its
 /// full queue is dropped (0 recipients). A subscriber that has received more batches than its
 /// queue holds has taken some, so it is connected, and stays so until it goes away.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 struct StoreLink {
+    /// The subscriber's queue length: more batches than this delivered prove the connection.
+    queue: usize,
     /// Subscribers attached when the last batch was sent.
     subscribers: SubscriberSet,
     /// Batches delivered since that set last changed.
@@ -419,13 +425,19 @@ struct StoreLink {
 }
 
 impl StoreLink {
+    fn new(queue: usize) -> Self {
+        Self {
+            queue,
+            subscribers: SubscriberSet::default(),
+            delivered: 0,
+        }
+    }
+
     /// A new store (or a dead one cleaned up) changes the set: its connection is unproven.
     fn observe(&mut self, subscribers: SubscriberSet) {
         if subscribers != self.subscribers {
-            *self = StoreLink {
-                subscribers,
-                delivered: 0,
-            };
+            self.subscribers = subscribers;
+            self.delivered = 0;
         }
     }
 
@@ -434,8 +446,8 @@ impl StoreLink {
     }
 
     /// True once the store has provably taken batches from this publisher's queue.
-    fn confirmed(&self, subscriber_buffer: usize) -> bool {
-        !self.subscribers.is_empty() && self.delivered > subscriber_buffer
+    fn confirmed(&self) -> bool {
+        !self.subscribers.is_empty() && self.delivered > self.queue
     }
 }
 

@@ -11,14 +11,14 @@
 //!
 //! **Delivery.** Safe overflow is off and publishers use `RetryUntilDelivered`: when the store's
 //! buffer is full, an actor waits (backpressure) instead of overwriting a batch the store has not
-//! read. An actor sends only while a store is subscribed ([`TransitionPublisher::connected`]),
+//! read. An actor sends only while a store is subscribed ([`TransitionPublisher::subscribers`]),
 //! holding its written batch until then, since iceoryx2 0.10 drops a batch sent to nobody. A send
 //! can still report no recipient ([`Delivery::recipients`]) although the store is subscribed:
 //! iceoryx2 connects a subscriber to a new publisher only when the subscriber next looks for data,
 //! and a batch sent into its full queue before that is dropped. So an actor keeps a copy of each
 //! batch, and sends it again, until more batches than the queue holds
-//! ([`TransitionPublisher::subscriber_buffer`]) have reached the same subscribers
-//! ([`TransitionPublisher::subscribers`]): the store has then taken some, so it is connected.
+//! ([`TransitionPublisher::subscriber_buffer`]) have reached the same subscribers: the store has
+//! then taken some, so it is connected.
 //! After that the only loss is a store that goes away: what it held unwritten, and the batch being
 //! sent, are lost, the actor counts that batch, and the restarted store counts all of it as
 //! missing from the actors' sequence numbers. Transition services keep no history: in iceoryx2
@@ -876,11 +876,6 @@ impl SubscriberSet {
         self.fingerprint ^= BuildHasherDefault::<DefaultHasher>::default().hash_one(id);
     }
 
-    /// Number of subscribers in the set.
-    pub fn len(&self) -> usize {
-        self.count
-    }
-
     /// True when no subscriber is attached.
     pub fn is_empty(&self) -> bool {
         self.count == 0
@@ -963,14 +958,9 @@ impl<'s> TransitionPublisher<'s> {
         self.batch_size
     }
 
-    /// True while a subscriber (the store) is attached to the service, so that a batch sent now
-    /// reaches it. A dead store's subscriber counts until it is cleaned up.
-    pub fn connected(&self) -> bool {
-        self.service.dynamic_config().number_of_subscribers() > 0
-    }
-
     /// Which subscribers are attached to the service, a dead store's included until it is cleaned
-    /// up. Compared by identity, not count: a restarted store that replaced a dead one is new.
+    /// up: while the set is empty a batch sent now reaches nobody. Compared by identity, not
+    /// count: a restarted store that replaced a dead one is new.
     pub fn subscribers(&self) -> SubscriberSet {
         let mut set = SubscriberSet::default();
         self.service.dynamic_config().list_subscribers(|details| {
@@ -1196,9 +1186,9 @@ mod tests {
         let node = node("batch-test").expect("node");
         let service = transition_service(&node, &names, "t", &config.run).expect("service");
         let publisher = TransitionPublisher::new(&service, &run, &config, 0, 5).expect("publisher");
-        assert!(!publisher.connected(), "no subscriber yet");
+        assert!(publisher.subscribers().is_empty(), "no subscriber yet");
         let subscriber = transition_subscriber(&service, &config.run).expect("subscriber");
-        assert!(publisher.connected());
+        assert!(!publisher.subscribers().is_empty());
         // Two batches, so the second may reuse the first one's memory.
         for (first_seq, count) in [(40u64, 3usize), (43, 2)] {
             let mut batch = publisher.loan(first_seq, count).expect("loan");
