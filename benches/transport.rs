@@ -1,6 +1,7 @@
 //! Transport benchmark: transitions per second from 1, 2 and 4 real `uavmeta actor` processes
 //! over iceoryx2 at batch sizes 1, 64 and 1024, with publish-to-receive latency percentiles, beside
-//! the speed of the same rollout without any transport.
+//! the speed of the same rollout without any transport; and what iceoryx2 alone costs per batch,
+//! and what the transport costs an actor under each behaviour policy.
 //!
 //! The transport's cost to an actor is its CPU time per transition over the environment's CPU time
 //! per step, minus one. The environment steps the same policy in the same world (same K, episodes
@@ -15,17 +16,24 @@
 //! The receiving side is this process: it subscribes to the task's transition service exactly as
 //! the store does (`proto::transport`), but only counts, so the figures are the transport's, not
 //! the dataset writer's. Run: `cargo bench --bench transport` (prints Markdown tables); arguments
-//! `ACTORSxBATCH` (e.g. `-- 1x64`) run only those cases.
+//! pick sections (`floor`, `policies`, `actors`) and `ACTORSxBATCH` (e.g. `-- 1x64`) only those
+//! actor cases.
 
 use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
+use iceoryx2::node::Node;
+use iceoryx2::prelude::ipc;
+
 use uavmeta_actors::actor_process::{ActorOptions, Rollout};
-use uavmeta_actors::heuristics::{PolicySpec, RandomPolicy};
-use uavmeta_actors::rollout::{episode_seed, run_episode};
+use uavmeta_actors::heuristics::PolicySpec;
+use uavmeta_actors::rollout::{episode_seed, run_episode, Policy};
 use uavmeta_actors::world::World;
 use uavmeta_proto::config::Config;
-use uavmeta_proto::transport::{self, RunDir, ServiceNames, TransitionSlot, OBS_CAPACITY};
+use uavmeta_proto::transport::{
+    self, RunDir, ServiceNames, TransitionPublisher, TransitionSlot, OBS_CAPACITY,
+};
 
 const BIN: &str = env!("CARGO_BIN_EXE_uavmeta");
 
@@ -43,6 +51,10 @@ fn per_actor(batch: usize) -> u64 {
 /// compared take turns, so that a spell of interference hits them alike.
 const RAW_STEPS: usize = 2_000_000;
 const RAW_REPEATS: usize = 8;
+
+/// Runs of each actor case; the one whose actors spent the least CPU per transition counts, for
+/// the same reason.
+const CASE_REPEATS: usize = 3;
 
 /// CPU time of this thread.
 fn cpu_time() -> Duration {
@@ -81,29 +93,39 @@ fn best_rates(runs: &mut [Box<dyn FnMut() -> usize + '_>]) -> Vec<f64> {
     best
 }
 
-/// The environment alone: the random policy (an actor's `--seed 0`) in one task's world, episode
-/// i in the world of `episode_seed(0, i)` as an actor runs it, recording nothing.
-fn env_steps(config: &Config) -> impl FnMut() -> usize + '_ {
+/// The behaviour policy `spec` as an actor with `--seed 0` builds it.
+fn behaviour(config: &Config, spec: &PolicySpec) -> Box<dyn Policy> {
+    spec.build(config.world.action_count(), 0, usize::MAX)
+        .expect("a rollout policy")
+}
+
+/// The environment alone: policy `spec` (an actor's `--seed 0`) in one task's world, episode i in
+/// the world of `episode_seed(0, i)` as an actor runs it, recording nothing.
+fn env_steps<'c>(config: &'c Config, spec: &PolicySpec) -> impl FnMut() -> usize + 'c {
     let task = &config.tasks[0];
     let mut world = World::new(&config.world, task, 0);
-    let mut policy = RandomPolicy::new(0);
+    let mut policy = behaviour(config, spec);
     let horizon = config.world.horizon as usize;
     let mut episode = 0;
     move || {
         for _ in 0..RAW_STEPS / horizon {
             world.reseed(episode_seed(0, episode));
-            std::hint::black_box(run_episode(&mut world, &mut policy));
+            std::hint::black_box(run_episode(&mut world, policy.as_mut()));
             episode += 1;
         }
         RAW_STEPS / horizon * horizon
     }
 }
 
-/// An actor's own rollout writing every step into a batch of `batch` slots in local memory,
-/// sending nothing.
-fn rollout_steps(config: &Config, batch: usize) -> impl FnMut() -> usize + '_ {
+/// An actor's own rollout of policy `spec` writing every step into a batch of `batch` slots in
+/// local memory, sending nothing.
+fn rollout_steps<'c>(
+    config: &'c Config,
+    spec: &PolicySpec,
+    batch: usize,
+) -> impl FnMut() -> usize + 'c {
     let task = &config.tasks[0];
-    let mut rollout = Rollout::new(config, task, Box::new(RandomPolicy::new(0)), 0);
+    let mut rollout = Rollout::new(config, task, behaviour(config, spec), 0);
     let empty = TransitionSlot {
         episode: 0,
         step: 0,
@@ -130,8 +152,8 @@ fn rollout_steps(config: &Config, batch: usize) -> impl FnMut() -> usize + '_ {
 struct Figures {
     /// Transitions per wall-clock second at the receiver.
     rate: f64,
-    /// CPU time per transition of the actors, each from its first batch received to its last.
-    cpu_per_transition: Duration,
+    /// CPU seconds per transition of the actors, each from its first batch received to its last.
+    cpu_per_transition: f64,
     latencies: Vec<f64>,
 }
 
@@ -139,21 +161,111 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
     sorted[((sorted.len() - 1) as f64 * p).round() as usize]
 }
 
-fn run_case(actors: usize, batch: usize) -> Figures {
-    let dir = tempfile::Builder::new()
-        .prefix("uavmeta-bench-")
-        .tempdir()
-        .expect("temp dir");
-    let run = RunDir::create(&dir.path().join("run")).expect("run dir");
-    let text = format!(
-        "[[tasks]]\nname = \"bench\"\nlambda = 300.0\nrole = \"meta-test\"\n[collect]\ntransitions = 1000000000\n[run]\nbatch_size = {batch}\n"
-    );
-    std::fs::write(run.config_file(), &text).expect("config");
-    let config = Config::load(&run.config_file(), &[]).expect("valid bench config");
+/// A run of one task, "bench", that sends batches of `batch`, in a directory removed on drop.
+struct BenchRun {
+    _dir: tempfile::TempDir,
+    run: RunDir,
+    config: Config,
+}
+
+impl BenchRun {
+    fn new(batch: usize) -> Self {
+        let dir = tempfile::Builder::new()
+            .prefix("uavmeta-bench-")
+            .tempdir()
+            .expect("temp dir");
+        let run = RunDir::create(&dir.path().join("run")).expect("run dir");
+        let text = format!(
+            "[[tasks]]\nname = \"bench\"\nlambda = 300.0\nrole = \"meta-test\"\n[collect]\ntransitions = 1000000000\n[run]\nbatch_size = {batch}\n"
+        );
+        std::fs::write(run.config_file(), &text).expect("config");
+        let config = Config::load(&run.config_file(), &[]).expect("valid bench config");
+        Self {
+            _dir: dir,
+            run,
+            config,
+        }
+    }
+
+    fn service(&self, node: &Node<ipc::Service>) -> transport::TransitionService {
+        let names = ServiceNames::new(&self.run);
+        transport::transition_service(node, &names, "bench", &self.config.run).expect("service")
+    }
+}
+
+/// What iceoryx2 itself costs an actor per batch of `batch` slots: the wall time of loaning the
+/// batch and sending it, with nothing written into it, through the actor's own publisher to a
+/// subscriber polling on the other core. Between sends the publisher spins for as long as the
+/// environment takes to make the batch (`step` per transition), so the subscriber has taken the
+/// previous batch, as it has in an actor. Best of `RAW_REPEATS` rounds.
+fn send_floor(batch: usize, step: Duration) -> Duration {
+    let bench = BenchRun::new(batch);
+    let stop = AtomicBool::new(false);
+    let subscribed = AtomicBool::new(false);
+    std::thread::scope(|scope| {
+        scope.spawn(|| {
+            let node = transport::node("transport-bench-floor-store").expect("node");
+            let service = bench.service(&node);
+            let subscriber =
+                transport::transition_subscriber(&service, &bench.config.run).expect("subscriber");
+            subscribed.store(true, Ordering::Release);
+            while !stop.load(Ordering::Relaxed) {
+                if subscriber.receive().expect("receive").is_none() {
+                    std::hint::spin_loop();
+                }
+            }
+        });
+        while !subscribed.load(Ordering::Acquire) {
+            std::thread::yield_now();
+        }
+        let node = transport::node("transport-bench-floor-actor").expect("node");
+        let service = bench.service(&node);
+        let publisher =
+            TransitionPublisher::new(&service, &bench.run, &bench.config, 0, 0).expect("publisher");
+        let batches = (RAW_STEPS / batch).clamp(5_000, 200_000);
+        let gap = step * batch as u32;
+        let mut seq = 0;
+        let mut round = || {
+            let (mut spent, mut timer) = (Duration::ZERO, Duration::ZERO);
+            for _ in 0..batches {
+                let until = Instant::now() + gap;
+                while Instant::now() < until {
+                    std::hint::spin_loop();
+                }
+                let start = Instant::now();
+                publisher
+                    .loan(seq, batch)
+                    .expect("loan")
+                    .send()
+                    .expect("send");
+                spent += start.elapsed();
+                // What taking the time itself adds, taken off below.
+                let start = Instant::now();
+                timer += start.elapsed();
+                seq += batch as u64;
+            }
+            spent.saturating_sub(timer) / batches as u32
+        };
+        round(); // connects the subscriber and warms the pool
+        let best = (0..RAW_REPEATS).map(|_| round()).min().expect("rounds");
+        stop.store(true, Ordering::Relaxed);
+        best
+    })
+}
+
+/// The best of `CASE_REPEATS` runs of [`run_case`].
+fn best_case(actors: usize, batch: usize, policy: &PolicySpec) -> Figures {
+    (0..CASE_REPEATS)
+        .map(|_| run_case(actors, batch, policy))
+        .min_by(|a, b| a.cpu_per_transition.total_cmp(&b.cpu_per_transition))
+        .expect("runs")
+}
+
+fn run_case(actors: usize, batch: usize, policy: &PolicySpec) -> Figures {
+    let bench = BenchRun::new(batch);
+    let (run, config) = (&bench.run, &bench.config);
     let node = transport::node("transport-bench").expect("node");
-    let names = ServiceNames::new(&run);
-    let service =
-        transport::transition_service(&node, &names, "bench", &config.run).expect("service");
+    let service = bench.service(&node);
     let subscriber = transport::transition_subscriber(&service, &config.run).expect("subscriber");
 
     let n = per_actor(batch);
@@ -167,7 +279,7 @@ fn run_case(actors: usize, batch: usize) -> Figures {
                     "--task",
                     "bench",
                     "--policy",
-                    "random",
+                    &policy.to_string(),
                 ])
                 .args(["--seed", &i.to_string(), "--transitions", &n.to_string()])
                 .stdout(Stdio::null())
@@ -185,7 +297,7 @@ fn run_case(actors: usize, batch: usize) -> Figures {
         .map(|i| {
             ActorOptions {
                 task: "bench".into(),
-                policy: PolicySpec::Random,
+                policy: policy.clone(),
                 seed: i as u64,
                 transitions: Some(n),
             }
@@ -232,23 +344,32 @@ fn run_case(actors: usize, batch: usize) -> Figures {
     latencies.sort_by(f64::total_cmp);
     Figures {
         rate: total as f64 / elapsed.as_secs_f64(),
-        cpu_per_transition: cpu / measured.max(1) as u32,
+        cpu_per_transition: cpu.as_secs_f64() / measured.max(1) as f64,
         latencies,
     }
 }
 
 fn main() {
+    // `cargo bench` passes its own flags (`--bench`); sections are named, actor cases `AxB`.
+    let args: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| !a.starts_with('-'))
+        .collect();
+    let cases: Vec<&String> = args.iter().filter(|a| a.contains('x')).collect();
+    let section = |name: &str| {
+        args.is_empty() || args.iter().any(|a| a == name) || (name == "actors" && !cases.is_empty())
+    };
     let config = Config::default();
     let batches = [1, 64, 1024];
-    let mut runs: Vec<Box<dyn FnMut() -> usize>> = vec![Box::new(env_steps(&config))];
+    let mut runs: Vec<Box<dyn FnMut() -> usize>> =
+        vec![Box::new(env_steps(&config, &PolicySpec::Random))];
     for batch in batches {
-        runs.push(Box::new(rollout_steps(&config, batch)));
+        runs.push(Box::new(rollout_steps(&config, &PolicySpec::Random, batch)));
     }
     let rates = best_rates(&mut runs);
     drop(runs);
     let env = rates[0];
     println!("## Transport\n");
-    println!("Command: `cargo bench --bench transport` (2-core machine shared with other work; each actor a real `uavmeta actor --policy random` process, the receiver a busy-polling subscriber in the bench process).\n");
     println!(
         "Environment alone, random policy, K = {}: {:.1} M steps per CPU-second ({:.1} ns per step).\n",
         config.world.devices,
@@ -265,33 +386,68 @@ fn main() {
         );
     }
     println!();
-    println!(
-        "| actors | batch | transitions/s | actor CPU per transition | transport cost per actor | latency p50 | p90 | p99 | max |"
-    );
-    println!("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |");
-    // `cargo bench` passes its own flags (`--bench`); case filters look like `1x64`.
-    let only: Vec<String> = std::env::args()
-        .skip(1)
-        .filter(|a| a.contains('x'))
-        .collect();
-    for actors in [1, 2, 4] {
-        for batch in [1, 64, 1024] {
-            if !only.is_empty() && !only.contains(&format!("{actors}x{batch}")) {
-                continue;
-            }
-            let f = run_case(actors, batch);
-            let l = &f.latencies;
-            let per_transition = f.cpu_per_transition.as_secs_f64();
+
+    if section("floor") {
+        let step = Duration::from_secs_f64(1.0 / env);
+        println!("| batch | iceoryx2 loan + send, nothing written | per transition | over the environment step |");
+        println!("| ---: | ---: | ---: | ---: |");
+        for batch in batches {
+            let per_batch = send_floor(batch, step);
+            let per_transition = per_batch.as_secs_f64() / batch as f64;
             println!(
-                "| {actors} | {batch} | {:.2} M | {:.1} ns | {:+.0}% | {:.1} µs | {:.1} µs | {:.1} µs | {:.1} µs |",
-                f.rate / 1e6,
+                "| {batch} | {:.0} ns | {:.2} ns | {:+.1}% |",
+                per_batch.as_secs_f64() * 1e9,
                 per_transition * 1e9,
-                100.0 * (per_transition * env - 1.0),
-                percentile(l, 0.5) * 1e6,
-                percentile(l, 0.9) * 1e6,
-                percentile(l, 0.99) * 1e6,
-                l[l.len() - 1] * 1e6,
+                100.0 * per_transition * env
             );
+        }
+        println!();
+    }
+
+    if section("policies") {
+        println!("| policy (1 actor, batch 64) | environment per step | rollout writing slots, in process | actor CPU per transition | transport cost |");
+        println!("| --- | ---: | ---: | ---: | ---: |");
+        for spec in [PolicySpec::Random, PolicySpec::Stalest, PolicySpec::Greedy] {
+            let rates = best_rates(&mut [
+                Box::new(env_steps(&config, &spec)),
+                Box::new(rollout_steps(&config, &spec, 64)),
+            ]);
+            let per_transition = best_case(1, 64, &spec).cpu_per_transition;
+            println!(
+                "| {spec} | {:.1} ns | {:.1} ns | {:.1} ns | {:+.0}% |",
+                1e9 / rates[0],
+                1e9 / rates[1],
+                per_transition * 1e9,
+                100.0 * (per_transition * rates[0] - 1.0)
+            );
+        }
+        println!();
+    }
+
+    if section("actors") {
+        println!(
+            "| actors | batch | transitions/s | actor CPU per transition | transport cost per actor | latency p50 | p90 | p99 | max |"
+        );
+        println!("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |");
+        for actors in [1, 2, 4] {
+            for batch in batches {
+                if !cases.is_empty() && !cases.iter().any(|c| **c == format!("{actors}x{batch}")) {
+                    continue;
+                }
+                let f = best_case(actors, batch, &PolicySpec::Random);
+                let l = &f.latencies;
+                let per_transition = f.cpu_per_transition;
+                println!(
+                    "| {actors} | {batch} | {:.2} M | {:.1} ns | {:+.0}% | {:.1} µs | {:.1} µs | {:.1} µs | {:.1} µs |",
+                    f.rate / 1e6,
+                    per_transition * 1e9,
+                    100.0 * (per_transition * env - 1.0),
+                    percentile(l, 0.5) * 1e6,
+                    percentile(l, 0.9) * 1e6,
+                    percentile(l, 0.99) * 1e6,
+                    l[l.len() - 1] * 1e6,
+                );
+            }
         }
     }
 }
