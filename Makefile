@@ -12,12 +12,12 @@ export VIRTUAL_ENV := $(TORCH_VENV)
 export PATH := $(TORCH_VENV)/bin:$(PATH)
 export LIBTORCH_USE_PYTORCH := 1
 
-.PHONY: run test build bench libtorch env
+.PHONY: run test build bench libtorch promtool env
 
 run: build
 	target/release/uavmeta launch --config $(CONFIG)
 
-test: libtorch
+test: libtorch promtool
 	cargo test --workspace --release
 
 build: libtorch
@@ -32,6 +32,14 @@ $(TORCH_VENV)/.installed:
 	python3 -m venv $(TORCH_VENV)
 	$(TORCH_VENV)/bin/pip install --no-input --disable-pip-version-check torch==$(TORCH_VERSION)
 	touch $@
+
+# tests/runtime.rs lints every /metrics answer with `promtool check metrics`, from Debian's
+# prometheus package: installed here where apt-get can (as root), and required when CI=true.
+promtool:
+	@command -v promtool >/dev/null || \
+	  { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
+	    DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends prometheus >/dev/null; } || \
+	  echo "promtool is not installed (Debian: prometheus); the runtime tests skip its checks"
 
 # `eval "$(make -s env)"` sets up a shell for plain cargo commands.
 env:

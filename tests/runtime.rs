@@ -166,17 +166,22 @@ fn snapshot(run: &Path, process: &str) -> Vec<Sample> {
     metrics::parse(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
 }
 
-/// `promtool check metrics` on `text`, when promtool is installed (Debian: `prometheus`).
+/// `promtool check metrics` on `text`, when promtool is installed (Debian: `prometheus`); under
+/// `CI=true` it must be (`make test` installs it).
 fn promtool_check(text: &str, what: &str) {
     use std::io::Write;
-    let Ok(mut child) = Command::new("promtool")
+    let spawned = Command::new("promtool")
         .args(["check", "metrics"])
         .stdin(Stdio::piped())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
-        .spawn()
-    else {
-        return;
+        .spawn();
+    let mut child = match spawned {
+        Ok(child) => child,
+        Err(e) if std::env::var("CI").is_ok_and(|ci| ci == "true") => {
+            panic!("promtool, required under CI=true to check {what}: {e}")
+        }
+        Err(_) => return,
     };
     child
         .stdin
