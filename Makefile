@@ -35,10 +35,12 @@ $(TORCH_VENV)/.installed:
 
 # tests/runtime.rs lints every /metrics answer with `promtool check metrics`, from Debian's
 # prometheus package: installed here where apt-get can (as root), and required when CI=true.
+APT_INSTALL := DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends prometheus
+
 promtool:
-	@command -v promtool >/dev/null || \
-	  { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
-	    DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends prometheus >/dev/null; } || \
+	@command -v promtool >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
+	  { $(APT_INSTALL) || { apt-get update -q && $(APT_INSTALL); }; } >/dev/null 2>&1; }; \
+	command -v promtool >/dev/null || \
 	  echo "promtool is not installed (Debian: prometheus); the runtime tests skip its checks"
 
 # `eval "$(make -s env)"` sets up a shell for plain cargo commands.
