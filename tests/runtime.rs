@@ -504,6 +504,89 @@ fn kill9(pid: i32) {
     unsafe { libc::kill(pid, libc::SIGKILL) };
 }
 
+/// The paper's behaviour policy publishes a fixed replay sample once. If the store dies holding
+/// part of it unwritten, nothing else will ever send those transitions, so the actor must send its
+/// sample again to the store that replaces the dead one, or the dataset never completes.
+#[test]
+fn a_replay_sample_lost_with_a_killed_store_is_sent_again_to_its_successor() {
+    let dir = run_dir("e2e-resend-");
+    let run = dir.path().join("run");
+    let run_arg = run.display().to_string();
+    let mut store_args = vec!["store".to_string(), "--run".into(), run_arg.clone()];
+    store_args.extend(config_args(
+        dir.path(),
+        &run,
+        &[
+            "collect.policy=dqn-online",
+            "collect.dqn_steps=600",
+            "collect.learning_starts=100",
+            "collect.eps_decay_steps=300",
+            "collect.transitions=300",
+        ],
+    ));
+    let first = Proc::spawn("store", &store_args);
+    wait_until("the store", Duration::from_secs(60), || {
+        run.join("ports/store.port").exists()
+    });
+    // Stopped, the store takes batches into its queue but never writes them.
+    first.signal(libc::SIGSTOP);
+    let actor = Proc::spawn(
+        "actor",
+        &[
+            "actor".into(),
+            "--run".into(),
+            run_arg.clone(),
+            "--task".into(),
+            "lambda-0".into(),
+        ],
+    );
+    wait_until("the sample sent", Duration::from_secs(120), || {
+        actor_names_live(&run).first().is_some_and(|name| {
+            metrics::sum(
+                &scrape(&run, name),
+                "uavmeta_actor_transitions_published_total",
+                &[],
+            ) == 300.0
+        })
+    });
+    first.signal(libc::SIGKILL);
+    let killed = first.wait(Duration::from_secs(30));
+    assert!(!killed.status.success());
+    assert!(
+        dataset_seqs(&run)
+            .get("lambda-0")
+            .is_none_or(BTreeMap::is_empty),
+        "the stopped store wrote part of the sample"
+    );
+
+    let second = Proc::spawn("store", &["store".into(), "--run".into(), run_arg.clone()]);
+    // The actor ends by itself once its task's dataset is announced complete.
+    let actor = actor.wait(Duration::from_secs(60));
+    assert!(actor.status.success(), "{}", stderr(&actor));
+    let seqs = dataset_seqs(&run);
+    let per_actor = &seqs["lambda-0"];
+    assert_eq!(per_actor.len(), 1, "{per_actor:?}");
+    let stored = per_actor.values().next().expect("the actor's transitions");
+    assert_eq!(*stored, (0..300).collect::<Vec<u64>>());
+    second.signal(libc::SIGTERM);
+    let second = second.wait(Duration::from_secs(30));
+    assert!(second.status.success(), "{}", stderr(&second));
+    let store = snapshot(&run, "store");
+    assert_eq!(
+        metrics::sum(
+            &store,
+            "uavmeta_store_transitions_missing_total",
+            &[("task", "lambda-0")]
+        ),
+        0.0
+    );
+    let actor_metrics = snapshot(&run, &actor_names(&run)[0]);
+    assert!(
+        metrics::sum(&actor_metrics, "uavmeta_actor_samples_resent_total", &[]) >= 1.0,
+        "the resend is counted"
+    );
+}
+
 #[test]
 fn killed_actor_store_and_meta_learner_are_restarted_and_nothing_is_lost_unaccounted() {
     let dir = run_dir("e2e-kill-");

@@ -9,7 +9,9 @@
 //! is sent again under the same numbers: from a copy the actor keeps until the store is proven
 //! connected (`StoreLink`), or, for a replay sample, written again from the sample. With
 //! `dqn-online` (the paper's behaviour policy) the actor first trains an online DQN agent and then
-//! publishes `collect.transitions` transitions sampled from its replay buffer.
+//! publishes `collect.transitions` transitions sampled from its replay buffer; when the store
+//! changes (a killed store replaced), it sends the whole sample again, since the dead store may
+//! have taken part of it unwritten and a sample, unlike a rollout, has no more data to come.
 //!
 //! An actor's identity is a hash of its task, policy and seed: the same actor restarted (by the
 //! launcher after a crash) makes the same transitions under the same numbers, and the store keeps
@@ -105,6 +107,7 @@ mod metrics {
         pub steps: IntCounter,
         pub transitions_published: IntCounter,
         pub batches_resent: IntCounter,
+        pub samples_resent: IntCounter,
         pub transitions_lost: IntCounter,
         pub batches_published: IntCounter,
         pub episodes: IntCounter,
@@ -134,6 +137,7 @@ mod metrics {
                 steps: counter(&registry, "actor_steps_total", "Environment steps taken (for dqn-online, training steps included)."),
                 transitions_published: counter(&registry, "actor_transitions_published_total", "Transitions delivered to the store's service."),
                 batches_resent: counter(&registry, "actor_batches_resent_total", "Batches sent again because iceoryx2 reported them delivered to no store."),
+                samples_resent: counter(&registry, "actor_samples_resent_total", "Times the replay sample (dqn-online) was sent again from its start because the store changed."),
                 transitions_lost: counter(&registry, "actor_transitions_lost_total", "Transitions delivered to no store because the connected store went away during the send; the restarted store counts them as missing."),
                 batches_published: counter(&registry, "actor_batches_published_total", "Batches sent to the store's service."),
                 episodes: counter(&registry, "actor_episodes_total", "Episodes finished by the behaviour policy."),
@@ -305,6 +309,21 @@ pub fn run(
             }
             next_look = Instant::now() + CONTROL_EVERY;
         }
+        if let Source::Fixed(_) = &source {
+            // A replay sample can be sent again, and must be: a store that went away took what it
+            // held unwritten with it, and no actor will ever send those transitions otherwise.
+            // Its successor keeps what it lacks and drops the rest as duplicates.
+            let subscribers = publisher.subscribers();
+            if seq > 0 && link.replaced(subscribers) {
+                tracing::warn!(
+                    sent = seq,
+                    "the store changed; sending the replay sample again"
+                );
+                metrics.samples_resent.inc();
+                link.observe(subscribers);
+                seq = 0;
+            }
+        }
         let left = match &source {
             Source::Rollout(_) => limit - seq,
             Source::Fixed(list) => limit.min(list.len() as u64).saturating_sub(seq),
@@ -443,6 +462,12 @@ impl StoreLink {
 
     fn delivered(&mut self) {
         self.delivered = self.delivered.saturating_add(1);
+    }
+
+    /// True when a store is subscribed but the set differs from the one the last batch was sent
+    /// to: a store that held batches may have died and been replaced.
+    fn replaced(&self, now: SubscriberSet) -> bool {
+        !self.subscribers.is_empty() && !now.is_empty() && now != self.subscribers
     }
 
     /// True once the store has provably taken batches from this publisher's queue.

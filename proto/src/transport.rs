@@ -21,7 +21,8 @@
 //! then taken some, so it is connected.
 //! After that the only loss is a store that goes away: what it held unwritten, and the batch being
 //! sent, are lost, the actor counts that batch, and the restarted store counts all of it as
-//! missing from the actors' sequence numbers. Transition services keep no history: in iceoryx2
+//! missing from the actors' sequence numbers (an actor publishing a fixed replay sample sends it
+//! all again instead, see `actors::actor_process`). Transition services keep no history: in iceoryx2
 //! 0.10 a subscriber that joins a publisher with history gets that history into its buffer and
 //! afterwards the blocking publisher silently loses batches (measured: 39 296 of 43 456
 //! transitions of one actor).
