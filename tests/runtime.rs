@@ -344,21 +344,27 @@ fn a_small_launch_completes_and_accounts_for_every_transition() {
     assert!(run.join("prometheus.yml").exists());
 }
 
+/// A store started by hand on a new run of the small config with `overrides`, once it serves.
+fn start_store(dir: &Path, run: &Path, overrides: &[&str]) -> Proc {
+    let mut args = vec![
+        "store".to_string(),
+        "--run".into(),
+        run.display().to_string(),
+    ];
+    args.extend(config_args(dir, run, overrides));
+    let store = Proc::spawn("store", &args);
+    wait_until("the store", Duration::from_secs(60), || {
+        run.join("ports/store.port").exists()
+    });
+    store
+}
+
 #[test]
 fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
     let dir = run_dir("e2e-hand-");
     let run = dir.path().join("run");
     let run_arg = run.display().to_string();
-    let mut store_args = vec!["store".to_string(), "--run".into(), run_arg.clone()];
-    store_args.extend(config_args(
-        dir.path(),
-        &run,
-        &["collect.transitions=1000000"],
-    ));
-    let store = Proc::spawn("store", &store_args);
-    wait_until("the store", Duration::from_secs(60), || {
-        run.join("ports/store.port").exists()
-    });
+    let store = start_store(dir.path(), &run, &["collect.transitions=1000000"]);
 
     let actor = |seed: &str, limit: Option<&str>| {
         let mut args = vec![
@@ -512,8 +518,7 @@ fn a_replay_sample_lost_with_a_killed_store_is_sent_again_to_its_successor() {
     let dir = run_dir("e2e-resend-");
     let run = dir.path().join("run");
     let run_arg = run.display().to_string();
-    let mut store_args = vec!["store".to_string(), "--run".into(), run_arg.clone()];
-    store_args.extend(config_args(
+    let first = start_store(
         dir.path(),
         &run,
         &[
@@ -523,11 +528,7 @@ fn a_replay_sample_lost_with_a_killed_store_is_sent_again_to_its_successor() {
             "collect.eps_decay_steps=300",
             "collect.transitions=300",
         ],
-    ));
-    let first = Proc::spawn("store", &store_args);
-    wait_until("the store", Duration::from_secs(60), || {
-        run.join("ports/store.port").exists()
-    });
+    );
     // Stopped, the store takes batches into its queue but never writes them.
     first.signal(libc::SIGSTOP);
     let actor = Proc::spawn(
