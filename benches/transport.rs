@@ -355,12 +355,29 @@ fn main() {
         .skip(1)
         .filter(|a| !a.starts_with('-'))
         .collect();
-    let cases: Vec<&String> = args.iter().filter(|a| a.contains('x')).collect();
+    const SECTIONS: [&str; 3] = ["floor", "policies", "actors"];
+    let (actor_counts, batches) = ([1, 2, 4], [1, 64, 1024]);
+    let all_cases: Vec<String> = actor_counts
+        .iter()
+        .flat_map(|a| batches.iter().map(move |b| format!("{a}x{b}")))
+        .collect();
+    if let Some(bad) = args
+        .iter()
+        .find(|a| !SECTIONS.contains(&a.as_str()) && !all_cases.contains(a))
+    {
+        eprintln!(
+            "transport bench: unknown argument `{bad}`; expected a section ({}) or an actor case \
+             ACTORSxBATCH ({})",
+            SECTIONS.join(", "),
+            all_cases.join(", ")
+        );
+        std::process::exit(2);
+    }
+    let cases: Vec<&String> = args.iter().filter(|a| all_cases.contains(a)).collect();
     let section = |name: &str| {
         args.is_empty() || args.iter().any(|a| a == name) || (name == "actors" && !cases.is_empty())
     };
     let config = Config::default();
-    let batches = [1, 64, 1024];
     let mut runs: Vec<Box<dyn FnMut() -> usize>> =
         vec![Box::new(env_steps(&config, &PolicySpec::Random))];
     for batch in batches {
@@ -429,7 +446,7 @@ fn main() {
             "| actors | batch | transitions/s | actor CPU per transition | transport cost per actor | latency p50 | p90 | p99 | max |"
         );
         println!("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |");
-        for actors in [1, 2, 4] {
+        for actors in actor_counts {
             for batch in batches {
                 if !cases.is_empty() && !cases.iter().any(|c| **c == format!("{actors}x{batch}")) {
                     continue;
