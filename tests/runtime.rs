@@ -11,6 +11,7 @@ use std::time::{Duration, Instant};
 
 use uavmeta_learner::metrics::{self, Sample};
 use uavmeta_proto::dataset::DatasetReader;
+use uavmeta_proto::transport::Method;
 
 const BIN: &str = env!("CARGO_BIN_EXE_uavmeta");
 /// A small, quick run: two meta-train tasks and the unseen one, heuristic actors, a tiny network.
@@ -600,6 +601,8 @@ fn killed_actor_store_and_meta_learner_are_restarted_and_nothing_is_lost_unaccou
         &[
             "collect.transitions=600000",
             "meta.meta_epochs=3000",
+            // One outer step per meta-epoch: a pass over 300 000 support shots would be 18 750.
+            "meta.outer_steps_per_meta_epoch=1",
             "meta.checkpoint_every=100",
         ],
     );
@@ -693,8 +696,12 @@ fn an_evaluator_restarted_after_the_meta_learner_exited_catches_up_from_the_run_
     let csv = run.join("evaluations.csv");
     let complete = std::fs::read_to_string(&csv).expect("evaluations.csv");
     let lines: Vec<&str> = complete.lines().collect();
-    // Two w0 checkpoints, and two epochs of each meta-test method.
-    assert_eq!(lines.len(), 1 + 2 + 2 * 2, "{complete}");
+    // Two w0 checkpoints, and two epochs of each fine-tuned method.
+    assert_eq!(
+        lines.len(),
+        1 + 2 + Method::FINE_TUNED.len() * 2,
+        "{complete}"
+    );
 
     // As if the evaluator had been killed after its first row and restarted once the whole run,
     // meta-learner included, had exited: nobody announces anything any more.

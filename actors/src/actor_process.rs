@@ -9,7 +9,8 @@
 //! is sent again under the same numbers: from a copy the actor keeps until the store is proven
 //! connected (`StoreLink`), or, for a replay sample, written again from the sample. With
 //! `dqn-online` (the paper's behaviour policy) the actor first trains an online DQN agent and then
-//! publishes `collect.transitions` transitions sampled from its replay buffer; when the store
+//! publishes `collect.transitions` transitions sampled from its replay buffer, after saving the
+//! agent's network as the task's `online-dqn` checkpoint (the "online" reference); when the store
 //! changes (a killed store replaced), it sends the whole sample again, since the dead store may
 //! have taken part of it unwritten and a sample, unlike a rollout, has no more data to come.
 //!
@@ -22,13 +23,14 @@
 use std::time::{Duration, Instant};
 
 use iceoryx2::prelude::*;
+use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_learner::metrics::{MetricsError, MetricsServer};
 use uavmeta_proto::config::{Config, ConfigError, TaskConfig};
 use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::stats::EpisodeMetrics;
 use uavmeta_proto::transport::{
-    self, RunDir, ServiceNames, SubscriberSet, TransitionPublisher, TransitionSlot, TransportError,
-    SCHEMA_VERSION,
+    self, Method, RunDir, ServiceNames, SubscriberSet, TransitionPublisher, TransitionSlot,
+    TransportError, SCHEMA_VERSION,
 };
 
 use crate::collect::{online_dqn_dataset, CollectError};
@@ -55,6 +57,8 @@ pub enum ActorError {
     Collect(#[from] CollectError),
     #[error(transparent)]
     Config(#[from] ConfigError),
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
 }
 
 /// What to run: the flags of `uavmeta actor`.
@@ -271,8 +275,16 @@ pub fn run(
                 transport::keep_running(&node, Duration::ZERO)
             });
             match trained {
-                Ok((sample, steps)) => {
-                    summary.steps = steps;
+                Ok((sample, agent)) => {
+                    summary.steps = agent.steps() as u64;
+                    // The reference the meta-learner announces once the dataset is stored.
+                    checkpoint::save(
+                        &run.checkpoint(Method::OnlineDqn, &task, 1),
+                        agent.q_network(),
+                        Method::OnlineDqn.name(),
+                        1,
+                        config,
+                    )?;
                     Source::Fixed(sample)
                 }
                 Err(CollectError::Interrupted { steps }) => {

@@ -44,8 +44,8 @@ pub enum CollectError {
     Train(#[from] BatchError),
     #[error(
         "{origin}: collect.transitions = {wanted}, but the online DQN agent's replay buffer will hold only \
-         {available} transitions (the smaller of collect.dqn_steps and collect.replay_capacity): raise both \
-         to at least {wanted}"
+         {available} transitions to sample from (the smallest of collect.dqn_steps, collect.replay_capacity and a \
+         non-zero collect.sample_newest): raise them to at least {wanted}"
     )]
     ReplayTooSmall {
         origin: String,
@@ -146,8 +146,9 @@ const DQN_PROGRESS_STEPS: usize = 500;
 
 /// The paper's dataset of one task: an online DQN agent (actor `actor`, seeded `seed`) trains for
 /// `collect.dqn_steps` steps, reporting each block of training steps to `progress`, and
-/// `collect.transitions` transitions are sampled from its replay buffer, in time order. Also
-/// returns the agent's environment steps. Training stops early with
+/// `collect.transitions` transitions are sampled from its replay buffer (the newest
+/// `collect.sample_newest` of it, when that is not 0), in time order. Also
+/// returns the trained agent, the task's online reference. Training stops early with
 /// [`CollectError::Interrupted`] when `progress` returns false.
 pub fn online_dqn_dataset(
     config: &Config,
@@ -156,7 +157,7 @@ pub fn online_dqn_dataset(
     actor: u32,
     seed: u64,
     mut progress: impl FnMut(usize) -> bool,
-) -> Result<(Vec<Transition>, u64), CollectError> {
+) -> Result<(Vec<Transition>, OnlineDqn), CollectError> {
     let mut agent = OnlineDqn::new(config, task, task_id, actor, seed);
     let mut left = config.collect.dqn_steps;
     while left > 0 {
@@ -169,7 +170,11 @@ pub fn online_dqn_dataset(
         }
         left -= n;
     }
-    let buffer: Vec<Transition> = agent.replay_buffer().iter().cloned().collect();
+    let buffer: Vec<Transition> = agent
+        .replay_buffer()
+        .newest(config.collect.sample_newest)
+        .cloned()
+        .collect();
     // A seed no collection episode uses, so the draw is independent of the agent's own.
     let mut sampled = sample_shots(
         &buffer,
@@ -177,7 +182,7 @@ pub fn online_dqn_dataset(
         episode_seed(seed, usize::MAX),
     )?;
     sampled.sort_unstable_by_key(|t| t.seq);
-    Ok((sampled, agent.steps() as u64))
+    Ok((sampled, agent))
 }
 
 /// Where the config of dataset `out` is saved: `out` with `.config.toml` appended.
@@ -208,7 +213,12 @@ pub fn collect(
     // Everything that can be refused is checked before a file is written.
     let rollout_policy = match &spec {
         PolicySpec::DqnOnline => {
-            let available = config.collect.dqn_steps.min(config.collect.replay_capacity);
+            let c = &config.collect;
+            let held = c.dqn_steps.min(c.replay_capacity);
+            let available = match c.sample_newest {
+                0 => held,
+                n => held.min(n),
+            };
             if available < wanted {
                 return Err(CollectError::ReplayTooSmall {
                     origin: config.origin.clone(),
@@ -236,14 +246,14 @@ pub fn collect(
     let steps = match rollout_policy {
         None => {
             progress.set_length(config.collect.dqn_steps as u64);
-            let (sampled, steps) = online_dqn_dataset(config, task, header.task, 0, seed, |n| {
+            let (sampled, agent) = online_dqn_dataset(config, task, header.task, 0, seed, |n| {
                 progress.inc(n as u64);
                 true
             })?;
             for chunk in sampled.chunks(config.run.batch_size) {
                 writer.append(chunk)?;
             }
-            steps
+            agent.steps() as u64
         }
         Some(policy) => {
             progress.set_length(wanted as u64);

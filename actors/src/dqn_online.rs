@@ -2,16 +2,22 @@
 //! for the offline datasets, and its "online" reference line.
 //!
 //! Settings: the `[collect]` section (`dqn_steps`, `replay_capacity`, `learning_starts`,
-//! `train_every`, `eps_start`, `eps_end`, `eps_decay_steps`) and the network and optimiser of
-//! `[learner]` (`hidden`, `gamma`, `reward_scale`, `batch`, `lr`, `target_update_every`,
-//! `double_dqn`, `huber`), so the online agent and the offline learners share one network.
+//! `train_every`, `eps_start`, `eps_end`, `eps_decay_steps`, its network `dqn_hidden` and rate
+//! `dqn_lr`, and the stabilisers `dqn_double`, `dqn_huber`, `dqn_grad_clip_norm`,
+//! `dqn_target_update_every`) and `[learner]`'s `gamma`, `reward_scale` and `batch`, so the
+//! online agent and the offline learners see the same rewards.
+//!
+//! The paper gives no settings for this agent; SPEC section 5 asks for what a practitioner would
+//! use. The defaults are the usual DQN stabilisers: Double DQN, the Huber loss, gradient-norm
+//! clipping at 10, a target network refreshed every 500 gradient steps, SPEC's [256, 256] network
+//! and Adam at 1e-4. Without them the agent swings between heuristic level and far below random
+//! from one evaluation to the next (docs/EXPERIMENTS.md).
 //!
 //! Loop, per environment step: epsilon-greedy action (uniform random during the first
 //! `learning_starts` steps, then epsilon falls linearly from `eps_start` to `eps_end` over
 //! `eps_decay_steps`), store the transition, and every `train_every` steps one Adam step on
-//! eq. 7 over a uniform minibatch of the buffer; hard target update every
-//! `target_update_every` gradient steps. Time limits are not terminal: the last transition of an
-//! episode is stored with `truncated = true` and still bootstraps.
+//! eq. 7 over a uniform minibatch of the buffer. Time limits are not terminal: the last
+//! transition of an episode is stored with `truncated = true` and still bootstraps.
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -71,6 +77,15 @@ impl ReplayBuffer {
         older.iter().chain(newer)
     }
 
+    /// The newest `n` transitions (all of them when `n` is 0 or above the length), oldest first.
+    pub fn newest(&self, n: usize) -> impl Iterator<Item = &Transition> {
+        let skip = match n {
+            0 => 0,
+            n => self.len().saturating_sub(n),
+        };
+        self.iter().skip(skip)
+    }
+
     /// `n` transitions drawn uniformly with replacement.
     fn sample<'a>(&'a self, rng: &mut ChaCha8Rng, n: usize) -> Vec<&'a Transition> {
         (0..n)
@@ -124,22 +139,27 @@ impl OnlineDqn {
         let w = &config.world;
         let l = &config.learner;
         let mut seeds = ChaCha8Rng::seed_from_u64(seed);
+        let c = &config.collect;
         let q = QNetwork::new(
             w.observation_len(),
             w.action_count(),
-            &l.hidden,
+            &c.dqn_hidden,
             seeds.random(),
         );
         let target = q.duplicate();
         let opt = nn::Adam::default()
-            .build(&q.vs, l.lr)
+            .build(&q.vs, c.dqn_lr)
             .expect("Adam over a CPU VarStore always builds");
         let world = World::new(w, task, seeds.random());
         Self {
-            collect: config.collect.clone(),
+            collect: c.clone(),
             learner: l.clone(),
             world_cfg: w.clone(),
-            td: TdConfig::from(l),
+            td: TdConfig {
+                gamma: l.gamma,
+                double_dqn: c.dqn_double,
+                huber: c.dqn_huber,
+            },
             world,
             q,
             target,
@@ -224,7 +244,8 @@ impl OnlineDqn {
         Ok(Some(finished))
     }
 
-    /// ALGO: one Adam step on eq. 7 over a uniform minibatch of the replay buffer.
+    /// ALGO: one Adam step on eq. 7 (with the configured stabilisers) over a uniform minibatch of
+    /// the replay buffer.
     fn gradient_step(&mut self) -> Result<(), BatchError> {
         let sample = self.replay.sample(&mut self.rng, self.learner.batch);
         let mb = Batch::new(&sample, &self.world_cfg, self.learner.reward_scale)?;
@@ -241,11 +262,16 @@ impl OnlineDqn {
             &mb,
             &self.td,
         );
-        self.opt.backward_step(&loss);
+        let clip = self.collect.dqn_grad_clip_norm;
+        if clip > 0.0 {
+            self.opt.backward_step_clip_norm(&loss, clip);
+        } else {
+            self.opt.backward_step(&loss);
+        }
         self.gradient_steps += 1;
         if self
             .gradient_steps
-            .is_multiple_of(self.learner.target_update_every)
+            .is_multiple_of(self.collect.dqn_target_update_every)
         {
             self.target.copy_from(&self.q);
         }

@@ -71,10 +71,11 @@ pub struct EvaluationRow {
 const CSV_HEADER: &str = "task,method,epoch,episodes,return,return_ci95,aoi,aoi_ci95,power_watts,power_watts_ci95,outages,outages_ci95";
 
 impl EvaluationRow {
-    fn new(task: &str, method: Method, epoch: u32, m: &PolicyMetrics) -> Self {
+    /// The row of `method` (a [`Method`]'s name, or a heuristic's) on `task` after `epoch`.
+    pub fn new(task: &str, method: &str, epoch: u32, m: &PolicyMetrics) -> Self {
         Self {
             task: task.to_string(),
-            method: method.name().to_string(),
+            method: method.to_string(),
             epoch,
             episodes: m.episodes,
             ret: m.ret.mean,
@@ -277,7 +278,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
         let path = run.checkpoint(method, task, next.epoch);
         let (q, _) = checkpoint::load(&path, config)?;
         let result = Evaluator::from_config(config, task).evaluate(&q);
-        let row = EvaluationRow::new(&task.name, method, next.epoch, &result);
+        let row = EvaluationRow::new(&task.name, method.name(), next.epoch, &result);
         writeln!(csv, "{}", row.to_csv()).map_err(|e| io("append a row", e))?;
         csv.flush().map_err(|e| io("flush", e))?;
         let labels = [task.name.as_str(), method.name()];
@@ -301,7 +302,8 @@ pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
 }
 
 /// The complete checkpoints in `run`'s directory, as the meta-learner announces them: every w0
-/// checkpoint for each meta-test task, then each meta-test task's CQL-MAML and CQL epochs.
+/// checkpoint for each meta-test task, then each meta-test task's online DQN agent and the epochs
+/// of its fine-tuned methods.
 fn checkpoints_on_disk(run: &RunDir, config: &Config) -> Vec<CheckpointReady> {
     let test_tasks: Vec<(u32, &TaskConfig)> = config
         .tasks
@@ -327,7 +329,10 @@ fn checkpoints_on_disk(run: &RunDir, config: &Config) -> Vec<CheckpointReady> {
         }
     }
     for &(id, task) in &test_tasks {
-        for method in [Method::CqlMaml, Method::Cql] {
+        if complete(Method::OnlineDqn, task, 1) {
+            found.push(message(Method::OnlineDqn, id, 1));
+        }
+        for method in Method::FINE_TUNED {
             for epoch in 1..=config.learner.epochs as u32 {
                 if complete(method, task, epoch) {
                     found.push(message(method, id, epoch));

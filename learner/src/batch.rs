@@ -127,6 +127,21 @@ impl Batch {
         self.len() == 0
     }
 
+    /// The rows of every batch in `parts`, one after the other: the union of several tasks'
+    /// shots. `parts` must not be empty.
+    pub fn concat<'a>(parts: impl IntoIterator<Item = &'a Batch>) -> Batch {
+        let parts: Vec<&Batch> = parts.into_iter().collect();
+        let column = |pick: fn(&Batch) -> &Tensor| {
+            Tensor::cat(&parts.iter().map(|b| pick(b)).collect::<Vec<_>>(), 0)
+        };
+        Batch {
+            obs: column(|b| &b.obs),
+            actions: column(|b| &b.actions),
+            rewards: column(|b| &b.rewards),
+            next_obs: column(|b| &b.next_obs),
+        }
+    }
+
     /// The rows `index` ([M] i64) of every column: a minibatch.
     pub fn select(&self, index: &Tensor) -> Batch {
         Batch {

@@ -24,6 +24,7 @@ use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 use tch::Tensor;
 use uavmeta_proto::config::Config;
+use uavmeta_proto::transport::Method;
 
 use crate::qnet::QNetwork;
 
@@ -251,8 +252,8 @@ fn read_json<T: DeserializeOwned>(
     Ok(meta)
 }
 
-/// Loads checkpoint `path` into a new network sized by `config` (`world.devices`,
-/// `learner.hidden`). Sizes that differ from the checkpoint's, a truncated or corrupt weights
+/// Loads checkpoint `path` into a new network sized by `config` (`world.devices`, and
+/// `learner.hidden`, or `collect.dqn_hidden` for an online DQN agent's). Sizes that differ from the checkpoint's, a truncated or corrupt weights
 /// file, or unreadable metadata are errors naming the file.
 pub fn load(path: &Path, config: &Config) -> Result<(QNetwork, CheckpointMeta), CheckpointError> {
     let paths = CheckpointPaths::new(path);
@@ -286,12 +287,18 @@ pub fn load(path: &Path, config: &Config) -> Result<(QNetwork, CheckpointMeta), 
             "world.devices",
         ));
     }
-    if meta.hidden != config.learner.hidden {
+    // The online DQN agent has a network of its own; every offline learner shares `learner`'s.
+    let (hidden, hidden_key) = if meta.algorithm == Method::OnlineDqn.name() {
+        (&config.collect.dqn_hidden, "collect.dqn_hidden")
+    } else {
+        (&config.learner.hidden, "learner.hidden")
+    };
+    if &meta.hidden != hidden {
         return Err(mismatch(
             "hidden widths",
             format!("{:?}", meta.hidden),
-            format!("{:?}", config.learner.hidden),
-            "learner.hidden",
+            format!("{hidden:?}"),
+            hidden_key,
         ));
     }
     if meta.world_hash != config.world_hash() {

@@ -19,7 +19,7 @@ use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use tch::{nn, nn::OptimizerConfig, Tensor};
-use uavmeta_proto::config::Config;
+use uavmeta_proto::config::{Config, LearnerConfig};
 use uavmeta_proto::stats::PolicyMetrics;
 
 use crate::batch::Batch;
@@ -165,6 +165,100 @@ impl EpochRow {
     }
 }
 
+/// The loss figures of one gradient step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepFigures {
+    /// Eq. 7 on the minibatch (scaled rewards).
+    pub td_loss: f64,
+    /// `mean(logsumexp_a Q - Q(s, a_data))`, before alpha.
+    pub conservative_loss: f64,
+    /// Mean over the minibatch of `max_a Q(s, a)`, scaled.
+    pub max_q: f64,
+}
+
+/// Offline gradient steps on one network: Adam(`learner.lr`), minibatches of a seeded shuffle of
+/// the data, a hard target update every `learner.target_update_every` steps. [`train`] drives
+/// it epoch by epoch; multi-task pretraining drives it on the union of tasks' shots.
+pub struct OfflineTrainer {
+    algorithm: Algorithm,
+    alpha: f64,
+    td: TdConfig,
+    target_update_every: usize,
+    opt: nn::Optimizer,
+    target: QNetwork,
+    order: MinibatchOrder,
+    steps: usize,
+}
+
+impl OfflineTrainer {
+    /// A trainer of `q` on `rows` transitions with `config`'s `[learner]` settings.
+    pub fn new(
+        q: &QNetwork,
+        rows: usize,
+        algorithm: Algorithm,
+        config: &Config,
+        seed: u64,
+    ) -> Self {
+        let cfg = &config.learner;
+        Self {
+            algorithm,
+            alpha: cfg.alpha,
+            td: TdConfig::from(cfg),
+            target_update_every: cfg.target_update_every,
+            opt: nn::Adam::default()
+                .build(&q.vs, cfg.lr)
+                .expect("Adam over a CPU VarStore always builds"),
+            target: q.duplicate(),
+            order: MinibatchOrder::new(rows, cfg.batch.min(rows), seed),
+            steps: 0,
+        }
+    }
+
+    /// ALGO: one Adam step on eq. 8 (CQL) or eq. 7 (DQN) over the next minibatch of `data`.
+    pub fn step(&mut self, q: &mut QNetwork, data: &Batch) -> StepFigures {
+        let mb = data.select(&self.order.next_indices());
+        // Q_w(s, .) with its graph; Qhat(s', .) from the frozen target network.
+        let q_all = q.forward(&mb.obs); // [b, A]
+        let next_q_target = tch::no_grad(|| self.target.forward(&mb.next_obs)); // [b, A]
+        let next_q_online = self
+            .td
+            .double_dqn
+            .then(|| tch::no_grad(|| q.forward(&mb.next_obs)));
+        let td_loss = td_loss_with(
+            &q_all,
+            &next_q_target,
+            next_q_online.as_ref(),
+            &mb,
+            &self.td,
+        ); // eq. 7
+        let (loss, conservative) = match self.algorithm {
+            Algorithm::Cql => {
+                let l = CqlLoss::from_td(&q_all, td_loss.shallow_clone(), &mb, self.alpha); // eq. 8
+                (l.total, l.conservative)
+            }
+            Algorithm::Dqn => (
+                td_loss.shallow_clone(),
+                tch::no_grad(|| conservative_term(&q_all, &mb)),
+            ),
+        };
+        self.opt.backward_step(&loss);
+        self.steps += 1;
+        if self.steps.is_multiple_of(self.target_update_every) {
+            self.target.copy_from(q);
+        }
+        StepFigures {
+            td_loss: td_loss.double_value(&[]),
+            conservative_loss: conservative.double_value(&[]),
+            max_q: tch::no_grad(|| q_all.amax(-1, false).mean(None)).double_value(&[]),
+        }
+    }
+
+    /// Gradient steps so far.
+    pub fn steps(&self) -> usize {
+        self.steps
+    }
+}
+
 /// Trains `q` in place on `data` (every transition of the N shots) and returns one row per epoch.
 pub fn train(
     q: &mut QNetwork,
@@ -173,20 +267,8 @@ pub fn train(
     evaluator: &mut dyn EvaluatePolicy,
 ) -> Result<Vec<EpochRow>, TrainError> {
     let cfg = &opts.config.learner;
-    let n = data.len();
-    let batch = cfg.batch.min(n);
-    let steps_per_epoch = if cfg.steps_per_epoch == 0 {
-        n.div_ceil(batch)
-    } else {
-        cfg.steps_per_epoch
-    };
-    let td = TdConfig::from(cfg);
-
-    let mut opt = nn::Adam::default()
-        .build(&q.vs, cfg.lr)
-        .expect("Adam over a CPU VarStore always builds");
-    let mut target = q.duplicate();
-    let mut order = MinibatchOrder::new(n, batch, opts.seed);
+    let steps_per_epoch = steps_per_epoch(cfg, data.len());
+    let mut trainer = OfflineTrainer::new(q, data.len(), opts.algorithm, opts.config, opts.seed);
 
     let mut csv = match opts.out_dir {
         Some(dir) => Some(CsvLog::create(&dir.join("train.csv"))?),
@@ -199,43 +281,19 @@ pub fn train(
 
     let started = Instant::now();
     let mut rows = Vec::with_capacity(cfg.epochs);
-    let mut steps = 0;
     for epoch in 1..=cfg.epochs {
         let (mut td_sum, mut cons_sum, mut q_sum) = (0.0, 0.0, 0.0);
         for _ in 0..steps_per_epoch {
-            let mb = data.select(&order.next_indices());
-            // ALGO: Q_w(s, .) with its graph; Qhat(s', .) from the frozen target network.
-            let q_all = q.forward(&mb.obs); // [b, A]
-            let next_q_target = tch::no_grad(|| target.forward(&mb.next_obs)); // [b, A]
-            let next_q_online = td
-                .double_dqn
-                .then(|| tch::no_grad(|| q.forward(&mb.next_obs)));
-            let td_loss = td_loss_with(&q_all, &next_q_target, next_q_online.as_ref(), &mb, &td); // eq. 7
-            let (loss, conservative) = match opts.algorithm {
-                Algorithm::Cql => {
-                    let l = CqlLoss::from_td(&q_all, td_loss.shallow_clone(), &mb, cfg.alpha); // eq. 8
-                    (l.total, l.conservative)
-                }
-                Algorithm::Dqn => (
-                    td_loss.shallow_clone(),
-                    tch::no_grad(|| conservative_term(&q_all, &mb)),
-                ),
-            };
-            opt.backward_step(&loss);
-            steps += 1;
-            if steps % cfg.target_update_every == 0 {
-                target.copy_from(q);
-            }
-            // PLUMBING: epoch means of the logged figures.
-            td_sum += td_loss.double_value(&[]);
-            cons_sum += conservative.double_value(&[]);
-            q_sum += tch::no_grad(|| q_all.amax(-1, false).mean(None)).double_value(&[]);
+            let step = trainer.step(q, data);
+            td_sum += step.td_loss;
+            cons_sum += step.conservative_loss;
+            q_sum += step.max_q;
             bar.inc(1);
         }
         let k = steps_per_epoch as f64;
         let row = EpochRow {
             epoch,
-            steps,
+            steps: trainer.steps(),
             td_loss: td_sum / k,
             conservative_loss: cons_sum / k,
             mean_q: q_sum / k / cfg.reward_scale,
@@ -261,6 +319,15 @@ pub fn train(
         )?;
     }
     Ok(rows)
+}
+
+/// Gradient steps of one epoch on `rows` transitions: `learner.steps_per_epoch`, or one pass,
+/// ceil(rows / batch), when that is 0.
+pub fn steps_per_epoch(cfg: &LearnerConfig, rows: usize) -> usize {
+    match cfg.steps_per_epoch {
+        0 => rows.div_ceil(cfg.batch.min(rows).max(1)),
+        n => n,
+    }
 }
 
 /// Minibatch indices: consecutive slices of a seeded permutation of the N rows, reshuffled each

@@ -31,6 +31,7 @@ use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
 use uavmeta_actors::actor_process::ActorOptions;
 use uavmeta_actors::evaluator_process::{self, EvaluationRow};
 use uavmeta_actors::heuristics::PolicySpec;
+use uavmeta_actors::rollout::evaluate;
 use uavmeta_learner::metrics::{self, MetricsServer};
 use uavmeta_learner::store;
 use uavmeta_proto::config::{Config, TaskRole};
@@ -171,6 +172,47 @@ pub struct LaunchReport {
     pub restarts: u32,
     /// The last evaluation of every (task, method).
     pub results: Vec<EvaluationRow>,
+    /// The heuristics on every meta-test task, over the evaluator's episodes: what a learned
+    /// return is measured against.
+    pub references: Vec<EvaluationRow>,
+}
+
+/// The heuristics of the results table, in its order.
+const HEURISTICS: [PolicySpec; 3] = [PolicySpec::Random, PolicySpec::Stalest, PolicySpec::Greedy];
+
+/// The rows of a task in the results table: references (heuristics, the online DQN agent), then
+/// the learners.
+const ROW_ORDER: [&str; 8] = [
+    "random",
+    "stalest",
+    "greedy",
+    "online-dqn",
+    "cql",
+    "cql-pretrain",
+    "cql-maml",
+    "maml-init",
+];
+
+/// Each heuristic on each meta-test task, over the episodes the evaluator scores checkpoints on.
+fn heuristic_references(config: &Config) -> Vec<EvaluationRow> {
+    let l = &config.learner;
+    let mut rows = Vec::new();
+    for task in config.tasks_with_role(TaskRole::MetaTest) {
+        for spec in HEURISTICS {
+            let mut policy = spec
+                .build(config.world.action_count(), l.eval_seed, 0)
+                .expect("heuristics build without a file");
+            let m = evaluate(
+                &config.world,
+                task,
+                policy.as_mut(),
+                l.eval_episodes,
+                l.eval_seed,
+            );
+            rows.push(EvaluationRow::new(&task.name, &spec.to_string(), 0, &m));
+        }
+    }
+    rows
 }
 
 /// Runs `config` as one supervised run in `config.run.dir`, children started from `exe` (the
@@ -325,6 +367,7 @@ pub fn launch(
         run: run.root().to_path_buf(),
         restarts: children.iter().map(|c| c.failures).sum(),
         results,
+        references: heuristic_references(config),
     })
 }
 
@@ -597,7 +640,8 @@ fn latest_results(run: &RunDir) -> Result<Vec<EvaluationRow>, LaunchError> {
     Ok(latest.into_values().collect())
 }
 
-/// The results table `uavmeta launch` ends with.
+/// The results table `uavmeta launch` ends with: per task, the references (heuristics, online
+/// DQN), a rule, then the learners at their last evaluated epoch. Power in mW, as everywhere.
 pub fn results_table(report: &LaunchReport) -> String {
     let mut out = format!(
         "run {} ({} restarts)\n",
@@ -608,21 +652,38 @@ pub fn results_table(report: &LaunchReport) -> String {
         out.push_str("no evaluations\n");
         return out;
     }
-    out.push_str(&format!(
-        "{:<14} {:<10} {:>6} {:>22} {:>16} {:>22} {:>14}\n",
-        "task", "method", "epoch", "return", "AoI", "power (W)", "outages"
-    ));
-    for r in &report.results {
-        out.push_str(&format!(
-            "{:<14} {:<10} {:>6} {:>22} {:>16} {:>22} {:>14}\n",
-            r.task,
-            r.method,
-            r.epoch,
-            format!("{:.1} ± {:.1}", r.ret, r.ret_ci95),
-            format!("{:.2} ± {:.2}", r.aoi, r.aoi_ci95),
-            format!("{:.3e} ± {:.1e}", r.power_watts, r.power_ci95),
-            format!("{:.1} ± {:.1}", r.outages, r.outages_ci95),
-        ));
+    let header = format!(
+        "{:<14} {:<13} {:>6} {:>22} {:>14} {:>18} {:>12}",
+        "task", "method", "epoch", "return", "AoI", "power (mW)", "outages"
+    );
+    out.push_str(&header);
+    out.push('\n');
+    let mut tasks: Vec<&str> = report.results.iter().map(|r| r.task.as_str()).collect();
+    tasks.dedup();
+    for task in tasks {
+        let rows = report.references.iter().chain(&report.results);
+        let mut rows: Vec<&EvaluationRow> = rows.filter(|r| r.task == task).collect();
+        rows.sort_by_key(|r| ROW_ORDER.iter().position(|m| *m == r.method));
+        for (i, r) in rows.iter().enumerate() {
+            if i > 0 && r.method == "cql" {
+                out.push_str(&format!("{}\n", "-".repeat(header.len())));
+            }
+            let reference = ROW_ORDER[..4].contains(&r.method.as_str());
+            out.push_str(&format!(
+                "{:<14} {:<13} {:>6} {:>22} {:>14} {:>18} {:>12}\n",
+                r.task,
+                r.method,
+                if reference {
+                    "-".to_string()
+                } else {
+                    r.epoch.to_string()
+                },
+                format!("{:.1} ± {:.1}", r.ret, r.ret_ci95),
+                format!("{:.2} ± {:.2}", r.aoi, r.aoi_ci95),
+                format!("{:.3} ± {:.3}", r.power_watts * 1e3, r.power_ci95 * 1e3),
+                format!("{:.1} ± {:.1}", r.outages, r.outages_ci95),
+            ));
+        }
     }
     out
 }
@@ -725,8 +786,14 @@ impl Progress {
 
     fn evaluation(&self, row: &EvaluationRow) {
         self.evaluation.set_message(format!(
-            "{} {} epoch {}: return {:.1}, AoI {:.2}, power {:.2e} W, outages {:.1}",
-            row.task, row.method, row.epoch, row.ret, row.aoi, row.power_watts, row.outages
+            "{} {} epoch {}: return {:.1}, AoI {:.2}, power {:.3} mW, outages {:.1}",
+            row.task,
+            row.method,
+            row.epoch,
+            row.ret,
+            row.aoi,
+            row.power_watts * 1e3,
+            row.outages
         ));
     }
 

@@ -5,6 +5,8 @@
 //!   says how the target network is handled and why.
 //! - [`meta_train`]: meta-training from one dataset file per meta-train task
 //!   (`<task-name>.uavds`), with a per-meta-epoch CSV, adapted-policy returns and `w0` checkpoints.
+//! - [`pretrain`]: CQL-pretrain, one CQL network on the union of the meta-train tasks' shots,
+//!   the multi-task baseline that shows what MAML adds.
 //! - [`meta_test`]: fine-tuning a `w0` checkpoint on N shots of an unseen task, through the
 //!   learner's offline training so every method shares its settings and CSV columns.
 //! - [`reproduce`]: `uavmeta reproduce`, the paper's figures 4-9 over several seeds (collection
@@ -47,6 +49,7 @@ pub mod launch;
 pub mod maml;
 pub mod meta_test;
 pub mod meta_train;
+pub mod pretrain;
 pub mod process;
 pub mod reproduce;
 
@@ -77,7 +80,7 @@ pub enum MetaError {
     Shots { path: PathBuf, source: DatasetError },
     #[error("{}", path.display())]
     Batch { path: PathBuf, source: BatchError },
-    #[error("{}: trained by `{algorithm}`, expected a meta-trained w0 (`cql-maml` or `dqn-maml`)", path.display())]
+    #[error("{}: trained by `{algorithm}`, expected a meta-trained or pretrained init (`cql-maml`, `dqn-maml` or `cql-pretrain`)", path.display())]
     NotMetaTrained { path: PathBuf, algorithm: String },
     #[error("{}: cannot {action}", path.display())]
     Io {

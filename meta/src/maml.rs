@@ -2,13 +2,22 @@
 //!
 //! ```text
 //! for each meta-epoch:
-//!     sample tasks tau_1..tau_T                                  (meta.tasks_per_meta_epoch, 0 = all)
-//!     for each task tau_i:
-//!         sample k shots of its support set                      (meta.shots)
-//!         w_i = w0;  repeat inner_steps:  w_i <- w_i - eta_inner * grad L(w_i; shots)     (eq. 14)
-//!     L_meta = sum_i L(w_i; query shots of tau_i)                                          (eq. 15)
-//!     w0 <- Adam(eta_outer) step on grad_w0 L_meta, through the inner steps                (eq. 16)
+//!     shuffle each task's support set
+//!     repeat outer_steps times                   (meta.outer_steps_per_meta_epoch, 0 = one pass)
+//!         sample tasks tau_1..tau_T                              (meta.tasks_per_meta_epoch, 0 = all)
+//!         for each task tau_i:
+//!             the next k shots of its shuffled support set       (meta.shots)
+//!             w_i = w0;  repeat inner_steps:  w_i <- w_i - eta_inner * grad L(w_i; shots)  (eq. 14)
+//!         L_meta = sum_i L(w_i; query shots of tau_i)                                       (eq. 15)
+//!         w0 <- Adam(eta_outer) step on grad_w0 L_meta, through the inner steps             (eq. 16)
 //! ```
+//!
+//! Algorithm 4 writes one outer update per meta-epoch. Read literally, the paper's 150
+//! meta-epochs are 150 Adam steps, which leave `w0` next to its random init (Q-values two orders
+//! of magnitude short of the returns' scale); SPEC section 5 reads a meta-epoch as an epoch is
+//! read everywhere else, one pass over the data: with 250 support shots per task and k = 64, four
+//! outer steps, after which every support shot has been adapted to once. `outer_steps = 1` is the
+//! literal reading.
 //!
 //! `L` is the CQL loss of eq. 8 (CQL-MAML, the paper's method) or the DQN loss of eq. 7 (DQN-MAML,
 //! its baseline), with the learner's TD options (`learner.double_dqn`, `learner.huber`) so that
@@ -55,7 +64,7 @@
 use std::collections::HashMap;
 use std::path::Path;
 
-use rand::seq::index;
+use rand::seq::{index, SliceRandom};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -92,6 +101,8 @@ pub struct MamlConfig {
     pub first_order: bool,
     /// Meta-epochs between refreshes of the target network from `w0`.
     pub target_update_every: usize,
+    /// Outer steps per meta-epoch; 0 = one pass over the largest support set.
+    pub outer_steps_per_meta_epoch: usize,
 }
 
 impl MamlConfig {
@@ -109,6 +120,19 @@ impl MamlConfig {
             eta_outer: m.eta_outer,
             first_order: m.first_order,
             target_update_every: m.target_update_every,
+            outer_steps_per_meta_epoch: m.outer_steps_per_meta_epoch,
+        }
+    }
+
+    /// Outer steps of one meta-epoch over `tasks`.
+    pub fn outer_steps(&self, tasks: &[MetaTask]) -> usize {
+        match self.outer_steps_per_meta_epoch {
+            0 => tasks
+                .iter()
+                .map(|t| t.support.len().div_ceil(self.shots))
+                .max()
+                .unwrap_or(1),
+            n => n,
         }
     }
 
@@ -203,6 +227,40 @@ impl MetaTask {
     }
 }
 
+/// One meta-epoch's pass over a task's support set: consecutive slices of a seeded permutation,
+/// reshuffled when spent, so that a pass adapts to every support shot once.
+struct SupportPass {
+    order: Vec<i64>,
+    next: usize,
+}
+
+impl SupportPass {
+    fn new(len: usize, rng: &mut ChaCha8Rng) -> Self {
+        let mut pass = Self {
+            order: (0..len as i64).collect(),
+            next: len,
+        };
+        pass.reshuffle_if_spent(rng);
+        pass
+    }
+
+    fn reshuffle_if_spent(&mut self, rng: &mut ChaCha8Rng) {
+        if self.next >= self.order.len() {
+            self.order.shuffle(rng);
+            self.next = 0;
+        }
+    }
+
+    /// The next (at most) `shots` rows of `support`.
+    fn take(&mut self, support: &Batch, shots: usize, rng: &mut ChaCha8Rng) -> Batch {
+        let end = (self.next + shots).min(self.order.len());
+        let rows = Tensor::from_slice(&self.order[self.next..end]);
+        self.next = end;
+        self.reshuffle_if_spent(rng);
+        support.select(&rows)
+    }
+}
+
 fn sample_rows(batch: &Batch, amount: usize, rng: &mut ChaCha8Rng) -> Batch {
     let rows: Vec<i64> = index::sample(rng, batch.len(), amount.min(batch.len()))
         .into_iter()
@@ -216,9 +274,12 @@ fn sample_rows(batch: &Batch, amount: usize, rng: &mut ChaCha8Rng) -> Batch {
 pub struct MetaEpoch {
     /// The meta-epoch, counting from 1.
     pub epoch: usize,
-    /// `L_meta` of eq. 15, at the `w0` the epoch started from.
+    /// Outer steps it made.
+    pub outer_steps: usize,
+    /// `L_meta` of eq. 15, the mean over the epoch's outer steps (each at the `w0` it started
+    /// from).
     pub meta_loss: f64,
-    /// `(task index, L(w_i; query))` of each sampled task, in task order.
+    /// `(task index, mean L(w_i; query))` of each task sampled in the epoch, in task order.
     pub task_losses: Vec<(usize, f64)>,
 }
 
@@ -407,41 +468,71 @@ impl Maml {
         self.epochs_done
     }
 
-    /// One meta-epoch of Algorithm 4 over `tasks`.
+    /// One meta-epoch of Algorithm 4 over `tasks`: `outer_steps` updates of w0.
     pub fn meta_epoch(&mut self, tasks: &[MetaTask]) -> Result<MetaEpoch, MetaError> {
         if tasks.is_empty() {
             return Err(MetaError::NoTasks);
         }
-        let c = &self.config;
-        if self.epochs_done.is_multiple_of(c.target_update_every) {
+        if self
+            .epochs_done
+            .is_multiple_of(self.config.target_update_every)
+        {
             self.target.copy_from(&self.w0); // Qhat <- w0, constant until the next refresh
         }
-        // Sample the tasks of this meta-epoch (all of them when tasks_per_meta_epoch is 0).
-        let count = match c.tasks_per_meta_epoch {
-            0 => tasks.len(),
-            n => n.min(tasks.len()),
-        };
-        let mut picked = index::sample(&mut self.rng, tasks.len(), count).into_vec();
-        picked.sort_unstable();
-        // Sample k support shots and the query shots of each.
-        let shots: Vec<TaskShots> = picked
+        let steps = self.config.outer_steps(tasks);
+        let mut passes: Vec<SupportPass> = tasks
             .iter()
-            .map(|&i| tasks[i].sample(c.shots, c.query_shots, &mut self.rng))
+            .map(|t| SupportPass::new(t.support.len(), &mut self.rng))
             .collect();
-        // Eqs. 14-15, with the meta-gradient accumulated into w0's gradients.
-        let w0 = self.w0.parameters();
-        OuterAdam::zero_grad(&w0);
-        let target = self.target.parameters();
-        let losses = c.backward_meta_loss(&w0, &target, &shots);
-        // Eq. 16: Adam(eta_outer) on w0.
-        self.optimizer.step(&w0);
-        let epoch = MetaEpoch {
-            epoch: self.epochs_done + 1,
-            meta_loss: losses.iter().sum(),
-            task_losses: picked.into_iter().zip(losses).collect(),
-        };
+        let mut loss_sums = vec![(0.0, 0usize); tasks.len()];
+        let mut meta_loss = 0.0;
+        for _ in 0..steps {
+            let picked = self.sample_tasks(tasks.len());
+            // The next k support shots and fresh query shots of each sampled task.
+            let shots: Vec<TaskShots> = picked
+                .iter()
+                .map(|&i| TaskShots {
+                    support: passes[i].take(&tasks[i].support, self.config.shots, &mut self.rng),
+                    query: sample_rows(&tasks[i].query, self.config.query_shots, &mut self.rng),
+                })
+                .collect();
+            // Eqs. 14-15, with the meta-gradient accumulated into w0's gradients.
+            let w0 = self.w0.parameters();
+            OuterAdam::zero_grad(&w0);
+            let target = self.target.parameters();
+            let losses = self.config.backward_meta_loss(&w0, &target, &shots);
+            // Eq. 16: Adam(eta_outer) on w0.
+            self.optimizer.step(&w0);
+            meta_loss += losses.iter().sum::<f64>();
+            for (i, loss) in picked.into_iter().zip(losses) {
+                loss_sums[i].0 += loss;
+                loss_sums[i].1 += 1;
+            }
+        }
         self.epochs_done += 1;
-        Ok(epoch)
+        Ok(MetaEpoch {
+            epoch: self.epochs_done,
+            outer_steps: steps,
+            meta_loss: meta_loss / steps as f64,
+            task_losses: loss_sums
+                .into_iter()
+                .enumerate()
+                .filter(|(_, (_, n))| *n > 0)
+                .map(|(i, (sum, n))| (i, sum / n as f64))
+                .collect(),
+        })
+    }
+
+    /// The task indices of one outer step, ascending: all of them when `tasks_per_meta_epoch`
+    /// is 0.
+    fn sample_tasks(&mut self, tasks: usize) -> Vec<usize> {
+        let count = match self.config.tasks_per_meta_epoch {
+            0 => tasks,
+            n => n.min(tasks),
+        };
+        let mut picked = index::sample(&mut self.rng, tasks, count).into_vec();
+        picked.sort_unstable();
+        picked
     }
 
     /// `L_meta` (eq. 15) of `w0` on the given shots, without changing anything: the adaptation

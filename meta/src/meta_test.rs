@@ -18,7 +18,7 @@ use uavmeta_proto::config::{Config, InnerLoss, TaskConfig};
 use uavmeta_proto::dataset::{self, DatasetReader};
 
 use crate::meta_train::algorithm_name;
-use crate::MetaError;
+use crate::{pretrain, MetaError};
 
 /// The settings of one fine-tuning run, shared by meta-test and the baselines it is compared to.
 pub struct FineTune<'a> {
@@ -76,14 +76,15 @@ pub fn load_shots(
     })
 }
 
-/// The loss that fine-tunes a checkpoint written by meta-train.
+/// The loss that fine-tunes an init written by meta-train or by multi-task pretraining.
 pub fn fine_tune_algorithm(init: &Path, algorithm: &str) -> Result<Algorithm, MetaError> {
     [
-        (InnerLoss::Cql, Algorithm::Cql),
-        (InnerLoss::Dqn, Algorithm::Dqn),
+        (algorithm_name(InnerLoss::Cql), Algorithm::Cql),
+        (algorithm_name(InnerLoss::Dqn), Algorithm::Dqn),
+        (pretrain::ALGORITHM, Algorithm::Cql),
     ]
     .into_iter()
-    .find(|(inner, _)| algorithm_name(*inner) == algorithm)
+    .find(|(name, _)| *name == algorithm)
     .map(|(_, fine_tune)| fine_tune)
     .ok_or_else(|| MetaError::NotMetaTrained {
         path: init.to_path_buf(),

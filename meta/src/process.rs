@@ -7,9 +7,13 @@
 //!    every `meta.checkpoint_every` meta-epochs (and after the last) it writes w0 as a checkpoint
 //!    (`uavmeta_learner::checkpoint`: write, fsync, rename) and announces it once per meta-test
 //!    task, whose evaluator then scores it zero-shot.
+//!    Before that it announces each meta-test task's online DQN agent (saved by its actor), the
+//!    reference line.
 //! 3. Meta-tests: per meta-test task, fine-tunes w0 with CQL on `collect.transitions` shots
-//!    (CQL-MAML) and, as the paper's baseline, CQL from a random init on the same shots, each for
-//!    `learner.epochs` epochs (the settings of `meta_test::fine_tune`), checkpointing and announcing every epoch.
+//!    (CQL-MAML) and, as baselines, CQL from a random init and from a CQL network pretrained on
+//!    the union of the meta-train tasks' shots (CQL-pretrain, `crate::pretrain`) on the same
+//!    shots, each for `learner.epochs` epochs (the settings of `meta_test::fine_tune`),
+//!    checkpointing and announcing every epoch.
 //!
 //! **Restart.** Every w0 checkpoint carries MAML's training state (the outer Adam moments, the
 //! target network, the sampling stream: [`Maml::save_state`]), so a restarted meta-learner resumes
@@ -35,7 +39,7 @@ use uavmeta_proto::transport::{
 use crate::maml::{Maml, MamlConfig};
 use crate::meta_test::load_shots;
 use crate::meta_train::{algorithm_name, load_tasks};
-use crate::MetaError;
+use crate::{pretrain, MetaError};
 
 /// The meta-learner's process name: node, port file and metrics snapshot.
 pub const PROCESS: &str = "meta-learner";
@@ -150,6 +154,22 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
         .map(|(_, t)| t.clone())
         .unwrap_or_else(|| config.tasks[0].clone());
 
+    // The online DQN agents that made the meta-test datasets: the runs' reference line. Their
+    // actors saved them before sending a transition, so a stored dataset's agent is on disk.
+    for (id, task) in &test_tasks {
+        if checkpoint::read_meta(&run.checkpoint(Method::OnlineDqn, task, 1)).is_ok() {
+            transport::announce(
+                &announce,
+                CheckpointReady {
+                    schema_version: SCHEMA_VERSION,
+                    method: Method::OnlineDqn.code(),
+                    task: *id,
+                    epoch: 1,
+                },
+            )?;
+        }
+    }
+
     // 2. Meta-training, resumed from the latest w0 on disk.
     let seed = config.run.seeds[0];
     let (_, tasks) = load_tasks(config, &run.root().join("datasets"), seed)?;
@@ -213,10 +233,12 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
     }
     let w0_path = run.checkpoint(Method::MetaInit, &anchor, final_epoch);
 
-    // 3. Meta-test on each unseen task: CQL-MAML from w0 and CQL from a random init.
+    // 3. Meta-test on each unseen task: CQL-MAML from w0, CQL from a random init, and
+    //    CQL-pretrain from one CQL network trained on the union of the meta-train shots.
     let epochs = config.learner.epochs as u32;
+    let mut pretrained: Option<QNetwork> = None;
     for (id, task) in &test_tasks {
-        for method in [Method::CqlMaml, Method::Cql] {
+        for method in Method::FINE_TUNED {
             if latest_epoch(run, method, task, epochs) == epochs {
                 continue;
             }
@@ -225,6 +247,12 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
             }
             let mut q = match method {
                 Method::CqlMaml => checkpoint::load(&w0_path, config)?.0,
+                Method::CqlPretrain => pretrained
+                    .get_or_insert_with(|| {
+                        tracing::info!("pretraining CQL on the union of the meta-train shots");
+                        pretrain::pretrain(config, &tasks, seed, |_| {})
+                    })
+                    .duplicate(),
                 _ => QNetwork::new(
                     config.world.observation_len(),
                     config.world.action_count(),

@@ -35,6 +35,7 @@ fn config(inner_loss: InnerLoss, inner_steps: usize, first_order: bool) -> MamlC
         eta_outer: 1e-2,
         first_order,
         target_update_every: 1,
+        outer_steps_per_meta_epoch: 1,
     }
 }
 

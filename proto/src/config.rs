@@ -297,6 +297,25 @@ pub struct CollectConfig {
     pub eps_start: f64,
     pub eps_end: f64,
     pub eps_decay_steps: usize,
+    /// Hidden layer widths of the online agent's Q-network (SPEC section 5's [256, 256]; the
+    /// offline learners' network is `learner.hidden`).
+    pub dqn_hidden: Vec<usize>,
+    /// Adam learning rate of the online agent. Lower than offline training's: the agent takes
+    /// tens of thousands of steps on a buffer that keeps changing, and at 1e-3 its greedy policy
+    /// swings by a fifth of its return from one evaluation to the next.
+    pub dqn_lr: f64,
+    /// Double DQN targets for the online agent (van Hasselt et al.): the online network picks
+    /// the next action, the target network values it.
+    pub dqn_double: bool,
+    /// Huber (delta = 1) instead of the squared TD error for the online agent.
+    pub dqn_huber: bool,
+    /// Clip the online agent's gradient to this global L2 norm; 0 = no clipping.
+    pub dqn_grad_clip_norm: f64,
+    /// Gradient steps between the online agent's hard target-network updates.
+    pub dqn_target_update_every: usize,
+    /// The dataset is sampled from the newest this many transitions of the agent's final replay
+    /// buffer; 0 = the whole buffer (the paper's "sampled from the replay buffer").
+    pub sample_newest: usize,
 }
 
 impl Default for CollectConfig {
@@ -306,13 +325,20 @@ impl Default for CollectConfig {
             transitions: 500,
             actors_per_task: 1,
             seed: 0,
-            dqn_steps: 50_000,
-            replay_capacity: 50_000,
+            dqn_steps: 30_000,
+            replay_capacity: 10_000,
             learning_starts: 1_000,
             train_every: 1,
             eps_start: 1.0,
             eps_end: 0.05,
-            eps_decay_steps: 25_000,
+            eps_decay_steps: 12_000,
+            dqn_hidden: vec![256, 256],
+            dqn_lr: 1e-4,
+            dqn_double: true,
+            dqn_huber: true,
+            dqn_grad_clip_norm: 10.0,
+            dqn_target_update_every: 500,
+            sample_newest: 0,
         }
     }
 }
@@ -387,6 +413,10 @@ pub enum InnerLoss {
 pub struct MetaConfig {
     /// Meta-epochs E_meta.
     pub meta_epochs: usize,
+    /// Outer (eq. 16) steps per meta-epoch; 0 = one pass over the tasks' support sets, i.e.
+    /// ceil(support shots / `shots`) steps, each task's support shots drawn without replacement
+    /// within the pass (SPEC section 5, "Epochs"). 1 = Algorithm 4 read literally.
+    pub outer_steps_per_meta_epoch: usize,
     /// Tasks sampled per meta-epoch; 0 means every meta-train task.
     pub tasks_per_meta_epoch: usize,
     /// k: transitions drawn from a task's support set each meta-epoch; every inner step uses the
@@ -418,6 +448,7 @@ impl Default for MetaConfig {
     fn default() -> Self {
         Self {
             meta_epochs: 150,
+            outer_steps_per_meta_epoch: 0,
             tasks_per_meta_epoch: 0,
             shots: 64,
             query_shots: 64,
@@ -833,11 +864,28 @@ impl Config {
                 return Err(invalid(key, &value, "a probability in [0, 1]"));
             }
         }
-        if c.replay_capacity == 0 || c.train_every == 0 {
+        if c.replay_capacity == 0 || c.train_every == 0 || c.dqn_target_update_every == 0 {
             return Err(invalid(
-                "collect.replay_capacity / collect.train_every",
-                &(c.replay_capacity, c.train_every),
-                "both at least 1",
+                "collect.replay_capacity / collect.train_every / collect.dqn_target_update_every",
+                &(c.replay_capacity, c.train_every, c.dqn_target_update_every),
+                "each at least 1",
+            ));
+        }
+        if c.dqn_hidden.is_empty() || c.dqn_hidden.contains(&0) {
+            return Err(invalid(
+                "collect.dqn_hidden",
+                &c.dqn_hidden,
+                "a non-empty list of widths >= 1",
+            ));
+        }
+        if !c.dqn_lr.is_finite() || c.dqn_lr <= 0.0 {
+            return Err(invalid("collect.dqn_lr", &c.dqn_lr, "a finite rate > 0"));
+        }
+        if !c.dqn_grad_clip_norm.is_finite() || c.dqn_grad_clip_norm < 0.0 {
+            return Err(invalid(
+                "collect.dqn_grad_clip_norm",
+                &c.dqn_grad_clip_norm,
+                "a finite norm >= 0 (0 = no clipping)",
             ));
         }
         let l = &self.learner;

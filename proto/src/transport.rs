@@ -316,10 +316,25 @@ pub enum Method {
     CqlMaml,
     /// CQL from a random initialisation on the same shots: the paper's main baseline.
     Cql,
+    /// CQL pretrained on the union of the meta-train tasks' shots, fine-tuned like CQL-MAML: the
+    /// multi-task baseline that shows what MAML adds.
+    CqlPretrain,
+    /// The online DQN agent that made a task's dataset (one checkpoint, epoch 1): the paper's
+    /// "online" reference line.
+    OnlineDqn,
 }
 
 impl Method {
-    pub const ALL: [Method; 3] = [Method::MetaInit, Method::CqlMaml, Method::Cql];
+    pub const ALL: [Method; 5] = [
+        Method::MetaInit,
+        Method::CqlMaml,
+        Method::Cql,
+        Method::CqlPretrain,
+        Method::OnlineDqn,
+    ];
+
+    /// The methods a meta-learner fine-tunes on each meta-test task, in order.
+    pub const FINE_TUNED: [Method; 3] = [Method::CqlMaml, Method::Cql, Method::CqlPretrain];
 
     /// The name used in file paths, metric labels and CSV rows.
     pub fn name(self) -> &'static str {
@@ -327,6 +342,8 @@ impl Method {
             Method::MetaInit => "maml-init",
             Method::CqlMaml => "cql-maml",
             Method::Cql => "cql",
+            Method::CqlPretrain => "cql-pretrain",
+            Method::OnlineDqn => "online-dqn",
         }
     }
 
