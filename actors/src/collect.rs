@@ -7,7 +7,8 @@
 //!
 //! With `dqn-online`, the paper's behaviour policy, the dataset is instead sampled uniformly
 //! without replacement from the replay buffer of an online DQN agent trained for
-//! `collect.dqn_steps` steps, and written in the buffer's (time) order.
+//! `collect.dqn_steps` steps, and written in the buffer's (time) order; the agent itself is saved
+//! beside the file as a checkpoint ([`agent_path`]), the task's online reference.
 //!
 //! The i-th episode of a collector seeded S runs in the world of `episode_seed(S, i)`, as in
 //! evaluation, so an episode's start cell and rain moves do not depend on what came before it.
@@ -16,10 +17,12 @@ use std::path::{Path, PathBuf};
 
 use indicatif::ProgressBar;
 use uavmeta_learner::batch::BatchError;
+use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_proto::config::{Config, ConfigError, TaskConfig, WorldConfig};
 use uavmeta_proto::dataset::{
     sample_shots, DatasetError, DatasetHeader, DatasetWriter, Transition,
 };
+use uavmeta_proto::transport::Method;
 
 use crate::dqn_online::OnlineDqn;
 use crate::heuristics::{PolicyError, PolicySpec};
@@ -42,6 +45,8 @@ pub enum CollectError {
     },
     #[error("online DQN training: {0}")]
     Train(#[from] BatchError),
+    #[error("saving the online DQN agent")]
+    Agent(#[from] CheckpointError),
     #[error(
         "{origin}: collect.transitions = {wanted}, but the online DQN agent's replay buffer will hold only \
          {available} transitions to sample from (the smallest of collect.dqn_steps, collect.replay_capacity and a \
@@ -192,6 +197,15 @@ pub fn config_path(out: &Path) -> PathBuf {
     PathBuf::from(name)
 }
 
+/// Where the online DQN agent behind dataset `out` is saved, as a checkpoint: `online-dqn` in the
+/// directory `out` with `.agent` appended (a directory, since task names may hold dots that a
+/// checkpoint's extension would cut).
+pub fn agent_path(out: &Path) -> PathBuf {
+    let mut dir = out.as_os_str().to_owned();
+    dir.push(".agent");
+    PathBuf::from(dir).join(Method::OnlineDqn.name())
+}
+
 /// Collects task `task_name`'s dataset into `out` as `config.collect` says (policy, transitions,
 /// seed) and saves `config` beside it. `progress` counts transitions, or the online DQN agent's
 /// training steps.
@@ -253,6 +267,14 @@ pub fn collect(
             for chunk in sampled.chunks(config.run.batch_size) {
                 writer.append(chunk)?;
             }
+            let agent_file = agent_path(out);
+            checkpoint::save(
+                &agent_file,
+                agent.q_network(),
+                Method::OnlineDqn.name(),
+                1,
+                config,
+            )?;
             agent.steps() as u64
         }
         Some(policy) => {

@@ -7,12 +7,12 @@ use std::path::Path;
 
 use uavmeta_actors::world::World;
 use uavmeta_learner::train::EpochRow;
-use uavmeta_proto::config::{Config, InnerLoss, RainZone, TaskConfig};
+use uavmeta_proto::config::{Config, InnerLoss, RainZone, TaskConfig, TaskRole};
 use uavmeta_proto::stats::{Estimate, PolicyMetrics};
 
 use super::claims::{self, converged_at, final_return, mean_swing, return_at, Claim, Verdict};
 use super::plot::{self, Band, Bar, LineChart, Reference, Series, TrajectoryChart};
-use super::runs::{InitKey, Method, RunKey, SeedResult};
+use super::runs::{InitKey, InitKind, Method, RunKey, SeedResult};
 use super::{rain_tasks, write_file, Experiment, HeuristicRef};
 use crate::MetaError;
 
@@ -57,7 +57,7 @@ pub fn unseen_key(config: &Config, method: Method, shots: usize, meta_tasks: usi
         task: r.unseen_task.clone(),
         method,
         shots,
-        meta_tasks: if method.meta_trained().is_some() {
+        meta_tasks: if method.init_kind().is_some() {
             meta_tasks
         } else {
             0
@@ -85,7 +85,72 @@ pub fn write(ctx: &Context, experiment: Experiment, dir: &Path) -> Result<Sectio
         Experiment::Tasks => tasks(ctx, dir),
         Experiment::AoiPower => aoi_power(ctx, dir),
         Experiment::Resilience => resilience(ctx, dir),
+        Experiment::OnlineDqn => online_dqn(ctx, dir),
     }
+}
+
+/// The behaviour agents: each task's online DQN agent over seeds beside the heuristics, and
+/// whether it is trained (SPEC section 5): every seed at least the worse of stalest and greedy,
+/// the mean within 5% of the better one or above it.
+fn online_dqn(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
+    let c = ctx.config;
+    let episodes = c.learner.eval_episodes;
+    let tasks = c.tasks_with_role(TaskRole::MetaTrain);
+    let tasks: Vec<&TaskConfig> = tasks.chain(c.task(&c.reproduce.unseen_task).ok()).collect();
+    let mut csv = String::from("task,seed,return,aoi,power_mw\n");
+    let mut body = format!(
+        "The online DQN agent behind each task's dataset, greedy, over {episodes} evaluation \
+         episodes, {}; the heuristics over the same episodes.\n\n\
+         | task | online DQN | worst seed | stalest | greedy | random | trained |\n\
+         | --- | --- | --- | --- | --- | --- | --- |\n",
+        ctx.seeds_note()
+    );
+    let mut trained = 0;
+    let mut short = Vec::new();
+    for task in &tasks {
+        let online = ctx.online(&task.name, episodes);
+        for (seed, m) in ctx.seeds.iter().zip(&online) {
+            let _ = writeln!(
+                csv,
+                "{},{},{},{},{}",
+                task.name, seed.seed, m.ret.mean, m.aoi.mean, m.power_mw.mean
+            );
+        }
+        let h = ctx.heuristics(&task.name, episodes);
+        let ret = |name: &str| {
+            h.policies
+                .iter()
+                .find(|(n, _)| *n == name)
+                .map(|(_, m)| m.ret.mean)
+                .expect("every heuristic reference has random, stalest and greedy")
+        };
+        let (stalest, greedy) = (ret("stalest"), ret("greedy"));
+        let (worse, better) = (stalest.min(greedy), stalest.max(greedy));
+        let mean = est(online.iter().map(|m| m.ret.mean));
+        let worst = online.iter().map(|m| m.ret.mean).fold(f64::INFINITY, f64::min);
+        // Returns are costs: within 5% of the better heuristic is above 1.05 times it.
+        let ok = worst >= worse && mean.mean >= better - 0.05 * better.abs();
+        trained += ok as usize;
+        if !ok {
+            short.push(format!("{} (mean {:.0}, worst {worst:.0})", task.name, mean.mean));
+        }
+        let _ = writeln!(
+            body,
+            "| {} | {mean:.0} | {worst:.0} | {stalest:.0} | {greedy:.0} | {:.0} | {} |",
+            task.name,
+            ret("random"),
+            if ok { "yes" } else { "no" }
+        );
+    }
+    write_file(&dir.join("online_dqn.csv"), &csv)?;
+    let found = vec![Claim::new(
+        "B",
+        "the behaviour agent is trained: every seed at or above the worse heuristic, the mean within 5% of the better one (SPEC section 5)",
+        format!("{trained} of {} tasks", tasks.len()),
+        Verdict::share(trained, tasks.len()),
+        || format!("short on {}", short.join(", ")),
+    )];
+    finish(body, found)
 }
 
 impl Context<'_> {
@@ -241,11 +306,18 @@ impl Refs {
 
 /// The share of a dataset's transitions that its online DQN agent took before epsilon reached its
 /// final value: the dataset is sampled uniformly from the replay buffer, which holds the last
-/// `min(dqn_steps, replay_capacity)` steps, and epsilon falls until `learning_starts +
+/// `min(dqn_steps, replay_capacity)` steps (of which the newest `sample_newest`, when set, are
+/// sampled), and epsilon falls until `learning_starts +
 /// eps_decay_steps` (`actors/src/dqn_online.rs`).
 fn exploratory_share(config: &Config) -> f64 {
     let c = &config.collect;
-    let held = c.dqn_steps.min(c.replay_capacity).max(1);
+    let held = c.dqn_steps.min(c.replay_capacity);
+    // The shots come from the newest `sample_newest` of the buffer, when that is set.
+    let held = match c.sample_newest {
+        0 => held,
+        n => held.min(n),
+    }
+    .max(1);
     let first_held = c.dqn_steps.saturating_sub(held);
     let decaying_until = c.learning_starts + c.eps_decay_steps;
     decaying_until.saturating_sub(first_held).min(held) as f64 / held as f64
@@ -314,7 +386,7 @@ fn convergence_cells(runs: &[Vec<f64>], floor: f64) -> (usize, String) {
 fn meta_training(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
     let r = &ctx.config.reproduce;
     let key = InitKey {
-        inner: InnerLoss::Cql,
+        kind: InitKind::Maml(InnerLoss::Cql),
         tasks: r.meta_tasks,
     };
     let tasks: Vec<&TaskConfig> = super::runs::meta_train_tasks(ctx.config, r.meta_tasks).collect();
@@ -678,18 +750,19 @@ fn references_table(ctx: &Context, task: &str, episodes: usize) -> String {
     s
 }
 
-/// Figure 6: CQL and CQL-MAML at each shot count.
+/// Figure 6: CQL, CQL-pretrain and CQL-MAML at each shot count.
 fn shots(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
     let c = ctx.config;
     let r = &c.reproduce;
     let epochs = r.convergence_epochs;
     let mut csv = format!("method,shots,{CURVE_COLUMNS}\n");
     let mut series = Vec::new();
-    // (shots, CQL-MAML final, CQL final)
+    // (shots, CQL-MAML final, CQL final), and CQL-pretrain's final per size
     let mut finals = Vec::new();
+    let mut pretrain_finals = Vec::new();
     for &shots in &r.shots {
         let mut pair = Vec::new();
-        for method in [Method::CqlMaml, Method::Cql] {
+        for method in Method::CQL_INITS {
             let key = unseen_key(c, method, shots, r.meta_tasks);
             let prefix = format!("{},{shots}", method.name());
             curve_lines(&mut csv, &prefix, ctx.seeds, &ctx.rows(&key, epochs));
@@ -700,7 +773,8 @@ fn shots(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
             ));
             pair.push(est(runs.iter().map(|r| final_return(r))));
         }
-        finals.push((shots, pair[0], pair[1]));
+        finals.push((shots, pair[0], pair[2]));
+        pretrain_finals.push(pair[1]);
     }
     write_file(&dir.join("curves.csv"), &csv)?;
     line_chart(
@@ -712,17 +786,17 @@ fn shots(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
     )?;
 
     let mut body = format!(
-        "CQL-MAML (w0 of the first {} meta-train tasks) and CQL fine-tuned for {epochs} epochs on {:?} \
+        "CQL-MAML (w0 of the first {} meta-train tasks), CQL-pretrain and CQL fine-tuned for {epochs} epochs on {:?} \
          shots of `{}`, {}. Final return = mean of the last {} epochs.\n\n\
-         | shots | CQL-MAML final | CQL final |\n| --- | --- | --- |\n",
+         | shots | CQL-MAML final | CQL-pretrain final | CQL final |\n| --- | --- | --- | --- |\n",
         r.meta_tasks,
         r.shots,
         r.unseen_task,
         ctx.seeds_note(),
         claims::FINAL_EPOCHS
     );
-    for (shots, maml, cql) in &finals {
-        let _ = writeln!(body, "| {shots} | {maml:.0} | {cql:.0} |");
+    for ((shots, maml, cql), pretrain) in finals.iter().zip(&pretrain_finals) {
+        let _ = writeln!(body, "| {shots} | {maml:.0} | {pretrain:.0} | {cql:.0} |");
     }
     let losing: Vec<String> = finals
         .iter()
@@ -954,6 +1028,8 @@ fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
             ctx.online(&r.unseen_task, c.learner.eval_episodes),
         ),
         ("CQL", at_epoch(Method::Cql)),
+        // Not in the paper: after its three, with no paper figures beside it.
+        ("CQL-pretrain", at_epoch(Method::CqlPretrain)),
     ];
     let mut csv = String::from("method,seed,aoi,power_mw\n");
     for (name, per_seed) in &learned {
@@ -1010,6 +1086,15 @@ fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
             },
         ));
     }
+    for (name, aoi, power) in measured.iter().skip(PAPER_FIG8.len()) {
+        let bar = |value| Bar {
+            group: name.to_string(),
+            label: "measured".into(),
+            value,
+        };
+        aoi_bars.push(bar(*aoi));
+        power_bars.push(bar(*power));
+    }
     for (name, m) in heuristics {
         aoi_bars.push(Bar {
             group: name.to_string(),
@@ -1055,6 +1140,9 @@ fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
             "| {name} | {aoi:.2} | {paper_aoi} | {power:.3} | {:.3} |",
             paper_mw / paper_scale
         );
+    }
+    for (name, aoi, power) in measured.iter().skip(PAPER_FIG8.len()) {
+        let _ = writeln!(body, "| {name} | {aoi:.2} | | {power:.3} | |");
     }
     for (name, m) in heuristics {
         let _ = writeln!(body, "| {name} | {:.2} | | {:.3} | |", m.aoi, m.power_mw);
@@ -1117,7 +1205,8 @@ fn resilience(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
     let mut csv = format!("method,task,{CURVE_COLUMNS}\n");
     // Per method: per (task, seed) the return and outage curves and the task's random floor.
     let mut per_method = Vec::new();
-    for method in [Method::CqlMaml, Method::Cql] {
+    // CQL-MAML and CQL first: the claims compare those two, CQL-pretrain is shown beside them.
+    for method in [Method::CqlMaml, Method::Cql, Method::CqlPretrain] {
         let mut runs = Vec::new();
         for (task, h) in tasks.iter().zip(&heuristics) {
             let key = rain_key(c, task, method);
@@ -1468,5 +1557,9 @@ mod tests {
         // Still decaying at the end: all of them.
         config.collect.eps_decay_steps = 20_000;
         assert_eq!(exploratory_share(&config), 1.0);
+        // The whole buffer, but shots from its newest 2 000 steps: none of them.
+        (config.collect.replay_capacity, config.collect.eps_decay_steps) = (10_000, 5_000);
+        config.collect.sample_newest = 2_000;
+        assert_eq!(exploratory_share(&config), 0.0);
     }
 }

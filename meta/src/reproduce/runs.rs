@@ -11,8 +11,8 @@
 use std::path::{Path, PathBuf};
 
 use indicatif::ProgressBar;
-use uavmeta_actors::collect::{collect, config_path};
-use uavmeta_actors::dqn_online::OnlineDqn;
+use uavmeta_actors::collect::{agent_path, collect, config_path};
+use uavmeta_actors::heuristics::PolicySpec;
 use uavmeta_actors::q_policy::{Evaluator, QPolicy};
 use uavmeta_actors::rollout::{record_trajectory, Trajectory};
 use uavmeta_learner::checkpoint::{self, CheckpointPaths};
@@ -26,26 +26,37 @@ use uavmeta_proto::stats::PolicyMetrics;
 
 use super::{create_dir, Experiment};
 use crate::meta_test::{fine_tune, load_shots, FineTune};
-use crate::meta_train::{algorithm_name, dataset_path, meta_train, MetaTrainOptions};
-use crate::MetaError;
+use crate::meta_train::{algorithm_name, dataset_path, load_tasks, meta_train, MetaTrainOptions};
+use crate::{pretrain, MetaError};
 
-/// The four methods of the paper's comparison on an unseen task.
+/// The paper's four methods on an unseen task, and the multi-task baseline CQL-pretrain.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Method {
     CqlMaml,
     Cql,
+    CqlPretrain,
     Dqn,
     DqnMaml,
 }
 
 impl Method {
-    pub const ALL: [Method; 4] = [Method::CqlMaml, Method::Cql, Method::Dqn, Method::DqnMaml];
+    pub const ALL: [Method; 5] = [
+        Method::CqlMaml,
+        Method::CqlPretrain,
+        Method::Cql,
+        Method::Dqn,
+        Method::DqnMaml,
+    ];
+
+    /// The CQL fine-tunings from the three inits every figure that compares inits shows.
+    pub const CQL_INITS: [Method; 3] = [Method::CqlMaml, Method::CqlPretrain, Method::Cql];
 
     /// The name in CSV files and checkpoints.
     pub fn name(self) -> &'static str {
         match self {
             Method::CqlMaml => algorithm_name(InnerLoss::Cql),
             Method::Cql => "cql",
+            Method::CqlPretrain => pretrain::ALGORITHM,
             Method::Dqn => "dqn",
             Method::DqnMaml => algorithm_name(InnerLoss::Dqn),
         }
@@ -56,6 +67,7 @@ impl Method {
         match self {
             Method::CqlMaml => "CQL-MAML",
             Method::Cql => "CQL",
+            Method::CqlPretrain => "CQL-pretrain",
             Method::Dqn => "DQN",
             Method::DqnMaml => "DQN-MAML",
         }
@@ -64,25 +76,45 @@ impl Method {
     /// The fine-tuning loss.
     fn algorithm(self) -> Algorithm {
         match self {
-            Method::CqlMaml | Method::Cql => Algorithm::Cql,
+            Method::CqlMaml | Method::Cql | Method::CqlPretrain => Algorithm::Cql,
             Method::Dqn | Method::DqnMaml => Algorithm::Dqn,
         }
     }
 
-    /// The inner loss of the meta-training that makes its init; `None` for a random init.
-    pub fn meta_trained(self) -> Option<InnerLoss> {
+    /// How its init is trained on the meta-train tasks; `None` for a random init.
+    pub fn init_kind(self) -> Option<InitKind> {
         match self {
-            Method::CqlMaml => Some(InnerLoss::Cql),
-            Method::DqnMaml => Some(InnerLoss::Dqn),
+            Method::CqlMaml => Some(InitKind::Maml(InnerLoss::Cql)),
+            Method::DqnMaml => Some(InitKind::Maml(InnerLoss::Dqn)),
+            Method::CqlPretrain => Some(InitKind::Pretrain),
             Method::Cql | Method::Dqn => None,
         }
     }
 }
 
-/// A meta-trained w0: its inner loss and the number of meta-train tasks (the first n).
+/// How an init is trained on the meta-train tasks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum InitKind {
+    /// MAML with this inner loss.
+    Maml(InnerLoss),
+    /// CQL on the union of the tasks' shots (`crate::pretrain`).
+    Pretrain,
+}
+
+impl InitKind {
+    /// The checkpoint algorithm name, also its cache directory's prefix.
+    fn name(self) -> &'static str {
+        match self {
+            InitKind::Maml(inner) => algorithm_name(inner),
+            InitKind::Pretrain => pretrain::ALGORITHM,
+        }
+    }
+}
+
+/// A trained init: how, and on how many meta-train tasks (the first n).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct InitKey {
-    pub inner: InnerLoss,
+    pub kind: InitKind,
     pub tasks: usize,
 }
 
@@ -99,8 +131,8 @@ pub struct RunKey {
 
 impl RunKey {
     pub fn init(&self) -> Option<InitKey> {
-        self.method.meta_trained().map(|inner| InitKey {
-            inner,
+        self.method.init_kind().map(|kind| InitKey {
+            kind,
             tasks: self.meta_tasks,
         })
     }
@@ -295,7 +327,9 @@ fn collection_config(config: &Config, seed: u64) -> Config {
 fn meta_config(config: &Config, key: InitKey, seed: u64) -> Config {
     let mut c = collection_config(config, seed);
     c.meta = config.meta.clone();
-    c.meta.inner_loss = key.inner;
+    if let InitKind::Maml(inner) = key.kind {
+        c.meta.inner_loss = inner;
+    }
     c.meta.eval_every = config.reproduce.meta_eval_every;
     c.tasks = meta_train_tasks(config, key.tasks).cloned().collect();
     c
@@ -331,9 +365,11 @@ pub fn run_seed(
     let mut references = Vec::with_capacity(plan.references.len());
     for need in &plan.references {
         let task = config.task(&need.key.task)?;
-        // A directory per task: checkpoint names drop anything after a dot, task names may not.
-        let path = dir.join("online-dqn").join(&task.name).join("agent");
-        let agent = online_dqn(&collection, task, &path)?;
+        // Saved by `collect` beside the task's dataset.
+        let (agent, _) = checkpoint::load(
+            &agent_path(&dataset_path(&datasets, &task.name)),
+            &collection,
+        )?;
         let metrics = Evaluator::new(
             &config.world,
             task,
@@ -422,6 +458,10 @@ fn ensure_dataset(collection: &Config, task: &str, path: &Path) -> Result<(), Me
             reader.check_world(collection).is_ok()
                 && reader.transitions().len() == collection.collect.transitions
         });
+        // The online DQN agent, the reference line, is saved last.
+        let complete = complete
+            && (collection.collect.policy != PolicySpec::DqnOnline.to_string()
+                || checkpoint::read_meta(&agent_path(path)).is_ok());
         if complete {
             tracing::debug!(dataset = %path.display(), "reusing");
             return Ok(());
@@ -431,29 +471,9 @@ fn ensure_dataset(collection: &Config, task: &str, path: &Path) -> Result<(), Me
     Ok(())
 }
 
-/// The online DQN agent of `task`: the behaviour agent of its dataset (same config, task id,
-/// actor 0 and seed as `collect`, so the same network), cached as checkpoint `path`.
-fn online_dqn(collection: &Config, task: &TaskConfig, path: &Path) -> Result<QNetwork, MetaError> {
-    if saved_config_matches(&CheckpointPaths::new(path).config, collection) {
-        if let Ok((q, _)) = checkpoint::load(path, collection) {
-            return Ok(q);
-        }
-    }
-    let task_id = collection.task_id(&task.name)? as u32;
-    let mut agent = OnlineDqn::new(collection, task, task_id, 0, collection.collect.seed);
-    agent.train().map_err(MetaError::OnlineDqn)?;
-    checkpoint::save(
-        path,
-        agent.q_network(),
-        "dqn-online",
-        collection.collect.dqn_steps,
-        collection,
-    )?;
-    Ok(agent.q_network().duplicate())
-}
-
-/// Meta-trains the w0 of `key` into `DIR/<cql-maml|dqn-maml>-tasks-N/`, unless that directory
-/// holds one made with the same config; returns its checkpoint and meta-train curve.
+/// Trains the init of `key` into `DIR/<cql-maml|dqn-maml|cql-pretrain>-tasks-N/`, unless that
+/// directory holds one made with the same config; returns its checkpoint and meta-train curve
+/// (empty for a pretrained init).
 fn ensure_w0(
     config: &Config,
     key: InitKey,
@@ -462,8 +482,16 @@ fn ensure_w0(
     seed: u64,
 ) -> Result<(PathBuf, MetaCurve), MetaError> {
     let meta = meta_config(config, key, seed);
-    let out = dir.join(format!("{}-tasks-{}", algorithm_name(key.inner), key.tasks));
+    let out = dir.join(format!("{}-tasks-{}", key.kind.name(), key.tasks));
     let w0 = out.join("w0");
+    if key.kind == InitKind::Pretrain {
+        if !saved_config_matches(&CheckpointPaths::new(&w0).config, &meta) {
+            let (_, tasks) = load_tasks(&meta, datasets, seed)?;
+            let q = pretrain::pretrain(&meta, &tasks, seed, |_| {});
+            checkpoint::save(&w0, &q, pretrain::ALGORITHM, meta.meta.meta_epochs, &meta)?;
+        }
+        return Ok((w0, MetaCurve::default()));
+    }
     if saved_config_matches(&CheckpointPaths::new(&w0).config, &meta) {
         let csv = out.join("meta_train.csv");
         match std::fs::read_to_string(&csv)
