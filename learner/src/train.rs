@@ -3,7 +3,8 @@
 //! One run: Adam(`learner.lr`) on the network, `learner.epochs` epochs of `learner.steps_per_epoch`
 //! gradient steps (0 = one pass, ceil(N / batch)), each on a minibatch drawn from the N shots by a
 //! seeded shuffle, and a hard target-network update every `learner.target_update_every` gradient
-//! steps. After every epoch the greedy policy is evaluated through [`EvaluatePolicy`] (the world
+//! steps. A guard that reads only the offline data (`learner.value_guard`, [`ValueGuard`]) stops
+//! training once Q drifts past the value scale the data supports. After every epoch the greedy policy is evaluated through [`EvaluatePolicy`] (the world
 //! lives in `uavmeta-actors`, which implements it) and one row is written: to a table on stderr,
 //! to `train.csv` in the output directory, and to the returned list.
 
@@ -25,7 +26,7 @@ use uavmeta_proto::stats::PolicyMetrics;
 use crate::batch::Batch;
 use crate::checkpoint::{self, CheckpointError};
 use crate::cql::{conservative_term, CqlLoss};
-use crate::dqn::{td_loss_with, TdConfig};
+use crate::dqn::{q_taken, td_loss_with, TdConfig};
 use crate::qnet::QNetwork;
 
 /// Measures the greedy policy of a Q-network on the true environment.
@@ -280,8 +281,22 @@ pub fn train(
     }
 
     let started = Instant::now();
-    let mut rows = Vec::with_capacity(cfg.epochs);
+    let mut rows: Vec<EpochRow> = Vec::with_capacity(cfg.epochs);
+    let guard = ValueGuard::new(cfg, q, data);
+    let mut kept = guard.as_ref().map(|_| q.duplicate());
     for epoch in 1..=cfg.epochs {
+        if let (Some(last), None) = (rows.last(), &kept) {
+            // Stopped by the value guard: the kept network stays as it is.
+            let row = EpochRow {
+                epoch,
+                seconds: started.elapsed().as_secs_f64(),
+                ..*last
+            };
+            bar.inc(steps_per_epoch as u64);
+            finish_epoch(&row, opts.progress, &bar, csv.as_mut())?;
+            rows.push(row);
+            continue;
+        }
         let (mut td_sum, mut cons_sum, mut q_sum) = (0.0, 0.0, 0.0);
         for _ in 0..steps_per_epoch {
             let step = trainer.step(q, data);
@@ -289,6 +304,19 @@ pub fn train(
             cons_sum += step.conservative_loss;
             q_sum += step.max_q;
             bar.inc(1);
+        }
+        if let (Some(guard), Some(last_good)) = (&guard, kept.as_mut()) {
+            if guard.tripped(q, data) {
+                q.copy_from(last_good);
+                kept = None;
+                tracing::info!(
+                    epoch,
+                    v_data = guard.v_data / cfg.reward_scale,
+                    "the value guard stopped training; the previous epoch's network is kept"
+                );
+            } else {
+                last_good.copy_from(q);
+            }
         }
         let k = steps_per_epoch as f64;
         let row = EpochRow {
@@ -300,12 +328,7 @@ pub fn train(
             policy: evaluator.evaluate(q),
             seconds: started.elapsed().as_secs_f64(),
         };
-        if opts.progress {
-            bar.suspend(|| eprintln!("{}", row.table_line()));
-        }
-        if let Some(csv) = csv.as_mut() {
-            csv.write(&row)?;
-        }
+        finish_epoch(&row, opts.progress, &bar, csv.as_mut())?;
         rows.push(row);
     }
     bar.finish_and_clear();
@@ -319,6 +342,61 @@ pub fn train(
         )?;
     }
     Ok(rows)
+}
+
+/// Shows and logs one epoch's row.
+fn finish_epoch(
+    row: &EpochRow,
+    progress: bool,
+    bar: &ProgressBar,
+    csv: Option<&mut CsvLog>,
+) -> Result<(), TrainError> {
+    if progress {
+        bar.suspend(|| eprintln!("{}", row.table_line()));
+    }
+    match csv {
+        Some(csv) => csv.write(row),
+        None => Ok(()),
+    }
+}
+
+/// The guard against late collapse (`learner.value_guard`), from the offline data alone.
+///
+/// The shots come from one behaviour policy, so their mean reward over (1 - gamma) is the scale
+/// of its value, `V_data`, and a Q-function trained on them should value the data's own actions
+/// near it. From its init, `mean Q(s, a_data)` travels towards `V_data` (here, with costs as
+/// rewards, it falls from about 0); once it has gone past `V_data` by more than
+/// `value_guard * |V_data|`, Q is drifting beyond any value the data supports (the late collapse
+/// of a long CQL run), so training stops and the previous epoch's network is kept. A stop shows
+/// in `train.csv` as `steps` no longer growing.
+struct ValueGuard {
+    v_data: f64,
+    /// +1 when Q has to rise to reach `V_data`, -1 when it has to fall.
+    direction: f64,
+    margin: f64,
+}
+
+impl ValueGuard {
+    fn new(cfg: &LearnerConfig, q: &QNetwork, data: &Batch) -> Option<Self> {
+        if cfg.value_guard == 0.0 || cfg.gamma >= 1.0 {
+            return None;
+        }
+        let v_data = data.rewards.mean(None).double_value(&[]) / (1.0 - cfg.gamma);
+        Some(Self {
+            v_data,
+            direction: (v_data - Self::mean_q(q, data)).signum(),
+            margin: cfg.value_guard * v_data.abs(),
+        })
+    }
+
+    /// `mean Q(s, a_data)` over the data, scaled.
+    fn mean_q(q: &QNetwork, data: &Batch) -> f64 {
+        tch::no_grad(|| q_taken(&q.forward(&data.obs), data).mean(None)).double_value(&[])
+    }
+
+    fn tripped(&self, q: &QNetwork, data: &Batch) -> bool {
+        self.direction * (Self::mean_q(q, data) - self.v_data) > self.margin
+    }
 }
 
 /// Gradient steps of one epoch on `rows` transitions: `learner.steps_per_epoch`, or one pass,
@@ -409,5 +487,51 @@ impl CsvLog {
                 action: "write",
                 source,
             })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A network whose every Q-value is `value`: zero weights, output bias `value`.
+    fn constant_q(value: f64) -> QNetwork {
+        let q = QNetwork::new(2, 3, &[4], 0);
+        let mut params = q.parameters();
+        tch::no_grad(|| {
+            for p in &mut params {
+                let _ = p.zero_();
+            }
+            let _ = params.last_mut().unwrap().fill_(value);
+        });
+        q
+    }
+
+    #[test]
+    fn the_value_guard_trips_only_past_the_data_value_in_the_direction_q_travels() {
+        // Rewards averaging -1 with gamma 0.5: V_data = -2; margin 0.5 * 2 = 1.
+        let data = Batch {
+            obs: Tensor::zeros([4, 2], (tch::Kind::Float, tch::Device::Cpu)),
+            actions: Tensor::from_slice(&[0i64, 1, 2, 0]),
+            rewards: Tensor::from_slice(&[-0.5f32, -1.5, -1.0, -1.0]),
+            next_obs: Tensor::zeros([4, 2], (tch::Kind::Float, tch::Device::Cpu)),
+        };
+        let mut cfg = LearnerConfig {
+            gamma: 0.5,
+            value_guard: 0.5,
+            ..LearnerConfig::default()
+        };
+        // Q starts at 0, above V_data: it has to fall, and may fall to -3 but not below.
+        let guard = ValueGuard::new(&cfg, &constant_q(0.0), &data).unwrap();
+        assert!(!guard.tripped(&constant_q(-1.0), &data));
+        assert!(!guard.tripped(&constant_q(-2.9), &data));
+        assert!(guard.tripped(&constant_q(-3.1), &data));
+        // Rising past V_data from below is a drift the other way round.
+        let guard = ValueGuard::new(&cfg, &constant_q(-10.0), &data).unwrap();
+        assert!(!guard.tripped(&constant_q(-1.1), &data));
+        assert!(guard.tripped(&constant_q(-0.9), &data));
+        // 0 turns the guard off.
+        cfg.value_guard = 0.0;
+        assert!(ValueGuard::new(&cfg, &constant_q(0.0), &data).is_none());
     }
 }

@@ -31,7 +31,12 @@ pub fn pretrain(
     let mut budget = config.clone();
     budget.learner.batch = tasks.len() * (maml.shots + maml.query_shots);
     let w = &config.world;
-    let mut q = QNetwork::new(w.observation_len(), w.action_count(), &config.learner.hidden, seed);
+    let mut q = QNetwork::new(
+        w.observation_len(),
+        w.action_count(),
+        &config.learner.hidden,
+        seed,
+    );
     let mut trainer = OfflineTrainer::new(&q, union.len(), Algorithm::Cql, &budget, seed);
     for epoch in 1..=config.meta.meta_epochs {
         for _ in 0..maml.outer_steps(tasks) {

@@ -373,6 +373,11 @@ pub struct LearnerConfig {
     pub double_dqn: bool,
     /// Huber instead of squared TD error (d3rlpy's choice); off to match eq. 7.
     pub huber: bool,
+    /// Guard against late collapse, from the offline data alone: training stops, keeping the
+    /// previous epoch's network, once the mean Q of the data's own actions falls below
+    /// `V_data - value_guard * |V_data|`, `V_data` = the shots' mean reward / (1 - gamma) (see
+    /// `learner/src/train.rs`). 0 = no guard.
+    pub value_guard: f64,
     /// Monte-Carlo episodes of each evaluation of a greedy policy.
     pub eval_episodes: usize,
     /// Seed of the evaluation episodes, the same for every method and epoch.
@@ -393,6 +398,7 @@ impl Default for LearnerConfig {
             target_update_every: 100,
             double_dqn: false,
             huber: false,
+            value_guard: 0.5,
             eval_episodes: 20,
             eval_seed: 12345,
         }
@@ -898,6 +904,13 @@ impl Config {
         }
         if !(0.0..=1.0).contains(&l.gamma) {
             return Err(invalid("learner.gamma", &l.gamma, "a discount in [0, 1]"));
+        }
+        if !l.value_guard.is_finite() || l.value_guard < 0.0 {
+            return Err(invalid(
+                "learner.value_guard",
+                &l.value_guard,
+                "a finite margin >= 0 (0 = no guard)",
+            ));
         }
         if !l.reward_scale.is_finite() || l.reward_scale <= 0.0 {
             return Err(invalid(

@@ -127,12 +127,18 @@ fn online_dqn(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
         let (stalest, greedy) = (ret("stalest"), ret("greedy"));
         let (worse, better) = (stalest.min(greedy), stalest.max(greedy));
         let mean = est(online.iter().map(|m| m.ret.mean));
-        let worst = online.iter().map(|m| m.ret.mean).fold(f64::INFINITY, f64::min);
+        let worst = online
+            .iter()
+            .map(|m| m.ret.mean)
+            .fold(f64::INFINITY, f64::min);
         // Returns are costs: within 5% of the better heuristic is above 1.05 times it.
         let ok = worst >= worse && mean.mean >= better - 0.05 * better.abs();
         trained += ok as usize;
         if !ok {
-            short.push(format!("{} (mean {:.0}, worst {worst:.0})", task.name, mean.mean));
+            short.push(format!(
+                "{} (mean {:.0}, worst {worst:.0})",
+                task.name, mean.mean
+            ));
         }
         let _ = writeln!(
             body,
@@ -1558,7 +1564,10 @@ mod tests {
         config.collect.eps_decay_steps = 20_000;
         assert_eq!(exploratory_share(&config), 1.0);
         // The whole buffer, but shots from its newest 2 000 steps: none of them.
-        (config.collect.replay_capacity, config.collect.eps_decay_steps) = (10_000, 5_000);
+        (
+            config.collect.replay_capacity,
+            config.collect.eps_decay_steps,
+        ) = (10_000, 5_000);
         config.collect.sample_newest = 2_000;
         assert_eq!(exploratory_share(&config), 0.0);
     }
