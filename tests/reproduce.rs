@@ -6,7 +6,7 @@ use std::path::Path;
 use std::process::{Command, Output};
 
 use uavmeta_meta::reproduce::quick_config;
-use uavmeta_proto::config::Config;
+use uavmeta_proto::config::{Config, TaskRole};
 
 const CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/configs/reproduce.toml");
 
@@ -49,6 +49,22 @@ fn check_csv(path: &Path, header: &str, rows: usize) {
     }
 }
 
+/// An experiment's summary names its command, commit, seeds and wall time.
+fn check_header(experiment: &str, summary: &str) {
+    for part in [
+        "- command: `",
+        "--quick",
+        "- commit: ",
+        "- seeds: 0..1",
+        "- wall time: ",
+    ] {
+        assert!(
+            summary.contains(part),
+            "{experiment}: no `{part}` in {summary}"
+        );
+    }
+}
+
 fn check_png(path: &Path) {
     let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
     assert!(
@@ -64,8 +80,9 @@ fn check_png(path: &Path) {
     );
 }
 
-/// The claims of SPEC section 6, one table row each.
-const CLAIMS: [&str; 13] = [
+/// The claims of SPEC section 6, one table row each, and the behaviour agents' bar.
+const CLAIMS: [&str; 14] = [
+    "the behaviour agent is trained",
     "DQN and DQN-MAML trained offline fail to converge",
     "CQL from a random init needs more than 100 epochs",
     "CQL-MAML converges in fewer than 40 epochs",
@@ -116,7 +133,8 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     check_csv(
         &out.join("convergence/curves.csv"),
         &format!("method,{curve}"),
-        4 * seeds * r.convergence_epochs,
+        // CQL-MAML, CQL-pretrain, CQL, DQN, DQN-MAML.
+        5 * seeds * r.convergence_epochs,
     );
     check_csv(
         &out.join("convergence/references.csv"),
@@ -126,7 +144,7 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     check_csv(
         &out.join("shots/curves.csv"),
         &format!("method,shots,{curve}"),
-        r.shots.len() * 2 * seeds * r.convergence_epochs,
+        r.shots.len() * 3 * seeds * r.convergence_epochs,
     );
     check_csv(
         &out.join("tasks/curves.csv"),
@@ -136,12 +154,18 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     check_csv(
         &out.join("aoi-power/bars.csv"),
         "method,seed,aoi,power_mw",
-        3 * seeds + 3,
+        4 * seeds + 3,
     );
     check_csv(
         &out.join("resilience/curves.csv"),
         &format!("method,task,{curve}"),
-        2 * rain * seeds * r.resilience_epochs,
+        3 * rain * seeds * r.resilience_epochs,
+    );
+    let meta_train = config.tasks.iter().filter(|t| t.role == TaskRole::MetaTrain);
+    check_csv(
+        &out.join("online-dqn/online_dqn.csv"),
+        "task,seed,return,aoi,power_mw",
+        (meta_train.count() + 1) * seeds,
     );
     check_csv(
         &out.join("resilience/fig9c_trajectories.csv"),
@@ -173,19 +197,11 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     ] {
         let summary = read(&out.join(experiment).join("summary.md"));
         assert!(summary.starts_with("# Figure"), "{experiment}: {summary}");
-        for part in [
-            "- command: `",
-            "--quick",
-            "- commit: ",
-            "- seeds: 0..1",
-            "- wall time: ",
-        ] {
-            assert!(
-                summary.contains(part),
-                "{experiment}: no `{part}` in {summary}"
-            );
-        }
+        check_header(experiment, &summary);
     }
+    let behaviour = read(&out.join("online-dqn/summary.md"));
+    assert!(behaviour.starts_with("# The behaviour agents"), "{behaviour}");
+    check_header("online-dqn", &behaviour);
     let summary = read(&out.join("summary.md"));
     for claim in CLAIMS {
         let rows: Vec<&str> = summary

@@ -180,18 +180,27 @@ pub struct LaunchReport {
 /// The heuristics of the results table, in its order.
 const HEURISTICS: [PolicySpec; 3] = [PolicySpec::Random, PolicySpec::Stalest, PolicySpec::Greedy];
 
-/// The rows of a task in the results table: references (heuristics, the online DQN agent), then
-/// the learners.
-const ROW_ORDER: [&str; 8] = [
-    "random",
-    "stalest",
-    "greedy",
-    "online-dqn",
-    "cql",
-    "cql-pretrain",
-    "cql-maml",
-    "maml-init",
+/// The learners of the results table, in its order, after the references.
+const LEARNERS: [Method; 4] = [
+    Method::Cql,
+    Method::CqlPretrain,
+    Method::CqlMaml,
+    Method::MetaInit,
 ];
+
+/// Where a row goes in its task's block: the references (heuristics, then the online DQN agent)
+/// first, then the learners; `None` for a method the table does not know.
+fn row_rank(method: &str) -> Option<usize> {
+    let references = HEURISTICS.iter().map(ToString::to_string);
+    let references = references.chain([Method::OnlineDqn.name().to_string()]);
+    let mut order = references.chain(LEARNERS.iter().map(|m| m.name().to_string()));
+    order.position(|name| name == method)
+}
+
+/// Whether a row is a reference (a heuristic or the online DQN agent) rather than a learner.
+fn is_reference(method: &str) -> bool {
+    row_rank(method).is_some_and(|rank| rank <= HEURISTICS.len())
+}
 
 /// Each heuristic on each meta-test task, over the episodes the evaluator scores checkpoints on.
 fn heuristic_references(config: &Config) -> Vec<EvaluationRow> {
@@ -663,12 +672,12 @@ pub fn results_table(report: &LaunchReport) -> String {
     for task in tasks {
         let rows = report.references.iter().chain(&report.results);
         let mut rows: Vec<&EvaluationRow> = rows.filter(|r| r.task == task).collect();
-        rows.sort_by_key(|r| ROW_ORDER.iter().position(|m| *m == r.method));
+        rows.sort_by_key(|r| row_rank(&r.method));
         for (i, r) in rows.iter().enumerate() {
-            if i > 0 && r.method == "cql" {
+            let reference = is_reference(&r.method);
+            if i > 0 && !reference && is_reference(&rows[i - 1].method) {
                 out.push_str(&format!("{}\n", "-".repeat(header.len())));
             }
-            let reference = ROW_ORDER[..4].contains(&r.method.as_str());
             out.push_str(&format!(
                 "{:<14} {:<13} {:>6} {:>22} {:>14} {:>18} {:>12}\n",
                 r.task,
@@ -802,5 +811,53 @@ impl Progress {
             bar.abandon();
         }
         let _ = self.bars.clear();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
+
+    use super::*;
+
+    fn row(method: &str, ret: f64, power_mw: f64) -> EvaluationRow {
+        let episode = EpisodeMetrics {
+            ret,
+            aoi: 5.0,
+            power_mw,
+            outages: 0,
+        };
+        EvaluationRow::new("lambda-300", method, 40, &PolicyMetrics::from_episodes(&[episode]))
+    }
+
+    #[test]
+    fn the_results_table_puts_references_above_a_rule_and_power_in_milliwatts() {
+        let report = LaunchReport {
+            run: PathBuf::from("runs/x"),
+            restarts: 0,
+            results: vec![
+                row("maml-init", -7400.0, 0.5),
+                row("cql-maml", -7100.0, 0.5),
+                row("online-dqn", -7000.0, 0.5),
+                row("cql", -16000.0, 0.5),
+            ],
+            references: vec![row("greedy", -7800.0, 0.318), row("random", -13000.0, 1.3)],
+        };
+        let table = results_table(&report);
+        let methods: Vec<&str> = table
+            .lines()
+            .skip(2)
+            .map(|l| l.split_whitespace().nth(1).unwrap_or(l))
+            .collect();
+        let rule = "-".repeat(10);
+        let expected = ["random", "greedy", "online-dqn", &rule, "cql", "cql-maml", "maml-init"];
+        assert_eq!(methods.len(), expected.len(), "{table}");
+        for (got, want) in methods.iter().zip(expected) {
+            assert!(got.starts_with(want), "{got} where {want} belongs:\n{table}");
+        }
+        assert!(table.contains("power (mW)"), "{table}");
+        assert!(table.contains("0.318 ± 0.000"), "{table}");
+        // References have no epoch.
+        assert!(table.lines().any(|l| l.starts_with("lambda-300     greedy             -")), "{table}");
     }
 }

@@ -18,14 +18,15 @@ use crate::maml::{MamlConfig, MetaTask};
 /// The checkpoint algorithm name of a pretrained init; it is fine-tuned with CQL.
 pub const ALGORITHM: &str = "cql-pretrain";
 
-/// A network trained with CQL on the union of `tasks`' shots, from the init of `seed`, reporting
-/// each finished meta-epoch's worth of steps to `progress`.
+/// A network trained with CQL on the union of `tasks`' shots, from the init of `seed`. After each
+/// meta-epoch's worth of steps it asks `keep_going` (with the count done), and returns `None`
+/// when told to stop.
 pub fn pretrain(
     config: &Config,
     tasks: &[MetaTask],
     seed: u64,
-    mut progress: impl FnMut(usize),
-) -> QNetwork {
+    mut keep_going: impl FnMut(usize) -> bool,
+) -> Option<QNetwork> {
     let union = Batch::concat(tasks.iter().flat_map(|t| [&t.support, &t.query]));
     let maml = MamlConfig::from_config(config);
     let mut budget = config.clone();
@@ -42,7 +43,9 @@ pub fn pretrain(
         for _ in 0..maml.outer_steps(tasks) {
             trainer.step(&mut q, &union);
         }
-        progress(epoch);
+        if !keep_going(epoch) {
+            return None;
+        }
     }
-    q
+    Some(q)
 }

@@ -245,14 +245,28 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
             if stop()? {
                 return Ok(Outcome::Stopped);
             }
-            let mut q = match method {
-                Method::CqlMaml => checkpoint::load(&w0_path, config)?.0,
-                Method::CqlPretrain => pretrained
-                    .get_or_insert_with(|| {
-                        tracing::info!("pretraining CQL on the union of the meta-train shots");
-                        pretrain::pretrain(config, &tasks, seed, |_| {})
-                    })
-                    .duplicate(),
+            if method == Method::CqlPretrain && pretrained.is_none() {
+                tracing::info!("pretraining CQL on the union of the meta-train shots");
+                // Stop requests are honoured between the pretraining's meta-epochs.
+                let mut failure = None;
+                let trained = pretrain::pretrain(config, &tasks, seed, |_| match stop() {
+                    Ok(stopping) => !stopping,
+                    Err(error) => {
+                        failure = Some(error);
+                        false
+                    }
+                });
+                if let Some(error) = failure {
+                    return Err(error);
+                }
+                match trained {
+                    Some(q) => pretrained = Some(q),
+                    None => return Ok(Outcome::Stopped),
+                }
+            }
+            let mut q = match (method, &pretrained) {
+                (Method::CqlMaml, _) => checkpoint::load(&w0_path, config)?.0,
+                (Method::CqlPretrain, Some(pretrained)) => pretrained.duplicate(),
                 _ => QNetwork::new(
                     config.world.observation_len(),
                     config.world.action_count(),

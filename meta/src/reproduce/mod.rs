@@ -514,8 +514,8 @@ mod tests {
             }),
         ));
         let plan = plan(&config, &Experiment::ALL);
-        // CQL-MAML on 2 and 8 tasks, DQN-MAML on 8.
-        assert_eq!(plan.inits.len(), 3);
+        // CQL-MAML on 2 and 8 tasks, DQN-MAML and CQL-pretrain on 8.
+        assert_eq!(plan.inits.len(), 4);
         let main = plan
             .runs
             .iter()
@@ -536,9 +536,9 @@ mod tests {
                 Experiment::AoiPower
             ]
         );
-        // 4 methods + 2 x 2 more shot counts + CQL-MAML on 2 tasks + 2 on the rain task.
-        assert_eq!(plan.runs.len(), 4 + 4 + 1 + 2);
-        assert_eq!(plan.runs.iter().filter(|r| r.trajectory).count(), 2);
+        // 5 methods + 3 x 2 more shot counts + CQL-MAML on 2 tasks + 3 on the rain task.
+        assert_eq!(plan.runs.len(), 5 + 6 + 1 + 3);
+        assert_eq!(plan.runs.iter().filter(|r| r.trajectory).count(), 3);
     }
 
     #[test]
