@@ -161,7 +161,10 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
         &format!("method,task,{curve}"),
         3 * rain * seeds * r.resilience_epochs,
     );
-    let meta_train = config.tasks.iter().filter(|t| t.role == TaskRole::MetaTrain);
+    let meta_train = config
+        .tasks
+        .iter()
+        .filter(|t| t.role == TaskRole::MetaTrain);
     check_csv(
         &out.join("online-dqn/online_dqn.csv"),
         "task,seed,return,aoi,power_mw",
@@ -200,7 +203,10 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
         check_header(experiment, &summary);
     }
     let behaviour = read(&out.join("online-dqn/summary.md"));
-    assert!(behaviour.starts_with("# The behaviour agents"), "{behaviour}");
+    assert!(
+        behaviour.starts_with("# The behaviour agents"),
+        "{behaviour}"
+    );
     check_header("online-dqn", &behaviour);
     let summary = read(&out.join("summary.md"));
     for claim in CLAIMS {

@@ -827,7 +827,12 @@ mod tests {
             power_mw,
             outages: 0,
         };
-        EvaluationRow::new("lambda-300", method, 40, &PolicyMetrics::from_episodes(&[episode]))
+        EvaluationRow::new(
+            "lambda-300",
+            method,
+            40,
+            &PolicyMetrics::from_episodes(&[episode]),
+        )
     }
 
     #[test]
@@ -850,14 +855,30 @@ mod tests {
             .map(|l| l.split_whitespace().nth(1).unwrap_or(l))
             .collect();
         let rule = "-".repeat(10);
-        let expected = ["random", "greedy", "online-dqn", &rule, "cql", "cql-maml", "maml-init"];
+        let expected = [
+            "random",
+            "greedy",
+            "online-dqn",
+            &rule,
+            "cql",
+            "cql-maml",
+            "maml-init",
+        ];
         assert_eq!(methods.len(), expected.len(), "{table}");
         for (got, want) in methods.iter().zip(expected) {
-            assert!(got.starts_with(want), "{got} where {want} belongs:\n{table}");
+            assert!(
+                got.starts_with(want),
+                "{got} where {want} belongs:\n{table}"
+            );
         }
         assert!(table.contains("power (mW)"), "{table}");
         assert!(table.contains("0.318 ± 0.000"), "{table}");
         // References have no epoch.
-        assert!(table.lines().any(|l| l.starts_with("lambda-300     greedy             -")), "{table}");
+        assert!(
+            table
+                .lines()
+                .any(|l| l.starts_with("lambda-300     greedy             -")),
+            "{table}"
+        );
     }
 }
