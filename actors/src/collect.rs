@@ -227,12 +227,7 @@ pub fn collect(
     // Everything that can be refused is checked before a file is written.
     let rollout_policy = match &spec {
         PolicySpec::DqnOnline => {
-            let c = &config.collect;
-            let held = c.dqn_steps.min(c.replay_capacity);
-            let available = match c.sample_newest {
-                0 => held,
-                n => held.min(n),
-            };
+            let available = config.collect.sampled_window();
             if available < wanted {
                 return Err(CollectError::ReplayTooSmall {
                     origin: config.origin.clone(),

@@ -88,8 +88,6 @@ pub enum MetaError {
         action: &'static str,
         source: std::io::Error,
     },
-    #[error("the online DQN reference agent")]
-    OnlineDqn(#[source] BatchError),
     #[error("{origin}: the resilience experiment needs rain tasks (role = \"meta-test\" with a `rain` zone); the config has none")]
     NoRainTasks { origin: String },
     #[error(transparent)]

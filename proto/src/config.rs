@@ -318,6 +318,18 @@ pub struct CollectConfig {
     pub sample_newest: usize,
 }
 
+impl CollectConfig {
+    /// How many of the online agent's last steps its dataset is sampled from: the final replay
+    /// buffer (`min(dqn_steps, replay_capacity)`), cut to its newest `sample_newest` when set.
+    pub fn sampled_window(&self) -> usize {
+        let held = self.dqn_steps.min(self.replay_capacity);
+        match self.sample_newest {
+            0 => held,
+            n => held.min(n),
+        }
+    }
+}
+
 impl Default for CollectConfig {
     fn default() -> Self {
         Self {

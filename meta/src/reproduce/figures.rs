@@ -317,13 +317,7 @@ impl Refs {
 /// eps_decay_steps` (`actors/src/dqn_online.rs`).
 fn exploratory_share(config: &Config) -> f64 {
     let c = &config.collect;
-    let held = c.dqn_steps.min(c.replay_capacity);
-    // The shots come from the newest `sample_newest` of the buffer, when that is set.
-    let held = match c.sample_newest {
-        0 => held,
-        n => held.min(n),
-    }
-    .max(1);
+    let held = c.sampled_window().max(1);
     let first_held = c.dqn_steps.saturating_sub(held);
     let decaying_until = c.learning_starts + c.eps_decay_steps;
     decaying_until.saturating_sub(first_held).min(held) as f64 / held as f64
