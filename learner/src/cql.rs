@@ -28,7 +28,7 @@ impl CqlLoss {
     /// Eq. 8 from a TD loss already formed (eq. 7, or its double-DQN / Huber variants).
     pub fn from_td(q: &Tensor, td: Tensor, batch: &Batch, alpha: f64) -> CqlLoss {
         let conservative = conservative_term(q, batch);
-        let total = &td * 0.5 + &conservative * alpha;
+        let total = eq8(&td, &conservative, alpha);
         CqlLoss {
             total,
             td,
@@ -37,9 +37,20 @@ impl CqlLoss {
     }
 }
 
+/// Eq. 8 from its two terms, however they were averaged: `0.5 * td + alpha * conservative`.
+pub fn eq8(td: &Tensor, conservative: &Tensor, alpha: f64) -> Tensor {
+    td * 0.5 + conservative * alpha
+}
+
 /// `mean_batch [logsumexp_a Q(s, a) - Q(s, a_data)]`, scalar, from `q` [B, A].
 pub fn conservative_term(q: &Tensor, batch: &Batch) -> Tensor {
-    (q.logsumexp([-1i64], false) - q_taken(q, batch)).mean(None)
+    conservative_rows(q, batch).mean(None)
+}
+
+/// Each transition's `logsumexp_a Q(s, a) - Q(s, a_data)`: `q` [B, A] -> [B] (or, with a
+/// leading task dimension, [T, B, A] -> [T, B]).
+pub fn conservative_rows(q: &Tensor, batch: &Batch) -> Tensor {
+    q.logsumexp([-1i64], false) - q_taken(q, batch)
 }
 
 /// Paper eq. 8: `0.5 * L_DQN + alpha * mean(logsumexp_a Q(s, a) - Q(s, a_data))`.

@@ -52,42 +52,51 @@ impl From<&LearnerConfig> for TdConfig {
 ///
 /// `next_q_target` is `Qhat(s', .)` [B, A]. With `next_q_online = Some(Q(s', .))` [B, A] this is
 /// double DQN's `Qhat(s', argmax_a' Q(s', a'))`, otherwise eq. 7's `max_a' Qhat(s', a')`.
+/// Every function here also takes a leading task dimension ([T, B, A] -> [T, B]), which is how
+/// MAML evaluates all its tasks in one pass.
 pub fn next_value(next_q_target: &Tensor, next_q_online: Option<&Tensor>) -> Tensor {
     tch::no_grad(|| match next_q_online {
         None => next_q_target.amax(-1, false),
         Some(online) => {
             let a_star = online.argmax(-1, true); // [B, 1]
-            next_q_target.gather(1, &a_star, false).squeeze_dim(1)
+            next_q_target.gather(-1, &a_star, false).squeeze_dim(-1)
         }
     })
 }
 
 /// `Q(s, a_data)`: the Q-value of each transition's logged action. `q` [B, A] -> [B].
 pub fn q_taken(q: &Tensor, batch: &Batch) -> Tensor {
-    q.gather(1, &batch.actions.unsqueeze(1), false)
-        .squeeze_dim(1)
+    q.gather(-1, &batch.actions.unsqueeze(-1), false)
+        .squeeze_dim(-1)
 }
 
-/// The TD loss of eq. 7 from a precomputed bootstrap value `next_v` [B] (see [`next_value`]).
-/// `q` = `Q_w(s, .)` [B, A] carries the graph; the result is a scalar.
-pub fn td_loss(q: &Tensor, next_v: &Tensor, batch: &Batch, gamma: f64, huber: bool) -> Tensor {
+/// Each transition's term of eq. 7 from a precomputed bootstrap value `next_v` [B] (see
+/// [`next_value`]): `(y - Q(s, a))^2`, or its Huber form. `q` = `Q_w(s, .)` [B, A] carries the
+/// graph; the result is [B], whose mean is the loss.
+pub fn td_errors(q: &Tensor, next_v: &Tensor, batch: &Batch, gamma: f64, huber: bool) -> Tensor {
     // y = r + gamma * V(s'), a constant of the optimisation (eq. 7's target term).
     let target = (&batch.rewards + next_v * gamma).detach();
     let q_sa = q_taken(q, batch); // [B]
     if huber {
-        q_sa.huber_loss(&target, Reduction::Mean, 1.0)
+        q_sa.huber_loss(&target, Reduction::None, 1.0)
     } else {
-        // mean_batch (y - Q(s, a))^2
-        q_sa.mse_loss(&target, Reduction::Mean)
+        (q_sa - target).square()
     }
 }
 
-/// Eq. 7 with the options of `td`; `next_q_online` is needed (and only used) for double DQN.
+/// The TD loss of eq. 7 from a precomputed bootstrap value: the mean of [`td_errors`], a scalar.
+pub fn td_loss(q: &Tensor, next_v: &Tensor, batch: &Batch, gamma: f64, huber: bool) -> Tensor {
+    // mean_batch (y - Q(s, a))^2
+    td_errors(q, next_v, batch, gamma, huber).mean(None)
+}
+
+/// Each transition's term of eq. 7 with the options of `td`, [B]; `next_q_online` is needed (and
+/// only used) for double DQN.
 ///
 /// # Panics
 /// If `td.double_dqn` is set and `next_q_online` is `None`: the caller chose double DQN and must
 /// evaluate the online network on `s'`.
-pub fn td_loss_with(
+pub fn td_errors_with(
     q: &Tensor,
     next_q_target: &Tensor,
     next_q_online: Option<&Tensor>,
@@ -99,13 +108,24 @@ pub fn td_loss_with(
     } else {
         None
     };
-    td_loss(
+    td_errors(
         q,
         &next_value(next_q_target, online),
         batch,
         td.gamma,
         td.huber,
     )
+}
+
+/// Eq. 7 with the options of `td`: the mean of [`td_errors_with`], a scalar.
+pub fn td_loss_with(
+    q: &Tensor,
+    next_q_target: &Tensor,
+    next_q_online: Option<&Tensor>,
+    batch: &Batch,
+    td: &TdConfig,
+) -> Tensor {
+    td_errors_with(q, next_q_target, next_q_online, batch, td).mean(None)
 }
 
 /// Paper eq. 7: `mean (r + gamma * max_a' Qhat(s', a') - Q(s, a))^2`, a scalar.

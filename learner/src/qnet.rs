@@ -76,12 +76,23 @@ impl QNetwork {
     /// The same MLP on an explicit parameter list laid out as [`QNetwork::parameters`] returns
     /// it: `obs` [B, obs_len] -> [B, actions]. Gradients flow into whatever `params` came from,
     /// which is how MAML differentiates the query loss through the inner-loop updates.
+    ///
+    /// With stacked parameters (each with a leading dimension T: T networks, MAML's fast weights
+    /// of T tasks) `obs` is [T, B, obs_len] and network t sees `obs[t]`: [T, B, actions], one
+    /// batched matrix product per layer for all T. Unstacked parameters on [T, B, obs_len] are
+    /// one network applied to every row.
     pub fn forward_with(params: &[Tensor], obs: &Tensor) -> Tensor {
         let layers = params.len() / 2;
         let mut x = obs.shallow_clone();
         for (i, wb) in params.chunks_exact(2).enumerate() {
-            // [B, fan_in] -> [B, fan_out]
-            x = x.linear(&wb[0], Some(&wb[1]));
+            let (w, b) = (&wb[0], &wb[1]);
+            x = if w.dim() == 3 {
+                // [T, B, fan_in] @ [T, fan_in, fan_out] + [T, 1, fan_out]
+                b.unsqueeze(1).baddbmm(&x, &w.transpose(1, 2), 1, 1)
+            } else {
+                // [.., fan_in] -> [.., fan_out]
+                x.linear(w, Some(b))
+            };
             if i + 1 < layers {
                 x = x.relu();
             }

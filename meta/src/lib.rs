@@ -90,6 +90,8 @@ pub enum MetaError {
     },
     #[error("{origin}: the resilience experiment needs rain tasks (role = \"meta-test\" with a `rain` zone); the config has none")]
     NoRainTasks { origin: String },
+    #[error("cannot start the reproduction's worker threads")]
+    Threads(#[from] rayon::ThreadPoolBuildError),
     #[error(transparent)]
     Plot(#[from] reproduce::plot::PlotError),
     #[error(transparent)]

@@ -68,11 +68,11 @@ use rand::seq::{index, SliceRandom};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
-use tch::Tensor;
+use tch::{Kind, Tensor};
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
-use uavmeta_learner::cql::CqlLoss;
-use uavmeta_learner::dqn::{td_loss_with, TdConfig};
+use uavmeta_learner::cql::{conservative_rows, eq8};
+use uavmeta_learner::dqn::{td_errors_with, TdConfig};
 use uavmeta_learner::qnet::QNetwork;
 use uavmeta_proto::config::{Config, InnerLoss};
 
@@ -139,21 +139,42 @@ impl MamlConfig {
     /// `L(w; batch)`: eq. 8 (CQL) or eq. 7 (DQN) for the network with weights `params`,
     /// bootstrapping from the target network `target`, which no gradient reaches. Scalar.
     pub fn task_loss(&self, params: &[Tensor], target: &[Tensor], batch: &Batch) -> Tensor {
-        let q = QNetwork::forward_with(params, &batch.obs); // Q_w(s, .) [B, A], graph back to params
+        self.task_losses(params, target, &StackedShots::stack(&[batch]))
+            .squeeze_dim(0)
+    }
+
+    /// `L(w_t; shots_t)` of every task t of `shots` at once, [T]: `params` are either stacked
+    /// (one network per task, as [`QNetwork::forward_with`] takes them) or one network for all.
+    pub fn task_losses(
+        &self,
+        params: &[Tensor],
+        target: &[Tensor],
+        shots: &StackedShots,
+    ) -> Tensor {
+        let batch = &shots.batch;
+        let q = QNetwork::forward_with(params, &batch.obs); // Q_w(s, .) [T, B, A], graph back to params
         let (next_q_target, next_q_online) = tch::no_grad(|| {
-            let target_q = QNetwork::forward_with(target, &batch.next_obs); // Qhat(s', .) [B, A]
+            let target_q = QNetwork::forward_with(target, &batch.next_obs); // Qhat(s', .) [T, B, A]
             let online_q = self
                 .td
                 .double_dqn
                 .then(|| QNetwork::forward_with(params, &batch.next_obs));
             (target_q, online_q)
         });
-        let td = td_loss_with(&q, &next_q_target, next_q_online.as_ref(), batch, &self.td);
+        // Each task's mean over its own rows; padding rows weigh 0.
+        let mean = |rows: Tensor| (rows * &shots.weight).sum_dim_intlist(-1, false, None::<Kind>);
+        let td = mean(td_errors_with(
+            &q,
+            &next_q_target,
+            next_q_online.as_ref(),
+            batch,
+            &self.td,
+        ));
         match self.inner_loss {
             // eq. 7: mean (r + gamma max_a' Qhat(s', a') - Q(s, a))^2
             InnerLoss::Dqn => td,
             // eq. 8: 0.5 * eq. 7 + alpha * mean(logsumexp_a Q(s, a) - Q(s, a_data))
-            InnerLoss::Cql => CqlLoss::from_td(&q, td, batch, self.alpha).total,
+            InnerLoss::Cql => eq8(&td, &mean(conservative_rows(&q, batch)), self.alpha),
         }
     }
 
@@ -163,10 +184,33 @@ impl MamlConfig {
     /// differentiable functions of `w0` through the Hessian-vector terms; first order detaches the
     /// gradients, so `d w_i / d w0` is the identity.
     pub fn adapt(&self, w0: &[Tensor], target: &[Tensor], support: &Batch) -> Vec<Tensor> {
+        self.adapt_stacked(w0, target, &StackedShots::stack(&[support]))
+            .iter()
+            .map(|w| w.squeeze_dim(0))
+            .collect()
+    }
+
+    /// Eq. 14 for every task of `support` at once: stacked fast weights, one network per task.
+    /// The tasks' losses are summed before differentiating; as task t's loss depends only on its
+    /// own slice of the weights, the gradient of the sum is each task's own gradient.
+    pub fn adapt_stacked(
+        &self,
+        w0: &[Tensor],
+        target: &[Tensor],
+        support: &StackedShots,
+    ) -> Vec<Tensor> {
         let second_order = !self.first_order;
-        let mut w: Vec<Tensor> = w0.iter().map(Tensor::shallow_clone).collect();
+        let tasks = support.tasks();
+        let mut w: Vec<Tensor> = w0
+            .iter()
+            .map(|p| {
+                let mut stacked = vec![tasks];
+                stacked.extend(p.size());
+                p.unsqueeze(0).expand(stacked, false)
+            })
+            .collect();
         for _ in 0..self.inner_steps {
-            let loss = self.task_loss(&w, target, support);
+            let loss = self.task_losses(&w, target, support).sum(None);
             // torch.autograd.grad(loss, w, retain_graph=create_graph=second_order)
             let grads = Tensor::run_backward(&[&loss], &w, second_order, second_order);
             w = w
@@ -179,24 +223,78 @@ impl MamlConfig {
     }
 
     /// Eq. 15 and its gradient: adapts to each task's support shots, evaluates `L(w_i; query)`,
-    /// and accumulates `d L(w_i; query) / d w0` into the `.grad` of `w0` (which must be leaves
-    /// that require grad). The sum over tasks of those gradients is `grad_w0 L_meta`; going task
-    /// by task keeps one task's graph alive at a time. Returns each task's query loss.
+    /// and accumulates `d L_meta / d w0` into the `.grad` of `w0` (which must be leaves that
+    /// require grad). All tasks go through one stacked computation (batched matrix products
+    /// instead of one small product per task). Returns each task's query loss.
     pub fn backward_meta_loss(
         &self,
         w0: &[Tensor],
         target: &[Tensor],
         tasks: &[TaskShots],
     ) -> Vec<f64> {
-        tasks
+        let support: Vec<&Batch> = tasks.iter().map(|t| &t.support).collect();
+        let query: Vec<&Batch> = tasks.iter().map(|t| &t.query).collect();
+        let w = self.adapt_stacked(w0, target, &StackedShots::stack(&support)); // eq. 14
+        let query_losses = self.task_losses(&w, target, &StackedShots::stack(&query)); // eq. 15's terms
+        query_losses.sum(None).backward();
+        Vec::<f64>::try_from(query_losses.detach().to_kind(Kind::Double))
+            .expect("a [T] loss tensor")
+    }
+}
+
+/// The shots of T tasks as one [`Batch`] with a leading task dimension ([T, B, ..]), each task's
+/// rows padded to the longest task's B with rows that weigh 0.
+pub struct StackedShots {
+    pub batch: Batch,
+    /// [T, B]: 1 / (task t's row count) on its rows, 0 on its padding; a task's loss is the
+    /// weighted sum of its rows' terms, the mean over its own rows.
+    pub weight: Tensor,
+}
+
+impl StackedShots {
+    /// Stacks `parts` (at least one).
+    pub fn stack(parts: &[&Batch]) -> StackedShots {
+        let rows = parts.iter().map(|b| b.len()).max().unwrap_or(0) as i64;
+        let pad = |t: &Tensor| {
+            let missing = rows - t.size()[0];
+            if missing == 0 {
+                return t.shallow_clone();
+            }
+            let mut shape = t.size();
+            shape[0] = missing;
+            Tensor::cat(
+                &[
+                    t.shallow_clone(),
+                    t.new_zeros(shape.as_slice(), (t.kind(), t.device())),
+                ],
+                0,
+            )
+        };
+        let column = |pick: fn(&Batch) -> &Tensor| {
+            Tensor::stack(&parts.iter().map(|b| pad(pick(b))).collect::<Vec<_>>(), 0)
+        };
+        let weight: Vec<Tensor> = parts
             .iter()
-            .map(|task| {
-                let w_i = self.adapt(w0, target, &task.support); // eq. 14
-                let query_loss = self.task_loss(&w_i, target, &task.query); // a term of eq. 15
-                query_loss.backward();
-                query_loss.double_value(&[])
+            .map(|b| {
+                let n = b.len() as i64;
+                let ones = b.rewards.ones_like() / n as f64;
+                pad(&ones)
             })
-            .collect()
+            .collect();
+        StackedShots {
+            batch: Batch {
+                obs: column(|b| &b.obs),
+                actions: column(|b| &b.actions),
+                rewards: column(|b| &b.rewards),
+                next_obs: column(|b| &b.next_obs),
+            },
+            weight: Tensor::stack(&weight, 0),
+        }
+    }
+
+    /// T.
+    pub fn tasks(&self) -> i64 {
+        self.weight.size()[0]
     }
 }
 

@@ -181,6 +181,41 @@ fn second_order_meta_gradient_matches_finite_differences() {
 }
 
 #[test]
+fn tasks_stacked_with_padding_give_each_task_its_own_meta_gradient() {
+    single_threaded();
+    // Tasks of 16, 11 and 5 rows: the stacked computation pads the shorter two with rows of
+    // weight 0; each task alone needs no padding. The sum of the lone gradients is the truth.
+    let mut rng = ChaCha8Rng::seed_from_u64(10);
+    let tasks: Vec<TaskShots> = [16, 11, 5]
+        .into_iter()
+        .enumerate()
+        .map(|(i, rows)| TaskShots {
+            support: batch(rows, i as f64, Kind::Double, &mut rng),
+            query: batch(rows + 2, i as f64, Kind::Double, &mut rng),
+        })
+        .collect();
+    let w0 = leaves(11);
+    let target = leaves(12);
+    for inner_loss in [InnerLoss::Cql, InnerLoss::Dqn] {
+        for first_order in [false, true] {
+            let c = config(inner_loss, 2, first_order);
+            let stacked = meta_gradient(&c, &w0, &target, &tasks);
+            let mut alone = vec![0.0; stacked.len()];
+            for task in tasks.chunks(1) {
+                for (a, g) in alone.iter_mut().zip(meta_gradient(&c, &w0, &target, task)) {
+                    *a += g;
+                }
+            }
+            let error = relative_error(&stacked, &alone);
+            assert!(
+                error < 1e-10,
+                "{inner_loss:?}, first order {first_order}: stacked and per-task meta-gradients differ by {error:e}"
+            );
+        }
+    }
+}
+
+#[test]
 fn first_order_gradient_is_the_query_gradient_at_the_adapted_weights() {
     single_threaded();
     let mut rng = ChaCha8Rng::seed_from_u64(4);

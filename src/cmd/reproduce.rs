@@ -33,7 +33,8 @@ pub struct ReproduceArgs {
     /// runs/reproduce-quick with --quick].
     #[arg(long)]
     out: Option<PathBuf>,
-    /// Seeds run at the same time, one thread each [default: the available cores].
+    /// Worker threads: datasets, inits and fine-tuning runs of any seed run this many at a time,
+    /// one libtorch thread each [default: the available cores].
     #[arg(long, value_name = "J", value_parser = clap::value_parser!(u64).range(1..=256))]
     jobs: Option<u64>,
 }

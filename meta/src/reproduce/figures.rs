@@ -10,7 +10,9 @@ use uavmeta_learner::train::EpochRow;
 use uavmeta_proto::config::{Config, InnerLoss, RainZone, TaskConfig, TaskRole};
 use uavmeta_proto::stats::{Estimate, PolicyMetrics};
 
-use super::claims::{self, converged_at, final_return, mean_swing, return_at, Claim, Verdict};
+use super::claims::{
+    self, converged_at, final_return, mean_swing, return_at, settle_epoch, Claim, Verdict,
+};
 use super::plot::{self, Band, Bar, LineChart, Reference, Series, TrajectoryChart};
 use super::runs::{InitKey, InitKind, Method, RunKey, SeedResult};
 use super::{rain_tasks, write_file, Experiment, HeuristicRef};
@@ -692,6 +694,56 @@ fn convergence(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
         ),
         Verdict::all_of(verdicts),
         || refs.shortfall(&[("CQL-MAML", maml_final.mean), ("CQL", cql_final.mean)]),
+    ));
+
+    // The same two statements seed by seed, each seed against its own online agent and its own
+    // CQL run: at epoch 40 CQL-MAML is at or above the agent, and it settles within 5% of its
+    // final return in at most half the epochs CQL takes.
+    let online = ctx.online(&r.unseen_task, c.learner.eval_episodes);
+    let at_40: Vec<bool> = maml
+        .iter()
+        .zip(&online)
+        .filter(|(run, _)| run.len() >= EPOCH_40)
+        .map(|(run, agent)| return_at(run, EPOCH_40) >= agent.ret.mean)
+        .collect();
+    let held = at_40.iter().filter(|&&above| above).count();
+    found.push(Claim::new(
+        "5",
+        "At epoch 40 CQL-MAML is at or above the online DQN agent (on at least 4 of 5 seeds)",
+        format!("{held} of {} seeds", at_40.len()),
+        match at_40.len() {
+            0 => Verdict::Untested,
+            n if 5 * held >= 4 * n => Verdict::Yes,
+            n => Verdict::share(held, n),
+        },
+        || {
+            format!(
+                "CQL-MAML at epoch 40: {:.0}; online DQN {:.0}",
+                est(maml.iter().map(|run| return_at(run, EPOCH_40))),
+                refs.online
+            )
+        },
+    ));
+    let settles: Vec<(usize, usize)> = maml
+        .iter()
+        .zip(cql)
+        .map(|(m, c)| (settle_epoch(m), settle_epoch(c)))
+        .collect();
+    let faster = settles.iter().filter(|(m, c)| 2 * m <= *c).count();
+    found.push(Claim::new(
+        "5",
+        "CQL-MAML reaches 95% of its final return in at most half the epochs CQL needs",
+        format!(
+            "{faster} of {} seeds; settle epochs CQL-MAML / CQL: {}",
+            settles.len(),
+            settles
+                .iter()
+                .map(|(m, c)| format!("{m}/{c}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
+        Verdict::share(faster, settles.len()),
+        || "in some seeds CQL settles as early as CQL-MAML, or CQL-MAML keeps moving".into(),
     ));
     finish(body, found)
 }

@@ -13,10 +13,11 @@
 //!    (CQL-MAML on the first `meta_tasks` tasks is meta-trained once per seed and serves figures
 //!    4, 5, 6, 8 and 9).
 //! 2. The heuristics' reference lines (random, stalest, greedy), which depend on no seed.
-//! 3. Seeds 0..N-1 on up to `jobs` threads, each through the same code paths as the runtime:
-//!    `collect` with the online DQN behaviour policy (`collect.seed + s`), its agent as the online
-//!    reference, `meta_train`, and `meta_test`'s `fine_tune` with the greedy policy evaluated
-//!    after every epoch. Results are kept in seed order, so they do not depend on `jobs`.
+//! 3. Seeds 0..N-1 on a pool of `jobs` threads, each item through the same code paths as the
+//!    runtime: `collect` with the online DQN behaviour policy (`collect.seed + s`), its agent as
+//!    the online reference, `meta_train`, and `meta_test`'s `fine_tune` with the greedy policy
+//!    evaluated after every epoch. Results are kept in seed order, so they do not depend on
+//!    `jobs`.
 //! 4. Each experiment writes `OUT/<experiment>/` and returns its claims; `OUT/summary.md` gathers
 //!    every claim table.
 
@@ -27,11 +28,10 @@ mod runs;
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
+use rayon::prelude::*;
 use uavmeta_actors::heuristics::PolicySpec;
 use uavmeta_actors::rollout::evaluate;
 use uavmeta_proto::config::{Config, InnerLoss, TaskConfig, TaskRole};
@@ -121,7 +121,7 @@ pub struct ReproduceOptions<'a> {
     /// The run checks plumbing only; summaries say so.
     pub quick: bool,
     pub out_dir: &'a Path,
-    /// Seeds run at the same time, each on its own thread.
+    /// Worker threads: items of the plan (of any seed) run this many at a time.
     pub jobs: usize,
     pub progress: bool,
     /// The command line, and the git commit of the build, for the summaries' headers.
@@ -399,9 +399,15 @@ fn heuristic_refs(config: &Config, plan: &Plan) -> Vec<HeuristicRef> {
         .collect()
 }
 
-/// Runs every seed's pipeline on up to `opts.jobs` threads; results in seed order.
+/// Every item of the plan for every seed, on a pool of `opts.jobs` threads; results in seed
+/// order, so they do not depend on `jobs`.
+///
+/// The items go in three stages (datasets, then the inits trained on them, then the fine-tuning
+/// runs from those inits), each stage one pool of (seed, item) pairs. Seed-sized units left one
+/// core idle while the last seed ran alone; items of a stage are at most a minute of work each.
 fn run_seeds(opts: &ReproduceOptions, plan: &Plan) -> Result<Vec<SeedResult>, MetaError> {
-    let seeds = opts.config.reproduce.seeds;
+    let (config, out) = (opts.config, opts.out_dir);
+    let seeds: Vec<u64> = (0..config.reproduce.seeds as u64).collect();
     let multi = MultiProgress::with_draw_target(if opts.progress {
         ProgressDrawTarget::stderr()
     } else {
@@ -413,13 +419,13 @@ fn run_seeds(opts: &ReproduceOptions, plan: &Plan) -> Result<Vec<SeedResult>, Me
         .experiments
         .iter()
         .map(|&e| {
-            let bar = multi.add(ProgressBar::new(plan.units(e) * seeds as u64));
+            let bar = multi.add(ProgressBar::new(plan.units(e) * seeds.len() as u64));
             bar.set_style(style.clone());
             bar.set_prefix(e.name());
             (e, bar)
         })
         .collect();
-    let advance = |users: &[Experiment]| {
+    let done = |users: &[Experiment]| {
         for (e, bar) in &bars {
             if users.contains(e) {
                 bar.inc(1);
@@ -428,46 +434,82 @@ fn run_seeds(opts: &ReproduceOptions, plan: &Plan) -> Result<Vec<SeedResult>, Me
     };
 
     // libtorch's OpenMP thread count is a per-thread setting: a new thread starts with one per
-    // core, and two seeds spin-waiting on each other's cores ran no faster than one
+    // core, and two workers spin-waiting on each other's cores ran no faster than one
     // (docs/BENCHMARKS.md, "Threads"). Each worker takes the count main set.
     let torch_threads = tch::get_num_threads();
-    let next = AtomicUsize::new(0);
-    let results: Mutex<Vec<Option<Result<SeedResult, MetaError>>>> =
-        Mutex::new((0..seeds).map(|_| None).collect());
-    std::thread::scope(|scope| {
-        for _ in 0..opts.jobs.clamp(1, seeds) {
-            scope.spawn(|| {
-                tch::set_num_threads(torch_threads);
-                loop {
-                    let seed = next.fetch_add(1, Ordering::SeqCst);
-                    if seed >= seeds {
-                        break;
-                    }
-                    let result =
-                        runs::run_seed(opts.config, plan, opts.out_dir, seed as u64, &advance);
-                    let failed = result.is_err();
-                    results.lock().expect("no thread panics holding the lock")[seed] = Some(result);
-                    if failed {
-                        // Leave the remaining seeds undone: the run fails anyway.
-                        next.store(seeds, Ordering::SeqCst);
-                    }
-                }
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(opts.jobs.max(1))
+        .start_handler(move |_| tch::set_num_threads(torch_threads))
+        .build()?;
+    let results = pool.install(|| -> Result<Vec<SeedResult>, MetaError> {
+        for_each_seed(&seeds, &plan.datasets, |seed, need| {
+            runs::dataset(config, out, seed, &need.key)?;
+            done(&need.users);
+            Ok(())
+        })?;
+        let references = for_each_seed(&seeds, &plan.references, |seed, need| {
+            let metrics = runs::reference(config, out, seed, &need.key)?;
+            done(&need.users);
+            Ok((need.key.clone(), metrics))
+        })?;
+        let inits = for_each_seed(&seeds, &plan.inits, |seed, need| {
+            let init = runs::init(config, out, seed, need.key)?;
+            done(&need.users);
+            Ok((need.key, init))
+        })?;
+        let runs = for_each_seed(&seeds, &plan.runs, |seed, run| {
+            let w0 = run.need.key.init().map(|key| {
+                let seed_inits = &inits[seed as usize];
+                let (_, (w0, _)) = seed_inits
+                    .iter()
+                    .find(|(k, _)| *k == key)
+                    .expect("Plan::run adds the init of every meta-trained run");
+                w0.as_path()
             });
-        }
+            let result = runs::fine_tune_run(config, out, seed, run, w0)?;
+            done(&run.need.users);
+            Ok((run.need.key.clone(), result))
+        })?;
+        Ok(seeds
+            .iter()
+            .zip(references)
+            .zip(inits)
+            .zip(runs)
+            .map(|(((&seed, references), inits), runs)| SeedResult {
+                seed,
+                inits: inits.into_iter().map(|(k, (_, c))| (k, c)).collect(),
+                references,
+                runs,
+            })
+            .collect())
     });
     for (_, bar) in &bars {
         bar.finish_and_clear();
     }
-    let mut out = Vec::with_capacity(seeds);
-    for result in results
-        .into_inner()
-        .expect("no thread panics holding the lock")
-        .into_iter()
-        .flatten()
-    {
-        out.push(result?);
-    }
-    Ok(out)
+    results
+}
+
+/// `work(seed, item)` for every seed and item, on the current pool, one pair per task; the
+/// results grouped by seed, each seed's in item order. Stops at the first error.
+fn for_each_seed<I: Sync, R: Send>(
+    seeds: &[u64],
+    items: &[I],
+    work: impl Fn(u64, &I) -> Result<R, MetaError> + Sync,
+) -> Result<Vec<Vec<R>>, MetaError> {
+    let pairs: Vec<(u64, &I)> = seeds
+        .iter()
+        .flat_map(|&seed| items.iter().map(move |item| (seed, item)))
+        .collect();
+    let mut results = pairs
+        .into_par_iter()
+        .with_max_len(1)
+        .map(|(seed, item)| work(seed, item))
+        .collect::<Result<Vec<R>, MetaError>>()?
+        .into_iter();
+    Ok(seeds
+        .iter()
+        .map(|_| results.by_ref().take(items.len()).collect())
+        .collect())
 }
 
 pub(super) fn create_dir(dir: &Path) -> Result<(), MetaError> {

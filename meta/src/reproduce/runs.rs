@@ -1,4 +1,4 @@
-//! What one seed of a reproduction computes, and the artefacts it caches under
+//! What each seed of a reproduction computes, item by item, and the artefacts it caches under
 //! `OUT/cache/seed-S/`: every task's dataset, the online DQN reference agents, the meta-trained
 //! w0s, then every fine-tuning run the selected experiments need (each run once, as long as the
 //! longest experiment using it asks: a fine-tuning run's first E epochs do not depend on how many
@@ -345,109 +345,100 @@ pub fn seed_dir(out: &Path, seed: u64) -> PathBuf {
     out.join("cache").join(format!("seed-{seed}"))
 }
 
-/// One seed's whole pipeline; `bars` is told the users of every item done, to move their
-/// progress bars.
-pub fn run_seed(
+/// Where seed `seed` keeps its datasets and, beside each, the online DQN agent that made it.
+fn datasets_dir(out: &Path, seed: u64) -> PathBuf {
+    seed_dir(out, seed).join("datasets")
+}
+
+/// Seed `seed`'s dataset of `task`, collected by the actors' code path unless cached.
+pub fn dataset(config: &Config, out: &Path, seed: u64, task: &str) -> Result<(), MetaError> {
+    let datasets = datasets_dir(out, seed);
+    create_dir(&datasets)?;
+    let path = dataset_path(&datasets, task);
+    ensure_dataset(&collection_config(config, seed), task, &path)
+}
+
+/// The online DQN agent behind seed `seed`'s dataset of a task (saved by `collect`), evaluated.
+pub fn reference(
     config: &Config,
-    plan: &Plan,
     out: &Path,
     seed: u64,
-    bars: &dyn Fn(&[Experiment]),
-) -> Result<SeedResult, MetaError> {
-    let dir = seed_dir(out, seed);
-    let datasets = dir.join("datasets");
-    create_dir(&datasets)?;
-    let collection = collection_config(config, seed);
-    for need in &plan.datasets {
-        ensure_dataset(&collection, &need.key, &dataset_path(&datasets, &need.key))?;
-        bars(&need.users);
-    }
-    let mut references = Vec::with_capacity(plan.references.len());
-    for need in &plan.references {
-        let task = config.task(&need.key.task)?;
-        // Saved by `collect` beside the task's dataset.
-        let (agent, _) = checkpoint::load(
-            &agent_path(&dataset_path(&datasets, &task.name)),
-            &collection,
-        )?;
-        let metrics = Evaluator::new(
+    key: &RefKey,
+) -> Result<PolicyMetrics, MetaError> {
+    let task = config.task(&key.task)?;
+    let agent = agent_path(&dataset_path(&datasets_dir(out, seed), &task.name));
+    let (agent, _) = checkpoint::load(&agent, &collection_config(config, seed))?;
+    let metrics = Evaluator::new(&config.world, task, key.episodes, config.learner.eval_seed)
+        .evaluate(&agent);
+    tracing::info!(seed, task = %task.name, ret = %metrics.ret, aoi = %metrics.aoi, power_mw = %metrics.power_mw, "online DQN reference");
+    Ok(metrics)
+}
+
+/// Seed `seed`'s init of `key`, trained unless cached: its checkpoint and meta-train curve.
+pub fn init(
+    config: &Config,
+    out: &Path,
+    seed: u64,
+    key: InitKey,
+) -> Result<(PathBuf, MetaCurve), MetaError> {
+    ensure_w0(
+        config,
+        key,
+        &datasets_dir(out, seed),
+        &seed_dir(out, seed),
+        seed,
+    )
+}
+
+/// Seed `seed`'s fine-tuning run `run`, from the checkpoint `w0` (its init, `None` for a random
+/// one), evaluated after every epoch.
+pub fn fine_tune_run(
+    config: &Config,
+    out: &Path,
+    seed: u64,
+    run: &RunNeed,
+    w0: Option<&Path>,
+) -> Result<RunResult, MetaError> {
+    let key = &run.need.key;
+    let task = config.task(&key.task)?;
+    let dataset = dataset_path(&datasets_dir(out, seed), &task.name);
+    let shots = load_shots(config, task, &dataset, key.shots, seed)?;
+    let mut q = match w0 {
+        Some(w0) => checkpoint::load(w0, config)?.0,
+        None => QNetwork::new(
+            config.world.observation_len(),
+            config.world.action_count(),
+            &config.learner.hidden,
+            seed,
+        ),
+    };
+    let mut run_config = config.clone();
+    run_config.learner.eval_episodes = key.eval_episodes;
+    let rows = fine_tune(
+        &mut q,
+        &shots,
+        key.method.algorithm(),
+        &FineTune {
+            config: &run_config,
+            task,
+            epochs: run.epochs,
+            seed,
+            out_dir: None,
+            progress: false,
+        },
+    )?;
+    let trajectory = run.trajectory.then(|| {
+        record_trajectory(
             &config.world,
             task,
-            need.key.episodes,
+            &mut QPolicy::new(&q),
             config.learner.eval_seed,
         )
-        .evaluate(&agent);
-        tracing::info!(seed, task = %task.name, ret = %metrics.ret, aoi = %metrics.aoi, power_mw = %metrics.power_mw, "online DQN reference");
-        references.push((need.key.clone(), metrics));
-        bars(&need.users);
+    });
+    if let Some(last) = rows.last() {
+        tracing::info!(seed, task = %task.name, method = key.method.name(), shots = key.shots, meta_tasks = key.meta_tasks, epochs = run.epochs, ret = %last.policy.ret, "fine-tuned");
     }
-    let mut inits = Vec::with_capacity(plan.inits.len());
-    for need in &plan.inits {
-        let (w0, curve) = ensure_w0(config, need.key, &datasets, &dir, seed)?;
-        inits.push((need.key, w0, curve));
-        bars(&need.users);
-    }
-    let mut runs = Vec::with_capacity(plan.runs.len());
-    for run in &plan.runs {
-        let key = &run.need.key;
-        let task = config.task(&key.task)?;
-        let shots = load_shots(
-            config,
-            task,
-            &dataset_path(&datasets, &task.name),
-            key.shots,
-            seed,
-        )?;
-        let mut q = match key.init() {
-            Some(init) => {
-                let (_, w0, _) = inits
-                    .iter()
-                    .find(|(k, _, _)| *k == init)
-                    .expect("Plan::run adds the init of every meta-trained run");
-                checkpoint::load(w0, config)?.0
-            }
-            None => QNetwork::new(
-                config.world.observation_len(),
-                config.world.action_count(),
-                &config.learner.hidden,
-                seed,
-            ),
-        };
-        let mut run_config = config.clone();
-        run_config.learner.eval_episodes = key.eval_episodes;
-        let rows = fine_tune(
-            &mut q,
-            &shots,
-            key.method.algorithm(),
-            &FineTune {
-                config: &run_config,
-                task,
-                epochs: run.epochs,
-                seed,
-                out_dir: None,
-                progress: false,
-            },
-        )?;
-        let trajectory = run.trajectory.then(|| {
-            record_trajectory(
-                &config.world,
-                task,
-                &mut QPolicy::new(&q),
-                config.learner.eval_seed,
-            )
-        });
-        if let Some(last) = rows.last() {
-            tracing::info!(seed, task = %task.name, method = key.method.name(), shots = key.shots, meta_tasks = key.meta_tasks, epochs = run.epochs, ret = %last.policy.ret, "fine-tuned");
-        }
-        runs.push((key.clone(), RunResult { rows, trajectory }));
-        bars(&run.need.users);
-    }
-    Ok(SeedResult {
-        seed,
-        inits: inits.into_iter().map(|(k, _, c)| (k, c)).collect(),
-        references,
-        runs,
-    })
+    Ok(RunResult { rows, trajectory })
 }
 
 /// Collects `task`'s dataset into `path` with `collection` (the actors' code path), unless the
