@@ -3,7 +3,7 @@
 # unseen task lambda-300 over seeds 0-4, through the plain CLI (collect, eval, train, meta-train,
 # meta-test). Prints one markdown table per choice.
 #
-#   bash docs/ablations.sh [OUT]        # OUT defaults to runs/ablations; about 15 min on 2 cores
+#   bash docs/ablations.sh [OUT]        # OUT defaults to runs/ablations; about 20 min on 2 cores
 #
 # Section C meta-trains (on all ten meta-train tasks of configs/reproduce.toml) on the datasets a
 # reproduction cached (`uavmeta reproduce --out docs/reproduction`), so no agent is trained twice.
@@ -45,6 +45,7 @@ echo "| change | return, mean ± 95% CI | worst seed |"
 echo "| --- | --- | --- |"
 declare -A DQN=(
     [default]=""
+    [eps-end-0.05]="--set collect.eps_end=0.05"
     [lr-1e-3]="--set collect.dqn_lr=0.001"
     [no-stabilisers]="--set collect.dqn_double=false --set collect.dqn_huber=false --set collect.dqn_grad_clip_norm=0 --set collect.dqn_target_update_every=100"
     [old-defaults]="--set collect.dqn_double=false --set collect.dqn_huber=false --set collect.dqn_grad_clip_norm=0 --set collect.dqn_target_update_every=100 --set collect.dqn_lr=0.001 --set collect.dqn_hidden=[64,64]"
@@ -55,7 +56,7 @@ collect_one() {
     [ -e "$dir/$SEED.uavds.agent/online-dqn.json" ] ||
         "$UAV" collect --task lambda-300 --seed "$SEED" --out "$dir/$SEED.uavds" ${DQN[$1]} >/dev/null 2>&1
 }
-for variant in default lr-1e-3 no-stabilisers old-defaults; do
+for variant in default eps-end-0.05 lr-1e-3 no-stabilisers old-defaults; do
     for_seeds collect_one "$variant"
     returns=()
     for s in "${SEEDS[@]}"; do
@@ -63,6 +64,36 @@ for variant in default lr-1e-3 no-stabilisers old-defaults; do
         returns+=("$(eval_return "$OUT/dqn-$variant/$s.uavds.config.toml" "$OUT/dqn-$variant/$s.uavds.agent/online-dqn")")
     done
     echo "| $variant: ${DQN[$variant]:-as configured} | $(summary "${returns[@]}") |"
+done
+
+echo
+echo "## A2. Online DQN on the AoI-dominated tasks (configs/reproduce.toml), greedy return over 10 episodes"
+echo
+echo "| task | change | return, mean ± 95% CI | worst seed |"
+echo "| --- | --- | --- | --- |"
+declare -A LOW=(
+    [default]=""
+    [eps-end-0.05]="--set collect.eps_end=0.05"
+    [steps-20k]="--set collect.eps_end=0.05 --set collect.dqn_steps=20000 --set collect.eps_decay_steps=8000"
+)
+collect_low() {
+    local dir=$OUT/dqn-$1-$2
+    mkdir -p "$dir"
+    [ -e "$dir/$SEED.uavds.agent/online-dqn.json" ] ||
+        "$UAV" collect --config configs/reproduce.toml --task "$1" --seed "$SEED" \
+            --out "$dir/$SEED.uavds" ${LOW[$2]} >/dev/null 2>&1
+}
+for task in lambda-0 lambda-100; do
+    for variant in default eps-end-0.05 steps-20k; do
+        for_seeds collect_low "$task" "$variant"
+        returns=()
+        for s in "${SEEDS[@]}"; do
+            returns+=("$("$UAV" eval --config "$OUT/dqn-$task-$variant/$s.uavds.config.toml" --task "$task" \
+                --checkpoint "$OUT/dqn-$task-$variant/$s.uavds.agent/online-dqn" --episodes 10 2>/dev/null |
+                awk '$1 == "return" {print $2}')")
+        done
+        echo "| $task | $variant: ${LOW[$variant]:-as configured} | $(summary "${returns[@]}") |"
+    done
 done
 
 echo

@@ -23,7 +23,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use tch::nn::{self, OptimizerConfig};
 use uavmeta_learner::batch::{Batch, BatchError};
-use uavmeta_learner::dqn::{td_loss_with, TdConfig};
+use uavmeta_learner::dqn::{td_errors_with, TdConfig};
 use uavmeta_learner::qnet::QNetwork;
 use uavmeta_proto::config::{CollectConfig, Config, LearnerConfig, TaskConfig, WorldConfig};
 use uavmeta_proto::dataset::Transition;
@@ -255,13 +255,14 @@ impl OnlineDqn {
             .td
             .double_dqn
             .then(|| tch::no_grad(|| self.q.forward(&mb.next_obs)));
-        let loss = td_loss_with(
+        let loss = td_errors_with(
             &q_all,
             &next_q_target,
             next_q_online.as_ref(),
             &mb,
             &self.td,
-        );
+        )
+        .mean(None); // eq. 7 and its stabilisers
         let clip = self.collect.dqn_grad_clip_norm;
         if clip > 0.0 {
             self.opt.backward_step_clip_norm(&loss, clip);

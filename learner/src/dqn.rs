@@ -90,8 +90,8 @@ pub fn td_loss(q: &Tensor, next_v: &Tensor, batch: &Batch, gamma: f64, huber: bo
     td_errors(q, next_v, batch, gamma, huber).mean(None)
 }
 
-/// Each transition's term of eq. 7 with the options of `td`, [B]; `next_q_online` is needed (and
-/// only used) for double DQN.
+/// Each transition's term of eq. 7 with the options of `td`, [B] (their mean is the loss);
+/// `next_q_online` is needed (and only used) for double DQN.
 ///
 /// # Panics
 /// If `td.double_dqn` is set and `next_q_online` is `None`: the caller chose double DQN and must
@@ -115,17 +115,6 @@ pub fn td_errors_with(
         td.gamma,
         td.huber,
     )
-}
-
-/// Eq. 7 with the options of `td`: the mean of [`td_errors_with`], a scalar.
-pub fn td_loss_with(
-    q: &Tensor,
-    next_q_target: &Tensor,
-    next_q_online: Option<&Tensor>,
-    batch: &Batch,
-    td: &TdConfig,
-) -> Tensor {
-    td_errors_with(q, next_q_target, next_q_online, batch, td).mean(None)
 }
 
 /// Paper eq. 7: `mean (r + gamma * max_a' Qhat(s', a') - Q(s, a))^2`, a scalar.

@@ -26,7 +26,7 @@ use uavmeta_proto::stats::PolicyMetrics;
 use crate::batch::Batch;
 use crate::checkpoint::{self, CheckpointError};
 use crate::cql::{conservative_term, CqlLoss};
-use crate::dqn::{q_taken, td_loss_with, TdConfig};
+use crate::dqn::{q_taken, td_errors_with, TdConfig};
 use crate::qnet::QNetwork;
 
 /// Measures the greedy policy of a Q-network on the true environment.
@@ -225,13 +225,14 @@ impl OfflineTrainer {
             .td
             .double_dqn
             .then(|| tch::no_grad(|| q.forward(&mb.next_obs)));
-        let td_loss = td_loss_with(
+        let td_loss = td_errors_with(
             &q_all,
             &next_q_target,
             next_q_online.as_ref(),
             &mb,
             &self.td,
-        ); // eq. 7
+        )
+        .mean(None); // eq. 7
         let (loss, conservative) = match self.algorithm {
             Algorithm::Cql => {
                 let l = CqlLoss::from_td(&q_all, td_loss.shallow_clone(), &mb, self.alpha); // eq. 8

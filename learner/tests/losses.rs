@@ -3,7 +3,7 @@
 use tch::{Kind, Tensor};
 use uavmeta_learner::batch::{Batch, BatchError};
 use uavmeta_learner::cql::{conservative_term, cql_loss, CqlLoss};
-use uavmeta_learner::dqn::{dqn_loss, td_loss_with, TdConfig};
+use uavmeta_learner::dqn::{dqn_loss, td_errors_with, TdConfig};
 use uavmeta_proto::config::WorldConfig;
 use uavmeta_proto::dataset::Transition;
 
@@ -53,7 +53,7 @@ fn dqn_options_huber_and_double() {
         double_dqn: false,
         huber: true,
     };
-    let loss = td_loss_with(&q, &next, None, &batch, &huber);
+    let loss = td_errors_with(&q, &next, None, &batch, &huber).mean(None);
     assert!((scalar(&loss) - 0.3125).abs() < 1e-6, "{}", scalar(&loss));
 
     // Double DQN: the online net picks a* = argmax [[0, 0, 5], [1, 2, 0]] = [2, 1], the target
@@ -65,11 +65,11 @@ fn dqn_options_huber_and_double() {
         double_dqn: true,
         huber: false,
     };
-    let loss = td_loss_with(&q, &next, Some(&online), &batch, &double);
+    let loss = td_errors_with(&q, &next, Some(&online), &batch, &double).mean(None);
     assert!((scalar(&loss) - 3.125).abs() < 1e-6, "{}", scalar(&loss));
 
-    // With both options off, td_loss_with is eq. 7.
-    let loss = td_loss_with(&q, &next, None, &batch, &TdConfig::eq7(0.5));
+    // With both options off, the mean of td_errors_with is eq. 7.
+    let loss = td_errors_with(&q, &next, None, &batch, &TdConfig::eq7(0.5)).mean(None);
     assert!((scalar(&loss) - 0.625).abs() < 1e-6);
 }
 
