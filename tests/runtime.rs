@@ -398,8 +398,17 @@ fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
     wait_until("the second actor's port", Duration::from_secs(60), || {
         !names().is_empty()
     });
-    let live = scrape(&run, &names()[0]);
-    assert!(metrics::sum(&live, "uavmeta_actor_steps_total", &[]) >= 0.0);
+    // Its own endpoint, scraped while it runs, shows it stepping.
+    let live_actor = names()[0].clone();
+    wait_until(
+        "the second actor's steps on its /metrics",
+        Duration::from_secs(60),
+        || {
+            let live = scrape(&run, &live_actor);
+            live.iter().any(|s| s.name == "uavmeta_actor_steps_total")
+                && metrics::sum(&live, "uavmeta_actor_steps_total", &[]) > 0.0
+        },
+    );
     wait_until("the second actor's data", Duration::from_secs(30), || {
         metrics::sum(
             &scrape(&run, "store"),
