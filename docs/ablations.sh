@@ -75,6 +75,7 @@ declare -A LOW=(
     [default]=""
     [eps-end-0.05]="--set collect.eps_end=0.05"
     [steps-20k]="--set collect.eps_end=0.05 --set collect.dqn_steps=20000 --set collect.eps_decay_steps=8000"
+    [target-2000]="--set collect.dqn_target_update_every=2000"
 )
 collect_low() {
     local dir=$OUT/dqn-$1-$2
@@ -84,7 +85,7 @@ collect_low() {
             --out "$dir/$SEED.uavds" ${LOW[$2]} >/dev/null 2>&1
 }
 for task in lambda-0 lambda-100; do
-    for variant in default eps-end-0.05 steps-20k; do
+    for variant in default eps-end-0.05 steps-20k target-2000; do
         for_seeds collect_low "$task" "$variant"
         returns=()
         for s in "${SEEDS[@]}"; do
