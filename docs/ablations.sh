@@ -21,6 +21,14 @@ summary() {
 v = [float(x) for x in sys.argv[1:]]
 print(f"{s.mean(v):.0f} ± {2.776 * s.stdev(v) / len(v) ** 0.5:.0f} | {min(v):.0f}")' "$@"
 }
+# A section's heading and the header of its table, from the column names.
+section() {
+    local title=$1 columns rule
+    shift
+    columns=$(printf ' %s |' "$@")
+    rule=$(printf ' --- |%.0s' "$@")
+    printf '\n## %s\n\n|%s\n|%s\n' "$title" "$columns" "$rule"
+}
 # The greedy return of a checkpoint on lambda-300 over 20 episodes.
 eval_return() {
     "$UAV" eval --config "$1" --task lambda-300 --checkpoint "$2" --episodes 20 "${@:3}" 2>/dev/null \
@@ -39,10 +47,8 @@ for_seeds() {
     wait
 }
 
-echo "## A. Online DQN on lambda-300 (configs/default.toml, 15 000 steps), greedy return"
-echo
-echo "| change | return, mean ± 95% CI | worst seed |"
-echo "| --- | --- | --- |"
+section "A. Online DQN on lambda-300 (configs/default.toml, 15 000 steps), greedy return" \
+    change "return, mean ± 95% CI" "worst seed"
 declare -A DQN=(
     [default]=""
     [eps-end-0.05]="--set collect.eps_end=0.05"
@@ -66,11 +72,8 @@ for variant in default eps-end-0.05 lr-1e-3 no-stabilisers old-defaults; do
     echo "| $variant: ${DQN[$variant]:-as configured} | $(summary "${returns[@]}") |"
 done
 
-echo
-echo "## A2. Online DQN on the AoI-dominated tasks (configs/reproduce.toml), greedy return over 10 episodes"
-echo
-echo "| task | change | return, mean ± 95% CI | worst seed |"
-echo "| --- | --- | --- | --- |"
+section "A2. Online DQN on the AoI-dominated tasks (configs/reproduce.toml), greedy return over 10 episodes" \
+    task change "return, mean ± 95% CI" "worst seed"
 declare -A LOW=(
     [default]=""
     [eps-end-0.05]="--set collect.eps_end=0.05"
@@ -97,11 +100,8 @@ for task in lambda-0 lambda-100; do
     done
 done
 
-echo
-echo "## B. CQL from a random init on 500 shots of that agent's replay, greedy return"
-echo
-echo "| change | return, mean ± 95% CI | worst seed |"
-echo "| --- | --- | --- |"
+section "B. CQL from a random init on 500 shots of that agent's replay, greedy return" \
+    change "return, mean ± 95% CI" "worst seed"
 train_one() {
     local data=$1 out=$2
     shift 2
@@ -131,11 +131,8 @@ row cql-default 100 "100 epochs"
 row cql-whole-buffer 250 "shots of the whole 8 000-step buffer (collect.sample_newest = 0)"
 row cql-64x64 250 "learner.hidden = [64, 64]"
 
-echo
-echo "## C. MAML on the reproduction's datasets ($REPRO/cache), w0 zero-shot and after 40 epochs"
-echo
-echo "| change | w0 zero-shot | worst seed | CQL-MAML at epoch 40 | worst seed |"
-echo "| --- | --- | --- | --- | --- |"
+section "C. MAML on the reproduction's datasets ($REPRO/cache), w0 zero-shot and after 40 epochs" \
+    change "w0 zero-shot" "worst seed" "CQL-MAML at epoch 40" "worst seed"
 declare -A META=(
     [pass]=""
     [one-outer-step]="--set meta.outer_steps_per_meta_epoch=1"

@@ -20,13 +20,13 @@ pub const ALGORITHM: &str = "cql-pretrain";
 
 /// A network trained with CQL on the union of `tasks`' shots, from the init of `seed`. After each
 /// meta-epoch's worth of steps it asks `keep_going` (with the count done), and returns `None`
-/// when told to stop.
-pub fn pretrain(
+/// when told to stop; an error from `keep_going` ends the pretraining with that error.
+pub fn pretrain<E>(
     config: &Config,
     tasks: &[MetaTask],
     seed: u64,
-    mut keep_going: impl FnMut(usize) -> bool,
-) -> Option<QNetwork> {
+    mut keep_going: impl FnMut(usize) -> Result<bool, E>,
+) -> Result<Option<QNetwork>, E> {
     let union = Batch::concat(tasks.iter().flat_map(|t| [&t.support, &t.query]));
     let maml = MamlConfig::from_config(config);
     let mut budget = config.clone();
@@ -43,9 +43,9 @@ pub fn pretrain(
         for _ in 0..maml.outer_steps(tasks) {
             trainer.step(&mut q, &union);
         }
-        if !keep_going(epoch) {
-            return None;
+        if !keep_going(epoch)? {
+            return Ok(None);
         }
     }
-    Some(q)
+    Ok(Some(q))
 }

@@ -248,18 +248,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
             if method == Method::CqlPretrain && pretrained.is_none() {
                 tracing::info!("pretraining CQL on the union of the meta-train shots");
                 // Stop requests are honoured between the pretraining's meta-epochs.
-                let mut failure = None;
-                let trained = pretrain::pretrain(config, &tasks, seed, |_| match stop() {
-                    Ok(stopping) => !stopping,
-                    Err(error) => {
-                        failure = Some(error);
-                        false
-                    }
-                });
-                if let Some(error) = failure {
-                    return Err(error);
-                }
-                match trained {
+                match pretrain::pretrain(config, &tasks, seed, |_| stop().map(|stop| !stop))? {
                     Some(q) => pretrained = Some(q),
                     None => return Ok(Outcome::Stopped),
                 }

@@ -478,7 +478,7 @@ fn ensure_w0(
     if key.kind == InitKind::Pretrain {
         if !saved_config_matches(&CheckpointPaths::new(&w0).config, &meta) {
             let (_, tasks) = load_tasks(&meta, datasets, seed)?;
-            let q = pretrain::pretrain(&meta, &tasks, seed, |_| true)
+            let q = pretrain::pretrain(&meta, &tasks, seed, |_| Ok::<_, MetaError>(true))?
                 .expect("a pretraining never told to stop finishes");
             checkpoint::save(&w0, &q, pretrain::ALGORITHM, meta.meta.meta_epochs, &meta)?;
         }
