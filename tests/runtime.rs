@@ -10,6 +10,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use uavmeta_learner::metrics::{self, Sample};
+use uavmeta_proto::config::InnerLoss;
 use uavmeta_proto::dataset::DatasetReader;
 use uavmeta_proto::transport::Method;
 
@@ -667,18 +668,23 @@ fn killed_actor_store_and_meta_learner_are_restarted_and_nothing_is_lost_unaccou
     let learner_log =
         std::fs::read_to_string(run.join("logs/meta-learner.log")).expect("meta-learner log");
     assert!(
-        learner_log.contains("resuming meta-training from its checkpoint"),
+        learner_log.contains("resuming meta-training"),
         "{learner_log}"
     );
+    assert_every_transition_accounted(&run, 600_000);
+    let table = out.stdout.clone();
+    assert!(table.contains("cql-maml"), "{table}");
+}
 
-    // Every file reads back, holds each transition once, and what it lacks is what the last store
-    // counted as missing.
-    let store = snapshot(&run, "store");
-    let seqs = dataset_seqs(&run);
+/// Every dataset file of a finished run reads back, holds `per_task` transitions, each once, and
+/// what it lacks is what the last store counted as missing.
+fn assert_every_transition_accounted(run: &Path, per_task: usize) {
+    let store = snapshot(run, "store");
+    let seqs = dataset_seqs(run);
     for (task, per_actor) in &seqs {
         assert_eq!(
             per_actor.values().map(Vec::len).sum::<usize>(),
-            600_000,
+            per_task,
             "{task}"
         );
         let counted = metrics::sum(
@@ -692,8 +698,161 @@ fn killed_actor_store_and_meta_learner_are_restarted_and_nothing_is_lost_unaccou
             "{task}: missing transitions vs the store's count"
         );
     }
-    let table = out.stdout.clone();
-    assert!(table.contains("cql-maml"), "{table}");
+}
+
+/// The launcher's live count of children it killed as hung, over the processes named `prefix`*.
+fn hangs(run: &Path, prefix: &str) -> f64 {
+    scrape(run, "launcher")
+        .iter()
+        .filter(|s| s.name == "uavmeta_launcher_child_hangs_total")
+        .filter(|s| s.label("process").is_some_and(|p| p.starts_with(prefix)))
+        .map(|s| s.value)
+        .sum()
+}
+
+#[test]
+fn stopped_actor_store_and_meta_learner_are_taken_for_hung_and_restarted() {
+    let dir = run_dir("e2e-hang-");
+    let run = dir.path().join("run");
+    let run_arg = run.display().to_string();
+    let launcher = launch(
+        dir.path(),
+        &run,
+        &[
+            "run.hang_timeout_seconds=10",
+            "collect.transitions=600000",
+            "meta.meta_epochs=3000",
+            "meta.outer_steps_per_meta_epoch=1",
+            "meta.checkpoint_every=100",
+        ],
+    );
+    // SIGSTOP: the process stays, holds its ports and answers nothing, as a deadlocked one would.
+    let stop = |needles: &[&str], process: &str| {
+        let pid = child_pid(needles).unwrap_or_else(|| panic!("no running {process}"));
+        // SAFETY: a signal to a process this test's launcher started.
+        unsafe { libc::kill(pid, libc::SIGSTOP) };
+        wait_until(
+            &format!("{process} killed as hung"),
+            Duration::from_secs(120),
+            || hangs(&run, process) >= 1.0,
+        );
+    };
+    wait_until("collection under way", Duration::from_secs(60), || {
+        run.join("ports/store.port").exists()
+            && metrics::sum(
+                &scrape(&run, "store"),
+                "uavmeta_store_dataset_transitions",
+                &[],
+            ) > 10_000.0
+    });
+    stop(&[" actor ", &run_arg, "lambda-0"], "actor-lambda-0");
+    stop(&[" store ", &run_arg], "store");
+    wait_until("a w0 checkpoint", Duration::from_secs(180), || {
+        run.join("checkpoints/maml-init/epoch-00200.json").exists()
+    });
+    stop(&[" meta-learner ", &run_arg], "meta-learner");
+
+    let out = launcher.wait(Duration::from_secs(300));
+    assert!(out.status.success(), "launch failed:\n{}", stderr(&out));
+    let launcher_metrics = snapshot(&run, "launcher");
+    for process in ["store", "meta-learner"] {
+        assert_eq!(
+            metrics::sum(
+                &launcher_metrics,
+                "uavmeta_launcher_child_restarts_total",
+                &[("process", process)]
+            ),
+            1.0,
+            "{process}: restarted once, after its hang"
+        );
+    }
+    assert_every_transition_accounted(&run, 600_000);
+    assert!(out.stdout.contains("cql-maml"), "{}", out.stdout);
+}
+
+/// The children of the run `run_arg` that are alive now, by role (the subcommand).
+fn live_children(run_arg: &str) -> Vec<(&'static str, i32)> {
+    ["store", "actor", "meta-learner", "evaluator"]
+        .into_iter()
+        .filter_map(|role| Some((role, child_pid(&[&format!(" {role} "), run_arg])?)))
+        .collect()
+}
+
+/// kill -9 on a seeded schedule: `kills` times, one to four seconds apart, a random live child,
+/// the store and the meta-learner among them. The launcher restarts each; afterwards the run ends
+/// with its table and every transition is stored once or counted missing.
+fn chaos(seed: u64, kills: usize) {
+    use rand::{Rng, SeedableRng};
+    let dir = run_dir(&format!("e2e-chaos-{seed}-"));
+    let run = dir.path().join("run");
+    let run_arg = run.display().to_string();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let launcher = launch(
+        dir.path(),
+        &run,
+        &[
+            "run.max_restarts=100",
+            "collect.transitions=400000",
+            "meta.meta_epochs=3000",
+            "meta.outer_steps_per_meta_epoch=1",
+            "meta.checkpoint_every=100",
+        ],
+    );
+    // Kills that must hit these roles, at random places in the schedule.
+    let mut musts = vec![
+        (rng.random_range(0..kills / 2), "store"),
+        (rng.random_range(kills / 2..kills), "meta-learner"),
+    ];
+    let mut killed = Vec::new();
+    wait_until("the children", Duration::from_secs(60), || {
+        live_children(&run_arg).len() >= 3
+    });
+    for i in 0..kills {
+        std::thread::sleep(Duration::from_millis(rng.random_range(1000..4000)));
+        let want = musts
+            .iter()
+            .position(|&(at, _)| at <= i)
+            .map(|k| musts[k].1);
+        let mut live = Vec::new();
+        wait_until(
+            &format!("a child to kill ({want:?})"),
+            Duration::from_secs(120),
+            || {
+                live = live_children(&run_arg);
+                live.retain(|(role, _)| want.is_none_or(|w| w == *role));
+                !live.is_empty()
+            },
+        );
+        let (role, pid) = live[rng.random_range(0..live.len())];
+        kill9(pid);
+        musts.retain(|&(_, r)| r != role);
+        killed.push(role);
+    }
+    let out = launcher.wait(Duration::from_secs(600));
+    eprintln!("seed {seed}: killed {killed:?}");
+    assert!(
+        out.status.success(),
+        "launch failed after killing {killed:?}:\n{}",
+        stderr(&out)
+    );
+    for role in ["store", "meta-learner"] {
+        assert!(killed.contains(&role), "{killed:?}");
+    }
+    let restarts = metrics::sum(
+        &snapshot(&run, "launcher"),
+        "uavmeta_launcher_child_restarts_total",
+        &[],
+    );
+    assert_eq!(restarts, kills as f64, "every kill restarted: {killed:?}");
+    assert_every_transition_accounted(&run, 400_000);
+    assert!(out.stdout.contains("cql-maml"), "{}", out.stdout);
+}
+
+#[test]
+fn a_launch_survives_twelve_random_kills_on_three_seeds() {
+    for seed in 0..3 {
+        chaos(seed, 12);
+    }
 }
 
 #[test]
@@ -708,7 +867,7 @@ fn an_evaluator_restarted_after_the_meta_learner_exited_catches_up_from_the_run_
     // Two w0 checkpoints, and two epochs of each fine-tuned method.
     assert_eq!(
         lines.len(),
-        1 + 2 + Method::FINE_TUNED.len() * 2,
+        1 + 2 + Method::fine_tuned(InnerLoss::Cql).len() * 2,
         "{complete}"
     );
 
@@ -749,6 +908,35 @@ fn an_evaluator_restarted_after_the_meta_learner_exited_catches_up_from_the_run_
         after.iter().collect::<BTreeSet<_>>(),
         lines.iter().collect::<BTreeSet<_>>()
     );
+}
+
+#[test]
+fn a_launch_with_the_dqn_inner_loss_fine_tunes_and_reports_dqn_maml() {
+    let dir = run_dir("e2e-dqn-maml-");
+    let run = dir.path().join("run");
+    let out = launch(dir.path(), &run, &["meta.inner_loss=\"dqn\""]).wait(Duration::from_secs(240));
+    assert!(out.status.success(), "launch failed:\n{}", stderr(&out));
+    let csv = std::fs::read_to_string(run.join("evaluations.csv")).expect("evaluations.csv");
+    let methods: BTreeMap<&str, usize> =
+        csv.lines().skip(1).fold(BTreeMap::new(), |mut n, line| {
+            *n.entry(line.split(',').nth(1).expect("a method column"))
+                .or_default() += 1;
+            n
+        });
+    // Two w0 checkpoints, then two epochs each of DQN-MAML and its random-init baseline.
+    let expected = BTreeMap::from([("maml-init", 2), ("dqn-maml", 2), ("dqn", 2)]);
+    assert_eq!(methods, expected, "{csv}");
+    let w0 = run.join("checkpoints/maml-init/epoch-00004");
+    let meta = uavmeta_learner::checkpoint::read_meta(&w0).expect("the final w0 checkpoint");
+    assert_eq!(meta.algorithm, "dqn-maml", "{}", w0.display());
+    let table = out.stdout;
+    assert!(
+        table.contains("dqn-maml") && !table.contains("cql"),
+        "{table}"
+    );
+    let log =
+        std::fs::read_to_string(run.join("meta-train/meta_train.csv")).expect("meta_train.csv");
+    assert_eq!(log.lines().count(), 1 + 4, "{log}");
 }
 
 #[test]

@@ -332,7 +332,7 @@ fn checkpoints_on_disk(run: &RunDir, config: &Config) -> Vec<CheckpointReady> {
         if complete(Method::OnlineDqn, task, 1) {
             found.push(message(Method::OnlineDqn, id, 1));
         }
-        for method in Method::FINE_TUNED {
+        for &method in Method::fine_tuned(config.meta.inner_loss) {
             for epoch in 1..=config.learner.epochs as u32 {
                 if complete(method, task, epoch) {
                     found.push(message(method, id, epoch));

@@ -22,6 +22,7 @@ use rand_chacha::ChaCha8Rng;
 use tch::{nn, nn::OptimizerConfig, Tensor};
 use uavmeta_proto::config::{Config, LearnerConfig};
 use uavmeta_proto::stats::PolicyMetrics;
+use uavmeta_proto::transport;
 
 use crate::batch::Batch;
 use crate::checkpoint::{self, CheckpointError};
@@ -217,6 +218,8 @@ impl OfflineTrainer {
 
     /// ALGO: one Adam step on eq. 8 (CQL) or eq. 7 (DQN) over the next minibatch of `data`.
     pub fn step(&mut self, q: &mut QNetwork, data: &Batch) -> StepFigures {
+        // An epoch over a large dataset outlasts a launcher's hang timeout: beat per step.
+        transport::heartbeat();
         let mb = data.select(&self.order.next_indices());
         // Q_w(s, .) with its graph; Qhat(s', .) from the frozen target network.
         let q_all = q.forward(&mb.obs); // [b, A]

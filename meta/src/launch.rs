@@ -9,7 +9,11 @@
 //!
 //! Supervision: a child that exits with failure (or is killed) is restarted after a backoff of
 //! 0.5 s, 1 s, 2 s, ... (at most 10 s), up to `run.max_restarts` times; the dead process's iceoryx2
-//! resources are removed first, so survivors never wait on its buffers. A child that exits
+//! resources are removed first, so survivors never wait on its buffers. A child that stops making
+//! progress (SIGSTOP, a deadlock, a livelocked libtorch) is treated the same: each child beats
+//! (`transport::heartbeat`, the modification time of `heartbeats/<name>`, named in its
+//! environment), and one silent for `run.hang_timeout_seconds` is killed (SIGKILL to its process
+//! group), counted in `uavmeta_launcher_child_hangs_total` and restarted. A child that exits
 //! successfully is done: actors end when their task's dataset is complete, the meta-learner when
 //! it has meta-tested. Then the launcher announces a shutdown, the evaluator finishes the
 //! checkpoints it was told about, the store syncs its files, and the launcher prints a results
@@ -24,7 +28,7 @@ use std::fs::OpenOptions;
 use std::os::unix::process::CommandExt;
 use std::path::PathBuf;
 use std::process::{Child, Command, ExitStatus, Stdio};
-use std::time::{Duration, Instant};
+use std::time::{Duration, Instant, SystemTime};
 
 use iceoryx2::prelude::*;
 use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
@@ -115,6 +119,7 @@ mod launch_metrics {
     pub struct LauncherMetrics {
         pub registry: Registry,
         pub restarts: IntCounterVec,
+        pub hangs: IntCounterVec,
         pub children_running: IntGauge,
         pub datasets_ready: IntGauge,
         pub checkpoints_announced: IntGauge,
@@ -130,6 +135,17 @@ mod launch_metrics {
                         Opts::new(
                             "launcher_child_restarts_total",
                             "Restarts of a crashed child process.",
+                        ),
+                        &["process"],
+                    )
+                    .expect("valid counter"),
+                ),
+                hangs: register(
+                    &registry,
+                    IntCounterVec::new(
+                        Opts::new(
+                            "launcher_child_hangs_total",
+                            "Children killed because their heartbeat stopped (run.hang_timeout_seconds).",
                         ),
                         &["process"],
                     )
@@ -181,10 +197,12 @@ pub struct LaunchReport {
 const HEURISTICS: [PolicySpec; 3] = [PolicySpec::Random, PolicySpec::Stalest, PolicySpec::Greedy];
 
 /// The learners of the results table, in its order, after the references.
-const LEARNERS: [Method; 4] = [
+const LEARNERS: [Method; 6] = [
     Method::Cql,
+    Method::Dqn,
     Method::CqlPretrain,
     Method::CqlMaml,
+    Method::DqnMaml,
     Method::MetaInit,
 ];
 
@@ -259,12 +277,14 @@ pub fn launch(
     let mut children = plan(&run, config)?;
     for child in &children {
         launcher_metrics.restarts.with_label_values(&[&child.name]);
+        launcher_metrics.hangs.with_label_values(&[&child.name]);
     }
     let mut progress = Progress::new(config, show_progress);
     let supervisor = Supervisor {
         exe,
         run: run.clone(),
         max_restarts: config.run.max_restarts,
+        hang_timeout: Duration::from_secs_f64(config.run.hang_timeout_seconds),
         metrics: &launcher_metrics,
     };
 
@@ -450,6 +470,8 @@ struct Supervisor<'a> {
     exe: PathBuf,
     run: RunDir,
     max_restarts: u32,
+    /// Zero: never taken for hung.
+    hang_timeout: Duration,
     metrics: &'a launch_metrics::LauncherMetrics,
 }
 
@@ -470,9 +492,19 @@ impl Supervisor<'_> {
             action: "open the log",
             source,
         })?;
+        // A new file: its modification time is the start, the child's first beat.
+        let heartbeat = self.run.heartbeat_file(&child.name);
+        std::fs::create_dir_all(self.run.root().join("heartbeats"))
+            .and_then(|()| std::fs::File::create(&heartbeat))
+            .map_err(|source| LaunchError::Io {
+                path: heartbeat.clone(),
+                action: "create the heartbeat file",
+                source,
+            })?;
         let parent = std::process::id() as libc::pid_t;
         let mut command = Command::new(&self.exe);
         command
+            .env(transport::HEARTBEAT_FILE_ENV, &heartbeat)
             .args(&child.args)
             .stdin(Stdio::null())
             .stdout(log)
@@ -521,17 +553,26 @@ impl Supervisor<'_> {
                 }
                 continue;
             };
-            let status = match process.try_wait() {
-                Ok(Some(status)) => status,
-                Ok(None) => continue,
-                Err(source) => {
-                    return Err(LaunchError::Io {
-                        path: self.run.log_file(&c.name),
-                        action: "wait for a child",
-                        source,
-                    })
-                }
+            let waited = match process.try_wait() {
+                Ok(Some(status)) => Ok(status),
+                Err(e) => Err(e),
+                Ok(None) => match self.silent_for(&c.name) {
+                    Some(silent) => {
+                        tracing::warn!(name = %c.name, ?silent, "no heartbeat: taken for hung, killed");
+                        self.metrics.hangs.with_label_values(&[&c.name]).inc();
+                        // The whole group, and SIGKILL, which a stopped process cannot defer.
+                        // SAFETY: kill(2) on our own child's process group.
+                        unsafe { libc::kill(-(process.id() as libc::pid_t), libc::SIGKILL) };
+                        process.wait()
+                    }
+                    None => continue,
+                },
             };
+            let status = waited.map_err(|source| LaunchError::Io {
+                path: self.run.log_file(&c.name),
+                action: "wait for a child",
+                source,
+            })?;
             c.child = None;
             if status.success() {
                 tracing::info!(name = %c.name, "finished");
@@ -556,6 +597,20 @@ impl Supervisor<'_> {
             c.restart_at = Some(Instant::now() + backoff);
         }
         Ok(())
+    }
+}
+
+impl Supervisor<'_> {
+    /// How long child `name`'s heartbeat has not moved, if longer than the hang timeout.
+    fn silent_for(&self, name: &str) -> Option<Duration> {
+        if self.hang_timeout.is_zero() {
+            return None;
+        }
+        let beat = std::fs::metadata(self.run.heartbeat_file(name))
+            .and_then(|m| m.modified())
+            .ok()?;
+        let silent = SystemTime::now().duration_since(beat).ok()?;
+        (silent > self.hang_timeout).then_some(silent)
     }
 }
 

@@ -75,6 +75,7 @@ use uavmeta_learner::cql::{conservative_rows, eq8};
 use uavmeta_learner::dqn::{td_errors_with, TdConfig};
 use uavmeta_learner::qnet::QNetwork;
 use uavmeta_proto::config::{Config, InnerLoss};
+use uavmeta_proto::transport;
 
 use crate::MetaError;
 
@@ -585,6 +586,8 @@ impl Maml {
         let mut loss_sums = vec![(0.0, 0usize); tasks.len()];
         let mut meta_loss = 0.0;
         for _ in 0..steps {
+            // A pass over large support sets outlasts a launcher's hang timeout: beat per step.
+            transport::heartbeat();
             let picked = self.sample_tasks(tasks.len());
             // The next k support shots and fresh query shots of each sampled task.
             let shots: Vec<TaskShots> = picked

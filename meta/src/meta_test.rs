@@ -13,7 +13,7 @@ use uavmeta_actors::q_policy::Evaluator;
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::qnet::QNetwork;
-use uavmeta_learner::train::{train, Algorithm, EpochRow, TrainOptions};
+use uavmeta_learner::train::{train, Algorithm, EpochRow, EvaluatePolicy, TrainOptions};
 use uavmeta_proto::config::{Config, InnerLoss, TaskConfig};
 use uavmeta_proto::dataset::{self, DatasetReader};
 
@@ -92,17 +92,18 @@ pub fn fine_tune_algorithm(init: &Path, algorithm: &str) -> Result<Algorithm, Me
     })
 }
 
-/// Offline training of `q` on `shots` with the config's settings for `epochs` epochs, evaluated on
-/// the task after every epoch: the common fine-tuning of every method of the paper's comparison.
+/// Offline training of `q` on `shots` with the config's settings for `epochs` epochs, scored by
+/// `evaluator` after every epoch: the common fine-tuning of every method of the paper's
+/// comparison.
 pub fn fine_tune(
     q: &mut QNetwork,
     shots: &Batch,
     algorithm: Algorithm,
     run: &FineTune,
+    evaluator: &mut dyn EvaluatePolicy,
 ) -> Result<Vec<EpochRow>, MetaError> {
     let mut config = run.config.clone();
     config.learner.epochs = run.epochs;
-    let mut evaluator = Evaluator::from_config(&config, run.task);
     let train_opts = TrainOptions {
         algorithm,
         config: &config,
@@ -110,15 +111,24 @@ pub fn fine_tune(
         out_dir: run.out_dir,
         progress: run.progress,
     };
-    Ok(train(q, shots, &train_opts, &mut evaluator)?)
+    Ok(train(q, shots, &train_opts, evaluator)?)
 }
 
-/// Loads `w0` from `opts.init` and fine-tunes it; returns one row per epoch (also in
-/// `<out_dir>/train.csv`).
+/// Loads `w0` from `opts.init` and fine-tunes it, scored on the task's true environment; returns
+/// one row per epoch (also in `<out_dir>/train.csv`).
 pub fn meta_test(opts: &MetaTestOptions) -> Result<Vec<EpochRow>, MetaError> {
+    let run = &opts.fine_tune;
+    meta_test_with(opts, &mut Evaluator::from_config(run.config, run.task))
+}
+
+/// [`meta_test`] scored by `evaluator`, which sees the network after every epoch.
+pub fn meta_test_with(
+    opts: &MetaTestOptions,
+    evaluator: &mut dyn EvaluatePolicy,
+) -> Result<Vec<EpochRow>, MetaError> {
     let run = &opts.fine_tune;
     let (mut q, meta) = checkpoint::load(opts.init, run.config)?;
     let algorithm = fine_tune_algorithm(opts.init, &meta.algorithm)?;
     let shots = load_shots(run.config, run.task, opts.dataset, opts.shots, run.seed)?;
-    fine_tune(&mut q, &shots, algorithm, run)
+    fine_tune(&mut q, &shots, algorithm, run, evaluator)
 }

@@ -9,8 +9,14 @@
 //!   (empty when the task was not sampled that meta-epoch) and, every `meta.eval_every`
 //!   meta-epochs and after the last, each task's greedy return after adaptation (eq. 14 on k
 //!   fresh support shots) measured on its true environment;
-//! - `w0-eNNNN.*` every `meta.checkpoint_every` meta-epochs and `w0.*` at the end: checkpoints of
-//!   the meta-learned initial weights (`uavmeta_learner::checkpoint`), the `--init` of meta-test.
+//! - `w0-eNNNN.*` every `meta.checkpoint_every` meta-epochs and `w0.*` after the last: checkpoints
+//!   of the meta-learned initial weights (`uavmeta_learner::checkpoint`), the `--init` of
+//!   meta-test, each with MAML's training state beside it ([`Maml::save_state`]), so a run
+//!   started again with `resume` continues from its latest checkpoint exactly as an
+//!   uninterrupted run does.
+//!
+//! The meta-learner process runs the same loop through [`meta_train_with`], with a hook that
+//! puts the checkpoints into its run directory and announces them.
 
 use std::fs::File;
 use std::io::{BufWriter, Write};
@@ -25,8 +31,9 @@ use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::qnet::QNetwork;
 use uavmeta_learner::train::EvaluatePolicy;
-use uavmeta_proto::config::{Config, InnerLoss, TaskConfig, TaskRole};
+use uavmeta_proto::config::{Config, InnerLoss, MetaConfig, TaskConfig, TaskRole};
 use uavmeta_proto::dataset::{self, DatasetReader};
+use uavmeta_proto::transport::Method;
 
 use crate::maml::{Maml, MamlConfig, MetaEpoch, MetaTask};
 use crate::MetaError;
@@ -42,6 +49,8 @@ pub struct MetaTrainOptions<'a> {
     pub seed: u64,
     /// Draw a progress bar on stderr.
     pub progress: bool,
+    /// Continue from the latest complete checkpoint the hook names, if there is one.
+    pub resume: bool,
 }
 
 /// One meta-epoch's figures.
@@ -58,17 +67,51 @@ pub struct MetaRow {
 /// What a finished run left behind.
 pub struct MetaTrainResult {
     pub tasks: Vec<TaskConfig>,
+    /// The meta-epochs this call ran (after the resumed checkpoint's, when resuming).
     pub rows: Vec<MetaRow>,
     /// The final w0 checkpoint (`uavmeta meta-test --init`).
     pub w0: PathBuf,
 }
 
-/// The checkpoint algorithm name of a MAML run: `cql-maml` or `dqn-maml`.
-pub fn algorithm_name(inner_loss: InnerLoss) -> &'static str {
-    match inner_loss {
-        InnerLoss::Cql => "cql-maml",
-        InnerLoss::Dqn => "dqn-maml",
+/// Where a meta-training run keeps its w0 checkpoints, and who hears of each meta-epoch.
+pub trait MetaTrainHook {
+    type Error: From<MetaError>;
+    /// The checkpoint of w0 after meta-epoch `epoch`.
+    fn checkpoint_path(&self, epoch: usize) -> PathBuf;
+    /// After every meta-epoch, with the checkpoint written after it, if any; `Ok(false)` ends
+    /// the run there (resumable from its latest checkpoint).
+    fn after_epoch(
+        &mut self,
+        row: &MetaRow,
+        checkpoint: Option<&Path>,
+    ) -> Result<bool, Self::Error>;
+}
+
+/// The CLI's checkpoints: `w0-eNNNN` in the output directory, and `w0` after the last meta-epoch.
+pub struct CheckpointFiles<'a> {
+    pub out_dir: &'a Path,
+    pub meta_epochs: usize,
+}
+
+impl MetaTrainHook for CheckpointFiles<'_> {
+    type Error = MetaError;
+
+    fn checkpoint_path(&self, epoch: usize) -> PathBuf {
+        match epoch == self.meta_epochs {
+            true => self.out_dir.join("w0"),
+            false => self.out_dir.join(format!("w0-e{epoch:04}")),
+        }
     }
+
+    fn after_epoch(&mut self, _: &MetaRow, _: Option<&Path>) -> Result<bool, MetaError> {
+        Ok(true)
+    }
+}
+
+/// The checkpoint algorithm name of a MAML run: `cql-maml` or `dqn-maml`, the name of the method
+/// its w0 becomes once fine-tuned.
+pub fn algorithm_name(inner_loss: InnerLoss) -> &'static str {
+    Method::maml(inner_loss).name()
 }
 
 /// The dataset file of `task` in a datasets directory.
@@ -127,32 +170,30 @@ pub fn load_tasks(
     Ok((tasks, meta_tasks))
 }
 
-/// Runs `meta.meta_epochs` meta-epochs; see the module doc for what it writes.
+/// Runs `meta.meta_epochs` meta-epochs with the CLI's checkpoint files; see the module doc for
+/// what it writes.
 pub fn meta_train(opts: &MetaTrainOptions) -> Result<MetaTrainResult, MetaError> {
+    let mut files = CheckpointFiles {
+        out_dir: opts.out_dir,
+        meta_epochs: opts.config.meta.meta_epochs,
+    };
+    Ok(meta_train_with(opts, &mut files)?.expect("the checkpoint files never stop a run"))
+}
+
+/// Runs meta-training up to `meta.meta_epochs` meta-epochs, checkpointing w0 where `hook` says
+/// every `meta.checkpoint_every` meta-epochs and after the last; `None` when the hook stopped it.
+pub fn meta_train_with<H: MetaTrainHook>(
+    opts: &MetaTrainOptions,
+    hook: &mut H,
+) -> Result<Option<MetaTrainResult>, H::Error> {
     let config = opts.config;
     let meta = &config.meta;
     let (tasks, meta_tasks) = load_tasks(config, opts.datasets, opts.seed)?;
     let out = opts.out_dir;
-    std::fs::create_dir_all(out).map_err(|source| MetaError::Io {
-        path: out.to_path_buf(),
-        action: "create",
-        source,
-    })?;
-    let config_path = out.join("config.toml");
-    std::fs::write(&config_path, config.to_toml_string()).map_err(|source| MetaError::Io {
-        path: config_path,
-        action: "write",
-        source,
-    })?;
-    let mut csv = CsvLog::create(&out.join("meta_train.csv"), &tasks)?;
-
-    let w0 = QNetwork::new(
-        config.world.observation_len(),
-        config.world.action_count(),
-        &config.learner.hidden,
-        opts.seed,
-    );
-    let mut maml = Maml::new(w0, MamlConfig::from_config(config), opts.seed)?;
+    create_dir(out)?;
+    write_file(&out.join("config.toml"), &config.to_toml_string())?;
+    let (mut maml, start) = start_or_resume(opts, hook)?;
+    let mut csv = CsvLog::open(&out.join("meta_train.csv"), &tasks, start)?;
     let mut evaluators: Vec<Evaluator> = tasks
         .iter()
         .map(|t| Evaluator::from_config(config, t))
@@ -160,9 +201,10 @@ pub fn meta_train(opts: &MetaTrainOptions) -> Result<MetaTrainResult, MetaError>
     let algorithm = algorithm_name(meta.inner_loss);
 
     let bar = progress_bar(opts.progress, meta.meta_epochs as u64);
+    bar.set_position(start as u64);
     let started = Instant::now();
-    let mut rows = Vec::with_capacity(meta.meta_epochs);
-    for e in 1..=meta.meta_epochs {
+    let mut rows = Vec::with_capacity(meta.meta_epochs - start);
+    for e in start + 1..=meta.meta_epochs {
         let epoch = maml.meta_epoch(&meta_tasks)?;
         let evaluate = e == meta.meta_epochs || (meta.eval_every > 0 && e % meta.eval_every == 0);
         let returns = evaluate.then(|| {
@@ -198,21 +240,74 @@ pub fn meta_train(opts: &MetaTrainOptions) -> Result<MetaTrainResult, MetaError>
             });
         }
         bar.inc(1);
+        let checkpoint = is_checkpoint_epoch(meta, e).then(|| hook.checkpoint_path(e));
+        if let Some(path) = &checkpoint {
+            // The state first: the checkpoint's metadata, written last, marks both complete.
+            maml.save_state(path).map_err(MetaError::from)?;
+            checkpoint::save(path, maml.w0(), algorithm, e, config).map_err(MetaError::from)?;
+        }
+        let keep_going = hook.after_epoch(&row, checkpoint.as_deref())?;
         rows.push(row);
-        if e % meta.checkpoint_every == 0 {
-            checkpoint::save(
-                &out.join(format!("w0-e{e:04}")),
-                maml.w0(),
-                algorithm,
-                e,
-                config,
-            )?;
+        if !keep_going {
+            return Ok(None);
         }
     }
     bar.finish_and_clear();
-    let w0 = out.join("w0");
-    checkpoint::save(&w0, maml.w0(), algorithm, meta.meta_epochs, config)?;
-    Ok(MetaTrainResult { tasks, rows, w0 })
+    let w0 = hook.checkpoint_path(meta.meta_epochs);
+    Ok(Some(MetaTrainResult { tasks, rows, w0 }))
+}
+
+/// Whether w0 is checkpointed after meta-epoch `epoch`.
+fn is_checkpoint_epoch(meta: &MetaConfig, epoch: usize) -> bool {
+    epoch % meta.checkpoint_every == 0 || epoch == meta.meta_epochs
+}
+
+/// A new MAML from the init of `opts.seed`, or, with `opts.resume`, the one saved with the
+/// latest complete checkpoint `hook` names; and the meta-epochs behind it.
+fn start_or_resume(
+    opts: &MetaTrainOptions,
+    hook: &impl MetaTrainHook,
+) -> Result<(Maml, usize), MetaError> {
+    let config = opts.config;
+    let latest = (1..=config.meta.meta_epochs)
+        .rev()
+        .filter(|&e| opts.resume && is_checkpoint_epoch(&config.meta, e))
+        .map(|e| (e, hook.checkpoint_path(e)))
+        .find(|(_, path)| checkpoint::read_meta(path).is_ok());
+    let maml = MamlConfig::from_config(config);
+    match latest {
+        None => {
+            let w = &config.world;
+            let w0 = QNetwork::new(
+                w.observation_len(),
+                w.action_count(),
+                &config.learner.hidden,
+                opts.seed,
+            );
+            Ok((Maml::new(w0, maml, opts.seed)?, 0))
+        }
+        Some((epoch, path)) => {
+            tracing::info!(epoch, path = %path.display(), "resuming meta-training");
+            let w0 = checkpoint::load(&path, config)?.0;
+            Ok((Maml::resume(w0, maml, &path)?, epoch))
+        }
+    }
+}
+
+fn create_dir(dir: &Path) -> Result<(), MetaError> {
+    std::fs::create_dir_all(dir).map_err(|source| MetaError::Io {
+        path: dir.to_path_buf(),
+        action: "create",
+        source,
+    })
+}
+
+fn write_file(path: &Path, text: &str) -> Result<(), MetaError> {
+    std::fs::write(path, text).map_err(|source| MetaError::Io {
+        path: path.to_path_buf(),
+        action: "write",
+        source,
+    })
 }
 
 fn progress_bar(enabled: bool, len: u64) -> ProgressBar {
@@ -232,7 +327,13 @@ struct CsvLog {
 }
 
 impl CsvLog {
-    fn create(path: &Path, tasks: &[TaskConfig]) -> Result<Self, MetaError> {
+    /// A new log, keeping the rows of meta-epochs `1..=kept` of an existing one: those a resumed
+    /// run does not repeat.
+    fn open(path: &Path, tasks: &[TaskConfig], kept: usize) -> Result<Self, MetaError> {
+        let old = match kept {
+            0 => String::new(),
+            _ => std::fs::read_to_string(path).unwrap_or_default(),
+        };
         let file = File::create(path).map_err(|source| MetaError::Io {
             path: path.to_path_buf(),
             action: "create",
@@ -251,6 +352,13 @@ impl CsvLog {
         }
         header.push_str(",seconds");
         log.line(&header)?;
+        let done = |line: &&str| {
+            let epoch = line.split(',').next().and_then(|c| c.parse::<usize>().ok());
+            epoch.is_some_and(|e| e <= kept)
+        };
+        for line in old.lines().skip(1).filter(done) {
+            log.line(line)?;
+        }
         Ok(log)
     }
 

@@ -1,19 +1,21 @@
 //! The meta-learner process (`uavmeta meta-learner --run R`): MAML over the run's datasets as
-//! soon as the store announces them, then meta-test on the unseen task(s).
+//! soon as the store announces them, then meta-test on the unseen task(s). It runs the library's
+//! meta-training and meta-test (`meta_train_with`, `meta_test_with`) with hooks that write into
+//! the run directory and announce what they wrote.
 //!
 //! 1. Waits until the store has announced the dataset of every task (meta-train tasks for MAML,
-//!    meta-test tasks for their few shots).
-//! 2. Meta-trains w0 with [`Maml::meta_epoch`] (Algorithm 4) for `meta.meta_epochs` meta-epochs;
-//!    every `meta.checkpoint_every` meta-epochs (and after the last) it writes w0 as a checkpoint
+//!    meta-test tasks for their few shots), then announces each meta-test task's online DQN
+//!    agent (saved by its actor), the reference line.
+//! 2. Meta-trains w0 (Algorithm 4) for `meta.meta_epochs` meta-epochs; every
+//!    `meta.checkpoint_every` meta-epochs (and after the last) it writes w0 as a checkpoint
 //!    (`uavmeta_learner::checkpoint`: write, fsync, rename) and announces it once per meta-test
-//!    task, whose evaluator then scores it zero-shot.
-//!    Before that it announces each meta-test task's online DQN agent (saved by its actor), the
-//!    reference line.
-//! 3. Meta-tests: per meta-test task, fine-tunes w0 with CQL on `collect.transitions` shots
-//!    (CQL-MAML) and, as baselines, CQL from a random init and from a CQL network pretrained on
-//!    the union of the meta-train tasks' shots (CQL-pretrain, `crate::pretrain`) on the same
-//!    shots, each for `learner.epochs` epochs (the settings of `meta_test::fine_tune`),
-//!    checkpointing and announcing every epoch.
+//!    task, whose evaluator then scores it zero-shot. `meta-train/meta_train.csv` in the run
+//!    directory holds the per-meta-epoch figures, as `uavmeta meta-train` writes them.
+//! 3. Meta-tests: per meta-test task, fine-tunes w0 on `collect.transitions` shots with the loss
+//!    its checkpoint names (CQL-MAML or, with `meta.inner_loss = "dqn"`, DQN-MAML) and, as
+//!    baselines, the same loss from a random init (CQL or DQN) and, for CQL, from a network
+//!    pretrained on the union of the meta-train tasks' shots (CQL-pretrain, `crate::pretrain`),
+//!    each for `learner.epochs` epochs, checkpointing and announcing every epoch.
 //!
 //! **Restart.** Every w0 checkpoint carries MAML's training state (the outer Adam moments, the
 //! target network, the sampling stream: [`Maml::save_state`]), so a restarted meta-learner resumes
@@ -21,7 +23,8 @@
 //! every meta-test whose last epoch is on disk; a meta-test cut short is run again from its start
 //! (the fine-tuning is seeded, so to the same result), its checkpoints overwritten atomically.
 
-use std::time::{Duration, Instant};
+use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::prelude::*;
@@ -29,16 +32,15 @@ use uavmeta_actors::q_policy::Evaluator;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_learner::metrics::{MetricsError, MetricsServer};
 use uavmeta_learner::qnet::QNetwork;
-use uavmeta_learner::train::{train, Algorithm, EvaluatePolicy, TrainOptions};
+use uavmeta_learner::train::{Algorithm, EvaluatePolicy};
 use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
 use uavmeta_proto::stats::PolicyMetrics;
 use uavmeta_proto::transport::{
     self, CheckpointReady, Method, RunDir, ServiceNames, TransportError, SCHEMA_VERSION,
 };
 
-use crate::maml::{Maml, MamlConfig};
-use crate::meta_test::load_shots;
-use crate::meta_train::{algorithm_name, load_tasks};
+use crate::meta_test::{fine_tune, load_shots, meta_test_with, FineTune, MetaTestOptions};
+use crate::meta_train::{load_tasks, meta_train_with, MetaRow, MetaTrainHook, MetaTrainOptions};
 use crate::{pretrain, MetaError};
 
 /// The meta-learner's process name: node, port file and metrics snapshot.
@@ -170,75 +172,36 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
         }
     }
 
-    // 2. Meta-training, resumed from the latest w0 on disk.
+    // 2. Meta-training (`meta_train::meta_train_with`), resumed from the latest w0 on disk.
     let seed = config.run.seeds[0];
-    let (_, tasks) = load_tasks(config, &run.root().join("datasets"), seed)?;
-    let final_epoch = config.meta.meta_epochs as u32;
-    let start_epoch = latest_epoch(run, Method::MetaInit, &anchor, final_epoch);
-    let mut maml = match start_epoch {
-        0 => Maml::new(
-            QNetwork::new(
-                config.world.observation_len(),
-                config.world.action_count(),
-                &config.learner.hidden,
-                seed,
-            ),
-            MamlConfig::from_config(config),
-            seed,
-        )?,
-        epoch => {
-            tracing::info!(epoch, "resuming meta-training from its checkpoint");
-            let path = run.checkpoint(Method::MetaInit, &anchor, epoch);
-            let w0 = checkpoint::load(&path, config)?.0;
-            Maml::resume(w0, MamlConfig::from_config(config), &path)?
-        }
+    let datasets = run.root().join("datasets");
+    let mut hook = AnnounceW0 {
+        run,
+        anchor: &anchor,
+        test_tasks: &test_tasks,
+        publisher: &announce,
+        metrics: &metrics,
+        stop: &stop,
+        seconds: 0.0,
     };
-    metrics.meta_epoch.set(start_epoch as i64);
-    for epoch in start_epoch + 1..=final_epoch {
-        if stop()? {
-            return Ok(Outcome::Stopped);
-        }
-        let start = Instant::now();
-        let figures = maml.meta_epoch(&tasks)?;
-        metrics
-            .meta_epoch_duration
-            .observe(start.elapsed().as_secs_f64());
-        metrics.meta_epoch.set(epoch as i64);
-        metrics.meta_loss.set(figures.meta_loss);
-        if epoch % config.meta.checkpoint_every as u32 == 0 || epoch == final_epoch {
-            let path = run.checkpoint(Method::MetaInit, &anchor, epoch);
-            // The state first: the checkpoint's metadata, written last, marks both complete.
-            maml.save_state(&path)?;
-            checkpoint::save(
-                &path,
-                maml.w0(),
-                algorithm_name(config.meta.inner_loss),
-                epoch as usize,
-                config,
-            )?;
-            metrics.checkpoints.inc();
-            for (id, _) in &test_tasks {
-                transport::announce(
-                    &announce,
-                    CheckpointReady {
-                        schema_version: SCHEMA_VERSION,
-                        method: Method::MetaInit.code(),
-                        task: *id,
-                        epoch,
-                    },
-                )?;
-            }
-            tracing::info!(epoch, meta_loss = figures.meta_loss, "w0 checkpoint");
-        }
-    }
-    let w0_path = run.checkpoint(Method::MetaInit, &anchor, final_epoch);
+    let options = MetaTrainOptions {
+        config,
+        datasets: &datasets,
+        out_dir: &run.root().join("meta-train"),
+        seed,
+        progress: false,
+        resume: true,
+    };
+    let Some(trained) = meta_train_with(&options, &mut hook)? else {
+        return Ok(Outcome::Stopped);
+    };
 
-    // 3. Meta-test on each unseen task: CQL-MAML from w0, CQL from a random init, and
-    //    CQL-pretrain from one CQL network trained on the union of the meta-train shots.
+    // 3. Meta-test on each unseen task (`meta_test::meta_test_with`): the MAML init fine-tuned
+    //    with the loss its checkpoint names, and its baselines on the same shots.
     let epochs = config.learner.epochs as u32;
     let mut pretrained: Option<QNetwork> = None;
     for (id, task) in &test_tasks {
-        for method in Method::FINE_TUNED {
+        for &method in Method::fine_tuned(config.meta.inner_loss) {
             if latest_epoch(run, method, task, epochs) == epochs {
                 continue;
             }
@@ -247,29 +210,13 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
             }
             if method == Method::CqlPretrain && pretrained.is_none() {
                 tracing::info!("pretraining CQL on the union of the meta-train shots");
+                let (_, tasks) = load_tasks(config, &datasets, seed)?;
                 // Stop requests are honoured between the pretraining's meta-epochs.
                 match pretrain::pretrain(config, &tasks, seed, |_| stop().map(|stop| !stop))? {
                     Some(q) => pretrained = Some(q),
                     None => return Ok(Outcome::Stopped),
                 }
             }
-            let mut q = match (method, &pretrained) {
-                (Method::CqlMaml, _) => checkpoint::load(&w0_path, config)?.0,
-                (Method::CqlPretrain, Some(pretrained)) => pretrained.duplicate(),
-                _ => QNetwork::new(
-                    config.world.observation_len(),
-                    config.world.action_count(),
-                    &config.learner.hidden,
-                    seed.wrapping_add(1),
-                ),
-            };
-            let shots = load_shots(
-                config,
-                task,
-                &run.dataset(task),
-                config.collect.transitions,
-                seed,
-            )?;
             let mut hook = Announcing {
                 inner: Evaluator::from_config(config, task),
                 run,
@@ -282,15 +229,45 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
                 error: None,
                 metrics: &metrics,
             };
-            // The fine-tuning of `meta_test::fine_tune`, with this process's hook as its evaluator.
-            let options = TrainOptions {
-                algorithm: Algorithm::Cql,
+            let settings = FineTune {
                 config,
+                task,
+                epochs: config.learner.epochs,
                 seed,
                 out_dir: None,
                 progress: false,
             };
-            let rows = train(&mut q, &shots, &options, &mut hook).map_err(MetaError::from)?;
+            let dataset = run.dataset(task);
+            let rows = match (method, &pretrained) {
+                (Method::CqlMaml | Method::DqnMaml, _) => {
+                    check_init(&trained.w0, method)?;
+                    let opts = MetaTestOptions {
+                        fine_tune: settings,
+                        init: &trained.w0,
+                        dataset: &dataset,
+                        shots: config.collect.transitions,
+                    };
+                    meta_test_with(&opts, &mut hook)?
+                }
+                (method, pretrained) => {
+                    let mut q = match (method, pretrained) {
+                        (Method::CqlPretrain, Some(pretrained)) => pretrained.duplicate(),
+                        _ => QNetwork::new(
+                            config.world.observation_len(),
+                            config.world.action_count(),
+                            &config.learner.hidden,
+                            seed.wrapping_add(1),
+                        ),
+                    };
+                    let shots =
+                        load_shots(config, task, &dataset, config.collect.transitions, seed)?;
+                    let algorithm = match method {
+                        Method::Dqn => Algorithm::Dqn,
+                        _ => Algorithm::Cql,
+                    };
+                    fine_tune(&mut q, &shots, algorithm, &settings, &mut hook)?
+                }
+            };
             if let Some(error) = hook.error {
                 return Err(error);
             }
@@ -300,6 +277,70 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
         }
     }
     Ok(Outcome::Finished)
+}
+
+/// The w0 checkpoint is the one `method` fine-tunes: a run directory meta-trained with another
+/// `meta.inner_loss` is refused rather than reported under the wrong name.
+fn check_init(w0: &Path, method: Method) -> Result<(), MetaProcessError> {
+    let algorithm = checkpoint::read_meta(w0)?.algorithm;
+    match algorithm == method.name() {
+        true => Ok(()),
+        false => Err(MetaError::NotMetaTrained {
+            path: w0.to_path_buf(),
+            algorithm,
+        }
+        .into()),
+    }
+}
+
+/// Meta-training's hook: exports each meta-epoch's figures, announces each w0 checkpoint to every
+/// meta-test task's evaluator, and stops on request.
+struct AnnounceW0<'a, S> {
+    run: &'a RunDir,
+    anchor: &'a TaskConfig,
+    test_tasks: &'a [(u32, TaskConfig)],
+    publisher: &'a Publisher<ipc::Service, CheckpointReady, ()>,
+    metrics: &'a metrics::MetaLearnerMetrics,
+    stop: &'a S,
+    /// `MetaRow::seconds` of the previous meta-epoch.
+    seconds: f64,
+}
+
+impl<S: Fn() -> Result<bool, MetaProcessError>> MetaTrainHook for AnnounceW0<'_, S> {
+    type Error = MetaProcessError;
+
+    fn checkpoint_path(&self, epoch: usize) -> PathBuf {
+        self.run
+            .checkpoint(Method::MetaInit, self.anchor, epoch as u32)
+    }
+
+    fn after_epoch(
+        &mut self,
+        row: &MetaRow,
+        checkpoint: Option<&Path>,
+    ) -> Result<bool, Self::Error> {
+        let epoch = row.epoch.epoch as u32;
+        self.metrics
+            .meta_epoch_duration
+            .observe((row.seconds - self.seconds).max(0.0));
+        self.seconds = row.seconds;
+        self.metrics.meta_epoch.set(epoch as i64);
+        self.metrics.meta_loss.set(row.epoch.meta_loss);
+        if checkpoint.is_some() {
+            self.metrics.checkpoints.inc();
+            for (id, _) in self.test_tasks {
+                let message = CheckpointReady {
+                    schema_version: SCHEMA_VERSION,
+                    method: Method::MetaInit.code(),
+                    task: *id,
+                    epoch,
+                };
+                transport::announce(self.publisher, message)?;
+            }
+            tracing::info!(epoch, meta_loss = row.epoch.meta_loss, "w0 checkpoint");
+        }
+        Ok(!(self.stop)()?)
+    }
 }
 
 /// The highest epoch (at most `max`) whose checkpoint of `method` on `task` is complete on disk.
@@ -327,6 +368,7 @@ struct Announcing<'a> {
 
 impl EvaluatePolicy for Announcing<'_> {
     fn evaluate(&mut self, q: &QNetwork) -> PolicyMetrics {
+        transport::heartbeat();
         self.epoch += 1;
         self.metrics.fine_tune_epochs.inc();
         if self.error.is_none() {

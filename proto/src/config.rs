@@ -504,8 +504,13 @@ pub struct RunConfig {
     pub subscriber_buffer: usize,
     /// Publishers (actors) a transition service admits.
     pub max_publishers: usize,
-    /// Restarts of a crashed child before the launcher gives up.
+    /// Restarts of a crashed or hung child before the launcher gives up.
     pub max_restarts: u32,
+    /// A launched child whose heartbeat (`transport::heartbeat`) has not moved for this many
+    /// seconds is taken for hung (stopped, deadlocked, livelocked), killed and restarted like a
+    /// crashed one; 0 = never. Every process beats at least every few seconds on this machine
+    /// under load, so the default leaves a wide margin.
+    pub hang_timeout_seconds: f64,
     /// Announcements (dataset ready, checkpoint ready, shutdown) a control subscriber buffers;
     /// also the history a process joining late receives.
     pub control_buffer: usize,
@@ -522,6 +527,7 @@ impl Default for RunConfig {
             subscriber_buffer: 64,
             max_publishers: 64,
             max_restarts: 5,
+            hang_timeout_seconds: 60.0,
             control_buffer: 256,
         }
     }
@@ -992,6 +998,13 @@ impl Config {
                 "run.control_buffer",
                 &r.control_buffer,
                 "at least 1",
+            ));
+        }
+        if !r.hang_timeout_seconds.is_finite() || r.hang_timeout_seconds < 0.0 {
+            return Err(invalid(
+                "run.hang_timeout_seconds",
+                &r.hang_timeout_seconds,
+                "seconds >= 0 (0 = never)",
             ));
         }
         if r.batch_size == 0 || r.subscriber_buffer == 0 || r.max_publishers == 0 {

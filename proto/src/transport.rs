@@ -56,7 +56,7 @@ use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
 use iceoryx2_bb_posix::signal::SignalHandler;
 
-use crate::config::{Config, RunConfig, TaskConfig, MAX_DEVICES};
+use crate::config::{Config, InnerLoss, RunConfig, TaskConfig, MAX_DEVICES};
 use crate::dataset::Transition;
 
 /// The version of every payload below and of the service settings; bump it on any change.
@@ -322,19 +322,40 @@ pub enum Method {
     /// The online DQN agent that made a task's dataset (one checkpoint, epoch 1): the paper's
     /// "online" reference line.
     OnlineDqn,
+    /// A DQN-MAML w0 (`meta.inner_loss = "dqn"`) fine-tuned with offline DQN (eq. 7): the paper's
+    /// ablation without the conservative term.
+    DqnMaml,
+    /// Offline DQN from a random initialisation on the same shots: DQN-MAML's baseline.
+    Dqn,
 }
 
 impl Method {
-    pub const ALL: [Method; 5] = [
+    pub const ALL: [Method; 7] = [
         Method::MetaInit,
         Method::CqlMaml,
         Method::Cql,
         Method::CqlPretrain,
         Method::OnlineDqn,
+        Method::DqnMaml,
+        Method::Dqn,
     ];
 
-    /// The methods a meta-learner fine-tunes on each meta-test task, in order.
-    pub const FINE_TUNED: [Method; 3] = [Method::CqlMaml, Method::Cql, Method::CqlPretrain];
+    /// A MAML init of this inner loss, fine-tuned with the same loss.
+    pub fn maml(inner_loss: InnerLoss) -> Method {
+        match inner_loss {
+            InnerLoss::Cql => Method::CqlMaml,
+            InnerLoss::Dqn => Method::DqnMaml,
+        }
+    }
+
+    /// The methods a meta-learner fine-tunes on each meta-test task, in order: the MAML init,
+    /// the same loss from a random init and, for CQL, the multi-task pretrained init.
+    pub fn fine_tuned(inner_loss: InnerLoss) -> &'static [Method] {
+        match inner_loss {
+            InnerLoss::Cql => &[Method::CqlMaml, Method::Cql, Method::CqlPretrain],
+            InnerLoss::Dqn => &[Method::DqnMaml, Method::Dqn],
+        }
+    }
 
     /// The name used in file paths, metric labels and CSV rows.
     pub fn name(self) -> &'static str {
@@ -344,6 +365,8 @@ impl Method {
             Method::Cql => "cql",
             Method::CqlPretrain => "cql-pretrain",
             Method::OnlineDqn => "online-dqn",
+            Method::DqnMaml => "dqn-maml",
+            Method::Dqn => "dqn",
         }
     }
 
@@ -517,6 +540,12 @@ impl RunDir {
         self.root.join("logs").join(format!("{process}.log"))
     }
 
+    /// The file whose modification time a launched process moves while it makes progress
+    /// ([`heartbeat`]).
+    pub fn heartbeat_file(&self, process: &str) -> PathBuf {
+        self.root.join("heartbeats").join(process)
+    }
+
     /// The evaluator's rows, one per evaluated checkpoint.
     pub fn evaluations_csv(&self) -> PathBuf {
         self.root.join("evaluations.csv")
@@ -619,12 +648,53 @@ pub fn termination_requested() -> bool {
 /// other signal iceoryx2 catches (SIGCONT after a stop, SIGURG, ...) interrupts its sleep, which is
 /// no reason to end a process, so only a termination request counts.
 pub fn keep_running(node: &Node<ipc::Service>, cycle: Duration) -> bool {
+    heartbeat();
     match node.wait(cycle) {
         Err(NodeWaitFailure::TerminationRequest) => {
             TERMINATING.store(true, Ordering::Relaxed);
             false
         }
         _ => !termination_requested(),
+    }
+}
+
+/// The variable through which the launcher tells a child which file to beat on.
+pub const HEARTBEAT_FILE_ENV: &str = "UAVMETA_HEARTBEAT_FILE";
+
+/// At most this often a beat touches the file; the launcher's `run.hang_timeout_seconds` is many
+/// times longer.
+const HEARTBEAT_EVERY: Duration = Duration::from_millis(500);
+
+/// Tells the launcher that this process's loop is making progress, by moving the modification
+/// time of the file named in [`HEARTBEAT_FILE_ENV`]. A stopped, deadlocked or livelocked process
+/// stops moving it, and the launcher kills and restarts it. Every loop that polls its node beats
+/// through [`keep_running`]; long computations call this between their steps. A process started by
+/// hand has no such file, and beats go nowhere.
+pub fn heartbeat() {
+    struct Beat {
+        file: std::fs::File,
+        last: std::sync::Mutex<Option<std::time::Instant>>,
+    }
+    static BEAT: std::sync::OnceLock<Option<Beat>> = std::sync::OnceLock::new();
+    let beat = BEAT.get_or_init(|| {
+        let path = std::env::var_os(HEARTBEAT_FILE_ENV)?;
+        match std::fs::OpenOptions::new().write(true).create(true).open(&path) {
+            Ok(file) => Some(Beat {
+                file,
+                last: std::sync::Mutex::new(None),
+            }),
+            Err(e) => {
+                tracing::warn!(path = %Path::new(&path).display(), error = %e, "cannot open the heartbeat file; the launcher will take this process for hung");
+                None
+            }
+        }
+    });
+    let Some(beat) = beat else { return };
+    let mut last = beat.last.lock().unwrap_or_else(|e| e.into_inner());
+    if last.is_none_or(|at| at.elapsed() >= HEARTBEAT_EVERY) {
+        // A failed touch looks like a missed beat; the next one tries again.
+        let _ = beat.file.set_modified(SystemTime::now());
+        *last = Some(std::time::Instant::now());
     }
 }
 

@@ -23,6 +23,10 @@ pub struct MetaTrainArgs {
     /// Seed of w0's init, the support/query split and the sampling [default: run.seeds[0]].
     #[arg(long)]
     seed: Option<u64>,
+    /// Continue from the latest w0 checkpoint in OUT (with its optimiser state) instead of
+    /// starting again; an interrupted run continued this way ends where an uninterrupted one does.
+    #[arg(long)]
+    resume: bool,
 }
 
 #[derive(Args)]
@@ -60,6 +64,7 @@ pub fn run_train(args: MetaTrainArgs) -> Result<()> {
         out_dir: &args.out,
         seed,
         progress: true,
+        resume: args.resume,
     })?;
     if let Some(last) = result.rows.last() {
         println!(

@@ -426,6 +426,7 @@ pub fn fine_tune_run(
             out_dir: None,
             progress: false,
         },
+        &mut Evaluator::from_config(&run_config, task),
     )?;
     let trajectory = run.trajectory.then(|| {
         record_trajectory(
@@ -504,6 +505,7 @@ fn ensure_w0(
         out_dir: &out,
         seed,
         progress: false,
+        resume: false,
     })?;
     let curve = MetaCurve {
         meta_loss: result.rows.iter().map(|r| r.epoch.meta_loss).collect(),
