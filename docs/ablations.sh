@@ -51,6 +51,7 @@ section "A. Online DQN on lambda-300 (configs/default.toml, 15 000 steps), greed
     change "return, mean ± 95% CI" "worst seed"
 declare -A DQN=(
     [default]=""
+    [target-500]="--set collect.dqn_target_update_every=500"
     [eps-end-0.05]="--set collect.eps_end=0.05"
     [lr-1e-3]="--set collect.dqn_lr=0.001"
     [no-stabilisers]="--set collect.dqn_double=false --set collect.dqn_huber=false --set collect.dqn_grad_clip_norm=0 --set collect.dqn_target_update_every=100"
@@ -62,7 +63,7 @@ collect_one() {
     [ -e "$dir/$SEED.uavds.agent/online-dqn.json" ] ||
         "$UAV" collect --task lambda-300 --seed "$SEED" --out "$dir/$SEED.uavds" ${DQN[$1]} >/dev/null 2>&1
 }
-for variant in default eps-end-0.05 lr-1e-3 no-stabilisers old-defaults; do
+for variant in default target-500 eps-end-0.05 lr-1e-3 no-stabilisers old-defaults; do
     for_seeds collect_one "$variant"
     returns=()
     for s in "${SEEDS[@]}"; do
@@ -77,8 +78,9 @@ section "A2. Online DQN on the AoI-dominated tasks (configs/reproduce.toml), gre
 declare -A LOW=(
     [default]=""
     [eps-end-0.05]="--set collect.eps_end=0.05"
-    [steps-20k]="--set collect.eps_end=0.05 --set collect.dqn_steps=20000 --set collect.eps_decay_steps=8000"
-    [target-2000]="--set collect.dqn_target_update_every=2000"
+    [target-500]="--set collect.dqn_target_update_every=500"
+    [target-500-eps-end-0.05]="--set collect.dqn_target_update_every=500 --set collect.eps_end=0.05"
+    [target-500-steps-20k]="--set collect.dqn_target_update_every=500 --set collect.eps_end=0.05 --set collect.dqn_steps=20000 --set collect.eps_decay_steps=8000"
 )
 collect_low() {
     local dir=$OUT/dqn-$1-$2
@@ -88,7 +90,7 @@ collect_low() {
             --out "$dir/$SEED.uavds" ${LOW[$2]} >/dev/null 2>&1
 }
 for task in lambda-0 lambda-100; do
-    for variant in default eps-end-0.05 steps-20k target-2000; do
+    for variant in default target-500 target-500-eps-end-0.05 target-500-steps-20k; do
         for_seeds collect_low "$task" "$variant"
         returns=()
         for s in "${SEEDS[@]}"; do
@@ -126,8 +128,8 @@ row() {
     echo "| $3 | $(summary "${returns[@]}") |"
 }
 row cql-default 250 "none: shots of the newest 3 000 steps, [256, 256], 250 epochs"
-row cql-default 40 "40 epochs (the launch's budget)"
-row cql-default 100 "100 epochs"
+row cql-default 40 "40 epochs"
+row cql-default 100 "100 epochs (the launch's budget)"
 row cql-whole-buffer 250 "shots of the whole 8 000-step buffer (collect.sample_newest = 0)"
 row cql-64x64 250 "learner.hidden = [64, 64]"
 

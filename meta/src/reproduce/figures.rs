@@ -91,9 +91,14 @@ pub fn write(ctx: &Context, experiment: Experiment, dir: &Path) -> Result<Sectio
     }
 }
 
+/// How close to the optimum counts as matching it, where a heuristic is the optimum.
+const MATCHES_OPTIMUM: f64 = 0.01;
+
 /// The behaviour agents: each task's online DQN agent over seeds beside the heuristics, and
 /// whether it is trained (SPEC section 5): every seed at least the worse of stalest and greedy,
-/// the mean within 5% of the better one or above it.
+/// the mean within 5% of the better one or above it. At lambda = 0 without rain the reward is
+/// the AoI alone and serving the stalest sensor (round robin) is the optimum, which an agent can
+/// tie but not pass: there every seed must match it, within [`MATCHES_OPTIMUM`].
 fn online_dqn(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
     let c = ctx.config;
     let episodes = c.learner.eval_episodes;
@@ -133,8 +138,13 @@ fn online_dqn(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
             .iter()
             .map(|m| m.ret.mean)
             .fold(f64::INFINITY, f64::min);
+        let stalest_is_optimal = task.lambda == 0.0 && task.rain.is_none();
+        let floor = match stalest_is_optimal {
+            true => stalest - MATCHES_OPTIMUM * stalest.abs(),
+            false => worse,
+        };
         // Returns are costs: within 5% of the better heuristic is above 1.05 times it.
-        let ok = worst >= worse && mean.mean >= better - 0.05 * better.abs();
+        let ok = worst >= floor && mean.mean >= better - 0.05 * better.abs();
         trained += ok as usize;
         if !ok {
             short.push(format!(
@@ -153,7 +163,7 @@ fn online_dqn(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
     write_file(&dir.join("online_dqn.csv"), &csv)?;
     let found = vec![Claim::new(
         "B",
-        "the behaviour agent is trained: every seed at or above the worse heuristic, the mean within 5% of the better one (SPEC section 5)",
+        "the behaviour agent is trained: every seed at or above the worse heuristic (at lambda = 0, where serving the stalest sensor is optimal, within 1% of it), the mean within 5% of the better one (SPEC section 5)",
         format!("{trained} of {} tasks", tasks.len()),
         Verdict::share(trained, tasks.len()),
         || format!("short on {}", short.join(", ")),
