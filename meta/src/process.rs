@@ -26,7 +26,9 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+use iceoryx2::node::Node;
 use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use uavmeta_actors::q_policy::Evaluator;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
@@ -36,7 +38,8 @@ use uavmeta_learner::train::{Algorithm, EvaluatePolicy};
 use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
 use uavmeta_proto::stats::PolicyMetrics;
 use uavmeta_proto::transport::{
-    self, CheckpointReady, Method, RunDir, ServiceNames, TransportError, SCHEMA_VERSION,
+    self, CheckpointReady, DatasetReady, Method, RunDir, ServiceNames, TransportError,
+    SCHEMA_VERSION,
 };
 
 use crate::meta_test::{fine_tune, load_shots, meta_test_with, FineTune, MetaTestOptions};
@@ -126,23 +129,8 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
     };
 
     // 1. Every task's dataset.
-    let mut waiting: Vec<bool> = vec![true; config.tasks.len()];
-    tracing::info!(tasks = waiting.len(), "waiting for the datasets");
-    while waiting.iter().any(|w| *w) {
-        if stop()? || !transport::keep_running(&node, POLL) {
-            return Ok(Outcome::Stopped);
-        }
-        while let Some(m) = ready
-            .receive()
-            .map_err(transport::receive_failed("receive a dataset announcement"))?
-        {
-            if let Some(w) = waiting
-                .get_mut(m.task as usize)
-                .filter(|_| m.schema_version == SCHEMA_VERSION)
-            {
-                *w = false;
-            }
-        }
+    if !wait_for_datasets(config, &node, &ready, &stop)? {
+        return Ok(Outcome::Stopped);
     }
     let test_tasks: Vec<(u32, TaskConfig)> = config
         .tasks
@@ -199,6 +187,14 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
     // 3. Meta-test on each unseen task (`meta_test::meta_test_with`): the MAML init fine-tuned
     //    with the loss its checkpoint names, and its baselines on the same shots.
     let epochs = config.learner.epochs as u32;
+    let meta_test = MetaTest {
+        run,
+        config,
+        w0: &trained.w0,
+        seed,
+        publisher: &announce,
+        metrics: &metrics,
+    };
     let mut pretrained: Option<QNetwork> = None;
     for (id, task) in &test_tasks {
         for &method in Method::fine_tuned(config.meta.inner_loss) {
@@ -217,66 +213,122 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
                     None => return Ok(Outcome::Stopped),
                 }
             }
-            let mut hook = Announcing {
-                inner: Evaluator::from_config(config, task),
-                run,
-                config,
-                task,
-                task_id: *id,
-                method,
-                publisher: &announce,
-                epoch: 0,
-                error: None,
-                metrics: &metrics,
-            };
-            let settings = FineTune {
-                config,
-                task,
-                epochs: config.learner.epochs,
-                seed,
-                out_dir: None,
-                progress: false,
-            };
-            let dataset = run.dataset(task);
-            let rows = match (method, &pretrained) {
-                (Method::CqlMaml | Method::DqnMaml, _) => {
-                    check_init(&trained.w0, method)?;
-                    let opts = MetaTestOptions {
-                        fine_tune: settings,
-                        init: &trained.w0,
-                        dataset: &dataset,
-                        shots: config.collect.transitions,
-                    };
-                    meta_test_with(&opts, &mut hook)?
-                }
-                (method, pretrained) => {
-                    let mut q = match (method, pretrained) {
-                        (Method::CqlPretrain, Some(pretrained)) => pretrained.duplicate(),
-                        _ => QNetwork::new(
-                            config.world.observation_len(),
-                            config.world.action_count(),
-                            &config.learner.hidden,
-                            seed.wrapping_add(1),
-                        ),
-                    };
-                    let shots =
-                        load_shots(config, task, &dataset, config.collect.transitions, seed)?;
-                    let algorithm = match method {
-                        Method::Dqn => Algorithm::Dqn,
-                        _ => Algorithm::Cql,
-                    };
-                    fine_tune(&mut q, &shots, algorithm, &settings, &mut hook)?
-                }
-            };
-            if let Some(error) = hook.error {
-                return Err(error);
-            }
-            if let Some(last) = rows.last() {
-                tracing::info!(task = %task.name, %method, epochs = rows.len(), ret = last.policy.ret.mean, "meta-test done");
-            }
+            meta_test.fine_tune(*id, task, method, pretrained.as_ref())?;
         }
     }
     Ok(Outcome::Finished)
+}
+
+/// Waits until the store has announced every task's dataset; `false` if told to stop first.
+fn wait_for_datasets(
+    config: &Config,
+    node: &Node<ipc::Service>,
+    ready: &Subscriber<ipc::Service, DatasetReady, ()>,
+    stop: &impl Fn() -> Result<bool, MetaProcessError>,
+) -> Result<bool, MetaProcessError> {
+    let mut waiting: Vec<bool> = vec![true; config.tasks.len()];
+    tracing::info!(tasks = waiting.len(), "waiting for the datasets");
+    while waiting.iter().any(|w| *w) {
+        if stop()? || !transport::keep_running(node, POLL) {
+            return Ok(false);
+        }
+        while let Some(m) = ready
+            .receive()
+            .map_err(transport::receive_failed("receive a dataset announcement"))?
+        {
+            if let Some(w) = waiting
+                .get_mut(m.task as usize)
+                .filter(|_| m.schema_version == SCHEMA_VERSION)
+            {
+                *w = false;
+            }
+        }
+    }
+    Ok(true)
+}
+
+/// Step 3, one fine-tuning at a time, announcing each epoch's checkpoint.
+struct MetaTest<'a> {
+    run: &'a RunDir,
+    config: &'a Config,
+    /// The final w0 checkpoint.
+    w0: &'a Path,
+    seed: u64,
+    publisher: &'a Publisher<ipc::Service, CheckpointReady, ()>,
+    metrics: &'a metrics::MetaLearnerMetrics,
+}
+
+impl MetaTest<'_> {
+    /// Fine-tunes `method`'s init on the shots of meta-test task `task` (number `task_id`): w0
+    /// through `meta_test_with`, with the loss its checkpoint names; a random init or the
+    /// `pretrained` network through `fine_tune`, on the same shots.
+    fn fine_tune(
+        &self,
+        task_id: u32,
+        task: &TaskConfig,
+        method: Method,
+        pretrained: Option<&QNetwork>,
+    ) -> Result<(), MetaProcessError> {
+        let config = self.config;
+        let mut hook = Announcing {
+            inner: Evaluator::from_config(config, task),
+            run: self.run,
+            config,
+            task,
+            task_id,
+            method,
+            publisher: self.publisher,
+            epoch: 0,
+            error: None,
+            metrics: self.metrics,
+        };
+        let settings = FineTune {
+            config,
+            task,
+            epochs: config.learner.epochs,
+            seed: self.seed,
+            out_dir: None,
+            progress: false,
+        };
+        let dataset = self.run.dataset(task);
+        let shots = config.collect.transitions;
+        let rows = match (method, pretrained) {
+            (Method::CqlMaml | Method::DqnMaml, _) => {
+                check_init(self.w0, method)?;
+                let opts = MetaTestOptions {
+                    fine_tune: settings,
+                    init: self.w0,
+                    dataset: &dataset,
+                    shots,
+                };
+                meta_test_with(&opts, &mut hook)?
+            }
+            (method, pretrained) => {
+                let mut q = match (method, pretrained) {
+                    (Method::CqlPretrain, Some(pretrained)) => pretrained.duplicate(),
+                    _ => QNetwork::new(
+                        config.world.observation_len(),
+                        config.world.action_count(),
+                        &config.learner.hidden,
+                        self.seed.wrapping_add(1),
+                    ),
+                };
+                let algorithm = match method {
+                    Method::Dqn => Algorithm::Dqn,
+                    _ => Algorithm::Cql,
+                };
+                let shots = load_shots(config, task, &dataset, shots, self.seed)?;
+                fine_tune(&mut q, &shots, algorithm, &settings, &mut hook)?
+            }
+        };
+        if let Some(error) = hook.error {
+            return Err(error);
+        }
+        if let Some(last) = rows.last() {
+            tracing::info!(task = %task.name, %method, epochs = rows.len(), ret = last.policy.ret.mean, "meta-test done");
+        }
+        Ok(())
+    }
 }
 
 /// The w0 checkpoint is the one `method` fine-tunes: a run directory meta-trained with another
