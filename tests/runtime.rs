@@ -500,20 +500,23 @@ fn actor_names_live(run: &Path) -> Vec<String> {
 
 /// The pid of the launched child whose command line contains all of `needles`.
 fn child_pid(needles: &[&str]) -> Option<i32> {
-    for entry in std::fs::read_dir("/proc").ok()? {
-        let entry = entry.ok()?;
-        let Ok(pid) = entry.file_name().to_string_lossy().parse::<i32>() else {
-            continue;
-        };
-        let Ok(cmdline) = std::fs::read(entry.path().join("cmdline")) else {
-            continue;
-        };
-        let cmdline = String::from_utf8_lossy(&cmdline).replace('\0', " ");
-        if needles.iter().all(|n| cmdline.contains(n)) {
-            return Some(pid);
-        }
-    }
-    None
+    child_pids(needles).into_iter().next()
+}
+
+/// The pids of the processes whose command line contains all of `needles`.
+fn child_pids(needles: &[&str]) -> Vec<i32> {
+    let Ok(entries) = std::fs::read_dir("/proc") else {
+        return Vec::new();
+    };
+    entries
+        .filter_map(|entry| {
+            let entry = entry.ok()?;
+            let pid = entry.file_name().to_string_lossy().parse::<i32>().ok()?;
+            let cmdline = std::fs::read(entry.path().join("cmdline")).ok()?;
+            let cmdline = String::from_utf8_lossy(&cmdline).replace('\0', " ");
+            needles.iter().all(|n| cmdline.contains(n)).then_some(pid)
+        })
+        .collect()
 }
 
 fn kill9(pid: i32) {
@@ -778,44 +781,72 @@ fn live_children(run_arg: &str) -> Vec<(&'static str, i32)> {
         .collect()
 }
 
-/// kill -9 on a seeded schedule: `kills` times, one to four seconds apart, a random live child,
-/// the store and the meta-learner among them. The launcher restarts each; afterwards the run ends
-/// with its table and every transition is stored once or counted missing.
+/// kill -9 on a seeded schedule: one actor mid-collection, then `kills - 1` random live children
+/// (the store and the meta-learner among them), each once meta-training has passed a seeded w0
+/// checkpoint, so every kill lands while the run is under way however fast or slow the machine.
+/// The launcher restarts each; afterwards the run ends with its table and every transition is
+/// stored once or counted missing.
 fn chaos(seed: u64, kills: usize) {
+    use rand::seq::index::sample;
     use rand::{Rng, SeedableRng};
     let dir = run_dir(&format!("e2e-chaos-{seed}-"));
     let run = dir.path().join("run");
     let run_arg = run.display().to_string();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let (meta_epochs, every) = (3000, 100);
     let launcher = launch(
         dir.path(),
         &run,
         &[
             "run.max_restarts=100",
             "collect.transitions=400000",
-            "meta.meta_epochs=3000",
+            &format!("meta.meta_epochs={meta_epochs}"),
             "meta.outer_steps_per_meta_epoch=1",
-            "meta.checkpoint_every=100",
+            &format!("meta.checkpoint_every={every}"),
         ],
     );
-    // Kills that must hit these roles, at random places in the schedule.
-    let mut musts = vec![
-        (rng.random_range(0..kills / 2), "store"),
-        (rng.random_range(kills / 2..kills), "meta-learner"),
-    ];
     let mut killed = Vec::new();
-    wait_until("the children", Duration::from_secs(60), || {
-        live_children(&run_arg).len() >= 3
+    let mut kill = |role: &'static str, pid: i32| {
+        kill9(pid);
+        killed.push(role);
+    };
+    wait_until("collection under way", Duration::from_secs(60), || {
+        run.join("ports/store.port").exists()
+            && metrics::sum(
+                &scrape(&run, "store"),
+                "uavmeta_store_dataset_transitions",
+                &[],
+            ) > 10_000.0
     });
-    for i in 0..kills {
-        std::thread::sleep(Duration::from_millis(rng.random_range(1000..4000)));
-        let want = musts
+    let mut actors = Vec::new();
+    wait_until("a live actor", Duration::from_secs(60), || {
+        actors = child_pids(&[" actor ", &run_arg]);
+        !actors.is_empty()
+    });
+    kill("actor", actors[rng.random_range(0..actors.len())]);
+
+    // The w0 checkpoints after which the other kills land, in order; and which of them must hit
+    // the store and the meta-learner.
+    let mut at: Vec<usize> = sample(&mut rng, meta_epochs / every - 1, kills - 1)
+        .into_iter()
+        .map(|i| (i + 1) * every)
+        .collect();
+    at.sort_unstable();
+    let must = sample(&mut rng, kills - 1, 2).into_vec();
+    for (i, epoch) in at.into_iter().enumerate() {
+        let checkpoint = run.join(format!("checkpoints/maml-init/epoch-{epoch:05}.json"));
+        wait_until(
+            &format!("w0 checkpoint {epoch}"),
+            Duration::from_secs(300),
+            || checkpoint.exists(),
+        );
+        let want = [must[0], must[1]]
             .iter()
-            .position(|&(at, _)| at <= i)
-            .map(|k| musts[k].1);
+            .position(|&m| m == i)
+            .map(|k| ["store", "meta-learner"][k]);
         let mut live = Vec::new();
         wait_until(
-            &format!("a child to kill ({want:?})"),
+            &format!("a live {want:?}"),
             Duration::from_secs(120),
             || {
                 live = live_children(&run_arg);
@@ -824,9 +855,7 @@ fn chaos(seed: u64, kills: usize) {
             },
         );
         let (role, pid) = live[rng.random_range(0..live.len())];
-        kill9(pid);
-        musts.retain(|&(_, r)| r != role);
-        killed.push(role);
+        kill(role, pid);
     }
     let out = launcher.wait(Duration::from_secs(600));
     eprintln!("seed {seed}: killed {killed:?}");
@@ -835,9 +864,7 @@ fn chaos(seed: u64, kills: usize) {
         "launch failed after killing {killed:?}:\n{}",
         stderr(&out)
     );
-    for role in ["store", "meta-learner"] {
-        assert!(killed.contains(&role), "{killed:?}");
-    }
+    assert_eq!(killed.len(), kills);
     let restarts = metrics::sum(
         &snapshot(&run, "launcher"),
         "uavmeta_launcher_child_restarts_total",

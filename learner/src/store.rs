@@ -141,12 +141,9 @@ pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
     let node = transport::node(&format!("{}-{PROCESS}", run.id()))?;
     // A predecessor killed mid-run left its ports in every service; without this sweep the actors
     // stay blocked on its full buffer.
-    let cleanup = node.try_cleanup_dead_nodes();
-    if cleanup.cleanups > 0 {
-        tracing::info!(
-            cleaned = cleanup.cleanups,
-            "removed iceoryx2 resources of dead processes"
-        );
+    let cleaned = transport::cleanup_dead_nodes(&node);
+    if cleaned > 0 {
+        tracing::info!(cleaned, "removed iceoryx2 resources of dead processes");
     }
     let names = ServiceNames::new(run);
     let metrics = metrics::StoreMetrics::new();
@@ -201,7 +198,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
             &mut summary,
         )? == 0;
         if last_cleanup.elapsed() >= CLEANUP_EVERY {
-            node.try_cleanup_dead_nodes();
+            transport::cleanup_dead_nodes(&node);
             last_cleanup = Instant::now();
         }
     }

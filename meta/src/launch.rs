@@ -253,7 +253,7 @@ pub fn launch(
     write_atomic(&run.config_file(), config.to_toml_string().as_bytes())?;
     write_prometheus_yml(&run)?;
     let node = transport::node(&format!("{}-{PROCESS}", run.id()))?;
-    node.try_cleanup_dead_nodes();
+    transport::cleanup_dead_nodes(&node);
     let names = ServiceNames::new(&run);
     let launcher_metrics = launch_metrics::LauncherMetrics::new();
     let _server = MetricsServer::start(
@@ -388,7 +388,7 @@ pub fn launch(
     for role in [Role::Actor, Role::MetaLearner, Role::Evaluator, Role::Store] {
         stop_role(&mut children, role);
     }
-    node.try_cleanup_dead_nodes();
+    transport::cleanup_dead_nodes(&node);
     progress.finish();
     outcome?;
     let results = latest_results(&run)?;
@@ -582,7 +582,7 @@ impl Supervisor<'_> {
             c.failures += 1;
             // The dead child's ports still sit in the services; remove them before anyone
             // (its successor included) waits on them.
-            node.try_cleanup_dead_nodes();
+            transport::cleanup_dead_nodes(&node);
             if c.failures > self.max_restarts {
                 return Err(LaunchError::GaveUp {
                     name: c.name.clone(),

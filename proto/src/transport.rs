@@ -619,6 +619,8 @@ pub fn node(process: &str) -> Result<Node<ipc::Service>, TransportError> {
         message,
     };
     let name = NodeName::new(process).map_err(|e| service_error(format!("{e:?}")))?;
+    // Creating a node sweeps dead nodes' resources.
+    remove_unfinished_segments();
     let node = NodeBuilder::new()
         .name(&name)
         .create::<ipc::Service>()
@@ -627,6 +629,43 @@ pub fn node(process: &str) -> Result<Node<ipc::Service>, TransportError> {
     // arrives while a publisher is blocked on backpressure is seen by `termination_requested`.
     let _ = node.wait(Duration::ZERO);
     Ok(node)
+}
+
+/// Removes the resources of dead processes from every service (their ports would otherwise block
+/// the living on full buffers); the number of dead nodes cleaned up.
+pub fn cleanup_dead_nodes(node: &Node<ipc::Service>) -> u64 {
+    remove_unfinished_segments();
+    node.try_cleanup_dead_nodes().cleanups
+}
+
+/// A segment at size zero older than this is no creation in progress (that takes microseconds).
+const UNFINISHED_SEGMENT_AGE: Duration = Duration::from_secs(10);
+
+/// Removes iceoryx2 shared-memory segments that a process killed between creating and sizing them
+/// left at size zero. iceoryx2 0.10's dead-node sweep waits, without a timeout, for such a segment
+/// to be initialised (`posix_shared_memory::open_impl` on `MappingSizeIsZero`), so one such
+/// leftover would hang every later node creation on the host. Found by the chaos test.
+fn remove_unfinished_segments() {
+    let prefix = iceoryx2::config::Config::global_config()
+        .global
+        .prefix
+        .to_string();
+    let Ok(entries) = std::fs::read_dir("/dev/shm") else {
+        return;
+    };
+    for entry in entries.flatten() {
+        let unfinished = entry.file_name().to_string_lossy().starts_with(&prefix)
+            && entry.metadata().is_ok_and(|m| {
+                m.len() == 0
+                    && m.modified()
+                        .ok()
+                        .and_then(|at| at.elapsed().ok())
+                        .is_some_and(|age| age > UNFINISHED_SEGMENT_AGE)
+            });
+        if unfinished && std::fs::remove_file(entry.path()).is_ok() {
+            tracing::warn!(path = %entry.path().display(), "removed an iceoryx2 segment a killed process left unfinished");
+        }
+    }
 }
 
 /// Set once a termination request was seen: iceoryx2's signal state forgets a signal once read.
