@@ -602,6 +602,14 @@ fn a_replay_sample_lost_with_a_killed_store_is_sent_again_to_its_successor() {
     );
 }
 
+/// Meta-training long enough (one outer step per meta-epoch, a checkpoint every 100) for a test to
+/// kill or stop the meta-learner mid-way, whatever the machine's speed.
+const LONG_META_TRAINING: [&str; 3] = [
+    "meta.meta_epochs=3000",
+    "meta.outer_steps_per_meta_epoch=1",
+    "meta.checkpoint_every=100",
+];
+
 #[test]
 fn killed_actor_store_and_meta_learner_are_restarted_and_nothing_is_lost_unaccounted() {
     let dir = run_dir("e2e-kill-");
@@ -611,13 +619,8 @@ fn killed_actor_store_and_meta_learner_are_restarted_and_nothing_is_lost_unaccou
     let launcher = launch(
         dir.path(),
         &run,
-        &[
-            "collect.transitions=600000",
-            "meta.meta_epochs=3000",
-            // One outer step per meta-epoch: a pass over 300 000 support shots would be 18 750.
-            "meta.outer_steps_per_meta_epoch=1",
-            "meta.checkpoint_every=100",
-        ],
+        // One outer step per meta-epoch: a pass over 300 000 support shots would be 18 750.
+        &[&["collect.transitions=600000"][..], &LONG_META_TRAINING].concat(),
     );
 
     // The store, mid-collection.
@@ -722,12 +725,10 @@ fn stopped_actor_store_and_meta_learner_are_taken_for_hung_and_restarted() {
         dir.path(),
         &run,
         &[
-            "run.hang_timeout_seconds=10",
-            "collect.transitions=600000",
-            "meta.meta_epochs=3000",
-            "meta.outer_steps_per_meta_epoch=1",
-            "meta.checkpoint_every=100",
-        ],
+            &["run.hang_timeout_seconds=10", "collect.transitions=600000"][..],
+            &LONG_META_TRAINING,
+        ]
+        .concat(),
     );
     // SIGSTOP: the process stays, holds its ports and answers nothing, as a deadlocked one would.
     let stop = |needles: &[&str], process: &str| {
@@ -793,17 +794,16 @@ fn chaos(seed: u64, kills: usize) {
     let run = dir.path().join("run");
     let run_arg = run.display().to_string();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    // LONG_META_TRAINING's meta-epochs and checkpoint interval.
     let (meta_epochs, every) = (3000, 100);
     let launcher = launch(
         dir.path(),
         &run,
         &[
-            "run.max_restarts=100",
-            "collect.transitions=400000",
-            &format!("meta.meta_epochs={meta_epochs}"),
-            "meta.outer_steps_per_meta_epoch=1",
-            &format!("meta.checkpoint_every={every}"),
-        ],
+            &["run.max_restarts=100", "collect.transitions=400000"][..],
+            &LONG_META_TRAINING,
+        ]
+        .concat(),
     );
     let mut killed = Vec::new();
     let mut kill = |role: &'static str, pid: i32| {

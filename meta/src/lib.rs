@@ -53,7 +53,7 @@ pub mod pretrain;
 pub mod process;
 pub mod reproduce;
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use uavmeta_actors::collect::CollectError;
 use uavmeta_learner::batch::BatchError;
@@ -106,4 +106,22 @@ pub enum MetaError {
     Train(#[from] TrainError),
     #[error(transparent)]
     Torch(#[from] tch::TchError),
+}
+
+/// Creates `dir` and its parents, naming it on failure.
+pub(crate) fn create_dir(dir: &Path) -> Result<(), MetaError> {
+    std::fs::create_dir_all(dir).map_err(|source| MetaError::Io {
+        path: dir.to_path_buf(),
+        action: "create",
+        source,
+    })
+}
+
+/// Writes `text` to `path`, naming it on failure.
+pub(crate) fn write_file(path: &Path, text: &str) -> Result<(), MetaError> {
+    std::fs::write(path, text).map_err(|source| MetaError::Io {
+        path: path.to_path_buf(),
+        action: "write",
+        source,
+    })
 }

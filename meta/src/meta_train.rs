@@ -36,7 +36,7 @@ use uavmeta_proto::dataset::{self, DatasetReader};
 use uavmeta_proto::transport::Method;
 
 use crate::maml::{Maml, MamlConfig, MetaEpoch, MetaTask};
-use crate::MetaError;
+use crate::{create_dir, write_file, MetaError};
 
 /// One meta-training run.
 pub struct MetaTrainOptions<'a> {
@@ -292,22 +292,6 @@ fn start_or_resume(
             Ok((Maml::resume(w0, maml, &path)?, epoch))
         }
     }
-}
-
-fn create_dir(dir: &Path) -> Result<(), MetaError> {
-    std::fs::create_dir_all(dir).map_err(|source| MetaError::Io {
-        path: dir.to_path_buf(),
-        action: "create",
-        source,
-    })
-}
-
-fn write_file(path: &Path, text: &str) -> Result<(), MetaError> {
-    std::fs::write(path, text).map_err(|source| MetaError::Io {
-        path: path.to_path_buf(),
-        action: "write",
-        source,
-    })
 }
 
 fn progress_bar(enabled: bool, len: u64) -> ProgressBar {

@@ -15,7 +15,8 @@ use super::claims::{
 };
 use super::plot::{self, Band, Bar, LineChart, Reference, Series, TrajectoryChart};
 use super::runs::{InitKey, InitKind, Method, RunKey, SeedResult};
-use super::{rain_tasks, write_file, Experiment, HeuristicRef};
+use super::{rain_tasks, Experiment, HeuristicRef};
+use crate::write_file;
 use crate::MetaError;
 
 /// The paper reads convergence off at epoch 40 (CQL-MAML) and 100 (CQL); figure 9 at 100 and 200.

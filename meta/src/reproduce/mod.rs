@@ -37,7 +37,7 @@ use uavmeta_actors::rollout::evaluate;
 use uavmeta_proto::config::{Config, InnerLoss, TaskConfig, TaskRole};
 use uavmeta_proto::stats::PolicyMetrics;
 
-use crate::MetaError;
+use crate::{create_dir, write_file, MetaError};
 use claims::Claim;
 use runs::{InitKey, InitKind, Method, Plan, SeedResult};
 
@@ -510,22 +510,6 @@ fn for_each_seed<I: Sync, R: Send>(
         .iter()
         .map(|_| results.by_ref().take(items.len()).collect())
         .collect())
-}
-
-pub(super) fn create_dir(dir: &Path) -> Result<(), MetaError> {
-    std::fs::create_dir_all(dir).map_err(|source| MetaError::Io {
-        path: dir.to_path_buf(),
-        action: "create",
-        source,
-    })
-}
-
-fn write_file(path: &Path, text: &str) -> Result<(), MetaError> {
-    std::fs::write(path, text).map_err(|source| MetaError::Io {
-        path: path.to_path_buf(),
-        action: "write",
-        source,
-    })
 }
 
 #[cfg(test)]

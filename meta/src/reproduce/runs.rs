@@ -24,10 +24,10 @@ use uavmeta_proto::config::{
 use uavmeta_proto::dataset::DatasetReader;
 use uavmeta_proto::stats::PolicyMetrics;
 
-use super::{create_dir, Experiment};
+use super::Experiment;
 use crate::meta_test::{fine_tune, load_shots, FineTune};
 use crate::meta_train::{algorithm_name, dataset_path, load_tasks, meta_train, MetaTrainOptions};
-use crate::{pretrain, MetaError};
+use crate::{create_dir, pretrain, MetaError};
 
 /// The paper's four methods on an unseen task, and the multi-task baseline CQL-pretrain.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
