@@ -15,9 +15,10 @@
 //!
 //! The receiving side is this process: it subscribes to the task's transition service exactly as
 //! the store does (`proto::transport`), but only counts, so the figures are the transport's, not
-//! the dataset writer's. Run: `cargo bench --bench transport` (prints Markdown tables); arguments
-//! pick sections (`floor`, `policies`, `actors`) and `ACTORSxBATCH` (e.g. `-- 1x64`) only those
-//! actor cases.
+//! the dataset writer's; it acknowledges every batch as the store does (`StoreAck`), so actors keep
+//! what they keep in a run. Run: `cargo bench --bench transport` (prints Markdown tables);
+//! arguments pick sections (`floor`, `policies`, `keep`, `actors`) and `ACTORSxBATCH` (e.g.
+//! `-- 1x64`) only those actor cases. `keep` measures what `run.keep_until_stored` costs an actor.
 
 use std::process::{Child, Command, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -32,7 +33,7 @@ use uavmeta_actors::rollout::{episode_seed, run_episode, Policy};
 use uavmeta_actors::world::World;
 use uavmeta_proto::config::Config;
 use uavmeta_proto::transport::{
-    self, RunDir, ServiceNames, TransitionPublisher, TransitionSlot, OBS_CAPACITY,
+    self, RunDir, ServiceNames, StoreAck, TransitionPublisher, TransitionSlot, SCHEMA_VERSION,
 };
 
 const BIN: &str = env!("CARGO_BIN_EXE_uavmeta");
@@ -126,17 +127,7 @@ fn rollout_steps<'c>(
 ) -> impl FnMut() -> usize + 'c {
     let task = &config.tasks[0];
     let mut rollout = Rollout::new(config, task, behaviour(config, spec), 0);
-    let empty = TransitionSlot {
-        episode: 0,
-        step: 0,
-        reward: 0.0,
-        action: 0,
-        truncated: 0,
-        reserved: 0,
-        obs: [0; OBS_CAPACITY],
-        next_obs: [0; OBS_CAPACITY],
-    };
-    let mut slots = vec![empty; batch];
+    let mut slots = vec![TransitionSlot::default(); batch];
     move || {
         for _ in 0..RAW_STEPS / batch {
             for slot in slots.iter_mut() {
@@ -169,14 +160,14 @@ struct BenchRun {
 }
 
 impl BenchRun {
-    fn new(batch: usize) -> Self {
+    fn new(batch: usize, keep_until_stored: bool) -> Self {
         let dir = tempfile::Builder::new()
             .prefix("uavmeta-bench-")
             .tempdir()
             .expect("temp dir");
         let run = RunDir::create(&dir.path().join("run")).expect("run dir");
         let text = format!(
-            "[[tasks]]\nname = \"bench\"\nlambda = 300.0\nrole = \"meta-test\"\n[collect]\ntransitions = 1000000000\n[run]\nbatch_size = {batch}\n"
+            "[[tasks]]\nname = \"bench\"\nlambda = 300.0\nrole = \"meta-test\"\n[collect]\ntransitions = 1000000000\n[run]\nbatch_size = {batch}\nkeep_until_stored = {keep_until_stored}\n"
         );
         std::fs::write(run.config_file(), &text).expect("config");
         let config = Config::load(&run.config_file(), &[]).expect("valid bench config");
@@ -199,7 +190,7 @@ impl BenchRun {
 /// environment takes to make the batch (`step` per transition), so the subscriber has taken the
 /// previous batch, as it has in an actor. Best of `RAW_REPEATS` rounds.
 fn send_floor(batch: usize, step: Duration) -> Duration {
-    let bench = BenchRun::new(batch);
+    let bench = BenchRun::new(batch, true);
     let stop = AtomicBool::new(false);
     let subscribed = AtomicBool::new(false);
     std::thread::scope(|scope| {
@@ -253,20 +244,37 @@ fn send_floor(batch: usize, step: Duration) -> Duration {
     })
 }
 
-/// The best of `CASE_REPEATS` runs of [`run_case`].
+/// The best of `CASE_REPEATS` runs of [`run_case`] with the default `run.keep_until_stored`.
 fn best_case(actors: usize, batch: usize, policy: &PolicySpec) -> Figures {
     (0..CASE_REPEATS)
-        .map(|_| run_case(actors, batch, policy))
+        .map(|_| run_case(actors, batch, policy, true))
         .min_by(|a, b| a.cpu_per_transition.total_cmp(&b.cpu_per_transition))
         .expect("runs")
 }
 
-fn run_case(actors: usize, batch: usize, policy: &PolicySpec) -> Figures {
-    let bench = BenchRun::new(batch);
+/// One random-policy actor's CPU per transition at `batch` with `run.keep_until_stored` on and
+/// off, best of `CASE_REPEATS` runs each, taking turns so that interference hits both alike.
+fn keep_cost(batch: usize) -> (f64, f64) {
+    let (mut on, mut off) = (f64::INFINITY, f64::INFINITY);
+    for _ in 0..CASE_REPEATS {
+        on = on.min(run_case(1, batch, &PolicySpec::Random, true).cpu_per_transition);
+        off = off.min(run_case(1, batch, &PolicySpec::Random, false).cpu_per_transition);
+    }
+    (on, off)
+}
+
+fn run_case(actors: usize, batch: usize, policy: &PolicySpec, keep_until_stored: bool) -> Figures {
+    let bench = BenchRun::new(batch, keep_until_stored);
     let (run, config) = (&bench.run, &bench.config);
     let node = transport::node("transport-bench").expect("node");
     let service = bench.service(&node);
     let subscriber = transport::transition_subscriber(&service, &config.run).expect("subscriber");
+    // Acknowledged like the store does, after every batch, so actors keep what they would.
+    let names = ServiceNames::new(run);
+    let acks = transport::ack_publisher(
+        &transport::ack_service(&node, &names, "bench", &config.run).expect("ack service"),
+    )
+    .expect("ack publisher");
 
     let n = per_actor(batch);
     let children: Vec<Child> = (0..actors)
@@ -317,6 +325,14 @@ fn run_case(actors: usize, batch: usize, policy: &PolicySpec) -> Figures {
                 let header = sample.user_header();
                 latencies.push(header.age_seconds());
                 received += sample.payload().len() as u64;
+                let ack = StoreAck {
+                    schema_version: SCHEMA_VERSION,
+                    task: 0,
+                    actor: header.actor,
+                    reserved: 0,
+                    next_seq: header.first_seq + header.count as u64,
+                };
+                transport::acknowledge(&acks, ack).expect("acknowledge");
                 first.get_or_insert_with(Instant::now);
                 let i = ids
                     .iter()
@@ -338,6 +354,18 @@ fn run_case(actors: usize, batch: usize, policy: &PolicySpec) -> Figures {
         cpu += run_time(child.id()) - start;
         measured += count;
     }
+    // Every actor waits for the acknowledgement of its last batch before exiting; repeated here
+    // as the store repeats them, since other actors' acknowledgements may have overwritten it.
+    for &actor in &ids {
+        let ack = StoreAck {
+            schema_version: SCHEMA_VERSION,
+            task: 0,
+            actor,
+            reserved: 0,
+            next_seq: n,
+        };
+        transport::acknowledge(&acks, ack).expect("acknowledge");
+    }
     for mut child in children {
         let _ = child.wait();
     }
@@ -355,7 +383,7 @@ fn main() {
         .skip(1)
         .filter(|a| !a.starts_with('-'))
         .collect();
-    const SECTIONS: [&str; 3] = ["floor", "policies", "actors"];
+    const SECTIONS: [&str; 4] = ["floor", "policies", "keep", "actors"];
     let (actor_counts, batches) = ([1, 2, 4], [1, 64, 1024]);
     let all_cases: Vec<String> = actor_counts
         .iter()
@@ -436,6 +464,21 @@ fn main() {
                 1e9 / rates[1],
                 per_transition * 1e9,
                 100.0 * (per_transition * rates[0] - 1.0)
+            );
+        }
+        println!();
+    }
+
+    if section("keep") {
+        println!("| batch (1 random actor) | actor CPU per transition, keep_until_stored on | off | cost of keeping |");
+        println!("| ---: | ---: | ---: | ---: |");
+        for batch in [64, 1024] {
+            let (on, off) = keep_cost(batch);
+            println!(
+                "| {batch} | {:.1} ns | {:.1} ns | {:+.1}% |",
+                on * 1e9,
+                off * 1e9,
+                100.0 * (on / off - 1.0)
             );
         }
         println!();

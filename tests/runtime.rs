@@ -273,12 +273,36 @@ fn launch(dir: &Path, run: &Path, overrides: &[&str]) -> Proc {
     Proc::spawn("launch", &args)
 }
 
+/// `metric` summed over the final metrics of every actor of the run.
+fn actors_total(run: &Path, metric: &str) -> f64 {
+    actor_names(run)
+        .iter()
+        .map(|a| metrics::sum(&snapshot(run, a), metric, &[]))
+        .sum()
+}
+
+/// The actors that wrote a final metrics snapshot.
 fn actor_names(run: &Path) -> Vec<String> {
-    std::fs::read_dir(run.join("metrics"))
-        .expect("metrics dir")
-        .filter_map(|e| e.ok()?.path().file_stem()?.to_str().map(str::to_string))
-        .filter(|n| n.starts_with("actor-"))
-        .collect()
+    actor_files(&run.join("metrics"), "prom")
+}
+
+/// The actors named by the files of extension `extension` in `dir`. Files being written
+/// atomically (`transport::write_atomic`'s `<name>.tmp.<pid>`) have another extension, so a name
+/// is only taken once its file is complete.
+fn actor_files(dir: &Path, extension: &str) -> Vec<String> {
+    std::fs::read_dir(dir)
+        .map(|d| {
+            d.filter_map(|e| {
+                let path = e.ok()?.path();
+                if path.extension()? != extension {
+                    return None;
+                }
+                path.file_stem()?.to_str().map(str::to_string)
+            })
+            .filter(|n| n.starts_with("actor-"))
+            .collect()
+        })
+        .unwrap_or_default()
 }
 
 #[test]
@@ -298,21 +322,17 @@ fn a_small_launch_completes_and_accounts_for_every_transition() {
     }
 
     let store = snapshot(&run, "store");
-    let published: f64 = actor_names(&run)
-        .iter()
-        .map(|a| {
-            metrics::sum(
-                &snapshot(&run, a),
-                "uavmeta_actor_transitions_published_total",
-                &[],
-            )
-        })
-        .sum();
+    let published = actors_total(&run, "uavmeta_actor_transitions_published_total");
+    let resent = actors_total(&run, "uavmeta_actor_transitions_resent_total");
     let stored = metrics::sum(&store, "uavmeta_store_transitions_stored_total", &[]);
     let dropped = metrics::sum(&store, "uavmeta_store_transitions_dropped_total", &[]);
     let missing = metrics::sum(&store, "uavmeta_store_transitions_missing_total", &[]);
     assert!(published >= 3.0 * 300.0, "published {published}");
-    assert_eq!(published, stored + dropped, "published = stored + dropped");
+    assert_eq!(
+        published + resent,
+        stored + dropped,
+        "published + resent = stored + dropped"
+    );
     assert_eq!(missing, 0.0);
     assert_eq!(
         metrics::sum(
@@ -470,18 +490,9 @@ fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
         .values()
         .all(|s| s[0] == 0 && missing_in_files(&BTreeMap::from([(0, s.clone())])) == 0));
     let store = snapshot(&run, "store");
-    let published: f64 = actor_names(&run)
-        .iter()
-        .map(|a| {
-            metrics::sum(
-                &snapshot(&run, a),
-                "uavmeta_actor_transitions_published_total",
-                &[],
-            )
-        })
-        .sum();
     assert_eq!(
-        published,
+        actors_total(&run, "uavmeta_actor_transitions_published_total")
+            + actors_total(&run, "uavmeta_actor_transitions_resent_total"),
         metrics::sum(&store, "uavmeta_store_transitions_stored_total", &[])
             + metrics::sum(&store, "uavmeta_store_transitions_dropped_total", &[])
     );
@@ -489,13 +500,7 @@ fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
 
 /// Actors whose port file exists: the running ones.
 fn actor_names_live(run: &Path) -> Vec<String> {
-    std::fs::read_dir(run.join("ports"))
-        .map(|d| {
-            d.filter_map(|e| e.ok()?.path().file_stem()?.to_str().map(str::to_string))
-                .filter(|n| n.starts_with("actor-"))
-                .collect()
-        })
-        .unwrap_or_default()
+    actor_files(&run.join("ports"), "port")
 }
 
 /// The pid of the launched child whose command line contains all of `needles`.
@@ -597,9 +602,89 @@ fn a_replay_sample_lost_with_a_killed_store_is_sent_again_to_its_successor() {
     );
     let actor_metrics = snapshot(&run, &actor_names(&run)[0]);
     assert!(
-        metrics::sum(&actor_metrics, "uavmeta_actor_samples_resent_total", &[]) >= 1.0,
+        metrics::sum(&actor_metrics, "uavmeta_actor_store_changes_total", &[]) >= 1.0,
         "the resend is counted"
     );
+}
+
+/// A rollout cannot be replayed, so an actor keeps every batch until the store acknowledges it
+/// appended it: batches a killed store held unwritten go to its successor, nothing is missing,
+/// and the actor ends only once its last transition is stored.
+#[test]
+fn a_rollout_held_by_a_killed_store_is_sent_again_to_its_successor() {
+    let dir = run_dir("e2e-rollout-resend-");
+    let run = dir.path().join("run");
+    let run_arg = run.display().to_string();
+    let first = start_store(dir.path(), &run, &["collect.transitions=100000"]);
+    // Stopped, the store takes batches into its queue (64 batches of 16) but never writes them.
+    first.signal(libc::SIGSTOP);
+    let sent = 800u64;
+    let actor = Proc::spawn(
+        "actor",
+        &[
+            "actor".into(),
+            "--run".into(),
+            run_arg.clone(),
+            "--task".into(),
+            "lambda-100".into(),
+            "--transitions".into(),
+            sent.to_string(),
+        ],
+    );
+    let live = |metric: &str| {
+        actor_names_live(&run)
+            .first()
+            .map_or(0.0, |name| metrics::sum(&scrape(&run, name), metric, &[]))
+    };
+    wait_until("the rollout sent", Duration::from_secs(120), || {
+        live("uavmeta_actor_transitions_published_total") == sent as f64
+    });
+    assert_eq!(
+        live("uavmeta_actor_transitions_unacknowledged"),
+        sent as f64,
+        "the actor keeps what the stopped store has not acknowledged"
+    );
+    first.signal(libc::SIGKILL);
+    let killed = first.wait(Duration::from_secs(30));
+    assert!(!killed.status.success());
+    assert!(
+        dataset_seqs(&run)
+            .get("lambda-100")
+            .is_none_or(BTreeMap::is_empty),
+        "the stopped store wrote part of the rollout"
+    );
+
+    let second = Proc::spawn("store", &["store".into(), "--run".into(), run_arg.clone()]);
+    // The actor ends by itself once the new store has acknowledged everything.
+    let actor = actor.wait(Duration::from_secs(60));
+    assert!(actor.status.success(), "{}", stderr(&actor));
+    let seqs = dataset_seqs(&run);
+    let per_actor = &seqs["lambda-100"];
+    assert_eq!(per_actor.len(), 1, "{per_actor:?}");
+    let stored = per_actor.values().next().expect("the actor's transitions");
+    assert_eq!(*stored, (0..sent).collect::<Vec<u64>>());
+    second.signal(libc::SIGTERM);
+    let second = second.wait(Duration::from_secs(30));
+    assert!(second.status.success(), "{}", stderr(&second));
+    let store = snapshot(&run, "store");
+    assert_eq!(
+        metrics::sum(&store, "uavmeta_store_transitions_missing_total", &[]),
+        0.0
+    );
+    let actor_metrics = snapshot(&run, &actor_names(&run)[0]);
+    for (metric, expected) in [
+        ("uavmeta_actor_transitions_published_total", sent as f64),
+        ("uavmeta_actor_transitions_resent_total", sent as f64),
+        ("uavmeta_actor_transitions_lost_total", 0.0),
+        ("uavmeta_actor_transitions_unacknowledged", 0.0),
+    ] {
+        assert_eq!(
+            metrics::sum(&actor_metrics, metric, &[]),
+            expected,
+            "{metric}"
+        );
+    }
+    assert!(metrics::sum(&actor_metrics, "uavmeta_actor_store_changes_total", &[]) >= 1.0);
 }
 
 /// Meta-training long enough (one outer step per meta-epoch, a checkpoint every 100) for a test to
@@ -683,7 +768,7 @@ fn killed_actor_store_and_meta_learner_are_restarted_and_nothing_is_lost_unaccou
 }
 
 /// Every dataset file of a finished run reads back, holds `per_task` transitions, each once, and
-/// what it lacks is what the last store counted as missing.
+/// lacks none: the store counted nothing missing, and the files agree.
 fn assert_every_transition_accounted(run: &Path, per_task: usize) {
     let store = snapshot(run, "store");
     let seqs = dataset_seqs(run);
@@ -703,6 +788,8 @@ fn assert_every_transition_accounted(run: &Path, per_task: usize) {
             counted,
             "{task}: missing transitions vs the store's count"
         );
+        // Actors keep what a store has not acknowledged and send it to the store's successor.
+        assert_eq!(counted, 0.0, "{task}: transitions lost with a killed store");
     }
 }
 
@@ -786,7 +873,7 @@ fn live_children(run_arg: &str) -> Vec<(&'static str, i32)> {
 /// (the store and the meta-learner among them), each once meta-training has passed a seeded w0
 /// checkpoint, so every kill lands while the run is under way however fast or slow the machine.
 /// The launcher restarts each; afterwards the run ends with its table and every transition is
-/// stored once or counted missing.
+/// stored exactly once.
 fn chaos(seed: u64, kills: usize) {
     use rand::seq::index::sample;
     use rand::{Rng, SeedableRng};

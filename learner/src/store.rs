@@ -9,8 +9,10 @@
 //! crash lost (the batches in its buffer).
 //!
 //! **Durability.** Each received batch becomes one chunk of the crash-safe dataset format and is
-//! flushed to the operating system before the next batch is read, so killing the store loses
-//! only what its buffer held. A dataset is fsynced before it is announced.
+//! flushed to the operating system before the next batch is read, and then acknowledged to the
+//! task's actors ([`StoreAck`]: per actor, the next number not yet stored). Killing the store
+//! loses only what its buffer held, and the actors send that again to its successor. A dataset is
+//! fsynced before it is announced.
 //!
 //! **Size.** A task's file holds exactly `collect.transitions` transitions; later ones are dropped
 //! as surplus. With one actor per task the file is therefore the same bytes for the same config
@@ -28,7 +30,7 @@ use uavmeta_proto::dataset::{
     DatasetError, DatasetHeader, DatasetReader, DatasetWriter, Transition,
 };
 use uavmeta_proto::transport::{
-    self, DatasetReady, RunDir, ServiceNames, TransportError, SCHEMA_VERSION,
+    self, DatasetReady, RunDir, ServiceNames, StoreAck, TransportError, SCHEMA_VERSION,
 };
 
 use crate::metrics::{MetricsError, MetricsServer};
@@ -38,6 +40,9 @@ pub const PROCESS: &str = "store";
 
 /// How long the loop sleeps when no batch arrived; bounds the added latency when idle.
 const IDLE_WAIT: Duration = Duration::from_micros(200);
+
+/// Interval between repeats of every actor's acknowledgement (`TaskStore::acknowledge_all`).
+const ACK_REFRESH_EVERY: Duration = Duration::from_millis(100);
 
 /// Interval between sweeps for dead processes' iceoryx2 resources: a dead subscriber of a control
 /// service would otherwise hold a full buffer.
@@ -125,7 +130,33 @@ struct TaskStore {
     writer: DatasetWriter,
     /// Per actor, the next sequence number not yet stored.
     next_seq: HashMap<u32, u64>,
+    /// Tells the task's actors what is stored, so that they send it again only if it is not.
+    acks: iceoryx2::port::publisher::Publisher<ipc::Service, StoreAck, ()>,
     announced: bool,
+}
+
+impl TaskStore {
+    /// Tells `actor` that every number below `next_seq` is stored.
+    fn acknowledge(&self, actor: u32, next_seq: u64) -> Result<(), TransportError> {
+        transport::acknowledge(
+            &self.acks,
+            StoreAck {
+                schema_version: SCHEMA_VERSION,
+                task: self.id,
+                actor,
+                reserved: 0,
+                next_seq,
+            },
+        )
+    }
+
+    /// Repeats every actor's acknowledgement: one an actor missed (its buffer overflowed) is
+    /// made good, and a restarted store tells actors what its file already holds.
+    fn acknowledge_all(&self) -> Result<(), TransportError> {
+        self.next_seq
+            .iter()
+            .try_for_each(|(&actor, &next)| self.acknowledge(actor, next))
+    }
 }
 
 /// What a store run did, for its log line.
@@ -151,7 +182,9 @@ pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
     let mut tasks = Vec::with_capacity(config.tasks.len());
     let mut subscribers = Vec::with_capacity(config.tasks.len());
     for (id, task) in config.tasks.iter().enumerate() {
-        let store = open_task(run, config, &task.name, id as u32, &metrics)?;
+        let acks = transport::ack_service(&node, &names, &task.name, &config.run)?;
+        let acks = transport::ack_publisher(&acks)?;
+        let store = open_task(run, config, &task.name, id as u32, acks, &metrics)?;
         let service = transport::transition_service(&node, &names, &task.name, &config.run)?;
         subscribers.push(transport::transition_subscriber(&service, &config.run)?);
         tasks.push(store);
@@ -181,6 +214,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
     let mut buffer = Vec::with_capacity(config.run.batch_size);
     let mut idle = false;
     let mut last_cleanup = Instant::now();
+    let mut last_ack_refresh = Instant::now();
     while transport::keep_running(&node, if idle { IDLE_WAIT } else { Duration::ZERO }) {
         transport::serve_history(&ready)?;
         if transport::shutdown_requested(&shutdown)? {
@@ -197,6 +231,10 @@ pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
             &mut buffer,
             &mut summary,
         )? == 0;
+        if last_ack_refresh.elapsed() >= ACK_REFRESH_EVERY {
+            tasks.iter().try_for_each(TaskStore::acknowledge_all)?;
+            last_ack_refresh = Instant::now();
+        }
         if last_cleanup.elapsed() >= CLEANUP_EVERY {
             transport::cleanup_dead_nodes(&node);
             last_cleanup = Instant::now();
@@ -233,6 +271,7 @@ fn open_task(
     config: &Config,
     name: &str,
     id: u32,
+    acks: iceoryx2::port::publisher::Publisher<ipc::Service, StoreAck, ()>,
     metrics: &metrics::StoreMetrics,
 ) -> Result<TaskStore, StoreError> {
     let path = run.dataset(config.task(name)?);
@@ -290,6 +329,7 @@ fn open_task(
         id,
         writer,
         next_seq,
+        acks,
         announced: false,
     })
 }
@@ -370,6 +410,7 @@ fn drain(
                     buffer.push(slot.to_transition(&header, i));
                 }
             }
+            let acknowledged = *next;
             drop(sample);
             metrics
                 .transitions_dropped
@@ -397,6 +438,7 @@ fn drain(
                     .set(task.writer.transitions() as i64);
                 summary.stored += buffer.len() as u64;
             }
+            task.acknowledge(header.actor, acknowledged)?;
             announce_if_complete(task, target, ready, metrics)?;
         }
     }

@@ -582,7 +582,7 @@ impl Supervisor<'_> {
             c.failures += 1;
             // The dead child's ports still sit in the services; remove them before anyone
             // (its successor included) waits on them.
-            transport::cleanup_dead_nodes(&node);
+            transport::cleanup_dead_nodes(node);
             if c.failures > self.max_restarts {
                 return Err(LaunchError::GaveUp {
                     name: c.name.clone(),

@@ -259,7 +259,7 @@ pub fn meta_train_with<H: MetaTrainHook>(
 
 /// Whether w0 is checkpointed after meta-epoch `epoch`.
 fn is_checkpoint_epoch(meta: &MetaConfig, epoch: usize) -> bool {
-    epoch % meta.checkpoint_every == 0 || epoch == meta.meta_epochs
+    epoch.is_multiple_of(meta.checkpoint_every) || epoch == meta.meta_epochs
 }
 
 /// A new MAML from the init of `opts.seed`, or, with `opts.resume`, the one saved with the

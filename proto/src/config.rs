@@ -506,6 +506,13 @@ pub struct RunConfig {
     pub subscriber_buffer: usize,
     /// Publishers (actors) a transition service admits.
     pub max_publishers: usize,
+    /// A rollout actor keeps a copy of every batch until the store acknowledges it appended, and
+    /// sends what is unacknowledged again to a store that replaced a killed one, so a store crash
+    /// loses nothing. `false` keeps a copy only until the store is proven connected: cheaper for
+    /// the actor (docs/BENCHMARKS.md, Transport), but a killed store's unwritten batches are then
+    /// lost (counted as missing). A replay sample (`dqn-online`) is always sent again from the
+    /// acknowledged number, since it needs no copy.
+    pub keep_until_stored: bool,
     /// Restarts of a crashed or hung child before the launcher gives up.
     pub max_restarts: u32,
     /// A launched child whose heartbeat (`transport::heartbeat`) has not moved for this many
@@ -528,6 +535,7 @@ impl Default for RunConfig {
             batch_size: 64,
             subscriber_buffer: 64,
             max_publishers: 64,
+            keep_until_stored: true,
             max_restarts: 5,
             hang_timeout_seconds: 60.0,
             control_buffer: 256,

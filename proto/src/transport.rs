@@ -15,17 +15,23 @@
 //! holding its written batch until then, since iceoryx2 0.10 drops a batch sent to nobody. A send
 //! can still report no recipient ([`Delivery::recipients`]) although the store is subscribed:
 //! iceoryx2 connects a subscriber to a new publisher only when the subscriber next looks for data,
-//! and a batch sent into its full queue before that is dropped. So an actor keeps a copy of each
-//! batch, and sends it again, until more batches than the queue holds
-//! ([`TransitionPublisher::subscriber_buffer`]) have reached the same subscribers: the store has
-//! then taken some, so it is connected.
-//! After that the only loss is a store that goes away: what it held unwritten, and the batch being
-//! sent, are lost, the actor counts that batch, and the restarted store counts all of it as
-//! missing from the actors' sequence numbers (an actor publishing a fixed replay sample sends it
-//! all again instead, see `actors::actor_process`). Transition services keep no history: in iceoryx2
-//! 0.10 a subscriber that joins a publisher with history gets that history into its buffer and
-//! afterwards the blocking publisher silently loses batches (measured: 39 296 of 43 456
-//! transitions of one actor).
+//! and a batch sent into its full queue before that is dropped. So an actor keeps a copy of what
+//! it sent and sends it again under the same numbers when a send reaches nobody.
+//!
+//! **Acknowledgements.** A store that goes away loses the batches its queue held unwritten. So the
+//! store acknowledges what it has appended ([`StoreAck`], one service per task,
+//! `uavmeta/<run>/acks/<task>`): per actor, every sequence number below `next_seq` is in the
+//! dataset file. An actor keeps what is not yet acknowledged and, when the store is replaced,
+//! sends it again from the acknowledged number, in order; the new store drops what the dead one
+//! had written as duplicates (see `actors::actor_process`, and `run.keep_until_stored` for the
+//! cheaper choice of keeping a rollout's batches only until the store is proven connected:
+//! more batches than its queue holds ([`TransitionPublisher::subscriber_buffer`]) delivered).
+//! Acknowledgements are cumulative, so their service overwrites the oldest when an actor's buffer
+//! is full rather than ever blocking the store.
+//!
+//! Transition services keep no history: in iceoryx2 0.10 a subscriber that joins a publisher with
+//! history gets that history into its buffer and afterwards the blocking publisher silently loses
+//! batches (measured: 39 296 of 43 456 transitions of one actor).
 //!
 //! **Control** messages ([`DatasetReady`], [`CheckpointReady`], [`Shutdown`]) each have their own
 //! service under `uavmeta/<run>/control/`, with history, so a process that joins late (or
@@ -60,7 +66,7 @@ use crate::config::{Config, InnerLoss, RunConfig, TaskConfig, MAX_DEVICES};
 use crate::dataset::Transition;
 
 /// The version of every payload below and of the service settings; bump it on any change.
-pub const SCHEMA_VERSION: u32 = 2;
+pub const SCHEMA_VERSION: u32 = 3;
 
 /// The service attribute that carries [`SCHEMA_VERSION`].
 pub const SCHEMA_ATTRIBUTE: &str = "uavmeta.schema_version";
@@ -70,6 +76,10 @@ pub const OBS_CAPACITY: usize = 2 + MAX_DEVICES;
 
 /// Subscribers a transition service admits: the store, plus room for a benchmark or a monitor.
 const TRANSITION_SUBSCRIBERS: usize = 4;
+
+/// Acknowledgements an actor's subscriber holds: every actor of a task hears every one, and only
+/// the newest of its own matters.
+const ACK_BUFFER: usize = 16;
 
 /// Processes besides the actors that open a control service: store, meta-learner, evaluator,
 /// launcher, and room for a hand-started one of each.
@@ -119,7 +129,7 @@ pub enum TransportError {
 
 /// The header of one batch of transitions.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
-#[type_name("uavmeta.BatchHeader.v2")]
+#[type_name("uavmeta.BatchHeader.v3")]
 #[repr(C)]
 pub struct BatchHeader {
     pub schema_version: u32,
@@ -236,7 +246,7 @@ pub fn unix_ns() -> u64 {
 /// only the header's `obs_len` entries of each array; readers use
 /// [`to_transition`](Self::to_transition), which reads only those.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("uavmeta.TransitionSlot.v2")]
+#[type_name("uavmeta.TransitionSlot.v3")]
 #[repr(C)]
 pub struct TransitionSlot {
     pub episode: u64,
@@ -253,7 +263,35 @@ pub struct TransitionSlot {
     pub next_obs: [u16; OBS_CAPACITY],
 }
 
+impl Default for TransitionSlot {
+    fn default() -> Self {
+        Self {
+            episode: 0,
+            step: 0,
+            reward: 0.0,
+            action: 0,
+            truncated: 0,
+            reserved: 0,
+            obs: [0; OBS_CAPACITY],
+            next_obs: [0; OBS_CAPACITY],
+        }
+    }
+}
+
 impl TransitionSlot {
+    /// Copies what a writer wrote into `from`: every field and the first `obs_len` entries of
+    /// each observation, about a quarter of the slot at K = 10.
+    #[inline]
+    pub fn copy_written(&mut self, from: &TransitionSlot, obs_len: usize) {
+        self.episode = from.episode;
+        self.step = from.step;
+        self.reward = from.reward;
+        self.action = from.action;
+        self.truncated = from.truncated;
+        self.obs[..obs_len].copy_from_slice(&from.obs[..obs_len]);
+        self.next_obs[..obs_len].copy_from_slice(&from.next_obs[..obs_len]);
+    }
+
     /// Writes the state half of a step: its episode, step index and s(t) (2 + K values,
     /// K <= `MAX_DEVICES`). Called before the step, since stepping overwrites the observation.
     #[inline]
@@ -299,12 +337,27 @@ impl TransitionSlot {
 
 /// The store holds `transitions` transitions of `task`: its dataset file is complete and synced.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
-#[type_name("uavmeta.DatasetReady.v2")]
+#[type_name("uavmeta.DatasetReady.v3")]
 #[repr(C)]
 pub struct DatasetReady {
     pub schema_version: u32,
     pub task: u32,
     pub transitions: u64,
+}
+
+/// The store has appended, and flushed to the operating system, every transition of `actor` on
+/// `task` numbered below `next_seq` (or dropped it as surplus, the dataset being complete). Sent
+/// after every batch; a killed store loses none of it, since the file survives the process.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
+#[type_name("uavmeta.StoreAck.v3")]
+#[repr(C)]
+pub struct StoreAck {
+    pub schema_version: u32,
+    pub task: u32,
+    pub actor: u32,
+    /// Explicit padding, so the layout has no uninitialised bytes.
+    pub reserved: u32,
+    pub next_seq: u64,
 }
 
 /// The method that trained a checkpoint; `u32` on the wire.
@@ -387,7 +440,7 @@ impl fmt::Display for Method {
 
 /// A checkpoint is on disk (written atomically) at [`RunDir::checkpoint`] of these fields.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
-#[type_name("uavmeta.CheckpointReady.v2")]
+#[type_name("uavmeta.CheckpointReady.v3")]
 #[repr(C)]
 pub struct CheckpointReady {
     pub schema_version: u32,
@@ -402,7 +455,7 @@ pub struct CheckpointReady {
 
 /// Every process of the run finishes what it is doing and exits.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
-#[type_name("uavmeta.Shutdown.v2")]
+#[type_name("uavmeta.Shutdown.v3")]
 #[repr(C)]
 pub struct Shutdown {
     pub schema_version: u32,
@@ -424,6 +477,10 @@ impl ServiceNames {
 
     pub fn transitions(&self, task: &str) -> String {
         format!("{}/transitions/{task}", self.prefix)
+    }
+
+    pub fn acks(&self, task: &str) -> String {
+        format!("{}/acks/{task}", self.prefix)
     }
 
     pub fn dataset_ready(&self) -> String {
@@ -717,7 +774,7 @@ pub fn heartbeat() {
     static BEAT: std::sync::OnceLock<Option<Beat>> = std::sync::OnceLock::new();
     let beat = BEAT.get_or_init(|| {
         let path = std::env::var_os(HEARTBEAT_FILE_ENV)?;
-        match std::fs::OpenOptions::new().write(true).create(true).open(&path) {
+        match std::fs::OpenOptions::new().write(true).create(true).truncate(false).open(&path) {
             Ok(file) => Some(Beat {
                 file,
                 last: std::sync::Mutex::new(None),
@@ -987,6 +1044,94 @@ pub fn transition_subscriber(
         })
 }
 
+/// A task's acknowledgement service ([`StoreAck`]).
+pub type AckService = PubSubFactory<ipc::Service, StoreAck, ()>;
+
+/// Opens (or creates) the acknowledgement service of `task`: the store publishes, the task's
+/// actors subscribe.
+pub fn ack_service(
+    node: &Node<ipc::Service>,
+    names: &ServiceNames,
+    task: &str,
+    run: &RunConfig,
+) -> Result<AckService, TransportError> {
+    let service = names.acks(task);
+    let name = service_name(&service)?;
+    node.service_builder(&name)
+        .publish_subscribe::<StoreAck>()
+        // Cumulative: a newer acknowledgement makes an overwritten one worthless, and the store
+        // must never wait on an actor.
+        .enable_safe_overflow(true)
+        .subscriber_max_buffer_size(ACK_BUFFER)
+        .max_publishers(TRANSITION_SUBSCRIBERS)
+        .max_subscribers(run.max_publishers)
+        .max_nodes(run.max_publishers + TRANSITION_SUBSCRIBERS)
+        .open_or_create_with_attributes(&schema_verifier(&service)?)
+        .map_err(|e| open_error(&name, &service, e))
+}
+
+/// The store's publisher of one task's acknowledgements.
+pub fn ack_publisher(
+    service: &AckService,
+) -> Result<Publisher<ipc::Service, StoreAck, ()>, TransportError> {
+    service
+        .publisher_builder()
+        .create()
+        .map_err(|e| TransportError::Service {
+            service: format!("{:?}", service.name()),
+            action: "create a publisher",
+            message: e.to_string(),
+        })
+}
+
+/// An actor's subscriber to its task's acknowledgements.
+pub fn ack_subscriber(
+    service: &AckService,
+) -> Result<Subscriber<ipc::Service, StoreAck, ()>, TransportError> {
+    service
+        .subscriber_builder()
+        .buffer_size(ACK_BUFFER)
+        .create()
+        .map_err(|e| TransportError::Service {
+            service: format!("{:?}", service.name()),
+            action: "create a subscriber",
+            message: e.to_string(),
+        })
+}
+
+/// Publishes one acknowledgement; never blocks (the service overwrites the oldest).
+pub fn acknowledge(
+    publisher: &Publisher<ipc::Service, StoreAck, ()>,
+    ack: StoreAck,
+) -> Result<(), TransportError> {
+    publisher
+        .send_copy(ack)
+        .map(drop)
+        .map_err(|e| TransportError::Service {
+            service: "acks".into(),
+            action: "send an acknowledgement",
+            message: e.to_string(),
+        })
+}
+
+/// The highest acknowledged `next_seq` of `actor` among the acknowledgements waiting, if any.
+pub fn latest_ack(
+    acks: &Subscriber<ipc::Service, StoreAck, ()>,
+    task: u32,
+    actor: u32,
+) -> Result<Option<u64>, TransportError> {
+    let mut latest = None;
+    while let Some(ack) = acks
+        .receive()
+        .map_err(receive_failed("receive an acknowledgement"))?
+    {
+        if ack.schema_version == SCHEMA_VERSION && ack.task == task && ack.actor == actor {
+            latest = latest.max(Some(ack.next_seq));
+        }
+    }
+    Ok(latest)
+}
+
 /// The identities of the subscribers attached to a service, folded into one value that changes
 /// whenever one joins or leaves.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -1085,6 +1230,11 @@ impl<'s> TransitionPublisher<'s> {
         self.batch_size
     }
 
+    /// Entries of each observation array a slot uses (2 + K).
+    pub fn obs_len(&self) -> usize {
+        self.header.obs_len as usize
+    }
+
     /// Which subscribers are attached to the service, a dead store's included until it is cleaned
     /// up: while the set is empty a batch sent now reaches nobody. Compared by identity, not
     /// count: a restarted store that replaced a dead one is new.
@@ -1148,6 +1298,16 @@ pub struct LoanedBatch<'p, 's> {
 }
 
 impl LoanedBatch<'_, '_> {
+    /// The sequence number of the first slot.
+    pub fn first_seq(&self) -> u64 {
+        self.sample.user_header().first_seq
+    }
+
+    /// The slots; each holds stale data until written (see [`TransitionSlot`]).
+    pub fn slots(&self) -> &[TransitionSlot] {
+        self.sample.payload()
+    }
+
     /// The slots to write in place; each holds stale data until written (see [`TransitionSlot`]).
     pub fn slots_mut(&mut self) -> &mut [TransitionSlot] {
         self.sample.payload_mut()

@@ -5,14 +5,12 @@
 //! (`proto::transport`), `run.batch_size` steps per batch, numbered 0, 1, 2, ... by a per-actor
 //! sequence number, and the batch is sent without a further copy. When the store's buffer is full
 //! the actor waits (backpressure); while no store is subscribed it holds its written batch and
-//! sends it once one is; both waits are counted. A batch that iceoryx2 reports delivered to nobody
-//! is sent again under the same numbers: from a copy the actor keeps until the store is proven
-//! connected (`StoreLink`), or, for a replay sample, written again from the sample. With
-//! `dqn-online` (the paper's behaviour policy) the actor first trains an online DQN agent and then
-//! publishes `collect.transitions` transitions sampled from its replay buffer, after saving the
-//! agent's network as the task's `online-dqn` checkpoint (the "online" reference); when the store
-//! changes (a killed store replaced), it sends the whole sample again, since the dead store may
-//! have taken part of it unwritten and a sample, unlike a rollout, has no more data to come.
+//! sends it once one is; both waits are counted. The actor keeps what the store has not yet
+//! acknowledged as appended and sends it again, in order, to a store that replaced a killed one
+//! (`delivery`), so a store crash loses nothing. With `dqn-online` (the paper's behaviour policy)
+//! the actor first trains an online DQN agent and then publishes `collect.transitions`
+//! transitions sampled from its replay buffer, after saving the agent's network as the task's
+//! `online-dqn` checkpoint (the "online" reference).
 //!
 //! An actor's identity is a hash of its task, policy and seed: the same actor restarted (by the
 //! launcher after a crash) makes the same transitions under the same numbers, and the store keeps
@@ -22,6 +20,8 @@
 
 use std::time::{Duration, Instant};
 
+use iceoryx2::node::Node;
+use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_learner::metrics::{MetricsError, MetricsServer};
@@ -29,14 +29,18 @@ use uavmeta_proto::config::{Config, ConfigError, TaskConfig};
 use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::stats::EpisodeMetrics;
 use uavmeta_proto::transport::{
-    self, Method, RunDir, ServiceNames, SubscriberSet, TransitionPublisher, TransitionSlot,
-    TransportError, SCHEMA_VERSION,
+    self, Method, RunDir, ServiceNames, TransitionPublisher, TransitionSlot, TransportError,
+    SCHEMA_VERSION,
 };
 
 use crate::collect::{online_dqn_dataset, CollectError};
 use crate::heuristics::{PolicyError, PolicySpec};
 use crate::rollout::{episode_seed, EpisodeTally, Policy};
 use crate::world::World;
+use delivery::{write_sample, Sender, Sent};
+
+mod delivery;
+mod metrics;
 
 /// How often an actor with nothing to send (no store yet, or its replay sample all sent) looks
 /// for news.
@@ -95,73 +99,6 @@ pub struct ActorSummary {
     pub published: u64,
     pub episodes: u64,
     pub backpressure: Duration,
-}
-
-/// The actor's metrics: every name it exports, in one place. The registry labels them all with
-/// the actor's task and id.
-mod metrics {
-    use std::collections::HashMap;
-
-    use prometheus::{Counter, Gauge, Histogram, IntCounter, Opts, Registry};
-
-    use uavmeta_learner::metrics::{counter, latency_histogram, register};
-
-    pub struct ActorMetrics {
-        pub registry: Registry,
-        pub steps: IntCounter,
-        pub transitions_published: IntCounter,
-        pub batches_resent: IntCounter,
-        pub samples_resent: IntCounter,
-        pub transitions_lost: IntCounter,
-        pub batches_published: IntCounter,
-        pub episodes: IntCounter,
-        pub episode_return: Gauge,
-        pub episode_aoi: Gauge,
-        pub episode_power: Gauge,
-        pub episode_outages: Gauge,
-        pub backpressure_wait: Counter,
-        pub batch_duration: Histogram,
-    }
-
-    impl ActorMetrics {
-        pub fn new(task: &str, actor: u32) -> Self {
-            let labels = HashMap::from([
-                ("task".to_string(), task.to_string()),
-                ("actor".to_string(), format!("{actor:08x}")),
-            ]);
-            let registry = Registry::new_custom(Some("uavmeta".into()), Some(labels))
-                .expect("valid prefix and labels");
-            let gauge = |name: &str, help: &str| {
-                register(
-                    &registry,
-                    Gauge::with_opts(Opts::new(name, help)).expect("valid gauge"),
-                )
-            };
-            Self {
-                steps: counter(&registry, "actor_steps_total", "Environment steps taken (for dqn-online, training steps included)."),
-                transitions_published: counter(&registry, "actor_transitions_published_total", "Transitions delivered to the store's service."),
-                batches_resent: counter(&registry, "actor_batches_resent_total", "Batches sent again because iceoryx2 reported them delivered to no store."),
-                samples_resent: counter(&registry, "actor_samples_resent_total", "Times the replay sample (dqn-online) was sent again from its start because the store changed."),
-                transitions_lost: counter(&registry, "actor_transitions_lost_total", "Transitions delivered to no store because the connected store went away during the send; the restarted store counts them as missing."),
-                batches_published: counter(&registry, "actor_batches_published_total", "Batches sent to the store's service."),
-                episodes: counter(&registry, "actor_episodes_total", "Episodes finished by the behaviour policy."),
-                episode_return: gauge("actor_episode_return", "Return of the last finished episode."),
-                episode_aoi: gauge("actor_episode_aoi", "Mean AoI over steps and devices of the last finished episode."),
-                episode_power: gauge("actor_episode_power_watts", "Mean transmit power per step of the last finished episode, in watts."),
-                episode_outages: gauge("actor_episode_outages", "Steps in outage of the last finished episode."),
-                backpressure_wait: register(
-                    &registry,
-                    Counter::with_opts(Opts::new(
-                        "actor_backpressure_wait_seconds_total",
-                        "Time blocked because the store's buffer was full or no store was connected.",
-                    ))
-                    .expect("valid counter"),
-                ),
-                batch_duration: latency_histogram(&registry, "actor_batch_duration_seconds", "Time to roll out and send one batch."),
-                registry,
-            }
-        }
-    }
 }
 
 /// A behaviour policy rolled out episode after episode, each step written into a slot: the whole
@@ -306,34 +243,42 @@ pub fn run(
     };
 
     let limit = options.transitions.unwrap_or(u64::MAX);
+    let control = Control {
+        node: &node,
+        ready,
+        shutdown,
+        task: task_id,
+    };
+    let acks = transport::ack_subscriber(&transport::ack_service(
+        &node,
+        &names,
+        &task.name,
+        &config.run,
+    )?)?;
+    let mut sender = Sender::new(
+        &publisher,
+        acks,
+        (task_id, actor),
+        config.run.keep_until_stored,
+        &metrics,
+    );
     let mut seq = 0u64;
-    let mut link = StoreLink::new(publisher.subscriber_buffer());
-    let mut outbox: Vec<TransitionSlot> = Vec::with_capacity(publisher.batch_size());
     let mut next_look = Instant::now();
-    'publishing: loop {
+    loop {
         // Signals and announcements are looked at every CONTROL_EVERY, not every batch: a look
         // costs a syscall and two receives, a batch of 64 steps a few microseconds.
         if Instant::now() >= next_look {
-            if !transport::keep_running(&node, Duration::ZERO)
-                || announced(&ready, &shutdown, task_id)?
-            {
+            if control.stop_requested(Duration::ZERO)? {
                 break;
             }
             next_look = Instant::now() + CONTROL_EVERY;
         }
+        sender.read_acks()?;
         if let Source::Fixed(_) = &source {
-            // A replay sample can be sent again, and must be: a store that went away took what it
-            // held unwritten with it, and no actor will ever send those transitions otherwise.
-            // Its successor keeps what it lacks and drops the rest as duplicates.
-            let subscribers = publisher.subscribers();
-            if seq > 0 && link.replaced(subscribers) {
-                tracing::warn!(
-                    sent = seq,
-                    "the store changed; sending the replay sample again"
-                );
-                metrics.samples_resent.inc();
-                link.observe(subscribers);
-                seq = 0;
+            // A store that went away took what it held unwritten with it, and a replay sample,
+            // unlike a rollout, has no more data to come: send it again from what is stored.
+            if let Some(to) = sender.rewind_if_store_changed() {
+                seq = to;
             }
         }
         let left = match &source {
@@ -344,6 +289,9 @@ pub fn run(
         if count == 0 {
             if seq >= limit {
                 tracing::info!(published = seq, "published the requested transitions");
+                if sender.wait_until_stored(&control)? {
+                    tracing::info!("the store has acknowledged them all");
+                }
                 break;
             }
             // Everything sampled is sent; stay until the store announces the dataset.
@@ -352,68 +300,29 @@ pub fn run(
         }
         let start = Instant::now();
         let mut batch = publisher.loan(seq, count)?;
-        // A rollout cannot be replayed: while the store may not be connected yet, keep a copy of
-        // the batch to send again if iceoryx2 drops it (below).
-        let keep = !link.confirmed();
-        match &mut source {
+        let sent = match &mut source {
             Source::Rollout(rollout) => {
                 for slot in batch.slots_mut() {
                     rollout.write_step(slot);
                 }
-                if keep {
-                    outbox.clear();
-                    outbox.extend_from_slice(batch.slots_mut());
-                }
+                sender.send_rollout(batch, &control)?
             }
-            Source::Fixed(list) => write_sample(batch.slots_mut(), list, seq),
-        }
-        let mut waited = Duration::ZERO;
-        let delivered = loop {
-            // Sent while no store is subscribed, the batch would be lost: hold it until one is.
-            let subscribers = loop {
-                let subscribers = publisher.subscribers();
-                if !subscribers.is_empty() {
-                    break subscribers;
-                }
-                let pause = Instant::now();
-                let alive = transport::keep_running(&node, POLL);
-                waited += pause.elapsed();
-                if !alive || announced(&ready, &shutdown, task_id)? {
-                    break 'publishing;
-                }
-            };
-            link.observe(subscribers);
-            let delivery = match batch.send() {
-                Ok(delivery) => delivery,
-                Err(_) if transport::termination_requested() => break 'publishing,
-                Err(error) => return Err(error.into()),
-            };
-            waited += delivery.backpressure;
-            if delivery.recipients > 0 {
-                link.delivered();
-                break true;
-            }
-            if !keep && matches!(source, Source::Rollout(_)) {
-                // The connected store went away during the send: what its queue held is lost
-                // with it, and so is this batch; the restarted store counts both as missing.
-                break false;
-            }
-            // Not yet connected (or the store died): send it again under the same numbers.
-            metrics.batches_resent.inc();
-            batch = publisher.loan(seq, count)?;
-            match &source {
-                Source::Rollout(_) => batch.slots_mut().copy_from_slice(&outbox),
-                Source::Fixed(list) => write_sample(batch.slots_mut(), list, seq),
+            Source::Fixed(list) => {
+                write_sample(batch.slots_mut(), list, seq);
+                sender.send_sample(batch, list, &control)?
             }
         };
+        let waited = sender.take_waited();
         summary.backpressure += waited;
         metrics.backpressure_wait.inc_by(waited.as_secs_f64());
-        if delivered {
-            summary.published += count as u64;
-            metrics.transitions_published.inc_by(count as u64);
-            metrics.batches_published.inc();
-        } else {
-            metrics.transitions_lost.inc_by(count as u64);
+        match sent {
+            Sent::Delivered => {}
+            Sent::Lost => metrics.transitions_lost.inc_by(count as u64),
+            Sent::Rewind(to) => {
+                seq = to;
+                continue;
+            }
+            Sent::Stopped => break,
         }
         metrics
             .batch_duration
@@ -432,6 +341,7 @@ pub fn run(
             }
         }
     }
+    summary.published = sender.published();
     tracing::info!(
         published = summary.published,
         steps = summary.steps,
@@ -441,65 +351,28 @@ pub fn run(
     Ok(summary)
 }
 
-/// What the actor knows of its connection to the store. iceoryx2 0.10 connects a subscriber to a
-/// new publisher only when the subscriber next looks for data; until then a batch sent into its
-/// full queue is dropped (0 recipients). A subscriber that has received more batches than its
-/// queue holds has taken some, so it is connected, and stays so until it goes away.
-#[derive(Debug)]
-struct StoreLink {
-    /// The subscriber's queue length: more batches than this delivered prove the connection.
-    queue: usize,
-    /// Subscribers attached when the last batch was sent.
-    subscribers: SubscriberSet,
-    /// Batches delivered since that set last changed.
-    delivered: usize,
+/// The actor's way of hearing that it should stop: signals, its task's dataset announced
+/// complete, or a shutdown.
+struct Control<'n> {
+    node: &'n Node<ipc::Service>,
+    ready: Subscriber<ipc::Service, transport::DatasetReady, ()>,
+    shutdown: Subscriber<ipc::Service, transport::Shutdown, ()>,
+    task: u32,
 }
 
-impl StoreLink {
-    fn new(queue: usize) -> Self {
-        Self {
-            queue,
-            subscribers: SubscriberSet::default(),
-            delivered: 0,
-        }
-    }
-
-    /// A new store (or a dead one cleaned up) changes the set: its connection is unproven.
-    fn observe(&mut self, subscribers: SubscriberSet) {
-        if subscribers != self.subscribers {
-            self.subscribers = subscribers;
-            self.delivered = 0;
-        }
-    }
-
-    fn delivered(&mut self) {
-        self.delivered = self.delivered.saturating_add(1);
-    }
-
-    /// True when a store is subscribed but the set differs from the one the last batch was sent
-    /// to: a store that held batches may have died and been replaced.
-    fn replaced(&self, now: SubscriberSet) -> bool {
-        !self.subscribers.is_empty() && !now.is_empty() && now != self.subscribers
-    }
-
-    /// True once the store has provably taken batches from this publisher's queue.
-    fn confirmed(&self) -> bool {
-        !self.subscribers.is_empty() && self.delivered > self.queue
-    }
-}
-
-/// Writes the replay sample's transitions `first_seq..` into `slots`.
-fn write_sample(slots: &mut [TransitionSlot], sample: &[Transition], first_seq: u64) {
-    let range = first_seq as usize..first_seq as usize + slots.len();
-    for (slot, t) in slots.iter_mut().zip(&sample[range]) {
-        slot.set_transition(t);
+impl Control<'_> {
+    /// Waits up to `cycle` for a signal, then reads the announcements; true if the actor should
+    /// stop.
+    fn stop_requested(&self, cycle: Duration) -> Result<bool, ActorError> {
+        Ok(!transport::keep_running(self.node, cycle)
+            || announced(&self.ready, &self.shutdown, self.task)?)
     }
 }
 
 /// True once the task's dataset is announced complete or a shutdown is announced.
 fn announced(
-    ready: &iceoryx2::port::subscriber::Subscriber<ipc::Service, transport::DatasetReady, ()>,
-    shutdown: &iceoryx2::port::subscriber::Subscriber<ipc::Service, transport::Shutdown, ()>,
+    ready: &Subscriber<ipc::Service, transport::DatasetReady, ()>,
+    shutdown: &Subscriber<ipc::Service, transport::Shutdown, ()>,
     task: u32,
 ) -> Result<bool, ActorError> {
     let mut done = false;
