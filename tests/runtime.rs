@@ -55,6 +55,23 @@ eval_every = 0
 batch_size = 16
 "#;
 
+/// The one place deadlines come from: `seconds` is what a step takes on a quiet machine, with a
+/// margin; the deadline is that times `UAVMETA_TEST_PATIENCE` (default 3), so a loaded machine
+/// (`make test` beside a build and two busy loops: docs/TESTING.md) is slow, never failed. Every
+/// wait polls its condition and returns as soon as it holds, so patience costs nothing when the
+/// machine is fast.
+fn within(seconds: u64) -> Duration {
+    let patience = std::env::var("UAVMETA_TEST_PATIENCE")
+        .ok()
+        .map(|p| {
+            p.parse::<u64>().unwrap_or_else(|_| {
+                panic!("UAVMETA_TEST_PATIENCE=`{p}`: expected a whole factor such as 3")
+            })
+        })
+        .unwrap_or(3);
+    Duration::from_secs(seconds * patience)
+}
+
 /// `--config` (the small config, written into `dir`), `--set run.dir=<run>` and `overrides`.
 fn config_args(dir: &Path, run: &Path, overrides: &[&str]) -> Vec<String> {
     let config = dir.join("small.toml");
@@ -212,7 +229,7 @@ fn scrape(run: &Path, process: &str) -> Vec<Sample> {
             break port;
         }
         assert!(
-            start.elapsed() < Duration::from_secs(60),
+            start.elapsed() < within(60),
             "{} never appeared",
             port_file.display()
         );
@@ -309,7 +326,7 @@ fn actor_files(dir: &Path, extension: &str) -> Vec<String> {
 fn a_small_launch_completes_and_accounts_for_every_transition() {
     let dir = run_dir("e2e-launch-");
     let run = dir.path().join("run");
-    let out = launch(dir.path(), &run, &[]).wait(Duration::from_secs(240));
+    let out = launch(dir.path(), &run, &[]).wait(within(240));
     assert!(out.status.success(), "launch failed:\n{}", stderr(&out));
     let table = out.stdout.clone();
     for method in ["maml-init", "cql-maml", "cql"] {
@@ -375,7 +392,7 @@ fn start_store(dir: &Path, run: &Path, overrides: &[&str]) -> Proc {
     ];
     args.extend(config_args(dir, run, overrides));
     let store = Proc::spawn("store", &args);
-    wait_until("the store", Duration::from_secs(60), || {
+    wait_until("the store", within(60), || {
         run.join("ports/store.port").exists()
     });
     store
@@ -403,9 +420,9 @@ fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
         }
         Proc::spawn(&format!("actor {seed}"), &args)
     };
-    let first = actor("1", Some("400")).wait(Duration::from_secs(60));
+    let first = actor("1", Some("400")).wait(within(60));
     assert!(first.status.success(), "{}", stderr(&first));
-    wait_until("400 stored", Duration::from_secs(30), || {
+    wait_until("400 stored", within(30), || {
         metrics::sum(
             &scrape(&run, "store"),
             "uavmeta_store_dataset_transitions",
@@ -416,21 +433,21 @@ fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
     // A second actor joins the running store, is scraped while it runs, and is stopped by hand.
     let second = actor("2", None);
     let names = || actor_names_live(&run);
-    wait_until("the second actor's port", Duration::from_secs(60), || {
+    wait_until("the second actor's port", within(60), || {
         !names().is_empty()
     });
     // Its own endpoint, scraped while it runs, shows it stepping.
     let live_actor = names()[0].clone();
     wait_until(
         "the second actor's steps on its /metrics",
-        Duration::from_secs(60),
+        within(60),
         || {
             let live = scrape(&run, &live_actor);
             live.iter().any(|s| s.name == "uavmeta_actor_steps_total")
                 && metrics::sum(&live, "uavmeta_actor_steps_total", &[]) > 0.0
         },
     );
-    wait_until("the second actor's data", Duration::from_secs(30), || {
+    wait_until("the second actor's data", within(30), || {
         metrics::sum(
             &scrape(&run, "store"),
             "uavmeta_store_dataset_transitions",
@@ -438,7 +455,7 @@ fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
         ) > 400.0
     });
     second.signal(libc::SIGTERM);
-    let second = second.wait(Duration::from_secs(30));
+    let second = second.wait(within(30));
     assert!(
         second.status.success(),
         "a stopped actor exits cleanly:\n{}",
@@ -475,7 +492,7 @@ fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
     }
     for p in [learner, evaluator, store] {
         let name = p.name.clone();
-        let out = p.wait(Duration::from_secs(30));
+        let out = p.wait(within(30));
         assert!(
             out.status.success(),
             "{name} exits cleanly on SIGTERM:\n{}",
@@ -560,7 +577,7 @@ fn a_replay_sample_lost_with_a_killed_store_is_sent_again_to_its_successor() {
             "lambda-0".into(),
         ],
     );
-    wait_until("the sample sent", Duration::from_secs(120), || {
+    wait_until("the sample sent", within(120), || {
         actor_names_live(&run).first().is_some_and(|name| {
             metrics::sum(
                 &scrape(&run, name),
@@ -570,7 +587,7 @@ fn a_replay_sample_lost_with_a_killed_store_is_sent_again_to_its_successor() {
         })
     });
     first.signal(libc::SIGKILL);
-    let killed = first.wait(Duration::from_secs(30));
+    let killed = first.wait(within(30));
     assert!(!killed.status.success());
     assert!(
         dataset_seqs(&run)
@@ -581,7 +598,7 @@ fn a_replay_sample_lost_with_a_killed_store_is_sent_again_to_its_successor() {
 
     let second = Proc::spawn("store", &["store".into(), "--run".into(), run_arg.clone()]);
     // The actor ends by itself once its task's dataset is announced complete.
-    let actor = actor.wait(Duration::from_secs(60));
+    let actor = actor.wait(within(60));
     assert!(actor.status.success(), "{}", stderr(&actor));
     let seqs = dataset_seqs(&run);
     let per_actor = &seqs["lambda-0"];
@@ -589,7 +606,7 @@ fn a_replay_sample_lost_with_a_killed_store_is_sent_again_to_its_successor() {
     let stored = per_actor.values().next().expect("the actor's transitions");
     assert_eq!(*stored, (0..300).collect::<Vec<u64>>());
     second.signal(libc::SIGTERM);
-    let second = second.wait(Duration::from_secs(30));
+    let second = second.wait(within(30));
     assert!(second.status.success(), "{}", stderr(&second));
     let store = snapshot(&run, "store");
     assert_eq!(
@@ -636,7 +653,7 @@ fn a_rollout_held_by_a_killed_store_is_sent_again_to_its_successor() {
             .first()
             .map_or(0.0, |name| metrics::sum(&scrape(&run, name), metric, &[]))
     };
-    wait_until("the rollout sent", Duration::from_secs(120), || {
+    wait_until("the rollout sent", within(120), || {
         live("uavmeta_actor_transitions_published_total") == sent as f64
     });
     assert_eq!(
@@ -645,7 +662,7 @@ fn a_rollout_held_by_a_killed_store_is_sent_again_to_its_successor() {
         "the actor keeps what the stopped store has not acknowledged"
     );
     first.signal(libc::SIGKILL);
-    let killed = first.wait(Duration::from_secs(30));
+    let killed = first.wait(within(30));
     assert!(!killed.status.success());
     assert!(
         dataset_seqs(&run)
@@ -656,7 +673,7 @@ fn a_rollout_held_by_a_killed_store_is_sent_again_to_its_successor() {
 
     let second = Proc::spawn("store", &["store".into(), "--run".into(), run_arg.clone()]);
     // The actor ends by itself once the new store has acknowledged everything.
-    let actor = actor.wait(Duration::from_secs(60));
+    let actor = actor.wait(within(60));
     assert!(actor.status.success(), "{}", stderr(&actor));
     let seqs = dataset_seqs(&run);
     let per_actor = &seqs["lambda-100"];
@@ -664,7 +681,7 @@ fn a_rollout_held_by_a_killed_store_is_sent_again_to_its_successor() {
     let stored = per_actor.values().next().expect("the actor's transitions");
     assert_eq!(*stored, (0..sent).collect::<Vec<u64>>());
     second.signal(libc::SIGTERM);
-    let second = second.wait(Duration::from_secs(30));
+    let second = second.wait(within(30));
     assert!(second.status.success(), "{}", stderr(&second));
     let store = snapshot(&run, "store");
     assert_eq!(
@@ -710,7 +727,7 @@ fn killed_actor_store_and_meta_learner_are_restarted_and_nothing_is_lost_unaccou
 
     // The store, mid-collection.
     let mut held = 0.0;
-    wait_until("collection under way", Duration::from_secs(60), || {
+    wait_until("collection under way", within(60), || {
         held = match run.join("ports/store.port").exists() {
             true => metrics::sum(
                 &scrape(&run, "store"),
@@ -727,14 +744,14 @@ fn killed_actor_store_and_meta_learner_are_restarted_and_nothing_is_lost_unaccou
         "the store was killed after collection ended"
     );
     // An actor, mid-collection (after the store came back).
-    wait_until("the store restarted", Duration::from_secs(60), || {
+    wait_until("the store restarted", within(60), || {
         run.join("ports/store.port").exists()
     });
     if let Some(pid) = child_pid(&[" actor ", &run_arg, "lambda-0"]) {
         kill9(pid);
     }
     // The meta-learner, mid-training, once it has written a checkpoint.
-    wait_until("a w0 checkpoint", Duration::from_secs(180), || {
+    wait_until("a w0 checkpoint", within(180), || {
         run.join("checkpoints/maml-init/epoch-00200.json").exists()
     });
     kill9(child_pid(&[" meta-learner ", &run_arg]).expect("the meta-learner's pid"));
@@ -743,7 +760,7 @@ fn killed_actor_store_and_meta_learner_are_restarted_and_nothing_is_lost_unaccou
         "the meta-learner was killed after meta-training"
     );
 
-    let out = launcher.wait(Duration::from_secs(300));
+    let out = launcher.wait(within(300));
     assert!(out.status.success(), "launch failed:\n{}", stderr(&out));
     let launcher_metrics = snapshot(&run, "launcher");
     for process in ["store", "meta-learner"] {
@@ -822,13 +839,11 @@ fn stopped_actor_store_and_meta_learner_are_taken_for_hung_and_restarted() {
         let pid = child_pid(needles).unwrap_or_else(|| panic!("no running {process}"));
         // SAFETY: a signal to a process this test's launcher started.
         unsafe { libc::kill(pid, libc::SIGSTOP) };
-        wait_until(
-            &format!("{process} killed as hung"),
-            Duration::from_secs(120),
-            || hangs(&run, process) >= 1.0,
-        );
+        wait_until(&format!("{process} killed as hung"), within(120), || {
+            hangs(&run, process) >= 1.0
+        });
     };
-    wait_until("collection under way", Duration::from_secs(60), || {
+    wait_until("collection under way", within(60), || {
         run.join("ports/store.port").exists()
             && metrics::sum(
                 &scrape(&run, "store"),
@@ -838,12 +853,12 @@ fn stopped_actor_store_and_meta_learner_are_taken_for_hung_and_restarted() {
     });
     stop(&[" actor ", &run_arg, "lambda-0"], "actor-lambda-0");
     stop(&[" store ", &run_arg], "store");
-    wait_until("a w0 checkpoint", Duration::from_secs(180), || {
+    wait_until("a w0 checkpoint", within(180), || {
         run.join("checkpoints/maml-init/epoch-00200.json").exists()
     });
     stop(&[" meta-learner ", &run_arg], "meta-learner");
 
-    let out = launcher.wait(Duration::from_secs(300));
+    let out = launcher.wait(within(300));
     assert!(out.status.success(), "launch failed:\n{}", stderr(&out));
     let launcher_metrics = snapshot(&run, "launcher");
     for process in ["store", "meta-learner"] {
@@ -897,7 +912,7 @@ fn chaos(seed: u64, kills: usize) {
         kill9(pid);
         killed.push(role);
     };
-    wait_until("collection under way", Duration::from_secs(60), || {
+    wait_until("collection under way", within(60), || {
         run.join("ports/store.port").exists()
             && metrics::sum(
                 &scrape(&run, "store"),
@@ -906,7 +921,7 @@ fn chaos(seed: u64, kills: usize) {
             ) > 10_000.0
     });
     let mut actors = Vec::new();
-    wait_until("a live actor", Duration::from_secs(60), || {
+    wait_until("a live actor", within(60), || {
         actors = child_pids(&[" actor ", &run_arg]);
         !actors.is_empty()
     });
@@ -922,29 +937,23 @@ fn chaos(seed: u64, kills: usize) {
     let must = sample(&mut rng, kills - 1, 2).into_vec();
     for (i, epoch) in at.into_iter().enumerate() {
         let checkpoint = run.join(format!("checkpoints/maml-init/epoch-{epoch:05}.json"));
-        wait_until(
-            &format!("w0 checkpoint {epoch}"),
-            Duration::from_secs(300),
-            || checkpoint.exists(),
-        );
+        wait_until(&format!("w0 checkpoint {epoch}"), within(300), || {
+            checkpoint.exists()
+        });
         let want = [must[0], must[1]]
             .iter()
             .position(|&m| m == i)
             .map(|k| ["store", "meta-learner"][k]);
         let mut live = Vec::new();
-        wait_until(
-            &format!("a live {want:?}"),
-            Duration::from_secs(120),
-            || {
-                live = live_children(&run_arg);
-                live.retain(|(role, _)| want.is_none_or(|w| w == *role));
-                !live.is_empty()
-            },
-        );
+        wait_until(&format!("a live {want:?}"), within(120), || {
+            live = live_children(&run_arg);
+            live.retain(|(role, _)| want.is_none_or(|w| w == *role));
+            !live.is_empty()
+        });
         let (role, pid) = live[rng.random_range(0..live.len())];
         kill(role, pid);
     }
-    let out = launcher.wait(Duration::from_secs(600));
+    let out = launcher.wait(within(600));
     eprintln!("seed {seed}: killed {killed:?}");
     assert!(
         out.status.success(),
@@ -973,7 +982,7 @@ fn a_launch_survives_twelve_random_kills_on_three_seeds() {
 fn an_evaluator_restarted_after_the_meta_learner_exited_catches_up_from_the_run_directory() {
     let dir = run_dir("e2e-evaluator-");
     let run = dir.path().join("run");
-    let out = launch(dir.path(), &run, &[]).wait(Duration::from_secs(240));
+    let out = launch(dir.path(), &run, &[]).wait(within(240));
     assert!(out.status.success(), "launch failed:\n{}", stderr(&out));
     let csv = run.join("evaluations.csv");
     let complete = std::fs::read_to_string(&csv).expect("evaluations.csv");
@@ -998,13 +1007,11 @@ fn an_evaluator_restarted_after_the_meta_learner_exited_catches_up_from_the_run_
             .map(|t| t.lines().count())
             .unwrap_or(0)
     };
-    wait_until(
-        "the evaluator to catch up",
-        Duration::from_secs(120),
-        || rows() >= lines.len(),
-    );
+    wait_until("the evaluator to catch up", within(120), || {
+        rows() >= lines.len()
+    });
     evaluator.signal(libc::SIGTERM);
-    let finished = evaluator.wait(Duration::from_secs(30));
+    let finished = evaluator.wait(within(30));
     assert!(finished.status.success(), "{}", stderr(&finished));
 
     // Every checkpoint exactly once, with the figures the first evaluator found (the episodes are
@@ -1028,7 +1035,7 @@ fn an_evaluator_restarted_after_the_meta_learner_exited_catches_up_from_the_run_
 fn a_launch_with_the_dqn_inner_loss_fine_tunes_and_reports_dqn_maml() {
     let dir = run_dir("e2e-dqn-maml-");
     let run = dir.path().join("run");
-    let out = launch(dir.path(), &run, &["meta.inner_loss=\"dqn\""]).wait(Duration::from_secs(240));
+    let out = launch(dir.path(), &run, &["meta.inner_loss=\"dqn\""]).wait(within(240));
     assert!(out.status.success(), "launch failed:\n{}", stderr(&out));
     let csv = std::fs::read_to_string(run.join("evaluations.csv")).expect("evaluations.csv");
     let methods: BTreeMap<&str, usize> =
@@ -1065,7 +1072,7 @@ fn two_runs_side_by_side_keep_their_data_apart() {
         .map(|((run, policy), dir)| launch(dir.path(), run, &[&format!("collect.policy={policy}")]))
         .collect();
     for l in launchers {
-        let out = l.wait(Duration::from_secs(300));
+        let out = l.wait(within(300));
         assert!(out.status.success(), "{}", stderr(&out));
     }
     let actors: Vec<BTreeSet<u32>> = runs
@@ -1122,7 +1129,7 @@ fn children_stop_when_the_launcher_is_killed_or_stopped() {
         let run = dir.path().join("run");
         let run_arg = run.display().to_string();
         let launcher = launch(dir.path(), &run, &["meta.meta_epochs=100000"]);
-        wait_until("the meta-learner", Duration::from_secs(60), || {
+        wait_until("the meta-learner", within(60), || {
             run.join("ports/meta-learner.port").exists()
         });
         assert!(
@@ -1131,7 +1138,7 @@ fn children_stop_when_the_launcher_is_killed_or_stopped() {
         );
         // SAFETY: a signal to the launcher this test started.
         unsafe { libc::kill(launcher.pid(), signal) };
-        let out = launcher.wait(Duration::from_secs(60));
+        let out = launcher.wait(within(60));
         if graceful {
             assert!(
                 out.stderr.contains("stopped by a termination request"),
@@ -1139,7 +1146,7 @@ fn children_stop_when_the_launcher_is_killed_or_stopped() {
                 out.stderr
             );
         }
-        wait_until("every child to exit", Duration::from_secs(30), || {
+        wait_until("every child to exit", within(30), || {
             run_processes(&run_arg, -1).is_empty()
         });
         // Stopped in order, every child wrote its final metrics.
@@ -1156,8 +1163,7 @@ fn the_same_config_and_seed_give_byte_identical_datasets() {
     let dirs = [run_dir("e2e-same-a-"), run_dir("e2e-same-b-")];
     let runs: Vec<PathBuf> = dirs.iter().map(|d| d.path().join("run")).collect();
     for (dir, run) in dirs.iter().zip(&runs) {
-        let out =
-            launch(dir.path(), run, &["collect.policy=eps:0.3"]).wait(Duration::from_secs(240));
+        let out = launch(dir.path(), run, &["collect.policy=eps:0.3"]).wait(within(240));
         assert!(out.status.success(), "{}", out.stderr);
     }
     for task in ["lambda-0", "lambda-100", "lambda-300"] {
