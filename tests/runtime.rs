@@ -1129,8 +1129,12 @@ fn children_stop_when_the_launcher_is_killed_or_stopped() {
         let run = dir.path().join("run");
         let run_arg = run.display().to_string();
         let launcher = launch(dir.path(), &run, &["meta.meta_epochs=100000"]);
-        wait_until("the meta-learner", within(60), || {
-            run.join("ports/meta-learner.port").exists()
+        // Every child serving its metrics, so that each has final metrics to write: a child
+        // stopped while it starts has none (this once failed on a busy machine).
+        wait_until("the store, meta-learner and evaluator", within(60), || {
+            ["store", "meta-learner", "evaluator"]
+                .iter()
+                .all(|p| run.join(format!("ports/{p}.port")).exists())
         });
         assert!(
             run_processes(&run_arg, launcher.pid()).len() >= 3,
