@@ -2,17 +2,14 @@
 # `make test` runs the whole test suite; both install libtorch first if this machine lacks it.
 #
 # libtorch comes from PyPI's torch wheel, installed once into a virtualenv outside the repo
-# (TORCH_VENV) and reused by every later build; torch-sys finds it through that interpreter.
+# (TORCH_VENV) and reused by every later build; torch-sys finds it through the `.libtorch` link
+# (.cargo/config.toml), so plain cargo commands work too once `make` has run.
 
 TORCH_VERSION := 2.13.0
 TORCH_VENV ?= $(HOME)/.cache/uavmeta/torch-$(TORCH_VERSION)
 CONFIG ?= configs/default.toml
 
-export VIRTUAL_ENV := $(TORCH_VENV)
-export PATH := $(TORCH_VENV)/bin:$(PATH)
-export LIBTORCH_USE_PYTORCH := 1
-
-.PHONY: run test build bench libtorch promtool env
+.PHONY: run test build bench libtorch promtool
 
 run: build
 	target/release/uavmeta launch --config $(CONFIG)
@@ -26,7 +23,9 @@ build: libtorch
 bench: libtorch
 	cargo bench --workspace
 
+# The link is remade every time, so a changed TORCH_VENV takes effect.
 libtorch: $(TORCH_VENV)/.installed
+	ln -sfn "$$($(TORCH_VENV)/bin/python -c 'import os, torch; print(os.path.dirname(torch.__file__))')" .libtorch
 
 $(TORCH_VENV)/.installed:
 	python3 -m venv $(TORCH_VENV)
@@ -42,7 +41,3 @@ promtool:
 	  { $(APT_INSTALL) || { apt-get update -q && $(APT_INSTALL); }; } >/dev/null 2>&1; }; \
 	command -v promtool >/dev/null || \
 	  echo "promtool is not installed (Debian: prometheus); the runtime tests skip its checks"
-
-# `eval "$(make -s env)"` sets up a shell for plain cargo commands.
-env:
-	@echo 'export VIRTUAL_ENV=$(TORCH_VENV) LIBTORCH_USE_PYTORCH=1 PATH=$(TORCH_VENV)/bin:$$PATH'

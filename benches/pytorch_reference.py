@@ -2,7 +2,7 @@
 `learner/benches/cql.rs` (`cql_step/bare`) and `meta/benches/maml.rs`, written as a PyTorch user
 would, timed the same way (one intra-op thread, median of repeated rounds).
 
-    make -s env > /tmp/env && . /tmp/env && python benches/pytorch_reference.py
+    ~/.cache/uavmeta/torch-2.13.0/bin/python benches/pytorch_reference.py
 
 Network: K = 10 (12 inputs, 50 actions), hidden [256, 256], PyTorch's default nn.Linear init.
 - CQL step (eq. 8): online forward, target forward, TD + conservative loss, backward, Adam, on a

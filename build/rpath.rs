@@ -5,6 +5,9 @@
 fn main() {
     // torch-sys has `links = "tch"` and exports its lib dir to direct dependents as this variable.
     if let Ok(dir) = std::env::var("DEP_TCH_LIBTORCH_LIB") {
+        // That dir is under the repo's `.libtorch` link (.cargo/config.toml); the rpath names the
+        // wheel's own directory, so a binary copied out of the repo still finds libtorch.
+        let dir = std::fs::canonicalize(&dir).map_or(dir, |real| real.display().to_string());
         println!("cargo:rustc-link-arg=-Wl,-rpath,{dir}");
     }
 }
