@@ -9,12 +9,12 @@ TORCH_VERSION := 2.13.0
 TORCH_VENV ?= $(HOME)/.cache/uavmeta/torch-$(TORCH_VERSION)
 CONFIG ?= configs/default.toml
 
-.PHONY: run test build bench libtorch promtool
+.PHONY: run test build bench libtorch promtool interop
 
 run: build
 	target/release/uavmeta launch --config $(CONFIG)
 
-test: libtorch promtool
+test: libtorch promtool interop
 	cargo test --workspace --release
 
 build: libtorch
@@ -41,3 +41,17 @@ promtool:
 	  { $(APT_INSTALL) || { apt-get update -q && $(APT_INSTALL); }; } >/dev/null 2>&1; }; \
 	command -v promtool >/dev/null || \
 	  echo "promtool is not installed (Debian: prometheus); the runtime tests skip its checks"
+
+# tests/interop.rs loads exported datasets with minari, d3rlpy and numpy themselves, pinned in
+# tests/interop-requirements.txt and installed into the libtorch virtualenv; the constraint makes
+# pip fail rather than replace torch. Without network they stay missing: the test skips, except
+# under CI=true, where it fails.
+INTEROP_REQUIREMENTS := tests/interop-requirements.txt
+
+interop: $(TORCH_VENV)/.interop-installed
+
+$(TORCH_VENV)/.interop-installed: $(INTEROP_REQUIREMENTS) $(TORCH_VENV)/.installed
+	@echo 'torch==$(TORCH_VERSION)' > $(TORCH_VENV)/torch-constraint.txt
+	@$(TORCH_VENV)/bin/pip install --no-input --disable-pip-version-check -q \
+	  -c $(TORCH_VENV)/torch-constraint.txt -r $(INTEROP_REQUIREMENTS) && touch $@ || \
+	  echo "the interop packages ($(INTEROP_REQUIREMENTS)) are not installed; tests/interop.rs skips"

@@ -30,6 +30,9 @@ enum Command {
     Env(cmd::env::EnvCommand),
     /// Collect one task's offline dataset with a behaviour policy.
     Collect(cmd::collect::CollectArgs),
+    /// Export a dataset for Minari or d3rlpy, or inspect one.
+    #[command(subcommand)]
+    Dataset(cmd::dataset::DatasetCommand),
     /// Train a Q-network offline (CQL or DQN) on N shots of one task's dataset.
     Train(cmd::train::TrainArgs),
     /// Evaluate a checkpoint's greedy policy on a task, with 95% confidence intervals.
@@ -66,6 +69,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Env(c) => cmd::env::run(c),
         Command::Collect(c) => cmd::collect::run(c),
+        Command::Dataset(c) => cmd::dataset::run(c),
         Command::Train(c) => cmd::train::run(c),
         Command::Eval(c) => cmd::eval::run(c),
         Command::MetaTrain(c) => cmd::meta::run_train(c),

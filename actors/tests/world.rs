@@ -5,7 +5,7 @@ use proptest::prelude::*;
 use uavmeta_actors::heuristics::{RandomPolicy, StalestPolicy};
 use uavmeta_actors::rollout::{evaluate, rollout};
 use uavmeta_actors::world::{Move, World};
-use uavmeta_proto::config::{Config, RainZone, TaskConfig};
+use uavmeta_proto::config::{Config, RainZone, TaskConfig, MOVES};
 
 /// W/m^2 of the defaults: (2^(5e6/1e6) - 1) * 1e-13 W / 1e-3 = 31 * 1e-10.
 const WATTS_PER_M2: f64 = 3.1e-9;
@@ -35,6 +35,22 @@ fn assert_close(got: f64, want: f64) {
 }
 
 const TWO_DEVICES: &str = "devices = 2\ndevice_cells = [[2, 3], [7, 7]]\nstart_cell = [2, 3]";
+
+/// Datasets name actions with proto's list: it must be the world's moves in the same order.
+#[test]
+fn moves_in_action_order_are_the_names_datasets_use() {
+    let names: Vec<String> = Move::ALL
+        .iter()
+        .map(|m| {
+            serde_json::to_value(m)
+                .unwrap()
+                .as_str()
+                .unwrap()
+                .to_string()
+        })
+        .collect();
+    assert_eq!(names, MOVES);
+}
 
 #[test]
 fn power_straight_above_a_device() {

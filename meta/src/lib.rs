@@ -69,15 +69,7 @@ pub enum MetaError {
     NoTasks,
     #[error("{origin}: no task has role = \"meta-train\"; meta-training needs at least one")]
     NoMetaTrainTasks { origin: String },
-    #[error("{}: holds task `{found}`, expected task `{expected}`", path.display())]
-    WrongTask {
-        path: PathBuf,
-        found: String,
-        expected: String,
-    },
     // The source is not in the message: `{:#}` prints the cause chain after it.
-    #[error("{}", path.display())]
-    Shots { path: PathBuf, source: DatasetError },
     #[error("{}", path.display())]
     Batch { path: PathBuf, source: BatchError },
     #[error("{}: trained by `{algorithm}`, expected a meta-trained or pretrained init (`cql-maml`, `dqn-maml` or `cql-pretrain`)", path.display())]

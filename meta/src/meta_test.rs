@@ -15,7 +15,7 @@ use uavmeta_learner::checkpoint;
 use uavmeta_learner::qnet::QNetwork;
 use uavmeta_learner::train::{train, Algorithm, EpochRow, EvaluatePolicy, TrainOptions};
 use uavmeta_proto::config::{Config, InnerLoss, TaskConfig};
-use uavmeta_proto::dataset::{self, DatasetReader};
+use uavmeta_proto::dataset::DatasetReader;
 
 use crate::meta_train::algorithm_name;
 use crate::{pretrain, MetaError};
@@ -53,21 +53,7 @@ pub fn load_shots(
     shots: usize,
     seed: u64,
 ) -> Result<Batch, MetaError> {
-    let reader = DatasetReader::open(path)?;
-    reader.check_world(config)?;
-    if reader.header().task_name != task.name {
-        return Err(MetaError::WrongTask {
-            path: path.to_path_buf(),
-            found: reader.header().task_name.clone(),
-            expected: task.name.clone(),
-        });
-    }
-    let picked = dataset::sample_shots(reader.transitions(), shots, seed).map_err(|source| {
-        MetaError::Shots {
-            path: path.to_path_buf(),
-            source,
-        }
-    })?;
+    let picked = DatasetReader::open_task(path, config, &task.name)?.shots(shots, seed)?;
     Batch::new(&picked, &config.world, config.learner.reward_scale).map_err(|source| {
         MetaError::Batch {
             path: path.to_path_buf(),

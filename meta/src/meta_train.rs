@@ -138,15 +138,7 @@ pub fn load_tasks(
     let mut meta_tasks = Vec::with_capacity(tasks.len());
     for (i, task) in tasks.iter().enumerate() {
         let path = dataset_path(datasets, &task.name);
-        let reader = DatasetReader::open(&path)?;
-        reader.check_world(config)?;
-        if reader.header().task_name != task.name {
-            return Err(MetaError::WrongTask {
-                path,
-                found: reader.header().task_name.clone(),
-                expected: task.name.clone(),
-            });
-        }
+        let reader = DatasetReader::open_task(&path, config, &task.name)?;
         // One split stream per task, so adding a task leaves the others' splits unchanged.
         let (support, query) = dataset::split(
             reader.transitions(),

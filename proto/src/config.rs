@@ -14,6 +14,11 @@ use serde::{Deserialize, Serialize};
 /// `proto::transport` stores observations in fixed-size arrays of `2 + MAX_DEVICES` entries.
 pub const MAX_DEVICES: usize = 64;
 
+/// SPEC section 1's moves by name, in action-index order: action `a = move * K + device`.
+/// Exports and `uavmeta dataset inspect` name actions with them; `actors::world::Move` is the
+/// world's own enum in the same order.
+pub const MOVES: [&str; 5] = ["north", "south", "east", "west", "hover"];
+
 /// The largest grid side: the world precomputes a power table of grid_cells^2 x K entries.
 pub const MAX_GRID_CELLS: u32 = 1024;
 
@@ -140,7 +145,7 @@ impl WorldConfig {
 
     /// Number of discrete actions, 5 moves x K devices.
     pub fn action_count(&self) -> usize {
-        5 * self.devices
+        MOVES.len() * self.devices
     }
 
     /// Divisors that normalise a raw observation for the networks: x/(L-1), y/(L-1), A/aoi_max.

@@ -51,7 +51,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::config::{Config, ConfigError};
+use crate::config::{Config, ConfigError, MOVES};
 
 /// The format version this build reads and writes; bump it on any change to the layout above or
 /// to [`Transition`].
@@ -125,7 +125,7 @@ impl DatasetHeader {
     /// Actions are `move * K + device` over SPEC section 1's five moves, as in
     /// `WorldConfig::action_count`.
     pub fn action_count(&self) -> usize {
-        5 * self.devices as usize
+        MOVES.len() * self.devices as usize
     }
 
     fn encode(&self) -> Vec<u8> {
@@ -270,6 +270,12 @@ pub enum DatasetError {
     },
     #[error("asked for {requested} distinct transitions: expected between 1 and the {available} available")]
     BadShots { requested: usize, available: usize },
+    // The source is not in the message: `{:#}` prints the cause chain after it.
+    #[error("{}", path.display())]
+    Shots {
+        path: PathBuf,
+        source: Box<DatasetError>,
+    },
     #[error("cannot split {available} transitions with support fraction {fraction}: expected a share strictly between 0 and 1 and at least 2 transitions")]
     BadSplit { fraction: f64, available: usize },
 }
@@ -505,6 +511,8 @@ impl DatasetWriter {
 pub struct DatasetReader {
     path: PathBuf,
     header: DatasetHeader,
+    /// Chunks read, each with its CRC32 checked.
+    chunks: usize,
     transitions: Vec<Transition>,
 }
 
@@ -531,14 +539,44 @@ impl DatasetReader {
             header: &header,
             offset: header_len,
         };
-        let mut transitions = Vec::new();
+        let (mut transitions, mut chunks) = (Vec::new(), 0);
         while let Some(chunk) = scan.next_chunk()? {
             transitions.extend(chunk);
+            chunks += 1;
         }
         Ok(Self {
             path,
             header,
+            chunks,
             transitions,
+        })
+    }
+
+    /// Opens `path` as task `task_name`'s data collected in `config`'s world: the checks every
+    /// learner makes before it trusts a file.
+    pub fn open_task(
+        path: impl AsRef<Path>,
+        config: &Config,
+        task_name: &str,
+    ) -> Result<Self, DatasetError> {
+        let reader = Self::open(path)?;
+        reader.check_world(config)?;
+        if reader.header.task_name != task_name {
+            return Err(DatasetError::HeaderMismatch {
+                path: reader.path.clone(),
+                found: format!("task `{}`", reader.header.task_name),
+                expected: format!("task `{task_name}`"),
+            });
+        }
+        Ok(reader)
+    }
+
+    /// N shots of the file, [`sample_shots`] from `seed`: the one draw behind `uavmeta train
+    /// --shots`, meta-test and `uavmeta dataset export --shots`, so they all see the same data.
+    pub fn shots(&self, shots: usize, seed: u64) -> Result<Vec<Transition>, DatasetError> {
+        sample_shots(&self.transitions, shots, seed).map_err(|source| DatasetError::Shots {
+            path: self.path.clone(),
+            source: Box::new(source),
         })
     }
 
@@ -570,6 +608,11 @@ impl DatasetReader {
 
     pub fn transitions(&self) -> &[Transition] {
         &self.transitions
+    }
+
+    /// Chunks in the file, every one of them checked against its CRC32.
+    pub fn chunks(&self) -> usize {
+        self.chunks
     }
 
     pub fn into_transitions(self) -> Vec<Transition> {
