@@ -12,12 +12,12 @@ export VIRTUAL_ENV := $(TORCH_VENV)
 export PATH := $(TORCH_VENV)/bin:$(PATH)
 export LIBTORCH_USE_PYTORCH := 1
 
-.PHONY: run test build bench libtorch promtool env
+.PHONY: run test build bench libtorch test-tools env
 
 run: build
 	target/release/uavmeta launch --config $(CONFIG)
 
-test: libtorch promtool
+test: libtorch test-tools
 	cargo test --workspace --release
 
 build: libtorch
@@ -33,15 +33,19 @@ $(TORCH_VENV)/.installed:
 	$(TORCH_VENV)/bin/pip install --no-input --disable-pip-version-check torch==$(TORCH_VERSION)
 	touch $@
 
-# tests/runtime.rs lints every /metrics answer with `promtool check metrics`, from Debian's
-# prometheus package: installed here where apt-get can (as root), and required when CI=true.
-APT_INSTALL := DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends prometheus
+# Tools the end-to-end tests run, from Debian: tests/runtime.rs lints every /metrics answer with
+# `promtool check metrics` and tests/dashboard.rs runs the `prometheus` server (both in the
+# prometheus package); tests/terminal.rs watches a launch in tmux. Installed here where apt-get
+# can (as root), and required when CI=true.
+TEST_TOOLS := promtool prometheus tmux
+APT_INSTALL := DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends prometheus tmux
+HAVE_TEST_TOOLS := for tool in $(TEST_TOOLS); do command -v $$tool >/dev/null || exit 1; done
 
-promtool:
-	@command -v promtool >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
+test-tools:
+	@( $(HAVE_TEST_TOOLS) ) || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
 	  { $(APT_INSTALL) || { apt-get update -q && $(APT_INSTALL); }; } >/dev/null 2>&1; }; \
-	command -v promtool >/dev/null || \
-	  echo "promtool is not installed (Debian: prometheus); the runtime tests skip its checks"
+	( $(HAVE_TEST_TOOLS) ) || \
+	  echo "missing some of: $(TEST_TOOLS) (Debian: prometheus, tmux); the tests that need them skip"
 
 # `eval "$(make -s env)"` sets up a shell for plain cargo commands.
 env:

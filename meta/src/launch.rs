@@ -47,6 +47,10 @@ use crate::process as meta_learner;
 
 mod display;
 
+/// The Grafana dashboard of a run's metrics, copied into every run directory beside
+/// `prometheus.yml`; embedded so that the binary writes it from any working directory.
+const DASHBOARD: &str = include_str!("../../docs/grafana/uavmeta.json");
+
 /// How often the supervisor looks at its children and the run's announcements.
 const TICK: Duration = Duration::from_millis(100);
 /// How long the store may take to come up (its port file is the sign).
@@ -258,6 +262,7 @@ pub fn launch(
     let run = RunDir::create(&config.run.dir)?;
     write_atomic(&run.config_file(), config.to_toml_string().as_bytes())?;
     write_prometheus_yml(&run)?;
+    write_atomic(&run.grafana_dashboard(), DASHBOARD.as_bytes())?;
     let node = transport::node(&format!("{}-{PROCESS}", run.id()))?;
     transport::cleanup_dead_nodes(&node);
     let names = ServiceNames::new(&run);
@@ -655,12 +660,17 @@ fn stop_role(children: &mut [Supervised], role: Role) {
 }
 
 fn write_prometheus_yml(run: &RunDir) -> Result<(), LaunchError> {
+    // honor_labels: the launcher's restart and hang counters name the child in their `process`
+    // label, which must win over the target's `process` (the launcher) rather than be renamed
+    // `exported_process`.
     let text = format!(
         "# Scrapes every process of uavmeta run {id}. Ports are ephemeral; the launcher rewrites\n\
          # the targets file as processes (re)start: prometheus --config.file={yml}\n\
-         global:\n  scrape_interval: 5s\nscrape_configs:\n  - job_name: uavmeta\n    file_sd_configs:\n      - files: ['{targets}']\n",
+         # Grafana: import {dashboard} (README, \"Dashboard\").\n\
+         global:\n  scrape_interval: 5s\nscrape_configs:\n  - job_name: uavmeta\n    honor_labels: true\n    file_sd_configs:\n      - files: ['{targets}']\n",
         id = run.id(),
         yml = run.prometheus_yml().display(),
+        dashboard = run.grafana_dashboard().display(),
         targets = run.prometheus_targets().display(),
     );
     Ok(write_atomic(&run.prometheus_yml(), text.as_bytes())?)
