@@ -9,12 +9,12 @@ TORCH_VERSION := 2.13.0
 TORCH_VENV ?= $(HOME)/.cache/uavmeta/torch-$(TORCH_VERSION)
 CONFIG ?= configs/default.toml
 
-.PHONY: run test build bench libtorch promtool interop
+.PHONY: run test build bench libtorch test-tools interop
 
 run: build
 	target/release/uavmeta launch --config $(CONFIG)
 
-test: libtorch promtool interop
+test: libtorch test-tools interop
 	cargo test --workspace --release
 
 build: libtorch
@@ -32,15 +32,19 @@ $(TORCH_VENV)/.installed:
 	$(TORCH_VENV)/bin/pip install --no-input --disable-pip-version-check torch==$(TORCH_VERSION)
 	touch $@
 
-# tests/runtime.rs lints every /metrics answer with `promtool check metrics`, from Debian's
-# prometheus package: installed here where apt-get can (as root), and required when CI=true.
-APT_INSTALL := DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends prometheus
+# Tools the end-to-end tests run, from Debian: tests/runtime.rs lints every /metrics answer with
+# `promtool check metrics` and tests/dashboard.rs runs the `prometheus` server (both in the
+# prometheus package); tests/terminal.rs watches a launch in tmux. Installed here where apt-get
+# can (as root), and required when CI=true.
+TEST_TOOLS := promtool prometheus tmux
+APT_INSTALL := DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends prometheus tmux
+HAVE_TEST_TOOLS := for tool in $(TEST_TOOLS); do command -v $$tool >/dev/null || exit 1; done
 
-promtool:
-	@command -v promtool >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
+test-tools:
+	@( $(HAVE_TEST_TOOLS) ) || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
 	  { $(APT_INSTALL) || { apt-get update -q && $(APT_INSTALL); }; } >/dev/null 2>&1; }; \
-	command -v promtool >/dev/null || \
-	  echo "promtool is not installed (Debian: prometheus); the runtime tests skip its checks"
+	( $(HAVE_TEST_TOOLS) ) || \
+	  echo "missing some of: $(TEST_TOOLS) (Debian: prometheus, tmux); the tests that need them skip"
 
 # tests/interop.rs loads exported datasets with minari, d3rlpy and numpy themselves, pinned in
 # tests/interop-requirements.txt and installed into the libtorch virtualenv; the constraint makes

@@ -1,9 +1,10 @@
 //! The `uavmeta` binary: parses arguments and calls library code, one subcommand per job.
 
-use std::io::IsTerminal;
+use std::io::{IsTerminal, Write};
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
+use indicatif::MultiProgress;
 
 mod cmd;
 
@@ -55,13 +56,30 @@ enum Command {
     Evaluator(cmd::evaluator::EvaluatorArgs),
 }
 
+/// stderr for log lines, through the rows a command draws on the terminal (`uavmeta launch`'s
+/// display): the rows are erased, the line written, the rows drawn again below it. A line written
+/// straight between the rows would shift them, leaving rows drawn twice.
+struct AboveRows(MultiProgress);
+
+impl Write for AboveRows {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.0.suspend(|| std::io::stderr().write(buf))
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        std::io::stderr().flush()
+    }
+}
+
 fn main() -> ExitCode {
+    let terminal = MultiProgress::new();
+    let rows = terminal.clone();
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
         )
-        .with_writer(std::io::stderr)
+        .with_writer(move || AboveRows(rows.clone()))
         .with_ansi(std::io::stderr().is_terminal())
         .init();
     let cli = Cli::parse();
@@ -75,7 +93,7 @@ fn main() -> ExitCode {
         Command::MetaTrain(c) => cmd::meta::run_train(c),
         Command::MetaTest(c) => cmd::meta::run_test(c),
         Command::Reproduce(c) => cmd::reproduce::run(c),
-        Command::Launch(c) => cmd::launch::run(c),
+        Command::Launch(c) => cmd::launch::run(c, terminal),
         Command::Actor(c) => cmd::actor::run(c),
         Command::Store(c) => cmd::store::run(c),
         Command::MetaLearner(c) => cmd::meta_learner::run(c),

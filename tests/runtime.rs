@@ -6,7 +6,7 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use uavmeta_learner::metrics::{self, Sample};
@@ -14,164 +14,11 @@ use uavmeta_proto::config::InnerLoss;
 use uavmeta_proto::dataset::DatasetReader;
 use uavmeta_proto::transport::Method;
 
-const BIN: &str = env!("CARGO_BIN_EXE_uavmeta");
-/// A small, quick run: two meta-train tasks and the unseen one, heuristic actors, a tiny network.
-const SMALL: &str = r#"
-[world]
-layout_seed = 7
-
-[[tasks]]
-name = "lambda-0"
-lambda = 0.0
-role = "meta-train"
-
-[[tasks]]
-name = "lambda-100"
-lambda = 100.0
-role = "meta-train"
-
-[[tasks]]
-name = "lambda-300"
-lambda = 300.0
-role = "meta-test"
-
-[collect]
-policy = "random"
-transitions = 300
-
-[learner]
-hidden = [16, 16]
-epochs = 2
-eval_episodes = 2
-
-[meta]
-meta_epochs = 4
-checkpoint_every = 2
-shots = 16
-query_shots = 16
-eval_every = 0
-
-[run]
-batch_size = 16
-"#;
-
-/// The one place deadlines come from: `seconds` is what a step takes on a quiet machine, with a
-/// margin; the deadline is that times `UAVMETA_TEST_PATIENCE` (default 3), so a loaded machine
-/// (`make test` beside a build and two busy loops: docs/TESTING.md) is slow, never failed. Every
-/// wait polls its condition and returns as soon as it holds, so patience costs nothing when the
-/// machine is fast.
-fn within(seconds: u64) -> Duration {
-    let patience = std::env::var("UAVMETA_TEST_PATIENCE")
-        .ok()
-        .map(|p| {
-            p.parse::<u64>().unwrap_or_else(|_| {
-                panic!("UAVMETA_TEST_PATIENCE=`{p}`: expected a whole factor such as 3")
-            })
-        })
-        .unwrap_or(3);
-    Duration::from_secs(seconds * patience)
-}
-
-/// `--config` (the small config, written into `dir`), `--set run.dir=<run>` and `overrides`.
-fn config_args(dir: &Path, run: &Path, overrides: &[&str]) -> Vec<String> {
-    let config = dir.join("small.toml");
-    std::fs::write(&config, SMALL).expect("write the test config");
-    let mut args = vec![
-        "--config".to_string(),
-        config.display().to_string(),
-        "--set".into(),
-        format!("run.dir={}", run.display()),
-    ];
-    for o in overrides {
-        args.push("--set".into());
-        args.push(o.to_string());
-    }
-    args
-}
-
-/// A process the test started; killed (with its process group) when dropped. Its output goes to
-/// files, so a chatty process never blocks on a full pipe.
-struct Proc {
-    child: Child,
-    name: String,
-    out: tempfile::NamedTempFile,
-    err: tempfile::NamedTempFile,
-}
-
-/// What a finished process printed.
-struct Finished {
-    status: std::process::ExitStatus,
-    stdout: String,
-    stderr: String,
-}
-
-impl Proc {
-    fn spawn(name: &str, args: &[String]) -> Proc {
-        use std::os::unix::process::CommandExt;
-        let out = tempfile::NamedTempFile::new().expect("stdout file");
-        let err = tempfile::NamedTempFile::new().expect("stderr file");
-        let child = Command::new(BIN)
-            .args(args)
-            .stdout(out.reopen().expect("stdout"))
-            .stderr(err.reopen().expect("stderr"))
-            .process_group(0)
-            .spawn()
-            .unwrap_or_else(|e| panic!("cannot start {name}: {e}"));
-        Proc {
-            child,
-            name: name.to_string(),
-            out,
-            err,
-        }
-    }
-
-    fn pid(&self) -> i32 {
-        self.child.id() as i32
-    }
-
-    /// Waits for the process to exit, at most `timeout`.
-    fn wait(mut self, timeout: Duration) -> Finished {
-        let start = Instant::now();
-        let status = loop {
-            if let Some(status) = self.child.try_wait().expect("try_wait") {
-                break status;
-            }
-            let stderr = std::fs::read_to_string(self.err.path()).unwrap_or_default();
-            assert!(
-                start.elapsed() < timeout,
-                "{} still running after {timeout:?}; its stderr:\n{stderr}",
-                self.name
-            );
-            std::thread::sleep(Duration::from_millis(50));
-        };
-        Finished {
-            status,
-            stdout: std::fs::read_to_string(self.out.path()).expect("stdout"),
-            stderr: std::fs::read_to_string(self.err.path()).expect("stderr"),
-        }
-    }
-
-    fn signal(&self, signal: i32) {
-        // SAFETY: a signal to the process group this test created.
-        unsafe { libc::killpg(self.pid(), signal) };
-    }
-}
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        if let Ok(None) = self.child.try_wait() {
-            self.signal(libc::SIGKILL);
-            let _ = self.child.wait();
-        }
-    }
-}
-
-fn run_dir(prefix: &str) -> tempfile::TempDir {
-    tempfile::Builder::new()
-        .prefix(prefix)
-        .tempdir()
-        .expect("temp dir")
-}
+mod support;
+use support::{
+    child_pid, child_pids, config_args, launch, missing_tool, run_dir, wait_until, within,
+    Finished, Proc, BIN,
+};
 
 fn stderr(finished: &Finished) -> String {
     finished.stderr.clone()
@@ -197,10 +44,10 @@ fn promtool_check(text: &str, what: &str) {
         .spawn();
     let mut child = match spawned {
         Ok(child) => child,
-        Err(e) if std::env::var("CI").is_ok_and(|ci| ci == "true") => {
-            panic!("promtool, required under CI=true to check {what}: {e}")
+        Err(e) => {
+            missing_tool(&format!("promtool (to check {what})"), &e);
+            return;
         }
-        Err(_) => return,
     };
     child
         .stdin
@@ -240,17 +87,6 @@ fn scrape(run: &Path, process: &str) -> Vec<Sample> {
     metrics::parse(&text).unwrap_or_else(|e| panic!("{process}: {e}"))
 }
 
-fn wait_until(what: &str, timeout: Duration, mut done: impl FnMut() -> bool) {
-    let start = Instant::now();
-    while !done() {
-        assert!(
-            start.elapsed() < timeout,
-            "timed out after {timeout:?} waiting for {what}"
-        );
-        std::thread::sleep(Duration::from_millis(100));
-    }
-}
-
 /// Every dataset file of a run: per task, per actor, the sorted sequence numbers.
 fn dataset_seqs(run: &Path) -> BTreeMap<String, BTreeMap<u32, Vec<u64>>> {
     let mut out = BTreeMap::new();
@@ -282,12 +118,6 @@ fn missing_in_files(seqs: &BTreeMap<u32, Vec<u64>>) -> u64 {
     seqs.values()
         .map(|s| s.last().map_or(0, |last| last + 1) - s.len() as u64)
         .sum()
-}
-
-fn launch(dir: &Path, run: &Path, overrides: &[&str]) -> Proc {
-    let mut args = vec!["launch".to_string()];
-    args.extend(config_args(dir, run, overrides));
-    Proc::spawn("launch", &args)
 }
 
 /// `metric` summed over the final metrics of every actor of the run.
@@ -518,27 +348,6 @@ fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
 /// Actors whose port file exists: the running ones.
 fn actor_names_live(run: &Path) -> Vec<String> {
     actor_files(&run.join("ports"), "port")
-}
-
-/// The pid of the launched child whose command line contains all of `needles`.
-fn child_pid(needles: &[&str]) -> Option<i32> {
-    child_pids(needles).into_iter().next()
-}
-
-/// The pids of the processes whose command line contains all of `needles`.
-fn child_pids(needles: &[&str]) -> Vec<i32> {
-    let Ok(entries) = std::fs::read_dir("/proc") else {
-        return Vec::new();
-    };
-    entries
-        .filter_map(|entry| {
-            let entry = entry.ok()?;
-            let pid = entry.file_name().to_string_lossy().parse::<i32>().ok()?;
-            let cmdline = std::fs::read(entry.path().join("cmdline")).ok()?;
-            let cmdline = String::from_utf8_lossy(&cmdline).replace('\0', " ");
-            needles.iter().all(|n| cmdline.contains(n)).then_some(pid)
-        })
-        .collect()
 }
 
 fn kill9(pid: i32) {

@@ -150,7 +150,8 @@ pub struct CollectSummary {
 const DQN_PROGRESS_STEPS: usize = 500;
 
 /// The paper's dataset of one task: an online DQN agent (actor `actor`, seeded `seed`) trains for
-/// `collect.dqn_steps` steps, reporting each block of training steps to `progress`, and
+/// `collect.dqn_steps` steps, reporting each block of training steps (and the agent, for its
+/// exploration rate and returns) to `progress`, and
 /// `collect.transitions` transitions are sampled from its replay buffer (the newest
 /// `collect.sample_newest` of it, when that is not 0), in time order. Also
 /// returns the trained agent, the task's online reference. Training stops early with
@@ -161,14 +162,14 @@ pub fn online_dqn_dataset(
     task_id: u32,
     actor: u32,
     seed: u64,
-    mut progress: impl FnMut(usize) -> bool,
+    mut progress: impl FnMut(usize, &OnlineDqn) -> bool,
 ) -> Result<(Vec<Transition>, OnlineDqn), CollectError> {
     let mut agent = OnlineDqn::new(config, task, task_id, actor, seed);
     let mut left = config.collect.dqn_steps;
     while left > 0 {
         let n = left.min(DQN_PROGRESS_STEPS);
         agent.train_steps(n)?;
-        if !progress(n) {
+        if !progress(n, &agent) {
             return Err(CollectError::Interrupted {
                 steps: agent.steps(),
             });
@@ -255,10 +256,11 @@ pub fn collect(
     let steps = match rollout_policy {
         None => {
             progress.set_length(config.collect.dqn_steps as u64);
-            let (sampled, agent) = online_dqn_dataset(config, task, header.task, 0, seed, |n| {
-                progress.inc(n as u64);
-                true
-            })?;
+            let (sampled, agent) =
+                online_dqn_dataset(config, task, header.task, 0, seed, |n, _| {
+                    progress.inc(n as u64);
+                    true
+                })?;
             for chunk in sampled.chunks(config.run.batch_size) {
                 writer.append(chunk)?;
             }

@@ -108,6 +108,9 @@ fn epsilon(c: &CollectConfig, step: usize) -> f64 {
     c.eps_start + (c.eps_end - c.eps_start) * progress
 }
 
+/// Episodes behind [`OnlineDqn::recent_return`]: one return is noise, the mean of 20 a trend.
+pub const RECENT_EPISODES: usize = 20;
+
 /// One online DQN agent training in one task's world.
 pub struct OnlineDqn {
     collect: CollectConfig,
@@ -181,23 +184,35 @@ impl OnlineDqn {
         self.train_steps(self.collect.dqn_steps)
     }
 
-    /// Trains for `steps` more environment steps, logging the recent return every 20 episodes.
+    /// Trains for `steps` more environment steps, logging the recent return every
+    /// [`RECENT_EPISODES`] episodes.
     pub fn train_steps(&mut self, steps: usize) -> Result<(), BatchError> {
         for _ in 0..steps {
-            if self.step()?.is_some() && self.returns.len().is_multiple_of(20) {
-                let recent = &self.returns[self.returns.len() - 20..];
+            if self.step()?.is_some() && self.returns.len().is_multiple_of(RECENT_EPISODES) {
                 tracing::info!(
                     task = self.task,
                     actor = self.actor,
                     steps = self.steps,
                     episodes = self.returns.len(),
-                    epsilon = epsilon(&self.collect, self.steps),
-                    mean_return = recent.iter().sum::<f64>() / recent.len() as f64,
+                    epsilon = self.epsilon(),
+                    mean_return = self.recent_return(),
                     "online DQN"
                 );
             }
         }
         Ok(())
+    }
+
+    /// The exploration rate of the next step.
+    pub fn epsilon(&self) -> f64 {
+        epsilon(&self.collect, self.steps)
+    }
+
+    /// Mean return of the last [`RECENT_EPISODES`] finished episodes (of all of them while fewer
+    /// have finished); `None` before the first.
+    pub fn recent_return(&self) -> Option<f64> {
+        let recent = &self.returns[self.returns.len().saturating_sub(RECENT_EPISODES)..];
+        (!recent.is_empty()).then(|| recent.iter().sum::<f64>() / recent.len() as f64)
     }
 
     /// One environment step (and the gradient step it is due); the episode's return when the step

@@ -44,7 +44,7 @@ fn trained_agent() -> &'static TrainedAgent {
         single_threaded();
         let config = Config::load(DEFAULT_CONFIG.as_ref(), &[]).unwrap();
         let task = config.task("lambda-300").unwrap().clone();
-        let (dataset, agent) = online_dqn_dataset(&config, &task, 0, 0, 1, |_| true).unwrap();
+        let (dataset, agent) = online_dqn_dataset(&config, &task, 0, 0, 1, |_, _| true).unwrap();
         assert_eq!(agent.steps(), config.collect.dqn_steps);
         assert_eq!(dataset.len(), config.collect.transitions);
         let policy = Evaluator::new(&config.world, &task, EVAL_EPISODES, EVAL_SEED)

@@ -31,7 +31,7 @@ use std::process::{Child, Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant, SystemTime};
 
 use iceoryx2::prelude::*;
-use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
+use indicatif::MultiProgress;
 use uavmeta_actors::actor_process::ActorOptions;
 use uavmeta_actors::evaluator_process::{self, EvaluationRow};
 use uavmeta_actors::heuristics::PolicySpec;
@@ -44,6 +44,12 @@ use uavmeta_proto::transport::{
 };
 
 use crate::process as meta_learner;
+
+mod display;
+
+/// The Grafana dashboard of a run's metrics, copied into every run directory beside
+/// `prometheus.yml`; embedded so that the binary writes it from any working directory.
+const DASHBOARD: &str = include_str!("../../docs/grafana/uavmeta.json");
 
 /// How often the supervisor looks at its children and the run's announcements.
 const TICK: Duration = Duration::from_millis(100);
@@ -102,6 +108,8 @@ enum Role {
 struct Supervised {
     name: String,
     role: Role,
+    /// An actor's task.
+    task: Option<String>,
     args: Vec<String>,
     child: Option<Child>,
     /// Failures so far; each one is followed by a restart until `run.max_restarts`.
@@ -243,15 +251,18 @@ fn heuristic_references(config: &Config) -> Vec<EvaluationRow> {
 }
 
 /// Runs `config` as one supervised run in `config.run.dir`, children started from `exe` (the
-/// `uavmeta` binary). `show_progress` draws progress bars on stderr.
+/// `uavmeta` binary). With a `terminal`, it shows what every process is doing there (`display`);
+/// whatever else writes to that terminal meanwhile (the log lines) must go through its
+/// `suspend`.
 pub fn launch(
     exe: PathBuf,
     config: &Config,
-    show_progress: bool,
+    terminal: Option<&MultiProgress>,
 ) -> Result<LaunchReport, LaunchError> {
     let run = RunDir::create(&config.run.dir)?;
     write_atomic(&run.config_file(), config.to_toml_string().as_bytes())?;
     write_prometheus_yml(&run)?;
+    write_atomic(&run.grafana_dashboard(), DASHBOARD.as_bytes())?;
     let node = transport::node(&format!("{}-{PROCESS}", run.id()))?;
     transport::cleanup_dead_nodes(&node);
     let names = ServiceNames::new(&run);
@@ -279,7 +290,10 @@ pub fn launch(
         launcher_metrics.restarts.with_label_values(&[&child.name]);
         launcher_metrics.hangs.with_label_values(&[&child.name]);
     }
-    let mut progress = Progress::new(config, show_progress);
+    let actors = children
+        .iter()
+        .filter_map(|c| Some((c.name.clone(), c.task.clone()?)));
+    let display = terminal.map(|t| display::Display::start(t, &run, config, actors.collect()));
     let supervisor = Supervisor {
         exe,
         run: run.clone(),
@@ -319,32 +333,19 @@ pub fn launch(
                 if let Some(ready) = ready_tasks.get_mut(m.task as usize) {
                     *ready = true;
                 }
-                progress.dataset_ready(m.task as usize, m.transitions);
             }
         }
         launcher_metrics
             .datasets_ready
             .set(ready_tasks.iter().filter(|r| **r).count() as i64);
-        while let Some(m) = checkpoint_ready
+        while checkpoint_ready
             .receive()
             .map_err(transport::receive_failed(
                 "receive a checkpoint announcement",
             ))?
+            .is_some()
         {
             launcher_metrics.checkpoints_announced.inc();
-            if let (Some(method), Some(task)) = (
-                Method::from_code(m.method),
-                config.tasks.get(m.task as usize),
-            ) {
-                progress.checkpoint(method, &task.name, m.epoch);
-            }
-        }
-        progress.transitions(&run, config);
-        if let Some(row) = evaluator_process::read_rows(&run.evaluations_csv())
-            .ok()
-            .and_then(|rows| rows.last().cloned())
-        {
-            progress.evaluation(&row);
         }
         last_targets = write_targets(&run, &children, last_targets)?;
         launcher_metrics
@@ -389,7 +390,9 @@ pub fn launch(
         stop_role(&mut children, role);
     }
     transport::cleanup_dead_nodes(&node);
-    progress.finish();
+    if let Some(display) = display {
+        display.finish();
+    }
     outcome?;
     let results = latest_results(&run)?;
     Ok(LaunchReport {
@@ -417,6 +420,7 @@ fn plan(run: &RunDir, config: &Config) -> Result<Vec<Supervised>, LaunchError> {
     let child = |name: String, role: Role, args: Vec<String>| Supervised {
         name,
         role,
+        task: None,
         args,
         child: None,
         failures: 0,
@@ -446,7 +450,10 @@ fn plan(run: &RunDir, config: &Config) -> Result<Vec<Supervised>, LaunchError> {
                 "--seed".into(),
                 seed.to_string(),
             ];
-            children.push(child(options.process_name(), Role::Actor, args));
+            children.push(Supervised {
+                task: Some(task.name.clone()),
+                ..child(options.process_name(), Role::Actor, args)
+            });
         }
     }
     if config.tasks_with_role(TaskRole::MetaTrain).next().is_some()
@@ -653,12 +660,17 @@ fn stop_role(children: &mut [Supervised], role: Role) {
 }
 
 fn write_prometheus_yml(run: &RunDir) -> Result<(), LaunchError> {
+    // honor_labels: the launcher's restart and hang counters name the child in their `process`
+    // label, which must win over the target's `process` (the launcher) rather than be renamed
+    // `exported_process`.
     let text = format!(
         "# Scrapes every process of uavmeta run {id}. Ports are ephemeral; the launcher rewrites\n\
          # the targets file as processes (re)start: prometheus --config.file={yml}\n\
-         global:\n  scrape_interval: 5s\nscrape_configs:\n  - job_name: uavmeta\n    file_sd_configs:\n      - files: ['{targets}']\n",
+         # Grafana: import {dashboard} (README, \"Dashboard\").\n\
+         global:\n  scrape_interval: 5s\nscrape_configs:\n  - job_name: uavmeta\n    honor_labels: true\n    file_sd_configs:\n      - files: ['{targets}']\n",
         id = run.id(),
         yml = run.prometheus_yml().display(),
+        dashboard = run.grafana_dashboard().display(),
         targets = run.prometheus_targets().display(),
     );
     Ok(write_atomic(&run.prometheus_yml(), text.as_bytes())?)
@@ -750,123 +762,6 @@ pub fn results_table(report: &LaunchReport) -> String {
         }
     }
     out
-}
-
-/// The progress bars: transitions per task, meta-epochs, the latest evaluation.
-struct Progress {
-    bars: MultiProgress,
-    tasks: Vec<ProgressBar>,
-    meta: ProgressBar,
-    evaluation: ProgressBar,
-    store_port: Option<u16>,
-    last_scrape: Instant,
-    host: String,
-}
-
-impl Progress {
-    fn new(config: &Config, show: bool) -> Self {
-        let bars = MultiProgress::new();
-        if !show {
-            bars.set_draw_target(indicatif::ProgressDrawTarget::hidden());
-        }
-        let style = ProgressStyle::with_template("{prefix:>14} [{bar:30}] {pos}/{len} {msg}")
-            .expect("valid template")
-            .progress_chars("=> ");
-        let tasks = config
-            .tasks
-            .iter()
-            .map(|t| {
-                let bar = bars.add(
-                    ProgressBar::new(config.collect.transitions as u64)
-                        .with_style(style.clone())
-                        .with_prefix(t.name.clone()),
-                );
-                bar.set_message("transitions");
-                bar
-            })
-            .collect();
-        let meta = bars.add(
-            ProgressBar::new(config.meta.meta_epochs as u64)
-                .with_style(style)
-                .with_prefix("meta-epochs"),
-        );
-        let evaluation = bars.add(ProgressBar::new_spinner().with_prefix("evaluation"));
-        evaluation
-            .set_style(ProgressStyle::with_template("{prefix:>14} {msg}").expect("valid template"));
-        evaluation.set_message("waiting for the first checkpoint");
-        Self {
-            bars,
-            tasks,
-            meta,
-            evaluation,
-            store_port: None,
-            last_scrape: Instant::now(),
-            host: config.run.metrics_host.clone(),
-        }
-    }
-
-    /// Transitions per task from the store's /metrics, at most twice a second.
-    fn transitions(&mut self, run: &RunDir, config: &Config) {
-        if self.last_scrape.elapsed() < Duration::from_millis(500) {
-            return;
-        }
-        self.last_scrape = Instant::now();
-        if self.store_port.is_none() {
-            self.store_port = std::fs::read_to_string(run.port_file(store::PROCESS))
-                .ok()
-                .and_then(|p| p.trim().parse().ok());
-        }
-        let Some(port) = self.store_port else { return };
-        match metrics::scrape(&self.host, port).and_then(|text| metrics::parse(&text)) {
-            Ok(samples) => {
-                for (task, bar) in config.tasks.iter().zip(&self.tasks) {
-                    bar.set_position(metrics::sum(
-                        &samples,
-                        "uavmeta_store_dataset_transitions",
-                        &[("task", &task.name)],
-                    ) as u64);
-                }
-            }
-            // The store restarted on another port.
-            Err(_) => self.store_port = None,
-        }
-    }
-
-    fn dataset_ready(&self, task: usize, transitions: u64) {
-        if let Some(bar) = self.tasks.get(task) {
-            bar.set_position(transitions);
-            bar.finish_with_message("ready");
-        }
-    }
-
-    fn checkpoint(&self, method: Method, task: &str, epoch: u32) {
-        match method {
-            Method::MetaInit => self.meta.set_position(epoch as u64),
-            _ => self
-                .meta
-                .set_message(format!("meta-test {method} on {task}: epoch {epoch}")),
-        }
-    }
-
-    fn evaluation(&self, row: &EvaluationRow) {
-        self.evaluation.set_message(format!(
-            "{} {} epoch {}: return {:.1}, AoI {:.2}, power {:.3} mW, outages {:.1}",
-            row.task,
-            row.method,
-            row.epoch,
-            row.ret,
-            row.aoi,
-            row.power_watts * 1e3,
-            row.outages
-        ));
-    }
-
-    fn finish(&self) {
-        for bar in self.tasks.iter().chain([&self.meta, &self.evaluation]) {
-            bar.abandon();
-        }
-        let _ = self.bars.clear();
-    }
 }
 
 #[cfg(test)]

@@ -618,6 +618,12 @@ impl RunDir {
         self.root.join("prometheus-targets.json")
     }
 
+    /// The Grafana dashboard of the run's metrics (a copy of `docs/grafana/uavmeta.json`), to
+    /// import beside a Prometheus that reads [`RunDir::prometheus_yml`].
+    pub fn grafana_dashboard(&self) -> PathBuf {
+        self.root.join("grafana-dashboard.json")
+    }
+
     /// Reads the run's config, or, on the run's first start, writes `fallback` as the run's config
     /// (atomically, so two processes starting together agree) and returns it.
     pub fn load_or_init_config(

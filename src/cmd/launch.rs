@@ -6,6 +6,7 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use indicatif::MultiProgress;
 use uavmeta_proto::config::Config;
 use uavmeta_proto::transport::RunDir;
 
@@ -45,11 +46,14 @@ pub struct LaunchArgs {
     pub config: ConfigArgs,
 }
 
-pub fn run(args: LaunchArgs) -> Result<()> {
+/// `terminal`: the rows on stderr that the log lines go through (`main`), where the run is shown
+/// when stderr is a terminal.
+pub fn run(args: LaunchArgs, terminal: MultiProgress) -> Result<()> {
     let config = args.config.load()?;
     let exe = std::env::current_exe()
         .context("cannot find the uavmeta binary to start the run's processes")?;
-    let report = uavmeta_meta::launch::launch(exe, &config, std::io::stderr().is_terminal())?;
+    let terminal = std::io::stderr().is_terminal().then_some(&terminal);
+    let report = uavmeta_meta::launch::launch(exe, &config, terminal)?;
     print!("{}", uavmeta_meta::launch::results_table(&report));
     Ok(())
 }

@@ -3,9 +3,12 @@
 
 use std::collections::HashMap;
 
-use prometheus::{Counter, Gauge, Histogram, IntCounter, IntGauge, Opts, Registry};
+use prometheus::{Counter, Gauge, Histogram, IntCounter, IntGauge, IntGaugeVec, Opts, Registry};
 
 use uavmeta_learner::metrics::{counter, latency_histogram, register};
+
+use super::Phase;
+use crate::dqn_online::{OnlineDqn, RECENT_EPISODES};
 
 pub struct ActorMetrics {
     pub registry: Registry,
@@ -24,6 +27,41 @@ pub struct ActorMetrics {
     pub episode_outages: Gauge,
     pub backpressure_wait: Counter,
     pub batch_duration: Histogram,
+    /// `actor_phase{phase}`: 1 for the phase the actor is in, 0 for the others.
+    phase: IntGaugeVec,
+}
+
+/// The online DQN agent's training, exported by `dqn-online` actors only (another policy has no
+/// exploration rate or training returns to report, and a 0 would read as one).
+pub struct OnlineDqnMetrics {
+    epsilon: Gauge,
+    recent_return: Gauge,
+}
+
+impl OnlineDqnMetrics {
+    pub fn new(registry: &Registry) -> Self {
+        let gauge = |name: &str, help: &str| {
+            register(
+                registry,
+                Gauge::with_opts(Opts::new(name, help)).expect("valid gauge"),
+            )
+        };
+        let metrics = Self {
+            epsilon: gauge("actor_online_dqn_epsilon", "Exploration rate of the online DQN agent's epsilon-greedy policy."),
+            recent_return: gauge("actor_online_dqn_recent_return", &format!("Mean return of the online DQN agent's last {RECENT_EPISODES} finished training episodes.")),
+        };
+        // No sample (NaN) until the first episode ends, rather than a made-up 0.
+        metrics.recent_return.set(f64::NAN);
+        metrics
+    }
+
+    /// The agent's figures after a block of training steps.
+    pub fn observe(&self, agent: &OnlineDqn) {
+        self.epsilon.set(agent.epsilon());
+        if let Some(recent) = agent.recent_return() {
+            self.recent_return.set(recent);
+        }
+    }
 }
 
 impl ActorMetrics {
@@ -70,7 +108,24 @@ impl ActorMetrics {
                 .expect("valid counter"),
             ),
             batch_duration: latency_histogram(&registry, "actor_batch_duration_seconds", "Time to roll out and send one batch."),
+            phase: register(
+                &registry,
+                IntGaugeVec::new(
+                    Opts::new("actor_phase", "1 for what the actor is doing: training (its online DQN agent), sending (transitions to the store), sent (all of them, waiting for the store)."),
+                    &["phase"],
+                )
+                .expect("valid gauge"),
+            ),
             registry,
+        }
+    }
+
+    /// Marks `phase` as the actor's phase.
+    pub fn set_phase(&self, phase: Phase) {
+        for p in Phase::ALL {
+            self.phase
+                .with_label_values(&[p.name()])
+                .set((p == phase) as i64);
         }
     }
 }

@@ -91,6 +91,31 @@ impl ActorOptions {
     }
 }
 
+/// What an actor is doing, exported as `uavmeta_actor_phase{phase}` for the launcher's display
+/// and dashboards.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Phase {
+    /// Training its online DQN agent (`dqn-online` only), before it sends anything.
+    Training,
+    /// Sending transitions to the store.
+    Sending,
+    /// Everything sent; waiting for the store to acknowledge it or announce the dataset.
+    Sent,
+}
+
+impl Phase {
+    pub const ALL: [Phase; 3] = [Phase::Training, Phase::Sending, Phase::Sent];
+
+    /// The `phase` label value.
+    pub fn name(self) -> &'static str {
+        match self {
+            Phase::Training => "training",
+            Phase::Sending => "sending",
+            Phase::Sent => "sent",
+        }
+    }
+}
+
 /// What an actor run did.
 #[derive(Debug, Default, Clone, Copy, PartialEq)]
 pub struct ActorSummary {
@@ -207,10 +232,14 @@ pub fn run(
 
     let mut source = match &options.policy {
         PolicySpec::DqnOnline => {
-            let trained = online_dqn_dataset(config, &task, task_id, actor, options.seed, |n| {
-                metrics.steps.inc_by(n as u64);
-                transport::keep_running(&node, Duration::ZERO)
-            });
+            metrics.set_phase(Phase::Training);
+            let dqn = metrics::OnlineDqnMetrics::new(&metrics.registry);
+            let trained =
+                online_dqn_dataset(config, &task, task_id, actor, options.seed, |n, agent| {
+                    metrics.steps.inc_by(n as u64);
+                    dqn.observe(agent);
+                    transport::keep_running(&node, Duration::ZERO)
+                });
             match trained {
                 Ok((sample, agent)) => {
                     summary.steps = agent.steps() as u64;
@@ -264,6 +293,8 @@ pub fn run(
     );
     let mut seq = 0u64;
     let mut next_look = Instant::now();
+    let mut phase = Phase::Sending;
+    metrics.set_phase(phase);
     loop {
         // Signals and announcements are looked at every CONTROL_EVERY, not every batch: a look
         // costs a syscall and two receives, a batch of 64 steps a few microseconds.
@@ -286,6 +317,15 @@ pub fn run(
             Source::Fixed(list) => limit.min(list.len() as u64).saturating_sub(seq),
         };
         let count = left.min(publisher.batch_size() as u64) as usize;
+        let now = if count == 0 {
+            Phase::Sent
+        } else {
+            Phase::Sending
+        };
+        if now != phase {
+            phase = now;
+            metrics.set_phase(phase);
+        }
         if count == 0 {
             if seq >= limit {
                 tracing::info!(published = seq, "published the requested transitions");

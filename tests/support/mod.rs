@@ -1,0 +1,231 @@
+//! What the end-to-end tests share: the small run config, deadlines, and processes that are
+//! killed when a test ends, passed or failed.
+
+// Each test file compiles this module on its own and uses a part of it.
+#![allow(dead_code)]
+
+use std::path::Path;
+use std::process::{Child, Command};
+use std::time::{Duration, Instant};
+
+pub const BIN: &str = env!("CARGO_BIN_EXE_uavmeta");
+
+/// A small, quick run: two meta-train tasks and the unseen one, heuristic actors, a tiny network.
+pub const SMALL: &str = r#"
+[world]
+layout_seed = 7
+
+[[tasks]]
+name = "lambda-0"
+lambda = 0.0
+role = "meta-train"
+
+[[tasks]]
+name = "lambda-100"
+lambda = 100.0
+role = "meta-train"
+
+[[tasks]]
+name = "lambda-300"
+lambda = 300.0
+role = "meta-test"
+
+[collect]
+policy = "random"
+transitions = 300
+
+[learner]
+hidden = [16, 16]
+epochs = 2
+eval_episodes = 2
+
+[meta]
+meta_epochs = 4
+checkpoint_every = 2
+shots = 16
+query_shots = 16
+eval_every = 0
+
+[run]
+batch_size = 16
+"#;
+
+/// `--set`s turning the small run into one like the paper's: each actor first trains an online
+/// DQN agent (a small one, for a few thousand steps), then sends a sample of its replay buffer.
+pub const DQN_RUN: &[&str] = &[
+    "collect.policy=dqn-online",
+    "collect.dqn_steps=6000",
+    "collect.dqn_hidden=[64, 64]",
+    "collect.learning_starts=500",
+    "collect.eps_decay_steps=3000",
+];
+
+/// The one place deadlines come from: `seconds` is what a step takes on a quiet machine, with a
+/// margin; the deadline is that times `UAVMETA_TEST_PATIENCE` (default 3), so a loaded machine
+/// (`make test` beside a build and two busy loops: docs/TESTING.md) is slow, never failed. Every
+/// wait polls its condition and returns as soon as it holds, so patience costs nothing when the
+/// machine is fast.
+pub fn within(seconds: u64) -> Duration {
+    let patience = std::env::var("UAVMETA_TEST_PATIENCE")
+        .ok()
+        .map(|p| {
+            p.parse::<u64>().unwrap_or_else(|_| {
+                panic!("UAVMETA_TEST_PATIENCE=`{p}`: expected a whole factor such as 3")
+            })
+        })
+        .unwrap_or(3);
+    Duration::from_secs(seconds * patience)
+}
+
+/// `--config` (the small config, written into `dir`), `--set run.dir=<run>` and `overrides`.
+pub fn config_args(dir: &Path, run: &Path, overrides: &[&str]) -> Vec<String> {
+    let config = dir.join("small.toml");
+    std::fs::write(&config, SMALL).expect("write the test config");
+    let mut args = vec![
+        "--config".to_string(),
+        config.display().to_string(),
+        "--set".into(),
+        format!("run.dir={}", run.display()),
+    ];
+    for o in overrides {
+        args.push("--set".into());
+        args.push(o.to_string());
+    }
+    args
+}
+
+/// A process the test started; killed (with its process group) when dropped. Its output goes to
+/// files, so a chatty process never blocks on a full pipe.
+pub struct Proc {
+    child: Child,
+    pub name: String,
+    out: tempfile::NamedTempFile,
+    err: tempfile::NamedTempFile,
+}
+
+/// What a finished process printed.
+pub struct Finished {
+    pub status: std::process::ExitStatus,
+    pub stdout: String,
+    pub stderr: String,
+}
+
+impl Proc {
+    /// `uavmeta` with `args`.
+    pub fn spawn(name: &str, args: &[String]) -> Proc {
+        Proc::spawn_program(BIN, name, args)
+    }
+
+    /// `program` with `args`, in a process group of its own.
+    pub fn spawn_program(program: &str, name: &str, args: &[String]) -> Proc {
+        use std::os::unix::process::CommandExt;
+        let out = tempfile::NamedTempFile::new().expect("stdout file");
+        let err = tempfile::NamedTempFile::new().expect("stderr file");
+        let child = Command::new(program)
+            .args(args)
+            .stdout(out.reopen().expect("stdout"))
+            .stderr(err.reopen().expect("stderr"))
+            .process_group(0)
+            .spawn()
+            .unwrap_or_else(|e| panic!("cannot start {name}: {e}"));
+        Proc {
+            child,
+            name: name.to_string(),
+            out,
+            err,
+        }
+    }
+
+    pub fn pid(&self) -> i32 {
+        self.child.id() as i32
+    }
+
+    /// Waits for the process to exit, at most `timeout`.
+    pub fn wait(mut self, timeout: Duration) -> Finished {
+        let start = Instant::now();
+        let status = loop {
+            if let Some(status) = self.child.try_wait().expect("try_wait") {
+                break status;
+            }
+            let stderr = std::fs::read_to_string(self.err.path()).unwrap_or_default();
+            assert!(
+                start.elapsed() < timeout,
+                "{} still running after {timeout:?}; its stderr:\n{stderr}",
+                self.name
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        };
+        Finished {
+            status,
+            stdout: std::fs::read_to_string(self.out.path()).expect("stdout"),
+            stderr: std::fs::read_to_string(self.err.path()).expect("stderr"),
+        }
+    }
+
+    pub fn signal(&self, signal: i32) {
+        // SAFETY: a signal to the process group this test created.
+        unsafe { libc::killpg(self.pid(), signal) };
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        if let Ok(None) = self.child.try_wait() {
+            self.signal(libc::SIGKILL);
+            let _ = self.child.wait();
+        }
+    }
+}
+
+pub fn run_dir(prefix: &str) -> tempfile::TempDir {
+    tempfile::Builder::new()
+        .prefix(prefix)
+        .tempdir()
+        .expect("temp dir")
+}
+
+pub fn wait_until(what: &str, timeout: Duration, mut done: impl FnMut() -> bool) {
+    let start = Instant::now();
+    while !done() {
+        assert!(
+            start.elapsed() < timeout,
+            "timed out after {timeout:?} waiting for {what}"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+pub fn launch(dir: &Path, run: &Path, overrides: &[&str]) -> Proc {
+    let mut args = vec!["launch".to_string()];
+    args.extend(config_args(dir, run, overrides));
+    Proc::spawn("launch", &args)
+}
+
+/// The pid of the launched child whose command line contains all of `needles`.
+pub fn child_pid(needles: &[&str]) -> Option<i32> {
+    child_pids(needles).into_iter().next()
+}
+
+/// The pids of the processes whose command line contains all of `needles`.
+pub fn child_pids(needles: &[&str]) -> Vec<i32> {
+    let Ok(entries) = std::fs::read_dir("/proc") else {
+        return Vec::new();
+    };
+    entries
+        .filter_map(|entry| {
+            let entry = entry.ok()?;
+            let pid = entry.file_name().to_string_lossy().parse::<i32>().ok()?;
+            let cmdline = std::fs::read(entry.path().join("cmdline")).ok()?;
+            let cmdline = String::from_utf8_lossy(&cmdline).replace('\0', " ");
+            needles.iter().all(|n| cmdline.contains(n)).then_some(pid)
+        })
+        .collect()
+}
+
+/// A tool a test needs (promtool, prometheus, tmux) is missing: under `CI=true` that fails the
+/// test (`make test` installs them); elsewhere the test skips what needs it, saying so.
+pub fn missing_tool(tool: &str, error: &std::io::Error) {
+    let ci = std::env::var("CI").is_ok_and(|ci| ci == "true");
+    assert!(!ci, "{tool}, required under CI=true: {error}");
+    eprintln!("skipped: {tool} is not installed ({error}); `make test` installs it");
+}
