@@ -917,18 +917,7 @@ fn two_runs_side_by_side_keep_their_data_apart() {
 
 /// Processes whose command line names `run`, other than `except`.
 fn run_processes(run: &str, except: i32) -> Vec<i32> {
-    let Ok(entries) = std::fs::read_dir("/proc") else {
-        return Vec::new();
-    };
-    entries
-        .filter_map(|e| {
-            let e = e.ok()?;
-            let pid = e.file_name().to_string_lossy().parse::<i32>().ok()?;
-            let cmdline = String::from_utf8_lossy(&std::fs::read(e.path().join("cmdline")).ok()?)
-                .replace('\0', " ");
-            (pid != except && cmdline.contains(BIN) && cmdline.contains(run)).then_some(pid)
-        })
-        .collect()
+    child_pids(&[BIN, run]).into_iter().filter(|&pid| pid != except).collect()
 }
 
 #[test]
