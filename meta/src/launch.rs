@@ -47,6 +47,10 @@ use crate::process as meta_learner;
 
 mod display;
 
+/// How often the run's `prometheus.yml` has Prometheus scrape every process; `uavmeta dashboard
+/// render` takes it for the interval of its rates.
+pub const SCRAPE_INTERVAL_SECONDS: u64 = 5;
+
 /// The Grafana dashboard of a run's metrics, copied into every run directory beside
 /// `prometheus.yml`; embedded so that the binary writes it from any working directory.
 const DASHBOARD: &str = include_str!("../../docs/grafana/uavmeta.json");
@@ -667,7 +671,7 @@ fn write_prometheus_yml(run: &RunDir) -> Result<(), LaunchError> {
         "# Scrapes every process of uavmeta run {id}. Ports are ephemeral; the launcher rewrites\n\
          # the targets file as processes (re)start: prometheus --config.file={yml}\n\
          # Grafana: import {dashboard} (README, \"Dashboard\").\n\
-         global:\n  scrape_interval: 5s\nscrape_configs:\n  - job_name: uavmeta\n    honor_labels: true\n    file_sd_configs:\n      - files: ['{targets}']\n",
+         global:\n  scrape_interval: {SCRAPE_INTERVAL_SECONDS}s\nscrape_configs:\n  - job_name: uavmeta\n    honor_labels: true\n    file_sd_configs:\n      - files: ['{targets}']\n",
         id = run.id(),
         yml = run.prometheus_yml().display(),
         dashboard = run.grafana_dashboard().display(),

@@ -85,7 +85,7 @@ pub enum MetaError {
     #[error("cannot start the reproduction's worker threads")]
     Threads(#[from] rayon::ThreadPoolBuildError),
     #[error(transparent)]
-    Plot(#[from] reproduce::plot::PlotError),
+    Plot(#[from] uavmeta_plot::PlotError),
     #[error(transparent)]
     Config(#[from] ConfigError),
     #[error(transparent)]

@@ -509,19 +509,31 @@ impl RunDir {
     /// directory's name plus a hash of its absolute path: readable in service names, and
     /// distinct for two runs whose directories share a name.
     pub fn create(path: &Path) -> Result<Self, TransportError> {
-        let io = |path: &Path, action, source| TransportError::Io {
+        std::fs::create_dir_all(path).map_err(|source| TransportError::Io {
             path: path.to_path_buf(),
-            action,
+            action: "create the run directory",
             source,
-        };
-        std::fs::create_dir_all(path).map_err(|e| io(path, "create the run directory", e))?;
-        let root = path
-            .canonicalize()
-            .map_err(|e| io(path, "resolve the run directory", e))?;
+        })?;
+        let run = Self::open(path)?;
         for sub in ["datasets", "checkpoints", "ports", "metrics", "logs"] {
-            let dir = root.join(sub);
-            std::fs::create_dir_all(&dir).map_err(|e| io(&dir, "create", e))?;
+            let dir = run.root.join(sub);
+            std::fs::create_dir_all(&dir).map_err(|source| TransportError::Io {
+                path: dir.clone(),
+                action: "create",
+                source,
+            })?;
         }
+        Ok(run)
+    }
+
+    /// The existing run directory `path`, with the id [`RunDir::create`] gives it; nothing is
+    /// created.
+    pub fn open(path: &Path) -> Result<Self, TransportError> {
+        let root = path.canonicalize().map_err(|source| TransportError::Io {
+            path: path.to_path_buf(),
+            action: "resolve the run directory",
+            source,
+        })?;
         let hash = fnv1a(root.to_string_lossy().as_bytes());
         let name: String = root
             .file_name()

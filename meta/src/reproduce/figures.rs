@@ -7,13 +7,13 @@ use std::path::Path;
 
 use uavmeta_actors::world::World;
 use uavmeta_learner::train::EpochRow;
+use uavmeta_plot::{self as plot, Band, Bar, LineChart, Reference, Series, TrajectoryChart};
 use uavmeta_proto::config::{Config, InnerLoss, RainZone, TaskConfig, TaskRole};
 use uavmeta_proto::stats::{Estimate, PolicyMetrics};
 
 use super::claims::{
     self, converged_at, final_return, mean_swing, return_at, settle_epoch, Claim, Verdict,
 };
-use super::plot::{self, Band, Bar, LineChart, Reference, Series, TrajectoryChart};
 use super::runs::{InitKey, InitKind, Method, RunKey, SeedResult};
 use super::{rain_tasks, Experiment, HeuristicRef};
 use crate::write_file;

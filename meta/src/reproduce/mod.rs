@@ -4,7 +4,7 @@
 //! It owns the orchestration; the pieces are:
 //! - [`runs`]: one seed's pipeline and its cache under `OUT/cache/seed-S/` (datasets, online DQN
 //!   agents, meta-trained w0s), and the plan of fine-tuning runs shared between experiments;
-//! - [`figures`]: per experiment, its CSV files, PNG charts ([`plot`]) and `summary.md`;
+//! - [`figures`]: per experiment, its CSV files, PNG charts ([`uavmeta_plot`]) and `summary.md`;
 //! - [`claims`]: curve statistics and the yes / partly / no rules.
 //!
 //! Pipeline of [`run`]:
@@ -23,7 +23,6 @@
 
 mod claims;
 mod figures;
-pub mod plot;
 mod runs;
 
 use std::fmt::Write as _;

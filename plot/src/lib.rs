@@ -1,14 +1,41 @@
-//! The PNG figures of `uavmeta reproduce`: curves over epochs with shaded 95% confidence bands
-//! and dashed reference levels ([`line_chart`]), grouped bars with confidence whiskers
-//! ([`bar_chart`]), and UAV paths on the grid with the rain zone ([`trajectory_chart`]).
+//! PNG charts in one style: uavmeta reproduce's figures and the time-series panels of
+//! `uavmeta dashboard render`.
 //!
-//! Text is set in DejaVu Sans compiled into the binary (`meta/assets/`, licence beside it), so a
-//! figure renders the same on every machine and needs no system fonts.
+//! - [`line_chart`]: curves over epochs with shaded 95% confidence bands and dashed reference
+//!   levels; [`bar_chart`]: grouped bars with confidence whiskers; [`trajectory_chart`]: UAV paths
+//!   on the grid with the rain zone. They take summary statistics from `uavmeta_proto::stats` and
+//!   the rain zone from `uavmeta_proto::config`.
+//! - [`timeseries`]: series over clock time as a Grafana panel draws them, one panel to a PNG or
+//!   a grid of panels under headings.
+//!
+//! Every chart is written to a PNG file on a white canvas in the [`PALETTE`]'s colours. Text is
+//! set in DejaVu Sans compiled into the binary (`plot/assets/`, licence beside it), so a figure
+//! renders the same on every machine and needs no system fonts.
 //!
 //! Non-finite values (the NaN of a run that diverged, the mean of an epoch no run reached) are
 //! left out: a curve breaks around them and a bar is not drawn. A chart with no finite value at
 //! all is still written, with axes over [0, 1] and its legend, so the figure of a failed
 //! experiment exists and shows that it is empty instead of stopping the other figures.
+//!
+//! ```
+//! use uavmeta_plot::{line_chart, Band, LineChart, Series};
+//!
+//! let dir = tempfile::tempdir().unwrap();
+//! let x = vec![1.0, 2.0, 3.0];
+//! let runs = [vec![-300.0, -250.0, -220.0], vec![-320.0, -260.0, -210.0]];
+//! let series = [Series { label: "CQL-MAML".into(), band: Band::from_runs(x, &runs) }];
+//! let chart = LineChart {
+//!     title: "Meta-test reward",
+//!     x_label: "epoch",
+//!     y_label: "reward",
+//!     series: &series,
+//!     references: &[],
+//!     floor: None,
+//! };
+//! line_chart(&dir.path().join("reward.png"), &chart).unwrap();
+//! ```
+
+pub mod timeseries;
 
 use std::ops::Range;
 use std::path::{Path, PathBuf};
@@ -24,10 +51,11 @@ use uavmeta_proto::stats::Estimate;
 
 /// The family name the embedded font is registered under.
 const FONT: &str = "sans-serif";
-static DEJAVU_SANS: &[u8] = include_bytes!("../../assets/DejaVuSans.ttf");
+static DEJAVU_SANS: &[u8] = include_bytes!("../assets/DejaVuSans.ttf");
 
-/// Tableau's ten colours, in order: told apart in print and by most colour-blind readers.
-const PALETTE: [RGBColor; 10] = [
+/// Tableau's ten colours, in order: told apart in print and by most colour-blind readers. The
+/// n-th series of a chart is drawn in the n-th colour (cycling).
+pub const PALETTE: [RGBColor; 10] = [
     RGBColor(31, 119, 180),
     RGBColor(255, 127, 14),
     RGBColor(44, 160, 44),
@@ -56,8 +84,8 @@ const PANEL_FRAME: (u32, u32) = (60, 125);
 const BAR_SPAN: f64 = 0.8;
 
 type Area<'a> = DrawingArea<BitMapBackend<'a>, Shift>;
-type DrawResult =
-    Result<(), DrawingAreaErrorKind<<BitMapBackend<'static> as DrawingBackend>::ErrorType>>;
+type DrawError = DrawingAreaErrorKind<<BitMapBackend<'static> as DrawingBackend>::ErrorType>;
+type DrawResult = Result<(), DrawError>;
 
 #[derive(Debug, thiserror::Error)]
 pub enum PlotError {
@@ -473,7 +501,7 @@ fn register_embedded_font() {
         // The bytes are a file of this repository, so a failure is a defect of the build, not of
         // any input; every chart test would catch it.
         let registered = register_font(FONT, FontStyle::Normal, DEJAVU_SANS).is_ok();
-        assert!(registered, "meta/assets/DejaVuSans.ttf is not a font");
+        assert!(registered, "plot/assets/DejaVuSans.ttf is not a font");
     });
 }
 
@@ -557,7 +585,7 @@ fn first_appearance<'a>(items: impl Iterator<Item = &'a str>) -> Vec<&'a str> {
 }
 
 /// An axis tick: whole numbers without decimals (epoch 10, not 10.0), others as [`significant`].
-fn axis_tick(value: f64) -> String {
+pub fn axis_tick(value: f64) -> String {
     if value == value.round() {
         format!("{value:.0}")
     } else {
