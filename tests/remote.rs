@@ -233,6 +233,26 @@ impl Hosts {
     }
 }
 
+/// Removes both domains' iceoryx2 files. Fields drop after this, so the processes (owned by
+/// the test function, dropped first) are gone by then.
+impl Drop for Hosts {
+    fn drop(&mut self) {
+        for domain in [&self.domain_a, &self.domain_b] {
+            let _ = std::fs::remove_dir_all(format!("/tmp/iceoryx2/{domain}"));
+            let prefix = format!("iox2_{domain}_");
+            for entry in std::fs::read_dir("/dev/shm")
+                .into_iter()
+                .flatten()
+                .flatten()
+            {
+                if entry.file_name().to_string_lossy().starts_with(&prefix) {
+                    let _ = std::fs::remove_file(entry.path());
+                }
+            }
+        }
+    }
+}
+
 fn strings(args: &[&str]) -> Vec<String> {
     args.iter().map(|s| s.to_string()).collect()
 }
@@ -338,7 +358,7 @@ fn a_launch_with_two_local_and_two_remote_actors_stores_the_remote_transitions()
     let tasks = ["lambda-0", "lambda-100"];
     let mut args = strings(&["launch"]);
     args.extend(hosts.config_args(&[
-        "collect.transitions=3000".into(),
+        "collect.transitions=300000".into(),
         "tunnel.wait_for_hosts=[\"hostb\"]".into(),
     ]));
     let mut launch = Proc::spawn(hosts.path(), "launch", &args);
@@ -387,7 +407,7 @@ fn a_launch_with_two_local_and_two_remote_actors_stores_the_remote_transitions()
         );
         assert_eq!(
             per_actor.values().map(Vec::len).sum::<usize>(),
-            3000,
+            300_000,
             "{task}"
         );
         let counted = metrics::sum(
@@ -395,7 +415,7 @@ fn a_launch_with_two_local_and_two_remote_actors_stores_the_remote_transitions()
             "uavmeta_store_dataset_transitions",
             &[("task", task)],
         );
-        assert_eq!(counted, 3000.0, "{task}: the store's count");
+        assert_eq!(counted, 300_000.0, "{task}: the store's count");
     }
     let launch_log = launch.output();
     assert!(launch_log.contains("remote actor host"), "{launch_log}");
@@ -443,7 +463,7 @@ fn stored(run: &RunDir) -> f64 {
 /// counted missing by the store.
 #[test]
 fn a_killed_and_restarted_tunnel_loses_nothing_unaccounted_and_the_remote_actor_resumes() {
-    const PUBLISHED: u64 = 400_000;
+    const PUBLISHED: u64 = 1_000_000;
     let hosts = Hosts::new("kill");
     let (mut store, mut tunnel) = start_host_a(&hosts, &["collect.transitions=10000000".into()]);
     let mut join = hosts.join(hosts.run_a.id());

@@ -748,7 +748,7 @@ fn write_targets(
     Ok(text)
 }
 
-/// Waits until every host of `tunnel.wait_for_hosts` has announced an actor and the store has
+/// Waits until every host of `tunnel.wait_for_hosts` has announced itself and the store has
 /// stored a transition (only remote actors run yet, so it came through the tunnel).
 fn wait_for_remote_hosts(
     run: &RunDir,
@@ -768,11 +768,7 @@ fn wait_for_remote_hosts(
         let hosts = remote_hosts(run);
         let missing: Vec<&String> = wanted
             .iter()
-            .filter(|w| {
-                !hosts.iter().any(|h| {
-                    &h.host == *w && h.processes.iter().any(|p| p.name.starts_with("actor-"))
-                })
-            })
+            .filter(|w| !hosts.iter().any(|h| &h.host == *w))
             .collect();
         let stored = std::fs::read_to_string(run.port_file(store::PROCESS))
             .ok()

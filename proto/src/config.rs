@@ -541,8 +541,8 @@ pub struct TunnelConfig {
     /// `tcp/0.0.0.0:7447`; empty = no tunnel, local actors only.
     pub listen: String,
     /// Remote hosts (`uavmeta tunnel join --host`) whose actors the launcher waits for before it
-    /// starts the local ones: until each has announced an actor and the store has stored a
-    /// transition, so that a run's data comes from every host it was planned with.
+    /// starts the local ones: until each has joined and the store has stored a transition, so
+    /// that a run's data comes from every host it was planned with.
     pub wait_for_hosts: Vec<String>,
     /// How long the launcher waits for `wait_for_hosts` before it gives up.
     pub wait_seconds: f64,

@@ -5,6 +5,7 @@ use std::collections::BTreeSet;
 use std::time::Instant;
 
 use iceoryx2::node::Node;
+use iceoryx2::port::backpressure_strategy::BackpressureStrategy;
 use iceoryx2::prelude::*;
 use iceoryx2_integrations_zenoh_link_carrier::ZenohCarrier;
 use iceoryx2_link::Link;
@@ -88,10 +89,23 @@ impl Bridge {
         services: &RunServices,
     ) -> Result<Self, TunnelError> {
         let link_error = |action| move |e: String| TunnelError::Link { action, message: e };
-        let node = transport::node(process, &config.run)?;
+        let mut iceoryx = transport::iceoryx_config(&config.run)?;
+        // The link publishes what arrives from the other side into the local service, whose
+        // subscribers include its own (drained only between rounds): waiting on a full one, as
+        // uavmeta's actors do, deadlocks the link while frames keep arriving (seen in
+        // tests/remote.rs). So its publishers skip a full subscriber; a store that falls behind
+        // misses that batch and counts the gap.
+        iceoryx.defaults.publish_subscribe.backpressure_strategy =
+            BackpressureStrategy::DiscardData;
+        let name =
+            NodeName::new(process).map_err(|e| link_error("name its node")(format!("{e:?}")))?;
+        let node = NodeBuilder::new()
+            .name(&name)
+            .config(&iceoryx)
+            .create::<ipc::Service>()
+            .map_err(|e| link_error("create its node")(e.to_string()))?;
         let carrier = ZenohCarrier::open(session.clone())
             .map_err(|e| link_error("open the Zenoh carrier")(e.to_string()))?;
-        let iceoryx = transport::iceoryx_config(&config.run)?;
         let allowed = services.names.clone();
         let link = Link::new(node, Tunnel::new(carrier, &iceoryx))
             .with_filter(move |name: &ServiceName| allowed.contains(name.as_str()));

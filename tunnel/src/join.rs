@@ -25,7 +25,7 @@ const FIRST_BACKOFF: Duration = Duration::from_millis(250);
 const MAX_BACKOFF: Duration = Duration::from_secs(8);
 
 /// How often the host tells the learner's host which processes it runs.
-const ANNOUNCE_EVERY: Duration = Duration::from_secs(1);
+const ANNOUNCE_EVERY: Duration = Duration::from_millis(250);
 
 /// The flags of `uavmeta tunnel join`.
 #[derive(Debug, Clone)]
