@@ -195,7 +195,8 @@ fn send_floor(batch: usize, step: Duration) -> Duration {
     let subscribed = AtomicBool::new(false);
     std::thread::scope(|scope| {
         scope.spawn(|| {
-            let node = transport::node("transport-bench-floor-store").expect("node");
+            let node =
+                transport::node("transport-bench-floor-store", &bench.config.run).expect("node");
             let service = bench.service(&node);
             let subscriber =
                 transport::transition_subscriber(&service, &bench.config.run).expect("subscriber");
@@ -209,7 +210,7 @@ fn send_floor(batch: usize, step: Duration) -> Duration {
         while !subscribed.load(Ordering::Acquire) {
             std::thread::yield_now();
         }
-        let node = transport::node("transport-bench-floor-actor").expect("node");
+        let node = transport::node("transport-bench-floor-actor", &bench.config.run).expect("node");
         let service = bench.service(&node);
         let publisher =
             TransitionPublisher::new(&service, &bench.run, &bench.config, 0, 0).expect("publisher");
@@ -266,7 +267,7 @@ fn keep_cost(batch: usize) -> (f64, f64) {
 fn run_case(actors: usize, batch: usize, policy: &PolicySpec, keep_until_stored: bool) -> Figures {
     let bench = BenchRun::new(batch, keep_until_stored);
     let (run, config) = (&bench.run, &bench.config);
-    let node = transport::node("transport-bench").expect("node");
+    let node = transport::node("transport-bench", &config.run).expect("node");
     let service = bench.service(&node);
     let subscriber = transport::transition_subscriber(&service, &config.run).expect("subscriber");
     // Acknowledged like the store does, after every batch, so actors keep what they would.

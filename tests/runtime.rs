@@ -917,7 +917,10 @@ fn two_runs_side_by_side_keep_their_data_apart() {
 
 /// Processes whose command line names `run`, other than `except`.
 fn run_processes(run: &str, except: i32) -> Vec<i32> {
-    child_pids(&[BIN, run]).into_iter().filter(|&pid| pid != except).collect()
+    child_pids(&[BIN, run])
+        .into_iter()
+        .filter(|&pid| pid != except)
+        .collect()
 }
 
 #[test]

@@ -169,7 +169,7 @@ pub struct StoreSummary {
 
 /// Runs the store of `run` until SIGINT/SIGTERM or a shutdown announcement.
 pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
-    let node = transport::node(&format!("{}-{PROCESS}", run.id()))?;
+    let node = transport::node(&format!("{}-{PROCESS}", run.id()), &config.run)?;
     // A predecessor killed mid-run left its ports in every service; without this sweep the actors
     // stay blocked on its full buffer.
     let cleaned = transport::cleanup_dead_nodes(&node);

@@ -145,6 +145,16 @@ impl<'a, 's> Sender<'a, 's> {
             "the store has not acknowledged what it received; waiting"
         );
         while self.outbox.batches.len() >= room {
+            // The batches may have gone nowhere (a tunnel that died with them, and a new one in
+            // its place): a new subscriber gets them all again, or no acknowledgement ever comes.
+            let now = self.port.publisher.subscribers();
+            if self.port.link.replaced(now) {
+                self.port.link.observe(now);
+                if let Sent::Stopped = self.resend_outbox(control)? {
+                    return Ok(false);
+                }
+                continue;
+            }
             let pause = Instant::now();
             let stop = control.stop_requested(POLL)?;
             self.port.waited += pause.elapsed();
