@@ -10,7 +10,7 @@ use iceoryx2::prelude::*;
 use iceoryx2_integrations_zenoh_link_carrier::ZenohCarrier;
 use iceoryx2_link::Link;
 use iceoryx2_link_tunnel::Tunnel;
-use uavmeta_proto::config::{Config, ConfigError};
+use uavmeta_proto::config::Config;
 use uavmeta_proto::transport::{self, AckService, ControlService, RunDir, ServiceNames};
 use uavmeta_proto::transport::{DatasetReady, Shutdown, TransitionService};
 use zenoh::Session;
@@ -30,32 +30,12 @@ pub(crate) struct RunServices {
     pub names: BTreeSet<String>,
 }
 
-/// Frames the Zenoh carrier's receiving inbox holds (`iceoryx2-integrations-zenoh-link-carrier`
-/// 0.10's `channel::CAPACITY`): one relaying round may publish that many into a service.
-const CARRIER_INBOX: usize = 64;
-
 impl RunServices {
-    /// The link drains its own subscriber of a service, then publishes what arrived from the
-    /// other side into it, in one thread: a subscriber buffer smaller than the inbox would block
-    /// that publisher on its own full subscriber for good.
-    fn check(config: &Config) -> Result<(), ConfigError> {
-        if config.run.subscriber_buffer >= CARRIER_INBOX {
-            return Ok(());
-        }
-        Err(ConfigError::Invalid {
-            origin: config.origin.clone(),
-            key: "run.subscriber_buffer".into(),
-            value: config.run.subscriber_buffer.to_string(),
-            expected: format!("at least {CARRIER_INBOX} batches with a tunnel (its inbox)"),
-        })
-    }
-
     pub fn open(
         node: &Node<ipc::Service>,
         run: &RunDir,
         config: &Config,
     ) -> Result<Self, TunnelError> {
-        Self::check(config)?;
         let names = ServiceNames::new(run);
         let tasks = &config.tasks;
         Ok(Self {

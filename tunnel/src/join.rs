@@ -24,6 +24,10 @@ const PROCESS: &str = "tunnel-join";
 const FIRST_BACKOFF: Duration = Duration::from_millis(250);
 const MAX_BACKOFF: Duration = Duration::from_secs(8);
 
+/// Frames the Zenoh carrier's receiving inbox holds (`iceoryx2-integrations-zenoh-link-carrier`
+/// 0.10's `channel::CAPACITY`); it drops beyond.
+const CARRIER_INBOX: usize = 64;
+
 /// How often the host tells the learner's host which processes it runs.
 const ANNOUNCE_EVERY: Duration = Duration::from_millis(250);
 
@@ -136,6 +140,10 @@ fn make_run_dir(options: &JoinOptions, info: &RunInfo) -> Result<(RunDir, Config
     config.run.domain = options.domain.clone();
     config.run.metrics_host = options.metrics_host.clone();
     config.run.dir = options.dir.clone();
+    // An actor keeps up to 2 * subscriber_buffer + 2 batches unacknowledged in flight; across the
+    // tunnel they queue in the Zenoh carrier's inbox (64 frames, `CARRIER_INBOX`) and the store's
+    // buffer, which drop what does not fit: keep the window within them.
+    config.run.subscriber_buffer = config.run.subscriber_buffer.min(CARRIER_INBOX / 2 - 1);
     config.tunnel = TunnelConfig::default();
     config.validate()?;
     let run = RunDir::create_remote(&options.dir, &info.run_id, info.run_hash)?;

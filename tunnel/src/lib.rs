@@ -31,8 +31,12 @@
 //! learner host's own actors' batches travel to every remote host too (and are dropped there),
 //! and the learner's local actors wait for the tunnel's subscriber like for the store's: a link
 //! slower than they are slows them. The Zenoh carrier's receiving inbox holds 64 frames and
-//! drops beyond; a dropped frame is a gap the store counts as missing. Giving remote actors
-//! services of their own, which the store also reads, would remove all three.
+//! drops beyond, and the link's publishers skip a full subscriber (waiting on its own full one
+//! would deadlock it), so a frame dropped there or skipped by a store that fell behind is a gap
+//! the store counts as missing: every published transition is stored or counted, but not every
+//! one is stored. `join` narrows a remote actor's window of unacknowledged batches to fit the
+//! inbox, which makes such drops rare. Giving remote actors services of their own, which the
+//! store also reads, with flow control end to end, would remove all of these.
 
 use std::time::Duration;
 

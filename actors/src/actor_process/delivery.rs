@@ -146,14 +146,11 @@ impl<'a, 's> Sender<'a, 's> {
         );
         while self.outbox.batches.len() >= room {
             // The batches may have gone nowhere (a tunnel that died with them, and a new one in
-            // its place): a new subscriber gets them all again, or no acknowledgement ever comes.
-            let now = self.port.publisher.subscribers();
-            if self.port.link.replaced(now) {
-                self.port.link.observe(now);
-                if let Sent::Stopped = self.resend_outbox(control)? {
-                    return Ok(false);
-                }
-                continue;
+            // its place): no acknowledgement will come. Stop waiting; the delivery of this batch
+            // sees the new subscriber and sends everything kept again (not from here: the
+            // caller holds this batch's loan, and the publisher lends one at a time).
+            if self.port.link.replaced(self.port.publisher.subscribers()) {
+                return Ok(true);
             }
             let pause = Instant::now();
             let stop = control.stop_requested(POLL)?;
