@@ -165,9 +165,10 @@ fn the_launch_display_moves_from_the_start_and_leaves_only_the_results_table() {
     );
 
     let last = watch(&tmux, "the launch to end", within(240), |_| tmux.exited());
-    assert_eq!(
-        tmux.pane("#{pane_dead_status}"),
-        "0",
+    // A launch that ends well prints its results table; tmux 3.3a does not always fill in
+    // `pane_dead_status` for a pane that has died, so the table is what tells.
+    assert!(
+        last.contains("(0 restarts)") && last.contains("cql-maml"),
         "the launch failed:\n{last}"
     );
     assert!(
