@@ -330,7 +330,7 @@ fn iceoryx_files(pid: i32) -> Vec<String> {
 fn dataset_seqs(run: &Path) -> BTreeMap<String, BTreeMap<u32, Vec<u64>>> {
     let mut out = BTreeMap::new();
     for entry in std::fs::read_dir(run.join("datasets")).expect("datasets dir") {
-        let reader = DatasetReader::open(&entry.expect("entry").path()).expect("dataset");
+        let reader = DatasetReader::open(entry.expect("entry").path()).expect("dataset");
         let mut per_actor: BTreeMap<u32, Vec<u64>> = BTreeMap::new();
         for t in reader.transitions() {
             per_actor.entry(t.actor).or_default().push(t.seq);

@@ -104,7 +104,9 @@ pub enum LaunchError {
     #[error("stopped by a termination request")]
     Interrupted,
     #[error(
-        "tunnel.wait_for_hosts: after {seconds} s (tunnel.wait_seconds), hosts {missing} have          announced no actor and the store has {stored} transitions; is `uavmeta tunnel join          --connect <this host's address for {endpoint}>` running there, with actors?"
+        "tunnel.wait_for_hosts: after {seconds} s (tunnel.wait_seconds), hosts {missing} have \
+         announced no actor and the store has {stored} transitions; is `uavmeta tunnel join \
+         --connect <this host's address for {endpoint}>` running there, with actors?"
     )]
     RemoteHosts {
         missing: String,
