@@ -1,22 +1,22 @@
 //! Remote actor hosts, end to end, on one machine that plays two hosts honestly: host A (the
 //! learner's) and host B (actors) run in two iceoryx2 domains (`run.domain`: their own
 //! shared-memory prefix and root path), so they cannot see each other's shared memory, and only
-//! the tunnel (`uavmeta tunnel serve` / `join`) over a loopback Zenoh link connects them. Every
-//! test checks, from /proc, that B's processes never open anything of A's domain.
+//! the tunnel (`uavmeta tunnel serve` / `join`) over a loopback Zenoh link connects them. The
+//! launch test checks, from /proc, that B's processes never open anything of A's domain.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use uavmeta_actors::actor_process::ActorOptions;
 use uavmeta_learner::metrics;
 use uavmeta_proto::dataset::DatasetReader;
 use uavmeta_proto::transport::RunDir;
 
-const BIN: &str = env!("CARGO_BIN_EXE_uavmeta");
+mod support;
+use support::{run_dir, wait_until, within, Proc};
 
 /// Two meta-train tasks (so no meta-learning: the run is done when its datasets are), one local
 /// actor per task on host A.
@@ -42,104 +42,6 @@ actors_per_task = 1
 batch_size = 16
 "#;
 
-/// Deadlines: quiet-machine seconds times `UAVMETA_TEST_PATIENCE` (default 3), as in
-/// tests/runtime.rs, so a loaded machine is slow, never failed.
-fn within(seconds: u64) -> Duration {
-    let patience = std::env::var("UAVMETA_TEST_PATIENCE")
-        .ok()
-        .and_then(|p| p.parse::<u64>().ok())
-        .unwrap_or(3);
-    Duration::from_secs(seconds * patience)
-}
-
-fn wait_until(what: &str, timeout: Duration, mut done: impl FnMut() -> bool) {
-    let start = Instant::now();
-    while !done() {
-        assert!(
-            start.elapsed() < timeout,
-            "timed out after {timeout:?} waiting for {what}"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
-}
-
-/// A process the test started, in its own process group, killed with it when dropped; its output
-/// goes to a file.
-struct Proc {
-    child: Child,
-    name: String,
-    log: PathBuf,
-}
-
-impl Proc {
-    fn spawn(dir: &Path, name: &str, args: &[String]) -> Proc {
-        use std::os::unix::process::CommandExt;
-        let log = dir.join(format!("{name}.log"));
-        let file = std::fs::File::create(&log).expect("log file");
-        let child = Command::new(BIN)
-            .args(args)
-            .stdout(file.try_clone().expect("log"))
-            .stderr(file)
-            .process_group(0)
-            .spawn()
-            .unwrap_or_else(|e| panic!("cannot start {name}: {e}"));
-        Proc {
-            child,
-            name: name.into(),
-            log,
-        }
-    }
-
-    fn pid(&self) -> i32 {
-        self.child.id() as i32
-    }
-
-    fn output(&self) -> String {
-        std::fs::read_to_string(&self.log).unwrap_or_default()
-    }
-
-    fn running(&mut self) -> bool {
-        matches!(self.child.try_wait(), Ok(None))
-    }
-
-    /// Waits for a successful exit, at most `timeout`.
-    fn succeeds(&mut self, timeout: Duration) {
-        let start = Instant::now();
-        let status = loop {
-            if let Some(status) = self.child.try_wait().expect("try_wait") {
-                break status;
-            }
-            assert!(
-                start.elapsed() < timeout,
-                "{} still running after {timeout:?}:\n{}",
-                self.name,
-                self.output()
-            );
-            std::thread::sleep(Duration::from_millis(50));
-        };
-        assert!(
-            status.success(),
-            "{} failed ({status}):\n{}",
-            self.name,
-            self.output()
-        );
-    }
-
-    fn kill9(&mut self) {
-        // SAFETY: a signal to the process group this test created.
-        unsafe { libc::killpg(self.pid(), libc::SIGKILL) };
-        let _ = self.child.wait();
-    }
-}
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        if self.running() {
-            self.kill9();
-        }
-    }
-}
-
 /// The two hosts of one test: domains, directories, the Zenoh endpoint, and A's run.
 struct Hosts {
     dir: tempfile::TempDir,
@@ -151,10 +53,7 @@ struct Hosts {
 
 impl Hosts {
     fn new(name: &str) -> Self {
-        let dir = tempfile::Builder::new()
-            .prefix(&format!("remote-{name}-"))
-            .tempdir()
-            .expect("temp dir");
+        let dir = run_dir(&format!("remote-{name}-"));
         let pid = std::process::id();
         // A free loopback port: bound and released; Zenoh binds it a moment later.
         let port = std::net::TcpListener::bind("127.0.0.1:0")
@@ -210,7 +109,7 @@ impl Hosts {
             "--host",
             "hostb",
         ];
-        Proc::spawn(self.path(), "join", &strings(&args))
+        Proc::spawn("join", &strings(&args))
     }
 
     /// An actor on host B, once `join` has made B's directory for the run.
@@ -229,7 +128,7 @@ impl Hosts {
             "random",
         ]);
         args.extend(strings(extra));
-        Proc::spawn(self.path(), &format!("actor-b-{task}"), &args)
+        Proc::spawn(&format!("actor-b-{task}"), &args)
     }
 }
 
@@ -361,9 +260,9 @@ fn a_launch_with_two_local_and_two_remote_actors_stores_the_remote_transitions()
         "collect.transitions=300000".into(),
         "tunnel.wait_for_hosts=[\"hostb\"]".into(),
     ]));
-    let mut launch = Proc::spawn(hosts.path(), "launch", &args);
-    let mut join = hosts.join(hosts.run_a.id());
-    let mut actors: Vec<Proc> = tasks.iter().map(|t| hosts.actor_b(t, &[])).collect();
+    let mut launch = Proc::spawn("launch", &args);
+    let join = hosts.join(hosts.run_a.id());
+    let actors: Vec<Proc> = tasks.iter().map(|t| hosts.actor_b(t, &[])).collect();
     let pids_b = Arc::new(Mutex::new(
         actors.iter().chain([&join]).map(Proc::pid).collect(),
     ));
@@ -375,8 +274,8 @@ fn a_launch_with_two_local_and_two_remote_actors_stores_the_remote_transitions()
         remote_targets |= targets.contains("\"host\": \"hostb\"") && targets.contains("actor-");
         !launch.running()
     });
-    launch.succeeds(Duration::ZERO);
-    for actor in &mut actors {
+    let launch_log = launch.succeeds(Duration::ZERO).stderr;
+    for actor in actors {
         actor.succeeds(within(60));
     }
     join.succeeds(within(60));
@@ -417,7 +316,6 @@ fn a_launch_with_two_local_and_two_remote_actors_stores_the_remote_transitions()
         );
         assert_eq!(counted, 300_000.0, "{task}: the store's count");
     }
-    let launch_log = launch.output();
     assert!(launch_log.contains("remote actor host"), "{launch_log}");
 }
 
@@ -427,7 +325,7 @@ fn start_host_a(hosts: &Hosts, extra: &[String]) -> (Proc, Proc) {
     let run = hosts.run_a.root().display().to_string();
     let mut args = strings(&["store", "--run", &run]);
     args.extend(hosts.config_args(extra));
-    let store = Proc::spawn(hosts.path(), "store", &args);
+    let store = Proc::spawn("store", &args);
     let port = hosts.run_a.port_file("store");
     wait_until("the store", within(60), || port.exists());
     (store, start_tunnel(hosts, "tunnel"))
@@ -435,14 +333,9 @@ fn start_host_a(hosts: &Hosts, extra: &[String]) -> (Proc, Proc) {
 
 fn start_tunnel(hosts: &Hosts, name: &str) -> Proc {
     let run = hosts.run_a.root().display().to_string();
-    let tunnel = Proc::spawn(
-        hosts.path(),
-        name,
-        &strings(&["tunnel", "serve", "--run", &run]),
-    );
-    let log = hosts.path().join(format!("{name}.log"));
+    let tunnel = Proc::spawn(name, &strings(&["tunnel", "serve", "--run", &run]));
     wait_until("the tunnel to serve", within(60), || {
-        std::fs::read_to_string(&log).is_ok_and(|l| l.contains("serving the run"))
+        tunnel.stderr().contains("serving the run")
     });
     tunnel
 }
@@ -465,8 +358,8 @@ fn stored(run: &RunDir) -> f64 {
 fn a_killed_and_restarted_tunnel_loses_nothing_unaccounted_and_the_remote_actor_resumes() {
     const PUBLISHED: u64 = 1_000_000;
     let hosts = Hosts::new("kill");
-    let (mut store, mut tunnel) = start_host_a(&hosts, &["collect.transitions=10000000".into()]);
-    let mut join = hosts.join(hosts.run_a.id());
+    let (store, tunnel) = start_host_a(&hosts, &["collect.transitions=10000000".into()]);
+    let join = hosts.join(hosts.run_a.id());
     let task = "lambda-0";
     let transitions = PUBLISHED.to_string();
     let mut actor = hosts.actor_b(task, &["--transitions", &transitions]);
@@ -481,19 +374,18 @@ fn a_killed_and_restarted_tunnel_loses_nothing_unaccounted_and_the_remote_actor_
         actor.running(),
         "the remote actor finished before the tunnel was killed"
     );
-    tunnel.kill9();
+    tunnel.signal(libc::SIGKILL);
+    tunnel.wait(within(10));
     let at_kill = stored(&hosts.run_a) as usize;
-    let join_log = hosts.path().join("join.log");
     wait_until("host B to notice", within(60), || {
-        std::fs::read_to_string(&join_log).is_ok_and(|l| l.contains("lost the run's tunnel"))
+        join.stderr().contains("lost the run's tunnel")
     });
     let _tunnel = start_tunnel(&hosts, "tunnel-restarted");
     actor.succeeds(within(240));
-    // SAFETY: SIGTERM to the store's process group, which this test created: it syncs and
-    // writes its final metrics.
-    unsafe { libc::killpg(store.pid(), libc::SIGTERM) };
+    // SIGTERM: the store syncs and writes its final metrics.
+    store.signal(libc::SIGTERM);
     store.succeeds(within(60));
-    join.kill9();
+    drop(join);
 
     let seqs = &dataset_seqs(run)[task][&actor_id];
     let missing_in_file = seqs.last().map_or(0, |last| last + 1) - seqs.len() as u64;
@@ -533,8 +425,7 @@ fn a_killed_and_restarted_tunnel_loses_nothing_unaccounted_and_the_remote_actor_
 #[test]
 fn joining_an_unreachable_endpoint_or_an_unknown_run_fails_with_a_message_naming_it() {
     let hosts = Hosts::new("bad");
-    let mut unreachable = Proc::spawn(
-        hosts.path(),
+    let unreachable = Proc::spawn(
         "unreachable",
         &strings(&[
             "tunnel",
@@ -551,10 +442,7 @@ fn joining_an_unreachable_endpoint_or_an_unknown_run_fails_with_a_message_naming
             "2",
         ]),
     );
-    wait_until("the unreachable join to give up", within(60), || {
-        !unreachable.running()
-    });
-    let out = unreachable.output();
+    let out = unreachable.wait(within(60)).stderr;
     assert!(!out.is_empty() && out.contains("trying again"), "{out}");
     assert!(
         out.contains(&format!(
@@ -565,8 +453,7 @@ fn joining_an_unreachable_endpoint_or_an_unknown_run_fails_with_a_message_naming
     );
 
     let (_store, _tunnel) = start_host_a(&hosts, &[]);
-    let mut unknown = Proc::spawn(
-        hosts.path(),
+    let unknown = Proc::spawn(
         "unknown",
         &strings(&[
             "tunnel",
@@ -581,10 +468,7 @@ fn joining_an_unreachable_endpoint_or_an_unknown_run_fails_with_a_message_naming
             &hosts.domain_b,
         ]),
     );
-    wait_until("the join of an unknown run to fail", within(60), || {
-        !unknown.running()
-    });
-    let out = unknown.output();
+    let out = unknown.wait(within(60)).stderr;
     assert!(out.contains("serves no run `no-such-run`"), "{out}");
     assert!(
         out.contains(hosts.run_a.id()),
