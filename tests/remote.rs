@@ -12,8 +12,9 @@ use std::time::Duration;
 
 use uavmeta_actors::actor_process::ActorOptions;
 use uavmeta_learner::metrics;
+use uavmeta_proto::config::RunConfig;
 use uavmeta_proto::dataset::DatasetReader;
-use uavmeta_proto::transport::RunDir;
+use uavmeta_proto::transport::{self, RunDir};
 
 mod support;
 use support::{run_dir, wait_until, within, Proc};
@@ -137,16 +138,12 @@ impl Hosts {
 impl Drop for Hosts {
     fn drop(&mut self) {
         for domain in [&self.domain_a, &self.domain_b] {
-            let _ = std::fs::remove_dir_all(format!("/tmp/iceoryx2/{domain}"));
-            let prefix = format!("iox2_{domain}_");
-            for entry in std::fs::read_dir("/dev/shm")
-                .into_iter()
-                .flatten()
-                .flatten()
-            {
-                if entry.file_name().to_string_lossy().starts_with(&prefix) {
-                    let _ = std::fs::remove_file(entry.path());
-                }
+            let run = RunConfig {
+                domain: domain.clone(),
+                ..RunConfig::default()
+            };
+            if let Err(error) = transport::remove_domain(&run) {
+                eprintln!("{error}");
             }
         }
     }

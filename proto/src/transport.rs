@@ -782,6 +782,37 @@ pub fn iceoryx_config(run: &RunConfig) -> Result<iceoryx2::config::Config, Trans
     Ok(config)
 }
 
+/// Removes what iceoryx2 keeps of `run.domain` after its last process has gone: the domain's
+/// global management segment in /dev/shm and its root directory. For a domain made for one test
+/// or benchmark, once none of its processes runs; the default domain (empty) is left alone.
+pub fn remove_domain(run: &RunConfig) -> Result<(), TransportError> {
+    if run.domain.is_empty() {
+        return Ok(());
+    }
+    let config = iceoryx_config(run)?;
+    let gone = |path: PathBuf, removed: std::io::Result<()>| match removed {
+        Err(source) if source.kind() != std::io::ErrorKind::NotFound => Err(TransportError::Io {
+            path,
+            action: "remove",
+            source,
+        }),
+        _ => Ok(()),
+    };
+    let root = PathBuf::from(config.global.root_path().to_string());
+    gone(root.clone(), std::fs::remove_dir_all(&root))?;
+    let prefix = config.global.prefix.to_string();
+    for entry in std::fs::read_dir("/dev/shm")
+        .into_iter()
+        .flatten()
+        .flatten()
+    {
+        if entry.file_name().to_string_lossy().starts_with(&prefix) {
+            gone(entry.path(), std::fs::remove_file(entry.path()))?;
+        }
+    }
+    Ok(())
+}
+
 /// The iceoryx2 node of a process in `run.domain`, named after the process so `iox2 node list`
 /// shows who is who.
 pub fn node(process: &str, run: &RunConfig) -> Result<Node<ipc::Service>, TransportError> {
