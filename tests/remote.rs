@@ -313,7 +313,14 @@ fn a_launch_with_two_local_and_two_remote_actors_stores_the_remote_transitions()
         );
         assert_eq!(counted, 300_000.0, "{task}: the store's count");
     }
-    assert!(launch_log.contains("remote actor host"), "{launch_log}");
+    assert!(
+        launch_log.contains("remote actor host host=hostb"),
+        "{launch_log}"
+    );
+    assert!(
+        launch_log.contains(&format!("--run-id {}`", hosts.run_a.id())),
+        "the launcher names the run id to join: {launch_log}"
+    );
 }
 
 /// A store and a tunnel started by hand on host A (no launcher, so nothing restarts the tunnel

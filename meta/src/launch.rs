@@ -334,6 +334,13 @@ pub fn launch(
     // Then the tunnel, and the remote hosts the config waits for, before the local actors.
     for child in children.iter_mut().filter(|c| c.role == Role::Tunnel) {
         supervisor.start(child)?;
+        // What an actor host needs to join (README, Actors on other hosts).
+        tracing::info!(
+            endpoint = %config.tunnel.listen,
+            "remote actor hosts join with `uavmeta tunnel join --connect <this host's address for \
+             the endpoint> --run-id {}`",
+            run.id()
+        );
     }
     wait_for_remote_hosts(&run, config, &node)?;
     for child in children

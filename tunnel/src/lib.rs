@@ -76,8 +76,8 @@ pub enum TunnelError {
         message: String,
     },
     #[error(
-        "the host at `{endpoint}` serves no run `{run}`; it serves: {served} (the run id is the \
-         learner host's `uavmeta tunnel serve` log line, or its run directory's service prefix)"
+        "the host at `{endpoint}` serves no run `{run}`; it serves: {served} (the learner host's \
+         `uavmeta launch` logs the run id to join, as does its `uavmeta tunnel serve`)"
     )]
     UnknownRun {
         endpoint: String,
