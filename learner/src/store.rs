@@ -38,8 +38,9 @@ use crate::metrics::{MetricsError, MetricsServer};
 /// The store's process name: its node, port file and metrics snapshot.
 pub const PROCESS: &str = "store";
 
-/// How long the loop sleeps when no batch arrived; bounds the added latency when idle.
-const IDLE_WAIT: Duration = Duration::from_micros(200);
+/// How long the loop sleeps when no batch arrived; bounds the added latency when idle. The
+/// transport bench's receiver waits the same, to measure publish-to-store latency.
+pub const IDLE_WAIT: Duration = Duration::from_micros(200);
 
 /// Interval between repeats of every actor's acknowledgement (`TaskStore::acknowledge_all`).
 const ACK_REFRESH_EVERY: Duration = Duration::from_millis(100);

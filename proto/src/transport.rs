@@ -150,7 +150,8 @@ pub struct BatchHeader {
     /// Explicit padding, so the layout has no uninitialised bytes.
     pub reserved: u32,
     /// Wall-clock send time in nanoseconds since the Unix epoch, for publish-to-receive latency
-    /// (both ends run on one host, so they share the clock).
+    /// (on one host both ends share the clock; from a remote actor host, through the tunnel, the
+    /// figure is only as good as the two hosts' clock synchronisation).
     pub sent_unix_ns: u64,
 }
 
