@@ -17,11 +17,20 @@
 //! the store does (`proto::transport`), but only counts, so the figures are the transport's, not
 //! the dataset writer's; it acknowledges every batch as the store does (`StoreAck`), so actors keep
 //! what they keep in a run. Run: `cargo bench --bench transport` (prints Markdown tables);
-//! arguments pick sections (`floor`, `policies`, `keep`, `actors`) and `ACTORSxBATCH` (e.g.
-//! `-- 1x64`) only those actor cases. `keep` measures what `run.keep_until_stored` costs an actor.
+//! arguments pick sections (`floor`, `policies`, `keep`, `actors`, `tunnel`) and `ACTORSxBATCH`
+//! (e.g. `-- 1x64`) only those actor cases. `keep` measures what `run.keep_until_stored` costs an
+//! actor.
+//!
+//! `tunnel` puts the actor on a second host (issue #16): the bench's run is host A, served by a
+//! real `uavmeta tunnel serve`; a real `uavmeta tunnel join` makes host B's directory for it in an
+//! iceoryx2 domain of its own (`run.domain`), and the actor publishes there, so its batches and
+//! the receiver's acknowledgements cross a loopback Zenoh link, as in tests/remote.rs. Same-host
+//! and tunnel cases take turns, several rounds; the receiver waits as the store does when nothing
+//! arrived (`store::IDLE_WAIT`), since a busy-polling one would take a core from the tunnel.
 
+use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
 use iceoryx2::node::Node;
@@ -31,7 +40,8 @@ use uavmeta_actors::actor_process::{ActorOptions, Rollout};
 use uavmeta_actors::heuristics::PolicySpec;
 use uavmeta_actors::rollout::{episode_seed, run_episode, Policy};
 use uavmeta_actors::world::World;
-use uavmeta_proto::config::Config;
+use uavmeta_learner::store;
+use uavmeta_proto::config::{Config, RunConfig};
 use uavmeta_proto::transport::{
     self, RunDir, ServiceNames, StoreAck, TransitionPublisher, TransitionSlot, SCHEMA_VERSION,
 };
@@ -57,6 +67,9 @@ const RAW_REPEATS: usize = 8;
 /// the same reason.
 const CASE_REPEATS: usize = 3;
 
+/// Rounds of the tunnel section, each running every batch size same-host and across the tunnel.
+const TUNNEL_ROUNDS: usize = 5;
+
 /// CPU time of this thread.
 fn cpu_time() -> Duration {
     // SAFETY: clock_gettime writes the struct it is given.
@@ -66,6 +79,23 @@ fn cpu_time() -> Duration {
         t
     };
     Duration::new(t.tv_sec as u64, t.tv_nsec as u32)
+}
+
+/// CPU time (user and system) of all of process `pid`'s threads so far, in clock ticks' precision.
+fn process_cpu(pid: u32) -> Duration {
+    let path = format!("/proc/{pid}/stat");
+    let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"));
+    // Fields 14 and 15 (utime, stime), counted after the parenthesised command name.
+    let fields: Vec<&str> = text
+        .rsplit_once(')')
+        .map_or(vec![], |(_, rest)| rest.split_whitespace().collect());
+    let ticks: u64 = fields
+        .get(11..13)
+        .map(|f| f.iter().filter_map(|t| t.parse::<u64>().ok()).sum())
+        .unwrap_or_else(|| panic!("{path}: `{text}` has no utime and stime"));
+    // SAFETY: sysconf only reads a constant.
+    let per_second = unsafe { libc::sysconf(libc::_SC_CLK_TCK) } as u64;
+    Duration::from_nanos(ticks * 1_000_000_000 / per_second)
 }
 
 /// Time process `pid`'s main thread has run on a CPU so far.
@@ -145,6 +175,9 @@ struct Figures {
     rate: f64,
     /// CPU seconds per transition of the actors, each from its first batch received to its last.
     cpu_per_transition: f64,
+    /// CPU seconds per transition of the watched processes (all their threads) over the same
+    /// span: the tunnel's two ends.
+    watched_cpu_per_transition: f64,
     latencies: Vec<f64>,
 }
 
@@ -154,28 +187,33 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
 
 /// A run of one task, "bench", that sends batches of `batch`, in a directory removed on drop.
 struct BenchRun {
-    _dir: tempfile::TempDir,
+    dir: tempfile::TempDir,
     run: RunDir,
     config: Config,
 }
 
+/// A tunnel's endpoint and host A's iceoryx2 domain, set in the bench run's config.
+struct Served<'a> {
+    endpoint: &'a str,
+    domain: &'a str,
+}
+
 impl BenchRun {
-    fn new(batch: usize, keep_until_stored: bool) -> Self {
+    fn new(batch: usize, keep_until_stored: bool, served: Option<Served>) -> Self {
         let dir = tempfile::Builder::new()
             .prefix("uavmeta-bench-")
             .tempdir()
             .expect("temp dir");
         let run = RunDir::create(&dir.path().join("run")).expect("run dir");
-        let text = format!(
+        let mut text = format!(
             "[[tasks]]\nname = \"bench\"\nlambda = 300.0\nrole = \"meta-test\"\n[collect]\ntransitions = 1000000000\n[run]\nbatch_size = {batch}\nkeep_until_stored = {keep_until_stored}\n"
         );
+        if let Some(Served { endpoint, domain }) = served {
+            text += &format!("domain = \"{domain}\"\n[tunnel]\nlisten = \"{endpoint}\"\n");
+        }
         std::fs::write(run.config_file(), &text).expect("config");
         let config = Config::load(&run.config_file(), &[]).expect("valid bench config");
-        Self {
-            _dir: dir,
-            run,
-            config,
-        }
+        Self { dir, run, config }
     }
 
     fn service(&self, node: &Node<ipc::Service>) -> transport::TransitionService {
@@ -190,12 +228,13 @@ impl BenchRun {
 /// environment takes to make the batch (`step` per transition), so the subscriber has taken the
 /// previous batch, as it has in an actor. Best of `RAW_REPEATS` rounds.
 fn send_floor(batch: usize, step: Duration) -> Duration {
-    let bench = BenchRun::new(batch, true);
+    let bench = BenchRun::new(batch, true, None);
     let stop = AtomicBool::new(false);
     let subscribed = AtomicBool::new(false);
     std::thread::scope(|scope| {
         scope.spawn(|| {
-            let node = transport::node("transport-bench-floor-store").expect("node");
+            let node =
+                transport::node("transport-bench-floor-store", &bench.config.run).expect("node");
             let service = bench.service(&node);
             let subscriber =
                 transport::transition_subscriber(&service, &bench.config.run).expect("subscriber");
@@ -209,7 +248,7 @@ fn send_floor(batch: usize, step: Duration) -> Duration {
         while !subscribed.load(Ordering::Acquire) {
             std::thread::yield_now();
         }
-        let node = transport::node("transport-bench-floor-actor").expect("node");
+        let node = transport::node("transport-bench-floor-actor", &bench.config.run).expect("node");
         let service = bench.service(&node);
         let publisher =
             TransitionPublisher::new(&service, &bench.run, &bench.config, 0, 0).expect("publisher");
@@ -264,9 +303,33 @@ fn keep_cost(batch: usize) -> (f64, f64) {
 }
 
 fn run_case(actors: usize, batch: usize, policy: &PolicySpec, keep_until_stored: bool) -> Figures {
-    let bench = BenchRun::new(batch, keep_until_stored);
+    let bench = BenchRun::new(batch, keep_until_stored, None);
+    measure(&bench, bench.run.root(), actors, policy, Idle::Spin, &[])
+}
+
+/// How the receiver passes the time when nothing arrived.
+#[derive(Clone, Copy)]
+enum Idle {
+    /// Busy-polling: the figures are the transport's alone.
+    Spin,
+    /// Sleeping as the store does, which leaves the core to other processes.
+    AsTheStore,
+}
+
+/// Starts `actors` actors of policy `policy` in run directory `actor_dir` (the bench's, or host
+/// B's of the same run), receives everything they publish on the bench's run as the store would,
+/// acknowledging every batch, and measures it; `watched` are processes whose CPU is counted too.
+fn measure(
+    bench: &BenchRun,
+    actor_dir: &Path,
+    actors: usize,
+    policy: &PolicySpec,
+    idle: Idle,
+    watched: &[u32],
+) -> Figures {
     let (run, config) = (&bench.run, &bench.config);
-    let node = transport::node("transport-bench").expect("node");
+    let batch = config.run.batch_size;
+    let node = transport::node("transport-bench", &config.run).expect("node");
     let service = bench.service(&node);
     let subscriber = transport::transition_subscriber(&service, &config.run).expect("subscriber");
     // Acknowledged like the store does, after every batch, so actors keep what they would.
@@ -283,7 +346,7 @@ fn run_case(actors: usize, batch: usize, policy: &PolicySpec, keep_until_stored:
                 .args([
                     "actor",
                     "--run",
-                    &run.root().display().to_string(),
+                    &actor_dir.display().to_string(),
                     "--task",
                     "bench",
                     "--policy",
@@ -314,6 +377,7 @@ fn run_case(actors: usize, batch: usize, policy: &PolicySpec, keep_until_stored:
         .collect();
     let mut since_first: Vec<Option<(Duration, u64)>> = vec![None; actors];
     let mut first: Option<Instant> = None;
+    let mut watched_at_first = Duration::ZERO;
     let deadline = Instant::now() + Duration::from_secs(300);
     while received < total {
         assert!(
@@ -333,7 +397,10 @@ fn run_case(actors: usize, batch: usize, policy: &PolicySpec, keep_until_stored:
                     next_seq: header.first_seq + header.count as u64,
                 };
                 transport::acknowledge(&acks, ack).expect("acknowledge");
-                first.get_or_insert_with(Instant::now);
+                if first.is_none() {
+                    first = Some(Instant::now());
+                    watched_at_first = watched.iter().map(|&pid| process_cpu(pid)).sum();
+                }
                 let i = ids
                     .iter()
                     .position(|&id| id == header.actor)
@@ -343,10 +410,18 @@ fn run_case(actors: usize, batch: usize, policy: &PolicySpec, keep_until_stored:
                     none => *none = Some((run_time(children[i].id()), 0)),
                 }
             }
-            None => std::hint::spin_loop(),
+            None => match idle {
+                Idle::Spin => std::hint::spin_loop(),
+                Idle::AsTheStore => std::thread::sleep(store::IDLE_WAIT),
+            },
         }
     }
     let elapsed = first.map_or(Duration::ZERO, |f| f.elapsed());
+    let watched_cpu = watched
+        .iter()
+        .map(|&pid| process_cpu(pid))
+        .sum::<Duration>()
+        - watched_at_first;
     // The actors have sent their last batch but are still alive: their exit is not counted.
     let (mut cpu, mut measured) = (Duration::ZERO, 0u64);
     for (child, since) in children.iter().zip(&since_first) {
@@ -373,7 +448,123 @@ fn run_case(actors: usize, batch: usize, policy: &PolicySpec, keep_until_stored:
     Figures {
         rate: total as f64 / elapsed.as_secs_f64(),
         cpu_per_transition: cpu.as_secs_f64() / measured.max(1) as f64,
+        watched_cpu_per_transition: watched_cpu.as_secs_f64() / total as f64,
         latencies,
+    }
+}
+
+/// Host B of a tunnel case, on this machine: `uavmeta tunnel serve` serves the bench's run
+/// (host A, the receiver's) on a loopback Zenoh endpoint, and `uavmeta tunnel join` makes B's
+/// directory for it in an iceoryx2 domain of its own, which only the tunnel connects to A's.
+struct SecondHost {
+    serve: Child,
+    join: Child,
+    /// B's directory for the run, where its actors run.
+    dir: PathBuf,
+    domains: [String; 2],
+}
+
+/// Tunnel cases so far in this process: each has domains of its own.
+static TUNNEL_CASES: AtomicUsize = AtomicUsize::new(0);
+
+/// One random-policy actor publishing batches of `batch`, on the receiver's host or on a second
+/// host behind the tunnel.
+fn route_case(batch: usize, tunnel: bool) -> Figures {
+    let (random, idle) = (PolicySpec::Random, Idle::AsTheStore);
+    if !tunnel {
+        let bench = BenchRun::new(batch, true, None);
+        return measure(&bench, bench.run.root(), 1, &random, idle, &[]);
+    }
+    let case = TUNNEL_CASES.fetch_add(1, Ordering::Relaxed);
+    let id = format!("{}x{case}", std::process::id());
+    let domains = [format!("tbench{id}a"), format!("tbench{id}b")];
+    // A free loopback port: bound and released; Zenoh binds it a moment later.
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("a free port")
+        .port();
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let served = Served {
+        endpoint: &endpoint,
+        domain: &domains[0],
+    };
+    let bench = BenchRun::new(batch, true, Some(served));
+    let host = SecondHost::start(&bench, &endpoint, domains);
+    let watched = [host.serve.id(), host.join.id()];
+    measure(&bench, &host.dir, 1, &random, idle, &watched)
+}
+
+impl SecondHost {
+    /// Serves `bench`'s run on `endpoint` and joins it; returns once the join bridges.
+    fn start(bench: &BenchRun, endpoint: &str, domains: [String; 2]) -> Self {
+        let dir = bench.dir.path().join("host-b");
+        let spawn = |name: &str, args: &[&str]| {
+            let log = std::fs::File::create(bench.dir.path().join(format!("{name}.log")))
+                .expect("log file");
+            Command::new(BIN)
+                .args(args)
+                .stdout(Stdio::null())
+                .stderr(log)
+                .spawn()
+                .unwrap_or_else(|e| panic!("cannot start {name}: {e}"))
+        };
+        let run = bench.run.root().display().to_string();
+        let serve = spawn("serve", &["tunnel", "serve", "--run", &run]);
+        let b_dir = dir.display().to_string();
+        let join = spawn(
+            "join",
+            &[
+                "tunnel",
+                "join",
+                "--connect",
+                endpoint,
+                "--run-id",
+                bench.run.id(),
+                "--dir",
+                &b_dir,
+                "--domain",
+                &domains[1],
+                "--host",
+                "bench",
+            ],
+        );
+        let host = Self {
+            serve,
+            join,
+            dir,
+            domains,
+        };
+        let log = bench.dir.path().join("join.log");
+        let deadline = Instant::now() + Duration::from_secs(60);
+        while !std::fs::read_to_string(&log)
+            .is_ok_and(|l| l.contains("bridging the run's services"))
+        {
+            assert!(
+                Instant::now() < deadline,
+                "the tunnel's join never bridged:\n{}",
+                std::fs::read_to_string(&log).unwrap_or_default()
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        host
+    }
+}
+
+/// Both ends stop on SIGTERM; then what their domains left is removed.
+impl Drop for SecondHost {
+    fn drop(&mut self) {
+        for child in [&mut self.join, &mut self.serve] {
+            // SAFETY: a signal to a child this bench started and has not reaped.
+            unsafe { libc::kill(child.id() as i32, libc::SIGTERM) };
+            let _ = child.wait();
+        }
+        for domain in &self.domains {
+            let run = RunConfig {
+                domain: domain.clone(),
+                ..RunConfig::default()
+            };
+            transport::remove_domain(&run).expect("remove the domain's files");
+        }
     }
 }
 
@@ -383,7 +574,7 @@ fn main() {
         .skip(1)
         .filter(|a| !a.starts_with('-'))
         .collect();
-    const SECTIONS: [&str; 4] = ["floor", "policies", "keep", "actors"];
+    const SECTIONS: [&str; 5] = ["floor", "policies", "keep", "actors", "tunnel"];
     let (actor_counts, batches) = ([1, 2, 4], [1, 64, 1024]);
     let all_cases: Vec<String> = actor_counts
         .iter()
@@ -508,6 +699,74 @@ fn main() {
                     l[l.len() - 1] * 1e6,
                 );
             }
+        }
+    }
+
+    if section("tunnel") {
+        tunnel_section();
+    }
+}
+
+/// One actor on the receiver's host against one across the tunnel, at batch 64 and 1024: `TUNNEL_ROUNDS` rounds in which
+/// every case takes its turn, so a spell of interference hits them alike; best and median rate,
+/// median of each run's latency percentiles.
+fn tunnel_section() {
+    let batches = [64, 1024];
+    let routes = [false, true];
+    let mut runs: Vec<Vec<Figures>> = (0..batches.len() * routes.len())
+        .map(|_| Vec::new())
+        .collect();
+    for round in 0..TUNNEL_ROUNDS {
+        for (b, &batch) in batches.iter().enumerate() {
+            for (r, &tunnel) in routes.iter().enumerate() {
+                let f = route_case(batch, tunnel);
+                let l = &f.latencies;
+                eprintln!(
+                    "round {round}, batch {batch}, {}: {:.3} M/s, p50 {:.1} µs, p99 {:.1} µs, actor CPU {:.1} ns and tunnel CPU {:.1} ns per transition",
+                    if tunnel { "tunnel" } else { "same host" },
+                    f.rate / 1e6,
+                    percentile(l, 0.5) * 1e6,
+                    percentile(l, 0.99) * 1e6,
+                    f.cpu_per_transition * 1e9,
+                    f.watched_cpu_per_transition * 1e9
+                );
+                runs[b * routes.len() + r].push(f);
+            }
+        }
+    }
+    let median = |mut values: Vec<f64>| {
+        values.sort_by(f64::total_cmp);
+        values[values.len() / 2]
+    };
+    println!(
+        "| batch | route | transitions/s, best | median | latency p50 | p99 | actor CPU per transition | tunnel's CPU per transition |"
+    );
+    println!("| ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: |");
+    for (b, batch) in batches.iter().enumerate() {
+        for (r, &tunnel) in routes.iter().enumerate() {
+            let figures = &runs[b * routes.len() + r];
+            let median_of =
+                |value: &dyn Fn(&Figures) -> f64| median(figures.iter().map(value).collect());
+            let best = figures.iter().map(|f| f.rate).fold(0.0, f64::max);
+            let tunnel_cpu = median_of(&|f| f.watched_cpu_per_transition);
+            println!(
+                "| {batch} | {} | {:.2} M | {:.2} M | {:.1} µs | {:.1} µs | {:.1} ns | {} |",
+                if tunnel {
+                    "tunnel (loopback Zenoh)"
+                } else {
+                    "same host (shared memory)"
+                },
+                best / 1e6,
+                median_of(&|f| f.rate) / 1e6,
+                median_of(&|f| percentile(&f.latencies, 0.5)) * 1e6,
+                median_of(&|f| percentile(&f.latencies, 0.99)) * 1e6,
+                median_of(&|f| f.cpu_per_transition) * 1e9,
+                if tunnel {
+                    format!("{:.0} ns", tunnel_cpu * 1e9)
+                } else {
+                    "–".into()
+                }
+            );
         }
     }
 }

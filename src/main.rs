@@ -57,6 +57,9 @@ enum Command {
     MetaLearner(cmd::meta_learner::MetaLearnerArgs),
     /// The evaluator of a run: score every announced checkpoint in the true world.
     Evaluator(cmd::evaluator::EvaluatorArgs),
+    /// Remote actor hosts: serve a run through iceoryx2's tunnel over Zenoh, or join one.
+    #[command(subcommand)]
+    Tunnel(cmd::tunnel::TunnelCommand),
 }
 
 /// stderr for log lines, through the rows a command draws on the terminal (`uavmeta launch`'s
@@ -102,6 +105,7 @@ fn main() -> ExitCode {
         Command::Store(c) => cmd::store::run(c),
         Command::MetaLearner(c) => cmd::meta_learner::run(c),
         Command::Evaluator(c) => cmd::evaluator::run(c),
+        Command::Tunnel(c) => cmd::tunnel::run(c),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -188,7 +188,7 @@ mod metrics {
 /// Runs the evaluator of `run` until a shutdown (after finishing what was announced) or
 /// SIGINT/SIGTERM. Returns the checkpoints evaluated.
 pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
-    let node = transport::node(&format!("{}-{PROCESS}", run.id()))?;
+    let node = transport::node(&format!("{}-{PROCESS}", run.id()), &config.run)?;
     let names = ServiceNames::new(run);
     let metrics = metrics::EvaluatorMetrics::new();
     let _server = MetricsServer::start(

@@ -38,8 +38,9 @@ use crate::metrics::{MetricsError, MetricsServer};
 /// The store's process name: its node, port file and metrics snapshot.
 pub const PROCESS: &str = "store";
 
-/// How long the loop sleeps when no batch arrived; bounds the added latency when idle.
-const IDLE_WAIT: Duration = Duration::from_micros(200);
+/// How long the loop sleeps when no batch arrived; bounds the added latency when idle. The
+/// transport bench's receiver waits the same, to measure publish-to-store latency.
+pub const IDLE_WAIT: Duration = Duration::from_micros(200);
 
 /// Interval between repeats of every actor's acknowledgement (`TaskStore::acknowledge_all`).
 const ACK_REFRESH_EVERY: Duration = Duration::from_millis(100);
@@ -169,7 +170,7 @@ pub struct StoreSummary {
 
 /// Runs the store of `run` until SIGINT/SIGTERM or a shutdown announcement.
 pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
-    let node = transport::node(&format!("{}-{PROCESS}", run.id()))?;
+    let node = transport::node(&format!("{}-{PROCESS}", run.id()), &config.run)?;
     // A predecessor killed mid-run left its ports in every service; without this sweep the actors
     // stay blocked on its full buffer.
     let cleaned = transport::cleanup_dead_nodes(&node);

@@ -7,6 +7,10 @@
 //! `PR_SET_PDEATHSIG` so that it gets SIGTERM if the launcher dies (no orphans), and with its
 //! output in `logs/<name>.log`.
 //!
+//! With `tunnel.listen` set it also starts `uavmeta tunnel serve` (after the store), through which
+//! remote actor hosts publish into the run; what they announce lands in `remote-hosts/`, and
+//! their processes join `prometheus-targets.json` under their own `host` label.
+//!
 //! Supervision: a child that exits with failure (or is killed) is restarted after a backoff of
 //! 0.5 s, 1 s, 2 s, ... (at most 10 s), up to `run.max_restarts` times; the dead process's iceoryx2
 //! resources are removed first, so survivors never wait on its buffers. A child that stops making
@@ -40,7 +44,8 @@ use uavmeta_learner::metrics::{self, MetricsServer};
 use uavmeta_learner::store;
 use uavmeta_proto::config::{Config, TaskRole};
 use uavmeta_proto::transport::{
-    self, write_atomic, Method, RunDir, ServiceNames, Shutdown, TransportError, SCHEMA_VERSION,
+    self, write_atomic, Method, RemoteHost, RunDir, ServiceNames, Shutdown, TransportError,
+    SCHEMA_VERSION,
 };
 
 use crate::process as meta_learner;
@@ -67,6 +72,10 @@ const BACKOFF_MAX: Duration = Duration::from_secs(10);
 
 /// The launcher's process name: node, port file, metrics snapshot.
 pub const PROCESS: &str = "launcher";
+/// The tunnel child's name (`uavmeta tunnel serve`; the tunnel crate is not linked here).
+const TUNNEL_PROCESS: &str = "tunnel";
+/// A remote host that has not announced itself for this long is gone: out of the targets.
+const REMOTE_HOST_SILENCE: Duration = Duration::from_secs(10);
 
 #[derive(Debug, thiserror::Error)]
 pub enum LaunchError {
@@ -98,6 +107,17 @@ pub enum LaunchError {
     Policy { origin: String, message: String },
     #[error("stopped by a termination request")]
     Interrupted,
+    #[error(
+        "tunnel.wait_for_hosts: after {seconds} s (tunnel.wait_seconds), hosts {missing} have \
+         announced no actor and the store has {stored} transitions; is `uavmeta tunnel join \
+         --connect <this host's address for {endpoint}>` running there, with actors?"
+    )]
+    RemoteHosts {
+        missing: String,
+        stored: f64,
+        endpoint: String,
+        seconds: f64,
+    },
 }
 
 /// What kind of child a process is: decides the stop order and when the run is done.
@@ -106,6 +126,8 @@ enum Role {
     Actor,
     MetaLearner,
     Evaluator,
+    /// The run's end of the tunnel to remote actor hosts (`tunnel.listen`).
+    Tunnel,
     Store,
 }
 
@@ -267,7 +289,7 @@ pub fn launch(
     write_atomic(&run.config_file(), config.to_toml_string().as_bytes())?;
     write_prometheus_yml(&run)?;
     write_atomic(&run.grafana_dashboard(), DASHBOARD.as_bytes())?;
-    let node = transport::node(&format!("{}-{PROCESS}", run.id()))?;
+    let node = transport::node(&format!("{}-{PROCESS}", run.id()), &config.run)?;
     transport::cleanup_dead_nodes(&node);
     let names = ServiceNames::new(&run);
     let launcher_metrics = launch_metrics::LauncherMetrics::new();
@@ -313,7 +335,22 @@ pub fn launch(
         .expect("the plan has a store");
     supervisor.start(&mut children[store_index])?;
     metrics::wait_for_port(&run, store::PROCESS, STORE_START)?;
-    for child in children.iter_mut().filter(|c| c.role != Role::Store) {
+    // Then the tunnel, and the remote hosts the config waits for, before the local actors.
+    for child in children.iter_mut().filter(|c| c.role == Role::Tunnel) {
+        supervisor.start(child)?;
+        // What an actor host needs to join (README, Actors on other hosts).
+        tracing::info!(
+            endpoint = %config.tunnel.listen,
+            "remote actor hosts join with `uavmeta tunnel join --connect <this host's address for \
+             the endpoint> --run-id {}`",
+            run.id()
+        );
+    }
+    wait_for_remote_hosts(&run, config, &node)?;
+    for child in children
+        .iter_mut()
+        .filter(|c| !matches!(c.role, Role::Store | Role::Tunnel))
+    {
         supervisor.start(child)?;
     }
     tracing::info!(run = %run.root().display(), children = children.len(), "launched");
@@ -390,7 +427,13 @@ pub fn launch(
         }
     };
     // Orderly stop of whatever still runs: actors, then learners, then the store.
-    for role in [Role::Actor, Role::MetaLearner, Role::Evaluator, Role::Store] {
+    for role in [
+        Role::Actor,
+        Role::MetaLearner,
+        Role::Evaluator,
+        Role::Tunnel,
+        Role::Store,
+    ] {
         stop_role(&mut children, role);
     }
     transport::cleanup_dead_nodes(&node);
@@ -459,6 +502,18 @@ fn plan(run: &RunDir, config: &Config) -> Result<Vec<Supervised>, LaunchError> {
                 ..child(options.process_name(), Role::Actor, args)
             });
         }
+    }
+    if !config.tunnel.listen.is_empty() {
+        children.push(child(
+            TUNNEL_PROCESS.into(),
+            Role::Tunnel,
+            vec![
+                "tunnel".into(),
+                "serve".into(),
+                "--run".into(),
+                run_arg.clone(),
+            ],
+        ));
     }
     if config.tasks_with_role(TaskRole::MetaTrain).next().is_some()
         && config.tasks_with_role(TaskRole::MetaTest).next().is_some()
@@ -681,25 +736,111 @@ fn write_prometheus_yml(run: &RunDir) -> Result<(), LaunchError> {
 }
 
 /// Rewrites the Prometheus targets file when the set of live ports changed; returns its text.
+/// Every target has a `host` label: this host's name, or the remote host's that announced it.
 fn write_targets(
     run: &RunDir,
     children: &[Supervised],
     last: String,
 ) -> Result<String, LaunchError> {
+    let here = std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .map(|h| h.trim().to_string())
+        .unwrap_or_else(|_| "localhost".into());
     let mut targets = Vec::new();
     for name in std::iter::once(PROCESS).chain(children.iter().map(|c| c.name.as_str())) {
         if let Ok(port) = std::fs::read_to_string(run.port_file(name)) {
             targets.push(serde_json::json!({
                 "targets": [format!("127.0.0.1:{}", port.trim())],
-                "labels": { "process": name, "run": run.id() },
+                "labels": { "process": name, "run": run.id(), "host": here },
+            }));
+        }
+    }
+    for host in remote_hosts(run) {
+        for process in &host.processes {
+            targets.push(serde_json::json!({
+                "targets": [process.metrics],
+                "labels": { "process": process.name, "run": run.id(), "host": host.host },
             }));
         }
     }
     let text = serde_json::to_string_pretty(&targets).expect("JSON values always serialise");
     if text != last {
         write_atomic(&run.prometheus_targets(), text.as_bytes())?;
+        for host in remote_hosts(run) {
+            let names: Vec<&str> = host.processes.iter().map(|p| p.name.as_str()).collect();
+            tracing::info!(host = %host.host, processes = ?names, "remote actor host");
+        }
     }
     Ok(text)
+}
+
+/// Waits until every host of `tunnel.wait_for_hosts` has announced itself and the store has
+/// stored a transition (only remote actors run yet, so it came through the tunnel).
+fn wait_for_remote_hosts(
+    run: &RunDir,
+    config: &Config,
+    node: &Node<ipc::Service>,
+) -> Result<(), LaunchError> {
+    let wanted = &config.tunnel.wait_for_hosts;
+    if wanted.is_empty() {
+        return Ok(());
+    }
+    tracing::info!(hosts = ?wanted, endpoint = %config.tunnel.listen, "waiting for remote actor hosts");
+    let deadline = Instant::now() + Duration::from_secs_f64(config.tunnel.wait_seconds);
+    let mut targets = String::new();
+    loop {
+        // Prometheus sees the remote actors from the start, however short-lived they are.
+        targets = write_targets(run, &[], targets)?;
+        let hosts = remote_hosts(run);
+        let missing: Vec<&String> = wanted
+            .iter()
+            .filter(|w| !hosts.iter().any(|h| &h.host == *w))
+            .collect();
+        let stored = std::fs::read_to_string(run.port_file(store::PROCESS))
+            .ok()
+            .and_then(|port| {
+                metrics::scrape(&config.run.metrics_host, port.trim().parse().ok()?).ok()
+            })
+            .and_then(|text| metrics::parse(&text).ok())
+            .map_or(0.0, |samples| {
+                metrics::sum(&samples, "uavmeta_store_transitions_stored_total", &[])
+            });
+        if missing.is_empty() && stored > 0.0 {
+            tracing::info!(hosts = ?wanted, "remote actor hosts are publishing");
+            return Ok(());
+        }
+        if !transport::keep_running(node, TICK) {
+            return Err(LaunchError::Interrupted);
+        }
+        if Instant::now() >= deadline {
+            return Err(LaunchError::RemoteHosts {
+                missing: format!("{missing:?}"),
+                stored,
+                endpoint: config.tunnel.listen.clone(),
+                seconds: config.tunnel.wait_seconds,
+            });
+        }
+    }
+}
+
+/// The remote actor hosts that announced themselves through the tunnel lately.
+fn remote_hosts(run: &RunDir) -> Vec<RemoteHost> {
+    let entries = std::fs::read_dir(run.remote_hosts_dir());
+    let mut hosts: Vec<RemoteHost> = entries
+        .into_iter()
+        .flatten()
+        .flatten()
+        .filter(|entry| {
+            entry
+                .metadata()
+                .and_then(|m| m.modified())
+                .ok()
+                .and_then(|at| at.elapsed().ok())
+                .is_some_and(|age| age < REMOTE_HOST_SILENCE)
+        })
+        .filter_map(|entry| serde_json::from_slice(&std::fs::read(entry.path()).ok()?).ok())
+        .collect();
+    hosts.sort_by(|a, b| a.host.cmp(&b.host));
+    hosts
 }
 
 /// The last row of every (task, method) in the evaluator's CSV.

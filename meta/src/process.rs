@@ -102,7 +102,7 @@ mod metrics {
 
 /// Runs the meta-learner of `run`.
 pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
-    let node = transport::node(&format!("{}-{PROCESS}", run.id()))?;
+    let node = transport::node(&format!("{}-{PROCESS}", run.id()), &config.run)?;
     let names = ServiceNames::new(run);
     let metrics = metrics::MetaLearnerMetrics::new();
     let _server = MetricsServer::start(

@@ -65,6 +65,8 @@ pub struct Config {
     pub run: RunConfig,
     #[serde(default)]
     pub reproduce: ReproduceConfig,
+    #[serde(default)]
+    pub tunnel: TunnelConfig,
     /// Where the config was read from; not part of the TOML.
     #[serde(skip)]
     pub origin: String,
@@ -528,7 +530,41 @@ pub struct RunConfig {
     /// Announcements (dataset ready, checkpoint ready, shutdown) a control subscriber buffers;
     /// also the history a process joining late receives.
     pub control_buffer: usize,
+    /// The iceoryx2 domain of this host's processes of the run: their shared memory is named
+    /// `iox2_<domain>_...` and iceoryx2's files live in `/tmp/iceoryx2/<domain>/`, so processes of
+    /// two domains cannot see each other even on one machine; empty = iceoryx2's default domain.
+    /// Only a tunnel (`uavmeta tunnel`) connects domains. A remote host's copy of the config
+    /// names its own (`uavmeta tunnel join --domain`).
+    pub domain: String,
 }
+
+/// Remote actor hosts reach the run through iceoryx2's tunnel over Zenoh (`uavmeta tunnel`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TunnelConfig {
+    /// Zenoh endpoint where the launcher's tunnel accepts remote actor hosts, such as
+    /// `tcp/0.0.0.0:7447`; empty = no tunnel, local actors only.
+    pub listen: String,
+    /// Remote hosts (`uavmeta tunnel join --host`) whose actors the launcher waits for before it
+    /// starts the local ones: until each has joined and the store has stored a transition, so
+    /// that a run's data comes from every host it was planned with.
+    pub wait_for_hosts: Vec<String>,
+    /// How long the launcher waits for `wait_for_hosts` before it gives up.
+    pub wait_seconds: f64,
+}
+
+impl Default for TunnelConfig {
+    fn default() -> Self {
+        Self {
+            listen: String::new(),
+            wait_for_hosts: Vec::new(),
+            wait_seconds: 120.0,
+        }
+    }
+}
+
+/// Longest `run.domain`: the iceoryx2 prefix of every shared-memory name grows with it.
+pub const MAX_DOMAIN_LEN: usize = 32;
 
 impl Default for RunConfig {
     fn default() -> Self {
@@ -544,6 +580,7 @@ impl Default for RunConfig {
             max_restarts: 5,
             hang_timeout_seconds: 60.0,
             control_buffer: 256,
+            domain: String::new(),
         }
     }
 }
@@ -612,6 +649,7 @@ impl Default for Config {
             meta: MetaConfig::default(),
             run: RunConfig::default(),
             reproduce: ReproduceConfig::default(),
+            tunnel: TunnelConfig::default(),
             origin: "<defaults>".into(),
         }
     }
@@ -1027,6 +1065,45 @@ impl Config {
                 "run.batch_size / run.subscriber_buffer / run.max_publishers",
                 &(r.batch_size, r.subscriber_buffer, r.max_publishers),
                 "all at least 1",
+            ));
+        }
+        if r.domain.len() > MAX_DOMAIN_LEN
+            || !r
+                .domain
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+        {
+            return Err(invalid(
+                "run.domain",
+                &r.domain,
+                &format!("at most {MAX_DOMAIN_LEN} letters, digits, '-' or '_' (empty = default)"),
+            ));
+        }
+        let listen = &self.tunnel.listen;
+        if !listen.is_empty()
+            && !listen
+                .split_once('/')
+                .is_some_and(|(p, a)| !p.is_empty() && !a.is_empty())
+        {
+            return Err(invalid(
+                "tunnel.listen",
+                listen,
+                "a Zenoh endpoint PROTOCOL/ADDRESS such as tcp/0.0.0.0:7447, or empty",
+            ));
+        }
+        let t = &self.tunnel;
+        if !t.wait_for_hosts.is_empty() && t.listen.is_empty() {
+            return Err(invalid(
+                "tunnel.wait_for_hosts",
+                &t.wait_for_hosts,
+                "no hosts while tunnel.listen is empty (no tunnel to wait through)",
+            ));
+        }
+        if !t.wait_seconds.is_finite() || t.wait_seconds <= 0.0 {
+            return Err(invalid(
+                "tunnel.wait_seconds",
+                &t.wait_seconds,
+                "seconds > 0",
             ));
         }
         let p = &self.reproduce;

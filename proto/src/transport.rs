@@ -150,7 +150,8 @@ pub struct BatchHeader {
     /// Explicit padding, so the layout has no uninitialised bytes.
     pub reserved: u32,
     /// Wall-clock send time in nanoseconds since the Unix epoch, for publish-to-receive latency
-    /// (both ends run on one host, so they share the clock).
+    /// (on one host both ends share the clock; from a remote actor host, through the tunnel, the
+    /// figure is only as good as the two hosts' clock synchronisation).
     pub sent_unix_ns: u64,
 }
 
@@ -494,6 +495,20 @@ impl ServiceNames {
     pub fn shutdown(&self) -> String {
         format!("{}/control/shutdown", self.prefix)
     }
+
+    /// The services a remote actor uses, which a tunnel carries between hosts: every task's
+    /// transitions and acknowledgements, the dataset announcements and the shutdown.
+    pub fn remote_actor_services<'t>(
+        &self,
+        tasks: impl IntoIterator<Item = &'t TaskConfig>,
+    ) -> Vec<String> {
+        let mut names: Vec<String> = tasks
+            .into_iter()
+            .flat_map(|t| [self.transitions(&t.name), self.acks(&t.name)])
+            .collect();
+        names.extend([self.dataset_ready(), self.shutdown()]);
+        names
+    }
 }
 
 /// A run's directory and the layout of everything in it.
@@ -549,11 +564,61 @@ impl RunDir {
             })
             .take(64)
             .collect();
-        Ok(Self {
+        let local = Self {
             id: format!("{name}-{:08x}", hash as u32),
             root,
             hash,
-        })
+        };
+        local
+            .remote_identity()
+            .map(|remote| remote.unwrap_or(local))
+    }
+
+    /// Makes `path` the directory of run `id` (hash `hash`) of another host, on a remote actor
+    /// host (`uavmeta tunnel join`): the processes started in it join that run, since id and
+    /// hash, which come from the learner host's path, are read from [`REMOTE_RUN_FILE`].
+    pub fn create_remote(path: &Path, id: &str, hash: u64) -> Result<Self, TransportError> {
+        let local = Self::create(path)?;
+        let file = local.root.join(REMOTE_RUN_FILE);
+        write_atomic(&file, format!("{id}\n{hash:016x}\n").as_bytes())?;
+        Self::create(path)
+    }
+
+    /// The id and hash of the remote run this directory stands for, if it does.
+    fn remote_identity(&self) -> Result<Option<Self>, TransportError> {
+        let file = self.root.join(REMOTE_RUN_FILE);
+        let text = match std::fs::read_to_string(&file) {
+            Ok(text) => text,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(source) => {
+                return Err(TransportError::Io {
+                    path: file,
+                    action: "read",
+                    source,
+                })
+            }
+        };
+        let mut lines = text.lines();
+        let parsed = lines
+            .next()
+            .zip(lines.next().and_then(|h| u64::from_str_radix(h, 16).ok()));
+        let Some((id, hash)) = parsed else {
+            return Err(TransportError::Io {
+                path: file,
+                action: "parse (expected a run id and a hexadecimal hash)",
+                source: std::io::ErrorKind::InvalidData.into(),
+            });
+        };
+        Ok(Some(Self {
+            root: self.root.clone(),
+            id: id.to_string(),
+            hash,
+        }))
+    }
+
+    /// Where the learner host's tunnel keeps what remote hosts announced: one file per host.
+    pub fn remote_hosts_dir(&self) -> PathBuf {
+        self.root.join("remote-hosts")
     }
 
     pub fn root(&self) -> &Path {
@@ -596,7 +661,12 @@ impl RunDir {
 
     /// Where process `process` writes the port of its /metrics endpoint.
     pub fn port_file(&self, process: &str) -> PathBuf {
-        self.root.join("ports").join(format!("{process}.port"))
+        self.ports_dir().join(format!("{process}.port"))
+    }
+
+    /// Every process's port file ([`RunDir::port_file`]).
+    pub fn ports_dir(&self) -> PathBuf {
+        self.root.join("ports")
     }
 
     /// Where process `process` writes its last metrics when it exits.
@@ -683,8 +753,82 @@ fn fnv1a(bytes: &[u8]) -> u64 {
     })
 }
 
-/// The iceoryx2 node of a process, named after it so `iox2 node list` shows who is who.
-pub fn node(process: &str) -> Result<Node<ipc::Service>, TransportError> {
+/// What a remote actor host announces to the learner's host (as JSON), which keeps the latest in
+/// [`RunDir::remote_hosts_dir`] for the launcher's Prometheus targets and progress.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct RemoteHost {
+    /// The host's name: the `host` label of its processes' metrics.
+    pub host: String,
+    pub processes: Vec<RemoteProcess>,
+}
+
+/// One process of a remote actor host.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct RemoteProcess {
+    pub name: String,
+    /// Where its /metrics answers, `address:port`.
+    pub metrics: String,
+}
+
+/// The file in a remote actor host's run directory that names the learner host's run.
+pub const REMOTE_RUN_FILE: &str = "remote-run";
+
+/// The iceoryx2 config of `run.domain`: iceoryx2's defaults, with the domain's own prefix and
+/// root path, so that nodes, services and shared memory of two domains never meet. This is how
+/// iceoryx2's own examples and tests isolate systems on one machine.
+pub fn iceoryx_config(run: &RunConfig) -> Result<iceoryx2::config::Config, TransportError> {
+    let mut config = iceoryx2::config::Config::global_config().clone();
+    if run.domain.is_empty() {
+        return Ok(config);
+    }
+    let invalid = |message: String| TransportError::ServiceName {
+        name: run.domain.clone(),
+        message,
+    };
+    let prefix = format!("iox2_{}_", run.domain);
+    config.global.prefix = iceoryx2::prelude::FileName::new(prefix.as_bytes())
+        .map_err(|e| invalid(format!("run.domain as an iceoryx2 prefix: {e:?}")))?;
+    let root = format!("/tmp/iceoryx2/{}/", run.domain);
+    let root = iceoryx2::prelude::Path::new(root.as_bytes())
+        .map_err(|e| invalid(format!("run.domain as an iceoryx2 root path: {e:?}")))?;
+    config.global.set_root_path(&root);
+    Ok(config)
+}
+
+/// Removes what iceoryx2 keeps of `run.domain` after its last process has gone: the domain's
+/// global management segment in /dev/shm and its root directory. For a domain made for one test
+/// or benchmark, once none of its processes runs; the default domain (empty) is left alone.
+pub fn remove_domain(run: &RunConfig) -> Result<(), TransportError> {
+    if run.domain.is_empty() {
+        return Ok(());
+    }
+    let config = iceoryx_config(run)?;
+    let gone = |path: PathBuf, removed: std::io::Result<()>| match removed {
+        Err(source) if source.kind() != std::io::ErrorKind::NotFound => Err(TransportError::Io {
+            path,
+            action: "remove",
+            source,
+        }),
+        _ => Ok(()),
+    };
+    let root = PathBuf::from(config.global.root_path().to_string());
+    gone(root.clone(), std::fs::remove_dir_all(&root))?;
+    let prefix = config.global.prefix.to_string();
+    for entry in std::fs::read_dir("/dev/shm")
+        .into_iter()
+        .flatten()
+        .flatten()
+    {
+        if entry.file_name().to_string_lossy().starts_with(&prefix) {
+            gone(entry.path(), std::fs::remove_file(entry.path()))?;
+        }
+    }
+    Ok(())
+}
+
+/// The iceoryx2 node of a process in `run.domain`, named after the process so `iox2 node list`
+/// shows who is who.
+pub fn node(process: &str, run: &RunConfig) -> Result<Node<ipc::Service>, TransportError> {
     // iceoryx2 warns on every start that it runs on its built-in defaults, which uavmeta means
     // to; its own errors still show (IOX2_LOG_LEVEL overrides).
     set_log_level_from_env_or(LogLevel::Error);
@@ -694,10 +838,12 @@ pub fn node(process: &str) -> Result<Node<ipc::Service>, TransportError> {
         message,
     };
     let name = NodeName::new(process).map_err(|e| service_error(format!("{e:?}")))?;
+    let config = iceoryx_config(run)?;
     // Creating a node sweeps dead nodes' resources.
-    remove_unfinished_segments();
+    remove_unfinished_segments(&config);
     let node = NodeBuilder::new()
         .name(&name)
+        .config(&config)
         .create::<ipc::Service>()
         .map_err(|e| service_error(e.to_string()))?;
     // The first wait registers iceoryx2's SIGINT/SIGTERM handler, so a termination request that
@@ -709,7 +855,7 @@ pub fn node(process: &str) -> Result<Node<ipc::Service>, TransportError> {
 /// Removes the resources of dead processes from every service (their ports would otherwise block
 /// the living on full buffers); the number of dead nodes cleaned up.
 pub fn cleanup_dead_nodes(node: &Node<ipc::Service>) -> u64 {
-    remove_unfinished_segments();
+    remove_unfinished_segments(node.config());
     node.try_cleanup_dead_nodes().cleanups
 }
 
@@ -720,11 +866,8 @@ const UNFINISHED_SEGMENT_AGE: Duration = Duration::from_secs(10);
 /// left at size zero. iceoryx2 0.10's dead-node sweep waits, without a timeout, for such a segment
 /// to be initialised (`posix_shared_memory::open_impl` on `MappingSizeIsZero`), so one such
 /// leftover would hang every later node creation on the host. Found by the chaos test.
-fn remove_unfinished_segments() {
-    let prefix = iceoryx2::config::Config::global_config()
-        .global
-        .prefix
-        .to_string();
+fn remove_unfinished_segments(config: &iceoryx2::config::Config) {
+    let prefix = config.global.prefix.to_string();
     let Ok(entries) = std::fs::read_dir("/dev/shm") else {
         return;
     };
@@ -846,6 +989,7 @@ fn schema_verifier(service: &str) -> Result<AttributeVerifier, TransportError> {
 /// Turns an open-or-create failure into an error, reading the existing service's schema version
 /// when the attributes were the problem.
 fn open_error(
+    config: &iceoryx2::config::Config,
     name: &ServiceName,
     service: &str,
     error: impl fmt::Debug + fmt::Display,
@@ -853,7 +997,7 @@ fn open_error(
     if format!("{error:?}").contains("IncompatibleAttributes") {
         let theirs = <ipc::Service as iceoryx2::service::Service>::details(
             name,
-            iceoryx2::config::Config::global_config(),
+            config,
             MessagingPattern::PublishSubscribe,
         )
         .ok()
@@ -903,7 +1047,7 @@ pub fn transition_service(
         .max_subscribers(TRANSITION_SUBSCRIBERS)
         .max_nodes(run.max_publishers + TRANSITION_SUBSCRIBERS)
         .open_or_create_with_attributes(&schema_verifier(&service)?)
-        .map_err(|e| open_error(&name, &service, e))
+        .map_err(|e| open_error(node.config(), &name, &service, e))
 }
 
 /// Opens (or creates) a control service, whose history lets late joiners catch up.
@@ -926,7 +1070,7 @@ fn control_service<T: fmt::Debug + ZeroCopySend + 'static>(
         .max_subscribers(peers)
         .max_nodes(peers + CONTROL_PEERS)
         .open_or_create_with_attributes(&schema_verifier(&service)?)
-        .map_err(|e| open_error(&name, &service, e))
+        .map_err(|e| open_error(node.config(), &name, &service, e))
 }
 
 pub fn dataset_ready_service(
@@ -1085,7 +1229,7 @@ pub fn ack_service(
         .max_subscribers(run.max_publishers)
         .max_nodes(run.max_publishers + TRANSITION_SUBSCRIBERS)
         .open_or_create_with_attributes(&schema_verifier(&service)?)
-        .map_err(|e| open_error(&name, &service, e))
+        .map_err(|e| open_error(node.config(), &name, &service, e))
 }
 
 /// The store's publisher of one task's acknowledgements.
@@ -1453,7 +1597,7 @@ mod tests {
         let (_dir, run) = test_run("schema");
         let names = ServiceNames::new(&run);
         let config = Config::default();
-        let node = node("schema-test").expect("node");
+        let node = node("schema-test", &config.run).expect("node");
         // A "future build": the same service created with the next schema version.
         let service = names.transitions("t");
         let foreign = (SCHEMA_VERSION + 1).to_string();
@@ -1488,7 +1632,7 @@ mod tests {
         let names = ServiceNames::new(&run);
         let mut config = Config::default();
         config.world.devices = 3;
-        let node = node("batch-test").expect("node");
+        let node = node("batch-test", &config.run).expect("node");
         let service = transition_service(&node, &names, "t", &config.run).expect("service");
         let publisher = TransitionPublisher::new(&service, &run, &config, 0, 5).expect("publisher");
         assert!(publisher.subscribers().is_empty(), "no subscriber yet");

@@ -14,3 +14,4 @@ pub mod meta_learner;
 pub mod reproduce;
 pub mod store;
 pub mod train;
+pub mod tunnel;

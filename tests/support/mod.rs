@@ -147,11 +147,11 @@ impl Proc {
             if let Some(status) = self.child.try_wait().expect("try_wait") {
                 break status;
             }
-            let stderr = std::fs::read_to_string(self.err.path()).unwrap_or_default();
             assert!(
                 start.elapsed() < timeout,
-                "{} still running after {timeout:?}; its stderr:\n{stderr}",
-                self.name
+                "{} still running after {timeout:?}; its stderr:\n{}",
+                self.name,
+                self.stderr()
             );
             std::thread::sleep(Duration::from_millis(50));
         };
@@ -162,6 +162,28 @@ impl Proc {
         }
     }
 
+    /// Waits for the process to exit, at most `timeout`, and requires success.
+    pub fn succeeds(self, timeout: Duration) -> Finished {
+        let name = self.name.clone();
+        let finished = self.wait(timeout);
+        assert!(
+            finished.status.success(),
+            "{name} failed ({}); its stderr:\n{}",
+            finished.status,
+            finished.stderr
+        );
+        finished
+    }
+
+    pub fn running(&mut self) -> bool {
+        matches!(self.child.try_wait(), Ok(None))
+    }
+
+    /// What the process has written to stderr (its log lines) so far.
+    pub fn stderr(&self) -> String {
+        std::fs::read_to_string(self.err.path()).unwrap_or_default()
+    }
+
     pub fn signal(&self, signal: i32) {
         // SAFETY: a signal to the process group this test created.
         unsafe { libc::killpg(self.pid(), signal) };
@@ -170,7 +192,7 @@ impl Proc {
 
 impl Drop for Proc {
     fn drop(&mut self) {
-        if let Ok(None) = self.child.try_wait() {
+        if self.running() {
             self.signal(libc::SIGKILL);
             let _ = self.child.wait();
         }

@@ -23,6 +23,13 @@ use uavmeta_proto::transport::{
 use super::metrics::ActorMetrics;
 use super::{ActorError, Control, POLL};
 
+/// How long an actor whose outbox is full waits between looks for the store's acknowledgements.
+/// About the store's own idle wait: an acknowledgement takes a few hundred microseconds to come
+/// back on one host and milliseconds across a tunnel, and each look that finds one frees room for
+/// a batch; waiting [`POLL`] (10 ms) instead left an actor behind a tunnel idle most of the time
+/// (docs/BENCHMARKS.md, Remote actors).
+const ACK_WAIT: Duration = Duration::from_micros(200);
+
 /// What became of a batch handed to the [`Sender`].
 pub(super) enum Sent {
     /// The store's queue has it, and everything kept before it.
@@ -145,8 +152,15 @@ impl<'a, 's> Sender<'a, 's> {
             "the store has not acknowledged what it received; waiting"
         );
         while self.outbox.batches.len() >= room {
+            // The batches may have gone nowhere (a tunnel that died with them, and a new one in
+            // its place): no acknowledgement will come. Stop waiting; the delivery of this batch
+            // sees the new subscriber and sends everything kept again (not from here: the
+            // caller holds this batch's loan, and the publisher lends one at a time).
+            if self.port.link.replaced(self.port.publisher.subscribers()) {
+                return Ok(true);
+            }
             let pause = Instant::now();
-            let stop = control.stop_requested(POLL)?;
+            let stop = control.stop_requested(ACK_WAIT)?;
             self.port.waited += pause.elapsed();
             if stop {
                 return Ok(false);

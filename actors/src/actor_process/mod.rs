@@ -204,7 +204,7 @@ pub fn run(
     let task_id = config.task_id(&task.name)? as u32;
     let actor = options.actor_id();
     let process = options.process_name();
-    let node = transport::node(&format!("{}-{process}", run.id()))?;
+    let node = transport::node(&format!("{}-{process}", run.id()), &config.run)?;
     let names = ServiceNames::new(run);
     let metrics = metrics::ActorMetrics::new(&task.name, actor);
     let _server = MetricsServer::start(

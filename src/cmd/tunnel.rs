@@ -1,0 +1,89 @@
+//! `uavmeta tunnel serve|join`: remote actor hosts (see `uavmeta_tunnel`).
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::{bail, Result};
+use clap::{Args, Subcommand};
+use uavmeta_tunnel::JoinOptions;
+
+use super::launch::RunArgs;
+
+#[derive(Subcommand, Debug)]
+pub enum TunnelCommand {
+    /// On the learner's host: serve the run to remote actor hosts on `tunnel.listen` (the
+    /// launcher starts this when the key is set).
+    Serve(ServeArgs),
+    /// On an actor host: join a run served at ENDPOINT, then start actors with
+    /// `uavmeta actor --run DIR --task T --seed S`.
+    Join(JoinArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct ServeArgs {
+    #[command(flatten)]
+    pub run: RunArgs,
+}
+
+#[derive(Args, Debug)]
+pub struct JoinArgs {
+    /// The learner host's Zenoh endpoint (its `tunnel.listen`, with its address), such as
+    /// tcp/10.0.0.1:7447.
+    #[arg(long, value_name = "ENDPOINT")]
+    pub connect: String,
+    /// The run's id, as the learner host's `uavmeta tunnel serve` logs it.
+    #[arg(long = "run-id", value_name = "ID")]
+    pub run_id: String,
+    /// This host's directory for the run, where its actors run.
+    #[arg(long, value_name = "DIR")]
+    pub dir: PathBuf,
+    /// This host's iceoryx2 domain (`run.domain`); default iceoryx2's.
+    #[arg(long, default_value = "")]
+    pub domain: String,
+    /// This host's name in the learner's Prometheus targets (label `host`); default the host name.
+    #[arg(long)]
+    pub host: Option<String>,
+    /// The address this host's /metrics listen on and are scraped at.
+    #[arg(long, default_value = "127.0.0.1", value_name = "ADDRESS")]
+    pub metrics_host: String,
+    /// Give up after this many seconds without reaching the learner's host.
+    #[arg(long, default_value_t = 120.0, value_name = "SECONDS")]
+    pub patience: f64,
+}
+
+pub fn run(command: TunnelCommand) -> Result<()> {
+    match command {
+        TunnelCommand::Serve(args) => {
+            let (run, config) = args.run.open()?;
+            if config.tunnel.listen.is_empty() {
+                bail!(
+                    "{}: tunnel.listen is empty; set it to the Zenoh endpoint to serve on, such as \
+                     tcp/0.0.0.0:7447",
+                    config.origin
+                );
+            }
+            uavmeta_tunnel::serve(&run, &config)?;
+        }
+        TunnelCommand::Join(args) => {
+            if !(args.patience.is_finite() && args.patience >= 0.0) {
+                bail!("--patience {}: expected seconds >= 0", args.patience);
+            }
+            let host = match args.host {
+                Some(host) => host,
+                None => std::fs::read_to_string("/proc/sys/kernel/hostname")?
+                    .trim()
+                    .to_string(),
+            };
+            uavmeta_tunnel::join(&JoinOptions {
+                endpoint: args.connect,
+                run_id: args.run_id,
+                dir: args.dir,
+                domain: args.domain,
+                host,
+                metrics_host: args.metrics_host,
+                patience: Duration::from_secs_f64(args.patience),
+            })?;
+        }
+    }
+    Ok(())
+}

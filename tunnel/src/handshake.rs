@@ -1,0 +1,286 @@
+//! The handshake before any bridging: a remote host asks the learner's host for a run by Zenoh
+//! query, and each side checks the other's schema version.
+
+use std::time::Duration;
+
+use serde::{Deserialize, Serialize};
+use uavmeta_proto::config::Config;
+use uavmeta_proto::transport::{RunDir, SCHEMA_VERSION};
+use zenoh::query::Query;
+use zenoh::{Session, Wait};
+
+use crate::session::{run_key, ALL_RUNS};
+use crate::TunnelError;
+
+/// How long a remote host waits for the answer to one handshake query.
+const ANSWER_TIMEOUT: Duration = Duration::from_secs(3);
+
+/// What a remote host says when it asks for a run.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Hello {
+    pub schema_version: u32,
+    /// The host's name, in logs and in the Prometheus `host` label.
+    pub host: String,
+}
+
+/// The learner host's answer: what a remote host needs to make a directory for the run.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RunInfo {
+    pub schema_version: u32,
+    pub run_id: String,
+    /// [`RunDir::hash`], which every batch carries.
+    pub run_hash: u64,
+    /// The run's config.toml.
+    pub config: String,
+}
+
+impl RunInfo {
+    pub fn new(run: &RunDir, config: &Config) -> Self {
+        Self {
+            schema_version: SCHEMA_VERSION,
+            run_id: run.id().into(),
+            run_hash: run.hash(),
+            config: config.to_toml_string(),
+        }
+    }
+}
+
+/// The learner host's side: the answer to `hello`, or the refusal to send back (and log).
+pub fn answer(info: &RunInfo, hello: &Hello) -> Result<RunInfo, String> {
+    if hello.schema_version != info.schema_version {
+        return Err(format!(
+            "host `{}` speaks schema version {}, but run `{}` speaks version {}; run the same \
+             uavmeta build on every host",
+            hello.host, hello.schema_version, info.run_id, info.schema_version
+        ));
+    }
+    Ok(info.clone())
+}
+
+/// Answers one query on the run's key, logging every refusal.
+pub(crate) fn reply(query: &Query, info: &RunInfo) {
+    let hello = query
+        .payload()
+        .ok_or_else(|| "a handshake without a Hello".to_string())
+        .and_then(|bytes| {
+            serde_json::from_slice::<Hello>(&bytes.to_bytes()).map_err(|e| e.to_string())
+        });
+    let answer = hello.and_then(|hello| {
+        let answer = answer(info, &hello);
+        match &answer {
+            Ok(_) => tracing::info!(host = %hello.host, "a remote actor host joined the run"),
+            Err(refusal) => tracing::error!("refused a remote actor host: {refusal}"),
+        }
+        answer
+    });
+    let sent = match answer {
+        Ok(info) => query
+            .reply(
+                query.key_expr().clone(),
+                serde_json::to_vec(&info).expect("serialises"),
+            )
+            .wait(),
+        Err(refusal) => query.reply_err(refusal).wait(),
+    };
+    if let Err(error) = sent {
+        tracing::warn!(%error, "cannot answer a remote host's handshake");
+    }
+}
+
+/// What one handshake attempt came to.
+pub(crate) enum Outcome {
+    Joined(RunInfo),
+    /// No answer: the learner's tunnel is not (yet) up.
+    Unanswered,
+}
+
+/// The remote host's side: asks `endpoint`'s session for `run_id`; refusals and schema
+/// mismatches are errors, silence is [`Outcome::Unanswered`] unless the host serves other runs.
+pub(crate) fn ask(
+    session: &Session,
+    endpoint: &str,
+    run_id: &str,
+    hello: &Hello,
+) -> Result<Outcome, TunnelError> {
+    let zenoh_error = |e: zenoh::Error| TunnelError::Zenoh {
+        endpoint: endpoint.into(),
+        message: e.to_string(),
+    };
+    let replies = session
+        .get(run_key(run_id))
+        .payload(serde_json::to_vec(hello).expect("serialises"))
+        .timeout(ANSWER_TIMEOUT)
+        .wait()
+        .map_err(zenoh_error)?;
+    if let Ok(reply) = replies.recv() {
+        let answer = match reply.result() {
+            Ok(sample) => serde_json::from_slice::<RunInfo>(&sample.payload().to_bytes())
+                .map_err(|e| format!("an unreadable answer: {e}")),
+            Err(refusal) => Err(refusal.payload().try_to_string().map_or_else(
+                |_| "a refusal without a reason".to_string(),
+                |s| s.into_owned(),
+            )),
+        };
+        let info = answer.map_err(|message| TunnelError::Refused {
+            endpoint: endpoint.into(),
+            message,
+        })?;
+        if info.schema_version != SCHEMA_VERSION {
+            return Err(TunnelError::SchemaMismatch {
+                endpoint: endpoint.into(),
+                theirs: info.schema_version,
+                ours: SCHEMA_VERSION,
+            });
+        }
+        return Ok(Outcome::Joined(info));
+    }
+    let served = served_runs(session).map_err(zenoh_error)?;
+    if served.is_empty() {
+        return Ok(Outcome::Unanswered);
+    }
+    Err(TunnelError::UnknownRun {
+        endpoint: endpoint.into(),
+        run: run_id.into(),
+        served: served.join(", "),
+    })
+}
+
+/// The runs whose tunnels answer on this session: their liveliness tokens.
+fn served_runs(session: &Session) -> Result<Vec<String>, zenoh::Error> {
+    let tokens = session
+        .liveliness()
+        .get(ALL_RUNS)
+        .timeout(ANSWER_TIMEOUT)
+        .wait()?;
+    let mut runs = Vec::new();
+    while let Ok(reply) = tokens.recv() {
+        if let Ok(sample) = reply.result() {
+            let key = sample.key_expr().as_str();
+            runs.push(key.rsplit('/').next().unwrap_or(key).to_string());
+        }
+    }
+    runs.sort();
+    Ok(runs)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::session;
+
+    fn info() -> RunInfo {
+        RunInfo {
+            schema_version: SCHEMA_VERSION,
+            run_id: "r-0000".into(),
+            run_hash: 7,
+            config: String::new(),
+        }
+    }
+
+    #[test]
+    fn a_host_of_another_schema_version_is_refused_with_both_versions_named() {
+        let hello = Hello {
+            schema_version: SCHEMA_VERSION + 1,
+            host: "b".into(),
+        };
+        let refusal = answer(&info(), &hello).expect_err("refused");
+        assert!(refusal.contains(&format!("schema version {}", SCHEMA_VERSION + 1)));
+        assert!(refusal.contains(&format!("speaks version {SCHEMA_VERSION}")));
+        assert!(refusal.contains("`b`"));
+        let hello = Hello {
+            schema_version: SCHEMA_VERSION,
+            host: "b".into(),
+        };
+        assert_eq!(answer(&info(), &hello).expect("joined").run_hash, 7);
+    }
+
+    /// `ask` until it gets an answer: a fresh client learns the server's declarations shortly
+    /// after it connects.
+    fn ask_until_answered(
+        client: &Session,
+        endpoint: &str,
+        run: &str,
+    ) -> Result<RunInfo, TunnelError> {
+        let hello = Hello {
+            schema_version: SCHEMA_VERSION,
+            host: "b".into(),
+        };
+        ask_with(client, endpoint, run, &hello)
+    }
+
+    fn ask_with(
+        client: &Session,
+        endpoint: &str,
+        run: &str,
+        hello: &Hello,
+    ) -> Result<RunInfo, TunnelError> {
+        let start = std::time::Instant::now();
+        loop {
+            if let Outcome::Joined(info) = ask(client, endpoint, run, hello)? {
+                return Ok(info);
+            }
+            assert!(start.elapsed() < Duration::from_secs(60), "never answered");
+        }
+    }
+
+    #[test]
+    fn each_side_refuses_the_others_schema_version_over_zenoh() {
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .expect("a free port")
+            .port();
+        let endpoint = format!("tcp/127.0.0.1:{port}");
+        let server = session::listen(&endpoint).expect("listen");
+        let ours = info();
+        let _current = server
+            .declare_queryable(run_key("r-0000"))
+            .callback(move |query| reply(&query, &ours))
+            .wait()
+            .expect("queryable");
+        // A learner host of an older build that does not check: only the remote side can refuse.
+        let older = RunInfo {
+            schema_version: SCHEMA_VERSION - 1,
+            ..info()
+        };
+        let _older = server
+            .declare_queryable(run_key("r-1111"))
+            .callback(move |query| {
+                let bytes = serde_json::to_vec(&older).expect("serialises");
+                let _ = query.reply(query.key_expr().clone(), bytes).wait();
+            })
+            .wait()
+            .expect("queryable");
+        let client = session::connect(&endpoint).expect("connect");
+        assert_eq!(
+            ask_until_answered(&client, &endpoint, "r-0000")
+                .expect("joined")
+                .run_hash,
+            7
+        );
+
+        let newer = Hello {
+            schema_version: SCHEMA_VERSION + 1,
+            host: "b".into(),
+        };
+        match ask_with(&client, &endpoint, "r-0000", &newer) {
+            Err(TunnelError::Refused { message, .. }) => {
+                assert!(
+                    message.contains(&format!("schema version {}", SCHEMA_VERSION + 1)),
+                    "{message}"
+                );
+            }
+            other => panic!("a newer remote host was not refused: {other:?}"),
+        }
+        match ask_until_answered(&client, &endpoint, "r-1111") {
+            Err(error @ TunnelError::SchemaMismatch { .. }) => {
+                let message = error.to_string();
+                assert!(
+                    message.contains(&format!("schema version {}", SCHEMA_VERSION - 1)),
+                    "{message}"
+                );
+                assert!(message.contains(&endpoint), "{message}");
+            }
+            other => panic!("an older learner host was not refused: {other:?}"),
+        }
+    }
+}

@@ -1,0 +1,103 @@
+//! Remote actors: a run's services carried between hosts by iceoryx2's own tunnel over Zenoh.
+//!
+//! Each host runs its processes in its own iceoryx2 domain (`run.domain`); nothing but a tunnel
+//! connects two domains. On the learner's host, [`serve`] (`uavmeta tunnel serve`, started by
+//! the launcher when `tunnel.listen` is set) opens a Zenoh session listening on that endpoint; on
+//! each actor host, [`join`] (`uavmeta tunnel join`) connects to it, makes a local directory for
+//! the run, and plain `uavmeta actor --run DIR` processes publish into it as on the learner's host.
+//!
+//! Both sides run an [`iceoryx2_link::Link`] over the [`iceoryx2_link_tunnel::Tunnel`] with the
+//! Zenoh carrier, restricted to the services a remote actor uses
+//! ([`ServiceNames::remote_actor_services`]): the same payload types and service names from
+//! `uavmeta_proto`, relayed byte for byte. The crates are used as a library rather than by
+//! running their CLI (`iox2-link-tunnel-zenoh`) as a child because the tunnel must (1) create
+//! the run's services with uavmeta's settings before it mirrors them (a mirror gets iceoryx2's
+//! defaults: safe overflow on, no schema attribute, which uavmeta's openers refuse), (2) check
+//! the schema version and the run id before bridging anything, with an error naming both sides,
+//! and (3) tell the learner's host which remote actors it carries. The CLI can do none of these,
+//! and the library costs the same Zenoh build.
+//!
+//! **Handshake** ([`handshake`]): before bridging, `join` asks the learner's host, by Zenoh query
+//! on `uavmeta/runs/<run id>`, for the run; the answer carries the run's hash, config and schema
+//! version. Each side refuses the other's mismatching schema version with an error naming both.
+//!
+//! **Losing the other side**: the learner's tunnel holds a Zenoh liveliness token; when it goes
+//! (killed, restarted), `join` drops its link, so remote actors see their store's subscriber go
+//! and hold their batches; when the token is back it shakes hands again and builds a new link,
+//! whose new subscriber the actors take for a new store: they send everything the store has not
+//! acknowledged again (`uavmeta_actors::actor_process`), and the store drops what it already has.
+//!
+//! **Known costs** of relaying whole services: the tunnel carries a service both ways, so the
+//! learner host's own actors' batches travel to every remote host too (and are dropped there),
+//! and the learner's local actors wait for the tunnel's subscriber like for the store's: a link
+//! slower than they are slows them. The Zenoh carrier's receiving inbox holds 64 frames and
+//! drops beyond, and the link's publishers skip a full subscriber (waiting on its own full one
+//! would deadlock it), so a frame dropped there or skipped by a store that fell behind is a gap
+//! the store counts as missing: every published transition is stored or counted, but not every
+//! one is stored. `join` narrows a remote actor's window of unacknowledged batches to fit the
+//! inbox, which makes such drops rare. Giving remote actors services of their own, which the
+//! store also reads, with flow control end to end, would remove all of these.
+
+use std::time::Duration;
+
+use uavmeta_proto::config::ConfigError;
+use uavmeta_proto::transport::TransportError;
+
+mod bridge;
+pub mod handshake;
+mod join;
+mod serve;
+mod session;
+
+pub use join::{join, JoinOptions};
+pub use serve::serve;
+
+/// How often a tunnel looks for new local or remote services; relaying runs in between.
+const DISCOVER_EVERY: Duration = Duration::from_millis(100);
+
+/// How long a tunnel sleeps between relaying rounds: local publications do not wake it.
+const POLL: Duration = Duration::from_micros(500);
+
+/// After the run's shutdown, how long a tunnel keeps relaying so the other side hears it too.
+const SHUTDOWN_LINGER: Duration = Duration::from_secs(3);
+
+#[derive(Debug, thiserror::Error)]
+pub enum TunnelError {
+    #[error(transparent)]
+    Transport(#[from] TransportError),
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error("zenoh endpoint `{endpoint}`: {message}")]
+    Zenoh { endpoint: String, message: String },
+    #[error("cannot reach the run's tunnel at `{endpoint}` within {waited:?}: {message}")]
+    Unreachable {
+        endpoint: String,
+        waited: Duration,
+        message: String,
+    },
+    #[error(
+        "the host at `{endpoint}` serves no run `{run}`; it serves: {served} (the learner host's \
+         `uavmeta launch` logs the run id to join, as does its `uavmeta tunnel serve`)"
+    )]
+    UnknownRun {
+        endpoint: String,
+        run: String,
+        served: String,
+    },
+    #[error("the run's host at `{endpoint}` refused this host: {message}")]
+    Refused { endpoint: String, message: String },
+    #[error(
+        "the run's host at `{endpoint}` speaks schema version {theirs}, but this uavmeta build \
+         speaks version {ours}; run the same uavmeta build on every host"
+    )]
+    SchemaMismatch {
+        endpoint: String,
+        theirs: u32,
+        ours: u32,
+    },
+    #[error("iceoryx2 tunnel: cannot {action}: {message}")]
+    Link {
+        action: &'static str,
+        message: String,
+    },
+}
