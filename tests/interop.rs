@@ -113,6 +113,21 @@ fn bad_input_is_an_error_naming_the_file_or_value() {
         missing.contains("data/none.uavds: cannot read"),
         "{missing}"
     );
+    let args = [
+        "dataset",
+        "export",
+        "--dataset",
+        "data/none.uavds",
+        "--format",
+        "npz",
+        "--out",
+        "x.npz",
+    ];
+    let missing = failure(uavmeta(d, &args));
+    assert!(
+        missing.contains("data/none.uavds: cannot read") && !missing.contains("config"),
+        "{missing}"
+    );
 
     let shots = failure(export(d, "npz", "x.npz", &["--shots", "201"]));
     assert!(

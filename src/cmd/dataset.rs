@@ -68,6 +68,8 @@ fn export(args: ExportArgs) -> Result<()> {
     if args.id.is_some() && args.format != Format::Minari {
         anyhow::bail!("--id names a Minari dataset; --format npz writes the one file --out names");
     }
+    // The dataset first: a mistyped dataset path is reported as that, not as a missing config.
+    let reader = DatasetReader::open(&args.dataset)?;
     let config_file = args.config.unwrap_or_else(|| config_path(&args.dataset));
     let config = Config::load(&config_file, &[]).with_context(|| {
         format!(
@@ -82,7 +84,6 @@ fn export(args: ExportArgs) -> Result<()> {
         }),
         None => None,
     };
-    let reader = DatasetReader::open(&args.dataset)?;
     let export = Export::new(&reader, &config, shots)?;
     match args.format {
         Format::Npz => {
