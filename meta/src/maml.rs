@@ -8,6 +8,7 @@
 //!         for each task tau_i:
 //!             the next k shots of its shuffled support set       (meta.shots)
 //!             w_i = w0;  repeat inner_steps:  w_i <- w_i - eta_inner * grad L(w_i; shots)  (eq. 14)
+//!                                 (Meta-SGD: eta_inner is a learned vector, one step per weight)
 //!         L_meta = sum_i L(w_i; query shots of tau_i)                                       (eq. 15)
 //!         w0 <- Adam(eta_outer) step on grad_w0 L_meta, through the inner steps             (eq. 16)
 //! ```
@@ -18,6 +19,14 @@
 //! read everywhere else, one pass over the data: with 250 support shots per task and k = 64, four
 //! outer steps, after which every support shot has been adapted to once. `outer_steps = 1` is the
 //! literal reading.
+//!
+//! With `meta.learn_inner_lr` (Meta-SGD, Li et al. 2017) eq. 14's step size is learned too: one
+//! per weight, initialised to `eta_inner`, updated by the same outer Adam as `w0`. One shared
+//! step size moves every task's weights by the same amount along its gradient; a task at the end
+//! of the lambda range (lambda = 0, where power costs nothing) then adapts least well
+//! (docs/EXPERIMENTS.md, C4), and per-weight steps let meta-training decide how far each weight
+//! moves. The learned steps serve the adaptation (eq. 14, figure 4); meta-test fine-tunes `w0`
+//! with CQL's Adam as before.
 //!
 //! `L` is the CQL loss of eq. 8 (CQL-MAML, the paper's method) or the DQN loss of eq. 7 (DQN-MAML,
 //! its baseline), with the learner's TD options (`learner.double_dqn`, `learner.huber`) so that
@@ -100,6 +109,8 @@ pub struct MamlConfig {
     pub eta_outer: f64,
     /// Treat the inner gradients as constants (first-order MAML).
     pub first_order: bool,
+    /// Meta-SGD: learn eq. 14's step size per weight.
+    pub learn_inner_lr: bool,
     /// Meta-epochs between refreshes of the target network from `w0`.
     pub target_update_every: usize,
     /// Outer steps per meta-epoch; 0 = one pass over the largest support set.
@@ -120,6 +131,7 @@ impl MamlConfig {
             eta_inner: m.eta_inner,
             eta_outer: m.eta_outer,
             first_order: m.first_order,
+            learn_inner_lr: m.learn_inner_lr,
             target_update_every: m.target_update_every,
             outer_steps_per_meta_epoch: m.outer_steps_per_meta_epoch,
         }
@@ -184,8 +196,14 @@ impl MamlConfig {
     /// Second order keeps the graph of every inner gradient, so the returned fast weights are
     /// differentiable functions of `w0` through the Hessian-vector terms; first order detaches the
     /// gradients, so `d w_i / d w0` is the identity.
-    pub fn adapt(&self, w0: &[Tensor], target: &[Tensor], support: &Batch) -> Vec<Tensor> {
-        self.adapt_stacked(w0, target, &StackedShots::stack(&[support]))
+    pub fn adapt(
+        &self,
+        w0: &[Tensor],
+        step: StepSize,
+        target: &[Tensor],
+        support: &Batch,
+    ) -> Vec<Tensor> {
+        self.adapt_stacked(w0, step, target, &StackedShots::stack(&[support]))
             .iter()
             .map(|w| w.squeeze_dim(0))
             .collect()
@@ -197,6 +215,7 @@ impl MamlConfig {
     pub fn adapt_stacked(
         &self,
         w0: &[Tensor],
+        step: StepSize,
         target: &[Tensor],
         support: &StackedShots,
     ) -> Vec<Tensor> {
@@ -214,33 +233,52 @@ impl MamlConfig {
             let loss = self.task_losses(&w, target, support).sum(None);
             // torch.autograd.grad(loss, w, retain_graph=create_graph=second_order)
             let grads = Tensor::run_backward(&[&loss], &w, second_order, second_order);
-            w = w
-                .iter()
-                .zip(&grads)
-                .map(|(w, g)| w - g * self.eta_inner)
-                .collect();
+            w = match step {
+                StepSize::Shared => w
+                    .iter()
+                    .zip(&grads)
+                    .map(|(w, g)| w - g * self.eta_inner)
+                    .collect(),
+                // [..] step sizes broadcast over the task dimension of [T, ..] weights.
+                StepSize::PerWeight(lr) => w
+                    .iter()
+                    .zip(&grads)
+                    .zip(lr)
+                    .map(|((w, g), lr)| w - g * lr)
+                    .collect(),
+            };
         }
         w
     }
 
     /// Eq. 15 and its gradient: adapts to each task's support shots, evaluates `L(w_i; query)`,
     /// and accumulates `d L_meta / d w0` into the `.grad` of `w0` (which must be leaves that
-    /// require grad). All tasks go through one stacked computation (batched matrix products
+    /// require grad), and Meta-SGD's `d L_meta / d lr` into the step sizes'. All tasks go through one stacked computation (batched matrix products
     /// instead of one small product per task). Returns each task's query loss.
     pub fn backward_meta_loss(
         &self,
         w0: &[Tensor],
+        step: StepSize,
         target: &[Tensor],
         tasks: &[TaskShots],
     ) -> Vec<f64> {
         let support: Vec<&Batch> = tasks.iter().map(|t| &t.support).collect();
         let query: Vec<&Batch> = tasks.iter().map(|t| &t.query).collect();
-        let w = self.adapt_stacked(w0, target, &StackedShots::stack(&support)); // eq. 14
+        let w = self.adapt_stacked(w0, step, target, &StackedShots::stack(&support)); // eq. 14
         let query_losses = self.task_losses(&w, target, &StackedShots::stack(&query)); // eq. 15's terms
         query_losses.sum(None).backward();
         Vec::<f64>::try_from(query_losses.detach().to_kind(Kind::Double))
             .expect("a [T] loss tensor")
     }
+}
+
+/// Eq. 14's step size.
+#[derive(Debug, Clone, Copy)]
+pub enum StepSize<'a> {
+    /// MAML: `eta_inner` for every weight.
+    Shared,
+    /// Meta-SGD: one step size per weight, shaped like the weights (in their order).
+    PerWeight(&'a [Tensor]),
 }
 
 /// The shots of T tasks as one [`Batch`] with a leading task dimension ([T, B, ..]), each task's
@@ -440,14 +478,24 @@ impl OuterAdam {
     }
 }
 
-/// The meta-learner: `w0`, its target network and the outer Adam optimiser.
+/// The meta-learner: `w0`, Meta-SGD's step sizes, the target network and the outer Adam
+/// optimiser.
 pub struct Maml {
     config: MamlConfig,
     w0: QNetwork,
+    /// Meta-SGD's per-weight step sizes (leaves that require grad), when `learn_inner_lr`.
+    inner_lr: Option<Vec<Tensor>>,
     target: QNetwork,
     optimizer: OuterAdam,
     rng: ChaCha8Rng,
     epochs_done: usize,
+}
+
+/// What eq. 16 updates: `w0`'s parameters, then Meta-SGD's step sizes if learned.
+fn meta_parameters(w0: &QNetwork, inner_lr: &Option<Vec<Tensor>>) -> Vec<Tensor> {
+    let mut params = w0.parameters();
+    params.extend(inner_lr.iter().flatten().map(Tensor::shallow_clone));
+    params
 }
 
 /// What [`Maml::save_state`] stores besides tensors: the counters and the sampling stream's
@@ -466,11 +514,22 @@ impl Maml {
     /// Meta-trains `w0` (its current weights are the starting point); task and shot sampling
     /// draw from `seed` alone.
     pub fn new(w0: QNetwork, config: MamlConfig, seed: u64) -> Result<Self, MetaError> {
-        let optimizer = OuterAdam::new(&w0.parameters(), config.eta_outer);
+        let inner_lr = config.learn_inner_lr.then(|| {
+            w0.parameters()
+                .iter()
+                .map(|p| {
+                    p.full_like(config.eta_inner)
+                        .detach()
+                        .set_requires_grad(true)
+                })
+                .collect()
+        });
+        let optimizer = OuterAdam::new(&meta_parameters(&w0, &inner_lr), config.eta_outer);
         let target = w0.duplicate();
         Ok(Self {
             config,
             w0,
+            inner_lr,
             target,
             optimizer,
             rng: ChaCha8Rng::seed_from_u64(seed),
@@ -478,22 +537,28 @@ impl Maml {
         })
     }
 
+    /// Eq. 14's step size for this run.
+    fn step_size(&self) -> StepSize<'_> {
+        match &self.inner_lr {
+            Some(lr) => StepSize::PerWeight(lr),
+            None => StepSize::Shared,
+        }
+    }
+
     /// Saves everything besides `w0` that the next meta-epochs depend on (Adam's moments, the
     /// target network, the sampling stream, the epoch count) beside the `w0` checkpoint `path`,
     /// before `w0` itself is saved there.
     pub fn save_state(&self, path: &Path) -> Result<(), CheckpointError> {
         let mut tensors = Vec::new();
-        for (i, ((m, v), target)) in self
-            .optimizer
-            .m
-            .iter()
-            .zip(&self.optimizer.v)
-            .zip(self.target.parameters())
-            .enumerate()
-        {
+        for (i, (m, v)) in self.optimizer.m.iter().zip(&self.optimizer.v).enumerate() {
             tensors.push((format!("adam.m.{i}"), m.shallow_clone()));
             tensors.push((format!("adam.v.{i}"), v.shallow_clone()));
+        }
+        for (i, target) in self.target.parameters().into_iter().enumerate() {
             tensors.push((format!("target.{i}"), target));
+        }
+        for (i, lr) in self.inner_lr.iter().flatten().enumerate() {
+            tensors.push((format!("inner_lr.{i}"), lr.detach()));
         }
         let progress = MamlProgress {
             epochs_done: self.epochs_done,
@@ -516,7 +581,10 @@ impl Maml {
         let mut take = |name: String, like: &Tensor| -> Result<Tensor, CheckpointError> {
             let mismatch = |detail| CheckpointError::SizeMismatch {
                 path: checkpoint::state_paths(path).0,
-                key: "learner.hidden",
+                key: match name.starts_with("inner_lr") {
+                    true => "meta.learn_inner_lr",
+                    false => "learner.hidden",
+                },
                 detail,
             };
             let t = named
@@ -531,13 +599,23 @@ impl Maml {
             }
             Ok(t.to_kind(like.kind()))
         };
-        let mut optimizer = OuterAdam::new(&params, config.eta_outer);
         let target = w0.duplicate();
         for (i, (p, mut t)) in params.iter().zip(target.parameters()).enumerate() {
-            optimizer.m[i] = take(format!("adam.m.{i}"), p)?;
-            optimizer.v[i] = take(format!("adam.v.{i}"), p)?;
             let saved = take(format!("target.{i}"), p)?;
             tch::no_grad(|| t.copy_(&saved));
+        }
+        let inner_lr = match config.learn_inner_lr {
+            true => Some(
+                (params.iter().enumerate())
+                    .map(|(i, p)| Ok(take(format!("inner_lr.{i}"), p)?.set_requires_grad(true)))
+                    .collect::<Result<Vec<_>, CheckpointError>>()?,
+            ),
+            false => None,
+        };
+        let mut optimizer = OuterAdam::new(&meta_parameters(&w0, &inner_lr), config.eta_outer);
+        for (i, p) in meta_parameters(&w0, &inner_lr).iter().enumerate() {
+            optimizer.m[i] = take(format!("adam.m.{i}"), p)?;
+            optimizer.v[i] = take(format!("adam.v.{i}"), p)?;
         }
         optimizer.steps = progress.adam_steps;
         let mut rng = ChaCha8Rng::from_seed(progress.rng_seed);
@@ -546,6 +624,7 @@ impl Maml {
         Ok(Self {
             config,
             w0,
+            inner_lr,
             target,
             optimizer,
             rng,
@@ -597,13 +676,19 @@ impl Maml {
                     query: sample_rows(&tasks[i].query, self.config.query_shots, &mut self.rng),
                 })
                 .collect();
-            // Eqs. 14-15, with the meta-gradient accumulated into w0's gradients.
-            let w0 = self.w0.parameters();
-            OuterAdam::zero_grad(&w0);
+            // Eqs. 14-15, with the meta-gradient accumulated into w0's (and the step sizes')
+            // gradients.
+            let params = meta_parameters(&self.w0, &self.inner_lr);
+            OuterAdam::zero_grad(&params);
             let target = self.target.parameters();
-            let losses = self.config.backward_meta_loss(&w0, &target, &shots);
-            // Eq. 16: Adam(eta_outer) on w0.
-            self.optimizer.step(&w0);
+            let losses = self.config.backward_meta_loss(
+                &self.w0.parameters(),
+                self.step_size(),
+                &target,
+                &shots,
+            );
+            // Eq. 16: Adam(eta_outer) on w0 (and the step sizes).
+            self.optimizer.step(&params);
             meta_loss += losses.iter().sum::<f64>();
             for (i, loss) in picked.into_iter().zip(losses) {
                 loss_sums[i].0 += loss;
@@ -676,7 +761,7 @@ impl Maml {
             ..self.config.clone()
         };
         first_order
-            .adapt(w0, target, support)
+            .adapt(w0, self.step_size(), target, support)
             .into_iter()
             .map(|w| w.detach())
             .collect()

@@ -9,7 +9,7 @@ use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::dqn::TdConfig;
 use uavmeta_learner::qnet::QNetwork;
-use uavmeta_meta::maml::{Maml, MamlConfig, MetaTask, TaskShots};
+use uavmeta_meta::maml::{Maml, MamlConfig, MetaTask, StepSize, TaskShots};
 use uavmeta_proto::config::InnerLoss;
 
 const OBS: usize = 3;
@@ -34,6 +34,7 @@ fn config(inner_loss: InnerLoss, inner_steps: usize, first_order: bool) -> MamlC
         eta_inner: 0.3,
         eta_outer: 1e-2,
         first_order,
+        learn_inner_lr: false,
         target_update_every: 1,
         outer_steps_per_meta_epoch: 1,
     }
@@ -85,14 +86,28 @@ fn leaves(seed: u64) -> Vec<Tensor> {
 }
 
 /// Eq. 15's value at `w0`.
-fn meta_loss(c: &MamlConfig, w0: &[Tensor], target: &[Tensor], tasks: &[TaskShots]) -> f64 {
+fn meta_loss(
+    c: &MamlConfig,
+    w0: &[Tensor],
+    step: StepSize,
+    target: &[Tensor],
+    tasks: &[TaskShots],
+) -> f64 {
     tasks
         .iter()
         .map(|t| {
-            c.task_loss(&c.adapt(w0, target, &t.support), target, &t.query)
+            c.task_loss(&c.adapt(w0, step, target, &t.support), target, &t.query)
                 .double_value(&[])
         })
         .sum()
+}
+
+/// Fresh leaves that require grad, with the values of `tensors`.
+fn fresh_leaves(tensors: &[Tensor]) -> Vec<Tensor> {
+    tensors
+        .iter()
+        .map(|t| t.detach().copy().set_requires_grad(true))
+        .collect()
 }
 
 /// What `backward_meta_loss` leaves in the gradients of fresh copies of `w0`, flattened.
@@ -102,11 +117,8 @@ fn meta_gradient(
     target: &[Tensor],
     tasks: &[TaskShots],
 ) -> Vec<f64> {
-    let w0: Vec<Tensor> = w0
-        .iter()
-        .map(|w| w.detach().set_requires_grad(true))
-        .collect();
-    c.backward_meta_loss(&w0, target, tasks);
+    let w0 = fresh_leaves(w0);
+    c.backward_meta_loss(&w0, StepSize::Shared, target, tasks);
     flatten(&w0.iter().map(Tensor::grad).collect::<Vec<_>>())
 }
 
@@ -124,24 +136,21 @@ fn finite_difference(
     target: &[Tensor],
     tasks: &[TaskShots],
 ) -> Vec<f64> {
+    central_differences(w0, |moved| {
+        meta_loss(c, moved, StepSize::Shared, target, tasks)
+    })
+}
+
+/// Central differences of `f` with respect to every scalar of `params`.
+fn central_differences(params: &[Tensor], f: impl Fn(&[Tensor]) -> f64) -> Vec<f64> {
     let eps = 1e-6;
     let mut grad = Vec::new();
-    for (p, w) in w0.iter().enumerate() {
+    for (p, w) in params.iter().enumerate() {
         for j in 0..w.numel() as i64 {
             let at = |delta: f64| {
-                let moved: Vec<Tensor> = w0
-                    .iter()
-                    .enumerate()
-                    .map(|(q, v)| {
-                        let v = v.detach().copy();
-                        if q == p {
-                            let flat = v.view(-1);
-                            let _ = flat.get(j).g_add_scalar_(delta);
-                        }
-                        v.set_requires_grad(true)
-                    })
-                    .collect();
-                meta_loss(c, &moved, target, tasks)
+                let moved = fresh_leaves(params);
+                let _ = moved[p].view(-1).get(j).detach().g_add_scalar_(delta);
+                f(&moved)
             };
             grad.push((at(eps) - at(-eps)) / (2.0 * eps));
         }
@@ -178,6 +187,47 @@ fn second_order_meta_gradient_matches_finite_differences() {
             );
         }
     }
+}
+
+#[test]
+fn meta_sgd_gradients_of_w0_and_step_sizes_match_finite_differences() {
+    single_threaded();
+    let mut rng = ChaCha8Rng::seed_from_u64(30);
+    let tasks = shots(3, 16, Kind::Double, &mut rng);
+    let w0 = leaves(31);
+    let target = leaves(32);
+    // A different step size for every weight, 0.1 to about 0.5.
+    let lr: Vec<Tensor> = leaves(33).iter().map(|w| w.abs() * 0.5 + 0.1).collect();
+    for inner_loss in [InnerLoss::Cql, InnerLoss::Dqn] {
+        let c = config(inner_loss, 2, false);
+        let (w0_leaves, lr_leaves) = (fresh_leaves(&w0), fresh_leaves(&lr));
+        c.backward_meta_loss(&w0_leaves, StepSize::PerWeight(&lr_leaves), &target, &tasks);
+        let grads =
+            |leaves: &[Tensor]| flatten(&leaves.iter().map(Tensor::grad).collect::<Vec<_>>());
+        let numeric_w0 = central_differences(&w0, |moved| {
+            meta_loss(&c, moved, StepSize::PerWeight(&lr), &target, &tasks)
+        });
+        let numeric_lr = central_differences(&lr, |moved| {
+            meta_loss(&c, &w0, StepSize::PerWeight(moved), &target, &tasks)
+        });
+        for (what, analytic, numeric) in [
+            ("w0", grads(&w0_leaves), numeric_w0),
+            ("step sizes", grads(&lr_leaves), numeric_lr),
+        ] {
+            let error = relative_error(&analytic, &numeric);
+            assert!(
+                error < 1e-3 && norm(&numeric) > 1e-3,
+                "{inner_loss:?}, gradient of the {what}: relative error {error:e}, |grad| {:e}",
+                norm(&numeric)
+            );
+        }
+    }
+    // Step sizes all equal to eta_inner are MAML's shared step.
+    let c = config(InnerLoss::Cql, 2, false);
+    let shared: Vec<Tensor> = w0.iter().map(|w| w.full_like(c.eta_inner)).collect();
+    let maml = meta_loss(&c, &w0, StepSize::Shared, &target, &tasks);
+    let meta_sgd = meta_loss(&c, &w0, StepSize::PerWeight(&shared), &target, &tasks);
+    assert!((maml - meta_sgd).abs() < 1e-12, "{maml} != {meta_sgd}");
 }
 
 #[test]
@@ -228,7 +278,7 @@ fn first_order_gradient_is_the_query_gradient_at_the_adapted_weights() {
         let mut expected = vec![0.0; flatten(&w0).len()];
         for task in &tasks {
             let w_i: Vec<Tensor> = first
-                .adapt(&w0, &target, &task.support)
+                .adapt(&w0, StepSize::Shared, &target, &task.support)
                 .iter()
                 .map(|w| w.detach().set_requires_grad(true))
                 .collect();
@@ -362,6 +412,13 @@ fn weights(maml: &Maml) -> Vec<f64> {
 #[test]
 fn an_interrupted_and_resumed_meta_training_ends_at_the_uninterrupted_w0() {
     single_threaded();
+    for learn_inner_lr in [false, true] {
+        resumed_ends_where_uninterrupted_ends(learn_inner_lr);
+    }
+}
+
+/// With Meta-SGD the learned step sizes and their Adam moments are part of the saved state.
+fn resumed_ends_where_uninterrupted_ends(learn_inner_lr: bool) {
     let mut rng = ChaCha8Rng::seed_from_u64(20);
     let tasks: Vec<MetaTask> = (0..3)
         .map(|i| MetaTask {
@@ -377,6 +434,7 @@ fn an_interrupted_and_resumed_meta_training_ends_at_the_uninterrupted_w0() {
     // carry state across the interruption after epoch 6, besides Adam's moments.
     c.target_update_every = 4;
     c.tasks_per_meta_epoch = 2;
+    c.learn_inner_lr = learn_inner_lr;
     let hidden = [16];
     let network = || QNetwork::new(OBS, ACTIONS, &hidden, 21);
     let (seed, epochs, interrupted_at) = (22, 10, 6);
@@ -408,7 +466,7 @@ fn an_interrupted_and_resumed_meta_training_ends_at_the_uninterrupted_w0() {
     assert_eq!(
         weights(&resumed),
         weights(&straight),
-        "resumed != uninterrupted"
+        "resumed != uninterrupted (learn_inner_lr {learn_inner_lr})"
     );
 
     // The same w0 without its state (fresh moments, target and sampling) ends elsewhere: the

@@ -462,6 +462,10 @@ pub struct MetaConfig {
     pub eta_outer: f64,
     /// First-order MAML: do not differentiate through the inner steps.
     pub first_order: bool,
+    /// Meta-SGD (Li et al., 2017): learn eq. 14's step size, one per weight, initialised to
+    /// `eta_inner` and updated by eq. 16's Adam together with w0; false is MAML's one fixed
+    /// `eta_inner`.
+    pub learn_inner_lr: bool,
     /// CQL-MAML (the paper's method) or DQN-MAML (its baseline).
     pub inner_loss: InnerLoss,
     /// Meta-epochs between w0 checkpoints.
@@ -487,6 +491,7 @@ impl Default for MetaConfig {
             eta_inner: 1e-2,
             eta_outer: 1e-3,
             first_order: false,
+            learn_inner_lr: false,
             inner_loss: InnerLoss::Cql,
             checkpoint_every: 10,
             target_update_every: 1,
