@@ -18,9 +18,7 @@ use uavmeta_actors::rollout::{record_trajectory, Trajectory};
 use uavmeta_learner::checkpoint::{self, CheckpointPaths};
 use uavmeta_learner::qnet::QNetwork;
 use uavmeta_learner::train::{Algorithm, EpochRow, EvaluatePolicy};
-use uavmeta_proto::config::{
-    Config, InnerLoss, MetaConfig, ReproduceConfig, RunConfig, TaskConfig, TaskRole,
-};
+use uavmeta_proto::config::{Config, InnerLoss, TaskConfig, TaskRole};
 use uavmeta_proto::dataset::DatasetReader;
 use uavmeta_proto::stats::PolicyMetrics;
 
@@ -308,15 +306,19 @@ impl SeedResult {
     }
 }
 
-/// The config that collects seed `seed`'s datasets and trains its online DQN agents: the run's,
-/// with `collect.seed` offset by the seed and the sections that cannot change a dataset
-/// (`[meta]`, `[run]`, `[reproduce]`) at their defaults, so changing them keeps the cache.
+/// The config that collects seed `seed`'s datasets and trains its online DQN agents: the
+/// sections a dataset depends on (`[world]`, `[[tasks]]`, `[collect]` with its seed offset by
+/// `seed`, `[learner]`) and every other section at its defaults.
 fn collection_config(config: &Config, seed: u64) -> Config {
-    let mut c = config.clone();
+    let mut c = Config {
+        world: config.world.clone(),
+        tasks: config.tasks.clone(),
+        collect: config.collect.clone(),
+        learner: config.learner.clone(),
+        origin: config.origin.clone(),
+        ..Config::default()
+    };
     c.collect.seed = config.collect.seed + seed;
-    c.meta = MetaConfig::default();
-    c.run = RunConfig::default();
-    c.reproduce = ReproduceConfig::default();
     c
 }
 
@@ -333,6 +335,18 @@ fn meta_config(config: &Config, key: InitKey, seed: u64) -> Config {
     c.meta.eval_every = config.reproduce.meta_eval_every;
     c.tasks = meta_train_tasks(config, key.tasks).cloned().collect();
     c
+}
+
+/// Whether the config saved beside a dataset at `path` agrees with `collection` on every section a
+/// dataset depends on. Comparing values rather than text keeps the cache when another section
+/// changes or any section gains a key at its default.
+fn saved_collection_matches(path: &Path, collection: &Config) -> bool {
+    Config::load(path, &[]).is_ok_and(|saved| {
+        saved.world == collection.world
+            && saved.tasks == collection.tasks
+            && saved.collect == collection.collect
+            && saved.learner == collection.learner
+    })
 }
 
 /// Whether a config saved at `path` has exactly the text `config` would save.
@@ -443,9 +457,9 @@ pub fn fine_tune_run(
 }
 
 /// Collects `task`'s dataset into `path` with `collection` (the actors' code path), unless the
-/// file there is complete and was collected with exactly this config.
+/// file there is complete and was collected with the same world, tasks, collection and learner.
 fn ensure_dataset(collection: &Config, task: &str, path: &Path) -> Result<(), MetaError> {
-    if saved_config_matches(&config_path(path), collection) {
+    if saved_collection_matches(&config_path(path), collection) {
         let complete = DatasetReader::open(path).is_ok_and(|reader| {
             reader.check_world(collection).is_ok()
                 && reader.transitions().len() == collection.collect.transitions
