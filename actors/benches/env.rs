@@ -12,7 +12,7 @@ use std::hint::black_box;
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use uavmeta_actors::q_policy::{Evaluator, QPolicy};
+use uavmeta_actors::policy::q_policy::{Evaluator, QPolicy};
 use uavmeta_actors::rollout::evaluate;
 use uavmeta_actors::world::World;
 use uavmeta_learner::qnet::QNetwork;

@@ -9,8 +9,8 @@
 use std::sync::OnceLock;
 
 use uavmeta_actors::collect::{online_dqn_dataset, Collector};
-use uavmeta_actors::heuristics::{GreedyPolicy, RandomPolicy, StalestPolicy};
-use uavmeta_actors::q_policy::Evaluator;
+use uavmeta_actors::policy::heuristics::{GreedyPolicy, RandomPolicy, StalestPolicy};
+use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_actors::rollout::{evaluate, Policy};
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::qnet::QNetwork;

@@ -10,7 +10,6 @@
 //! - [`checkpoint`]: safetensors weights + JSON metadata + the run's config, written atomically
 //!   and checked (sizes, length, CRC32) on load.
 //! - [`store`]: the dataset store process, appending each task's transitions to its dataset file.
-//! - [`metrics`]: the /metrics endpoint every process serves.
 //!
 //! It consumes transitions from `uavmeta-proto`'s dataset files and the `[learner]` config
 //! section. Evaluating a policy needs the world, which lives in `uavmeta-actors`; the actors crate
@@ -48,7 +47,6 @@ pub mod batch;
 pub mod checkpoint;
 pub mod cql;
 pub mod dqn;
-pub mod metrics;
 pub mod qnet;
 pub mod store;
 pub mod train;

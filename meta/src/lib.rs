@@ -12,7 +12,7 @@
 //! - [`reproduce`]: `uavmeta reproduce`, the paper's figures 4-9 over several seeds (collection
 //!   with online DQN, meta-training, fine-tuning, evaluation), with CSV files, PNG charts and a
 //!   summary that says which claims of SPEC section 6 hold.
-//! - [`process`]: the meta-learner process of a run; [`launch`]: `uavmeta launch`, the supervisor
+//! - [`meta_learner`]: the meta-learner process of a run; [`launch`]: `uavmeta launch`, the supervisor
 //!   of a run's processes.
 //!
 //! It consumes datasets (`uavmeta_proto::dataset`), the Q-network, losses, training loop and
@@ -47,10 +47,10 @@
 
 pub mod launch;
 pub mod maml;
+pub mod meta_learner;
 pub mod meta_test;
 pub mod meta_train;
 pub mod pretrain;
-pub mod process;
 pub mod reproduce;
 
 use std::path::{Path, PathBuf};

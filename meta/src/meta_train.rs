@@ -26,7 +26,7 @@ use std::time::Instant;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use uavmeta_actors::q_policy::Evaluator;
+use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::qnet::QNetwork;

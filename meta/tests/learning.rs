@@ -8,8 +8,8 @@
 //! random to a policy of the data's quality.
 
 use uavmeta_actors::collect::Collector;
-use uavmeta_actors::heuristics::{EpsilonPolicy, RandomPolicy};
-use uavmeta_actors::q_policy::Evaluator;
+use uavmeta_actors::policy::heuristics::{EpsilonPolicy, RandomPolicy};
+use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_actors::rollout::evaluate;
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::qnet::QNetwork;

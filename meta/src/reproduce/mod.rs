@@ -31,7 +31,7 @@ use std::time::{Duration, Instant};
 
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
 use rayon::prelude::*;
-use uavmeta_actors::heuristics::PolicySpec;
+use uavmeta_actors::policy::heuristics::PolicySpec;
 use uavmeta_actors::rollout::evaluate;
 use uavmeta_proto::config::{Config, InnerLoss, TaskConfig, TaskRole};
 use uavmeta_proto::stats::PolicyMetrics;

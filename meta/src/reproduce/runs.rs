@@ -12,8 +12,8 @@ use std::path::{Path, PathBuf};
 
 use indicatif::ProgressBar;
 use uavmeta_actors::collect::{agent_path, collect, config_path};
-use uavmeta_actors::heuristics::PolicySpec;
-use uavmeta_actors::q_policy::{Evaluator, QPolicy};
+use uavmeta_actors::policy::heuristics::PolicySpec;
+use uavmeta_actors::policy::q_policy::{Evaluator, QPolicy};
 use uavmeta_actors::rollout::{record_trajectory, Trajectory};
 use uavmeta_learner::checkpoint::{self, CheckpointPaths};
 use uavmeta_learner::qnet::QNetwork;

@@ -28,7 +28,7 @@ use uavmeta_learner::qnet::QNetwork;
 use uavmeta_proto::config::{CollectConfig, Config, LearnerConfig, TaskConfig, WorldConfig};
 use uavmeta_proto::dataset::Transition;
 
-use crate::q_policy::QPolicy;
+use crate::policy::q_policy::QPolicy;
 use crate::rollout::Policy;
 use crate::world::World;
 

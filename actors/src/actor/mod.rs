@@ -24,9 +24,9 @@ use iceoryx2::node::Node;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
-use uavmeta_learner::metrics::{MetricsError, MetricsServer};
 use uavmeta_proto::config::{Config, ConfigError, TaskConfig};
 use uavmeta_proto::dataset::Transition;
+use uavmeta_proto::metrics::{MetricsError, MetricsServer};
 use uavmeta_proto::stats::EpisodeMetrics;
 use uavmeta_proto::transport::{
     self, Method, RunDir, ServiceNames, TransitionPublisher, TransitionSlot, TransportError,
@@ -34,7 +34,7 @@ use uavmeta_proto::transport::{
 };
 
 use crate::collect::{online_dqn_dataset, CollectError};
-use crate::heuristics::{PolicyError, PolicySpec};
+use crate::policy::heuristics::{PolicyError, PolicySpec};
 use crate::rollout::{episode_seed, EpisodeTally, Policy};
 use crate::world::World;
 use delivery::{write_sample, Sender, Sent};

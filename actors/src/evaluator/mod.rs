@@ -3,7 +3,7 @@
 //!
 //! For each `CheckpointReady` it loads the checkpoint, runs the greedy policy for
 //! `learner.eval_episodes` Monte-Carlo episodes seeded `learner.eval_seed` (the same episodes for
-//! every method and epoch, [`crate::q_policy::Evaluator`]), sets the per-task, per-method gauges
+//! every method and epoch, [`crate::policy::q_policy::Evaluator`]), sets the per-task, per-method gauges
 //! and appends one row to the run's `evaluations.csv` for plots.
 //!
 //! **Restart.** An evaluator (re)started mid-run or after the meta-learner has exited first queues
@@ -19,15 +19,17 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use uavmeta_learner::checkpoint::{self, CheckpointError};
-use uavmeta_learner::metrics::{MetricsError, MetricsServer};
 use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
+use uavmeta_proto::metrics::{MetricsError, MetricsServer};
 use uavmeta_proto::stats::PolicyMetrics;
 use uavmeta_proto::transport::{
     self, CheckpointReady, Method, RunDir, ServiceNames, TransportError, SCHEMA_VERSION,
 };
 
-use crate::q_policy::Evaluator;
+use crate::policy::q_policy::Evaluator;
+
+mod metrics;
 
 /// The evaluator's process name: node, port file and metrics snapshot.
 pub const PROCESS: &str = "evaluator";
@@ -144,45 +146,6 @@ pub fn read_rows(path: &Path) -> std::io::Result<Vec<EvaluationRow>> {
         }
     }
     Ok(rows)
-}
-
-/// The evaluator's metrics: every name it exports, in one place.
-mod metrics {
-    use prometheus::{GaugeVec, Histogram, IntCounter, Opts, Registry};
-    use uavmeta_learner::metrics::{counter, latency_histogram, register};
-
-    pub struct EvaluatorMetrics {
-        pub registry: Registry,
-        pub ret: GaugeVec,
-        pub aoi: GaugeVec,
-        pub power: GaugeVec,
-        pub outages: GaugeVec,
-        pub epoch: GaugeVec,
-        pub evaluated: IntCounter,
-        pub duration: Histogram,
-    }
-
-    impl EvaluatorMetrics {
-        pub fn new() -> Self {
-            let registry = uavmeta_learner::metrics::registry();
-            let gauge = |name: &str, help: &str| {
-                register(
-                    &registry,
-                    GaugeVec::new(Opts::new(name, help), &["task", "method"]).expect("valid gauge"),
-                )
-            };
-            Self {
-                ret: gauge("evaluator_return", "Mean episode return of the latest evaluated checkpoint."),
-                aoi: gauge("evaluator_aoi", "Mean AoI over steps and devices of the latest evaluated checkpoint."),
-                power: gauge("evaluator_power_watts", "Mean transmit power per step of the latest evaluated checkpoint, in watts."),
-                outages: gauge("evaluator_outages", "Mean steps in outage per episode of the latest evaluated checkpoint."),
-                epoch: gauge("evaluator_epoch", "Training epochs (meta-epochs for maml-init) behind the latest evaluated checkpoint."),
-                evaluated: counter(&registry, "evaluator_checkpoints_evaluated_total", "Checkpoints evaluated."),
-                duration: latency_histogram(&registry, "evaluator_evaluation_duration_seconds", "Time to load and evaluate one checkpoint."),
-                registry,
-            }
-        }
-    }
 }
 
 /// Runs the evaluator of `run` until a shutdown (after finishing what was announced) or

@@ -30,12 +30,12 @@ use iceoryx2::node::Node;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
-use uavmeta_actors::q_policy::Evaluator;
+use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
-use uavmeta_learner::metrics::{MetricsError, MetricsServer};
 use uavmeta_learner::qnet::QNetwork;
 use uavmeta_learner::train::{Algorithm, EvaluatePolicy};
 use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
+use uavmeta_proto::metrics::{MetricsError, MetricsServer};
 use uavmeta_proto::stats::PolicyMetrics;
 use uavmeta_proto::transport::{
     self, CheckpointReady, DatasetReady, Method, RunDir, ServiceNames, TransportError,
@@ -45,6 +45,8 @@ use uavmeta_proto::transport::{
 use crate::meta_test::{fine_tune, load_shots, meta_test_with, FineTune, MetaTestOptions};
 use crate::meta_train::{load_tasks, meta_train_with, MetaRow, MetaTrainHook, MetaTrainOptions};
 use crate::{pretrain, MetaError};
+
+mod metrics;
 
 /// The meta-learner's process name: node, port file and metrics snapshot.
 pub const PROCESS: &str = "meta-learner";
@@ -69,35 +71,6 @@ pub enum Outcome {
     Finished,
     /// SIGINT/SIGTERM or a shutdown announcement; a restart resumes.
     Stopped,
-}
-
-/// The meta-learner's metrics: every name it exports, in one place.
-mod metrics {
-    use prometheus::{Gauge, Histogram, IntCounter, IntGauge, Opts, Registry};
-    use uavmeta_learner::metrics::{counter, latency_histogram, register};
-
-    pub struct MetaLearnerMetrics {
-        pub registry: Registry,
-        pub meta_epoch: IntGauge,
-        pub meta_loss: Gauge,
-        pub meta_epoch_duration: Histogram,
-        pub checkpoints: IntCounter,
-        pub fine_tune_epochs: IntCounter,
-    }
-
-    impl MetaLearnerMetrics {
-        pub fn new() -> Self {
-            let registry = uavmeta_learner::metrics::registry();
-            Self {
-                meta_epoch: register(&registry, IntGauge::with_opts(Opts::new("meta_learner_meta_epoch", "Meta-epochs behind w0.")).expect("valid gauge")),
-                meta_loss: register(&registry, Gauge::with_opts(Opts::new("meta_learner_meta_loss", "Meta-loss (sum of the adapted weights' query losses) of the last meta-epoch.")).expect("valid gauge")),
-                meta_epoch_duration: latency_histogram(&registry, "meta_learner_meta_epoch_duration_seconds", "Time of one meta-epoch."),
-                checkpoints: counter(&registry, "meta_learner_checkpoints_written_total", "Checkpoints written and announced."),
-                fine_tune_epochs: counter(&registry, "meta_learner_fine_tune_epochs_total", "Meta-test fine-tuning epochs run."),
-                registry,
-            }
-        }
-    }
 }
 
 /// Runs the meta-learner of `run`.

@@ -33,7 +33,10 @@ use uavmeta_proto::transport::{
     self, DatasetReady, RunDir, ServiceNames, StoreAck, TransportError, SCHEMA_VERSION,
 };
 
-use crate::metrics::{MetricsError, MetricsServer};
+use uavmeta_proto::metrics::store::{DROPPED_REASONS, DUPLICATE, FOREIGN, SURPLUS};
+use uavmeta_proto::metrics::{MetricsError, MetricsServer};
+
+mod metrics;
 
 /// The store's process name: its node, port file and metrics snapshot.
 pub const PROCESS: &str = "store";
@@ -59,69 +62,6 @@ pub enum StoreError {
     Config(#[from] ConfigError),
     #[error(transparent)]
     Metrics(#[from] MetricsError),
-}
-
-/// The store's metrics: every name it exports, in one place.
-mod metrics {
-    use prometheus::{Histogram, IntCounterVec, IntGaugeVec, Opts, Registry};
-
-    use crate::metrics::{latency_histogram, register};
-
-    pub struct StoreMetrics {
-        pub registry: Registry,
-        pub batches_received: IntCounterVec,
-        pub transitions_received: IntCounterVec,
-        pub transitions_stored: IntCounterVec,
-        pub transitions_dropped: IntCounterVec,
-        pub transitions_missing: IntCounterVec,
-        pub dataset_transitions: IntGaugeVec,
-        pub dataset_ready: IntGaugeVec,
-        pub batch_latency: Histogram,
-        pub append_duration: Histogram,
-    }
-
-    /// Why a received transition was not stored; the `reason` label's fixed set.
-    pub const DUPLICATE: &str = "duplicate";
-    pub const SURPLUS: &str = "surplus";
-    pub const FOREIGN: &str = "foreign";
-
-    impl StoreMetrics {
-        pub fn new() -> Self {
-            let registry = crate::metrics::registry();
-            let counters = |name: &str, help: &str, labels: &[&str]| {
-                register(
-                    &registry,
-                    IntCounterVec::new(Opts::new(name, help), labels).expect("valid counter"),
-                )
-            };
-            let gauges = |name: &str, help: &str| {
-                register(
-                    &registry,
-                    IntGaugeVec::new(Opts::new(name, help), &["task"]).expect("valid gauge"),
-                )
-            };
-            Self {
-                batches_received: counters("store_batches_received_total", "Batches received from actors.", &["task"]),
-                transitions_received: counters("store_transitions_received_total", "Transitions received from actors.", &["task"]),
-                transitions_stored: counters("store_transitions_stored_total", "Transitions appended to the dataset file by this store process.", &["task"]),
-                transitions_dropped: counters(
-                    "store_transitions_dropped_total",
-                    "Received transitions not stored: duplicate (sequence number already stored), surplus (the dataset was complete), foreign (another run, world or schema).",
-                    &["task", "reason"],
-                ),
-                transitions_missing: counters(
-                    "store_transitions_missing_total",
-                    "Sequence numbers skipped by an actor's batches: transitions lost in transit, counted from the dataset file on start.",
-                    &["task"],
-                ),
-                dataset_transitions: gauges("store_dataset_transitions", "Transitions in the task's dataset file."),
-                dataset_ready: gauges("store_dataset_ready", "1 once the task's dataset holds collect.transitions and is announced."),
-                batch_latency: latency_histogram(&registry, "store_batch_latency_seconds", "Time from an actor's send to the store's receive of a batch."),
-                append_duration: latency_histogram(&registry, "store_append_duration_seconds", "Time to append and flush one batch to its dataset file."),
-                registry,
-            }
-        }
-    }
 }
 
 /// One task's file and the sequence numbers it holds.
@@ -304,7 +244,7 @@ fn open_task(
         .with_label_values(&[name])
         .set(writer.transitions() as i64);
     metrics.dataset_ready.with_label_values(&[name]).set(0);
-    for reason in [metrics::DUPLICATE, metrics::SURPLUS, metrics::FOREIGN] {
+    for reason in DROPPED_REASONS {
         metrics
             .transitions_dropped
             .with_label_values(&[name, reason]);
@@ -375,7 +315,7 @@ fn drain(
                 tracing::warn!("dropped a batch: {error}");
                 metrics
                     .transitions_dropped
-                    .with_label_values(&[name, metrics::FOREIGN])
+                    .with_label_values(&[name, FOREIGN])
                     .inc_by(slots.len() as u64);
                 summary.dropped += slots.len() as u64;
                 continue;
@@ -415,11 +355,11 @@ fn drain(
             drop(sample);
             metrics
                 .transitions_dropped
-                .with_label_values(&[name, metrics::DUPLICATE])
+                .with_label_values(&[name, DUPLICATE])
                 .inc_by(duplicates);
             metrics
                 .transitions_dropped
-                .with_label_values(&[name, metrics::SURPLUS])
+                .with_label_values(&[name, SURPLUS])
                 .inc_by(surplus);
             summary.dropped += duplicates + surplus;
             if !buffer.is_empty() {
