@@ -22,7 +22,7 @@
 //! ```
 //! use tch::Tensor;
 //! use uavmeta_learner::batch::Batch;
-//! use uavmeta_learner::qnet::QNetwork;
+//! use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 //! use uavmeta_meta::maml::{Maml, MamlConfig, MetaTask};
 //! use uavmeta_proto::config::Config;
 //!
@@ -36,7 +36,7 @@
 //! let tasks = vec![MetaTask { name: "a".into(), support: rows(1.0), query: rows(0.5) }];
 //! // CQL-MAML with the SPEC defaults: one second-order inner step, eta_inner = 1e-2.
 //! let settings = MamlConfig::from_config(&Config::default());
-//! let mut maml = Maml::new(QNetwork::new(3, 5, &[8], 1), settings, 0).unwrap();
+//! let mut maml = Maml::new(QNetworkConfig::new(3, 5, &[8]).init(1), settings, 0).unwrap();
 //! let epoch = maml.meta_epoch(&tasks).unwrap();
 //! assert_eq!(epoch.task_losses.len(), 1);
 //! assert!(epoch.meta_loss.is_finite());
@@ -58,6 +58,7 @@ use std::path::{Path, PathBuf};
 use uavmeta_actors::collect::CollectError;
 use uavmeta_learner::batch::BatchError;
 use uavmeta_learner::checkpoint::CheckpointError;
+use uavmeta_learner::progress::CsvError;
 use uavmeta_learner::train::TrainError;
 use uavmeta_proto::config::ConfigError;
 use uavmeta_proto::dataset::DatasetError;
@@ -96,6 +97,8 @@ pub enum MetaError {
     Checkpoint(#[from] CheckpointError),
     #[error(transparent)]
     Train(#[from] TrainError),
+    #[error(transparent)]
+    Csv(#[from] CsvError),
     #[error(transparent)]
     Torch(#[from] tch::TchError),
 }

@@ -32,7 +32,7 @@ use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
-use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{Algorithm, EvaluatePolicy};
 use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
 use uavmeta_proto::metrics::{MetricsError, MetricsServer};
@@ -279,12 +279,8 @@ impl MetaTest<'_> {
             (method, pretrained) => {
                 let mut q = match (method, pretrained) {
                     (Method::CqlPretrain, Some(pretrained)) => pretrained.duplicate(),
-                    _ => QNetwork::new(
-                        config.world.observation_len(),
-                        config.world.action_count(),
-                        &config.learner.hidden,
-                        self.seed.wrapping_add(1),
-                    ),
+                    _ => QNetworkConfig::for_world(&config.world, &config.learner.hidden)
+                        .init(self.seed.wrapping_add(1)),
                 };
                 let algorithm = match method {
                     Method::Dqn => Algorithm::Dqn,

@@ -16,7 +16,7 @@ use uavmeta_actors::policy::heuristics::PolicySpec;
 use uavmeta_actors::policy::q_policy::{Evaluator, QPolicy};
 use uavmeta_actors::rollout::{record_trajectory, Trajectory};
 use uavmeta_learner::checkpoint::{self, CheckpointPaths};
-use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::{Algorithm, EpochRow, EvaluatePolicy};
 use uavmeta_proto::config::{
     Config, InnerLoss, MetaConfig, ReproduceConfig, RunConfig, TaskConfig, TaskRole,
@@ -405,12 +405,7 @@ pub fn fine_tune_run(
     let shots = load_shots(config, task, &dataset, key.shots, seed)?;
     let mut q = match w0 {
         Some(w0) => checkpoint::load(w0, config)?.0,
-        None => QNetwork::new(
-            config.world.observation_len(),
-            config.world.action_count(),
-            &config.learner.hidden,
-            seed,
-        ),
+        None => QNetworkConfig::for_world(&config.world, &config.learner.hidden).init(seed),
     };
     let mut run_config = config.clone();
     run_config.learner.eval_episodes = key.eval_episodes;
