@@ -1,4 +1,6 @@
-//! MAML over CQL or DQN inner loops: the paper's contribution, and its experiments.
+//! MAML over CQL or DQN inner loops: the paper's contribution, the meta-learner process that runs
+//! it and the launcher that supervises a run. The experiments that measure it are
+//! `uavmeta-reproduce`.
 //!
 //! - [`maml`]: Algorithm 4 (eqs. 14-16) on [`uavmeta_learner::qnet::QNetwork`] fast weights, with
 //!   the CQL loss (CQL-MAML) or the DQN loss (DQN-MAML), second or first order; its module doc
@@ -9,9 +11,6 @@
 //!   the multi-task baseline that shows what MAML adds.
 //! - [`meta_test`]: fine-tuning a `w0` checkpoint on N shots of an unseen task, through the
 //!   learner's offline training so every method shares its settings and CSV columns.
-//! - [`reproduce`]: `uavmeta reproduce`, the paper's figures 4-9 over several seeds (collection
-//!   with online DQN, meta-training, fine-tuning, evaluation), with CSV files, PNG charts and a
-//!   summary that says which claims of SPEC section 6 hold.
 //! - [`meta_learner`]: the meta-learner process of a run; [`launch`]: `uavmeta launch`, the supervisor
 //!   of a run's processes.
 //!
@@ -51,11 +50,9 @@ pub mod meta_learner;
 pub mod meta_test;
 pub mod meta_train;
 pub mod pretrain;
-pub mod reproduce;
 
 use std::path::{Path, PathBuf};
 
-use uavmeta_actors::collect::CollectError;
 use uavmeta_learner::batch::BatchError;
 use uavmeta_learner::checkpoint::CheckpointError;
 use uavmeta_learner::progress::CsvError;
@@ -81,16 +78,8 @@ pub enum MetaError {
         action: &'static str,
         source: std::io::Error,
     },
-    #[error("{origin}: the resilience experiment needs rain tasks (role = \"meta-test\" with a `rain` zone); the config has none")]
-    NoRainTasks { origin: String },
-    #[error("cannot start the reproduction's worker threads")]
-    Threads(#[from] rayon::ThreadPoolBuildError),
-    #[error(transparent)]
-    Plot(#[from] uavmeta_plot::PlotError),
     #[error(transparent)]
     Config(#[from] ConfigError),
-    #[error(transparent)]
-    Collect(#[from] CollectError),
     #[error(transparent)]
     Dataset(#[from] DatasetError),
     #[error(transparent)]
@@ -104,7 +93,7 @@ pub enum MetaError {
 }
 
 /// Creates `dir` and its parents, naming it on failure.
-pub(crate) fn create_dir(dir: &Path) -> Result<(), MetaError> {
+pub fn create_dir(dir: &Path) -> Result<(), MetaError> {
     std::fs::create_dir_all(dir).map_err(|source| MetaError::Io {
         path: dir.to_path_buf(),
         action: "create",
@@ -113,7 +102,7 @@ pub(crate) fn create_dir(dir: &Path) -> Result<(), MetaError> {
 }
 
 /// Writes `text` to `path`, naming it on failure.
-pub(crate) fn write_file(path: &Path, text: &str) -> Result<(), MetaError> {
+pub fn write_file(path: &Path, text: &str) -> Result<(), MetaError> {
     std::fs::write(path, text).map_err(|source| MetaError::Io {
         path: path.to_path_buf(),
         action: "write",

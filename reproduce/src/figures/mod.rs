@@ -16,8 +16,9 @@ use super::claims::{
 };
 use super::runs::{InitKey, InitKind, Method, RunKey, SeedResult};
 use super::{rain_tasks, Experiment, HeuristicRef};
-use crate::write_file;
-use crate::MetaError;
+use uavmeta_meta::write_file;
+
+use crate::ReproduceError;
 
 /// The paper reads convergence off at epoch 40 (CQL-MAML) and 100 (CQL); figure 9 at 100 and 200.
 const EPOCH_40: usize = 40;
@@ -80,7 +81,7 @@ pub fn rain_key(config: &Config, task: &TaskConfig, method: Method) -> RunKey {
 }
 
 /// Writes `experiment`'s files into `dir`.
-pub fn write(ctx: &Context, experiment: Experiment, dir: &Path) -> Result<Section, MetaError> {
+pub fn write(ctx: &Context, experiment: Experiment, dir: &Path) -> Result<Section, ReproduceError> {
     match experiment {
         Experiment::MetaTraining => meta_training(ctx, dir),
         Experiment::Convergence => convergence(ctx, dir),
@@ -100,7 +101,7 @@ const MATCHES_OPTIMUM: f64 = 0.01;
 /// the mean within 5% of the better one or above it. At lambda = 0 without rain the reward is
 /// the AoI alone and serving the stalest sensor (round robin) is the optimum, which an agent can
 /// tie but not pass: there every seed must match it, within [`MATCHES_OPTIMUM`].
-fn online_dqn(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
+fn online_dqn(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let c = ctx.config;
     let episodes = c.learner.eval_episodes;
     let tasks = c.tasks_with_role(TaskRole::MetaTrain);
@@ -364,7 +365,7 @@ fn line_chart(
     y_label: &str,
     series: &[Series],
     references: &[Reference],
-) -> Result<(), MetaError> {
+) -> Result<(), ReproduceError> {
     plot::line_chart(
         path,
         &LineChart {
@@ -396,7 +397,7 @@ fn convergence_cells(runs: &[Vec<f64>], floor: f64) -> (usize, String) {
 }
 
 /// Figure 4: CQL-MAML's meta-loss and the tasks' adapted returns per meta-epoch.
-fn meta_training(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
+fn meta_training(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let r = &ctx.config.reproduce;
     let key = InitKey {
         kind: InitKind::Maml(InnerLoss::Cql),
@@ -533,7 +534,7 @@ fn curve_lines(csv: &mut String, prefix: &str, seeds: &[SeedResult], rows: &[&[E
 const CURVE_COLUMNS: &str = "seed,epoch,return,return_ci95,aoi,power_mw,outages";
 
 /// Figure 5: the four methods on the unseen task.
-fn convergence(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
+fn convergence(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let c = ctx.config;
     let r = &c.reproduce;
     let epochs = r.convergence_epochs;
@@ -760,7 +761,7 @@ fn convergence(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
 }
 
 /// The body's claims section, and the section.
-fn finish(mut body: String, claims: Vec<Claim>) -> Result<Section, MetaError> {
+fn finish(mut body: String, claims: Vec<Claim>) -> Result<Section, ReproduceError> {
     let _ = writeln!(body, "\n## Claims\n");
     body.push_str(&claims::table(&claims));
     Ok(Section { body, claims })
@@ -771,7 +772,7 @@ fn write_references_csv(
     dir: &Path,
     task: &str,
     episodes: usize,
-) -> Result<(), MetaError> {
+) -> Result<(), ReproduceError> {
     let mut csv = String::from("reference,task,seed,return,aoi,power_mw,outages\n");
     for (seed, m) in ctx.seeds.iter().zip(ctx.online(task, episodes)) {
         let _ = writeln!(
@@ -787,7 +788,7 @@ fn write_references_csv(
             m.ret.mean, m.aoi.mean, m.power_mw.mean, m.outages.mean
         );
     }
-    write_file(&dir.join("references.csv"), &csv)
+    Ok(write_file(&dir.join("references.csv"), &csv)?)
 }
 
 fn references_table(ctx: &Context, task: &str, episodes: usize) -> String {
@@ -814,7 +815,7 @@ fn references_table(ctx: &Context, task: &str, episodes: usize) -> String {
 }
 
 /// Figure 6: CQL, CQL-pretrain and CQL-MAML at each shot count.
-fn shots(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
+fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let c = ctx.config;
     let r = &c.reproduce;
     let epochs = r.convergence_epochs;
@@ -923,7 +924,7 @@ fn shots(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
 }
 
 /// Figure 7: CQL-MAML meta-trained on the first n tasks.
-fn tasks(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
+fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let c = ctx.config;
     let r = &c.reproduce;
     let epochs = r.tasks_epochs;
@@ -1074,7 +1075,7 @@ fn tasks(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
 }
 
 /// Figure 8: AoI and power at epoch `aoi_power_epoch`.
-fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
+fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let c = ctx.config;
     let r = &c.reproduce;
     let epoch = r.aoi_power_epoch;
@@ -1249,7 +1250,7 @@ fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
 }
 
 /// Figure 9: the rain tasks.
-fn resilience(ctx: &Context, dir: &Path) -> Result<Section, MetaError> {
+fn resilience(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let c = ctx.config;
     let r = &c.reproduce;
     let epochs = r.resilience_epochs;
