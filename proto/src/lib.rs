@@ -1,5 +1,5 @@
-//! The contract between uavmeta's processes, and nothing else: what they read and write, what
-//! they send each other, and what they export.
+//! The contract between uavmeta's processes (what they read and write, what they send each other,
+//! what they export) and the start-up they all share.
 //!
 //! - [`config`]: the experiment configuration (SPEC section 7), read from TOML with every SPEC
 //!   default, `--set` overrides and validation errors that name the file, key and value.
@@ -7,7 +7,8 @@
 //! - [`stats`]: episode metrics (SPEC section 1) and their Monte-Carlo summaries.
 //! - [`transport`]: the zero-copy payload types and iceoryx2 service names shared by the actor,
 //!   store, meta-learner and evaluator processes, with the schema version they must agree on,
-//!   the run directory's layout, and the start-up every process shares.
+//!   and the run directory's layout.
+//! - [`process`]: the start-up every process shares (node, services, /metrics, shutdown).
 //! - [`metrics`]: every metric name and help text the processes export (so a renamed metric is a
 //!   compile error in every reader), the /metrics endpoint they serve and the client that reads it.
 //!
@@ -21,5 +22,6 @@
 pub mod config;
 pub mod dataset;
 pub mod metrics;
+pub mod process;
 pub mod stats;
 pub mod transport;

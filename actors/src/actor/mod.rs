@@ -20,17 +20,16 @@
 
 use std::time::{Duration, Instant};
 
-use iceoryx2::node::Node;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_proto::config::{Config, ConfigError, TaskConfig};
 use uavmeta_proto::dataset::Transition;
-use uavmeta_proto::metrics::{MetricsError, MetricsServer};
+use uavmeta_proto::metrics::MetricsError;
+use uavmeta_proto::process::Process;
 use uavmeta_proto::stats::EpisodeMetrics;
 use uavmeta_proto::transport::{
-    self, Method, RunDir, ServiceNames, TransitionPublisher, TransitionSlot, TransportError,
-    SCHEMA_VERSION,
+    self, Method, RunDir, TransitionPublisher, TransitionSlot, TransportError, SCHEMA_VERSION,
 };
 
 use crate::collect::{online_dqn_dataset, CollectError};
@@ -203,25 +202,14 @@ pub fn run(
     let task = config.task(&options.task)?.clone();
     let task_id = config.task_id(&task.name)? as u32;
     let actor = options.actor_id();
-    let process = options.process_name();
-    let node = transport::node(&format!("{}-{process}", run.id()), &config.run)?;
-    let names = ServiceNames::new(run);
+    let process = Process::start(run, config, &options.process_name())?;
+    let (node, names) = (&process.node, &process.names);
     let metrics = metrics::ActorMetrics::new(&task.name, actor);
-    let _server = MetricsServer::start(
-        metrics.registry.clone(),
-        &config.run.metrics_host,
-        0,
-        run,
-        &process,
-    )?;
-    let service = transport::transition_service(&node, &names, &task.name, &config.run)?;
+    let _server = process.serve_metrics(run, config, metrics.registry.clone())?;
+    let service = transport::transition_service(node, names, &task.name, &config.run)?;
     let publisher = TransitionPublisher::new(&service, run, config, task_id, actor)?;
     let ready = transport::control_subscriber(
-        &transport::dataset_ready_service(&node, &names, config)?,
-        config,
-    )?;
-    let shutdown = transport::control_subscriber(
-        &transport::shutdown_service(&node, &names, config)?,
+        &transport::dataset_ready_service(node, names, config)?,
         config,
     )?;
     let mut summary = ActorSummary {
@@ -238,7 +226,7 @@ pub fn run(
                 online_dqn_dataset(config, &task, task_id, actor, options.seed, |n, agent| {
                     metrics.steps.inc_by(n as u64);
                     dqn.observe(agent);
-                    transport::keep_running(&node, Duration::ZERO)
+                    transport::keep_running(node, Duration::ZERO)
                 });
             match trained {
                 Ok((sample, agent)) => {
@@ -273,14 +261,13 @@ pub fn run(
 
     let limit = options.transitions.unwrap_or(u64::MAX);
     let control = Control {
-        node: &node,
+        process: &process,
         ready,
-        shutdown,
         task: task_id,
     };
     let acks = transport::ack_subscriber(&transport::ack_service(
-        &node,
-        &names,
+        node,
+        names,
         &task.name,
         &config.run,
     )?)?;
@@ -335,7 +322,7 @@ pub fn run(
                 break;
             }
             // Everything sampled is sent; stay until the store announces the dataset.
-            transport::keep_running(&node, POLL);
+            transport::keep_running(node, POLL);
             continue;
         }
         let start = Instant::now();
@@ -393,10 +380,9 @@ pub fn run(
 
 /// The actor's way of hearing that it should stop: signals, its task's dataset announced
 /// complete, or a shutdown.
-struct Control<'n> {
-    node: &'n Node<ipc::Service>,
+struct Control<'p> {
+    process: &'p Process,
     ready: Subscriber<ipc::Service, transport::DatasetReady, ()>,
-    shutdown: Subscriber<ipc::Service, transport::Shutdown, ()>,
     task: u32,
 }
 
@@ -404,8 +390,8 @@ impl Control<'_> {
     /// Waits up to `cycle` for a signal, then reads the announcements; true if the actor should
     /// stop.
     fn stop_requested(&self, cycle: Duration) -> Result<bool, ActorError> {
-        Ok(!transport::keep_running(self.node, cycle)
-            || announced(&self.ready, &self.shutdown, self.task)?)
+        Ok(!transport::keep_running(&self.process.node, cycle)
+            || announced(&self.ready, &self.process.shutdown, self.task)?)
     }
 }
 

@@ -21,10 +21,11 @@ use std::time::{Duration, Instant};
 use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
-use uavmeta_proto::metrics::{MetricsError, MetricsServer};
+use uavmeta_proto::metrics::MetricsError;
+use uavmeta_proto::process::Process;
 use uavmeta_proto::stats::PolicyMetrics;
 use uavmeta_proto::transport::{
-    self, CheckpointReady, Method, RunDir, ServiceNames, TransportError, SCHEMA_VERSION,
+    self, CheckpointReady, Method, RunDir, TransportError, SCHEMA_VERSION,
 };
 
 use crate::policy::q_policy::Evaluator;
@@ -151,22 +152,11 @@ pub fn read_rows(path: &Path) -> std::io::Result<Vec<EvaluationRow>> {
 /// Runs the evaluator of `run` until a shutdown (after finishing what was announced) or
 /// SIGINT/SIGTERM. Returns the checkpoints evaluated.
 pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
-    let node = transport::node(&format!("{}-{PROCESS}", run.id()), &config.run)?;
-    let names = ServiceNames::new(run);
+    let process = Process::start(run, config, PROCESS)?;
     let metrics = metrics::EvaluatorMetrics::new();
-    let _server = MetricsServer::start(
-        metrics.registry.clone(),
-        &config.run.metrics_host,
-        0,
-        run,
-        PROCESS,
-    )?;
+    let _server = process.serve_metrics(run, config, metrics.registry.clone())?;
     let announcements = transport::control_subscriber(
-        &transport::checkpoint_ready_service(&node, &names, config)?,
-        config,
-    )?;
-    let shutdown = transport::control_subscriber(
-        &transport::shutdown_service(&node, &names, config)?,
+        &transport::checkpoint_ready_service(&process.node, &process.names, config)?,
         config,
     )?;
 
@@ -202,7 +192,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
     let mut stopping = false;
     let mut evaluated = 0u64;
     while transport::keep_running(
-        &node,
+        &process.node,
         if queue.is_empty() {
             POLL
         } else {
@@ -216,7 +206,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
                 queue.push_back(*m);
             }
         }
-        stopping |= transport::shutdown_requested(&shutdown)?;
+        stopping |= transport::shutdown_requested(&process.shutdown)?;
         let Some(next) = queue.pop_front() else {
             if stopping {
                 break;

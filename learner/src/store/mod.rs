@@ -30,11 +30,12 @@ use uavmeta_proto::dataset::{
     DatasetError, DatasetHeader, DatasetReader, DatasetWriter, Transition,
 };
 use uavmeta_proto::transport::{
-    self, DatasetReady, RunDir, ServiceNames, StoreAck, TransportError, SCHEMA_VERSION,
+    self, DatasetReady, RunDir, StoreAck, TransportError, SCHEMA_VERSION,
 };
 
 use uavmeta_proto::metrics::store::{DROPPED_REASONS, DUPLICATE, FOREIGN, SURPLUS};
-use uavmeta_proto::metrics::{MetricsError, MetricsServer};
+use uavmeta_proto::metrics::MetricsError;
+use uavmeta_proto::process::Process;
 
 mod metrics;
 
@@ -110,45 +111,35 @@ pub struct StoreSummary {
 
 /// Runs the store of `run` until SIGINT/SIGTERM or a shutdown announcement.
 pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
-    let node = transport::node(&format!("{}-{PROCESS}", run.id()), &config.run)?;
+    let process = Process::start(run, config, PROCESS)?;
+    let (node, names) = (&process.node, &process.names);
     // A predecessor killed mid-run left its ports in every service; without this sweep the actors
     // stay blocked on its full buffer.
-    let cleaned = transport::cleanup_dead_nodes(&node);
+    let cleaned = transport::cleanup_dead_nodes(node);
     if cleaned > 0 {
         tracing::info!(cleaned, "removed iceoryx2 resources of dead processes");
     }
-    let names = ServiceNames::new(run);
     let metrics = metrics::StoreMetrics::new();
 
     let mut tasks = Vec::with_capacity(config.tasks.len());
     let mut subscribers = Vec::with_capacity(config.tasks.len());
     for (id, task) in config.tasks.iter().enumerate() {
-        let acks = transport::ack_service(&node, &names, &task.name, &config.run)?;
+        let acks = transport::ack_service(node, names, &task.name, &config.run)?;
         let acks = transport::ack_publisher(&acks)?;
         let store = open_task(run, config, &task.name, id as u32, acks, &metrics)?;
-        let service = transport::transition_service(&node, &names, &task.name, &config.run)?;
+        let service = transport::transition_service(node, names, &task.name, &config.run)?;
         subscribers.push(transport::transition_subscriber(&service, &config.run)?);
         tasks.push(store);
     }
     let ready =
-        transport::control_publisher(&transport::dataset_ready_service(&node, &names, config)?)?;
-    let shutdown = transport::control_subscriber(
-        &transport::shutdown_service(&node, &names, config)?,
-        config,
-    )?;
+        transport::control_publisher(&transport::dataset_ready_service(node, names, config)?)?;
     let target = config.collect.transitions as u64;
     for task in tasks.iter_mut() {
         announce_if_complete(task, target, &ready, &metrics)?;
     }
     // The port file is the launcher's sign that the store is ready, so it comes after the
     // subscribers: actors started then find a connected store.
-    let _server = MetricsServer::start(
-        metrics.registry.clone(),
-        &config.run.metrics_host,
-        0,
-        run,
-        PROCESS,
-    )?;
+    let _server = process.serve_metrics(run, config, metrics.registry.clone())?;
     tracing::info!(run = run.id(), tasks = tasks.len(), "store ready");
 
     let mut summary = StoreSummary::default();
@@ -156,9 +147,9 @@ pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
     let mut idle = false;
     let mut last_cleanup = Instant::now();
     let mut last_ack_refresh = Instant::now();
-    while transport::keep_running(&node, if idle { IDLE_WAIT } else { Duration::ZERO }) {
+    while transport::keep_running(node, if idle { IDLE_WAIT } else { Duration::ZERO }) {
         transport::serve_history(&ready)?;
-        if transport::shutdown_requested(&shutdown)? {
+        if transport::shutdown_requested(&process.shutdown)? {
             tracing::info!("shutdown announced");
             break;
         }
@@ -177,7 +168,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
             last_ack_refresh = Instant::now();
         }
         if last_cleanup.elapsed() >= CLEANUP_EVERY {
-            transport::cleanup_dead_nodes(&node);
+            transport::cleanup_dead_nodes(node);
             last_cleanup = Instant::now();
         }
     }

@@ -35,11 +35,11 @@ use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{Algorithm, EvaluatePolicy};
 use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
-use uavmeta_proto::metrics::{MetricsError, MetricsServer};
+use uavmeta_proto::metrics::MetricsError;
+use uavmeta_proto::process::Process;
 use uavmeta_proto::stats::PolicyMetrics;
 use uavmeta_proto::transport::{
-    self, CheckpointReady, DatasetReady, Method, RunDir, ServiceNames, TransportError,
-    SCHEMA_VERSION,
+    self, CheckpointReady, DatasetReady, Method, RunDir, TransportError, SCHEMA_VERSION,
 };
 
 use crate::meta_test::{fine_tune, load_shots, meta_test_with, FineTune, MetaTestOptions};
@@ -75,34 +75,23 @@ pub enum Outcome {
 
 /// Runs the meta-learner of `run`.
 pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
-    let node = transport::node(&format!("{}-{PROCESS}", run.id()), &config.run)?;
-    let names = ServiceNames::new(run);
+    let process = Process::start(run, config, PROCESS)?;
+    let (node, names) = (&process.node, &process.names);
     let metrics = metrics::MetaLearnerMetrics::new();
-    let _server = MetricsServer::start(
-        metrics.registry.clone(),
-        &config.run.metrics_host,
-        0,
-        run,
-        PROCESS,
-    )?;
+    let _server = process.serve_metrics(run, config, metrics.registry.clone())?;
     let ready = transport::control_subscriber(
-        &transport::dataset_ready_service(&node, &names, config)?,
-        config,
-    )?;
-    let shutdown = transport::control_subscriber(
-        &transport::shutdown_service(&node, &names, config)?,
+        &transport::dataset_ready_service(node, names, config)?,
         config,
     )?;
     let announce =
-        transport::control_publisher(&transport::checkpoint_ready_service(&node, &names, config)?)?;
+        transport::control_publisher(&transport::checkpoint_ready_service(node, names, config)?)?;
     let stop = || -> Result<bool, MetaProcessError> {
         transport::serve_history(&announce)?;
-        let signalled = !transport::keep_running(&node, Duration::ZERO);
-        Ok(transport::shutdown_requested(&shutdown)? || signalled)
+        Ok(process.stop_requested(Duration::ZERO)?)
     };
 
     // 1. Every task's dataset.
-    if !wait_for_datasets(config, &node, &ready, &stop)? {
+    if !wait_for_datasets(config, node, &ready, &stop)? {
         return Ok(Outcome::Stopped);
     }
     let test_tasks: Vec<(u32, TaskConfig)> = config
