@@ -12,8 +12,11 @@
 //!     network) whose replay buffer becomes the paper's datasets.
 //!   - [`policy::q_policy`]: a `uavmeta_learner` Q-network's greedy policy, and the evaluator
 //!     that scores it for `uavmeta_learner::train`.
-//! - [`actor`]: behaviour policies publishing transitions to the store over iceoryx2.
-//! - [`evaluator`]: greedy Q-policies of announced checkpoints scored in the true world.
+//! - [`collect`]: one task's offline dataset (SPEC section 4) from a behaviour policy.
+//! - [`actor`]: the actor process, behaviour policies publishing transitions to the store over
+//!   iceoryx2; its folder holds its loop, its delivery and its metrics.
+//! - [`evaluator`]: the evaluator process, greedy Q-policies of announced checkpoints scored in
+//!   the true world; its folder holds its loop and its metrics.
 //!
 //! ```
 //! use uavmeta_actors::policy::heuristics::StalestPolicy;

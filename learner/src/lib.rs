@@ -12,7 +12,8 @@
 //! - [`progress`]: the CSV log and the progress bar of a training loop (offline and meta).
 //! - [`checkpoint`]: safetensors weights + JSON metadata + the run's config, written atomically
 //!   and checked (sizes, length, CRC32) on load.
-//! - [`store`]: the dataset store process, appending each task's transitions to its dataset file.
+//! - [`store`]: the dataset store process, appending each task's transitions to its dataset file;
+//!   its folder holds its loop and its metrics.
 //!
 //! It consumes transitions from `uavmeta-proto`'s dataset files and the `[learner]` config
 //! section. Evaluating a policy needs the world, which lives in `uavmeta-actors`; the actors crate

@@ -11,8 +11,8 @@
 //!   the multi-task baseline that shows what MAML adds.
 //! - [`meta_test`]: fine-tuning a `w0` checkpoint on N shots of an unseen task, through the
 //!   learner's offline training so every method shares its settings and CSV columns.
-//! - [`meta_learner`]: the meta-learner process of a run; [`launch`]: `uavmeta launch`, the supervisor
-//!   of a run's processes.
+//! - [`meta_learner`]: the meta-learner process of a run; [`launch`]: `uavmeta launch`, the
+//!   supervisor of a run's processes. Each is a folder with its loop and its metrics.
 //!
 //! It consumes datasets (`uavmeta_proto::dataset`), the Q-network, losses, training loop and
 //! checkpoints of `uavmeta-learner`, and the world and greedy-policy evaluator of
@@ -21,7 +21,7 @@
 //! ```
 //! use tch::Tensor;
 //! use uavmeta_learner::batch::Batch;
-//! use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
+//! use uavmeta_learner::qnet::QNetworkConfig;
 //! use uavmeta_meta::maml::{Maml, MamlConfig, MetaTask};
 //! use uavmeta_proto::config::Config;
 //!

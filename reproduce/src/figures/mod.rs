@@ -243,7 +243,7 @@ impl Refs {
 /// final value: the dataset is sampled uniformly from the replay buffer, which holds the last
 /// `min(dqn_steps, replay_capacity)` steps (of which the newest `sample_newest`, when set, are
 /// sampled), and epsilon falls until `learning_starts +
-/// eps_decay_steps` (`actors/src/dqn_online.rs`).
+/// eps_decay_steps` (`actors/src/policy/dqn_online.rs`).
 fn exploratory_share(config: &Config) -> f64 {
     let c = &config.collect;
     let held = c.sampled_window().max(1);
