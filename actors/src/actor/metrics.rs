@@ -4,6 +4,7 @@
 use prometheus::{Counter, Gauge, Histogram, IntCounter, IntGauge, IntGaugeVec, Registry};
 
 use uavmeta_proto::metrics::{self, actor::*};
+use uavmeta_proto::stats::EpisodeMetrics;
 
 use super::Phase;
 use crate::policy::dqn_online::OnlineDqn;
@@ -78,6 +79,15 @@ impl ActorMetrics {
             phase: PHASE.int_gauge_vec(&registry, &["phase"]),
             registry,
         }
+    }
+
+    /// The figures of a finished episode of the behaviour policy.
+    pub fn observe_episode(&self, episode: &EpisodeMetrics) {
+        self.episodes.inc();
+        self.episode_return.set(episode.ret);
+        self.episode_aoi.set(episode.aoi);
+        self.episode_power.set(episode.power_mw * 1e-3);
+        self.episode_outages.set(episode.outages as f64);
     }
 
     /// Marks `phase` as the actor's phase.

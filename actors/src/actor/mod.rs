@@ -20,6 +20,7 @@
 
 use std::time::{Duration, Instant};
 
+use iceoryx2::node::Node;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
@@ -218,45 +219,9 @@ pub fn run(
     };
     tracing::info!(task = %task.name, actor = format!("{actor:08x}"), policy = %options.policy, seed = options.seed, "actor started");
 
-    let mut source = match &options.policy {
-        PolicySpec::DqnOnline => {
-            metrics.set_phase(Phase::Training);
-            let dqn = metrics::OnlineDqnMetrics::new(&metrics.registry);
-            let trained =
-                online_dqn_dataset(config, &task, task_id, actor, options.seed, |n, agent| {
-                    metrics.steps.inc_by(n as u64);
-                    dqn.observe(agent);
-                    transport::keep_running(node, Duration::ZERO)
-                });
-            match trained {
-                Ok((sample, agent)) => {
-                    summary.steps = agent.steps() as u64;
-                    // The reference the meta-learner announces once the dataset is stored.
-                    checkpoint::save(
-                        &run.checkpoint(Method::OnlineDqn, &task, 1),
-                        agent.q_network(),
-                        Method::OnlineDqn.name(),
-                        1,
-                        config,
-                    )?;
-                    Source::Fixed(sample)
-                }
-                Err(CollectError::Interrupted { steps }) => {
-                    tracing::info!(steps, "stopped while training the online DQN agent");
-                    return Ok(summary);
-                }
-                Err(error) => return Err(error.into()),
-            }
-        }
-        spec => {
-            let policy = spec
-                .build(config.world.action_count(), options.seed, usize::MAX)
-                .map_err(|error| ActorError::Policy {
-                    spec: spec.to_string(),
-                    error,
-                })?;
-            Source::Rollout(Box::new(Rollout::new(config, &task, policy, options.seed)))
-        }
+    let Some(mut source) = start_source(run, config, options, &task, &metrics, node, &mut summary)?
+    else {
+        return Ok(summary);
     };
 
     let limit = options.transitions.unwrap_or(u64::MAX);
@@ -360,11 +325,7 @@ pub fn run(
             metrics.steps.inc_by(count as u64);
             for episode in rollout.drain_finished() {
                 summary.episodes += 1;
-                metrics.episodes.inc();
-                metrics.episode_return.set(episode.ret);
-                metrics.episode_aoi.set(episode.aoi);
-                metrics.episode_power.set(episode.power_mw * 1e-3);
-                metrics.episode_outages.set(episode.outages as f64);
+                metrics.observe_episode(&episode);
             }
         }
     }
@@ -376,6 +337,63 @@ pub fn run(
         "actor stopped"
     );
     Ok(summary)
+}
+
+/// What the actor sends: a rollout of its behaviour policy, or for `dqn-online` the replay
+/// sample of an online DQN agent it trains first (saving the agent as the task's reference).
+/// `None` if stopped while training.
+fn start_source(
+    run: &RunDir,
+    config: &Config,
+    options: &ActorOptions,
+    task: &TaskConfig,
+    metrics: &metrics::ActorMetrics,
+    node: &Node<ipc::Service>,
+    summary: &mut ActorSummary,
+) -> Result<Option<Source>, ActorError> {
+    let task_id = config.task_id(&task.name)? as u32;
+    let actor = options.actor_id();
+    let source = match &options.policy {
+        PolicySpec::DqnOnline => {
+            metrics.set_phase(Phase::Training);
+            let dqn = metrics::OnlineDqnMetrics::new(&metrics.registry);
+            let trained =
+                online_dqn_dataset(config, task, task_id, actor, options.seed, |n, agent| {
+                    metrics.steps.inc_by(n as u64);
+                    dqn.observe(agent);
+                    transport::keep_running(node, Duration::ZERO)
+                });
+            match trained {
+                Ok((sample, agent)) => {
+                    summary.steps = agent.steps() as u64;
+                    // The reference the meta-learner announces once the dataset is stored.
+                    checkpoint::save(
+                        &run.checkpoint(Method::OnlineDqn, task, 1),
+                        agent.q_network(),
+                        Method::OnlineDqn.name(),
+                        1,
+                        config,
+                    )?;
+                    Source::Fixed(sample)
+                }
+                Err(CollectError::Interrupted { steps }) => {
+                    tracing::info!(steps, "stopped while training the online DQN agent");
+                    return Ok(None);
+                }
+                Err(error) => return Err(error.into()),
+            }
+        }
+        spec => {
+            let policy = spec
+                .build(config.world.action_count(), options.seed, usize::MAX)
+                .map_err(|error| ActorError::Policy {
+                    spec: spec.to_string(),
+                    error,
+                })?;
+            Source::Rollout(Box::new(Rollout::new(config, task, policy, options.seed)))
+        }
+    };
+    Ok(Some(source))
 }
 
 /// The actor's way of hearing that it should stop: signals, its task's dataset announced

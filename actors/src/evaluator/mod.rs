@@ -13,7 +13,7 @@
 //! announcement makes it finish the checkpoints it knows of, then exit.
 
 use std::collections::{BTreeSet, VecDeque};
-use std::fs::OpenOptions;
+use std::fs::{File, OpenOptions};
 use std::io::{BufRead, BufReader, Write};
 use std::path::Path;
 use std::time::{Duration, Instant};
@@ -166,21 +166,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
         action,
         source,
     };
-    let mut done: BTreeSet<(String, String, u32)> = BTreeSet::new();
-    if csv_path.exists() {
-        for row in read_rows(&csv_path).map_err(|e| io("read", e))? {
-            done.insert((row.task, row.method, row.epoch));
-        }
-    }
-    let fresh = !csv_path.exists();
-    let mut csv = OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(&csv_path)
-        .map_err(|e| io("open", e))?;
-    if fresh {
-        writeln!(csv, "{CSV_HEADER}").map_err(|e| io("write", e))?;
-    }
+    let (mut csv, mut done) = open_csv(&csv_path).map_err(|(action, e)| io(action, e))?;
 
     let mut queue: VecDeque<CheckpointReady> = checkpoints_on_disk(run, config).into();
     if !queue.is_empty() {
@@ -234,24 +220,35 @@ pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
         let row = EvaluationRow::new(&task.name, method.name(), next.epoch, &result);
         writeln!(csv, "{}", row.to_csv()).map_err(|e| io("append a row", e))?;
         csv.flush().map_err(|e| io("flush", e))?;
-        let labels = [task.name.as_str(), method.name()];
-        metrics.ret.with_label_values(&labels).set(row.ret);
-        metrics.aoi.with_label_values(&labels).set(row.aoi);
-        metrics
-            .power
-            .with_label_values(&labels)
-            .set(row.power_watts);
-        metrics.outages.with_label_values(&labels).set(row.outages);
-        metrics
-            .epoch
-            .with_label_values(&labels)
-            .set(next.epoch as f64);
-        metrics.evaluated.inc();
-        metrics.duration.observe(start.elapsed().as_secs_f64());
+        metrics.observe(&row, start.elapsed());
         evaluated += 1;
         tracing::info!(task = %task.name, %method, epoch = next.epoch, ret = row.ret, aoi = row.aoi, power_watts = row.power_watts, outages = row.outages, "evaluated");
     }
     Ok(evaluated)
+}
+
+/// The (task, method, epoch) of evaluated checkpoints.
+type Evaluated = BTreeSet<(String, String, u32)>;
+
+/// The evaluations CSV at `path`, opened for appending (with its header when new), and the
+/// checkpoints its rows already hold. An error says what failed.
+fn open_csv(path: &Path) -> Result<(File, Evaluated), (&'static str, std::io::Error)> {
+    let mut done = BTreeSet::new();
+    if path.exists() {
+        for row in read_rows(path).map_err(|e| ("read", e))? {
+            done.insert((row.task, row.method, row.epoch));
+        }
+    }
+    let fresh = !path.exists();
+    let mut csv = OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .map_err(|e| ("open", e))?;
+    if fresh {
+        writeln!(csv, "{CSV_HEADER}").map_err(|e| ("write", e))?;
+    }
+    Ok((csv, done))
 }
 
 /// The complete checkpoints in `run`'s directory, as the meta-learner announces them: every w0

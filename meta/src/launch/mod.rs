@@ -34,6 +34,7 @@ use std::path::PathBuf;
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant, SystemTime};
 
+use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use indicatif::MultiProgress;
 use uavmeta_actors::actor::ActorOptions;
@@ -46,8 +47,8 @@ use uavmeta_proto::metrics::{
     parse, scrape, store::TRANSITIONS_STORED, sum, wait_for_port, MetricsError, MetricsServer,
 };
 use uavmeta_proto::transport::{
-    self, write_atomic, Method, RemoteHost, RunDir, ServiceNames, Shutdown, TransportError,
-    SCHEMA_VERSION,
+    self, write_atomic, CheckpointReady, DatasetReady, Method, RemoteHost, RunDir, ServiceNames,
+    Shutdown, TransportError, SCHEMA_VERSION,
 };
 
 use crate::meta_learner;
@@ -261,31 +262,7 @@ pub fn launch(
         metrics: &launcher_metrics,
     };
 
-    // The store first, and ready, so the actors' first batches have a subscriber.
-    let store_index = children
-        .iter()
-        .position(|c| c.role == Role::Store)
-        .expect("the plan has a store");
-    supervisor.start(&mut children[store_index])?;
-    wait_for_port(&run, store::PROCESS, STORE_START)?;
-    // Then the tunnel, and the remote hosts the config waits for, before the local actors.
-    for child in children.iter_mut().filter(|c| c.role == Role::Tunnel) {
-        supervisor.start(child)?;
-        // What an actor host needs to join (README, Actors on other hosts).
-        tracing::info!(
-            endpoint = %config.tunnel.listen,
-            "remote actor hosts join with `uavmeta tunnel join --connect <this host's address for \
-             the endpoint> --run-id {}`",
-            run.id()
-        );
-    }
-    wait_for_remote_hosts(&run, config, &node)?;
-    for child in children
-        .iter_mut()
-        .filter(|c| !matches!(c.role, Role::Store | Role::Tunnel))
-    {
-        supervisor.start(child)?;
-    }
+    start_children(&supervisor, &mut children, config, &node)?;
     tracing::info!(run = %run.root().display(), children = children.len(), "launched");
 
     let mut ready_tasks = vec![false; config.tasks.len()];
@@ -299,28 +276,12 @@ pub fn launch(
         if let Err(error) = supervisor.poll(&mut children, &node) {
             break Err(error);
         }
-        while let Some(m) = dataset_ready
-            .receive()
-            .map_err(transport::receive_failed("receive a dataset announcement"))?
-        {
-            if m.schema_version == SCHEMA_VERSION {
-                if let Some(ready) = ready_tasks.get_mut(m.task as usize) {
-                    *ready = true;
-                }
-            }
-        }
-        launcher_metrics
-            .datasets_ready
-            .set(ready_tasks.iter().filter(|r| **r).count() as i64);
-        while checkpoint_ready
-            .receive()
-            .map_err(transport::receive_failed(
-                "receive a checkpoint announcement",
-            ))?
-            .is_some()
-        {
-            launcher_metrics.checkpoints_announced.inc();
-        }
+        count_announcements(
+            &dataset_ready,
+            &checkpoint_ready,
+            &mut ready_tasks,
+            &launcher_metrics,
+        )?;
         last_targets = write_targets(&run, &children, last_targets)?;
         launcher_metrics
             .children_running
@@ -359,16 +320,7 @@ pub fn launch(
             break Ok(());
         }
     };
-    // Orderly stop of whatever still runs: actors, then learners, then the store.
-    for role in [
-        Role::Actor,
-        Role::MetaLearner,
-        Role::Evaluator,
-        Role::Tunnel,
-        Role::Store,
-    ] {
-        stop_role(&mut children, role);
-    }
+    stop_all(&mut children);
     transport::cleanup_dead_nodes(&node);
     if let Some(display) = display {
         display.finish();
@@ -381,6 +333,88 @@ pub fn launch(
         results,
         references: heuristic_references(config),
     })
+}
+
+/// Starts the children in their order: the store first, and ready, so the actors' first batches
+/// have a subscriber; then the tunnel, and the remote hosts the config waits for; then the local
+/// actors, the meta-learner and the evaluator.
+fn start_children(
+    supervisor: &Supervisor,
+    children: &mut [Supervised],
+    config: &Config,
+    node: &Node<ipc::Service>,
+) -> Result<(), LaunchError> {
+    let run = &supervisor.run;
+    let store_index = children
+        .iter()
+        .position(|c| c.role == Role::Store)
+        .expect("the plan has a store");
+    supervisor.start(&mut children[store_index])?;
+    wait_for_port(run, store::PROCESS, STORE_START)?;
+    for child in children.iter_mut().filter(|c| c.role == Role::Tunnel) {
+        supervisor.start(child)?;
+        // What an actor host needs to join (README, Actors on other hosts).
+        tracing::info!(
+            endpoint = %config.tunnel.listen,
+            "remote actor hosts join with `uavmeta tunnel join --connect <this host's address for \
+             the endpoint> --run-id {}`",
+            run.id()
+        );
+    }
+    wait_for_remote_hosts(run, config, node)?;
+    for child in children
+        .iter_mut()
+        .filter(|c| !matches!(c.role, Role::Store | Role::Tunnel))
+    {
+        supervisor.start(child)?;
+    }
+    Ok(())
+}
+
+/// Reads the store's dataset and the meta-learner's checkpoint announcements into `ready_tasks`
+/// and the launcher's metrics.
+fn count_announcements(
+    dataset_ready: &Subscriber<ipc::Service, DatasetReady, ()>,
+    checkpoint_ready: &Subscriber<ipc::Service, CheckpointReady, ()>,
+    ready_tasks: &mut [bool],
+    metrics: &metrics::LauncherMetrics,
+) -> Result<(), LaunchError> {
+    while let Some(m) = dataset_ready
+        .receive()
+        .map_err(transport::receive_failed("receive a dataset announcement"))?
+    {
+        if m.schema_version == SCHEMA_VERSION {
+            if let Some(ready) = ready_tasks.get_mut(m.task as usize) {
+                *ready = true;
+            }
+        }
+    }
+    metrics
+        .datasets_ready
+        .set(ready_tasks.iter().filter(|r| **r).count() as i64);
+    while checkpoint_ready
+        .receive()
+        .map_err(transport::receive_failed(
+            "receive a checkpoint announcement",
+        ))?
+        .is_some()
+    {
+        metrics.checkpoints_announced.inc();
+    }
+    Ok(())
+}
+
+/// Orderly stop of whatever still runs: actors, then learners, then the store.
+fn stop_all(children: &mut [Supervised]) {
+    for role in [
+        Role::Actor,
+        Role::MetaLearner,
+        Role::Evaluator,
+        Role::Tunnel,
+        Role::Store,
+    ] {
+        stop_role(children, role);
+    }
 }
 
 /// The children of a run: store, actors, meta-learner, evaluator.

@@ -105,22 +105,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
         .first()
         .map(|(_, t)| t.clone())
         .unwrap_or_else(|| config.tasks[0].clone());
-
-    // The online DQN agents that made the meta-test datasets: the runs' reference line. Their
-    // actors saved them before sending a transition, so a stored dataset's agent is on disk.
-    for (id, task) in &test_tasks {
-        if checkpoint::read_meta(&run.checkpoint(Method::OnlineDqn, task, 1)).is_ok() {
-            transport::announce(
-                &announce,
-                CheckpointReady {
-                    schema_version: SCHEMA_VERSION,
-                    method: Method::OnlineDqn.code(),
-                    task: *id,
-                    epoch: 1,
-                },
-            )?;
-        }
-    }
+    announce_online_agents(run, &test_tasks, &announce)?;
 
     // 2. Meta-training (`meta_train::meta_train_with`), resumed from the latest w0 on disk.
     let seed = config.run.seeds[0];
@@ -148,7 +133,6 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
 
     // 3. Meta-test on each unseen task (`meta_test::meta_test_with`): the MAML init fine-tuned
     //    with the loss its checkpoint names, and its baselines on the same shots.
-    let epochs = config.learner.epochs as u32;
     let meta_test = MetaTest {
         run,
         config,
@@ -157,28 +141,66 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
         publisher: &announce,
         metrics: &metrics,
     };
-    let mut pretrained: Option<QNetwork> = None;
-    for (id, task) in &test_tasks {
-        for &method in Method::fine_tuned(config.meta.inner_loss) {
-            if latest_epoch(run, method, task, epochs) == epochs {
-                continue;
-            }
-            if stop()? {
-                return Ok(Outcome::Stopped);
-            }
-            if method == Method::CqlPretrain && pretrained.is_none() {
-                tracing::info!("pretraining CQL on the union of the meta-train shots");
-                let (_, tasks) = load_tasks(config, &datasets, seed)?;
-                // Stop requests are honoured between the pretraining's meta-epochs.
-                match pretrain::pretrain(config, &tasks, seed, |_| stop().map(|stop| !stop))? {
-                    Some(q) => pretrained = Some(q),
-                    None => return Ok(Outcome::Stopped),
-                }
-            }
-            meta_test.fine_tune(*id, task, method, pretrained.as_ref())?;
+    meta_test.run_all(&test_tasks, &datasets, &stop)
+}
+
+/// Announces the online DQN agents that made the meta-test datasets: the runs' reference line.
+/// Their actors saved them before sending a transition, so a stored dataset's agent is on disk.
+fn announce_online_agents(
+    run: &RunDir,
+    test_tasks: &[(u32, TaskConfig)],
+    announce: &Publisher<ipc::Service, CheckpointReady, ()>,
+) -> Result<(), TransportError> {
+    for (id, task) in test_tasks {
+        if checkpoint::read_meta(&run.checkpoint(Method::OnlineDqn, task, 1)).is_ok() {
+            transport::announce(
+                announce,
+                CheckpointReady {
+                    schema_version: SCHEMA_VERSION,
+                    method: Method::OnlineDqn.code(),
+                    task: *id,
+                    epoch: 1,
+                },
+            )?;
         }
     }
-    Ok(Outcome::Finished)
+    Ok(())
+}
+
+impl MetaTest<'_> {
+    /// Fine-tunes every method of every meta-test task that has not finished, pretraining CQL on
+    /// the meta-train shots (from `datasets`) first if a method needs it.
+    fn run_all(
+        &self,
+        test_tasks: &[(u32, TaskConfig)],
+        datasets: &Path,
+        stop: &impl Fn() -> Result<bool, MetaProcessError>,
+    ) -> Result<Outcome, MetaProcessError> {
+        let (run, config, seed) = (self.run, self.config, self.seed);
+        let epochs = config.learner.epochs as u32;
+        let mut pretrained: Option<QNetwork> = None;
+        for (id, task) in test_tasks {
+            for &method in Method::fine_tuned(config.meta.inner_loss) {
+                if latest_epoch(run, method, task, epochs) == epochs {
+                    continue;
+                }
+                if stop()? {
+                    return Ok(Outcome::Stopped);
+                }
+                if method == Method::CqlPretrain && pretrained.is_none() {
+                    tracing::info!("pretraining CQL on the union of the meta-train shots");
+                    let (_, tasks) = load_tasks(config, datasets, seed)?;
+                    // Stop requests are honoured between the pretraining's meta-epochs.
+                    match pretrain::pretrain(config, &tasks, seed, |_| stop().map(|stop| !stop))? {
+                        Some(q) => pretrained = Some(q),
+                        None => return Ok(Outcome::Stopped),
+                    }
+                }
+                self.fine_tune(*id, task, method, pretrained.as_ref())?;
+            }
+        }
+        Ok(Outcome::Finished)
+    }
 }
 
 /// Waits until the store has announced every task's dataset; `false` if told to stop first.
