@@ -36,8 +36,8 @@ use std::time::{Duration, Instant};
 use iceoryx2::node::Node;
 use iceoryx2::prelude::ipc;
 
-use uavmeta_actors::actor_process::{ActorOptions, Rollout};
-use uavmeta_actors::heuristics::PolicySpec;
+use uavmeta_actors::actor::{ActorOptions, Rollout};
+use uavmeta_actors::policy::heuristics::PolicySpec;
 use uavmeta_actors::rollout::{episode_seed, run_episode, Policy};
 use uavmeta_actors::world::World;
 use uavmeta_learner::store;

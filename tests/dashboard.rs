@@ -391,6 +391,47 @@ impl Image {
 
 /// Without a server, with a variable or a dashboard it cannot use, the command says which and
 /// fails.
+/// Every metric name in a PromQL expression: the words that start with `uavmeta_`, a histogram's
+/// `_bucket`, `_count` and `_sum` series read as the histogram.
+fn metric_names(expr: &str) -> Vec<String> {
+    expr.split(|c: char| !(c.is_ascii_alphanumeric() || c == '_'))
+        .filter(|word| word.starts_with("uavmeta_"))
+        .map(|word| {
+            ["_bucket", "_count", "_sum"]
+                .iter()
+                .find_map(|suffix| word.strip_suffix(suffix))
+                .filter(|base| base.ends_with("_seconds"))
+                .unwrap_or(word)
+                .to_string()
+        })
+        .collect()
+}
+
+/// Every metric the dashboard queries is one the processes declare (`uavmeta_proto::metrics`), so
+/// a renamed metric cannot leave a panel empty; no Prometheus needed.
+#[test]
+fn the_dashboard_queries_only_declared_metrics() {
+    let declared: Vec<&str> = uavmeta_proto::metrics::all().map(|m| m.name).collect();
+    let dashboard = dashboard();
+    let selectors = dashboard
+        .variables
+        .iter()
+        .filter_map(|v| v.label_values.as_ref()?.selector.clone());
+    let exprs = dashboard
+        .panels
+        .iter()
+        .filter_map(|p| p.timeseries.as_ref())
+        .flat_map(|s| s.targets.iter().map(|t| t.expr.clone()));
+    let mut queried = 0;
+    for expr in selectors.chain(exprs) {
+        for name in metric_names(&expr) {
+            assert!(declared.contains(&name.as_str()), "{name} in `{expr}`");
+            queried += 1;
+        }
+    }
+    assert!(queried >= 16, "{queried} metric names in the dashboard");
+}
+
 #[test]
 fn render_names_an_unreachable_prometheus_and_a_bad_panel() {
     let dir = run_dir("dashboard-errors-");

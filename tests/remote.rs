@@ -10,10 +10,10 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use uavmeta_actors::actor_process::ActorOptions;
-use uavmeta_learner::metrics;
+use uavmeta_actors::actor::ActorOptions;
 use uavmeta_proto::config::RunConfig;
 use uavmeta_proto::dataset::DatasetReader;
+use uavmeta_proto::metrics;
 use uavmeta_proto::transport::{self, RunDir};
 
 mod support;
@@ -308,7 +308,7 @@ fn a_launch_with_two_local_and_two_remote_actors_stores_the_remote_transitions()
         );
         let counted = metrics::sum(
             &store,
-            "uavmeta_store_dataset_transitions",
+            metrics::store::DATASET_TRANSITIONS,
             &[("task", task)],
         );
         assert_eq!(counted, 300_000.0, "{task}: the store's count");
@@ -351,7 +351,7 @@ fn stored(run: &RunDir) -> f64 {
         .and_then(|port| metrics::scrape("127.0.0.1", port.trim().parse().ok()?).ok())
         .and_then(|text| metrics::parse(&text).ok())
         .map_or(0.0, |samples| {
-            metrics::sum(&samples, "uavmeta_store_transitions_stored_total", &[])
+            metrics::sum(&samples, metrics::store::TRANSITIONS_STORED, &[])
         })
 }
 
@@ -395,12 +395,12 @@ fn a_killed_and_restarted_tunnel_loses_nothing_unaccounted_and_the_remote_actor_
     let missing_in_file = seqs.last().map_or(0, |last| last + 1) - seqs.len() as u64;
     let counted = metrics::sum(
         &final_metrics(run, "store"),
-        "uavmeta_store_transitions_missing_total",
+        metrics::store::TRANSITIONS_MISSING,
         &[("task", task)],
     );
     let published = metrics::sum(
         &final_metrics(&hosts.dir_b(), &format!("actor-{task}-{actor_id:08x}")),
-        "uavmeta_actor_transitions_published_total",
+        metrics::actor::TRANSITIONS_PUBLISHED,
         &[],
     );
     assert_eq!(published, PUBLISHED as f64);

@@ -5,8 +5,8 @@
 use std::path::Path;
 use std::process::{Command, Output};
 
-use uavmeta_meta::reproduce::quick_config;
 use uavmeta_proto::config::{Config, TaskRole};
+use uavmeta_reproduce::quick_config;
 
 const CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/configs/reproduce.toml");
 

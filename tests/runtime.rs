@@ -9,9 +9,9 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use uavmeta_learner::metrics::{self, Sample};
 use uavmeta_proto::config::InnerLoss;
 use uavmeta_proto::dataset::DatasetReader;
+use uavmeta_proto::metrics::{self, Metric, Sample};
 use uavmeta_proto::transport::Method;
 
 mod support;
@@ -121,7 +121,7 @@ fn missing_in_files(seqs: &BTreeMap<u32, Vec<u64>>) -> u64 {
 }
 
 /// `metric` summed over the final metrics of every actor of the run.
-fn actors_total(run: &Path, metric: &str) -> f64 {
+fn actors_total(run: &Path, metric: Metric) -> f64 {
     actor_names(run)
         .iter()
         .map(|a| metrics::sum(&snapshot(run, a), metric, &[]))
@@ -169,11 +169,11 @@ fn a_small_launch_completes_and_accounts_for_every_transition() {
     }
 
     let store = snapshot(&run, "store");
-    let published = actors_total(&run, "uavmeta_actor_transitions_published_total");
-    let resent = actors_total(&run, "uavmeta_actor_transitions_resent_total");
-    let stored = metrics::sum(&store, "uavmeta_store_transitions_stored_total", &[]);
-    let dropped = metrics::sum(&store, "uavmeta_store_transitions_dropped_total", &[]);
-    let missing = metrics::sum(&store, "uavmeta_store_transitions_missing_total", &[]);
+    let published = actors_total(&run, metrics::actor::TRANSITIONS_PUBLISHED);
+    let resent = actors_total(&run, metrics::actor::TRANSITIONS_RESENT);
+    let stored = metrics::sum(&store, metrics::store::TRANSITIONS_STORED, &[]);
+    let dropped = metrics::sum(&store, metrics::store::TRANSITIONS_DROPPED, &[]);
+    let missing = metrics::sum(&store, metrics::store::TRANSITIONS_MISSING, &[]);
     assert!(published >= 3.0 * 300.0, "published {published}");
     assert_eq!(
         published + resent,
@@ -184,8 +184,8 @@ fn a_small_launch_completes_and_accounts_for_every_transition() {
     assert_eq!(
         metrics::sum(
             &store,
-            "uavmeta_store_transitions_dropped_total",
-            &[("reason", "foreign")]
+            metrics::store::TRANSITIONS_DROPPED,
+            &[("reason", metrics::store::FOREIGN)]
         ),
         0.0
     );
@@ -204,11 +204,7 @@ fn a_small_launch_completes_and_accounts_for_every_transition() {
     }
     let evaluator = snapshot(&run, "evaluator");
     assert!(
-        metrics::sum(
-            &evaluator,
-            "uavmeta_evaluator_checkpoints_evaluated_total",
-            &[]
-        ) >= 2.0 + 2.0 * 2.0
+        metrics::sum(&evaluator, metrics::evaluator::CHECKPOINTS_EVALUATED, &[]) >= 2.0 + 2.0 * 2.0
     );
     assert!(run.join("prometheus.yml").exists());
 }
@@ -255,7 +251,7 @@ fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
     wait_until("400 stored", within(30), || {
         metrics::sum(
             &scrape(&run, "store"),
-            "uavmeta_store_dataset_transitions",
+            metrics::store::DATASET_TRANSITIONS,
             &[("task", "lambda-100")],
         ) == 400.0
     });
@@ -273,14 +269,14 @@ fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
         within(60),
         || {
             let live = scrape(&run, &live_actor);
-            live.iter().any(|s| s.name == "uavmeta_actor_steps_total")
-                && metrics::sum(&live, "uavmeta_actor_steps_total", &[]) > 0.0
+            live.iter().any(|s| s.name == metrics::actor::STEPS.name)
+                && metrics::sum(&live, metrics::actor::STEPS, &[]) > 0.0
         },
     );
     wait_until("the second actor's data", within(30), || {
         metrics::sum(
             &scrape(&run, "store"),
-            "uavmeta_store_dataset_transitions",
+            metrics::store::DATASET_TRANSITIONS,
             &[("task", "lambda-100")],
         ) > 400.0
     });
@@ -304,7 +300,7 @@ fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
     assert_eq!(
         metrics::sum(
             &scrape(&run, "meta-learner"),
-            "uavmeta_meta_learner_meta_epoch",
+            metrics::meta_learner::META_EPOCH,
             &[]
         ),
         0.0
@@ -312,7 +308,7 @@ fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
     assert_eq!(
         metrics::sum(
             &scrape(&run, "evaluator"),
-            "uavmeta_evaluator_checkpoints_evaluated_total",
+            metrics::evaluator::CHECKPOINTS_EVALUATED,
             &[]
         ),
         0.0
@@ -338,10 +334,10 @@ fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
         .all(|s| s[0] == 0 && missing_in_files(&BTreeMap::from([(0, s.clone())])) == 0));
     let store = snapshot(&run, "store");
     assert_eq!(
-        actors_total(&run, "uavmeta_actor_transitions_published_total")
-            + actors_total(&run, "uavmeta_actor_transitions_resent_total"),
-        metrics::sum(&store, "uavmeta_store_transitions_stored_total", &[])
-            + metrics::sum(&store, "uavmeta_store_transitions_dropped_total", &[])
+        actors_total(&run, metrics::actor::TRANSITIONS_PUBLISHED)
+            + actors_total(&run, metrics::actor::TRANSITIONS_RESENT),
+        metrics::sum(&store, metrics::store::TRANSITIONS_STORED, &[])
+            + metrics::sum(&store, metrics::store::TRANSITIONS_DROPPED, &[])
     );
 }
 
@@ -390,7 +386,7 @@ fn a_replay_sample_lost_with_a_killed_store_is_sent_again_to_its_successor() {
         actor_names_live(&run).first().is_some_and(|name| {
             metrics::sum(
                 &scrape(&run, name),
-                "uavmeta_actor_transitions_published_total",
+                metrics::actor::TRANSITIONS_PUBLISHED,
                 &[],
             ) == 300.0
         })
@@ -421,14 +417,14 @@ fn a_replay_sample_lost_with_a_killed_store_is_sent_again_to_its_successor() {
     assert_eq!(
         metrics::sum(
             &store,
-            "uavmeta_store_transitions_missing_total",
+            metrics::store::TRANSITIONS_MISSING,
             &[("task", "lambda-0")]
         ),
         0.0
     );
     let actor_metrics = snapshot(&run, &actor_names(&run)[0]);
     assert!(
-        metrics::sum(&actor_metrics, "uavmeta_actor_store_changes_total", &[]) >= 1.0,
+        metrics::sum(&actor_metrics, metrics::actor::STORE_CHANGES, &[]) >= 1.0,
         "the resend is counted"
     );
 }
@@ -457,16 +453,16 @@ fn a_rollout_held_by_a_killed_store_is_sent_again_to_its_successor() {
             sent.to_string(),
         ],
     );
-    let live = |metric: &str| {
+    let live = |metric: Metric| {
         actor_names_live(&run)
             .first()
             .map_or(0.0, |name| metrics::sum(&scrape(&run, name), metric, &[]))
     };
     wait_until("the rollout sent", within(120), || {
-        live("uavmeta_actor_transitions_published_total") == sent as f64
+        live(metrics::actor::TRANSITIONS_PUBLISHED) == sent as f64
     });
     assert_eq!(
-        live("uavmeta_actor_transitions_unacknowledged"),
+        live(metrics::actor::TRANSITIONS_UNACKNOWLEDGED),
         sent as f64,
         "the actor keeps what the stopped store has not acknowledged"
     );
@@ -494,23 +490,24 @@ fn a_rollout_held_by_a_killed_store_is_sent_again_to_its_successor() {
     assert!(second.status.success(), "{}", stderr(&second));
     let store = snapshot(&run, "store");
     assert_eq!(
-        metrics::sum(&store, "uavmeta_store_transitions_missing_total", &[]),
+        metrics::sum(&store, metrics::store::TRANSITIONS_MISSING, &[]),
         0.0
     );
     let actor_metrics = snapshot(&run, &actor_names(&run)[0]);
     for (metric, expected) in [
-        ("uavmeta_actor_transitions_published_total", sent as f64),
-        ("uavmeta_actor_transitions_resent_total", sent as f64),
-        ("uavmeta_actor_transitions_lost_total", 0.0),
-        ("uavmeta_actor_transitions_unacknowledged", 0.0),
+        (metrics::actor::TRANSITIONS_PUBLISHED, sent as f64),
+        (metrics::actor::TRANSITIONS_RESENT, sent as f64),
+        (metrics::actor::TRANSITIONS_LOST, 0.0),
+        (metrics::actor::TRANSITIONS_UNACKNOWLEDGED, 0.0),
     ] {
         assert_eq!(
             metrics::sum(&actor_metrics, metric, &[]),
             expected,
-            "{metric}"
+            "{}",
+            metric.name
         );
     }
-    assert!(metrics::sum(&actor_metrics, "uavmeta_actor_store_changes_total", &[]) >= 1.0);
+    assert!(metrics::sum(&actor_metrics, metrics::actor::STORE_CHANGES, &[]) >= 1.0);
 }
 
 /// Meta-training long enough (one outer step per meta-epoch, a checkpoint every 100) for a test to
@@ -540,7 +537,7 @@ fn killed_actor_store_and_meta_learner_are_restarted_and_nothing_is_lost_unaccou
         held = match run.join("ports/store.port").exists() {
             true => metrics::sum(
                 &scrape(&run, "store"),
-                "uavmeta_store_dataset_transitions",
+                metrics::store::DATASET_TRANSITIONS,
                 &[],
             ),
             false => 0.0,
@@ -576,7 +573,7 @@ fn killed_actor_store_and_meta_learner_are_restarted_and_nothing_is_lost_unaccou
         assert!(
             metrics::sum(
                 &launcher_metrics,
-                "uavmeta_launcher_child_restarts_total",
+                metrics::launcher::CHILD_RESTARTS,
                 &[("process", process)]
             ) >= 1.0,
             "{process} was not restarted"
@@ -606,7 +603,7 @@ fn assert_every_transition_accounted(run: &Path, per_task: usize) {
         );
         let counted = metrics::sum(
             &store,
-            "uavmeta_store_transitions_missing_total",
+            metrics::store::TRANSITIONS_MISSING,
             &[("task", task)],
         );
         assert_eq!(
@@ -623,7 +620,7 @@ fn assert_every_transition_accounted(run: &Path, per_task: usize) {
 fn hangs(run: &Path, prefix: &str) -> f64 {
     scrape(run, "launcher")
         .iter()
-        .filter(|s| s.name == "uavmeta_launcher_child_hangs_total")
+        .filter(|s| s.name == metrics::launcher::CHILD_HANGS.name)
         .filter(|s| s.label("process").is_some_and(|p| p.starts_with(prefix)))
         .map(|s| s.value)
         .sum()
@@ -656,7 +653,7 @@ fn stopped_actor_store_and_meta_learner_are_taken_for_hung_and_restarted() {
         run.join("ports/store.port").exists()
             && metrics::sum(
                 &scrape(&run, "store"),
-                "uavmeta_store_dataset_transitions",
+                metrics::store::DATASET_TRANSITIONS,
                 &[],
             ) > 10_000.0
     });
@@ -674,7 +671,7 @@ fn stopped_actor_store_and_meta_learner_are_taken_for_hung_and_restarted() {
         assert_eq!(
             metrics::sum(
                 &launcher_metrics,
-                "uavmeta_launcher_child_restarts_total",
+                metrics::launcher::CHILD_RESTARTS,
                 &[("process", process)]
             ),
             1.0,
@@ -725,7 +722,7 @@ fn chaos(seed: u64, kills: usize) {
         run.join("ports/store.port").exists()
             && metrics::sum(
                 &scrape(&run, "store"),
-                "uavmeta_store_dataset_transitions",
+                metrics::store::DATASET_TRANSITIONS,
                 &[],
             ) > 10_000.0
     });
@@ -772,7 +769,7 @@ fn chaos(seed: u64, kills: usize) {
     assert_eq!(killed.len(), kills);
     let restarts = metrics::sum(
         &snapshot(&run, "launcher"),
-        "uavmeta_launcher_child_restarts_total",
+        metrics::launcher::CHILD_RESTARTS,
         &[],
     );
     assert_eq!(restarts, kills as f64, "every kill restarted: {killed:?}");
@@ -902,8 +899,8 @@ fn two_runs_side_by_side_keep_their_data_apart() {
         assert_eq!(
             metrics::sum(
                 &store,
-                "uavmeta_store_transitions_dropped_total",
-                &[("reason", "foreign")]
+                metrics::store::TRANSITIONS_DROPPED,
+                &[("reason", metrics::store::FOREIGN)]
             ),
             0.0
         );

@@ -12,10 +12,10 @@ use std::hint::black_box;
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use uavmeta_actors::q_policy::{Evaluator, QPolicy};
+use uavmeta_actors::policy::q_policy::{Evaluator, QPolicy};
 use uavmeta_actors::rollout::evaluate;
 use uavmeta_actors::world::World;
-use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_proto::config::{Config, RainZone, TaskConfig};
 
@@ -86,12 +86,7 @@ fn bench_evaluate_greedy(c: &mut Criterion) {
     tch::set_num_threads(1);
     let config = Config::default();
     let task = TaskConfig::one_off(300.0, None);
-    let q = QNetwork::new(
-        config.world.observation_len(),
-        config.world.action_count(),
-        &config.learner.hidden,
-        0,
-    );
+    let q = QNetworkConfig::for_world(&config.world, &config.learner.hidden).init(0);
     let mut group = c.benchmark_group("evaluate_greedy");
     for episodes in [10, 40] {
         group.throughput(Throughput::Elements(

@@ -24,8 +24,8 @@ use uavmeta_proto::dataset::{
 };
 use uavmeta_proto::transport::Method;
 
-use crate::dqn_online::OnlineDqn;
-use crate::heuristics::{PolicyError, PolicySpec};
+use crate::policy::dqn_online::OnlineDqn;
+use crate::policy::heuristics::{PolicyError, PolicySpec};
 use crate::rollout::{episode_seed, Policy};
 use crate::world::World;
 
@@ -305,7 +305,7 @@ mod tests {
     use uavmeta_proto::dataset::DatasetReader;
 
     use super::*;
-    use crate::heuristics::RandomPolicy;
+    use crate::policy::heuristics::RandomPolicy;
 
     fn small_config(policy: &str) -> Config {
         let text = format!("[world]\ndevices = 4\nhorizon = 7\n[collect]\npolicy = \"{policy}\"\ntransitions = 30\nseed = 5\n[run]\nbatch_size = 8");

@@ -5,17 +5,21 @@
 //!   `uavmeta_proto::config`'s `WorldConfig` and `TaskConfig`; a step allocates nothing.
 //! - [`rollout`]: the [`rollout::Policy`] trait, single episodes with their
 //!   `uavmeta_proto::stats::EpisodeMetrics`, and Monte-Carlo evaluation over fixed episode seeds.
-//! - [`heuristics`]: random, stalest-first, greedy, epsilon-mixed and replayed policies, and the
-//!   `PolicySpec` parser behind `--policy` and `collect.policy`.
-//! - [`dqn_online`]: the online DQN agent (epsilon-greedy, replay buffer, target network) whose
-//!   replay buffer becomes the paper's datasets.
-//! - [`q_policy`]: a `uavmeta_learner` Q-network's greedy policy, and the evaluator that scores it
-//!   for `uavmeta_learner::train`.
-//! - [`actor_process`]: behaviour policies publishing transitions to the store over iceoryx2.
-//! - [`evaluator_process`]: greedy Q-policies of announced checkpoints scored in the true world.
+//! - [`policy`]: the behaviour policies.
+//!   - [`policy::heuristics`]: random, stalest-first, greedy, epsilon-mixed and replayed
+//!     policies, and the `PolicySpec` parser behind `--policy` and `collect.policy`.
+//!   - [`policy::dqn_online`]: the online DQN agent (epsilon-greedy, replay buffer, target
+//!     network) whose replay buffer becomes the paper's datasets.
+//!   - [`policy::q_policy`]: a `uavmeta_learner` Q-network's greedy policy, and the evaluator
+//!     that scores it for `uavmeta_learner::train`.
+//! - [`collect`]: one task's offline dataset (SPEC section 4) from a behaviour policy.
+//! - [`actor`]: the actor process, behaviour policies publishing transitions to the store over
+//!   iceoryx2; its folder holds its loop, its delivery and its metrics.
+//! - [`evaluator`]: the evaluator process, greedy Q-policies of announced checkpoints scored in
+//!   the true world; its folder holds its loop and its metrics.
 //!
 //! ```
-//! use uavmeta_actors::heuristics::StalestPolicy;
+//! use uavmeta_actors::policy::heuristics::StalestPolicy;
 //! use uavmeta_actors::rollout::evaluate;
 //! use uavmeta_proto::config::{Config, TaskConfig};
 //!
@@ -25,11 +29,9 @@
 //! assert!(metrics.aoi.mean >= 1.0);
 //! ```
 
-pub mod actor_process;
+pub mod actor;
 pub mod collect;
-pub mod dqn_online;
-pub mod evaluator_process;
-pub mod heuristics;
-pub mod q_policy;
+pub mod evaluator;
+pub mod policy;
 pub mod rollout;
 pub mod world;

@@ -2,7 +2,7 @@
 
 use std::io::Write;
 
-use uavmeta_actors::heuristics::{
+use uavmeta_actors::policy::heuristics::{
     EpsilonPolicy, GreedyPolicy, PolicySpec, RandomPolicy, StalestPolicy,
 };
 use uavmeta_actors::rollout::Policy;

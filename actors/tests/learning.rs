@@ -9,11 +9,11 @@
 use std::sync::OnceLock;
 
 use uavmeta_actors::collect::{online_dqn_dataset, Collector};
-use uavmeta_actors::heuristics::{GreedyPolicy, RandomPolicy, StalestPolicy};
-use uavmeta_actors::q_policy::Evaluator;
+use uavmeta_actors::policy::heuristics::{GreedyPolicy, RandomPolicy, StalestPolicy};
+use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_actors::rollout::{evaluate, Policy};
 use uavmeta_learner::batch::Batch;
-use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{train, Algorithm, EpochRow, EvaluatePolicy, TrainOptions};
 use uavmeta_proto::config::Config;
 use uavmeta_proto::dataset::Transition;
@@ -153,12 +153,7 @@ fn train_offline(
 ) -> (QNetwork, Vec<EpochRow>) {
     let task = config.task("lambda-300").unwrap();
     let batch = Batch::new(data, &config.world, config.learner.reward_scale).unwrap();
-    let mut q = QNetwork::new(
-        config.world.observation_len(),
-        config.world.action_count(),
-        &config.learner.hidden,
-        11,
-    );
+    let mut q = QNetworkConfig::for_world(&config.world, &config.learner.hidden).init(11);
     let opts = TrainOptions {
         algorithm,
         config,

@@ -2,7 +2,7 @@
 //! action sequences, and the SPEC's sanity figures for two heuristics.
 
 use proptest::prelude::*;
-use uavmeta_actors::heuristics::{RandomPolicy, StalestPolicy};
+use uavmeta_actors::policy::heuristics::{RandomPolicy, StalestPolicy};
 use uavmeta_actors::rollout::{evaluate, rollout};
 use uavmeta_actors::world::{Move, World};
 use uavmeta_proto::config::{Config, RainZone, TaskConfig, MOVES};

@@ -379,6 +379,7 @@ fn parse_label_values(arguments: &str) -> Option<LabelValues> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use uavmeta_proto::metrics::launcher::CHILDREN_RUNNING;
 
     const REPOSITORY_DASHBOARD: &str = include_str!("../../docs/grafana/uavmeta.json");
 
@@ -407,7 +408,7 @@ mod tests {
             [Variable {
                 name: "run".into(),
                 label_values: Some(LabelValues {
-                    selector: Some("uavmeta_launcher_children_running".into()),
+                    selector: Some(CHILDREN_RUNNING.name.into()),
                     label: "run".into(),
                 }),
             }]

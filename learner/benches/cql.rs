@@ -16,7 +16,7 @@ use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Through
 use tch::nn::OptimizerConfig;
 use tch::{nn, Kind, Reduction, Tensor};
 use uavmeta_learner::batch::Batch;
-use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{train, Algorithm, EvaluatePolicy, TrainOptions};
 use uavmeta_proto::config::Config;
 use uavmeta_proto::stats::PolicyMetrics;
@@ -69,7 +69,8 @@ fn bench(c: &mut Criterion) {
         group.bench_function(BenchmarkId::new("train", batch), |b| {
             b.iter_custom(|iters| {
                 let cfg = config(batch, iters);
-                let mut q = QNetwork::new(OBS as usize, ACTIONS as usize, &[256, 256], 0);
+                let mut q =
+                    QNetworkConfig::new(OBS as usize, ACTIONS as usize, &[256, 256]).init(0);
                 let opts = TrainOptions {
                     algorithm: Algorithm::Cql,
                     config: &cfg,
@@ -83,7 +84,7 @@ fn bench(c: &mut Criterion) {
             })
         });
         group.bench_function(BenchmarkId::new("bare", batch), |b| {
-            let q = QNetwork::new(OBS as usize, ACTIONS as usize, &[256, 256], 0);
+            let q = QNetworkConfig::new(OBS as usize, ACTIONS as usize, &[256, 256]).init(0);
             let target = q.duplicate();
             let mut opt = nn::Adam::default().build(&q.vs, 1e-3).expect("Adam builds");
             let mb = data.select(&Tensor::arange(

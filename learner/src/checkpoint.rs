@@ -26,7 +26,7 @@ use tch::Tensor;
 use uavmeta_proto::config::Config;
 use uavmeta_proto::transport::Method;
 
-use crate::qnet::QNetwork;
+use crate::qnet::{QNetwork, QNetworkConfig};
 
 /// Version of the metadata layout; bumped when [`CheckpointMeta`] changes meaning.
 pub const FORMAT_VERSION: u32 = 1;
@@ -312,7 +312,7 @@ pub fn load(path: &Path, config: &Config) -> Result<(QNetwork, CheckpointMeta), 
     }
 
     verify(&paths.weights, meta.weights_len, meta.weights_crc32)?;
-    let mut q = QNetwork::new(obs_len, actions, &meta.hidden, 0);
+    let mut q = QNetworkConfig::new(obs_len, actions, &meta.hidden).init(0);
     q.vs.load(&paths.weights)
         .map_err(|source| CheckpointError::Weights {
             path: paths.weights.clone(),

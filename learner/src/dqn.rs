@@ -16,13 +16,33 @@ use uavmeta_proto::config::LearnerConfig;
 
 use crate::batch::Batch;
 
+/// Where eq. 7's bootstrap value `V(s')` comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Bootstrap {
+    /// Eq. 7 as written: `max_a' Qhat(s', a')`.
+    Max,
+    /// Double DQN: the target network evaluates the online network's choice,
+    /// `Qhat(s', argmax_a' Q(s', a'))`.
+    Double,
+}
+
+impl Bootstrap {
+    /// [`Bootstrap::Double`] when `double` is set (a config's `double_dqn` or `dqn_double`).
+    pub fn double_if(double: bool) -> Self {
+        if double {
+            Self::Double
+        } else {
+            Self::Max
+        }
+    }
+}
+
 /// How the temporal-difference loss is formed.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TdConfig {
     /// Discount gamma.
     pub gamma: f64,
-    /// Bootstrap with `Qhat(s', argmax_a' Q(s', a'))` instead of `max_a' Qhat(s', a')`.
-    pub double_dqn: bool,
+    pub bootstrap: Bootstrap,
     /// Huber (delta = 1) instead of the squared TD error.
     pub huber: bool,
 }
@@ -32,9 +52,30 @@ impl TdConfig {
     pub fn eq7(gamma: f64) -> Self {
         Self {
             gamma,
-            double_dqn: false,
+            bootstrap: Bootstrap::Max,
             huber: false,
         }
+    }
+
+    /// Each transition's term of eq. 7 with these options, [B] (their mean is the loss): the
+    /// whole target computation in one place, for offline training, the online DQN agent and
+    /// MAML's inner and outer losses.
+    ///
+    /// `q` is `Q_w(s, .)` [B, A] with its graph. `target` and `online` are the target network
+    /// `Qhat` and the online network `Q_w` as functions of a batch of states; they are evaluated
+    /// on `batch.next_obs` without a graph, `online` only for [`Bootstrap::Double`].
+    pub fn td_errors(
+        &self,
+        q: &Tensor,
+        batch: &Batch,
+        target: impl FnOnce(&Tensor) -> Tensor,
+        online: impl FnOnce(&Tensor) -> Tensor,
+    ) -> Tensor {
+        let next_v = tch::no_grad(|| {
+            let next_q_target = target(&batch.next_obs); // Qhat(s', .) [B, A]
+            next_value(self.bootstrap, &next_q_target, || online(&batch.next_obs))
+        });
+        td_errors(q, &next_v, batch, self.gamma, self.huber)
     }
 }
 
@@ -42,7 +83,7 @@ impl From<&LearnerConfig> for TdConfig {
     fn from(cfg: &LearnerConfig) -> Self {
         Self {
             gamma: cfg.gamma,
-            double_dqn: cfg.double_dqn,
+            bootstrap: Bootstrap::double_if(cfg.double_dqn),
             huber: cfg.huber,
         }
     }
@@ -50,15 +91,18 @@ impl From<&LearnerConfig> for TdConfig {
 
 /// The bootstrap value of each next state, [B], without a graph.
 ///
-/// `next_q_target` is `Qhat(s', .)` [B, A]. With `next_q_online = Some(Q(s', .))` [B, A] this is
-/// double DQN's `Qhat(s', argmax_a' Q(s', a'))`, otherwise eq. 7's `max_a' Qhat(s', a')`.
-/// Every function here also takes a leading task dimension ([T, B, A] -> [T, B]), which is how
-/// MAML evaluates all its tasks in one pass.
-pub fn next_value(next_q_target: &Tensor, next_q_online: Option<&Tensor>) -> Tensor {
-    tch::no_grad(|| match next_q_online {
-        None => next_q_target.amax(-1, false),
-        Some(online) => {
-            let a_star = online.argmax(-1, true); // [B, 1]
+/// `next_q_target` is `Qhat(s', .)` [B, A]; `next_q_online` gives `Q(s', .)` [B, A] and is called
+/// only for [`Bootstrap::Double`]. Every function here also takes a leading task dimension
+/// ([T, B, A] -> [T, B]), which is how MAML evaluates all its tasks in one pass.
+pub fn next_value(
+    bootstrap: Bootstrap,
+    next_q_target: &Tensor,
+    next_q_online: impl FnOnce() -> Tensor,
+) -> Tensor {
+    tch::no_grad(|| match bootstrap {
+        Bootstrap::Max => next_q_target.amax(-1, false),
+        Bootstrap::Double => {
+            let a_star = next_q_online().argmax(-1, true); // [B, 1]
             next_q_target.gather(-1, &a_star, false).squeeze_dim(-1)
         }
     })
@@ -84,42 +128,11 @@ pub fn td_errors(q: &Tensor, next_v: &Tensor, batch: &Batch, gamma: f64, huber: 
     }
 }
 
-/// The TD loss of eq. 7 from a precomputed bootstrap value: the mean of [`td_errors`], a scalar.
-pub fn td_loss(q: &Tensor, next_v: &Tensor, batch: &Batch, gamma: f64, huber: bool) -> Tensor {
-    // mean_batch (y - Q(s, a))^2
-    td_errors(q, next_v, batch, gamma, huber).mean(None)
-}
-
-/// Each transition's term of eq. 7 with the options of `td`, [B] (their mean is the loss);
-/// `next_q_online` is needed (and only used) for double DQN.
-///
-/// # Panics
-/// If `td.double_dqn` is set and `next_q_online` is `None`: the caller chose double DQN and must
-/// evaluate the online network on `s'`.
-pub fn td_errors_with(
-    q: &Tensor,
-    next_q_target: &Tensor,
-    next_q_online: Option<&Tensor>,
-    batch: &Batch,
-    td: &TdConfig,
-) -> Tensor {
-    let online = if td.double_dqn {
-        Some(next_q_online.expect("double DQN needs Q(s', .) of the online network"))
-    } else {
-        None
-    };
-    td_errors(
-        q,
-        &next_value(next_q_target, online),
-        batch,
-        td.gamma,
-        td.huber,
-    )
-}
-
 /// Paper eq. 7: `mean (r + gamma * max_a' Qhat(s', a') - Q(s, a))^2`, a scalar.
 ///
 /// `q` is `Q_w(s, .)` [B, A] (with its graph), `next_q_target` is `Qhat(s', .)` [B, A].
 pub fn dqn_loss(q: &Tensor, next_q_target: &Tensor, batch: &Batch, gamma: f64) -> Tensor {
-    td_loss(q, &next_value(next_q_target, None), batch, gamma, false)
+    // mean_batch (y - Q(s, a))^2
+    let next_v = next_value(Bootstrap::Max, next_q_target, || unreachable!("plain max"));
+    td_errors(q, &next_v, batch, gamma, false).mean(None)
 }

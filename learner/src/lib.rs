@@ -1,16 +1,19 @@
 //! Q-network, DQN and CQL: everything that learns from transitions, and nothing about the world.
 //!
-//! - [`qnet`]: [`qnet::QNetwork`], the MLP of SPEC section 5 with a seeded, global-state-free
-//!   initialisation and a functional forward pass on explicit (fast) weights for MAML.
+//! - [`qnet`]: [`qnet::QNetwork`], the MLP of SPEC section 5, built by
+//!   [`qnet::QNetworkConfig::init`] with a seeded, global-state-free initialisation, and a
+//!   functional forward pass on explicit (fast) weights for MAML.
 //! - [`batch`]: [`batch::Batch`], `proto::dataset` transitions as normalised tensors.
-//! - [`dqn`]: the DQN loss, paper eq. 7 (double DQN and Huber as options, off by default).
+//! - [`dqn`]: the DQN loss, paper eq. 7, and the one TD-target computation every learner uses
+//!   ([`dqn::TdConfig::td_errors`]; double DQN and Huber as options, off by default).
 //! - [`cql`]: the CQL loss, paper eq. 8.
 //! - [`train`]: offline training with either loss, evaluated each epoch through the
 //!   [`train::EvaluatePolicy`] hook; per-epoch table on stderr and `train.csv`.
+//! - [`progress`]: the CSV log and the progress bar of a training loop (offline and meta).
 //! - [`checkpoint`]: safetensors weights + JSON metadata + the run's config, written atomically
 //!   and checked (sizes, length, CRC32) on load.
-//! - [`store`]: the dataset store process, appending each task's transitions to its dataset file.
-//! - [`metrics`]: the /metrics endpoint every process serves.
+//! - [`store`]: the dataset store process, appending each task's transitions to its dataset file;
+//!   its folder holds its loop and its metrics.
 //!
 //! It consumes transitions from `uavmeta-proto`'s dataset files and the `[learner]` config
 //! section. Evaluating a policy needs the world, which lives in `uavmeta-actors`; the actors crate
@@ -20,7 +23,7 @@
 //!
 //! ```
 //! use tch::nn::OptimizerConfig;
-//! use uavmeta_learner::{batch::Batch, cql::cql_loss, qnet::QNetwork};
+//! use uavmeta_learner::{batch::Batch, cql::cql_loss, qnet::{QNetwork, QNetworkConfig}};
 //! use uavmeta_proto::{config::WorldConfig, dataset::Transition};
 //!
 //! // K = 2 devices: observations [x, y, A_1, A_2], 2 + K = 4 inputs, 5K = 10 actions.
@@ -30,7 +33,7 @@
 //!     obs: vec![4, 5, 1, 1], action: 3, reward: -2.0, next_obs: vec![4, 6, 2, 1], truncated: false,
 //! };
 //! let batch = Batch::new(&[t], &world, 0.01).unwrap();
-//! let q = QNetwork::new(world.observation_len(), world.action_count(), &[16, 16], 7);
+//! let q = QNetworkConfig::for_world(&world, &[16, 16]).init(7);
 //! let target = q.duplicate();
 //! let mut adam = tch::nn::Adam::default().build(&q.vs, 1e-3).unwrap();
 //!
@@ -48,7 +51,7 @@ pub mod batch;
 pub mod checkpoint;
 pub mod cql;
 pub mod dqn;
-pub mod metrics;
+pub mod progress;
 pub mod qnet;
 pub mod store;
 pub mod train;

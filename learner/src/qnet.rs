@@ -8,32 +8,43 @@
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use tch::{nn, Device, Tensor};
+use uavmeta_proto::config::WorldConfig;
 
-/// An MLP Q-function `Q(s, .)`.
-pub struct QNetwork {
-    /// Holds every parameter under the names `layer{i}.weight` / `layer{i}.bias`; optimisers and
-    /// checkpoints work on it.
-    pub vs: nn::VarStore,
-    /// `[w1, b1, w2, b2, ..]`, shallow handles onto the variables of `vs`, in layer order.
-    params: Vec<Tensor>,
-    obs_len: usize,
-    actions: usize,
-    hidden: Vec<usize>,
+/// The architecture of a [`QNetwork`]: `obs_len -> hidden[0] -> .. -> actions`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct QNetworkConfig {
+    pub obs_len: usize,
+    pub actions: usize,
+    pub hidden: Vec<usize>,
 }
 
-impl QNetwork {
-    /// A network `obs_len -> hidden[0] -> .. -> actions`, initialised from `seed` alone.
+impl QNetworkConfig {
+    pub fn new(obs_len: usize, actions: usize, hidden: &[usize]) -> Self {
+        Self {
+            obs_len,
+            actions,
+            hidden: hidden.to_vec(),
+        }
+    }
+
+    /// A network for `world`'s observations and actions with hidden layers of widths `hidden`
+    /// (`learner.hidden`, or `collect.dqn_hidden` for the online DQN agent).
+    pub fn for_world(world: &WorldConfig, hidden: &[usize]) -> Self {
+        Self::new(world.observation_len(), world.action_count(), hidden)
+    }
+
+    /// A network of this architecture, initialised from `seed` alone.
     ///
     /// The scheme is PyTorch's `nn.Linear` default (Kaiming-uniform with a = sqrt(5), which for
     /// both weight and bias is U(-1/sqrt(fan_in), 1/sqrt(fan_in))), but the draws come from a
     /// ChaCha8 stream rather than libtorch's global generator, so two networks built with the
     /// same seed are identical whatever else the process has drawn, on any thread.
-    pub fn new(obs_len: usize, actions: usize, hidden: &[usize], seed: u64) -> QNetwork {
+    pub fn init(&self, seed: u64) -> QNetwork {
         let vs = nn::VarStore::new(Device::Cpu);
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let widths: Vec<usize> = std::iter::once(obs_len)
-            .chain(hidden.iter().copied())
-            .chain(std::iter::once(actions))
+        let widths: Vec<usize> = std::iter::once(self.obs_len)
+            .chain(self.hidden.iter().copied())
+            .chain(std::iter::once(self.actions))
             .collect();
         let mut params = Vec::with_capacity(2 * (widths.len() - 1));
         let root = vs.root();
@@ -56,12 +67,22 @@ impl QNetwork {
         QNetwork {
             vs,
             params,
-            obs_len,
-            actions,
-            hidden: hidden.to_vec(),
+            config: self.clone(),
         }
     }
+}
 
+/// An MLP Q-function `Q(s, .)`.
+pub struct QNetwork {
+    /// Holds every parameter under the names `layer{i}.weight` / `layer{i}.bias`; optimisers and
+    /// checkpoints work on it.
+    pub vs: nn::VarStore,
+    /// `[w1, b1, w2, b2, ..]`, shallow handles onto the variables of `vs`, in layer order.
+    params: Vec<Tensor>,
+    config: QNetworkConfig,
+}
+
+impl QNetwork {
     /// Q-values of every action: `obs` [B, obs_len] f32 (normalised) -> [B, actions].
     pub fn forward(&self, obs: &Tensor) -> Tensor {
         Self::forward_with(&self.params, obs)
@@ -112,8 +133,7 @@ impl QNetwork {
     /// the same sizes as its online network.
     pub fn copy_from(&mut self, other: &QNetwork) {
         assert_eq!(
-            (self.obs_len, self.actions, &self.hidden),
-            (other.obs_len, other.actions, &other.hidden),
+            self.config, other.config,
             "copy_from between Q-networks of different architectures"
         );
         tch::no_grad(|| {
@@ -125,21 +145,26 @@ impl QNetwork {
 
     /// A new network with the same architecture and a copy of this one's parameter values.
     pub fn duplicate(&self) -> QNetwork {
-        let mut copy = QNetwork::new(self.obs_len, self.actions, &self.hidden, 0);
+        let mut copy = self.config.init(0);
         copy.copy_from(self);
         copy
     }
 
+    /// Its architecture.
+    pub fn config(&self) -> &QNetworkConfig {
+        &self.config
+    }
+
     pub fn obs_len(&self) -> usize {
-        self.obs_len
+        self.config.obs_len
     }
 
     pub fn actions(&self) -> usize {
-        self.actions
+        self.config.actions
     }
 
     pub fn hidden(&self) -> &[usize] {
-        &self.hidden
+        &self.config.hidden
     }
 
     /// Number of scalar parameters.

@@ -9,13 +9,11 @@
 //! to `train.csv` in the output directory, and to the returned list.
 
 use std::fmt;
-use std::fs::File;
-use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
 use std::time::Instant;
 
-use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use indicatif::ProgressBar;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -27,7 +25,8 @@ use uavmeta_proto::transport;
 use crate::batch::Batch;
 use crate::checkpoint::{self, CheckpointError};
 use crate::cql::{conservative_term, CqlLoss};
-use crate::dqn::{q_taken, td_errors_with, TdConfig};
+use crate::dqn::{q_taken, TdConfig};
+use crate::progress::{progress_bar, CsvError, CsvLog};
 use crate::qnet::QNetwork;
 
 /// Measures the greedy policy of a Q-network on the true environment.
@@ -72,6 +71,8 @@ pub enum TrainError {
         action: &'static str,
         source: std::io::Error,
     },
+    #[error(transparent)]
+    Csv(#[from] CsvError),
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
 }
@@ -223,19 +224,10 @@ impl OfflineTrainer {
         let mb = data.select(&self.order.next_indices());
         // Q_w(s, .) with its graph; Qhat(s', .) from the frozen target network.
         let q_all = q.forward(&mb.obs); // [b, A]
-        let next_q_target = tch::no_grad(|| self.target.forward(&mb.next_obs)); // [b, A]
-        let next_q_online = self
+        let td_loss = self
             .td
-            .double_dqn
-            .then(|| tch::no_grad(|| q.forward(&mb.next_obs)));
-        let td_loss = td_errors_with(
-            &q_all,
-            &next_q_target,
-            next_q_online.as_ref(),
-            &mb,
-            &self.td,
-        )
-        .mean(None); // eq. 7
+            .td_errors(&q_all, &mb, |s| self.target.forward(s), |s| q.forward(s))
+            .mean(None); // eq. 7
         let (loss, conservative) = match self.algorithm {
             Algorithm::Cql => {
                 let l = CqlLoss::from_td(&q_all, td_loss.shallow_clone(), &mb, self.alpha); // eq. 8
@@ -276,10 +268,14 @@ pub fn train(
     let mut trainer = OfflineTrainer::new(q, data.len(), opts.algorithm, opts.config, opts.seed);
 
     let mut csv = match opts.out_dir {
-        Some(dir) => Some(CsvLog::create(&dir.join("train.csv"))?),
+        Some(dir) => Some(CsvLog::create(&dir.join("train.csv"), CSV_HEADER)?),
         None => None,
     };
-    let bar = progress_bar(opts.progress, (cfg.epochs * steps_per_epoch) as u64);
+    let bar = progress_bar(
+        opts.progress,
+        (cfg.epochs * steps_per_epoch) as u64,
+        "{bar:40} {pos}/{len} steps {per_sec} eta {eta}",
+    );
     if opts.progress {
         bar.suspend(|| eprintln!("{}", EpochRow::table_header()));
     }
@@ -359,7 +355,7 @@ fn finish_epoch(
         bar.suspend(|| eprintln!("{}", row.table_line()));
     }
     match csv {
-        Some(csv) => csv.write(row),
+        Some(csv) => Ok(csv.line(&row.csv())?),
         None => Ok(()),
     }
 }
@@ -449,58 +445,14 @@ impl MinibatchOrder {
     }
 }
 
-fn progress_bar(enabled: bool, len: u64) -> ProgressBar {
-    if !enabled {
-        return ProgressBar::with_draw_target(Some(len), ProgressDrawTarget::hidden());
-    }
-    ProgressBar::new(len).with_style(
-        ProgressStyle::with_template("{bar:40} {pos}/{len} steps {per_sec} eta {eta}")
-            .expect("the template is valid"),
-    )
-}
-
-/// `train.csv`: one line per epoch, flushed as it is written so an interrupted run keeps its rows.
-struct CsvLog {
-    path: PathBuf,
-    file: BufWriter<File>,
-}
-
-impl CsvLog {
-    fn create(path: &Path) -> Result<Self, TrainError> {
-        let io = |action, source| TrainError::Io {
-            path: path.to_path_buf(),
-            action,
-            source,
-        };
-        if let Some(dir) = path.parent() {
-            std::fs::create_dir_all(dir).map_err(|e| io("create the directory of", e))?;
-        }
-        let mut file = BufWriter::new(File::create(path).map_err(|e| io("create", e))?);
-        writeln!(file, "{CSV_HEADER}").map_err(|e| io("write", e))?;
-        Ok(Self {
-            path: path.to_path_buf(),
-            file,
-        })
-    }
-
-    fn write(&mut self, row: &EpochRow) -> Result<(), TrainError> {
-        writeln!(self.file, "{}", row.csv())
-            .and_then(|()| self.file.flush())
-            .map_err(|source| TrainError::Io {
-                path: self.path.clone(),
-                action: "write",
-                source,
-            })
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::qnet::QNetworkConfig;
 
     /// A network whose every Q-value is `value`: zero weights, output bias `value`.
     fn constant_q(value: f64) -> QNetwork {
-        let q = QNetwork::new(2, 3, &[4], 0);
+        let q = QNetworkConfig::new(2, 3, &[4]).init(0);
         let mut params = q.parameters();
         tch::no_grad(|| {
             for p in &mut params {

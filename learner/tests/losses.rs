@@ -3,7 +3,7 @@
 use tch::{Kind, Tensor};
 use uavmeta_learner::batch::{Batch, BatchError};
 use uavmeta_learner::cql::{conservative_term, cql_loss, CqlLoss};
-use uavmeta_learner::dqn::{dqn_loss, td_errors_with, TdConfig};
+use uavmeta_learner::dqn::{dqn_loss, Bootstrap, TdConfig};
 use uavmeta_proto::config::WorldConfig;
 use uavmeta_proto::dataset::Transition;
 
@@ -50,10 +50,12 @@ fn dqn_options_huber_and_double() {
     // Huber (delta 1) of the same errors -1 and -0.5: 0.5 * 1 and 0.5 * 0.25; mean 0.3125.
     let huber = TdConfig {
         gamma: 0.5,
-        double_dqn: false,
+        bootstrap: Bootstrap::Max,
         huber: true,
     };
-    let loss = td_errors_with(&q, &next, None, &batch, &huber).mean(None);
+    let target = |_: &Tensor| next.shallow_clone();
+    let no_online = |_: &Tensor| unreachable!("only double DQN evaluates the online network");
+    let loss = huber.td_errors(&q, &batch, target, no_online).mean(None);
     assert!((scalar(&loss) - 0.3125).abs() < 1e-6, "{}", scalar(&loss));
 
     // Double DQN: the online net picks a* = argmax [[0, 0, 5], [1, 2, 0]] = [2, 1], the target
@@ -62,14 +64,18 @@ fn dqn_options_huber_and_double() {
     let online = t2(&[[0.0, 0.0, 5.0], [1.0, 2.0, 0.0]]);
     let double = TdConfig {
         gamma: 0.5,
-        double_dqn: true,
+        bootstrap: Bootstrap::Double,
         huber: false,
     };
-    let loss = td_errors_with(&q, &next, Some(&online), &batch, &double).mean(None);
+    let loss = double
+        .td_errors(&q, &batch, target, |_| online.shallow_clone())
+        .mean(None);
     assert!((scalar(&loss) - 3.125).abs() < 1e-6, "{}", scalar(&loss));
 
-    // With both options off, the mean of td_errors_with is eq. 7.
-    let loss = td_errors_with(&q, &next, None, &batch, &TdConfig::eq7(0.5)).mean(None);
+    // With both options off, the mean of the TD errors is eq. 7.
+    let loss = TdConfig::eq7(0.5)
+        .td_errors(&q, &batch, target, no_online)
+        .mean(None);
     assert!((scalar(&loss) - 0.625).abs() < 1e-6);
 }
 

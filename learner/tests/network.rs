@@ -5,7 +5,7 @@ use std::path::Path;
 
 use tch::{Device, Kind, Tensor};
 use uavmeta_learner::checkpoint::{self, CheckpointError, CheckpointPaths};
-use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_proto::config::Config;
 
 fn obs(rows: i64, d: i64, seed: i64) -> Tensor {
@@ -15,7 +15,7 @@ fn obs(rows: i64, d: i64, seed: i64) -> Tensor {
 
 #[test]
 fn layout_and_pytorch_bounds() {
-    let q = QNetwork::new(12, 50, &[32, 16], 3);
+    let q = QNetworkConfig::new(12, 50, &[32, 16]).init(3);
     let shapes: Vec<Vec<i64>> = q.parameters().iter().map(Tensor::size).collect();
     assert_eq!(
         shapes,
@@ -49,19 +49,19 @@ fn layout_and_pytorch_bounds() {
 #[test]
 fn initialisation_depends_on_the_seed_only() {
     let x = obs(4, 12, 1);
-    let a = QNetwork::new(12, 50, &[32, 32], 9);
+    let a = QNetworkConfig::new(12, 50, &[32, 32]).init(9);
     // Global libtorch RNG state must not matter.
     tch::manual_seed(12345);
     let _ = Tensor::rand([100], (Kind::Float, Device::Cpu));
-    let b = QNetwork::new(12, 50, &[32, 32], 9);
-    let c = QNetwork::new(12, 50, &[32, 32], 10);
+    let b = QNetworkConfig::new(12, 50, &[32, 32]).init(9);
+    let c = QNetworkConfig::new(12, 50, &[32, 32]).init(10);
     assert!(a.forward(&x).equal(&b.forward(&x)));
     assert!(!a.forward(&x).allclose(&c.forward(&x), 1e-3, 1e-3, false));
 }
 
 #[test]
 fn functional_forward_carries_fast_weight_gradients() {
-    let q = QNetwork::new(6, 10, &[8], 1);
+    let q = QNetworkConfig::new(6, 10, &[8]).init(1);
     let x = obs(3, 6, 2);
     assert!(QNetwork::forward_with(&q.parameters(), &x).equal(&q.forward(&x)));
     // Fast weights w' = w - 0.1 * g, as MAML's inner step forms them: the loss on w' must
@@ -84,8 +84,8 @@ fn functional_forward_carries_fast_weight_gradients() {
 
 #[test]
 fn copy_from_syncs_a_target() {
-    let online = QNetwork::new(6, 10, &[8], 1);
-    let mut target = QNetwork::new(6, 10, &[8], 2);
+    let online = QNetworkConfig::new(6, 10, &[8]).init(1);
+    let mut target = QNetworkConfig::new(6, 10, &[8]).init(2);
     let x = obs(3, 6, 3);
     assert!(!target.forward(&x).equal(&online.forward(&x)));
     target.copy_from(&online);
@@ -104,12 +104,7 @@ fn config(devices: usize, hidden: &str) -> Config {
 
 fn saved(dir: &Path) -> (QNetwork, std::path::PathBuf) {
     let cfg = config(4, "[16, 8]");
-    let q = QNetwork::new(
-        cfg.world.observation_len(),
-        cfg.world.action_count(),
-        &cfg.learner.hidden,
-        5,
-    );
+    let q = QNetworkConfig::for_world(&cfg.world, &cfg.learner.hidden).init(5);
     let path = dir.join("ckpt").join("epoch-7");
     let meta = checkpoint::save(&path, &q, "cql", 7, &cfg).unwrap();
     assert_eq!(

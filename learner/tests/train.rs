@@ -6,7 +6,7 @@ use rand_chacha::ChaCha8Rng;
 use tch::Tensor;
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint;
-use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{train, Algorithm, EvaluatePolicy, TrainOptions};
 use uavmeta_proto::config::Config;
 use uavmeta_proto::dataset::Transition;
@@ -80,7 +80,7 @@ fn cql_learns_the_bandit_and_writes_its_outputs() {
     let data = Batch::new(&dataset(400), &cfg.world, cfg.learner.reward_scale).unwrap();
     let dir = tempfile::tempdir().unwrap();
     let run = |out: Option<&std::path::Path>| {
-        let mut q = QNetwork::new(3, 5, &cfg.learner.hidden, 0);
+        let mut q = QNetworkConfig::new(3, 5, &cfg.learner.hidden).init(0);
         let opts = TrainOptions {
             algorithm: Algorithm::Cql,
             config: &cfg,

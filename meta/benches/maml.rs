@@ -12,7 +12,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use tch::Tensor;
 use uavmeta_learner::batch::Batch;
-use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_meta::maml::{Maml, MamlConfig, MetaTask};
 use uavmeta_proto::config::Config;
 
@@ -71,12 +71,7 @@ fn child(inner_steps: usize, first_order: bool, threads: i32) {
             query: random_batch(&config, &mut rng),
         })
         .collect();
-    let net = QNetwork::new(
-        config.world.observation_len(),
-        config.world.action_count(),
-        &config.learner.hidden,
-        0,
-    );
+    let net = QNetworkConfig::for_world(&config.world, &config.learner.hidden).init(0);
     let mut maml = Maml::new(net, MamlConfig::from_config(&config), 0).expect("Adam builds");
     let before = vm_hwm_kib();
     for _ in 0..WARMUP_EPOCHS {

@@ -1,4 +1,6 @@
-//! MAML over CQL or DQN inner loops: the paper's contribution, and its experiments.
+//! MAML over CQL or DQN inner loops: the paper's contribution, the meta-learner process that runs
+//! it and the launcher that supervises a run. The experiments that measure it are
+//! `uavmeta-reproduce`.
 //!
 //! - [`maml`]: Algorithm 4 (eqs. 14-16) on [`uavmeta_learner::qnet::QNetwork`] fast weights, with
 //!   the CQL loss (CQL-MAML) or the DQN loss (DQN-MAML), second or first order; its module doc
@@ -9,11 +11,8 @@
 //!   the multi-task baseline that shows what MAML adds.
 //! - [`meta_test`]: fine-tuning a `w0` checkpoint on N shots of an unseen task, through the
 //!   learner's offline training so every method shares its settings and CSV columns.
-//! - [`reproduce`]: `uavmeta reproduce`, the paper's figures 4-9 over several seeds (collection
-//!   with online DQN, meta-training, fine-tuning, evaluation), with CSV files, PNG charts and a
-//!   summary that says which claims of SPEC section 6 hold.
-//! - [`process`]: the meta-learner process of a run; [`launch`]: `uavmeta launch`, the supervisor
-//!   of a run's processes.
+//! - [`meta_learner`]: the meta-learner process of a run; [`launch`]: `uavmeta launch`, the
+//!   supervisor of a run's processes. Each is a folder with its loop and its metrics.
 //!
 //! It consumes datasets (`uavmeta_proto::dataset`), the Q-network, losses, training loop and
 //! checkpoints of `uavmeta-learner`, and the world and greedy-policy evaluator of
@@ -22,7 +21,7 @@
 //! ```
 //! use tch::Tensor;
 //! use uavmeta_learner::batch::Batch;
-//! use uavmeta_learner::qnet::QNetwork;
+//! use uavmeta_learner::qnet::QNetworkConfig;
 //! use uavmeta_meta::maml::{Maml, MamlConfig, MetaTask};
 //! use uavmeta_proto::config::Config;
 //!
@@ -36,7 +35,7 @@
 //! let tasks = vec![MetaTask { name: "a".into(), support: rows(1.0), query: rows(0.5) }];
 //! // CQL-MAML with the SPEC defaults: one second-order inner step, eta_inner = 1e-2.
 //! let settings = MamlConfig::from_config(&Config::default());
-//! let mut maml = Maml::new(QNetwork::new(3, 5, &[8], 1), settings, 0).unwrap();
+//! let mut maml = Maml::new(QNetworkConfig::new(3, 5, &[8]).init(1), settings, 0).unwrap();
 //! let epoch = maml.meta_epoch(&tasks).unwrap();
 //! assert_eq!(epoch.task_losses.len(), 1);
 //! assert!(epoch.meta_loss.is_finite());
@@ -47,17 +46,16 @@
 
 pub mod launch;
 pub mod maml;
+pub mod meta_learner;
 pub mod meta_test;
 pub mod meta_train;
 pub mod pretrain;
-pub mod process;
-pub mod reproduce;
 
 use std::path::{Path, PathBuf};
 
-use uavmeta_actors::collect::CollectError;
 use uavmeta_learner::batch::BatchError;
 use uavmeta_learner::checkpoint::CheckpointError;
+use uavmeta_learner::progress::CsvError;
 use uavmeta_learner::train::TrainError;
 use uavmeta_proto::config::ConfigError;
 use uavmeta_proto::dataset::DatasetError;
@@ -80,16 +78,8 @@ pub enum MetaError {
         action: &'static str,
         source: std::io::Error,
     },
-    #[error("{origin}: the resilience experiment needs rain tasks (role = \"meta-test\" with a `rain` zone); the config has none")]
-    NoRainTasks { origin: String },
-    #[error("cannot start the reproduction's worker threads")]
-    Threads(#[from] rayon::ThreadPoolBuildError),
-    #[error(transparent)]
-    Plot(#[from] uavmeta_plot::PlotError),
     #[error(transparent)]
     Config(#[from] ConfigError),
-    #[error(transparent)]
-    Collect(#[from] CollectError),
     #[error(transparent)]
     Dataset(#[from] DatasetError),
     #[error(transparent)]
@@ -97,11 +87,13 @@ pub enum MetaError {
     #[error(transparent)]
     Train(#[from] TrainError),
     #[error(transparent)]
+    Csv(#[from] CsvError),
+    #[error(transparent)]
     Torch(#[from] tch::TchError),
 }
 
 /// Creates `dir` and its parents, naming it on failure.
-pub(crate) fn create_dir(dir: &Path) -> Result<(), MetaError> {
+pub fn create_dir(dir: &Path) -> Result<(), MetaError> {
     std::fs::create_dir_all(dir).map_err(|source| MetaError::Io {
         path: dir.to_path_buf(),
         action: "create",
@@ -110,7 +102,7 @@ pub(crate) fn create_dir(dir: &Path) -> Result<(), MetaError> {
 }
 
 /// Writes `text` to `path`, naming it on failure.
-pub(crate) fn write_file(path: &Path, text: &str) -> Result<(), MetaError> {
+pub fn write_file(path: &Path, text: &str) -> Result<(), MetaError> {
     std::fs::write(path, text).map_err(|source| MetaError::Io {
         path: path.to_path_buf(),
         action: "write",

@@ -81,7 +81,7 @@ use tch::{Kind, Tensor};
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_learner::cql::{conservative_rows, eq8};
-use uavmeta_learner::dqn::{td_errors_with, TdConfig};
+use uavmeta_learner::dqn::TdConfig;
 use uavmeta_learner::qnet::QNetwork;
 use uavmeta_proto::config::{Config, InnerLoss};
 use uavmeta_proto::transport;
@@ -166,22 +166,13 @@ impl MamlConfig {
     ) -> Tensor {
         let batch = &shots.batch;
         let q = QNetwork::forward_with(params, &batch.obs); // Q_w(s, .) [T, B, A], graph back to params
-        let (next_q_target, next_q_online) = tch::no_grad(|| {
-            let target_q = QNetwork::forward_with(target, &batch.next_obs); // Qhat(s', .) [T, B, A]
-            let online_q = self
-                .td
-                .double_dqn
-                .then(|| QNetwork::forward_with(params, &batch.next_obs));
-            (target_q, online_q)
-        });
-        // Each task's mean over its own rows; padding rows weigh 0.
+                                                            // Each task's mean over its own rows; padding rows weigh 0.
         let mean = |rows: Tensor| (rows * &shots.weight).sum_dim_intlist(-1, false, None::<Kind>);
-        let td = mean(td_errors_with(
+        let td = mean(self.td.td_errors(
             &q,
-            &next_q_target,
-            next_q_online.as_ref(),
             batch,
-            &self.td,
+            |s| QNetwork::forward_with(target, s), // Qhat(s', .) [T, B, A]
+            |s| QNetwork::forward_with(params, s),
         ));
         match self.inner_loss {
             // eq. 7: mean (r + gamma max_a' Qhat(s', a') - Q(s, a))^2

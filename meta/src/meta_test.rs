@@ -9,7 +9,7 @@
 
 use std::path::Path;
 
-use uavmeta_actors::q_policy::Evaluator;
+use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::qnet::QNetwork;

@@ -18,18 +18,16 @@
 //! The meta-learner process runs the same loop through [`meta_train_with`], with a hook that
 //! puts the checkpoints into its run directory and announces them.
 
-use std::fs::File;
-use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use uavmeta_actors::q_policy::Evaluator;
+use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint;
-use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::progress::{progress_bar, CsvLog};
+use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_proto::config::{Config, InnerLoss, MetaConfig, TaskConfig, TaskRole};
 use uavmeta_proto::dataset::{self, DatasetReader};
@@ -185,14 +183,18 @@ pub fn meta_train_with<H: MetaTrainHook>(
     create_dir(out)?;
     write_file(&out.join("config.toml"), &config.to_toml_string())?;
     let (mut maml, start) = start_or_resume(opts, hook)?;
-    let mut csv = CsvLog::open(&out.join("meta_train.csv"), &tasks, start)?;
+    let mut csv = open_csv(&out.join("meta_train.csv"), &tasks, start)?;
     let mut evaluators: Vec<Evaluator> = tasks
         .iter()
         .map(|t| Evaluator::from_config(config, t))
         .collect();
     let algorithm = algorithm_name(meta.inner_loss);
 
-    let bar = progress_bar(opts.progress, meta.meta_epochs as u64);
+    let bar = progress_bar(
+        opts.progress,
+        meta.meta_epochs as u64,
+        "{bar:40} {pos}/{len} meta-epochs {msg} eta {eta}",
+    );
     bar.set_position(start as u64);
     let started = Instant::now();
     let mut rows = Vec::with_capacity(meta.meta_epochs - start);
@@ -218,7 +220,8 @@ pub fn meta_train_with<H: MetaTrainHook>(
             returns,
             seconds: started.elapsed().as_secs_f64(),
         };
-        csv.write(&row, tasks.len())?;
+        csv.line(&csv_line(&row, tasks.len()))
+            .map_err(MetaError::from)?;
         bar.set_message(format!("meta-loss {:.4}", row.epoch.meta_loss));
         if let Some(returns) = &row.returns {
             let mean = returns.iter().sum::<f64>() / returns.len() as f64;
@@ -270,12 +273,7 @@ fn start_or_resume(
     match latest {
         None => {
             let w = &config.world;
-            let w0 = QNetwork::new(
-                w.observation_len(),
-                w.action_count(),
-                &config.learner.hidden,
-                opts.seed,
-            );
+            let w0 = QNetworkConfig::for_world(w, &config.learner.hidden).init(opts.seed);
             Ok((Maml::new(w0, maml, opts.seed)?, 0))
         }
         Some((epoch, path)) => {
@@ -286,85 +284,40 @@ fn start_or_resume(
     }
 }
 
-fn progress_bar(enabled: bool, len: u64) -> ProgressBar {
-    if !enabled {
-        return ProgressBar::with_draw_target(Some(len), ProgressDrawTarget::hidden());
+/// `meta_train.csv`: a new log, keeping the rows of meta-epochs `1..=kept` of an existing one:
+/// those a resumed run does not repeat.
+fn open_csv(path: &Path, tasks: &[TaskConfig], kept: usize) -> Result<CsvLog, MetaError> {
+    let mut header = String::from("meta_epoch,meta_loss");
+    for t in tasks {
+        header.push_str(&format!(",loss_{}", t.name));
     }
-    ProgressBar::new(len).with_style(
-        ProgressStyle::with_template("{bar:40} {pos}/{len} meta-epochs {msg} eta {eta}")
-            .expect("the template is valid"),
+    for t in tasks {
+        header.push_str(&format!(",return_{}", t.name));
+    }
+    header.push_str(",seconds");
+    let done = |line: &str| {
+        let epoch = line.split(',').next().and_then(|c| c.parse::<usize>().ok());
+        epoch.is_some_and(|e| e <= kept)
+    };
+    Ok(CsvLog::resume(path, &header, done)?)
+}
+
+/// `row`'s line of `meta_train.csv`, for a run of `tasks` tasks.
+fn csv_line(row: &MetaRow, tasks: usize) -> String {
+    let mut losses = vec![String::new(); tasks];
+    for &(task, loss) in &row.epoch.task_losses {
+        losses[task] = loss.to_string();
+    }
+    let returns = match &row.returns {
+        Some(r) => r.iter().map(f64::to_string).collect(),
+        None => vec![String::new(); tasks],
+    };
+    format!(
+        "{},{},{},{},{:.3}",
+        row.epoch.epoch,
+        row.epoch.meta_loss,
+        losses.join(","),
+        returns.join(","),
+        row.seconds
     )
-}
-
-/// `meta_train.csv`, flushed row by row so an interrupted run keeps what it did.
-struct CsvLog {
-    path: PathBuf,
-    file: BufWriter<File>,
-}
-
-impl CsvLog {
-    /// A new log, keeping the rows of meta-epochs `1..=kept` of an existing one: those a resumed
-    /// run does not repeat.
-    fn open(path: &Path, tasks: &[TaskConfig], kept: usize) -> Result<Self, MetaError> {
-        let old = match kept {
-            0 => String::new(),
-            _ => std::fs::read_to_string(path).unwrap_or_default(),
-        };
-        let file = File::create(path).map_err(|source| MetaError::Io {
-            path: path.to_path_buf(),
-            action: "create",
-            source,
-        })?;
-        let mut log = Self {
-            path: path.to_path_buf(),
-            file: BufWriter::new(file),
-        };
-        let mut header = String::from("meta_epoch,meta_loss");
-        for t in tasks {
-            header.push_str(&format!(",loss_{}", t.name));
-        }
-        for t in tasks {
-            header.push_str(&format!(",return_{}", t.name));
-        }
-        header.push_str(",seconds");
-        log.line(&header)?;
-        let done = |line: &&str| {
-            let epoch = line.split(',').next().and_then(|c| c.parse::<usize>().ok());
-            epoch.is_some_and(|e| e <= kept)
-        };
-        for line in old.lines().skip(1).filter(done) {
-            log.line(line)?;
-        }
-        Ok(log)
-    }
-
-    fn write(&mut self, row: &MetaRow, tasks: usize) -> Result<(), MetaError> {
-        let mut losses = vec![String::new(); tasks];
-        for &(task, loss) in &row.epoch.task_losses {
-            losses[task] = loss.to_string();
-        }
-        let returns = match &row.returns {
-            Some(r) => r.iter().map(f64::to_string).collect(),
-            None => vec![String::new(); tasks],
-        };
-        let line = format!(
-            "{},{},{},{},{:.3}",
-            row.epoch.epoch,
-            row.epoch.meta_loss,
-            losses.join(","),
-            returns.join(","),
-            row.seconds
-        );
-        self.line(&line)
-    }
-
-    fn line(&mut self, line: &str) -> Result<(), MetaError> {
-        writeln!(self.file, "{line}")
-            .and_then(|()| self.file.flush())
-            .map_err(|source| MetaError::Io {
-                path: self.path.clone(),
-                action: "write",
-                source,
-            })
-    }
 }

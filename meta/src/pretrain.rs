@@ -9,7 +9,7 @@
 //! after one adaptation step in MAML. If MAML adds nothing, the two score alike.
 
 use uavmeta_learner::batch::Batch;
-use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{Algorithm, OfflineTrainer};
 use uavmeta_proto::config::Config;
 
@@ -32,12 +32,7 @@ pub fn pretrain<E>(
     let mut budget = config.clone();
     budget.learner.batch = tasks.len() * (maml.shots + maml.query_shots);
     let w = &config.world;
-    let mut q = QNetwork::new(
-        w.observation_len(),
-        w.action_count(),
-        &config.learner.hidden,
-        seed,
-    );
+    let mut q = QNetworkConfig::for_world(w, &config.learner.hidden).init(seed);
     let mut trainer = OfflineTrainer::new(&q, union.len(), Algorithm::Cql, &budget, seed);
     for epoch in 1..=config.meta.meta_epochs {
         for _ in 0..maml.outer_steps(tasks) {

@@ -8,11 +8,11 @@
 //! random to a policy of the data's quality.
 
 use uavmeta_actors::collect::Collector;
-use uavmeta_actors::heuristics::{EpsilonPolicy, RandomPolicy};
-use uavmeta_actors::q_policy::Evaluator;
+use uavmeta_actors::policy::heuristics::{EpsilonPolicy, RandomPolicy};
+use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_actors::rollout::evaluate;
 use uavmeta_learner::batch::Batch;
-use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_meta::maml::{Maml, MamlConfig, MetaTask};
 use uavmeta_proto::config::Config;
@@ -59,12 +59,7 @@ fn a_meta_trained_w0_beats_a_random_init_zero_shot_on_an_unseen_lambda() {
     .map(|(name, seed)| meta_task(&config, name, seed))
     .collect();
     let w = &config.world;
-    let init = QNetwork::new(
-        w.observation_len(),
-        w.action_count(),
-        &config.learner.hidden,
-        5,
-    );
+    let init = QNetworkConfig::for_world(w, &config.learner.hidden).init(5);
     let unseen = config.task("lambda-300").unwrap();
     let mut evaluator = Evaluator::new(w, unseen, EVAL_EPISODES, EVAL_SEED);
     let before = evaluator.evaluate(&init);

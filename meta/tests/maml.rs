@@ -8,7 +8,7 @@ use tch::{Kind, Tensor};
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::dqn::TdConfig;
-use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_meta::maml::{Maml, MamlConfig, MetaTask, StepSize, TaskShots};
 use uavmeta_proto::config::InnerLoss;
 
@@ -78,7 +78,8 @@ fn shots(tasks: usize, rows: usize, kind: Kind, rng: &mut ChaCha8Rng) -> Vec<Tas
 
 /// The parameters of a seeded network as f64 leaves that require grad.
 fn leaves(seed: u64) -> Vec<Tensor> {
-    QNetwork::new(OBS, ACTIONS, &[6], seed)
+    QNetworkConfig::new(OBS, ACTIONS, &[6])
+        .init(seed)
         .parameters()
         .iter()
         .map(|p| p.to_kind(Kind::Double).detach().set_requires_grad(true))
@@ -383,8 +384,8 @@ fn meta_training_lowers_the_meta_loss_on_held_out_query_data() {
         c.eta_outer = 3e-3;
         // Qhat stays the initial w0, so before and after are the same objective.
         c.target_update_every = 1000;
-        let mut maml =
-            Maml::new(QNetwork::new(OBS, ACTIONS, &[32, 32], 12), c, 13).expect("optimiser");
+        let mut maml = Maml::new(QNetworkConfig::new(OBS, ACTIONS, &[32, 32]).init(12), c, 13)
+            .expect("optimiser");
         let before = maml.meta_loss(&held_out);
         for _ in 0..200 {
             maml.meta_epoch(&tasks).expect("tasks");
@@ -436,7 +437,7 @@ fn resumed_ends_where_uninterrupted_ends(learn_inner_lr: bool) {
     c.tasks_per_meta_epoch = 2;
     c.learn_inner_lr = learn_inner_lr;
     let hidden = [16];
-    let network = || QNetwork::new(OBS, ACTIONS, &hidden, 21);
+    let network = || QNetworkConfig::new(OBS, ACTIONS, &hidden).init(21);
     let (seed, epochs, interrupted_at) = (22, 10, 6);
 
     let mut straight = Maml::new(network(), c.clone(), seed).expect("maml");
@@ -484,14 +485,19 @@ fn a_corrupt_training_state_is_refused_naming_the_file() {
     let dir = tempfile::tempdir().expect("temp dir");
     let path = dir.path().join("epoch-00001");
     let c = config(InnerLoss::Cql, 1, true);
-    let maml = Maml::new(QNetwork::new(OBS, ACTIONS, &[4], 1), c.clone(), 2).expect("maml");
+    let maml = Maml::new(
+        QNetworkConfig::new(OBS, ACTIONS, &[4]).init(1),
+        c.clone(),
+        2,
+    )
+    .expect("maml");
     maml.save_state(&path).expect("save the state");
     let tensors = checkpoint::state_paths(&path).0;
     let mut bytes = std::fs::read(&tensors).expect("read");
     let last = bytes.len() - 1;
     bytes[last] ^= 0xff;
     std::fs::write(&tensors, bytes).expect("write");
-    let err = Maml::resume(QNetwork::new(OBS, ACTIONS, &[4], 1), c, &path)
+    let err = Maml::resume(QNetworkConfig::new(OBS, ACTIONS, &[4]).init(1), c, &path)
         .err()
         .expect("a corrupt state must be refused")
         .to_string();

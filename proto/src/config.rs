@@ -769,22 +769,32 @@ impl Config {
 
     /// Checks every constraint a config must meet beyond its types.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        let invalid = |key: &str, value: &dyn fmt::Debug, expected: &str| ConfigError::Invalid {
+        self.validate_seeds()?;
+        self.validate_world()?;
+        self.validate_world_physics()?;
+        self.validate_tasks()?;
+        self.validate_collect()?;
+        self.validate_learner()?;
+        self.validate_meta()?;
+        self.validate_run()?;
+        self.validate_tunnel()?;
+        self.validate_reproduce_keys()?;
+        Ok(())
+    }
+
+    /// The error for `key` = `value`, which is not `expected`.
+    fn invalid(&self, key: &str, value: &dyn fmt::Debug, expected: &str) -> ConfigError {
+        ConfigError::Invalid {
             origin: self.origin.clone(),
             key: key.to_string(),
             value: format!("{value:?}"),
             expected: expected.to_string(),
-        };
-        let w = &self.world;
-        let cells = (w.grid_cells as usize) * (w.grid_cells as usize);
-        // The world keeps a power table per cell and device, and observations are u16.
-        if w.grid_cells == 0 || w.grid_cells > MAX_GRID_CELLS {
-            return Err(invalid(
-                "world.grid_cells",
-                &w.grid_cells,
-                &format!("between 1 and {MAX_GRID_CELLS} cells per side"),
-            ));
         }
+    }
+
+    /// Seeds are saved as TOML integers (i64), in every section that has one.
+    fn validate_seeds(&self) -> Result<(), ConfigError> {
+        let w = &self.world;
         // TOML integers are i64: a larger seed could not be saved beside a dataset or checkpoint.
         let seeds = [
             ("world.layout_seed", w.layout_seed),
@@ -796,18 +806,33 @@ impl Config {
             .chain(self.run.seeds.iter().map(|s| ("run.seeds", *s)))
         {
             if seed > i64::MAX as u64 {
-                return Err(invalid(key, &seed, &format!("a seed at most {}", i64::MAX)));
+                return Err(self.invalid(key, &seed, &format!("a seed at most {}", i64::MAX)));
             }
         }
+        Ok(())
+    }
+
+    /// The `[world]` section's grid, devices and start.
+    fn validate_world(&self) -> Result<(), ConfigError> {
+        let w = &self.world;
+        let cells = (w.grid_cells as usize) * (w.grid_cells as usize);
+        // The world keeps a power table per cell and device, and observations are u16.
+        if w.grid_cells == 0 || w.grid_cells > MAX_GRID_CELLS {
+            return Err(self.invalid(
+                "world.grid_cells",
+                &w.grid_cells,
+                &format!("between 1 and {MAX_GRID_CELLS} cells per side"),
+            ));
+        }
         if w.devices == 0 || w.devices > cells {
-            return Err(invalid(
+            return Err(self.invalid(
                 "world.devices",
                 &w.devices,
                 &format!("between 1 and the number of cells, grid_cells^2 = {cells}"),
             ));
         }
         if w.devices > MAX_DEVICES {
-            return Err(invalid(
+            return Err(self.invalid(
                 "world.devices",
                 &w.devices,
                 &format!("at most {MAX_DEVICES}"),
@@ -815,7 +840,7 @@ impl Config {
         }
         if let Some(device_cells) = &w.device_cells {
             if device_cells.len() != w.devices {
-                return Err(invalid(
+                return Err(self.invalid(
                     "world.device_cells",
                     device_cells,
                     &format!("one cell per device: {} cells (world.devices)", w.devices),
@@ -823,7 +848,7 @@ impl Config {
             }
             for (i, c) in device_cells.iter().enumerate() {
                 if c[0] >= w.grid_cells || c[1] >= w.grid_cells {
-                    return Err(invalid(
+                    return Err(self.invalid(
                         &format!("world.device_cells[{i}]"),
                         c,
                         &format!(
@@ -833,7 +858,7 @@ impl Config {
                     ));
                 }
                 if device_cells[..i].contains(c) {
-                    return Err(invalid(
+                    return Err(self.invalid(
                         &format!("world.device_cells[{i}]"),
                         c,
                         "a cell no other device occupies",
@@ -843,7 +868,7 @@ impl Config {
         }
         if let Delta::PerDevice(d) = &w.delta {
             if d.len() != w.devices {
-                return Err(invalid(
+                return Err(self.invalid(
                     "world.delta",
                     d,
                     &format!("one weight or {} weights", w.devices),
@@ -854,13 +879,19 @@ impl Config {
             .iter()
             .any(|d| !d.is_finite() || *d < 0.0)
         {
-            return Err(invalid("world.delta", &w.delta, "finite weights >= 0"));
+            return Err(self.invalid("world.delta", &w.delta, "finite weights >= 0"));
         }
         if let Some(c) = w.start_cell {
             if c[0] >= w.grid_cells || c[1] >= w.grid_cells {
-                return Err(invalid("world.start_cell", &c, "a cell inside the grid"));
+                return Err(self.invalid("world.start_cell", &c, "a cell inside the grid"));
             }
         }
+        Ok(())
+    }
+
+    /// The `[world]` section's physical constants and episode length.
+    fn validate_world_physics(&self) -> Result<(), ConfigError> {
+        let w = &self.world;
         for (key, value) in [
             ("world.cell_m", w.cell_m),
             ("world.height_m", w.height_m),
@@ -871,33 +902,39 @@ impl Config {
             ("world.rain_varphi", w.rain_varphi),
         ] {
             if !value.is_finite() || value < 0.0 {
-                return Err(invalid(key, &value, "a finite number >= 0"));
+                return Err(self.invalid(key, &value, "a finite number >= 0"));
             }
         }
         for (key, value) in [("world.g0_db", w.g0_db), ("world.noise_dbm", w.noise_dbm)] {
             if !value.is_finite() {
-                return Err(invalid(key, &value, "a finite number of dB"));
+                return Err(self.invalid(key, &value, "a finite number of dB"));
             }
         }
         if w.horizon == 0 {
-            return Err(invalid("world.horizon", &w.horizon, "at least 1 step"));
+            return Err(self.invalid("world.horizon", &w.horizon, "at least 1 step"));
         }
         if w.aoi_max == 0 || w.aoi_max > u16::MAX as u32 {
-            return Err(invalid("world.aoi_max", &w.aoi_max, "between 1 and 65535"));
+            return Err(self.invalid("world.aoi_max", &w.aoi_max, "between 1 and 65535"));
         }
+        Ok(())
+    }
+
+    /// The `[[tasks]]` tables.
+    fn validate_tasks(&self) -> Result<(), ConfigError> {
+        let w = &self.world;
         if self.tasks.is_empty() {
-            return Err(invalid("tasks", &"[]", "at least one [[tasks]] table"));
+            return Err(self.invalid("tasks", &"[]", "at least one [[tasks]] table"));
         }
         for (i, t) in self.tasks.iter().enumerate() {
             if !t.lambda.is_finite() || t.lambda < 0.0 {
-                return Err(invalid(
+                return Err(self.invalid(
                     &format!("tasks[{i}].lambda"),
                     &t.lambda,
                     "a finite number >= 0",
                 ));
             }
             if t.name.is_empty() || self.tasks[..i].iter().any(|o| o.name == t.name) {
-                return Err(invalid(
+                return Err(self.invalid(
                     &format!("tasks[{i}].name"),
                     &t.name,
                     "a non-empty name no other task has",
@@ -905,7 +942,7 @@ impl Config {
             }
             if let Some(r) = t.rain {
                 if r.x0 > r.x1 || r.y0 > r.y1 || r.x1 >= w.grid_cells || r.y1 >= w.grid_cells {
-                    return Err(invalid(
+                    return Err(self.invalid(
                         &format!("tasks[{i}].rain"),
                         &r,
                         &format!(
@@ -916,124 +953,135 @@ impl Config {
                 }
             }
             if t.rain_moves_every == Some(0) {
-                return Err(invalid(
+                return Err(self.invalid(
                     &format!("tasks[{i}].rain_moves_every"),
                     &0,
                     "at least 1 step",
                 ));
             }
             if t.rain_moves_every.is_some() && t.rain.is_none() {
-                return Err(invalid(
+                return Err(self.invalid(
                     &format!("tasks[{i}].rain_moves_every"),
                     &t.rain_moves_every,
                     "a `rain` zone to move",
                 ));
             }
         }
+        Ok(())
+    }
+
+    /// The `[collect]` section.
+    fn validate_collect(&self) -> Result<(), ConfigError> {
         let c = &self.collect;
         if c.transitions == 0 {
-            return Err(invalid("collect.transitions", &c.transitions, "at least 1"));
+            return Err(self.invalid("collect.transitions", &c.transitions, "at least 1"));
         }
         if c.actors_per_task == 0 {
-            return Err(invalid(
-                "collect.actors_per_task",
-                &c.actors_per_task,
-                "at least 1",
-            ));
+            return Err(self.invalid("collect.actors_per_task", &c.actors_per_task, "at least 1"));
         }
         for (key, value) in [
             ("collect.eps_start", c.eps_start),
             ("collect.eps_end", c.eps_end),
         ] {
             if !(0.0..=1.0).contains(&value) {
-                return Err(invalid(key, &value, "a probability in [0, 1]"));
+                return Err(self.invalid(key, &value, "a probability in [0, 1]"));
             }
         }
         if c.replay_capacity == 0 || c.train_every == 0 || c.dqn_target_update_every == 0 {
-            return Err(invalid(
+            return Err(self.invalid(
                 "collect.replay_capacity / collect.train_every / collect.dqn_target_update_every",
                 &(c.replay_capacity, c.train_every, c.dqn_target_update_every),
                 "each at least 1",
             ));
         }
         if c.dqn_hidden.is_empty() || c.dqn_hidden.contains(&0) {
-            return Err(invalid(
+            return Err(self.invalid(
                 "collect.dqn_hidden",
                 &c.dqn_hidden,
                 "a non-empty list of widths >= 1",
             ));
         }
         if !c.dqn_lr.is_finite() || c.dqn_lr <= 0.0 {
-            return Err(invalid("collect.dqn_lr", &c.dqn_lr, "a finite rate > 0"));
+            return Err(self.invalid("collect.dqn_lr", &c.dqn_lr, "a finite rate > 0"));
         }
         if !c.dqn_grad_clip_norm.is_finite() || c.dqn_grad_clip_norm < 0.0 {
-            return Err(invalid(
+            return Err(self.invalid(
                 "collect.dqn_grad_clip_norm",
                 &c.dqn_grad_clip_norm,
                 "a finite norm >= 0 (0 = no clipping)",
             ));
         }
+        Ok(())
+    }
+
+    /// The `[learner]` section.
+    fn validate_learner(&self) -> Result<(), ConfigError> {
         let l = &self.learner;
         if l.hidden.is_empty() || l.hidden.contains(&0) {
-            return Err(invalid(
+            return Err(self.invalid(
                 "learner.hidden",
                 &l.hidden,
                 "a non-empty list of widths >= 1",
             ));
         }
         if !(0.0..=1.0).contains(&l.gamma) {
-            return Err(invalid("learner.gamma", &l.gamma, "a discount in [0, 1]"));
+            return Err(self.invalid("learner.gamma", &l.gamma, "a discount in [0, 1]"));
         }
         if !l.value_guard.is_finite() || l.value_guard < 0.0 {
-            return Err(invalid(
+            return Err(self.invalid(
                 "learner.value_guard",
                 &l.value_guard,
                 "a finite margin >= 0 (0 = no guard)",
             ));
         }
         if !l.reward_scale.is_finite() || l.reward_scale <= 0.0 {
-            return Err(invalid(
+            return Err(self.invalid(
                 "learner.reward_scale",
                 &l.reward_scale,
                 "a finite number > 0",
             ));
         }
         if !l.alpha.is_finite() || l.alpha < 0.0 {
-            return Err(invalid("learner.alpha", &l.alpha, "a finite number >= 0"));
+            return Err(self.invalid("learner.alpha", &l.alpha, "a finite number >= 0"));
         }
         if l.batch == 0 {
-            return Err(invalid("learner.batch", &l.batch, "at least 1"));
+            return Err(self.invalid("learner.batch", &l.batch, "at least 1"));
         }
         if !l.lr.is_finite() || l.lr <= 0.0 {
-            return Err(invalid("learner.lr", &l.lr, "a learning rate > 0"));
+            return Err(self.invalid("learner.lr", &l.lr, "a learning rate > 0"));
         }
         if l.target_update_every == 0 {
-            return Err(invalid(
+            return Err(self.invalid(
                 "learner.target_update_every",
                 &l.target_update_every,
                 "at least 1",
             ));
         }
+        Ok(())
+    }
+
+    /// The `[meta]` section.
+    fn validate_meta(&self) -> Result<(), ConfigError> {
         let m = &self.meta;
         if m.shots == 0 || m.query_shots == 0 {
-            return Err(invalid(
+            return Err(self.invalid(
                 "meta.shots / meta.query_shots",
                 &(m.shots, m.query_shots),
                 "both at least 1",
             ));
         }
         if !(m.support_fraction > 0.0 && m.support_fraction < 1.0) {
-            return Err(invalid(
+            return Err(self.invalid(
                 "meta.support_fraction",
                 &m.support_fraction,
                 "a share strictly between 0 and 1",
             ));
         }
         if m.inner_steps == 0 {
-            return Err(invalid("meta.inner_steps", &m.inner_steps, "at least 1"));
+            return Err(self.invalid("meta.inner_steps", &m.inner_steps, "at least 1"));
         }
         if m.checkpoint_every == 0 || m.target_update_every == 0 {
-            return Err(invalid(
+            return Err(self.invalid(
                 "meta.checkpoint_every / meta.target_update_every",
                 &(m.checkpoint_every, m.target_update_every),
                 "both at least 1 meta-epoch",
@@ -1044,29 +1092,30 @@ impl Config {
             ("meta.eta_outer", m.eta_outer),
         ] {
             if !value.is_finite() || value <= 0.0 {
-                return Err(invalid(key, &value, "a learning rate > 0"));
+                return Err(self.invalid(key, &value, "a learning rate > 0"));
             }
         }
+        Ok(())
+    }
+
+    /// The `[run]` section.
+    fn validate_run(&self) -> Result<(), ConfigError> {
         let r = &self.run;
         if r.seeds.is_empty() {
-            return Err(invalid("run.seeds", &r.seeds, "at least one seed"));
+            return Err(self.invalid("run.seeds", &r.seeds, "at least one seed"));
         }
         if r.control_buffer == 0 {
-            return Err(invalid(
-                "run.control_buffer",
-                &r.control_buffer,
-                "at least 1",
-            ));
+            return Err(self.invalid("run.control_buffer", &r.control_buffer, "at least 1"));
         }
         if !r.hang_timeout_seconds.is_finite() || r.hang_timeout_seconds < 0.0 {
-            return Err(invalid(
+            return Err(self.invalid(
                 "run.hang_timeout_seconds",
                 &r.hang_timeout_seconds,
                 "seconds >= 0 (0 = never)",
             ));
         }
         if r.batch_size == 0 || r.subscriber_buffer == 0 || r.max_publishers == 0 {
-            return Err(invalid(
+            return Err(self.invalid(
                 "run.batch_size / run.subscriber_buffer / run.max_publishers",
                 &(r.batch_size, r.subscriber_buffer, r.max_publishers),
                 "all at least 1",
@@ -1078,19 +1127,24 @@ impl Config {
                 .chars()
                 .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
         {
-            return Err(invalid(
+            return Err(self.invalid(
                 "run.domain",
                 &r.domain,
                 &format!("at most {MAX_DOMAIN_LEN} letters, digits, '-' or '_' (empty = default)"),
             ));
         }
+        Ok(())
+    }
+
+    /// The `[tunnel]` section.
+    fn validate_tunnel(&self) -> Result<(), ConfigError> {
         let listen = &self.tunnel.listen;
         if !listen.is_empty()
             && !listen
                 .split_once('/')
                 .is_some_and(|(p, a)| !p.is_empty() && !a.is_empty())
         {
-            return Err(invalid(
+            return Err(self.invalid(
                 "tunnel.listen",
                 listen,
                 "a Zenoh endpoint PROTOCOL/ADDRESS such as tcp/0.0.0.0:7447, or empty",
@@ -1098,26 +1152,28 @@ impl Config {
         }
         let t = &self.tunnel;
         if !t.wait_for_hosts.is_empty() && t.listen.is_empty() {
-            return Err(invalid(
+            return Err(self.invalid(
                 "tunnel.wait_for_hosts",
                 &t.wait_for_hosts,
                 "no hosts while tunnel.listen is empty (no tunnel to wait through)",
             ));
         }
         if !t.wait_seconds.is_finite() || t.wait_seconds <= 0.0 {
-            return Err(invalid(
-                "tunnel.wait_seconds",
-                &t.wait_seconds,
-                "seconds > 0",
-            ));
+            return Err(self.invalid("tunnel.wait_seconds", &t.wait_seconds, "seconds > 0"));
         }
+        Ok(())
+    }
+
+    /// The `[reproduce]` keys on their own ([`Config::validate_reproduce`] checks them against
+    /// the tasks).
+    fn validate_reproduce_keys(&self) -> Result<(), ConfigError> {
         let p = &self.reproduce;
         if p.seeds == 0
             || (p.seeds as u64 - 1)
                 .checked_add(self.collect.seed)
                 .is_none_or(|s| s > i64::MAX as u64)
         {
-            return Err(invalid(
+            return Err(self.invalid(
                 "reproduce.seeds",
                 &p.seeds,
                 &format!(
@@ -1139,32 +1195,28 @@ impl Config {
             ),
         ] {
             if value == 0 {
-                return Err(invalid(key, &value, "at least 1"));
+                return Err(self.invalid(key, &value, "at least 1"));
             }
         }
         if p.task_counts.is_empty()
             || p.task_counts.contains(&0)
             || p.task_counts.windows(2).any(|w| w[0] >= w[1])
         {
-            return Err(invalid(
+            return Err(self.invalid(
                 "reproduce.task_counts",
                 &p.task_counts,
                 "a non-empty, strictly increasing list of task counts >= 1",
             ));
         }
         if p.shots.is_empty() || p.shots.contains(&0) || p.shots.windows(2).any(|w| w[0] >= w[1]) {
-            return Err(invalid(
+            return Err(self.invalid(
                 "reproduce.shots",
                 &p.shots,
                 "a non-empty, strictly increasing list of shot counts >= 1",
             ));
         }
         if p.unseen_task.is_empty() {
-            return Err(invalid(
-                "reproduce.unseen_task",
-                &p.unseen_task,
-                "a task name",
-            ));
+            return Err(self.invalid("reproduce.unseen_task", &p.unseen_task, "a task name"));
         }
         Ok(())
     }
@@ -1172,35 +1224,29 @@ impl Config {
     /// Checks the `[reproduce]` keys that refer to `[[tasks]]` and `[collect]`: run by
     /// `uavmeta reproduce` only, so that other commands take configs without such tasks.
     pub fn validate_reproduce(&self) -> Result<(), ConfigError> {
-        let invalid = |key: &str, value: &dyn fmt::Debug, expected: String| ConfigError::Invalid {
-            origin: self.origin.clone(),
-            key: key.to_string(),
-            value: format!("{value:?}"),
-            expected,
-        };
         let p = &self.reproduce;
         let meta_train = self.tasks_with_role(TaskRole::MetaTrain).count();
         if p.meta_tasks > meta_train {
-            return Err(invalid(
+            return Err(self.invalid(
                 "reproduce.meta_tasks",
                 &p.meta_tasks,
-                format!("at most the {meta_train} tasks with role = \"meta-train\""),
+                &format!("at most the {meta_train} tasks with role = \"meta-train\""),
             ));
         }
         if p.task_counts.iter().any(|&n| n > meta_train) {
-            return Err(invalid(
+            return Err(self.invalid(
                 "reproduce.task_counts",
                 &p.task_counts,
-                format!("counts of at most the {meta_train} tasks with role = \"meta-train\""),
+                &format!("counts of at most the {meta_train} tasks with role = \"meta-train\""),
             ));
         }
         match self.tasks.iter().find(|t| t.name == p.unseen_task) {
             Some(t) if t.role == TaskRole::MetaTest => {}
             _ => {
-                return Err(invalid(
+                return Err(self.invalid(
                     "reproduce.unseen_task",
                     &p.unseen_task,
-                    "the name of a task with role = \"meta-test\"".to_string(),
+                    "the name of a task with role = \"meta-test\"",
                 ))
             }
         }
@@ -1212,10 +1258,10 @@ impl Config {
             .max()
             .unwrap_or(0);
         if most > self.collect.transitions {
-            return Err(invalid(
+            return Err(self.invalid(
                 "reproduce.shots / reproduce.main_shots",
                 &(&p.shots, p.main_shots),
-                format!(
+                &format!(
                     "at most collect.transitions = {}, the size of each task's dataset",
                     self.collect.transitions
                 ),

@@ -1,10 +1,16 @@
-//! The contract between uavmeta's processes, and nothing else.
+//! The contract between uavmeta's processes (what they read and write, what they send each other,
+//! what they export) and the start-up they all share.
 //!
 //! - [`config`]: the experiment configuration (SPEC section 7), read from TOML with every SPEC
 //!   default, `--set` overrides and validation errors that name the file, key and value.
 //! - [`dataset`]: the on-disk dataset format that collectors and the store write and learners read.
+//! - [`stats`]: episode metrics (SPEC section 1) and their Monte-Carlo summaries.
 //! - [`transport`]: the zero-copy payload types and iceoryx2 service names shared by the actor,
-//!   store, meta-learner and evaluator processes, with the schema version they must agree on.
+//!   store, meta-learner and evaluator processes, with the schema version they must agree on,
+//!   and the run directory's layout.
+//! - [`process`]: the start-up every process shares (node, services, /metrics, shutdown).
+//! - [`metrics`]: every metric name and help text the processes export (so a renamed metric is a
+//!   compile error in every reader), the /metrics endpoint they serve and the client that reads it.
 //!
 //! ```
 //! use uavmeta_proto::config::Config;
@@ -15,5 +21,7 @@
 
 pub mod config;
 pub mod dataset;
+pub mod metrics;
+pub mod process;
 pub mod stats;
 pub mod transport;

@@ -1,10 +1,10 @@
 //! `uavmeta actor --run R --task T [--policy P] [--seed S] [--transitions N]`: one actor of a run
-//! (see `uavmeta_actors::actor_process`).
+//! (see `uavmeta_actors::actor`).
 
 use anyhow::{Context, Result};
 use clap::Args;
-use uavmeta_actors::actor_process::{self, ActorOptions};
-use uavmeta_actors::heuristics::PolicySpec;
+use uavmeta_actors::actor::{self, ActorOptions};
+use uavmeta_actors::policy::heuristics::PolicySpec;
 
 use super::launch::RunArgs;
 
@@ -38,6 +38,6 @@ pub fn run(args: ActorArgs) -> Result<()> {
         seed: args.seed.unwrap_or(config.collect.seed),
         transitions: args.transitions,
     };
-    actor_process::run(&run, &config, &options)?;
+    actor::run(&run, &config, &options)?;
     Ok(())
 }

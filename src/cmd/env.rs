@@ -5,7 +5,7 @@ use std::io::{self, Write};
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use serde::Serialize;
-use uavmeta_actors::heuristics::PolicySpec;
+use uavmeta_actors::policy::heuristics::PolicySpec;
 use uavmeta_actors::rollout::{rollout, StepRecord};
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use clap::Args;
-use uavmeta_actors::q_policy::Evaluator;
+use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::train::EvaluatePolicy;
 

@@ -7,7 +7,7 @@ use std::process::Command;
 use anyhow::Result;
 use clap::builder::PossibleValuesParser;
 use clap::Args;
-use uavmeta_meta::reproduce::{self, quick_config, Experiment, ReproduceOptions};
+use uavmeta_reproduce::{self as reproduce, quick_config, Experiment, ReproduceOptions};
 
 use super::common::ConfigArgs;
 

@@ -5,9 +5,9 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use uavmeta_actors::q_policy::Evaluator;
+use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::checkpoint;
-use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::{train, Algorithm, TrainOptions};
 use uavmeta_meta::meta_test::load_shots;
 
@@ -53,12 +53,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
     let shots = usize::try_from(args.shots).context("--shots does not fit in memory")?;
     let data = load_shots(&config, &task, &args.dataset, shots, seed)?;
     let mut q = if args.init == "random" {
-        QNetwork::new(
-            config.world.observation_len(),
-            config.world.action_count(),
-            &config.learner.hidden,
-            seed,
-        )
+        QNetworkConfig::for_world(&config.world, &config.learner.hidden).init(seed)
     } else {
         checkpoint::load(args.init.as_ref(), &config)?.0
     };

@@ -16,13 +16,13 @@ use std::thread::JoinHandle;
 use std::time::Duration;
 
 use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
-use uavmeta_actors::actor_process::Phase;
-use uavmeta_learner::metrics::{self, Sample};
+use uavmeta_actors::actor::Phase;
 use uavmeta_learner::store;
 use uavmeta_proto::config::{Config, TaskRole};
+use uavmeta_proto::metrics::{self, Metric, Sample};
 use uavmeta_proto::transport::{Method, RunDir};
 
-use crate::process as meta_learner;
+use crate::meta_learner;
 
 /// How often the rows are refreshed.
 const REFRESH: Duration = Duration::from_millis(500);
@@ -166,7 +166,7 @@ impl View {
         if let Some(store) = self.scrape(store::PROCESS) {
             for (task, stored) in self.tasks.iter().zip(&mut self.stored) {
                 let ready = [("task", task.as_str())];
-                *stored |= metrics::sum(&store, "uavmeta_store_dataset_ready", &ready) > 0.0;
+                *stored |= metrics::sum(&store, metrics::store::DATASET_READY, &ready) > 0.0;
             }
         }
         for row in &self.actors {
@@ -196,14 +196,14 @@ impl View {
     }
 
     fn show_actor(&self, bar: &ProgressBar, samples: &[Sample]) {
-        let value = |name: &str| metrics::sum(samples, name, &[]);
+        let value = |metric: Metric| metrics::sum(samples, metric, &[]);
         let phase = Phase::ALL
             .into_iter()
-            .find(|p| metrics::sum(samples, "uavmeta_actor_phase", &[("phase", p.name())]) > 0.0);
+            .find(|p| metrics::sum(samples, metrics::actor::PHASE, &[("phase", p.name())]) > 0.0);
         let Some(phase) = phase else { return };
         if phase == Phase::Training {
-            let steps = value("uavmeta_actor_steps_total") as u64;
-            let ret = value("uavmeta_actor_online_dqn_recent_return");
+            let steps = value(metrics::actor::STEPS) as u64;
+            let ret = value(metrics::actor::ONLINE_DQN_RECENT_RETURN);
             let ret = match ret.is_nan() {
                 true => "none yet".to_string(),
                 false => format!("{ret:.1}"),
@@ -213,13 +213,12 @@ impl View {
             bar.set_message(format!(
                 "training online DQN: step {steps}/{}, epsilon {:.2}, return {ret} (last {} episodes)",
                 self.dqn_steps,
-                value("uavmeta_actor_online_dqn_epsilon"),
-                uavmeta_actors::dqn_online::RECENT_EPISODES,
+                value(metrics::actor::ONLINE_DQN_EPSILON),
+                uavmeta_actors::policy::dqn_online::RECENT_EPISODES,
             ));
             return;
         }
-        let sent =
-            (value("uavmeta_actor_transitions_published_total") as u64).min(self.transitions);
+        let sent = (value(metrics::actor::TRANSITIONS_PUBLISHED) as u64).min(self.transitions);
         bar.set_length(self.transitions);
         bar.set_position(sent);
         bar.set_message(match phase {
@@ -232,9 +231,9 @@ impl View {
     }
 
     fn show_meta_learner(&self, samples: &[Sample]) {
-        let value = |name: &str| metrics::sum(samples, name, &[]);
-        let fine_tuned = value("uavmeta_meta_learner_fine_tune_epochs_total") as u64;
-        let epoch = value("uavmeta_meta_learner_meta_epoch") as u64;
+        let value = |metric: Metric| metrics::sum(samples, metric, &[]);
+        let fine_tuned = value(metrics::meta_learner::FINE_TUNE_EPOCHS) as u64;
+        let epoch = value(metrics::meta_learner::META_EPOCH) as u64;
         let (length, position, message) = if fine_tuned > 0 {
             let all = self.fine_tune_epochs;
             (
@@ -243,7 +242,7 @@ impl View {
                 format!("meta-test: {fine_tuned}/{all} fine-tuning epochs"),
             )
         } else if epoch > 0 {
-            let loss = value("uavmeta_meta_learner_meta_loss");
+            let loss = value(metrics::meta_learner::META_LOSS);
             let all = self.meta_epochs;
             (
                 all,

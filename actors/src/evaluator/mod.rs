@@ -3,7 +3,7 @@
 //!
 //! For each `CheckpointReady` it loads the checkpoint, runs the greedy policy for
 //! `learner.eval_episodes` Monte-Carlo episodes seeded `learner.eval_seed` (the same episodes for
-//! every method and epoch, [`crate::q_policy::Evaluator`]), sets the per-task, per-method gauges
+//! every method and epoch, [`crate::policy::q_policy::Evaluator`]), sets the per-task, per-method gauges
 //! and appends one row to the run's `evaluations.csv` for plots.
 //!
 //! **Restart.** An evaluator (re)started mid-run or after the meta-learner has exited first queues
@@ -13,21 +13,24 @@
 //! announcement makes it finish the checkpoints it knows of, then exit.
 
 use std::collections::{BTreeSet, VecDeque};
-use std::fs::OpenOptions;
+use std::fs::{File, OpenOptions};
 use std::io::{BufRead, BufReader, Write};
 use std::path::Path;
 use std::time::{Duration, Instant};
 
 use uavmeta_learner::checkpoint::{self, CheckpointError};
-use uavmeta_learner::metrics::{MetricsError, MetricsServer};
 use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
+use uavmeta_proto::metrics::MetricsError;
+use uavmeta_proto::process::Process;
 use uavmeta_proto::stats::PolicyMetrics;
 use uavmeta_proto::transport::{
-    self, CheckpointReady, Method, RunDir, ServiceNames, TransportError, SCHEMA_VERSION,
+    self, CheckpointReady, Method, RunDir, TransportError, SCHEMA_VERSION,
 };
 
-use crate::q_policy::Evaluator;
+use crate::policy::q_policy::Evaluator;
+
+mod metrics;
 
 /// The evaluator's process name: node, port file and metrics snapshot.
 pub const PROCESS: &str = "evaluator";
@@ -146,64 +149,14 @@ pub fn read_rows(path: &Path) -> std::io::Result<Vec<EvaluationRow>> {
     Ok(rows)
 }
 
-/// The evaluator's metrics: every name it exports, in one place.
-mod metrics {
-    use prometheus::{GaugeVec, Histogram, IntCounter, Opts, Registry};
-    use uavmeta_learner::metrics::{counter, latency_histogram, register};
-
-    pub struct EvaluatorMetrics {
-        pub registry: Registry,
-        pub ret: GaugeVec,
-        pub aoi: GaugeVec,
-        pub power: GaugeVec,
-        pub outages: GaugeVec,
-        pub epoch: GaugeVec,
-        pub evaluated: IntCounter,
-        pub duration: Histogram,
-    }
-
-    impl EvaluatorMetrics {
-        pub fn new() -> Self {
-            let registry = uavmeta_learner::metrics::registry();
-            let gauge = |name: &str, help: &str| {
-                register(
-                    &registry,
-                    GaugeVec::new(Opts::new(name, help), &["task", "method"]).expect("valid gauge"),
-                )
-            };
-            Self {
-                ret: gauge("evaluator_return", "Mean episode return of the latest evaluated checkpoint."),
-                aoi: gauge("evaluator_aoi", "Mean AoI over steps and devices of the latest evaluated checkpoint."),
-                power: gauge("evaluator_power_watts", "Mean transmit power per step of the latest evaluated checkpoint, in watts."),
-                outages: gauge("evaluator_outages", "Mean steps in outage per episode of the latest evaluated checkpoint."),
-                epoch: gauge("evaluator_epoch", "Training epochs (meta-epochs for maml-init) behind the latest evaluated checkpoint."),
-                evaluated: counter(&registry, "evaluator_checkpoints_evaluated_total", "Checkpoints evaluated."),
-                duration: latency_histogram(&registry, "evaluator_evaluation_duration_seconds", "Time to load and evaluate one checkpoint."),
-                registry,
-            }
-        }
-    }
-}
-
 /// Runs the evaluator of `run` until a shutdown (after finishing what was announced) or
 /// SIGINT/SIGTERM. Returns the checkpoints evaluated.
 pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
-    let node = transport::node(&format!("{}-{PROCESS}", run.id()), &config.run)?;
-    let names = ServiceNames::new(run);
+    let process = Process::start(run, config, PROCESS)?;
     let metrics = metrics::EvaluatorMetrics::new();
-    let _server = MetricsServer::start(
-        metrics.registry.clone(),
-        &config.run.metrics_host,
-        0,
-        run,
-        PROCESS,
-    )?;
+    let _server = process.serve_metrics(run, config, metrics.registry.clone())?;
     let announcements = transport::control_subscriber(
-        &transport::checkpoint_ready_service(&node, &names, config)?,
-        config,
-    )?;
-    let shutdown = transport::control_subscriber(
-        &transport::shutdown_service(&node, &names, config)?,
+        &transport::checkpoint_ready_service(&process.node, &process.names, config)?,
         config,
     )?;
 
@@ -213,21 +166,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
         action,
         source,
     };
-    let mut done: BTreeSet<(String, String, u32)> = BTreeSet::new();
-    if csv_path.exists() {
-        for row in read_rows(&csv_path).map_err(|e| io("read", e))? {
-            done.insert((row.task, row.method, row.epoch));
-        }
-    }
-    let fresh = !csv_path.exists();
-    let mut csv = OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(&csv_path)
-        .map_err(|e| io("open", e))?;
-    if fresh {
-        writeln!(csv, "{CSV_HEADER}").map_err(|e| io("write", e))?;
-    }
+    let (mut csv, mut done) = open_csv(&csv_path).map_err(|(action, e)| io(action, e))?;
 
     let mut queue: VecDeque<CheckpointReady> = checkpoints_on_disk(run, config).into();
     if !queue.is_empty() {
@@ -239,7 +178,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
     let mut stopping = false;
     let mut evaluated = 0u64;
     while transport::keep_running(
-        &node,
+        &process.node,
         if queue.is_empty() {
             POLL
         } else {
@@ -253,7 +192,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
                 queue.push_back(*m);
             }
         }
-        stopping |= transport::shutdown_requested(&shutdown)?;
+        stopping |= transport::shutdown_requested(&process.shutdown)?;
         let Some(next) = queue.pop_front() else {
             if stopping {
                 break;
@@ -281,24 +220,35 @@ pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
         let row = EvaluationRow::new(&task.name, method.name(), next.epoch, &result);
         writeln!(csv, "{}", row.to_csv()).map_err(|e| io("append a row", e))?;
         csv.flush().map_err(|e| io("flush", e))?;
-        let labels = [task.name.as_str(), method.name()];
-        metrics.ret.with_label_values(&labels).set(row.ret);
-        metrics.aoi.with_label_values(&labels).set(row.aoi);
-        metrics
-            .power
-            .with_label_values(&labels)
-            .set(row.power_watts);
-        metrics.outages.with_label_values(&labels).set(row.outages);
-        metrics
-            .epoch
-            .with_label_values(&labels)
-            .set(next.epoch as f64);
-        metrics.evaluated.inc();
-        metrics.duration.observe(start.elapsed().as_secs_f64());
+        metrics.observe(&row, start.elapsed());
         evaluated += 1;
         tracing::info!(task = %task.name, %method, epoch = next.epoch, ret = row.ret, aoi = row.aoi, power_watts = row.power_watts, outages = row.outages, "evaluated");
     }
     Ok(evaluated)
+}
+
+/// The (task, method, epoch) of evaluated checkpoints.
+type Evaluated = BTreeSet<(String, String, u32)>;
+
+/// The evaluations CSV at `path`, opened for appending (with its header when new), and the
+/// checkpoints its rows already hold. An error says what failed.
+fn open_csv(path: &Path) -> Result<(File, Evaluated), (&'static str, std::io::Error)> {
+    let mut done = BTreeSet::new();
+    if path.exists() {
+        for row in read_rows(path).map_err(|e| ("read", e))? {
+            done.insert((row.task, row.method, row.epoch));
+        }
+    }
+    let fresh = !path.exists();
+    let mut csv = OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .map_err(|e| ("open", e))?;
+    if fresh {
+        writeln!(csv, "{CSV_HEADER}").map_err(|e| ("write", e))?;
+    }
+    Ok((csv, done))
 }
 
 /// The complete checkpoints in `run`'s directory, as the meta-learner announces them: every w0

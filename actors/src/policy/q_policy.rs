@@ -101,6 +101,7 @@ mod tests {
 
     use super::*;
     use crate::rollout::evaluate;
+    use uavmeta_learner::qnet::QNetworkConfig;
 
     fn assert_metrics_close(batched: &PolicyMetrics, single: &PolicyMetrics) {
         assert_eq!(batched.episodes, single.episodes);
@@ -139,7 +140,8 @@ mod tests {
         let tasks = [TaskConfig::one_off(100.0, None), rain];
         let (obs_len, actions) = (config.world.observation_len(), config.world.action_count());
         for (net_seed, task) in tasks.iter().enumerate() {
-            let q = QNetwork::new(obs_len, actions, &config.learner.hidden, net_seed as u64);
+            let q =
+                QNetworkConfig::new(obs_len, actions, &config.learner.hidden).init(net_seed as u64);
             for episodes in [1, 7] {
                 let seed = 31 + episodes as u64;
                 let batched = Evaluator::new(&config.world, task, episodes, seed).evaluate(&q);

@@ -17,7 +17,7 @@
 //! progress (SIGSTOP, a deadlock, a livelocked libtorch) is treated the same: each child beats
 //! (`transport::heartbeat`, the modification time of `heartbeats/<name>`, named in its
 //! environment), and one silent for `run.hang_timeout_seconds` is killed (SIGKILL to its process
-//! group), counted in `uavmeta_launcher_child_hangs_total` and restarted. A child that exits
+//! group), counted in `uavmeta_launcher_child_hangs_total` (`uavmeta_proto::metrics::launcher::CHILD_HANGS`) and restarted. A child that exits
 //! successfully is done: actors end when their task's dataset is complete, the meta-learner when
 //! it has meta-tested. Then the launcher announces a shutdown, the evaluator finishes the
 //! checkpoints it was told about, the store syncs its files, and the launcher prints a results
@@ -34,23 +34,27 @@ use std::path::PathBuf;
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant, SystemTime};
 
+use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use indicatif::MultiProgress;
-use uavmeta_actors::actor_process::ActorOptions;
-use uavmeta_actors::evaluator_process::{self, EvaluationRow};
-use uavmeta_actors::heuristics::PolicySpec;
+use uavmeta_actors::actor::ActorOptions;
+use uavmeta_actors::evaluator::{self, EvaluationRow};
+use uavmeta_actors::policy::heuristics::PolicySpec;
 use uavmeta_actors::rollout::evaluate;
-use uavmeta_learner::metrics::{self, MetricsServer};
 use uavmeta_learner::store;
 use uavmeta_proto::config::{Config, TaskRole};
+use uavmeta_proto::metrics::{
+    parse, scrape, store::TRANSITIONS_STORED, sum, wait_for_port, MetricsError, MetricsServer,
+};
 use uavmeta_proto::transport::{
-    self, write_atomic, Method, RemoteHost, RunDir, ServiceNames, Shutdown, TransportError,
-    SCHEMA_VERSION,
+    self, write_atomic, CheckpointReady, DatasetReady, Method, RemoteHost, RunDir, ServiceNames,
+    Shutdown, TransportError, SCHEMA_VERSION,
 };
 
-use crate::process as meta_learner;
+use crate::meta_learner;
 
 mod display;
+mod metrics;
 
 /// How often the run's `prometheus.yml` has Prometheus scrape every process; `uavmeta dashboard
 /// render` takes it for the interval of its rates.
@@ -58,7 +62,7 @@ pub const SCRAPE_INTERVAL_SECONDS: u64 = 5;
 
 /// The Grafana dashboard of a run's metrics, copied into every run directory beside
 /// `prometheus.yml`; embedded so that the binary writes it from any working directory.
-const DASHBOARD: &str = include_str!("../../docs/grafana/uavmeta.json");
+const DASHBOARD: &str = include_str!("../../../docs/grafana/uavmeta.json");
 
 /// How often the supervisor looks at its children and the run's announcements.
 const TICK: Duration = Duration::from_millis(100);
@@ -82,7 +86,7 @@ pub enum LaunchError {
     #[error(transparent)]
     Transport(#[from] TransportError),
     #[error(transparent)]
-    Metrics(#[from] metrics::MetricsError),
+    Metrics(#[from] MetricsError),
     #[error("{}: cannot {action}", path.display())]
     Io {
         path: PathBuf,
@@ -143,76 +147,6 @@ struct Supervised {
     restart_at: Option<Instant>,
     /// Exited successfully: not restarted.
     done: bool,
-}
-
-/// The launcher's metrics: every name it exports, in one place.
-mod launch_metrics {
-    use prometheus::{IntCounterVec, IntGauge, Opts, Registry};
-    use uavmeta_learner::metrics::register;
-
-    pub struct LauncherMetrics {
-        pub registry: Registry,
-        pub restarts: IntCounterVec,
-        pub hangs: IntCounterVec,
-        pub children_running: IntGauge,
-        pub datasets_ready: IntGauge,
-        pub checkpoints_announced: IntGauge,
-    }
-
-    impl LauncherMetrics {
-        pub fn new() -> Self {
-            let registry = uavmeta_learner::metrics::registry();
-            Self {
-                restarts: register(
-                    &registry,
-                    IntCounterVec::new(
-                        Opts::new(
-                            "launcher_child_restarts_total",
-                            "Restarts of a crashed child process.",
-                        ),
-                        &["process"],
-                    )
-                    .expect("valid counter"),
-                ),
-                hangs: register(
-                    &registry,
-                    IntCounterVec::new(
-                        Opts::new(
-                            "launcher_child_hangs_total",
-                            "Children killed because their heartbeat stopped (run.hang_timeout_seconds).",
-                        ),
-                        &["process"],
-                    )
-                    .expect("valid counter"),
-                ),
-                children_running: register(
-                    &registry,
-                    IntGauge::with_opts(Opts::new(
-                        "launcher_children_running",
-                        "Child processes running.",
-                    ))
-                    .expect("valid gauge"),
-                ),
-                datasets_ready: register(
-                    &registry,
-                    IntGauge::with_opts(Opts::new(
-                        "launcher_datasets_ready",
-                        "Tasks whose dataset the store announced complete.",
-                    ))
-                    .expect("valid gauge"),
-                ),
-                checkpoints_announced: register(
-                    &registry,
-                    IntGauge::with_opts(Opts::new(
-                        "launcher_checkpoints_announced",
-                        "Checkpoints the meta-learner announced.",
-                    ))
-                    .expect("valid gauge"),
-                ),
-                registry,
-            }
-        }
-    }
 }
 
 /// What a finished launch reports.
@@ -292,7 +226,7 @@ pub fn launch(
     let node = transport::node(&format!("{}-{PROCESS}", run.id()), &config.run)?;
     transport::cleanup_dead_nodes(&node);
     let names = ServiceNames::new(&run);
-    let launcher_metrics = launch_metrics::LauncherMetrics::new();
+    let launcher_metrics = metrics::LauncherMetrics::new();
     let _server = MetricsServer::start(
         launcher_metrics.registry.clone(),
         &config.run.metrics_host,
@@ -328,31 +262,7 @@ pub fn launch(
         metrics: &launcher_metrics,
     };
 
-    // The store first, and ready, so the actors' first batches have a subscriber.
-    let store_index = children
-        .iter()
-        .position(|c| c.role == Role::Store)
-        .expect("the plan has a store");
-    supervisor.start(&mut children[store_index])?;
-    metrics::wait_for_port(&run, store::PROCESS, STORE_START)?;
-    // Then the tunnel, and the remote hosts the config waits for, before the local actors.
-    for child in children.iter_mut().filter(|c| c.role == Role::Tunnel) {
-        supervisor.start(child)?;
-        // What an actor host needs to join (README, Actors on other hosts).
-        tracing::info!(
-            endpoint = %config.tunnel.listen,
-            "remote actor hosts join with `uavmeta tunnel join --connect <this host's address for \
-             the endpoint> --run-id {}`",
-            run.id()
-        );
-    }
-    wait_for_remote_hosts(&run, config, &node)?;
-    for child in children
-        .iter_mut()
-        .filter(|c| !matches!(c.role, Role::Store | Role::Tunnel))
-    {
-        supervisor.start(child)?;
-    }
+    start_children(&supervisor, &mut children, config, &node)?;
     tracing::info!(run = %run.root().display(), children = children.len(), "launched");
 
     let mut ready_tasks = vec![false; config.tasks.len()];
@@ -366,28 +276,12 @@ pub fn launch(
         if let Err(error) = supervisor.poll(&mut children, &node) {
             break Err(error);
         }
-        while let Some(m) = dataset_ready
-            .receive()
-            .map_err(transport::receive_failed("receive a dataset announcement"))?
-        {
-            if m.schema_version == SCHEMA_VERSION {
-                if let Some(ready) = ready_tasks.get_mut(m.task as usize) {
-                    *ready = true;
-                }
-            }
-        }
-        launcher_metrics
-            .datasets_ready
-            .set(ready_tasks.iter().filter(|r| **r).count() as i64);
-        while checkpoint_ready
-            .receive()
-            .map_err(transport::receive_failed(
-                "receive a checkpoint announcement",
-            ))?
-            .is_some()
-        {
-            launcher_metrics.checkpoints_announced.inc();
-        }
+        count_announcements(
+            &dataset_ready,
+            &checkpoint_ready,
+            &mut ready_tasks,
+            &launcher_metrics,
+        )?;
         last_targets = write_targets(&run, &children, last_targets)?;
         launcher_metrics
             .children_running
@@ -426,16 +320,7 @@ pub fn launch(
             break Ok(());
         }
     };
-    // Orderly stop of whatever still runs: actors, then learners, then the store.
-    for role in [
-        Role::Actor,
-        Role::MetaLearner,
-        Role::Evaluator,
-        Role::Tunnel,
-        Role::Store,
-    ] {
-        stop_role(&mut children, role);
-    }
+    stop_all(&mut children);
     transport::cleanup_dead_nodes(&node);
     if let Some(display) = display {
         display.finish();
@@ -450,19 +335,96 @@ pub fn launch(
     })
 }
 
+/// Starts the children in their order: the store first, and ready, so the actors' first batches
+/// have a subscriber; then the tunnel, and the remote hosts the config waits for; then the local
+/// actors, the meta-learner and the evaluator.
+fn start_children(
+    supervisor: &Supervisor,
+    children: &mut [Supervised],
+    config: &Config,
+    node: &Node<ipc::Service>,
+) -> Result<(), LaunchError> {
+    let run = &supervisor.run;
+    let store_index = children
+        .iter()
+        .position(|c| c.role == Role::Store)
+        .expect("the plan has a store");
+    supervisor.start(&mut children[store_index])?;
+    wait_for_port(run, store::PROCESS, STORE_START)?;
+    for child in children.iter_mut().filter(|c| c.role == Role::Tunnel) {
+        supervisor.start(child)?;
+        // What an actor host needs to join (README, Actors on other hosts).
+        tracing::info!(
+            endpoint = %config.tunnel.listen,
+            "remote actor hosts join with `uavmeta tunnel join --connect <this host's address for \
+             the endpoint> --run-id {}`",
+            run.id()
+        );
+    }
+    wait_for_remote_hosts(run, config, node)?;
+    for child in children
+        .iter_mut()
+        .filter(|c| !matches!(c.role, Role::Store | Role::Tunnel))
+    {
+        supervisor.start(child)?;
+    }
+    Ok(())
+}
+
+/// Reads the store's dataset and the meta-learner's checkpoint announcements into `ready_tasks`
+/// and the launcher's metrics.
+fn count_announcements(
+    dataset_ready: &Subscriber<ipc::Service, DatasetReady, ()>,
+    checkpoint_ready: &Subscriber<ipc::Service, CheckpointReady, ()>,
+    ready_tasks: &mut [bool],
+    metrics: &metrics::LauncherMetrics,
+) -> Result<(), LaunchError> {
+    while let Some(m) = dataset_ready
+        .receive()
+        .map_err(transport::receive_failed("receive a dataset announcement"))?
+    {
+        if m.schema_version == SCHEMA_VERSION {
+            if let Some(ready) = ready_tasks.get_mut(m.task as usize) {
+                *ready = true;
+            }
+        }
+    }
+    metrics
+        .datasets_ready
+        .set(ready_tasks.iter().filter(|r| **r).count() as i64);
+    while checkpoint_ready
+        .receive()
+        .map_err(transport::receive_failed(
+            "receive a checkpoint announcement",
+        ))?
+        .is_some()
+    {
+        metrics.checkpoints_announced.inc();
+    }
+    Ok(())
+}
+
+/// Orderly stop of whatever still runs: actors, then learners, then the store.
+fn stop_all(children: &mut [Supervised]) {
+    for role in [
+        Role::Actor,
+        Role::MetaLearner,
+        Role::Evaluator,
+        Role::Tunnel,
+        Role::Store,
+    ] {
+        stop_role(children, role);
+    }
+}
+
 /// The children of a run: store, actors, meta-learner, evaluator.
 fn plan(run: &RunDir, config: &Config) -> Result<Vec<Supervised>, LaunchError> {
-    let policy: PolicySpec =
-        config
-            .collect
-            .policy
-            .parse()
-            .map_err(
-                |e: uavmeta_actors::heuristics::PolicyError| LaunchError::Policy {
-                    origin: config.origin.clone(),
-                    message: e.to_string(),
-                },
-            )?;
+    let policy: PolicySpec = config.collect.policy.parse().map_err(
+        |e: uavmeta_actors::policy::heuristics::PolicyError| LaunchError::Policy {
+            origin: config.origin.clone(),
+            message: e.to_string(),
+        },
+    )?;
     let run_arg = run.root().display().to_string();
     let child = |name: String, role: Role, args: Vec<String>| Supervised {
         name,
@@ -524,7 +486,7 @@ fn plan(run: &RunDir, config: &Config) -> Result<Vec<Supervised>, LaunchError> {
             vec!["meta-learner".into(), "--run".into(), run_arg.clone()],
         ));
         children.push(child(
-            evaluator_process::PROCESS.into(),
+            evaluator::PROCESS.into(),
             Role::Evaluator,
             vec!["evaluator".into(), "--run".into(), run_arg],
         ));
@@ -538,7 +500,7 @@ struct Supervisor<'a> {
     max_restarts: u32,
     /// Zero: never taken for hung.
     hang_timeout: Duration,
-    metrics: &'a launch_metrics::LauncherMetrics,
+    metrics: &'a metrics::LauncherMetrics,
 }
 
 impl Supervisor<'_> {
@@ -797,13 +759,9 @@ fn wait_for_remote_hosts(
             .collect();
         let stored = std::fs::read_to_string(run.port_file(store::PROCESS))
             .ok()
-            .and_then(|port| {
-                metrics::scrape(&config.run.metrics_host, port.trim().parse().ok()?).ok()
-            })
-            .and_then(|text| metrics::parse(&text).ok())
-            .map_or(0.0, |samples| {
-                metrics::sum(&samples, "uavmeta_store_transitions_stored_total", &[])
-            });
+            .and_then(|port| scrape(&config.run.metrics_host, port.trim().parse().ok()?).ok())
+            .and_then(|text| parse(&text).ok())
+            .map_or(0.0, |samples| sum(&samples, TRANSITIONS_STORED, &[]));
         if missing.is_empty() && stored > 0.0 {
             tracing::info!(hosts = ?wanted, "remote actor hosts are publishing");
             return Ok(());
@@ -849,7 +807,7 @@ fn latest_results(run: &RunDir) -> Result<Vec<EvaluationRow>, LaunchError> {
     if !path.exists() {
         return Ok(Vec::new());
     }
-    let rows = evaluator_process::read_rows(&path).map_err(|source| LaunchError::Io {
+    let rows = evaluator::read_rows(&path).map_err(|source| LaunchError::Io {
         path: path.clone(),
         action: "read",
         source,

@@ -12,20 +12,24 @@ use std::path::{Path, PathBuf};
 
 use indicatif::ProgressBar;
 use uavmeta_actors::collect::{agent_path, collect, config_path};
-use uavmeta_actors::heuristics::PolicySpec;
-use uavmeta_actors::q_policy::{Evaluator, QPolicy};
+use uavmeta_actors::policy::heuristics::PolicySpec;
+use uavmeta_actors::policy::q_policy::{Evaluator, QPolicy};
 use uavmeta_actors::rollout::{record_trajectory, Trajectory};
 use uavmeta_learner::checkpoint::{self, CheckpointPaths};
-use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::{Algorithm, EpochRow, EvaluatePolicy};
 use uavmeta_proto::config::{Config, InnerLoss, TaskConfig, TaskRole};
 use uavmeta_proto::dataset::DatasetReader;
 use uavmeta_proto::stats::PolicyMetrics;
 
 use super::Experiment;
-use crate::meta_test::{fine_tune, load_shots, FineTune};
-use crate::meta_train::{algorithm_name, dataset_path, load_tasks, meta_train, MetaTrainOptions};
-use crate::{create_dir, pretrain, MetaError};
+use uavmeta_meta::meta_test::{fine_tune, load_shots, FineTune};
+use uavmeta_meta::meta_train::{
+    algorithm_name, dataset_path, load_tasks, meta_train, MetaTrainOptions,
+};
+use uavmeta_meta::{create_dir, pretrain};
+
+use crate::ReproduceError;
 
 /// The paper's four methods on an unseen task, and the multi-task baseline CQL-pretrain.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -95,7 +99,7 @@ impl Method {
 pub enum InitKind {
     /// MAML with this inner loss.
     Maml(InnerLoss),
-    /// CQL on the union of the tasks' shots (`crate::pretrain`).
+    /// CQL on the union of the tasks' shots (`uavmeta_meta::pretrain`).
     Pretrain,
 }
 
@@ -365,7 +369,7 @@ fn datasets_dir(out: &Path, seed: u64) -> PathBuf {
 }
 
 /// Seed `seed`'s dataset of `task`, collected by the actors' code path unless cached.
-pub fn dataset(config: &Config, out: &Path, seed: u64, task: &str) -> Result<(), MetaError> {
+pub fn dataset(config: &Config, out: &Path, seed: u64, task: &str) -> Result<(), ReproduceError> {
     let datasets = datasets_dir(out, seed);
     create_dir(&datasets)?;
     let path = dataset_path(&datasets, task);
@@ -378,7 +382,7 @@ pub fn reference(
     out: &Path,
     seed: u64,
     key: &RefKey,
-) -> Result<PolicyMetrics, MetaError> {
+) -> Result<PolicyMetrics, ReproduceError> {
     let task = config.task(&key.task)?;
     let agent = agent_path(&dataset_path(&datasets_dir(out, seed), &task.name));
     let (agent, _) = checkpoint::load(&agent, &collection_config(config, seed))?;
@@ -394,7 +398,7 @@ pub fn init(
     out: &Path,
     seed: u64,
     key: InitKey,
-) -> Result<(PathBuf, MetaCurve), MetaError> {
+) -> Result<(PathBuf, MetaCurve), ReproduceError> {
     ensure_w0(
         config,
         key,
@@ -412,19 +416,14 @@ pub fn fine_tune_run(
     seed: u64,
     run: &RunNeed,
     w0: Option<&Path>,
-) -> Result<RunResult, MetaError> {
+) -> Result<RunResult, ReproduceError> {
     let key = &run.need.key;
     let task = config.task(&key.task)?;
     let dataset = dataset_path(&datasets_dir(out, seed), &task.name);
     let shots = load_shots(config, task, &dataset, key.shots, seed)?;
     let mut q = match w0 {
         Some(w0) => checkpoint::load(w0, config)?.0,
-        None => QNetwork::new(
-            config.world.observation_len(),
-            config.world.action_count(),
-            &config.learner.hidden,
-            seed,
-        ),
+        None => QNetworkConfig::for_world(&config.world, &config.learner.hidden).init(seed),
     };
     let mut run_config = config.clone();
     run_config.learner.eval_episodes = key.eval_episodes;
@@ -458,7 +457,7 @@ pub fn fine_tune_run(
 
 /// Collects `task`'s dataset into `path` with `collection` (the actors' code path), unless the
 /// file there is complete and was collected with the same world, tasks, collection and learner.
-fn ensure_dataset(collection: &Config, task: &str, path: &Path) -> Result<(), MetaError> {
+fn ensure_dataset(collection: &Config, task: &str, path: &Path) -> Result<(), ReproduceError> {
     if saved_collection_matches(&config_path(path), collection) {
         let complete = DatasetReader::open(path).is_ok_and(|reader| {
             reader.check_world(collection).is_ok()
@@ -486,14 +485,14 @@ fn ensure_w0(
     datasets: &Path,
     dir: &Path,
     seed: u64,
-) -> Result<(PathBuf, MetaCurve), MetaError> {
+) -> Result<(PathBuf, MetaCurve), ReproduceError> {
     let meta = meta_config(config, key, seed);
     let out = dir.join(format!("{}-tasks-{}", key.kind.name(), key.tasks));
     let w0 = out.join("w0");
     if key.kind == InitKind::Pretrain {
         if !saved_config_matches(&CheckpointPaths::new(&w0).config, &meta) {
             let (_, tasks) = load_tasks(&meta, datasets, seed)?;
-            let q = pretrain::pretrain(&meta, &tasks, seed, |_| Ok::<_, MetaError>(true))?
+            let q = pretrain::pretrain(&meta, &tasks, seed, |_| Ok::<_, ReproduceError>(true))?
                 .expect("a pretraining never told to stop finishes");
             checkpoint::save(&w0, &q, pretrain::ALGORITHM, meta.meta.meta_epochs, &meta)?;
         }

@@ -23,12 +23,12 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use tch::nn::{self, OptimizerConfig};
 use uavmeta_learner::batch::{Batch, BatchError};
-use uavmeta_learner::dqn::{td_errors_with, TdConfig};
-use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::dqn::{Bootstrap, TdConfig};
+use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_proto::config::{CollectConfig, Config, LearnerConfig, TaskConfig, WorldConfig};
 use uavmeta_proto::dataset::Transition;
 
-use crate::q_policy::QPolicy;
+use crate::policy::q_policy::QPolicy;
 use crate::rollout::Policy;
 use crate::world::World;
 
@@ -143,12 +143,7 @@ impl OnlineDqn {
         let l = &config.learner;
         let mut seeds = ChaCha8Rng::seed_from_u64(seed);
         let c = &config.collect;
-        let q = QNetwork::new(
-            w.observation_len(),
-            w.action_count(),
-            &c.dqn_hidden,
-            seeds.random(),
-        );
+        let q = QNetworkConfig::for_world(w, &c.dqn_hidden).init(seeds.random());
         let target = q.duplicate();
         let opt = nn::Adam::default()
             .build(&q.vs, c.dqn_lr)
@@ -160,7 +155,7 @@ impl OnlineDqn {
             world_cfg: w.clone(),
             td: TdConfig {
                 gamma: l.gamma,
-                double_dqn: c.dqn_double,
+                bootstrap: Bootstrap::double_if(c.dqn_double),
                 huber: c.dqn_huber,
             },
             world,
@@ -265,19 +260,15 @@ impl OnlineDqn {
         let sample = self.replay.sample(&mut self.rng, self.learner.batch);
         let mb = Batch::new(&sample, &self.world_cfg, self.learner.reward_scale)?;
         let q_all = self.q.forward(&mb.obs); // [B, A]
-        let next_q_target = tch::no_grad(|| self.target.forward(&mb.next_obs)); // [B, A]
-        let next_q_online = self
+        let loss = self
             .td
-            .double_dqn
-            .then(|| tch::no_grad(|| self.q.forward(&mb.next_obs)));
-        let loss = td_errors_with(
-            &q_all,
-            &next_q_target,
-            next_q_online.as_ref(),
-            &mb,
-            &self.td,
-        )
-        .mean(None); // eq. 7 and its stabilisers
+            .td_errors(
+                &q_all,
+                &mb,
+                |s| self.target.forward(s),
+                |s| self.q.forward(s),
+            )
+            .mean(None); // eq. 7 and its stabilisers
         let clip = self.collect.dqn_grad_clip_norm;
         if clip > 0.0 {
             self.opt.backward_step_clip_norm(&loss, clip);

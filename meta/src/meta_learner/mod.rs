@@ -30,21 +30,23 @@ use iceoryx2::node::Node;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
-use uavmeta_actors::q_policy::Evaluator;
+use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
-use uavmeta_learner::metrics::{MetricsError, MetricsServer};
-use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{Algorithm, EvaluatePolicy};
 use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
+use uavmeta_proto::metrics::MetricsError;
+use uavmeta_proto::process::Process;
 use uavmeta_proto::stats::PolicyMetrics;
 use uavmeta_proto::transport::{
-    self, CheckpointReady, DatasetReady, Method, RunDir, ServiceNames, TransportError,
-    SCHEMA_VERSION,
+    self, CheckpointReady, DatasetReady, Method, RunDir, TransportError, SCHEMA_VERSION,
 };
 
 use crate::meta_test::{fine_tune, load_shots, meta_test_with, FineTune, MetaTestOptions};
 use crate::meta_train::{load_tasks, meta_train_with, MetaRow, MetaTrainHook, MetaTrainOptions};
 use crate::{pretrain, MetaError};
+
+mod metrics;
 
 /// The meta-learner's process name: node, port file and metrics snapshot.
 pub const PROCESS: &str = "meta-learner";
@@ -71,65 +73,25 @@ pub enum Outcome {
     Stopped,
 }
 
-/// The meta-learner's metrics: every name it exports, in one place.
-mod metrics {
-    use prometheus::{Gauge, Histogram, IntCounter, IntGauge, Opts, Registry};
-    use uavmeta_learner::metrics::{counter, latency_histogram, register};
-
-    pub struct MetaLearnerMetrics {
-        pub registry: Registry,
-        pub meta_epoch: IntGauge,
-        pub meta_loss: Gauge,
-        pub meta_epoch_duration: Histogram,
-        pub checkpoints: IntCounter,
-        pub fine_tune_epochs: IntCounter,
-    }
-
-    impl MetaLearnerMetrics {
-        pub fn new() -> Self {
-            let registry = uavmeta_learner::metrics::registry();
-            Self {
-                meta_epoch: register(&registry, IntGauge::with_opts(Opts::new("meta_learner_meta_epoch", "Meta-epochs behind w0.")).expect("valid gauge")),
-                meta_loss: register(&registry, Gauge::with_opts(Opts::new("meta_learner_meta_loss", "Meta-loss (sum of the adapted weights' query losses) of the last meta-epoch.")).expect("valid gauge")),
-                meta_epoch_duration: latency_histogram(&registry, "meta_learner_meta_epoch_duration_seconds", "Time of one meta-epoch."),
-                checkpoints: counter(&registry, "meta_learner_checkpoints_written_total", "Checkpoints written and announced."),
-                fine_tune_epochs: counter(&registry, "meta_learner_fine_tune_epochs_total", "Meta-test fine-tuning epochs run."),
-                registry,
-            }
-        }
-    }
-}
-
 /// Runs the meta-learner of `run`.
 pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
-    let node = transport::node(&format!("{}-{PROCESS}", run.id()), &config.run)?;
-    let names = ServiceNames::new(run);
+    let process = Process::start(run, config, PROCESS)?;
+    let (node, names) = (&process.node, &process.names);
     let metrics = metrics::MetaLearnerMetrics::new();
-    let _server = MetricsServer::start(
-        metrics.registry.clone(),
-        &config.run.metrics_host,
-        0,
-        run,
-        PROCESS,
-    )?;
+    let _server = process.serve_metrics(run, config, metrics.registry.clone())?;
     let ready = transport::control_subscriber(
-        &transport::dataset_ready_service(&node, &names, config)?,
-        config,
-    )?;
-    let shutdown = transport::control_subscriber(
-        &transport::shutdown_service(&node, &names, config)?,
+        &transport::dataset_ready_service(node, names, config)?,
         config,
     )?;
     let announce =
-        transport::control_publisher(&transport::checkpoint_ready_service(&node, &names, config)?)?;
+        transport::control_publisher(&transport::checkpoint_ready_service(node, names, config)?)?;
     let stop = || -> Result<bool, MetaProcessError> {
         transport::serve_history(&announce)?;
-        let signalled = !transport::keep_running(&node, Duration::ZERO);
-        Ok(transport::shutdown_requested(&shutdown)? || signalled)
+        Ok(process.stop_requested(Duration::ZERO)?)
     };
 
     // 1. Every task's dataset.
-    if !wait_for_datasets(config, &node, &ready, &stop)? {
+    if !wait_for_datasets(config, node, &ready, &stop)? {
         return Ok(Outcome::Stopped);
     }
     let test_tasks: Vec<(u32, TaskConfig)> = config
@@ -143,22 +105,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
         .first()
         .map(|(_, t)| t.clone())
         .unwrap_or_else(|| config.tasks[0].clone());
-
-    // The online DQN agents that made the meta-test datasets: the runs' reference line. Their
-    // actors saved them before sending a transition, so a stored dataset's agent is on disk.
-    for (id, task) in &test_tasks {
-        if checkpoint::read_meta(&run.checkpoint(Method::OnlineDqn, task, 1)).is_ok() {
-            transport::announce(
-                &announce,
-                CheckpointReady {
-                    schema_version: SCHEMA_VERSION,
-                    method: Method::OnlineDqn.code(),
-                    task: *id,
-                    epoch: 1,
-                },
-            )?;
-        }
-    }
+    announce_online_agents(run, &test_tasks, &announce)?;
 
     // 2. Meta-training (`meta_train::meta_train_with`), resumed from the latest w0 on disk.
     let seed = config.run.seeds[0];
@@ -186,7 +133,6 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
 
     // 3. Meta-test on each unseen task (`meta_test::meta_test_with`): the MAML init fine-tuned
     //    with the loss its checkpoint names, and its baselines on the same shots.
-    let epochs = config.learner.epochs as u32;
     let meta_test = MetaTest {
         run,
         config,
@@ -195,28 +141,66 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
         publisher: &announce,
         metrics: &metrics,
     };
-    let mut pretrained: Option<QNetwork> = None;
-    for (id, task) in &test_tasks {
-        for &method in Method::fine_tuned(config.meta.inner_loss) {
-            if latest_epoch(run, method, task, epochs) == epochs {
-                continue;
-            }
-            if stop()? {
-                return Ok(Outcome::Stopped);
-            }
-            if method == Method::CqlPretrain && pretrained.is_none() {
-                tracing::info!("pretraining CQL on the union of the meta-train shots");
-                let (_, tasks) = load_tasks(config, &datasets, seed)?;
-                // Stop requests are honoured between the pretraining's meta-epochs.
-                match pretrain::pretrain(config, &tasks, seed, |_| stop().map(|stop| !stop))? {
-                    Some(q) => pretrained = Some(q),
-                    None => return Ok(Outcome::Stopped),
-                }
-            }
-            meta_test.fine_tune(*id, task, method, pretrained.as_ref())?;
+    meta_test.run_all(&test_tasks, &datasets, &stop)
+}
+
+/// Announces the online DQN agents that made the meta-test datasets: the runs' reference line.
+/// Their actors saved them before sending a transition, so a stored dataset's agent is on disk.
+fn announce_online_agents(
+    run: &RunDir,
+    test_tasks: &[(u32, TaskConfig)],
+    announce: &Publisher<ipc::Service, CheckpointReady, ()>,
+) -> Result<(), TransportError> {
+    for (id, task) in test_tasks {
+        if checkpoint::read_meta(&run.checkpoint(Method::OnlineDqn, task, 1)).is_ok() {
+            transport::announce(
+                announce,
+                CheckpointReady {
+                    schema_version: SCHEMA_VERSION,
+                    method: Method::OnlineDqn.code(),
+                    task: *id,
+                    epoch: 1,
+                },
+            )?;
         }
     }
-    Ok(Outcome::Finished)
+    Ok(())
+}
+
+impl MetaTest<'_> {
+    /// Fine-tunes every method of every meta-test task that has not finished, pretraining CQL on
+    /// the meta-train shots (from `datasets`) first if a method needs it.
+    fn run_all(
+        &self,
+        test_tasks: &[(u32, TaskConfig)],
+        datasets: &Path,
+        stop: &impl Fn() -> Result<bool, MetaProcessError>,
+    ) -> Result<Outcome, MetaProcessError> {
+        let (run, config, seed) = (self.run, self.config, self.seed);
+        let epochs = config.learner.epochs as u32;
+        let mut pretrained: Option<QNetwork> = None;
+        for (id, task) in test_tasks {
+            for &method in Method::fine_tuned(config.meta.inner_loss) {
+                if latest_epoch(run, method, task, epochs) == epochs {
+                    continue;
+                }
+                if stop()? {
+                    return Ok(Outcome::Stopped);
+                }
+                if method == Method::CqlPretrain && pretrained.is_none() {
+                    tracing::info!("pretraining CQL on the union of the meta-train shots");
+                    let (_, tasks) = load_tasks(config, datasets, seed)?;
+                    // Stop requests are honoured between the pretraining's meta-epochs.
+                    match pretrain::pretrain(config, &tasks, seed, |_| stop().map(|stop| !stop))? {
+                        Some(q) => pretrained = Some(q),
+                        None => return Ok(Outcome::Stopped),
+                    }
+                }
+                self.fine_tune(*id, task, method, pretrained.as_ref())?;
+            }
+        }
+        Ok(Outcome::Finished)
+    }
 }
 
 /// Waits until the store has announced every task's dataset; `false` if told to stop first.
@@ -306,12 +290,8 @@ impl MetaTest<'_> {
             (method, pretrained) => {
                 let mut q = match (method, pretrained) {
                     (Method::CqlPretrain, Some(pretrained)) => pretrained.duplicate(),
-                    _ => QNetwork::new(
-                        config.world.observation_len(),
-                        config.world.action_count(),
-                        &config.learner.hidden,
-                        self.seed.wrapping_add(1),
-                    ),
+                    _ => QNetworkConfig::for_world(&config.world, &config.learner.hidden)
+                        .init(self.seed.wrapping_add(1)),
                 };
                 let algorithm = match method {
                     Method::Dqn => Algorithm::Dqn,

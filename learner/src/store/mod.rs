@@ -30,10 +30,14 @@ use uavmeta_proto::dataset::{
     DatasetError, DatasetHeader, DatasetReader, DatasetWriter, Transition,
 };
 use uavmeta_proto::transport::{
-    self, DatasetReady, RunDir, ServiceNames, StoreAck, TransportError, SCHEMA_VERSION,
+    self, DatasetReady, RunDir, StoreAck, TransportError, SCHEMA_VERSION,
 };
 
-use crate::metrics::{MetricsError, MetricsServer};
+use uavmeta_proto::metrics::store::{DROPPED_REASONS, DUPLICATE, FOREIGN, SURPLUS};
+use uavmeta_proto::metrics::MetricsError;
+use uavmeta_proto::process::Process;
+
+mod metrics;
 
 /// The store's process name: its node, port file and metrics snapshot.
 pub const PROCESS: &str = "store";
@@ -59,69 +63,6 @@ pub enum StoreError {
     Config(#[from] ConfigError),
     #[error(transparent)]
     Metrics(#[from] MetricsError),
-}
-
-/// The store's metrics: every name it exports, in one place.
-mod metrics {
-    use prometheus::{Histogram, IntCounterVec, IntGaugeVec, Opts, Registry};
-
-    use crate::metrics::{latency_histogram, register};
-
-    pub struct StoreMetrics {
-        pub registry: Registry,
-        pub batches_received: IntCounterVec,
-        pub transitions_received: IntCounterVec,
-        pub transitions_stored: IntCounterVec,
-        pub transitions_dropped: IntCounterVec,
-        pub transitions_missing: IntCounterVec,
-        pub dataset_transitions: IntGaugeVec,
-        pub dataset_ready: IntGaugeVec,
-        pub batch_latency: Histogram,
-        pub append_duration: Histogram,
-    }
-
-    /// Why a received transition was not stored; the `reason` label's fixed set.
-    pub const DUPLICATE: &str = "duplicate";
-    pub const SURPLUS: &str = "surplus";
-    pub const FOREIGN: &str = "foreign";
-
-    impl StoreMetrics {
-        pub fn new() -> Self {
-            let registry = crate::metrics::registry();
-            let counters = |name: &str, help: &str, labels: &[&str]| {
-                register(
-                    &registry,
-                    IntCounterVec::new(Opts::new(name, help), labels).expect("valid counter"),
-                )
-            };
-            let gauges = |name: &str, help: &str| {
-                register(
-                    &registry,
-                    IntGaugeVec::new(Opts::new(name, help), &["task"]).expect("valid gauge"),
-                )
-            };
-            Self {
-                batches_received: counters("store_batches_received_total", "Batches received from actors.", &["task"]),
-                transitions_received: counters("store_transitions_received_total", "Transitions received from actors.", &["task"]),
-                transitions_stored: counters("store_transitions_stored_total", "Transitions appended to the dataset file by this store process.", &["task"]),
-                transitions_dropped: counters(
-                    "store_transitions_dropped_total",
-                    "Received transitions not stored: duplicate (sequence number already stored), surplus (the dataset was complete), foreign (another run, world or schema).",
-                    &["task", "reason"],
-                ),
-                transitions_missing: counters(
-                    "store_transitions_missing_total",
-                    "Sequence numbers skipped by an actor's batches: transitions lost in transit, counted from the dataset file on start.",
-                    &["task"],
-                ),
-                dataset_transitions: gauges("store_dataset_transitions", "Transitions in the task's dataset file."),
-                dataset_ready: gauges("store_dataset_ready", "1 once the task's dataset holds collect.transitions and is announced."),
-                batch_latency: latency_histogram(&registry, "store_batch_latency_seconds", "Time from an actor's send to the store's receive of a batch."),
-                append_duration: latency_histogram(&registry, "store_append_duration_seconds", "Time to append and flush one batch to its dataset file."),
-                registry,
-            }
-        }
-    }
 }
 
 /// One task's file and the sequence numbers it holds.
@@ -170,45 +111,35 @@ pub struct StoreSummary {
 
 /// Runs the store of `run` until SIGINT/SIGTERM or a shutdown announcement.
 pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
-    let node = transport::node(&format!("{}-{PROCESS}", run.id()), &config.run)?;
+    let process = Process::start(run, config, PROCESS)?;
+    let (node, names) = (&process.node, &process.names);
     // A predecessor killed mid-run left its ports in every service; without this sweep the actors
     // stay blocked on its full buffer.
-    let cleaned = transport::cleanup_dead_nodes(&node);
+    let cleaned = transport::cleanup_dead_nodes(node);
     if cleaned > 0 {
         tracing::info!(cleaned, "removed iceoryx2 resources of dead processes");
     }
-    let names = ServiceNames::new(run);
     let metrics = metrics::StoreMetrics::new();
 
     let mut tasks = Vec::with_capacity(config.tasks.len());
     let mut subscribers = Vec::with_capacity(config.tasks.len());
     for (id, task) in config.tasks.iter().enumerate() {
-        let acks = transport::ack_service(&node, &names, &task.name, &config.run)?;
+        let acks = transport::ack_service(node, names, &task.name, &config.run)?;
         let acks = transport::ack_publisher(&acks)?;
         let store = open_task(run, config, &task.name, id as u32, acks, &metrics)?;
-        let service = transport::transition_service(&node, &names, &task.name, &config.run)?;
+        let service = transport::transition_service(node, names, &task.name, &config.run)?;
         subscribers.push(transport::transition_subscriber(&service, &config.run)?);
         tasks.push(store);
     }
     let ready =
-        transport::control_publisher(&transport::dataset_ready_service(&node, &names, config)?)?;
-    let shutdown = transport::control_subscriber(
-        &transport::shutdown_service(&node, &names, config)?,
-        config,
-    )?;
+        transport::control_publisher(&transport::dataset_ready_service(node, names, config)?)?;
     let target = config.collect.transitions as u64;
     for task in tasks.iter_mut() {
         announce_if_complete(task, target, &ready, &metrics)?;
     }
     // The port file is the launcher's sign that the store is ready, so it comes after the
     // subscribers: actors started then find a connected store.
-    let _server = MetricsServer::start(
-        metrics.registry.clone(),
-        &config.run.metrics_host,
-        0,
-        run,
-        PROCESS,
-    )?;
+    let _server = process.serve_metrics(run, config, metrics.registry.clone())?;
     tracing::info!(run = run.id(), tasks = tasks.len(), "store ready");
 
     let mut summary = StoreSummary::default();
@@ -216,9 +147,9 @@ pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
     let mut idle = false;
     let mut last_cleanup = Instant::now();
     let mut last_ack_refresh = Instant::now();
-    while transport::keep_running(&node, if idle { IDLE_WAIT } else { Duration::ZERO }) {
+    while transport::keep_running(node, if idle { IDLE_WAIT } else { Duration::ZERO }) {
         transport::serve_history(&ready)?;
-        if transport::shutdown_requested(&shutdown)? {
+        if transport::shutdown_requested(&process.shutdown)? {
             tracing::info!("shutdown announced");
             break;
         }
@@ -237,7 +168,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
             last_ack_refresh = Instant::now();
         }
         if last_cleanup.elapsed() >= CLEANUP_EVERY {
-            transport::cleanup_dead_nodes(&node);
+            transport::cleanup_dead_nodes(node);
             last_cleanup = Instant::now();
         }
     }
@@ -304,7 +235,7 @@ fn open_task(
         .with_label_values(&[name])
         .set(writer.transitions() as i64);
     metrics.dataset_ready.with_label_values(&[name]).set(0);
-    for reason in [metrics::DUPLICATE, metrics::SURPLUS, metrics::FOREIGN] {
+    for reason in DROPPED_REASONS {
         metrics
             .transitions_dropped
             .with_label_values(&[name, reason]);
@@ -375,7 +306,7 @@ fn drain(
                 tracing::warn!("dropped a batch: {error}");
                 metrics
                     .transitions_dropped
-                    .with_label_values(&[name, metrics::FOREIGN])
+                    .with_label_values(&[name, FOREIGN])
                     .inc_by(slots.len() as u64);
                 summary.dropped += slots.len() as u64;
                 continue;
@@ -415,11 +346,11 @@ fn drain(
             drop(sample);
             metrics
                 .transitions_dropped
-                .with_label_values(&[name, metrics::DUPLICATE])
+                .with_label_values(&[name, DUPLICATE])
                 .inc_by(duplicates);
             metrics
                 .transitions_dropped
-                .with_label_values(&[name, metrics::SURPLUS])
+                .with_label_values(&[name, SURPLUS])
                 .inc_by(surplus);
             summary.dropped += duplicates + surplus;
             if !buffer.is_empty() {

@@ -24,17 +24,17 @@ use iceoryx2::node::Node;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
-use uavmeta_learner::metrics::{MetricsError, MetricsServer};
 use uavmeta_proto::config::{Config, ConfigError, TaskConfig};
 use uavmeta_proto::dataset::Transition;
+use uavmeta_proto::metrics::MetricsError;
+use uavmeta_proto::process::Process;
 use uavmeta_proto::stats::EpisodeMetrics;
 use uavmeta_proto::transport::{
-    self, Method, RunDir, ServiceNames, TransitionPublisher, TransitionSlot, TransportError,
-    SCHEMA_VERSION,
+    self, Method, RunDir, TransitionPublisher, TransitionSlot, TransportError, SCHEMA_VERSION,
 };
 
 use crate::collect::{online_dqn_dataset, CollectError};
-use crate::heuristics::{PolicyError, PolicySpec};
+use crate::policy::heuristics::{PolicyError, PolicySpec};
 use crate::rollout::{episode_seed, EpisodeTally, Policy};
 use crate::world::World;
 use delivery::{write_sample, Sender, Sent};
@@ -203,25 +203,14 @@ pub fn run(
     let task = config.task(&options.task)?.clone();
     let task_id = config.task_id(&task.name)? as u32;
     let actor = options.actor_id();
-    let process = options.process_name();
-    let node = transport::node(&format!("{}-{process}", run.id()), &config.run)?;
-    let names = ServiceNames::new(run);
+    let process = Process::start(run, config, &options.process_name())?;
+    let (node, names) = (&process.node, &process.names);
     let metrics = metrics::ActorMetrics::new(&task.name, actor);
-    let _server = MetricsServer::start(
-        metrics.registry.clone(),
-        &config.run.metrics_host,
-        0,
-        run,
-        &process,
-    )?;
-    let service = transport::transition_service(&node, &names, &task.name, &config.run)?;
+    let _server = process.serve_metrics(run, config, metrics.registry.clone())?;
+    let service = transport::transition_service(node, names, &task.name, &config.run)?;
     let publisher = TransitionPublisher::new(&service, run, config, task_id, actor)?;
     let ready = transport::control_subscriber(
-        &transport::dataset_ready_service(&node, &names, config)?,
-        config,
-    )?;
-    let shutdown = transport::control_subscriber(
-        &transport::shutdown_service(&node, &names, config)?,
+        &transport::dataset_ready_service(node, names, config)?,
         config,
     )?;
     let mut summary = ActorSummary {
@@ -230,57 +219,20 @@ pub fn run(
     };
     tracing::info!(task = %task.name, actor = format!("{actor:08x}"), policy = %options.policy, seed = options.seed, "actor started");
 
-    let mut source = match &options.policy {
-        PolicySpec::DqnOnline => {
-            metrics.set_phase(Phase::Training);
-            let dqn = metrics::OnlineDqnMetrics::new(&metrics.registry);
-            let trained =
-                online_dqn_dataset(config, &task, task_id, actor, options.seed, |n, agent| {
-                    metrics.steps.inc_by(n as u64);
-                    dqn.observe(agent);
-                    transport::keep_running(&node, Duration::ZERO)
-                });
-            match trained {
-                Ok((sample, agent)) => {
-                    summary.steps = agent.steps() as u64;
-                    // The reference the meta-learner announces once the dataset is stored.
-                    checkpoint::save(
-                        &run.checkpoint(Method::OnlineDqn, &task, 1),
-                        agent.q_network(),
-                        Method::OnlineDqn.name(),
-                        1,
-                        config,
-                    )?;
-                    Source::Fixed(sample)
-                }
-                Err(CollectError::Interrupted { steps }) => {
-                    tracing::info!(steps, "stopped while training the online DQN agent");
-                    return Ok(summary);
-                }
-                Err(error) => return Err(error.into()),
-            }
-        }
-        spec => {
-            let policy = spec
-                .build(config.world.action_count(), options.seed, usize::MAX)
-                .map_err(|error| ActorError::Policy {
-                    spec: spec.to_string(),
-                    error,
-                })?;
-            Source::Rollout(Box::new(Rollout::new(config, &task, policy, options.seed)))
-        }
+    let Some(mut source) = start_source(run, config, options, &task, &metrics, node, &mut summary)?
+    else {
+        return Ok(summary);
     };
 
     let limit = options.transitions.unwrap_or(u64::MAX);
     let control = Control {
-        node: &node,
+        process: &process,
         ready,
-        shutdown,
         task: task_id,
     };
     let acks = transport::ack_subscriber(&transport::ack_service(
-        &node,
-        &names,
+        node,
+        names,
         &task.name,
         &config.run,
     )?)?;
@@ -335,7 +287,7 @@ pub fn run(
                 break;
             }
             // Everything sampled is sent; stay until the store announces the dataset.
-            transport::keep_running(&node, POLL);
+            transport::keep_running(node, POLL);
             continue;
         }
         let start = Instant::now();
@@ -373,11 +325,7 @@ pub fn run(
             metrics.steps.inc_by(count as u64);
             for episode in rollout.drain_finished() {
                 summary.episodes += 1;
-                metrics.episodes.inc();
-                metrics.episode_return.set(episode.ret);
-                metrics.episode_aoi.set(episode.aoi);
-                metrics.episode_power.set(episode.power_mw * 1e-3);
-                metrics.episode_outages.set(episode.outages as f64);
+                metrics.observe_episode(&episode);
             }
         }
     }
@@ -391,12 +339,68 @@ pub fn run(
     Ok(summary)
 }
 
+/// What the actor sends: a rollout of its behaviour policy, or for `dqn-online` the replay
+/// sample of an online DQN agent it trains first (saving the agent as the task's reference).
+/// `None` if stopped while training.
+fn start_source(
+    run: &RunDir,
+    config: &Config,
+    options: &ActorOptions,
+    task: &TaskConfig,
+    metrics: &metrics::ActorMetrics,
+    node: &Node<ipc::Service>,
+    summary: &mut ActorSummary,
+) -> Result<Option<Source>, ActorError> {
+    let task_id = config.task_id(&task.name)? as u32;
+    let actor = options.actor_id();
+    let source = match &options.policy {
+        PolicySpec::DqnOnline => {
+            metrics.set_phase(Phase::Training);
+            let dqn = metrics::OnlineDqnMetrics::new(&metrics.registry);
+            let trained =
+                online_dqn_dataset(config, task, task_id, actor, options.seed, |n, agent| {
+                    metrics.steps.inc_by(n as u64);
+                    dqn.observe(agent);
+                    transport::keep_running(node, Duration::ZERO)
+                });
+            match trained {
+                Ok((sample, agent)) => {
+                    summary.steps = agent.steps() as u64;
+                    // The reference the meta-learner announces once the dataset is stored.
+                    checkpoint::save(
+                        &run.checkpoint(Method::OnlineDqn, task, 1),
+                        agent.q_network(),
+                        Method::OnlineDqn.name(),
+                        1,
+                        config,
+                    )?;
+                    Source::Fixed(sample)
+                }
+                Err(CollectError::Interrupted { steps }) => {
+                    tracing::info!(steps, "stopped while training the online DQN agent");
+                    return Ok(None);
+                }
+                Err(error) => return Err(error.into()),
+            }
+        }
+        spec => {
+            let policy = spec
+                .build(config.world.action_count(), options.seed, usize::MAX)
+                .map_err(|error| ActorError::Policy {
+                    spec: spec.to_string(),
+                    error,
+                })?;
+            Source::Rollout(Box::new(Rollout::new(config, task, policy, options.seed)))
+        }
+    };
+    Ok(Some(source))
+}
+
 /// The actor's way of hearing that it should stop: signals, its task's dataset announced
 /// complete, or a shutdown.
-struct Control<'n> {
-    node: &'n Node<ipc::Service>,
+struct Control<'p> {
+    process: &'p Process,
     ready: Subscriber<ipc::Service, transport::DatasetReady, ()>,
-    shutdown: Subscriber<ipc::Service, transport::Shutdown, ()>,
     task: u32,
 }
 
@@ -404,8 +408,8 @@ impl Control<'_> {
     /// Waits up to `cycle` for a signal, then reads the announcements; true if the actor should
     /// stop.
     fn stop_requested(&self, cycle: Duration) -> Result<bool, ActorError> {
-        Ok(!transport::keep_running(self.node, cycle)
-            || announced(&self.ready, &self.shutdown, self.task)?)
+        Ok(!transport::keep_running(&self.process.node, cycle)
+            || announced(&self.ready, &self.process.shutdown, self.task)?)
     }
 }
 

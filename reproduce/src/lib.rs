@@ -1,6 +1,13 @@
 //! `uavmeta reproduce`: the paper's section V experiments (figures 4-9) over several seeds, each
 //! figure beside the claim of SPEC section 6 it supports, decided from the measured numbers.
 //!
+//! A crate of its own, apart from the MAML crate it measures: the harness links the chart library
+//! and a thread pool, and fails in ways (a figure that cannot be drawn, a config without rain
+//! tasks) that are no part of meta-learning's error type. It consumes everything below it: the
+//! world, behaviour policies and collection of `uavmeta-actors`, offline training and
+//! checkpoints of `uavmeta-learner`, meta-training and meta-testing of `uavmeta-meta`, and
+//! `uavmeta-plot`'s charts; its results are files under an output directory.
+//!
 //! It owns the orchestration; the pieces are:
 //! - [`runs`]: one seed's pipeline and its cache under `OUT/cache/seed-S/` (datasets, online DQN
 //!   agents, meta-trained w0s), and the plan of fine-tuning runs shared between experiments;
@@ -25,20 +32,50 @@ mod claims;
 mod figures;
 mod runs;
 
+use uavmeta_actors::collect::CollectError;
+use uavmeta_learner::checkpoint::CheckpointError;
+use uavmeta_learner::train::TrainError;
+use uavmeta_meta::MetaError;
+use uavmeta_proto::config::ConfigError;
+use uavmeta_proto::dataset::DatasetError;
+
+/// Everything a reproduction can fail on.
+#[derive(Debug, thiserror::Error)]
+pub enum ReproduceError {
+    #[error("{origin}: the resilience experiment needs rain tasks (role = \"meta-test\" with a `rain` zone); the config has none")]
+    NoRainTasks { origin: String },
+    #[error("cannot start the reproduction's worker threads")]
+    Threads(#[from] rayon::ThreadPoolBuildError),
+    #[error(transparent)]
+    Plot(#[from] uavmeta_plot::PlotError),
+    #[error(transparent)]
+    Meta(#[from] MetaError),
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error(transparent)]
+    Collect(#[from] CollectError),
+    #[error(transparent)]
+    Dataset(#[from] DatasetError),
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
+    #[error(transparent)]
+    Train(#[from] TrainError),
+}
+
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
 use rayon::prelude::*;
-use uavmeta_actors::heuristics::PolicySpec;
+use uavmeta_actors::policy::heuristics::PolicySpec;
 use uavmeta_actors::rollout::evaluate;
 use uavmeta_proto::config::{Config, InnerLoss, TaskConfig, TaskRole};
 use uavmeta_proto::stats::PolicyMetrics;
 
-use crate::{create_dir, write_file, MetaError};
 use claims::Claim;
 use runs::{InitKey, InitKind, Method, Plan, SeedResult};
+use uavmeta_meta::{create_dir, write_file};
 
 /// One of the paper's experiments.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -181,12 +218,12 @@ pub struct HeuristicRef {
 }
 
 /// Runs the selected experiments; see the module doc.
-pub fn run(opts: &ReproduceOptions) -> Result<ReproduceReport, MetaError> {
+pub fn run(opts: &ReproduceOptions) -> Result<ReproduceReport, ReproduceError> {
     let started = Instant::now();
     let config = opts.config;
     config.validate_reproduce()?;
     if opts.experiments.contains(&Experiment::Resilience) && rain_tasks(config).next().is_none() {
-        return Err(MetaError::NoRainTasks {
+        return Err(ReproduceError::NoRainTasks {
             origin: config.origin.clone(),
         });
     }
@@ -404,7 +441,7 @@ fn heuristic_refs(config: &Config, plan: &Plan) -> Vec<HeuristicRef> {
 /// The items go in three stages (datasets, then the inits trained on them, then the fine-tuning
 /// runs from those inits), each stage one pool of (seed, item) pairs. Seed-sized units left one
 /// core idle while the last seed ran alone; items of a stage are at most a minute of work each.
-fn run_seeds(opts: &ReproduceOptions, plan: &Plan) -> Result<Vec<SeedResult>, MetaError> {
+fn run_seeds(opts: &ReproduceOptions, plan: &Plan) -> Result<Vec<SeedResult>, ReproduceError> {
     let (config, out) = (opts.config, opts.out_dir);
     let seeds: Vec<u64> = (0..config.reproduce.seeds as u64).collect();
     let multi = MultiProgress::with_draw_target(if opts.progress {
@@ -440,7 +477,7 @@ fn run_seeds(opts: &ReproduceOptions, plan: &Plan) -> Result<Vec<SeedResult>, Me
         .num_threads(opts.jobs.max(1))
         .start_handler(move |_| tch::set_num_threads(torch_threads))
         .build()?;
-    let results = pool.install(|| -> Result<Vec<SeedResult>, MetaError> {
+    let results = pool.install(|| -> Result<Vec<SeedResult>, ReproduceError> {
         for_each_seed(&seeds, &plan.datasets, |seed, need| {
             runs::dataset(config, out, seed, &need.key)?;
             done(&need.users);
@@ -493,8 +530,8 @@ fn run_seeds(opts: &ReproduceOptions, plan: &Plan) -> Result<Vec<SeedResult>, Me
 fn for_each_seed<I: Sync, R: Send>(
     seeds: &[u64],
     items: &[I],
-    work: impl Fn(u64, &I) -> Result<R, MetaError> + Sync,
-) -> Result<Vec<Vec<R>>, MetaError> {
+    work: impl Fn(u64, &I) -> Result<R, ReproduceError> + Sync,
+) -> Result<Vec<Vec<R>>, ReproduceError> {
     let pairs: Vec<(u64, &I)> = seeds
         .iter()
         .flat_map(|&seed| items.iter().map(move |item| (seed, item)))
@@ -503,7 +540,7 @@ fn for_each_seed<I: Sync, R: Send>(
         .into_par_iter()
         .with_max_len(1)
         .map(|(seed, item)| work(seed, item))
-        .collect::<Result<Vec<R>, MetaError>>()?
+        .collect::<Result<Vec<R>, ReproduceError>>()?
         .into_iter();
     Ok(seeds
         .iter()

@@ -1,0 +1,6 @@
+//! The behaviour policies an actor can run: fixed heuristics, a Q-network's greedy policy, and the
+//! online DQN agent whose replay buffer becomes the paper's datasets.
+
+pub mod dqn_online;
+pub mod heuristics;
+pub mod q_policy;

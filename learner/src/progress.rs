@@ -1,0 +1,80 @@
+//! What a training loop reports as it goes, for offline training and meta-training alike: a CSV
+//! log of one row per epoch, and a progress bar on the terminal.
+
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+
+/// A CSV log that cannot be created or written.
+#[derive(Debug, thiserror::Error)]
+#[error("{}: cannot {action}", path.display())]
+pub struct CsvError {
+    pub path: PathBuf,
+    pub action: &'static str,
+    pub source: std::io::Error,
+}
+
+/// A CSV file written line by line, each line flushed as it is written so an interrupted run
+/// keeps its rows.
+pub struct CsvLog {
+    path: PathBuf,
+    file: BufWriter<File>,
+}
+
+impl CsvLog {
+    /// A new log at `path` (its directory created if need be) that starts with `header`.
+    pub fn create(path: &Path, header: &str) -> Result<Self, CsvError> {
+        Self::resume(path, header, |_| false)
+    }
+
+    /// A new log at `path` that starts with `header`, then the rows of the log that was there for
+    /// which `keep` holds: those a resumed run does not repeat.
+    pub fn resume(
+        path: &Path,
+        header: &str,
+        keep: impl Fn(&str) -> bool,
+    ) -> Result<Self, CsvError> {
+        let error = |action, source| CsvError {
+            path: path.to_path_buf(),
+            action,
+            source,
+        };
+        let old = std::fs::read_to_string(path).unwrap_or_default();
+        if let Some(dir) = path.parent() {
+            std::fs::create_dir_all(dir).map_err(|e| error("create the directory of", e))?;
+        }
+        let file = File::create(path).map_err(|e| error("create", e))?;
+        let mut log = Self {
+            path: path.to_path_buf(),
+            file: BufWriter::new(file),
+        };
+        log.line(header)?;
+        for line in old.lines().skip(1).filter(|line| keep(line)) {
+            log.line(line)?;
+        }
+        Ok(log)
+    }
+
+    /// Appends `line` and flushes it.
+    pub fn line(&mut self, line: &str) -> Result<(), CsvError> {
+        writeln!(self.file, "{line}")
+            .and_then(|()| self.file.flush())
+            .map_err(|source| CsvError {
+                path: self.path.clone(),
+                action: "write",
+                source,
+            })
+    }
+}
+
+/// A progress bar of `len` units on the terminal, drawn with the indicatif `template`; hidden
+/// (but still counting) when `enabled` is false.
+pub fn progress_bar(enabled: bool, len: u64, template: &str) -> ProgressBar {
+    if !enabled {
+        return ProgressBar::with_draw_target(Some(len), ProgressDrawTarget::hidden());
+    }
+    ProgressBar::new(len)
+        .with_style(ProgressStyle::with_template(template).expect("the template is valid"))
+}

@@ -1,0 +1,293 @@
+//! Figure 5: the four methods on the unseen task.
+
+use super::*;
+
+/// Per run: whether it converged and at which epoch (see [`claims::converged_at`]).
+fn convergence_cells(runs: &[Vec<f64>], floor: f64) -> (usize, String) {
+    let epochs: Vec<usize> = runs.iter().filter_map(|r| converged_at(r, floor)).collect();
+    let cell = if epochs.is_empty() {
+        format!("0/{}", runs.len())
+    } else {
+        format!(
+            "{}/{} (epoch {:.1})",
+            epochs.len(),
+            runs.len(),
+            est(epochs.iter().map(|&e| e as f64))
+        )
+    };
+    (epochs.len(), cell)
+}
+
+/// Figure 5: the four methods on the unseen task.
+pub(super) fn convergence(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
+    let c = ctx.config;
+    let r = &c.reproduce;
+    let epochs = r.convergence_epochs;
+    let refs = ctx.unseen_refs();
+    let mut csv = format!("method,{CURVE_COLUMNS}\n");
+    let mut runs = Vec::new();
+    for method in Method::ALL {
+        let key = unseen_key(c, method, r.main_shots, r.meta_tasks);
+        curve_lines(&mut csv, method.name(), ctx.seeds, &ctx.rows(&key, epochs));
+        runs.push((method, ctx.returns(&key, epochs)));
+    }
+    write_file(&dir.join("curves.csv"), &csv)?;
+    write_references_csv(ctx, dir, &r.unseen_task, c.learner.eval_episodes)?;
+    let series: Vec<Series> = runs
+        .iter()
+        .map(|(m, runs)| return_series(m.label().into(), runs))
+        .collect();
+    line_chart(
+        &dir.join("fig5.png"),
+        &format!(
+            "Figure 5: fine-tuning on `{}` ({} shots)",
+            r.unseen_task, r.main_shots
+        ),
+        "greedy return / 100",
+        &series,
+        &refs.lines(),
+    )?;
+
+    let mut body = format!(
+        "Fine-tuning on {} shots of the unseen task `{}` for {epochs} epochs, {}. A run *converged* \
+         when its {}-epoch moving average stays within 5% of its final return (the mean of its last {} \
+         epochs) before the last {:.0}% of its epochs, at a final return above the uniform random \
+         policy's ({:.0}).\n\n",
+        r.main_shots,
+        r.unseen_task,
+        ctx.seeds_note(),
+        claims::SMOOTH_EPOCHS,
+        claims::FINAL_EPOCHS,
+        claims::LATE_SHARE * 100.0,
+        refs.random
+    );
+    let _ = writeln!(
+        body,
+        "| method | converged (seeds) | return at epoch {EPOCH_40} | final return | mean swing between epochs |\n| --- | --- | --- | --- | --- |"
+    );
+    let stats = |runs: &[Vec<f64>]| {
+        (
+            est(runs.iter().map(|r| return_at(r, EPOCH_40))),
+            est(runs.iter().map(|r| final_return(r))),
+            est(runs.iter().map(|r| mean_swing(r))),
+        )
+    };
+    for (method, runs) in &runs {
+        let (at40, last, swing) = stats(runs);
+        let (_, converged) = convergence_cells(runs, refs.random);
+        let _ = writeln!(
+            body,
+            "| {} | {converged} | {at40:.0} | {last:.0} | {swing:.0} |",
+            method.label()
+        );
+    }
+    body.push('\n');
+    body.push_str(&references_table(
+        ctx,
+        &r.unseen_task,
+        c.learner.eval_episodes,
+    ));
+
+    let runs_of = |m: Method| &runs.iter().find(|(x, _)| *x == m).expect("all methods").1;
+    let mut found = Vec::new();
+
+    // DQN and DQN-MAML fail to converge.
+    let dqn: Vec<&Vec<f64>> = runs_of(Method::Dqn)
+        .iter()
+        .chain(runs_of(Method::DqnMaml))
+        .collect();
+    let failed = dqn
+        .iter()
+        .filter(|r| converged_at(r, refs.random).is_none())
+        .count();
+    let measured = [Method::Dqn, Method::DqnMaml]
+        .iter()
+        .map(|&m| {
+            let (_, cell) = convergence_cells(runs_of(m), refs.random);
+            format!(
+                "{} converged in {cell}, final {:.0}",
+                m.label(),
+                stats(runs_of(m)).1
+            )
+        })
+        .collect::<Vec<_>>()
+        .join("; ");
+    found.push(Claim::new(
+        "5",
+        "DQN and DQN-MAML trained offline fail to converge",
+        measured,
+        Verdict::share(failed, dqn.len()),
+        || {
+            format!(
+                "{} of {} DQN / DQN-MAML runs settled above the random policy's return",
+                dqn.len() - failed,
+                dqn.len()
+            )
+        },
+    ));
+
+    // CQL needs more than 100 epochs: a run that converged by epoch 100 refutes it; one that did
+    // not within fewer than 100 epochs leaves it open.
+    let cql = runs_of(Method::Cql);
+    let cases = cql.iter().map(|r| match converged_at(r, refs.random) {
+        Some(e) if e <= EPOCH_100 => Verdict::No,
+        None if r.len() < EPOCH_100 => Verdict::Untested,
+        _ => Verdict::Yes,
+    });
+    let (_, cell) = convergence_cells(cql, refs.random);
+    let cql_final = stats(cql).1;
+    found.push(Claim::new(
+        "5",
+        "CQL from a random init needs more than 100 epochs",
+        format!(
+            "CQL converged in {cell}; final {cql_final:.0} (random policy {:.0})",
+            refs.random
+        ),
+        Verdict::all_of(cases),
+        || {
+            format!(
+                "CQL settled at a useful return within {} epochs in some seeds",
+                epochs.min(EPOCH_100)
+            )
+        },
+    ));
+
+    let maml = runs_of(Method::CqlMaml);
+    let cases = maml.iter().map(|r| match converged_at(r, refs.random) {
+        Some(e) if e < EPOCH_40 => Verdict::Yes,
+        None if r.len() < EPOCH_40 => Verdict::Untested,
+        _ => Verdict::No,
+    });
+    let (_, cell) = convergence_cells(maml, refs.random);
+    let (_, maml_final, maml_swing) = stats(maml);
+    found.push(Claim::new(
+        "5",
+        "CQL-MAML converges in fewer than 40 epochs",
+        format!("CQL-MAML converged in {cell}; final {maml_final:.0}"),
+        Verdict::all_of(cases),
+        || {
+            let short = refs.shortfall(&[("CQL-MAML", maml_final.mean)]);
+            if short.is_empty() {
+                format!(
+                    "its returns swing by {maml_swing:.0} between epochs, wider than the 5% band ({:.0}) around its final return",
+                    0.05 * maml_final.mean.abs()
+                )
+            } else {
+                short
+            }
+        },
+    ));
+
+    let verdicts = [
+        Verdict::beats(maml_final, refs.online),
+        Verdict::beats(cql_final, refs.online),
+    ];
+    found.push(Claim::new(
+        "5",
+        "CQL-MAML and CQL both end above the online DQN agent",
+        format!(
+            "final: CQL-MAML {maml_final:.0}, CQL {cql_final:.0}; online DQN {:.0}",
+            refs.online
+        ),
+        Verdict::all_of(verdicts),
+        || refs.shortfall(&[("CQL-MAML", maml_final.mean), ("CQL", cql_final.mean)]),
+    ));
+
+    // The same two statements seed by seed, each seed against its own online agent and its own
+    // CQL run: at epoch 40 CQL-MAML is at or above the agent, and it settles within 5% of its
+    // final return in at most half the epochs CQL takes.
+    let online = ctx.online(&r.unseen_task, c.learner.eval_episodes);
+    let at_40: Vec<bool> = maml
+        .iter()
+        .zip(&online)
+        .filter(|(run, _)| run.len() >= EPOCH_40)
+        .map(|(run, agent)| return_at(run, EPOCH_40) >= agent.ret.mean)
+        .collect();
+    let held = at_40.iter().filter(|&&above| above).count();
+    found.push(Claim::new(
+        "5",
+        "At epoch 40 CQL-MAML is at or above the online DQN agent (on at least 4 of 5 seeds)",
+        format!("{held} of {} seeds", at_40.len()),
+        match at_40.len() {
+            0 => Verdict::Untested,
+            n if 5 * held >= 4 * n => Verdict::Yes,
+            n => Verdict::share(held, n),
+        },
+        || {
+            format!(
+                "CQL-MAML at epoch 40: {:.0}; online DQN {:.0}",
+                est(maml.iter().map(|run| return_at(run, EPOCH_40))),
+                refs.online
+            )
+        },
+    ));
+    let settles: Vec<(usize, usize)> = maml
+        .iter()
+        .zip(cql)
+        .map(|(m, c)| (settle_epoch(m), settle_epoch(c)))
+        .collect();
+    let faster = settles.iter().filter(|(m, c)| 2 * m <= *c).count();
+    found.push(Claim::new(
+        "5",
+        "CQL-MAML reaches 95% of its final return in at most half the epochs CQL needs",
+        format!(
+            "{faster} of {} seeds; settle epochs CQL-MAML / CQL: {}",
+            settles.len(),
+            settles
+                .iter()
+                .map(|(m, c)| format!("{m}/{c}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
+        Verdict::share(faster, settles.len()),
+        || "in some seeds CQL settles as early as CQL-MAML, or CQL-MAML keeps moving".into(),
+    ));
+    finish(body, found)
+}
+
+fn write_references_csv(
+    ctx: &Context,
+    dir: &Path,
+    task: &str,
+    episodes: usize,
+) -> Result<(), ReproduceError> {
+    let mut csv = String::from("reference,task,seed,return,aoi,power_mw,outages\n");
+    for (seed, m) in ctx.seeds.iter().zip(ctx.online(task, episodes)) {
+        let _ = writeln!(
+            csv,
+            "online-dqn,{task},{},{},{},{},{}",
+            seed.seed, m.ret.mean, m.aoi.mean, m.power_mw.mean, m.outages.mean
+        );
+    }
+    for (name, m) in &ctx.heuristics(task, episodes).policies {
+        let _ = writeln!(
+            csv,
+            "{name},{task},,{},{},{},{}",
+            m.ret.mean, m.aoi.mean, m.power_mw.mean, m.outages.mean
+        );
+    }
+    Ok(write_file(&dir.join("references.csv"), &csv)?)
+}
+
+fn references_table(ctx: &Context, task: &str, episodes: usize) -> String {
+    let online = ctx.online(task, episodes);
+    let mut s = format!(
+        "| reference on `{task}` | return | AoI | power (mW) | outages |\n| --- | --- | --- | --- | --- |\n"
+    );
+    let _ = writeln!(
+        s,
+        "| online DQN (over seeds) | {:.0} | {:.2} | {:.3} | {:.1} |",
+        est(online.iter().map(|m| m.ret.mean)),
+        est(online.iter().map(|m| m.aoi.mean)),
+        est(online.iter().map(|m| m.power_mw.mean)),
+        est(online.iter().map(|m| m.outages.mean)),
+    );
+    for (name, m) in &ctx.heuristics(task, episodes).policies {
+        let _ = writeln!(
+            s,
+            "| {name} (over {} episodes) | {:.0} | {:.2} | {:.3} | {:.1} |",
+            m.episodes, m.ret, m.aoi, m.power_mw, m.outages
+        );
+    }
+    s
+}

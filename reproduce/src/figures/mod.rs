@@ -1,0 +1,400 @@
+//! Per experiment: its CSV files (one row per method, seed and epoch, raw returns), its PNG charts
+//! (returns / 100, the paper's scale, mean over seeds with a 95% band) and the markdown body of
+//! its `summary.md`, ending with the claims of SPEC section 6 it tests. One file per figure; this
+//! module holds what they share: the context they read, the reference lines and the chart and
+//! CSV helpers.
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+use uavmeta_actors::world::World;
+use uavmeta_learner::train::EpochRow;
+use uavmeta_plot::{self as plot, Band, Bar, LineChart, Reference, Series, TrajectoryChart};
+use uavmeta_proto::config::{Config, InnerLoss, RainZone, TaskConfig, TaskRole};
+use uavmeta_proto::stats::{Estimate, PolicyMetrics};
+
+use crate::claims::{
+    self, converged_at, final_return, mean_swing, return_at, settle_epoch, Claim, Verdict,
+};
+use crate::runs::{InitKey, InitKind, Method, RunKey, SeedResult};
+use crate::{rain_tasks, Experiment, HeuristicRef};
+use uavmeta_meta::write_file;
+
+use crate::ReproduceError;
+
+mod aoi_power;
+mod convergence;
+mod meta_training;
+mod online_dqn;
+mod resilience;
+mod shots;
+mod tasks;
+
+/// The paper reads convergence off at epoch 40 (CQL-MAML) and 100 (CQL); figure 9 at 100 and 200.
+const EPOCH_40: usize = 40;
+const EPOCH_100: usize = 100;
+
+/// What every experiment reads.
+pub struct Context<'a> {
+    pub config: &'a Config,
+    /// In seed order.
+    pub seeds: &'a [SeedResult],
+    pub heuristics: &'a [HeuristicRef],
+}
+
+/// An experiment's `summary.md` body and its claims.
+pub struct Section {
+    pub body: String,
+    pub claims: Vec<Claim>,
+}
+
+/// The run of `method` on the unseen task with `shots` shots (from the w0 of the first
+/// `meta_tasks` meta-train tasks when meta-trained).
+pub fn unseen_key(config: &Config, method: Method, shots: usize, meta_tasks: usize) -> RunKey {
+    let r = &config.reproduce;
+    RunKey {
+        task: r.unseen_task.clone(),
+        method,
+        shots,
+        meta_tasks: if method.init_kind().is_some() {
+            meta_tasks
+        } else {
+            0
+        },
+        eval_episodes: config.learner.eval_episodes,
+    }
+}
+
+/// The run of `method` on a rain task (figure 9).
+pub fn rain_key(config: &Config, task: &TaskConfig, method: Method) -> RunKey {
+    let r = &config.reproduce;
+    RunKey {
+        task: task.name.clone(),
+        eval_episodes: r.resilience_eval_episodes,
+        ..unseen_key(config, method, r.main_shots, r.meta_tasks)
+    }
+}
+
+/// Writes `experiment`'s files into `dir`.
+pub fn write(ctx: &Context, experiment: Experiment, dir: &Path) -> Result<Section, ReproduceError> {
+    match experiment {
+        Experiment::MetaTraining => meta_training::meta_training(ctx, dir),
+        Experiment::Convergence => convergence::convergence(ctx, dir),
+        Experiment::Shots => shots::shots(ctx, dir),
+        Experiment::Tasks => tasks::tasks(ctx, dir),
+        Experiment::AoiPower => aoi_power::aoi_power(ctx, dir),
+        Experiment::Resilience => resilience::resilience(ctx, dir),
+        Experiment::OnlineDqn => online_dqn::online_dqn(ctx, dir),
+    }
+}
+
+impl Context<'_> {
+    /// Per seed, the first `epochs` rows of run `key`.
+    fn rows(&self, key: &RunKey, epochs: usize) -> Vec<&[EpochRow]> {
+        self.seeds
+            .iter()
+            .map(|s| {
+                let rows = &s.run(key).rows;
+                &rows[..epochs.min(rows.len())]
+            })
+            .collect()
+    }
+
+    /// Per seed, the greedy return after each of the first `epochs` epochs of run `key`.
+    fn returns(&self, key: &RunKey, epochs: usize) -> Vec<Vec<f64>> {
+        self.rows(key, epochs)
+            .iter()
+            .map(|rows| rows.iter().map(|r| r.policy.ret.mean).collect())
+            .collect()
+    }
+
+    /// The online DQN agent's figures on `task` per seed.
+    fn online(&self, task: &str, episodes: usize) -> Vec<PolicyMetrics> {
+        self.seeds
+            .iter()
+            .map(|s| *s.reference(task, episodes))
+            .collect()
+    }
+
+    fn heuristics(&self, task: &str, episodes: usize) -> &HeuristicRef {
+        self.heuristics
+            .iter()
+            .find(|h| h.task == task && h.episodes == episodes)
+            .expect("the plan adds heuristics wherever it adds a reference")
+    }
+
+    fn unseen_refs(&self) -> Refs {
+        let episodes = self.config.learner.eval_episodes;
+        Refs::new(
+            self.config,
+            &self.online(&self.config.reproduce.unseen_task, episodes),
+            &[self.heuristics(&self.config.reproduce.unseen_task, episodes)],
+        )
+    }
+
+    fn seeds_note(&self) -> String {
+        match self.seeds.len() {
+            1 => "1 seed".into(),
+            n => format!("{n} seeds"),
+        }
+    }
+}
+
+/// Reference levels of a figure, averaged over seeds (and over tasks for figure 9).
+struct Refs {
+    online: Estimate,
+    online_outages: Estimate,
+    random: f64,
+    /// (name, return) of each heuristic.
+    heuristics: Vec<(&'static str, f64)>,
+    /// Share of each dataset the online agent collected while still exploring.
+    exploratory: f64,
+    eps_start: f64,
+}
+
+impl Refs {
+    fn new(config: &Config, online: &[PolicyMetrics], heuristics: &[&HeuristicRef]) -> Refs {
+        let mean_over = |name: &str| {
+            heuristics
+                .iter()
+                .map(|h| {
+                    h.policies
+                        .iter()
+                        .find(|(n, _)| *n == name)
+                        .map_or(f64::NAN, |(_, m)| m.ret.mean)
+                })
+                .sum::<f64>()
+                / heuristics.len() as f64
+        };
+        let names: Vec<&str> = heuristics
+            .first()
+            .map(|h| h.policies.iter().map(|(n, _)| *n).collect())
+            .unwrap_or_default();
+        Refs {
+            online: Estimate::from_samples(online.iter().map(|m| m.ret.mean)),
+            online_outages: Estimate::from_samples(online.iter().map(|m| m.outages.mean)),
+            random: mean_over("random"),
+            heuristics: names.into_iter().map(|n| (n, mean_over(n))).collect(),
+            exploratory: exploratory_share(config),
+            eps_start: config.collect.eps_start,
+        }
+    }
+
+    /// Dashed lines of the returns / 100.
+    fn lines(&self) -> Vec<Reference> {
+        let mut lines = vec![Reference {
+            label: "online DQN".into(),
+            value: self.online.mean / 100.0,
+        }];
+        lines.extend(self.heuristics.iter().map(|(n, v)| Reference {
+            label: (*n).into(),
+            value: v / 100.0,
+        }));
+        lines
+    }
+
+    /// Why methods that should end above the online agent (or learn at all) do not, from their
+    /// (label, final return); those that fall short in the same way share one sentence.
+    fn shortfall(&self, finals: &[(&str, f64)]) -> String {
+        let listed = |pick: &dyn Fn(f64) -> bool| {
+            let picked: Vec<String> = finals
+                .iter()
+                .filter(|(_, ret)| pick(*ret))
+                .map(|(label, ret)| format!("{label} ({ret:.0})"))
+                .collect();
+            let verb = if picked.len() == 1 { "ends" } else { "end" };
+            (picked.join(" and "), verb)
+        };
+        let mut why = Vec::new();
+        let (below_random, verb) = listed(&|ret| ret < self.random);
+        // Exploring steps are the one cause measured (docs/EXPERIMENTS.md); blamed only when they
+        // make up a real part of the shots.
+        if !below_random.is_empty() && self.exploratory >= 0.25 {
+            why.push(format!(
+                "{below_random} {verb} below the uniform random policy ({:.0}): nothing useful is learned \
+                 from these shots, {:.0}% of which the online agent took while epsilon still fell from {} \
+                 (docs/EXPERIMENTS.md: the same code learns from near-greedy shots)",
+                self.random,
+                100.0 * self.exploratory,
+                self.eps_start
+            ));
+        } else if !below_random.is_empty() {
+            why.push(format!(
+                "{below_random} {verb} below the uniform random policy ({:.0}) although only {:.0}% of \
+                 these shots were taken while epsilon still fell: near-greedy data is not enough here, \
+                 and we have not isolated why",
+                self.random,
+                100.0 * self.exploratory,
+            ));
+        }
+        let (below_online, verb) = listed(&|ret| ret >= self.random && ret < self.online.mean);
+        if !below_online.is_empty() {
+            why.push(format!(
+                "{below_online} {verb} above the random policy's {:.0} but below the online DQN agent \
+                 that made the data ({:.0})",
+                self.random, self.online.mean
+            ));
+        }
+        why.join("; ")
+    }
+}
+
+/// The share of a dataset's transitions that its online DQN agent took before epsilon reached its
+/// final value: the dataset is sampled uniformly from the replay buffer, which holds the last
+/// `min(dqn_steps, replay_capacity)` steps (of which the newest `sample_newest`, when set, are
+/// sampled), and epsilon falls until `learning_starts +
+/// eps_decay_steps` (`actors/src/policy/dqn_online.rs`).
+fn exploratory_share(config: &Config) -> f64 {
+    let c = &config.collect;
+    let held = c.sampled_window().max(1);
+    let first_held = c.dqn_steps.saturating_sub(held);
+    let decaying_until = c.learning_starts + c.eps_decay_steps;
+    decaying_until.saturating_sub(first_held).min(held) as f64 / held as f64
+}
+
+fn est(samples: impl IntoIterator<Item = f64>) -> Estimate {
+    Estimate::from_samples(samples)
+}
+
+fn epochs_x(epochs: usize) -> Vec<f64> {
+    (1..=epochs).map(|e| e as f64).collect()
+}
+
+/// A series of returns / 100 over seeds.
+fn return_series(label: String, runs: &[Vec<f64>]) -> Series {
+    let epochs = runs.iter().map(Vec::len).max().unwrap_or(0);
+    let scaled: Vec<Vec<f64>> = runs
+        .iter()
+        .map(|r| r.iter().map(|v| v / 100.0).collect())
+        .collect();
+    Series {
+        label,
+        band: Band::from_runs(epochs_x(epochs), &scaled),
+    }
+}
+
+/// A chart of returns per epoch.
+fn line_chart(
+    path: &Path,
+    title: &str,
+    y_label: &str,
+    series: &[Series],
+    references: &[Reference],
+) -> Result<(), ReproduceError> {
+    plot::line_chart(
+        path,
+        &LineChart {
+            title,
+            x_label: "epoch",
+            y_label,
+            series,
+            references,
+            floor: None,
+        },
+    )?;
+    Ok(())
+}
+
+/// One line per method, seed and epoch of `rows`, after `prefix` columns.
+fn curve_lines(csv: &mut String, prefix: &str, seeds: &[SeedResult], rows: &[&[EpochRow]]) {
+    for (seed, rows) in seeds.iter().zip(rows) {
+        for row in rows.iter() {
+            let p = &row.policy;
+            let _ = writeln!(
+                csv,
+                "{prefix},{},{},{},{},{},{},{}",
+                seed.seed,
+                row.epoch,
+                p.ret.mean,
+                p.ret.ci95,
+                p.aoi.mean,
+                p.power_mw.mean,
+                p.outages.mean
+            );
+        }
+    }
+}
+
+const CURVE_COLUMNS: &str = "seed,epoch,return,return_ci95,aoi,power_mw,outages";
+
+/// The body's claims section, and the section.
+fn finish(mut body: String, claims: Vec<Claim>) -> Result<Section, ReproduceError> {
+    let _ = writeln!(body, "\n## Claims\n");
+    body.push_str(&claims::table(&claims));
+    Ok(Section { body, claims })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shortfalls_of_the_same_kind_share_one_sentence() {
+        let estimate = |mean| Estimate { mean, ci95: 0.0 };
+        let refs = Refs {
+            online: estimate(-9000.0),
+            online_outages: estimate(0.0),
+            random: -13000.0,
+            heuristics: vec![],
+            exploratory: 0.55,
+            eps_start: 1.0,
+        };
+        let both = refs.shortfall(&[("CQL-MAML", -36000.0), ("CQL", -32000.0)]);
+        assert_eq!(
+            both.matches("below the uniform random policy").count(),
+            1,
+            "{both}"
+        );
+        assert!(
+            both.starts_with("CQL-MAML (-36000) and CQL (-32000) end below"),
+            "{both}"
+        );
+        assert!(both.contains("55%"), "{both}");
+        let mixed = refs.shortfall(&[("CQL-MAML", -10000.0), ("CQL", -32000.0)]);
+        assert!(
+            mixed.starts_with("CQL (-32000) ends below the uniform random"),
+            "{mixed}"
+        );
+        assert!(
+            mixed.contains("; CQL-MAML (-10000) ends above the random policy's -13000 but below"),
+            "{mixed}"
+        );
+        assert_eq!(refs.shortfall(&[("CQL-MAML", -8000.0)]), "");
+        let greedy_shots = Refs {
+            exploratory: 0.0,
+            ..refs
+        };
+        let not_the_data = greedy_shots.shortfall(&[("CQL-MAML", -20000.0)]);
+        assert!(
+            not_the_data.contains("although only 0% of these shots")
+                && !not_the_data.contains("docs/EXPERIMENTS.md"),
+            "{not_the_data}"
+        );
+    }
+
+    #[test]
+    fn exploratory_share_counts_the_buffer_steps_before_epsilon_settles() {
+        let mut config = Config::default();
+        let c = &mut config.collect;
+        (
+            c.dqn_steps,
+            c.replay_capacity,
+            c.learning_starts,
+            c.eps_decay_steps,
+        ) = (10_000, 10_000, 500, 5_000);
+        assert!((exploratory_share(&config) - 0.55).abs() < 1e-12);
+        // A buffer of the last 500 steps holds none of them.
+        config.collect.replay_capacity = 500;
+        assert_eq!(exploratory_share(&config), 0.0);
+        // Still decaying at the end: all of them.
+        config.collect.eps_decay_steps = 20_000;
+        assert_eq!(exploratory_share(&config), 1.0);
+        // The whole buffer, but shots from its newest 2 000 steps: none of them.
+        (
+            config.collect.replay_capacity,
+            config.collect.eps_decay_steps,
+        ) = (10_000, 5_000);
+        config.collect.sample_newest = 2_000;
+        assert_eq!(exploratory_share(&config), 0.0);
+    }
+}
