@@ -24,13 +24,17 @@
 use std::collections::HashMap;
 use std::time::{Duration, Instant};
 
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
+use iceoryx2::sample::Sample;
 use uavmeta_proto::config::{Config, ConfigError};
 use uavmeta_proto::dataset::{
     DatasetError, DatasetHeader, DatasetReader, DatasetWriter, Transition,
 };
 use uavmeta_proto::transport::{
-    self, DatasetReady, RunDir, StoreAck, TransportError, SCHEMA_VERSION,
+    self, BatchHeader, DatasetReady, RunDir, StoreAck, TransitionSlot, TransportError,
+    SCHEMA_VERSION,
 };
 
 use uavmeta_proto::metrics::store::{DROPPED_REASONS, DUPLICATE, FOREIGN, SURPLUS};
@@ -73,7 +77,7 @@ struct TaskStore {
     /// Per actor, the next sequence number not yet stored.
     next_seq: HashMap<u32, u64>,
     /// Tells the task's actors what is stored, so that they send it again only if it is not.
-    acks: iceoryx2::port::publisher::Publisher<ipc::Service, StoreAck, ()>,
+    acks: Publisher<ipc::Service, StoreAck, ()>,
     announced: bool,
 }
 
@@ -112,59 +116,34 @@ pub struct StoreSummary {
 /// Runs the store of `run` until SIGINT/SIGTERM or a shutdown announcement.
 pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
     let process = Process::start(run, config, PROCESS)?;
-    let (node, names) = (&process.node, &process.names);
+    let node = &process.node;
     // A predecessor killed mid-run left its ports in every service; without this sweep the actors
     // stay blocked on its full buffer.
     let cleaned = transport::cleanup_dead_nodes(node);
     if cleaned > 0 {
         tracing::info!(cleaned, "removed iceoryx2 resources of dead processes");
     }
-    let metrics = metrics::StoreMetrics::new();
-
-    let mut tasks = Vec::with_capacity(config.tasks.len());
-    let mut subscribers = Vec::with_capacity(config.tasks.len());
-    for (id, task) in config.tasks.iter().enumerate() {
-        let acks = transport::ack_service(node, names, &task.name, &config.run)?;
-        let acks = transport::ack_publisher(&acks)?;
-        let store = open_task(run, config, &task.name, id as u32, acks, &metrics)?;
-        let service = transport::transition_service(node, names, &task.name, &config.run)?;
-        subscribers.push(transport::transition_subscriber(&service, &config.run)?);
-        tasks.push(store);
-    }
-    let ready =
-        transport::control_publisher(&transport::dataset_ready_service(node, names, config)?)?;
-    let target = config.collect.transitions as u64;
-    for task in tasks.iter_mut() {
-        announce_if_complete(task, target, &ready, &metrics)?;
-    }
+    let mut store = Store::open(run, config, &process)?;
     // The port file is the launcher's sign that the store is ready, so it comes after the
     // subscribers: actors started then find a connected store.
-    let _server = process.serve_metrics(run, config, metrics.registry.clone())?;
-    tracing::info!(run = run.id(), tasks = tasks.len(), "store ready");
+    let _server = process.serve_metrics(run, config, store.metrics.registry.clone())?;
+    tracing::info!(run = run.id(), tasks = store.tasks.len(), "store ready");
 
-    let mut summary = StoreSummary::default();
-    let mut buffer = Vec::with_capacity(config.run.batch_size);
     let mut idle = false;
     let mut last_cleanup = Instant::now();
     let mut last_ack_refresh = Instant::now();
     while transport::keep_running(node, if idle { IDLE_WAIT } else { Duration::ZERO }) {
-        transport::serve_history(&ready)?;
+        transport::serve_history(&store.ready)?;
         if transport::shutdown_requested(&process.shutdown)? {
             tracing::info!("shutdown announced");
             break;
         }
-        idle = drain(
-            &subscribers,
-            &mut tasks,
-            run,
-            config,
-            &metrics,
-            &ready,
-            &mut buffer,
-            &mut summary,
-        )? == 0;
+        idle = store.drain()? == 0;
         if last_ack_refresh.elapsed() >= ACK_REFRESH_EVERY {
-            tasks.iter().try_for_each(TaskStore::acknowledge_all)?;
+            store
+                .tasks
+                .iter()
+                .try_for_each(TaskStore::acknowledge_all)?;
             last_ack_refresh = Instant::now();
         }
         if last_cleanup.elapsed() >= CLEANUP_EVERY {
@@ -174,20 +153,11 @@ pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
     }
     // Batches already delivered are written before exiting: actors stop first in an orderly
     // shutdown, so this empties the buffers.
-    while drain(
-        &subscribers,
-        &mut tasks,
-        run,
-        config,
-        &metrics,
-        &ready,
-        &mut buffer,
-        &mut summary,
-    )? > 0
-    {}
-    for task in tasks.iter_mut() {
+    while store.drain()? > 0 {}
+    for task in store.tasks.iter_mut() {
         task.writer.sync()?;
     }
+    let summary = store.summary;
     tracing::info!(
         stored = summary.stored,
         dropped = summary.dropped,
@@ -197,13 +167,216 @@ pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
     Ok(summary)
 }
 
+type BatchSubscriber = Subscriber<ipc::Service, [TransitionSlot], BatchHeader>;
+type BatchSample = Sample<ipc::Service, [TransitionSlot], BatchHeader>;
+
+/// A store run's state: every task's file and subscriber, what a batch is checked against, and
+/// what the run has counted.
+struct Store<'a> {
+    run: &'a RunDir,
+    /// Transitions a complete dataset holds (`collect.transitions`).
+    target: u64,
+    obs_len: usize,
+    world_hash: u64,
+    metrics: metrics::StoreMetrics,
+    ready: Publisher<ipc::Service, DatasetReady, ()>,
+    /// In task order, as `subscribers`.
+    tasks: Vec<TaskStore>,
+    subscribers: Vec<BatchSubscriber>,
+    /// The transitions of the batch being stored, kept to reuse its allocation.
+    buffer: Vec<Transition>,
+    summary: StoreSummary,
+}
+
+impl<'a> Store<'a> {
+    /// Opens every task's file and services, and announces the datasets already complete.
+    fn open(run: &'a RunDir, config: &Config, process: &Process) -> Result<Self, StoreError> {
+        let (node, names) = (&process.node, &process.names);
+        let metrics = metrics::StoreMetrics::new();
+        let mut tasks = Vec::with_capacity(config.tasks.len());
+        let mut subscribers = Vec::with_capacity(config.tasks.len());
+        for (id, task) in config.tasks.iter().enumerate() {
+            let acks = transport::ack_service(node, names, &task.name, &config.run)?;
+            let acks = transport::ack_publisher(&acks)?;
+            let store = open_task(run, config, &task.name, id as u32, acks, &metrics)?;
+            let service = transport::transition_service(node, names, &task.name, &config.run)?;
+            subscribers.push(transport::transition_subscriber(&service, &config.run)?);
+            tasks.push(store);
+        }
+        let ready =
+            transport::control_publisher(&transport::dataset_ready_service(node, names, config)?)?;
+        let mut store = Store {
+            run,
+            target: config.collect.transitions as u64,
+            obs_len: config.world.observation_len(),
+            world_hash: config.world_hash(),
+            metrics,
+            ready,
+            tasks,
+            subscribers,
+            buffer: Vec::with_capacity(config.run.batch_size),
+            summary: StoreSummary::default(),
+        };
+        for i in 0..store.tasks.len() {
+            store.announce_if_complete(i)?;
+        }
+        Ok(store)
+    }
+
+    /// Receives and stores everything waiting on every task's service; returns the batches
+    /// handled.
+    fn drain(&mut self) -> Result<usize, StoreError> {
+        let mut batches = 0;
+        for i in 0..self.tasks.len() {
+            while let Some(sample) = self.subscribers[i]
+                .receive()
+                .map_err(transport::receive_failed("receive a batch"))?
+            {
+                batches += 1;
+                self.store_batch(i, sample)?;
+            }
+        }
+        Ok(batches)
+    }
+
+    /// Checks a batch of task `i`, appends what its file lacks, and acknowledges it.
+    fn store_batch(&mut self, i: usize, sample: BatchSample) -> Result<(), StoreError> {
+        let name = self.tasks[i].name.clone();
+        let name = name.as_str();
+        let header = *sample.user_header();
+        let slots = sample.payload();
+        let metrics = &self.metrics;
+        metrics.batches_received.with_label_values(&[name]).inc();
+        metrics
+            .transitions_received
+            .with_label_values(&[name])
+            .inc_by(slots.len() as u64);
+        metrics.batch_latency.observe(header.age_seconds());
+        let task_id = self.tasks[i].id;
+        if let Err(error) = header.check(
+            self.run.hash(),
+            self.world_hash,
+            task_id,
+            self.obs_len,
+            slots.len(),
+        ) {
+            tracing::warn!("dropped a batch: {error}");
+            metrics
+                .transitions_dropped
+                .with_label_values(&[name, FOREIGN])
+                .inc_by(slots.len() as u64);
+            self.summary.dropped += slots.len() as u64;
+            return Ok(());
+        }
+        let acknowledged = self.select(i, &header, slots);
+        drop(sample);
+        self.append(i)?;
+        self.tasks[i].acknowledge(header.actor, acknowledged)?;
+        self.announce_if_complete(i)
+    }
+
+    /// Fills the buffer with the batch's transitions that task `i`'s file lacks, counting
+    /// duplicates, surplus and gaps; returns the actor's next sequence number.
+    fn select(&mut self, i: usize, header: &BatchHeader, slots: &[TransitionSlot]) -> u64 {
+        let task = &mut self.tasks[i];
+        let name = task.name.as_str();
+        let next = task.next_seq.entry(header.actor).or_default();
+        self.buffer.clear();
+        let (mut duplicates, mut surplus) = (0u64, 0u64);
+        for (index, slot) in slots.iter().enumerate() {
+            let seq = header.first_seq + index as u64;
+            if seq < *next {
+                duplicates += 1;
+                continue;
+            }
+            if seq > *next {
+                let gap = seq - *next;
+                tracing::warn!(
+                    task = name,
+                    actor = header.actor,
+                    from = *next,
+                    to = seq,
+                    "sequence gap: {gap} transitions missing"
+                );
+                self.metrics
+                    .transitions_missing
+                    .with_label_values(&[name])
+                    .inc_by(gap);
+                self.summary.missing += gap;
+            }
+            *next = seq + 1;
+            if task.writer.transitions() + self.buffer.len() as u64 >= self.target {
+                surplus += 1;
+            } else {
+                self.buffer.push(slot.to_transition(header, index));
+            }
+        }
+        let dropped = &self.metrics.transitions_dropped;
+        dropped
+            .with_label_values(&[name, DUPLICATE])
+            .inc_by(duplicates);
+        dropped.with_label_values(&[name, SURPLUS]).inc_by(surplus);
+        self.summary.dropped += duplicates + surplus;
+        *next
+    }
+
+    /// Appends the buffer to task `i`'s file and flushes it.
+    fn append(&mut self, i: usize) -> Result<(), StoreError> {
+        if self.buffer.is_empty() {
+            return Ok(());
+        }
+        let task = &mut self.tasks[i];
+        let start = Instant::now();
+        task.writer.append(&self.buffer)?;
+        task.writer.flush()?;
+        let metrics = &self.metrics;
+        metrics
+            .append_duration
+            .observe(start.elapsed().as_secs_f64());
+        metrics
+            .transitions_stored
+            .with_label_values(&[&task.name])
+            .inc_by(self.buffer.len() as u64);
+        metrics
+            .dataset_transitions
+            .with_label_values(&[&task.name])
+            .set(task.writer.transitions() as i64);
+        self.summary.stored += self.buffer.len() as u64;
+        Ok(())
+    }
+
+    /// Syncs and announces task `i`'s dataset the first time it holds `target` transitions.
+    fn announce_if_complete(&mut self, i: usize) -> Result<(), StoreError> {
+        let task = &mut self.tasks[i];
+        if task.announced || task.writer.transitions() < self.target {
+            return Ok(());
+        }
+        task.writer.sync()?;
+        transport::announce(
+            &self.ready,
+            DatasetReady {
+                schema_version: SCHEMA_VERSION,
+                task: task.id,
+                transitions: task.writer.transitions(),
+            },
+        )?;
+        self.metrics
+            .dataset_ready
+            .with_label_values(&[&task.name])
+            .set(1);
+        task.announced = true;
+        tracing::info!(task = %task.name, transitions = task.writer.transitions(), file = %task.writer.path().display(), "dataset ready");
+        Ok(())
+    }
+}
+
 /// Opens (or creates) a task's file and rebuilds its per-actor sequence numbers from it.
 fn open_task(
     run: &RunDir,
     config: &Config,
     name: &str,
     id: u32,
-    acks: iceoryx2::port::publisher::Publisher<ipc::Service, StoreAck, ()>,
+    acks: Publisher<ipc::Service, StoreAck, ()>,
     metrics: &metrics::StoreMetrics,
 ) -> Result<TaskStore, StoreError> {
     let path = run.dataset(config.task(name)?);
@@ -264,143 +437,4 @@ fn open_task(
         acks,
         announced: false,
     })
-}
-
-/// Receives and stores everything waiting on every task's service; returns the batches handled.
-#[allow(clippy::too_many_arguments)]
-fn drain(
-    subscribers: &[iceoryx2::port::subscriber::Subscriber<
-        ipc::Service,
-        [transport::TransitionSlot],
-        transport::BatchHeader,
-    >],
-    tasks: &mut [TaskStore],
-    run: &RunDir,
-    config: &Config,
-    metrics: &metrics::StoreMetrics,
-    ready: &iceoryx2::port::publisher::Publisher<ipc::Service, DatasetReady, ()>,
-    buffer: &mut Vec<Transition>,
-    summary: &mut StoreSummary,
-) -> Result<usize, StoreError> {
-    let target = config.collect.transitions as u64;
-    let obs_len = config.world.observation_len();
-    let world = config.world_hash();
-    let mut batches = 0;
-    for (subscriber, task) in subscribers.iter().zip(tasks.iter_mut()) {
-        let name = task.name.clone();
-        let name = name.as_str();
-        while let Some(sample) = subscriber
-            .receive()
-            .map_err(transport::receive_failed("receive a batch"))?
-        {
-            batches += 1;
-            let header = *sample.user_header();
-            let slots = sample.payload();
-            metrics.batches_received.with_label_values(&[name]).inc();
-            metrics
-                .transitions_received
-                .with_label_values(&[name])
-                .inc_by(slots.len() as u64);
-            metrics.batch_latency.observe(header.age_seconds());
-            if let Err(error) = header.check(run.hash(), world, task.id, obs_len, slots.len()) {
-                tracing::warn!("dropped a batch: {error}");
-                metrics
-                    .transitions_dropped
-                    .with_label_values(&[name, FOREIGN])
-                    .inc_by(slots.len() as u64);
-                summary.dropped += slots.len() as u64;
-                continue;
-            }
-            let next = task.next_seq.entry(header.actor).or_default();
-            buffer.clear();
-            let (mut duplicates, mut surplus) = (0u64, 0u64);
-            for (i, slot) in slots.iter().enumerate() {
-                let seq = header.first_seq + i as u64;
-                if seq < *next {
-                    duplicates += 1;
-                    continue;
-                }
-                if seq > *next {
-                    let gap = seq - *next;
-                    tracing::warn!(
-                        task = name,
-                        actor = header.actor,
-                        from = *next,
-                        to = seq,
-                        "sequence gap: {gap} transitions missing"
-                    );
-                    metrics
-                        .transitions_missing
-                        .with_label_values(&[name])
-                        .inc_by(gap);
-                    summary.missing += gap;
-                }
-                *next = seq + 1;
-                if task.writer.transitions() + buffer.len() as u64 >= target {
-                    surplus += 1;
-                } else {
-                    buffer.push(slot.to_transition(&header, i));
-                }
-            }
-            let acknowledged = *next;
-            drop(sample);
-            metrics
-                .transitions_dropped
-                .with_label_values(&[name, DUPLICATE])
-                .inc_by(duplicates);
-            metrics
-                .transitions_dropped
-                .with_label_values(&[name, SURPLUS])
-                .inc_by(surplus);
-            summary.dropped += duplicates + surplus;
-            if !buffer.is_empty() {
-                let start = Instant::now();
-                task.writer.append(buffer)?;
-                task.writer.flush()?;
-                metrics
-                    .append_duration
-                    .observe(start.elapsed().as_secs_f64());
-                metrics
-                    .transitions_stored
-                    .with_label_values(&[name])
-                    .inc_by(buffer.len() as u64);
-                metrics
-                    .dataset_transitions
-                    .with_label_values(&[name])
-                    .set(task.writer.transitions() as i64);
-                summary.stored += buffer.len() as u64;
-            }
-            task.acknowledge(header.actor, acknowledged)?;
-            announce_if_complete(task, target, ready, metrics)?;
-        }
-    }
-    Ok(batches)
-}
-
-/// Syncs and announces a task's dataset the first time it holds `target` transitions.
-fn announce_if_complete(
-    task: &mut TaskStore,
-    target: u64,
-    ready: &iceoryx2::port::publisher::Publisher<ipc::Service, DatasetReady, ()>,
-    metrics: &metrics::StoreMetrics,
-) -> Result<(), StoreError> {
-    if task.announced || task.writer.transitions() < target {
-        return Ok(());
-    }
-    task.writer.sync()?;
-    transport::announce(
-        ready,
-        DatasetReady {
-            schema_version: SCHEMA_VERSION,
-            task: task.id,
-            transitions: task.writer.transitions(),
-        },
-    )?;
-    metrics
-        .dataset_ready
-        .with_label_values(&[&task.name])
-        .set(1);
-    task.announced = true;
-    tracing::info!(task = %task.name, transitions = task.writer.transitions(), file = %task.writer.path().display(), "dataset ready");
-    Ok(())
 }
