@@ -603,8 +603,9 @@ impl Maml {
             ),
             false => None,
         };
-        let mut optimizer = OuterAdam::new(&meta_parameters(&w0, &inner_lr), config.eta_outer);
-        for (i, p) in meta_parameters(&w0, &inner_lr).iter().enumerate() {
+        let meta_params = meta_parameters(&w0, &inner_lr);
+        let mut optimizer = OuterAdam::new(&meta_params, config.eta_outer);
+        for (i, p) in meta_params.iter().enumerate() {
             optimizer.m[i] = take(format!("adam.m.{i}"), p)?;
             optimizer.v[i] = take(format!("adam.v.{i}"), p)?;
         }
