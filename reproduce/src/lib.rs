@@ -33,11 +33,7 @@ mod figures;
 mod runs;
 
 use uavmeta_actors::collect::CollectError;
-use uavmeta_learner::checkpoint::CheckpointError;
-use uavmeta_learner::train::TrainError;
 use uavmeta_meta::MetaError;
-use uavmeta_proto::config::ConfigError;
-use uavmeta_proto::dataset::DatasetError;
 
 /// Everything a reproduction can fail on.
 #[derive(Debug, thiserror::Error)]
@@ -48,18 +44,12 @@ pub enum ReproduceError {
     Threads(#[from] rayon::ThreadPoolBuildError),
     #[error(transparent)]
     Plot(#[from] uavmeta_plot::PlotError),
+    /// Also a config, dataset, checkpoint or training error: `MetaError` wraps each already, with
+    /// the same message.
     #[error(transparent)]
     Meta(#[from] MetaError),
     #[error(transparent)]
-    Config(#[from] ConfigError),
-    #[error(transparent)]
     Collect(#[from] CollectError),
-    #[error(transparent)]
-    Dataset(#[from] DatasetError),
-    #[error(transparent)]
-    Checkpoint(#[from] CheckpointError),
-    #[error(transparent)]
-    Train(#[from] TrainError),
 }
 
 use std::fmt::Write as _;
@@ -221,7 +211,7 @@ pub struct HeuristicRef {
 pub fn run(opts: &ReproduceOptions) -> Result<ReproduceReport, ReproduceError> {
     let started = Instant::now();
     let config = opts.config;
-    config.validate_reproduce()?;
+    config.validate_reproduce().map_err(MetaError::from)?;
     if opts.experiments.contains(&Experiment::Resilience) && rain_tasks(config).next().is_none() {
         return Err(ReproduceError::NoRainTasks {
             origin: config.origin.clone(),

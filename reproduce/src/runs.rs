@@ -27,7 +27,7 @@ use uavmeta_meta::meta_test::{fine_tune, load_shots, FineTune};
 use uavmeta_meta::meta_train::{
     algorithm_name, dataset_path, load_tasks, meta_train, MetaTrainOptions,
 };
-use uavmeta_meta::{create_dir, pretrain};
+use uavmeta_meta::{create_dir, pretrain, MetaError};
 
 use crate::ReproduceError;
 
@@ -383,9 +383,10 @@ pub fn reference(
     seed: u64,
     key: &RefKey,
 ) -> Result<PolicyMetrics, ReproduceError> {
-    let task = config.task(&key.task)?;
+    let task = config.task(&key.task).map_err(MetaError::from)?;
     let agent = agent_path(&dataset_path(&datasets_dir(out, seed), &task.name));
-    let (agent, _) = checkpoint::load(&agent, &collection_config(config, seed))?;
+    let (agent, _) =
+        checkpoint::load(&agent, &collection_config(config, seed)).map_err(MetaError::from)?;
     let metrics = Evaluator::new(&config.world, task, key.episodes, config.learner.eval_seed)
         .evaluate(&agent);
     tracing::info!(seed, task = %task.name, ret = %metrics.ret, aoi = %metrics.aoi, power_mw = %metrics.power_mw, "online DQN reference");
@@ -418,11 +419,11 @@ pub fn fine_tune_run(
     w0: Option<&Path>,
 ) -> Result<RunResult, ReproduceError> {
     let key = &run.need.key;
-    let task = config.task(&key.task)?;
+    let task = config.task(&key.task).map_err(MetaError::from)?;
     let dataset = dataset_path(&datasets_dir(out, seed), &task.name);
     let shots = load_shots(config, task, &dataset, key.shots, seed)?;
     let mut q = match w0 {
-        Some(w0) => checkpoint::load(w0, config)?.0,
+        Some(w0) => checkpoint::load(w0, config).map_err(MetaError::from)?.0,
         None => QNetworkConfig::for_world(&config.world, &config.learner.hidden).init(seed),
     };
     let mut run_config = config.clone();
@@ -494,7 +495,8 @@ fn ensure_w0(
             let (_, tasks) = load_tasks(&meta, datasets, seed)?;
             let q = pretrain::pretrain(&meta, &tasks, seed, |_| Ok::<_, ReproduceError>(true))?
                 .expect("a pretraining never told to stop finishes");
-            checkpoint::save(&w0, &q, pretrain::ALGORITHM, meta.meta.meta_epochs, &meta)?;
+            checkpoint::save(&w0, &q, pretrain::ALGORITHM, meta.meta.meta_epochs, &meta)
+                .map_err(MetaError::from)?;
         }
         return Ok((w0, MetaCurve::default()));
     }
