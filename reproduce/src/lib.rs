@@ -434,23 +434,7 @@ fn heuristic_refs(config: &Config, plan: &Plan) -> Vec<HeuristicRef> {
 fn run_seeds(opts: &ReproduceOptions, plan: &Plan) -> Result<Vec<SeedResult>, ReproduceError> {
     let (config, out) = (opts.config, opts.out_dir);
     let seeds: Vec<u64> = (0..config.reproduce.seeds as u64).collect();
-    let multi = MultiProgress::with_draw_target(if opts.progress {
-        ProgressDrawTarget::stderr()
-    } else {
-        ProgressDrawTarget::hidden()
-    });
-    let style = ProgressStyle::with_template("{prefix:>14} {bar:30} {pos}/{len} {elapsed}/{eta}")
-        .expect("the template is valid");
-    let bars: Vec<(Experiment, ProgressBar)> = opts
-        .experiments
-        .iter()
-        .map(|&e| {
-            let bar = multi.add(ProgressBar::new(plan.units(e) * seeds.len() as u64));
-            bar.set_style(style.clone());
-            bar.set_prefix(e.name());
-            (e, bar)
-        })
-        .collect();
+    let bars = progress_bars(opts, plan, seeds.len());
     let done = |users: &[Experiment]| {
         for (e, bar) in &bars {
             if users.contains(e) {
@@ -513,6 +497,30 @@ fn run_seeds(opts: &ReproduceOptions, plan: &Plan) -> Result<Vec<SeedResult>, Re
         bar.finish_and_clear();
     }
     results
+}
+
+/// One progress bar per experiment, counting the items of the plan it uses over every seed.
+fn progress_bars(
+    opts: &ReproduceOptions,
+    plan: &Plan,
+    seeds: usize,
+) -> Vec<(Experiment, ProgressBar)> {
+    let multi = MultiProgress::with_draw_target(if opts.progress {
+        ProgressDrawTarget::stderr()
+    } else {
+        ProgressDrawTarget::hidden()
+    });
+    let style = ProgressStyle::with_template("{prefix:>14} {bar:30} {pos}/{len} {elapsed}/{eta}")
+        .expect("the template is valid");
+    opts.experiments
+        .iter()
+        .map(|&e| {
+            let bar = multi.add(ProgressBar::new(plan.units(e) * seeds as u64));
+            bar.set_style(style.clone());
+            bar.set_prefix(e.name());
+            (e, bar)
+        })
+        .collect()
 }
 
 /// `work(seed, item)` for every seed and item, on the current pool, one pair per task; the

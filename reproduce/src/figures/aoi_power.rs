@@ -12,6 +12,9 @@ const PAPER_FIG8: [(&str, f64, f64); 3] = [
 /// The noise power of the paper's milliwatt figures (SPEC section 1).
 const PAPER_NOISE_DBM: f64 = -90.0;
 
+/// (name, AoI, power) of a method over seeds.
+type Measured<'a> = (&'a str, Estimate, Estimate);
+
 /// Figure 8: AoI and power at epoch `aoi_power_epoch`.
 pub(super) fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let c = ctx.config;
@@ -33,27 +36,14 @@ pub(super) fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, ReproduceE
         // Not in the paper: after its three, with no paper figures beside it.
         ("CQL-pretrain", at_epoch(Method::CqlPretrain)),
     ];
-    let mut csv = String::from("method,seed,aoi,power_mw\n");
-    for (name, per_seed) in &learned {
-        for (seed, m) in ctx.seeds.iter().zip(per_seed) {
-            let _ = writeln!(
-                csv,
-                "{name},{},{},{}",
-                seed.seed, m.aoi.mean, m.power_mw.mean
-            );
-        }
-    }
     let heuristics = &ctx
         .heuristics(&r.unseen_task, c.learner.eval_episodes)
         .policies;
-    for (name, m) in heuristics {
-        let _ = writeln!(csv, "{name},,{},{}", m.aoi.mean, m.power_mw.mean);
-    }
-    write_file(&dir.join("bars.csv"), &csv)?;
+    write_bars_csv(ctx, &learned, heuristics, dir)?;
 
     // The paper's milliwatts are on a noise floor of -90 dBm; power scales with the noise power.
     let paper_scale = 10f64.powf((PAPER_NOISE_DBM - c.world.noise_dbm) / 10.0);
-    let measured: Vec<(&str, Estimate, Estimate)> = learned
+    let measured: Vec<Measured> = learned
         .iter()
         .map(|(name, per_seed)| {
             (
@@ -63,52 +53,7 @@ pub(super) fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, ReproduceE
             )
         })
         .collect();
-    let mut aoi_bars = Vec::new();
-    let mut power_bars = Vec::new();
-    for ((name, aoi, power), (_, paper_aoi, paper_mw)) in measured.iter().zip(PAPER_FIG8) {
-        let bar = |label: &str, value| Bar {
-            group: name.to_string(),
-            label: label.into(),
-            value,
-        };
-        aoi_bars.push(bar("measured", *aoi));
-        aoi_bars.push(bar(
-            "paper",
-            Estimate {
-                mean: paper_aoi,
-                ci95: 0.0,
-            },
-        ));
-        power_bars.push(bar("measured", *power));
-        power_bars.push(bar(
-            "paper, on our noise floor",
-            Estimate {
-                mean: paper_mw / paper_scale,
-                ci95: 0.0,
-            },
-        ));
-    }
-    for (name, aoi, power) in measured.iter().skip(PAPER_FIG8.len()) {
-        let bar = |value| Bar {
-            group: name.to_string(),
-            label: "measured".into(),
-            value,
-        };
-        aoi_bars.push(bar(*aoi));
-        power_bars.push(bar(*power));
-    }
-    for (name, m) in heuristics {
-        aoi_bars.push(Bar {
-            group: name.to_string(),
-            label: "measured".into(),
-            value: m.aoi,
-        });
-        power_bars.push(Bar {
-            group: name.to_string(),
-            label: "measured".into(),
-            value: m.power_mw,
-        });
-    }
+    let (aoi_bars, power_bars) = bars(&measured, heuristics, paper_scale);
     plot::bar_chart(
         &dir.join("fig8a_aoi.png"),
         &format!("Figure 8a: AoI on `{}` after {epoch} epochs", r.unseen_task),
@@ -124,14 +69,86 @@ pub(super) fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, ReproduceE
         "mean power (mW)",
         &power_bars,
     )?;
+    let body = summary_table(ctx, &measured, heuristics, paper_scale);
+    finish(body, vec![order_claim(&measured)])
+}
 
+/// `bars.csv`: AoI and power per method and seed, then the heuristics'.
+fn write_bars_csv(
+    ctx: &Context,
+    learned: &[(&str, Vec<PolicyMetrics>)],
+    heuristics: &[(&str, PolicyMetrics)],
+    dir: &Path,
+) -> Result<(), ReproduceError> {
+    let mut csv = String::from("method,seed,aoi,power_mw\n");
+    for (name, per_seed) in learned {
+        for (seed, m) in ctx.seeds.iter().zip(per_seed) {
+            let _ = writeln!(
+                csv,
+                "{name},{},{},{}",
+                seed.seed, m.aoi.mean, m.power_mw.mean
+            );
+        }
+    }
+    for (name, m) in heuristics {
+        let _ = writeln!(csv, "{name},,{},{}", m.aoi.mean, m.power_mw.mean);
+    }
+    Ok(write_file(&dir.join("bars.csv"), &csv)?)
+}
+
+/// The AoI and power bars: each method measured, beside the paper's figure where it has one,
+/// then the heuristics.
+fn bars(
+    measured: &[Measured],
+    heuristics: &[(&str, PolicyMetrics)],
+    paper_scale: f64,
+) -> (Vec<Bar>, Vec<Bar>) {
+    let bar = |group: &str, label: &str, value| Bar {
+        group: group.to_string(),
+        label: label.into(),
+        value,
+    };
+    let paper = |mean| Estimate { mean, ci95: 0.0 };
+    let mut aoi_bars = Vec::new();
+    let mut power_bars = Vec::new();
+    for ((name, aoi, power), (_, paper_aoi, paper_mw)) in measured.iter().zip(PAPER_FIG8) {
+        aoi_bars.push(bar(name, "measured", *aoi));
+        aoi_bars.push(bar(name, "paper", paper(paper_aoi)));
+        power_bars.push(bar(name, "measured", *power));
+        power_bars.push(bar(
+            name,
+            "paper, on our noise floor",
+            paper(paper_mw / paper_scale),
+        ));
+    }
+    for (name, aoi, power) in measured.iter().skip(PAPER_FIG8.len()) {
+        aoi_bars.push(bar(name, "measured", *aoi));
+        power_bars.push(bar(name, "measured", *power));
+    }
+    for (name, m) in heuristics {
+        aoi_bars.push(bar(name, "measured", m.aoi));
+        power_bars.push(bar(name, "measured", m.power_mw));
+    }
+    (aoi_bars, power_bars)
+}
+
+/// The summary's opening and its table, beside the paper's values.
+fn summary_table(
+    ctx: &Context,
+    measured: &[Measured],
+    heuristics: &[(&str, PolicyMetrics)],
+    paper_scale: f64,
+) -> String {
+    let c = ctx.config;
+    let r = &c.reproduce;
     let mut body = format!(
-        "AoI and power of the greedy policies on `{}` after {epoch} fine-tuning epochs on {} shots, {}. \
+        "AoI and power of the greedy policies on `{}` after {} fine-tuning epochs on {} shots, {}. \
          Power scales with the noise power: our world uses noise_dbm = {}, the paper's milliwatts \
          correspond to {PAPER_NOISE_DBM} dBm (SPEC section 1), so its figures are {paper_scale:.3}x ours \
          for the same policy; the chart and table show them rescaled to our noise floor.\n\n\
          | method | AoI | paper AoI | power (mW) | paper power, rescaled (mW) |\n| --- | --- | --- | --- | --- |\n",
         r.unseen_task,
+        r.aoi_power_epoch,
         r.main_shots,
         ctx.seeds_note(),
         c.world.noise_dbm
@@ -149,7 +166,11 @@ pub(super) fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, ReproduceE
     for (name, m) in heuristics {
         let _ = writeln!(body, "| {name} | {:.2} | | {:.3} | |", m.aoi, m.power_mw);
     }
-    // The claim's content is its ordering: CQL-MAML below online DQN below CQL, in both metrics.
+    body
+}
+
+/// The claim's content is its ordering: CQL-MAML below online DQN below CQL, in both metrics.
+fn order_claim(measured: &[Measured]) -> Claim {
     // (metric, lower, higher, their means): the paper has `lower` below `higher`.
     let orders: Vec<(&str, usize, usize, f64, f64)> = [(0, 1), (1, 2)]
         .into_iter()
@@ -161,7 +182,7 @@ pub(super) fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, ReproduceE
         })
         .collect();
     let held = orders.iter().filter(|o| o.3 < o.4).count();
-    let found = vec![Claim::new(
+    Claim::new(
         "8",
         "lambda = 300 after 50 epochs: CQL-MAML AoI 6 / 1.6 mW, online DQN 7 / 2.2 mW, CQL 28 / 6 mW (CQL-MAML best, CQL worst in both)",
         measured
@@ -183,6 +204,5 @@ pub(super) fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, ReproduceE
                 .collect();
             format!("the paper's order does not hold: {}", broken.join("; "))
         },
-    )];
-    finish(body, found)
+    )
 }

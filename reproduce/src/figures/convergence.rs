@@ -22,15 +22,16 @@ fn convergence_cells(runs: &[Vec<f64>], floor: f64) -> (usize, String) {
 pub(super) fn convergence(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let c = ctx.config;
     let r = &c.reproduce;
-    let epochs = r.convergence_epochs;
     let refs = ctx.unseen_refs();
     let mut csv = format!("method,{CURVE_COLUMNS}\n");
-    let mut runs = Vec::new();
-    for method in Method::ALL {
-        let key = unseen_key(c, method, r.main_shots, r.meta_tasks);
-        curve_lines(&mut csv, method.name(), ctx.seeds, &ctx.rows(&key, epochs));
-        runs.push((method, ctx.returns(&key, epochs)));
-    }
+    let runs: Vec<(Method, Vec<Vec<f64>>)> = Method::ALL
+        .into_iter()
+        .map(|method| {
+            let key = unseen_key(c, method, r.main_shots, r.meta_tasks);
+            let curves = ctx.curves(&mut csv, method.name(), &key, r.convergence_epochs);
+            (method, curves)
+        })
+        .collect();
     write_file(&dir.join("curves.csv"), &csv)?;
     write_references_csv(ctx, dir, &r.unseen_task, c.learner.eval_episodes)?;
     let series: Vec<Series> = runs
@@ -48,13 +49,41 @@ pub(super) fn convergence(ctx: &Context, dir: &Path) -> Result<Section, Reproduc
         &refs.lines(),
     )?;
 
+    let body = summary_table(ctx, &runs, &refs);
+    let runs_of = |m: Method| &runs.iter().find(|(x, _)| *x == m).expect("all methods").1;
+    let (maml, cql) = (runs_of(Method::CqlMaml), runs_of(Method::Cql));
+    let mut found = vec![
+        dqn_claim(runs_of(Method::Dqn), runs_of(Method::DqnMaml), &refs),
+        cql_claim(cql, &refs, r.convergence_epochs),
+        maml_claim(maml, &refs),
+        online_claim(maml, cql, &refs),
+    ];
+    let online = ctx.online(&r.unseen_task, c.learner.eval_episodes);
+    found.extend(seed_claims(maml, cql, &online, &refs));
+    finish(body, found)
+}
+
+/// Over seeds: the return at epoch 40, the final return and the mean swing between epochs.
+fn curve_stats(runs: &[Vec<f64>]) -> (Estimate, Estimate, Estimate) {
+    (
+        est(runs.iter().map(|r| return_at(r, EPOCH_40))),
+        finals(runs),
+        est(runs.iter().map(|r| mean_swing(r))),
+    )
+}
+
+/// The summary's opening, its table of methods and the reference levels.
+fn summary_table(ctx: &Context, runs: &[(Method, Vec<Vec<f64>>)], refs: &Refs) -> String {
+    let c = ctx.config;
+    let r = &c.reproduce;
     let mut body = format!(
-        "Fine-tuning on {} shots of the unseen task `{}` for {epochs} epochs, {}. A run *converged* \
+        "Fine-tuning on {} shots of the unseen task `{}` for {} epochs, {}. A run *converged* \
          when its {}-epoch moving average stays within 5% of its final return (the mean of its last {} \
          epochs) before the last {:.0}% of its epochs, at a final return above the uniform random \
          policy's ({:.0}).\n\n",
         r.main_shots,
         r.unseen_task,
+        r.convergence_epochs,
         ctx.seeds_note(),
         claims::SMOOTH_EPOCHS,
         claims::FINAL_EPOCHS,
@@ -65,15 +94,8 @@ pub(super) fn convergence(ctx: &Context, dir: &Path) -> Result<Section, Reproduc
         body,
         "| method | converged (seeds) | return at epoch {EPOCH_40} | final return | mean swing between epochs |\n| --- | --- | --- | --- | --- |"
     );
-    let stats = |runs: &[Vec<f64>]| {
-        (
-            est(runs.iter().map(|r| return_at(r, EPOCH_40))),
-            est(runs.iter().map(|r| final_return(r))),
-            est(runs.iter().map(|r| mean_swing(r))),
-        )
-    };
-    for (method, runs) in &runs {
-        let (at40, last, swing) = stats(runs);
+    for (method, runs) in runs {
+        let (at40, last, swing) = curve_stats(runs);
         let (_, converged) = convergence_cells(runs, refs.random);
         let _ = writeln!(
             body,
@@ -87,60 +109,58 @@ pub(super) fn convergence(ctx: &Context, dir: &Path) -> Result<Section, Reproduc
         &r.unseen_task,
         c.learner.eval_episodes,
     ));
+    body
+}
 
-    let runs_of = |m: Method| &runs.iter().find(|(x, _)| *x == m).expect("all methods").1;
-    let mut found = Vec::new();
-
-    // DQN and DQN-MAML fail to converge.
-    let dqn: Vec<&Vec<f64>> = runs_of(Method::Dqn)
-        .iter()
-        .chain(runs_of(Method::DqnMaml))
-        .collect();
-    let failed = dqn
+/// DQN and DQN-MAML fail to converge.
+fn dqn_claim(dqn: &[Vec<f64>], dqn_maml: &[Vec<f64>], refs: &Refs) -> Claim {
+    let all: Vec<&Vec<f64>> = dqn.iter().chain(dqn_maml).collect();
+    let failed = all
         .iter()
         .filter(|r| converged_at(r, refs.random).is_none())
         .count();
-    let measured = [Method::Dqn, Method::DqnMaml]
+    let measured = [(Method::Dqn, dqn), (Method::DqnMaml, dqn_maml)]
         .iter()
-        .map(|&m| {
-            let (_, cell) = convergence_cells(runs_of(m), refs.random);
+        .map(|&(m, runs)| {
+            let (_, cell) = convergence_cells(runs, refs.random);
             format!(
                 "{} converged in {cell}, final {:.0}",
                 m.label(),
-                stats(runs_of(m)).1
+                finals(runs)
             )
         })
         .collect::<Vec<_>>()
         .join("; ");
-    found.push(Claim::new(
+    Claim::new(
         "5",
         "DQN and DQN-MAML trained offline fail to converge",
         measured,
-        Verdict::share(failed, dqn.len()),
+        Verdict::share(failed, all.len()),
         || {
             format!(
                 "{} of {} DQN / DQN-MAML runs settled above the random policy's return",
-                dqn.len() - failed,
-                dqn.len()
+                all.len() - failed,
+                all.len()
             )
         },
-    ));
+    )
+}
 
-    // CQL needs more than 100 epochs: a run that converged by epoch 100 refutes it; one that did
-    // not within fewer than 100 epochs leaves it open.
-    let cql = runs_of(Method::Cql);
+/// CQL needs more than 100 epochs: a run that converged by epoch 100 refutes it; one that did
+/// not within fewer than 100 epochs leaves it open.
+fn cql_claim(cql: &[Vec<f64>], refs: &Refs, epochs: usize) -> Claim {
     let cases = cql.iter().map(|r| match converged_at(r, refs.random) {
         Some(e) if e <= EPOCH_100 => Verdict::No,
         None if r.len() < EPOCH_100 => Verdict::Untested,
         _ => Verdict::Yes,
     });
     let (_, cell) = convergence_cells(cql, refs.random);
-    let cql_final = stats(cql).1;
-    found.push(Claim::new(
+    Claim::new(
         "5",
         "CQL from a random init needs more than 100 epochs",
         format!(
-            "CQL converged in {cell}; final {cql_final:.0} (random policy {:.0})",
+            "CQL converged in {cell}; final {:.0} (random policy {:.0})",
+            finals(cql),
             refs.random
         ),
         Verdict::all_of(cases),
@@ -150,17 +170,19 @@ pub(super) fn convergence(ctx: &Context, dir: &Path) -> Result<Section, Reproduc
                 epochs.min(EPOCH_100)
             )
         },
-    ));
+    )
+}
 
-    let maml = runs_of(Method::CqlMaml);
+/// CQL-MAML converges in fewer than 40 epochs.
+fn maml_claim(maml: &[Vec<f64>], refs: &Refs) -> Claim {
     let cases = maml.iter().map(|r| match converged_at(r, refs.random) {
         Some(e) if e < EPOCH_40 => Verdict::Yes,
         None if r.len() < EPOCH_40 => Verdict::Untested,
         _ => Verdict::No,
     });
     let (_, cell) = convergence_cells(maml, refs.random);
-    let (_, maml_final, maml_swing) = stats(maml);
-    found.push(Claim::new(
+    let (_, maml_final, maml_swing) = curve_stats(maml);
+    Claim::new(
         "5",
         "CQL-MAML converges in fewer than 40 epochs",
         format!("CQL-MAML converged in {cell}; final {maml_final:.0}"),
@@ -176,13 +198,17 @@ pub(super) fn convergence(ctx: &Context, dir: &Path) -> Result<Section, Reproduc
                 short
             }
         },
-    ));
+    )
+}
 
+/// CQL-MAML and CQL both end above the online DQN agent.
+fn online_claim(maml: &[Vec<f64>], cql: &[Vec<f64>], refs: &Refs) -> Claim {
+    let (maml_final, cql_final) = (finals(maml), finals(cql));
     let verdicts = [
         Verdict::beats(maml_final, refs.online),
         Verdict::beats(cql_final, refs.online),
     ];
-    found.push(Claim::new(
+    Claim::new(
         "5",
         "CQL-MAML and CQL both end above the online DQN agent",
         format!(
@@ -191,20 +217,26 @@ pub(super) fn convergence(ctx: &Context, dir: &Path) -> Result<Section, Reproduc
         ),
         Verdict::all_of(verdicts),
         || refs.shortfall(&[("CQL-MAML", maml_final.mean), ("CQL", cql_final.mean)]),
-    ));
+    )
+}
 
-    // The same two statements seed by seed, each seed against its own online agent and its own
-    // CQL run: at epoch 40 CQL-MAML is at or above the agent, and it settles within 5% of its
-    // final return in at most half the epochs CQL takes.
-    let online = ctx.online(&r.unseen_task, c.learner.eval_episodes);
+/// The same two statements seed by seed, each seed against its own online agent and its own
+/// CQL run: at epoch 40 CQL-MAML is at or above the agent, and it settles within 5% of its
+/// final return in at most half the epochs CQL takes.
+fn seed_claims(
+    maml: &[Vec<f64>],
+    cql: &[Vec<f64>],
+    online: &[PolicyMetrics],
+    refs: &Refs,
+) -> [Claim; 2] {
     let at_40: Vec<bool> = maml
         .iter()
-        .zip(&online)
+        .zip(online)
         .filter(|(run, _)| run.len() >= EPOCH_40)
         .map(|(run, agent)| return_at(run, EPOCH_40) >= agent.ret.mean)
         .collect();
     let held = at_40.iter().filter(|&&above| above).count();
-    found.push(Claim::new(
+    let above = Claim::new(
         "5",
         "At epoch 40 CQL-MAML is at or above the online DQN agent (on at least 4 of 5 seeds)",
         format!("{held} of {} seeds", at_40.len()),
@@ -220,14 +252,14 @@ pub(super) fn convergence(ctx: &Context, dir: &Path) -> Result<Section, Reproduc
                 refs.online
             )
         },
-    ));
+    );
     let settles: Vec<(usize, usize)> = maml
         .iter()
         .zip(cql)
         .map(|(m, c)| (settle_epoch(m), settle_epoch(c)))
         .collect();
     let faster = settles.iter().filter(|(m, c)| 2 * m <= *c).count();
-    found.push(Claim::new(
+    let settled = Claim::new(
         "5",
         "CQL-MAML reaches 95% of its final return in at most half the epochs CQL needs",
         format!(
@@ -241,8 +273,8 @@ pub(super) fn convergence(ctx: &Context, dir: &Path) -> Result<Section, Reproduc
         ),
         Verdict::share(faster, settles.len()),
         || "in some seeds CQL settles as early as CQL-MAML, or CQL-MAML keeps moving".into(),
-    ));
-    finish(body, found)
+    );
+    [above, settled]
 }
 
 fn write_references_csv(

@@ -10,15 +10,38 @@ pub(super) fn meta_training(ctx: &Context, dir: &Path) -> Result<Section, Reprod
         tasks: r.meta_tasks,
     };
     let tasks: Vec<&TaskConfig> = crate::runs::meta_train_tasks(ctx.config, r.meta_tasks).collect();
-    let curves: Vec<_> = ctx
+    let curves: Vec<(u64, &MetaCurve)> = ctx
         .seeds
         .iter()
         .map(|s| (s.seed, s.meta_curve(key)))
         .collect();
+    write_csvs(&curves, &tasks, dir)?;
+    let losses: Vec<Vec<f64>> = curves.iter().map(|(_, c)| c.meta_loss.clone()).collect();
+    plot_loss(&losses, dir)?;
+    plot_returns(&curves, &tasks, dir)?;
+    Ok(Section {
+        body: summary(ctx, &curves, &losses, &tasks),
+        claims: Vec::new(),
+    })
+}
 
+/// Per seed, task `i`'s adapted returns / 100 at each evaluated meta-epoch.
+fn per_task(curves: &[(u64, &MetaCurve)], i: usize) -> Vec<Vec<f64>> {
+    curves
+        .iter()
+        .map(|(_, c)| c.returns.iter().map(|(_, r)| r[i] / 100.0).collect())
+        .collect()
+}
+
+/// Figure 4a's and 4b's CSV files.
+fn write_csvs(
+    curves: &[(u64, &MetaCurve)],
+    tasks: &[&TaskConfig],
+    dir: &Path,
+) -> Result<(), ReproduceError> {
     let mut loss_csv = String::from("seed,meta_epoch,meta_loss\n");
     let mut ret_csv = String::from("seed,meta_epoch,task,return\n");
-    for (seed, curve) in &curves {
+    for (seed, curve) in curves {
         for (e, loss) in curve.meta_loss.iter().enumerate() {
             let _ = writeln!(loss_csv, "{seed},{},{loss}", e + 1);
         }
@@ -30,8 +53,11 @@ pub(super) fn meta_training(ctx: &Context, dir: &Path) -> Result<Section, Reprod
     }
     write_file(&dir.join("fig4a_meta_loss.csv"), &loss_csv)?;
     write_file(&dir.join("fig4b_returns.csv"), &ret_csv)?;
+    Ok(())
+}
 
-    let losses: Vec<Vec<f64>> = curves.iter().map(|(_, c)| c.meta_loss.clone()).collect();
+/// Figure 4a: the meta-loss per meta-epoch, one run per seed.
+fn plot_loss(losses: &[Vec<f64>], dir: &Path) -> Result<(), ReproduceError> {
     let meta_epochs = losses.iter().map(Vec::len).max().unwrap_or(0);
     plot::line_chart(
         &dir.join("fig4a_meta_loss.png"),
@@ -41,29 +67,32 @@ pub(super) fn meta_training(ctx: &Context, dir: &Path) -> Result<Section, Reprod
             y_label: "meta-loss (eq. 15)",
             series: &[Series {
                 label: "meta-loss".into(),
-                band: Band::from_runs(epochs_x(meta_epochs), &losses),
+                band: Band::from_runs(epochs_x(meta_epochs), losses),
             }],
             references: &[],
             // TD errors squared plus eq. 8's log-sum-exp gap: never negative.
             floor: Some(0.0),
         },
     )?;
+    Ok(())
+}
+
+/// Figure 4b: each meta-train task's adapted return at the evaluated meta-epochs.
+fn plot_returns(
+    curves: &[(u64, &MetaCurve)],
+    tasks: &[&TaskConfig],
+    dir: &Path,
+) -> Result<(), ReproduceError> {
     let evaluated: Vec<f64> = curves
         .first()
         .map(|(_, c)| c.returns.iter().map(|(e, _)| *e as f64).collect())
         .unwrap_or_default();
-    let per_task = |i: usize| -> Vec<Vec<f64>> {
-        curves
-            .iter()
-            .map(|(_, c)| c.returns.iter().map(|(_, r)| r[i] / 100.0).collect())
-            .collect()
-    };
     let series: Vec<Series> = tasks
         .iter()
         .enumerate()
         .map(|(i, t)| Series {
             label: t.name.clone(),
-            band: Band::from_runs(evaluated.clone(), &per_task(i)),
+            band: Band::from_runs(evaluated.clone(), &per_task(curves, i)),
         })
         .collect();
     plot::line_chart(
@@ -77,7 +106,18 @@ pub(super) fn meta_training(ctx: &Context, dir: &Path) -> Result<Section, Reprod
             floor: None,
         },
     )?;
+    Ok(())
+}
 
+/// The summary's body: the run, the meta-loss's first and last values, and a table of each
+/// task's adapted return.
+fn summary(
+    ctx: &Context,
+    curves: &[(u64, &MetaCurve)],
+    losses: &[Vec<f64>],
+    tasks: &[&TaskConfig],
+) -> String {
+    let r = &ctx.config.reproduce;
     let mut body = format!(
         "CQL-MAML meta-trained on the first {} meta-train tasks for {} meta-epochs, {}; each task's \
          adapted greedy return evaluated every {} meta-epochs over {} episodes. SPEC section 6 states no \
@@ -99,7 +139,7 @@ pub(super) fn meta_training(ctx: &Context, dir: &Path) -> Result<Section, Reprod
         "| task | adapted return, first evaluation | adapted return, last evaluation |\n| --- | --- | --- |"
     );
     for (i, task) in tasks.iter().enumerate() {
-        let runs = per_task(i);
+        let runs = per_task(curves, i);
         let at = |pick: fn(&Vec<f64>) -> Option<&f64>| {
             est(runs.iter().filter_map(|r| pick(r).map(|v| v * 100.0)))
         };
@@ -111,8 +151,5 @@ pub(super) fn meta_training(ctx: &Context, dir: &Path) -> Result<Section, Reprod
             at(|r| r.last())
         );
     }
-    Ok(Section {
-        body,
-        claims: Vec::new(),
-    })
+    body
 }

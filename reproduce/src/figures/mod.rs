@@ -16,7 +16,7 @@ use uavmeta_proto::stats::{Estimate, PolicyMetrics};
 use crate::claims::{
     self, converged_at, final_return, mean_swing, return_at, settle_epoch, Claim, Verdict,
 };
-use crate::runs::{InitKey, InitKind, Method, RunKey, SeedResult};
+use crate::runs::{InitKey, InitKind, MetaCurve, Method, RunKey, SeedResult};
 use crate::{rain_tasks, Experiment, HeuristicRef};
 use uavmeta_meta::write_file;
 
@@ -106,6 +106,13 @@ impl Context<'_> {
             .iter()
             .map(|rows| rows.iter().map(|r| r.policy.ret.mean).collect())
             .collect()
+    }
+
+    /// Per seed, the greedy returns of run `key`'s first `epochs` epochs, after writing its
+    /// rows into `csv` (after `prefix` columns).
+    fn curves(&self, csv: &mut String, prefix: &str, key: &RunKey, epochs: usize) -> Vec<Vec<f64>> {
+        curve_lines(csv, prefix, self.seeds, &self.rows(key, epochs));
+        self.returns(key, epochs)
     }
 
     /// The online DQN agent's figures on `task` per seed.
@@ -254,6 +261,11 @@ fn exploratory_share(config: &Config) -> f64 {
 
 fn est(samples: impl IntoIterator<Item = f64>) -> Estimate {
     Estimate::from_samples(samples)
+}
+
+/// The final return of runs over seeds.
+fn finals(runs: &[Vec<f64>]) -> Estimate {
+    est(runs.iter().map(|r| final_return(r)))
 }
 
 fn epochs_x(epochs: usize) -> Vec<f64> {

@@ -11,12 +11,24 @@ const ABOUT_ZERO_OUTAGES: f64 = 1.0;
 /// "About 20" outages per episode: within a factor of two.
 const ABOUT_20_OUTAGES: (f64, f64) = (10.0, 40.0);
 
+/// One fine-tuning run on a rain task (a task and a seed).
+struct RainRun {
+    returns: Vec<f64>,
+    outages: Vec<f64>,
+    /// Its task's random policy: the return above which it can count as converged.
+    floor: f64,
+}
+
+/// A method's rain runs, task after task, each task's seeds in order.
+type MethodRuns = (Method, Vec<RainRun>);
+
+/// A UAV's path: its cells in time order.
+type Cells = Vec<(u32, u32)>;
+
 /// Figure 9: the rain tasks.
 pub(super) fn resilience(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let c = ctx.config;
-    let r = &c.reproduce;
-    let epochs = r.resilience_epochs;
-    let episodes = r.resilience_eval_episodes;
+    let episodes = c.reproduce.resilience_eval_episodes;
     let tasks: Vec<&TaskConfig> = rain_tasks(c).collect();
     let online: Vec<PolicyMetrics> = tasks
         .iter()
@@ -28,15 +40,45 @@ pub(super) fn resilience(ctx: &Context, dir: &Path) -> Result<Section, Reproduce
         .collect();
     let refs = Refs::new(c, &online, &heuristics);
 
+    let per_method = rain_runs(ctx, &tasks, &heuristics, dir)?;
+    plot_curves(ctx, tasks.len(), &per_method, &refs, dir)?;
+    let first = tasks[0];
+    let (path, in_rain) = trajectories(ctx, first, dir)?;
+
+    let seeds = ctx.seeds.len();
+    let summaries: Vec<RainSummary> = per_method
+        .iter()
+        .map(|(_, runs)| RainSummary::new(runs, seeds))
+        .collect();
+    let body = summary_table(ctx, &tasks, &per_method, &summaries, &refs);
+    // Both claims read the run lengths off CQL-MAML's runs.
+    let lens: Vec<usize> = per_method[0].1.iter().map(|r| r.returns.len()).collect();
+    let mut found = vec![
+        maml_claim(&summaries[0], &lens, &refs),
+        cql_claim(&summaries[1], &lens, &refs),
+    ];
+    if let (&[maml, cql], Some(zone)) = (&in_rain[..], first.rain) {
+        found.push(detour_claim(c, first, zone, &path, (maml, cql)));
+    }
+    finish(body, found)
+}
+
+/// Every method's runs on every rain task, written to `curves.csv`. CQL-MAML and CQL first: the
+/// claims compare those two, CQL-pretrain is shown beside them.
+fn rain_runs(
+    ctx: &Context,
+    tasks: &[&TaskConfig],
+    heuristics: &[&HeuristicRef],
+    dir: &Path,
+) -> Result<Vec<MethodRuns>, ReproduceError> {
+    let c = ctx.config;
     let mut csv = format!("method,task,{CURVE_COLUMNS}\n");
-    // Per method: per (task, seed) the return and outage curves and the task's random floor.
     let mut per_method = Vec::new();
-    // CQL-MAML and CQL first: the claims compare those two, CQL-pretrain is shown beside them.
     for method in [Method::CqlMaml, Method::Cql, Method::CqlPretrain] {
         let mut runs = Vec::new();
-        for (task, h) in tasks.iter().zip(&heuristics) {
+        for (task, h) in tasks.iter().zip(heuristics) {
             let key = rain_key(c, task, method);
-            let rows = ctx.rows(&key, epochs);
+            let rows = ctx.rows(&key, c.reproduce.resilience_epochs);
             curve_lines(
                 &mut csv,
                 &format!("{},{}", method.name(), task.name),
@@ -44,41 +86,57 @@ pub(super) fn resilience(ctx: &Context, dir: &Path) -> Result<Section, Reproduce
                 &rows,
             );
             let floor = Refs::new(c, &[], &[h]).random;
-            for rows in rows {
-                let returns: Vec<f64> = rows.iter().map(|r| r.policy.ret.mean).collect();
-                let outages: Vec<f64> = rows.iter().map(|r| r.policy.outages.mean).collect();
-                runs.push((returns, outages, floor));
-            }
+            runs.extend(rows.iter().map(|rows| RainRun {
+                returns: rows.iter().map(|r| r.policy.ret.mean).collect(),
+                outages: rows.iter().map(|r| r.policy.outages.mean).collect(),
+                floor,
+            }));
         }
         per_method.push((method, runs));
     }
     write_file(&dir.join("curves.csv"), &csv)?;
+    Ok(per_method)
+}
 
-    // A seed's curve is the mean over the rain tasks; the band is over seeds.
+/// Per seed, the mean over the rain tasks of the curve `pick` takes from each run: a seed's
+/// curve in figures 9a and 9b, whose band is over seeds.
+fn mean_over_tasks(
+    runs: &[RainRun],
+    seeds: usize,
+    pick: fn(&RainRun) -> &Vec<f64>,
+) -> Vec<Vec<f64>> {
+    (0..seeds)
+        .map(|s| {
+            let curves: Vec<&Vec<f64>> = runs.iter().skip(s).step_by(seeds).map(pick).collect();
+            let len = curves.iter().map(|c| c.len()).min().unwrap_or(0);
+            (0..len)
+                .map(|e| curves.iter().map(|c| c[e]).sum::<f64>() / curves.len() as f64)
+                .collect()
+        })
+        .collect()
+}
+
+/// Figures 9a (returns) and 9b (outages).
+fn plot_curves(
+    ctx: &Context,
+    tasks: usize,
+    per_method: &[MethodRuns],
+    refs: &Refs,
+    dir: &Path,
+) -> Result<(), ReproduceError> {
     let seeds = ctx.seeds.len();
-    let per_seed = |runs: &[(Vec<f64>, Vec<f64>, f64)], outages: bool| -> Vec<Vec<f64>> {
-        (0..seeds)
-            .map(|s| {
-                let curves: Vec<&Vec<f64>> = runs
-                    .iter()
-                    .skip(s)
-                    .step_by(seeds)
-                    .map(|(ret, out, _)| if outages { out } else { ret })
-                    .collect();
-                let len = curves.iter().map(|c| c.len()).min().unwrap_or(0);
-                (0..len)
-                    .map(|e| curves.iter().map(|c| c[e]).sum::<f64>() / curves.len() as f64)
-                    .collect()
-            })
-            .collect()
-    };
     let returns: Vec<Series> = per_method
         .iter()
-        .map(|(m, runs)| return_series(m.label().into(), &per_seed(runs, false)))
+        .map(|(m, runs)| {
+            return_series(
+                m.label().into(),
+                &mean_over_tasks(runs, seeds, |r| &r.returns),
+            )
+        })
         .collect();
     line_chart(
         &dir.join("fig9a_return.png"),
-        &format!("Figure 9a: {} rain tasks, mean over tasks", tasks.len()),
+        &format!("Figure 9a: {tasks} rain tasks, mean over tasks"),
         "greedy return / 100",
         &returns,
         &refs.lines(),
@@ -86,7 +144,7 @@ pub(super) fn resilience(ctx: &Context, dir: &Path) -> Result<Section, Reproduce
     let outages: Vec<Series> = per_method
         .iter()
         .map(|(m, runs)| {
-            let curves = per_seed(runs, true);
+            let curves = mean_over_tasks(runs, seeds, |r| &r.outages);
             let len = curves.iter().map(Vec::len).max().unwrap_or(0);
             Series {
                 label: m.label().into(),
@@ -99,7 +157,7 @@ pub(super) fn resilience(ctx: &Context, dir: &Path) -> Result<Section, Reproduce
         &LineChart {
             title: &format!(
                 "Figure 9b: outages per episode ({} episodes per point)",
-                tasks.len() * seeds * episodes
+                tasks * seeds * ctx.config.reproduce.resilience_eval_episodes
             ),
             x_label: "epoch",
             y_label: "outages per episode",
@@ -111,10 +169,18 @@ pub(super) fn resilience(ctx: &Context, dir: &Path) -> Result<Section, Reproduce
             floor: Some(0.0),
         },
     )?;
+    Ok(())
+}
 
-    // Figure 9c: the first seed's final greedy paths on the first rain task.
-    let first = tasks[0];
-    let mut traj_csv = String::from("method,t,x,y\n");
+/// Figure 9c: the first seed's final greedy paths on the first rain task, CQL-MAML's then CQL's.
+/// Returns CQL-MAML's path and each method's steps inside the zone.
+fn trajectories(
+    ctx: &Context,
+    first: &TaskConfig,
+    dir: &Path,
+) -> Result<(Cells, Vec<u32>), ReproduceError> {
+    let c = ctx.config;
+    let mut csv = String::from("method,t,x,y\n");
     let mut paths = Vec::new();
     let mut in_rain = Vec::new();
     if let Some(seed) = ctx.seeds.first() {
@@ -125,13 +191,13 @@ pub(super) fn resilience(ctx: &Context, dir: &Path) -> Result<Section, Reproduce
                 .as_ref()
                 .expect("the plan records the first rain task's paths");
             for (t, (x, y)) in trajectory.cells.iter().enumerate() {
-                let _ = writeln!(traj_csv, "{},{t},{x},{y}", method.name());
+                let _ = writeln!(csv, "{},{t},{x},{y}", method.name());
             }
             paths.push((method.label().to_string(), trajectory.cells.clone()));
             in_rain.push(trajectory.metrics.outages);
         }
     }
-    write_file(&dir.join("fig9c_trajectories.csv"), &traj_csv)?;
+    write_file(&dir.join("fig9c_trajectories.csv"), &csv)?;
     let world = World::new(&c.world, first, 0);
     plot::trajectory_chart(
         &dir.join("fig9c_trajectories.png"),
@@ -143,7 +209,57 @@ pub(super) fn resilience(ctx: &Context, dir: &Path) -> Result<Section, Reproduce
             paths: &paths,
         },
     )?;
+    let maml_path = paths.into_iter().next().map(|(_, cells)| cells);
+    Ok((maml_path.unwrap_or_default(), in_rain))
+}
 
+/// A method's figures over the rain runs.
+struct RainSummary {
+    /// Per run, the epoch it converged at.
+    converged: Vec<Option<usize>>,
+    /// Over seeds, each seed's final return and outages (means over the tasks).
+    finals: Estimate,
+    outages: Estimate,
+}
+
+impl RainSummary {
+    fn new(runs: &[RainRun], seeds: usize) -> Self {
+        let last = |pick: fn(&RainRun) -> &Vec<f64>| {
+            est(mean_over_tasks(runs, seeds, pick)
+                .iter()
+                .map(|c| final_return(c)))
+        };
+        RainSummary {
+            converged: runs
+                .iter()
+                .map(|r| converged_at(&r.returns, r.floor))
+                .collect(),
+            finals: last(|r| &r.returns),
+            outages: last(|r| &r.outages),
+        }
+    }
+
+    /// "converged in n/m runs".
+    fn converged_runs(&self) -> String {
+        format!(
+            "converged in {}/{} runs",
+            self.converged.iter().flatten().count(),
+            self.converged.len()
+        )
+    }
+}
+
+/// The summary's opening and its table of methods.
+fn summary_table(
+    ctx: &Context,
+    tasks: &[&TaskConfig],
+    per_method: &[MethodRuns],
+    summaries: &[RainSummary],
+    refs: &Refs,
+) -> String {
+    let r = &ctx.config.reproduce;
+    let (epochs, episodes) = (r.resilience_epochs, r.resilience_eval_episodes);
+    let seeds = ctx.seeds.len();
     let total = tasks.len() * seeds * episodes;
     let mut body = format!(
         "{} rain tasks ({}), CQL-MAML from the w0 meta-trained on the first {} rain-free tasks and CQL \
@@ -158,26 +274,15 @@ pub(super) fn resilience(ctx: &Context, dir: &Path) -> Result<Section, Reproduce
         ctx.seeds_note(),
         tasks.len(),
     );
-    // Per method: (converged epochs per run or None, final return per seed, final outages per seed).
-    let summary = |runs: &[(Vec<f64>, Vec<f64>, f64)]| {
-        let converged: Vec<Option<usize>> = runs
-            .iter()
-            .map(|(ret, _, floor)| converged_at(ret, *floor))
-            .collect();
-        let finals = est(per_seed(runs, false).iter().map(|c| final_return(c)));
-        let outages = est(per_seed(runs, true).iter().map(|c| final_return(c)));
-        (converged, finals, outages)
-    };
-    let (maml_conv, maml_final, maml_out) = summary(&per_method[0].1);
-    let (cql_conv, cql_final, cql_out) = summary(&per_method[1].1);
-    for (method, runs) in &per_method {
-        let (conv, fin, out) = summary(runs);
+    for ((method, _), s) in per_method.iter().zip(summaries) {
         let _ = writeln!(
             body,
-            "| {} | {}/{} | {fin:.0} | {out:.1} |",
+            "| {} | {}/{} | {:.0} | {:.1} |",
             method.label(),
-            conv.iter().flatten().count(),
-            conv.len()
+            s.converged.iter().flatten().count(),
+            s.converged.len(),
+            s.finals,
+            s.outages
         );
     }
     let _ = writeln!(
@@ -185,32 +290,35 @@ pub(super) fn resilience(ctx: &Context, dir: &Path) -> Result<Section, Reproduce
         "| online DQN | | {:.0} | {:.1} |",
         refs.online, refs.online_outages
     );
-    let lens: Vec<usize> = per_method[0].1.iter().map(|(r, _, _)| r.len()).collect();
+    body
+}
 
-    let maml_cases = maml_conv.iter().zip(&lens).map(|(c, &len)| match c {
+/// Figure 9's claim for CQL-MAML: it converges within 100 epochs with about zero outages.
+fn maml_claim(maml: &RainSummary, lens: &[usize], refs: &Refs) -> Claim {
+    let cases = maml.converged.iter().zip(lens).map(|(c, &len)| match c {
         Some(e) if *e <= EPOCH_100 => Verdict::Yes,
         None if len < EPOCH_100 => Verdict::Untested,
         _ => Verdict::No,
     });
-    let converged = Verdict::all_of(maml_cases);
-    let quiet = Verdict::from_bool(maml_out.mean <= ABOUT_ZERO_OUTAGES);
-    let mut found = vec![Claim::new(
+    let converged = Verdict::all_of(cases);
+    let (outages, finals) = (maml.outages, maml.finals);
+    let quiet = Verdict::from_bool(outages.mean <= ABOUT_ZERO_OUTAGES);
+    Claim::new(
         "9",
         "On 5 unseen rain tasks CQL-MAML converges within 100 epochs and reaches about zero outages",
         format!(
-            "converged in {}/{} runs; final outages {maml_out:.1} per episode; final return {maml_final:.0}",
-            maml_conv.iter().flatten().count(),
-            maml_conv.len()
+            "{}; final outages {outages:.1} per episode; final return {finals:.0}",
+            maml.converged_runs()
         ),
         Verdict::all_of([converged, quiet]),
         || {
             let mut why = vec![];
             if converged != Verdict::Yes {
-                why.push(refs.shortfall(&[("CQL-MAML", maml_final.mean)]));
+                why.push(refs.shortfall(&[("CQL-MAML", finals.mean)]));
             }
             if quiet == Verdict::No {
                 why.push(format!(
-                    "its greedy policy still flies through rain ({maml_out:.1} outages per episode; online DQN {:.1}): \
+                    "its greedy policy still flies through rain ({outages:.1} outages per episode; online DQN {:.1}): \
                      the zone is not in the observation and the shots rarely show its cost",
                     refs.online_outages
                 ));
@@ -218,22 +326,26 @@ pub(super) fn resilience(ctx: &Context, dir: &Path) -> Result<Section, Reproduce
             why.retain(|w| !w.is_empty());
             why.join("; ")
         },
-    )];
-    let cql_cases = cql_conv.iter().zip(&lens).map(|(c, &len)| match c {
+    )
+}
+
+/// Figure 9's claim for CQL: it does not converge in 200 epochs and has about 20 outages.
+fn cql_claim(cql: &RainSummary, lens: &[usize], refs: &Refs) -> Claim {
+    let cases = cql.converged.iter().zip(lens).map(|(c, &len)| match c {
         Some(e) if *e <= EPOCH_200 => Verdict::No,
         None if len < EPOCH_200 => Verdict::Untested,
         _ => Verdict::Yes,
     });
-    let stuck = Verdict::all_of(cql_cases);
+    let stuck = Verdict::all_of(cases);
+    let (outages, finals) = (cql.outages, cql.finals);
     let about_20 =
-        Verdict::from_bool((ABOUT_20_OUTAGES.0..=ABOUT_20_OUTAGES.1).contains(&cql_out.mean));
-    found.push(Claim::new(
+        Verdict::from_bool((ABOUT_20_OUTAGES.0..=ABOUT_20_OUTAGES.1).contains(&outages.mean));
+    Claim::new(
         "9",
         "CQL does not converge in 200 epochs and has about 20 outages per episode",
         format!(
-            "converged in {}/{} runs; final outages {cql_out:.1} per episode; final return {cql_final:.0}",
-            cql_conv.iter().flatten().count(),
-            cql_conv.len()
+            "{}; final outages {outages:.1} per episode; final return {finals:.0}",
+            cql.converged_runs()
         ),
         Verdict::all_of([stuck, about_20]),
         || {
@@ -243,58 +355,63 @@ pub(super) fn resilience(ctx: &Context, dir: &Path) -> Result<Section, Reproduce
             }
             if about_20 == Verdict::No {
                 why.push(format!(
-                    "{cql_out:.1} outages per episode, outside {}-{}; the online DQN agent has {:.1} on the same \
+                    "{outages:.1} outages per episode, outside {}-{}; the online DQN agent has {:.1} on the same \
                      zones, so how often a policy crosses them is set by where they lie on its routes",
                     ABOUT_20_OUTAGES.0, ABOUT_20_OUTAGES.1, refs.online_outages
                 ));
             }
             why.join("; ")
         },
-    ));
-    if let (&[maml, cql], Some(zone)) = (&in_rain[..], first.rain) {
-        // Flying around the zone means coming up to it without entering: a path that never gets
-        // near it shows a policy that does not go there, not one that avoids it.
-        let closest = paths[0]
-            .1
-            .iter()
-            .map(|&(x, y)| cells_from(zone, x, y))
-            .min()
-            .unwrap_or(u32::MAX);
-        found.push(Claim::new(
-            "9",
-            "The trajectory plot shows CQL-MAML flying around the rain zone",
-            format!(
-                "on `{}` (seed 0), steps inside the zone: CQL-MAML {maml}, CQL {cql}; CQL-MAML's closest cell is \
-                 {closest} cell(s) from it",
-                first.name
-            ),
-            if maml == 0 && closest <= 1 {
-                Verdict::Yes
+    )
+}
+
+/// Figure 9c's claim: CQL-MAML's `path` flies around `zone`, from the steps CQL-MAML and CQL
+/// spent inside it.
+fn detour_claim(
+    c: &Config,
+    first: &TaskConfig,
+    zone: RainZone,
+    path: &[(u32, u32)],
+    (maml, cql): (u32, u32),
+) -> Claim {
+    // Flying around the zone means coming up to it without entering: a path that never gets
+    // near it shows a policy that does not go there, not one that avoids it.
+    let closest = path
+        .iter()
+        .map(|&(x, y)| cells_from(zone, x, y))
+        .min()
+        .unwrap_or(u32::MAX);
+    Claim::new(
+        "9",
+        "The trajectory plot shows CQL-MAML flying around the rain zone",
+        format!(
+            "on `{}` (seed 0), steps inside the zone: CQL-MAML {maml}, CQL {cql}; CQL-MAML's closest cell is \
+             {closest} cell(s) from it",
+            first.name
+        ),
+        if maml == 0 && closest <= 1 {
+            Verdict::Yes
+        } else if maml < cql {
+            Verdict::Partly
+        } else {
+            Verdict::No
+        },
+        || {
+            if maml == 0 {
+                format!(
+                    "CQL-MAML never comes within a cell of the zone ({closest} away), so the path shows no \
+                     detour, only a policy that does not fly there"
+                )
             } else if maml < cql {
-                Verdict::Partly
+                format!("CQL-MAML enters the zone less often than CQL but still for {maml} steps")
             } else {
-                Verdict::No
-            },
-            || {
-                if maml == 0 {
-                    format!(
-                        "CQL-MAML never comes within a cell of the zone ({closest} away), so the path shows no \
-                         detour, only a policy that does not fly there"
-                    )
-                } else if maml < cql {
-                    format!(
-                        "CQL-MAML enters the zone less often than CQL but still for {maml} steps"
-                    )
-                } else {
-                    format!(
-                        "CQL-MAML's path crosses the zone for {maml} of {} steps",
-                        c.world.horizon
-                    )
-                }
-            },
-        ));
-    }
-    finish(body, found)
+                format!(
+                    "CQL-MAML's path crosses the zone for {maml} of {} steps",
+                    c.world.horizon
+                )
+            }
+        },
+    )
 }
 
 /// Cells between (x, y) and `zone` in king moves (0 inside, 1 on its border ring).

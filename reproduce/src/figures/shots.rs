@@ -5,6 +5,14 @@ use super::*;
 /// "Far more" dependence on the shot count: at least this ratio of spreads.
 const FAR_MORE: f64 = 2.0;
 
+/// One shot count's final returns.
+struct Finals {
+    shots: usize,
+    maml: Estimate,
+    pretrain: Estimate,
+    cql: Estimate,
+}
+
 /// Figure 6: CQL, CQL-pretrain and CQL-MAML at each shot count.
 pub(super) fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let c = ctx.config;
@@ -12,24 +20,25 @@ pub(super) fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
     let epochs = r.convergence_epochs;
     let mut csv = format!("method,shots,{CURVE_COLUMNS}\n");
     let mut series = Vec::new();
-    // (shots, CQL-MAML final, CQL final), and CQL-pretrain's final per size
-    let mut finals = Vec::new();
-    let mut pretrain_finals = Vec::new();
+    let mut finals_per_size = Vec::new();
     for &shots in &r.shots {
-        let mut pair = Vec::new();
+        let mut each = Vec::new();
         for method in Method::CQL_INITS {
             let key = unseen_key(c, method, shots, r.meta_tasks);
             let prefix = format!("{},{shots}", method.name());
-            curve_lines(&mut csv, &prefix, ctx.seeds, &ctx.rows(&key, epochs));
-            let runs = ctx.returns(&key, epochs);
+            let runs = ctx.curves(&mut csv, &prefix, &key, epochs);
             series.push(return_series(
                 format!("{} {shots} shots", method.label()),
                 &runs,
             ));
-            pair.push(est(runs.iter().map(|r| final_return(r))));
+            each.push(finals(&runs));
         }
-        finals.push((shots, pair[0], pair[2]));
-        pretrain_finals.push(pair[1]);
+        finals_per_size.push(Finals {
+            shots,
+            maml: each[0],
+            pretrain: each[1],
+            cql: each[2],
+        });
     }
     write_file(&dir.join("curves.csv"), &csv)?;
     line_chart(
@@ -50,27 +59,36 @@ pub(super) fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
         ctx.seeds_note(),
         claims::FINAL_EPOCHS
     );
-    for ((shots, maml, cql), pretrain) in finals.iter().zip(&pretrain_finals) {
-        let _ = writeln!(body, "| {shots} | {maml:.0} | {pretrain:.0} | {cql:.0} |");
+    for f in &finals_per_size {
+        let _ = writeln!(
+            body,
+            "| {} | {:.0} | {:.0} | {:.0} |",
+            f.shots, f.maml, f.pretrain, f.cql
+        );
     }
+    let found = vec![
+        beats_claim(&finals_per_size),
+        spread_claim(&finals_per_size),
+    ];
+    finish(body, found)
+}
+
+/// CQL-MAML beats CQL at every number of shots.
+fn beats_claim(finals: &[Finals]) -> Claim {
     let losing: Vec<String> = finals
         .iter()
-        .filter(|(_, maml, cql)| maml.mean <= cql.mean)
-        .map(|(s, maml, cql)| format!("{s} shots: {:.0} vs {:.0}", maml.mean, cql.mean))
+        .filter(|f| f.maml.mean <= f.cql.mean)
+        .map(|f| format!("{} shots: {:.0} vs {:.0}", f.shots, f.maml.mean, f.cql.mean))
         .collect();
-    let mut found = vec![Claim::new(
+    Claim::new(
         "6",
         "CQL-MAML beats CQL at every number of shots (100, 300, 500)",
         finals
             .iter()
-            .map(|(s, maml, cql)| format!("{s}: {maml:.0} vs {cql:.0}"))
+            .map(|f| format!("{}: {:.0} vs {:.0}", f.shots, f.maml, f.cql))
             .collect::<Vec<_>>()
             .join("; "),
-        Verdict::all_of(
-            finals
-                .iter()
-                .map(|(_, maml, cql)| Verdict::beats(*maml, *cql)),
-        ),
+        Verdict::all_of(finals.iter().map(|f| Verdict::beats(f.maml, f.cql))),
         || {
             if losing.is_empty() {
                 "CQL-MAML's mean is higher at every size, but the 95% intervals overlap".into()
@@ -81,13 +99,17 @@ pub(super) fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
                 )
             }
         },
-    )];
-    let spread = |pick: fn(&(usize, Estimate, Estimate)) -> f64| {
+    )
+}
+
+/// CQL depends on the number of shots far more than CQL-MAML.
+fn spread_claim(finals: &[Finals]) -> Claim {
+    let spread = |pick: fn(&Finals) -> f64| {
         let values: Vec<f64> = finals.iter().map(pick).collect();
         values.iter().cloned().fold(f64::NEG_INFINITY, f64::max)
             - values.iter().cloned().fold(f64::INFINITY, f64::min)
     };
-    let (maml_spread, cql_spread) = (spread(|f| f.1.mean), spread(|f| f.2.mean));
+    let (maml_spread, cql_spread) = (spread(|f| f.maml.mean), spread(|f| f.cql.mean));
     let verdict = if finals.len() < 2 {
         Verdict::Untested
     } else if cql_spread > FAR_MORE * maml_spread {
@@ -97,7 +119,7 @@ pub(super) fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
     } else {
         Verdict::No
     };
-    found.push(Claim::new(
+    Claim::new(
         "6",
         "CQL depends on the number of shots far more than CQL-MAML",
         format!(
@@ -110,6 +132,5 @@ pub(super) fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
                  (\"far more\" = at least {FAR_MORE}x)"
             )
         },
-    ));
-    finish(body, found)
+    )
 }

@@ -14,19 +14,12 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
     let mut values = Vec::new();
     for &n in &r.task_counts {
         let key = unseen_key(c, Method::CqlMaml, r.main_shots, n);
-        curve_lines(
-            &mut csv,
-            &format!("cql-maml,{n}"),
-            ctx.seeds,
-            &ctx.rows(&key, epochs),
-        );
-        let runs = ctx.returns(&key, epochs);
+        let runs = ctx.curves(&mut csv, &format!("cql-maml,{n}"), &key, epochs);
         series.push(return_series(format!("CQL-MAML {n} tasks"), &runs));
         values.push((n, est(runs.iter().map(|r| return_at(r, at)))));
     }
     let cql_key = unseen_key(c, Method::Cql, r.main_shots, 0);
-    curve_lines(&mut csv, "cql,0", ctx.seeds, &ctx.rows(&cql_key, epochs));
-    let cql_runs = ctx.returns(&cql_key, epochs);
+    let cql_runs = ctx.curves(&mut csv, "cql,0", &cql_key, epochs);
     series.push(return_series("CQL".into(), &cql_runs));
     let cql = est(cql_runs.iter().map(|r| return_at(r, at)));
     write_file(&dir.join("curves.csv"), &csv)?;
@@ -59,21 +52,31 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
         "| CQL (random init) | {cql:.0} |\n| online DQN | {:.0} |",
         refs.online
     );
-    let listed = values
+    let mut found = vec![rising_claim(&values), eight_claim(&values, &refs)];
+    found.extend(two_claim(&values, cql, at));
+    finish(body, found)
+}
+
+/// "n: return; ..." for every task count.
+fn listed(values: &[(usize, Estimate)]) -> String {
+    values
         .iter()
         .map(|(n, v)| format!("{n}: {v:.0}"))
         .collect::<Vec<_>>()
-        .join("; ");
+        .join("; ")
+}
 
+/// More meta-training tasks, better: `values` is (tasks, return at epoch 40) in task order.
+fn rising_claim(values: &[(usize, Estimate)]) -> Claim {
     let rising = values.windows(2).all(|w| w[1].1.mean > w[0].1.mean);
     let first_to_last = match (values.first(), values.last()) {
         (Some(a), Some(b)) if values.len() > 1 => b.1.mean > a.1.mean,
         _ => false,
     };
-    let mut found = vec![Claim::new(
+    Claim::new(
         "7",
         "More meta-training tasks, better (2, 4, 6, 8, 10)",
-        listed.clone(),
+        listed(values),
         if values.len() < 2 {
             Verdict::Untested
         } else if rising {
@@ -103,8 +106,11 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
                 }
             )
         },
-    )];
+    )
+}
 
+/// At least 8 tasks are needed to beat online DQN within 40 epochs.
+fn eight_claim(values: &[(usize, Estimate)], refs: &Refs) -> Claim {
     let beats = |v: &Estimate| v.mean > refs.online.mean;
     let (many, few): (Vec<_>, Vec<_>) = values.iter().partition(|(n, _)| *n >= 8);
     let verdict = if many.is_empty() {
@@ -116,10 +122,10 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
     } else {
         Verdict::Yes
     };
-    found.push(Claim::new(
+    Claim::new(
         "7",
         "At least 8 tasks are needed to beat online DQN within 40 epochs",
-        format!("{listed}; online DQN {:.0}", refs.online),
+        format!("{}; online DQN {:.0}", listed(values), refs.online),
         verdict,
         || {
             if many.iter().all(|(_, v)| beats(v)) {
@@ -132,23 +138,23 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
                 refs.shortfall(&[("CQL-MAML with >= 8 tasks", best)])
             }
         },
-    ));
-    if let Some(&(n, fewest)) = values.first() {
-        found.push(Claim::new(
-            "7",
-            "Even 2 meta-training tasks beat plain CQL",
-            format!("CQL-MAML on {n} tasks {fewest:.0}; CQL {cql:.0} (return at epoch {at})"),
-            Verdict::beats(fewest, cql),
-            || {
-                if fewest.mean > cql.mean {
-                    "the mean is higher but the 95% intervals overlap".into()
-                } else {
-                    format!(
-                        "a w0 meta-trained on {n} tasks starts no better than a random init here"
-                    )
-                }
-            },
-        ));
-    }
-    finish(body, found)
+    )
+}
+
+/// Even the fewest meta-training tasks beat plain CQL at epoch `at`.
+fn two_claim(values: &[(usize, Estimate)], cql: Estimate, at: usize) -> Option<Claim> {
+    let &(n, fewest) = values.first()?;
+    Some(Claim::new(
+        "7",
+        "Even 2 meta-training tasks beat plain CQL",
+        format!("CQL-MAML on {n} tasks {fewest:.0}; CQL {cql:.0} (return at epoch {at})"),
+        Verdict::beats(fewest, cql),
+        || {
+            if fewest.mean > cql.mean {
+                "the mean is higher but the 95% intervals overlap".into()
+            } else {
+                format!("a w0 meta-trained on {n} tasks starts no better than a random init here")
+            }
+        },
+    ))
 }
