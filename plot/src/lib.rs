@@ -41,6 +41,7 @@ use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::sync::Once;
 
+use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
 use plotters::element::DashedPathElement;
 use plotters::prelude::*;
@@ -199,26 +200,7 @@ pub fn line_chart(path: &Path, chart: &LineChart) -> Result<(), PlotError> {
         for (i, (series, segments)) in chart.series.iter().zip(&segments).enumerate() {
             let colour = PALETTE[i % PALETTE.len()];
             for segment in segments {
-                // The band's outline: the upper edge left to right, then the lower edge back.
-                let outline: Vec<(f64, f64)> = segment
-                    .iter()
-                    .map(|&(x, mean, ci)| (x, mean + ci))
-                    .chain(
-                        segment
-                            .iter()
-                            .rev()
-                            .map(|&(x, mean, ci)| (x, lower(mean, ci))),
-                    )
-                    .collect();
-                ctx.draw_series([Polygon::new(outline, colour.mix(BAND_ALPHA).filled())])?;
-                ctx.draw_series(LineSeries::new(
-                    segment.iter().map(|&(x, mean, _)| (x, mean)),
-                    colour.stroke_width(2),
-                ))?;
-                // A point between two gaps has no line to show it.
-                if let [(x, mean, _)] = segment[..] {
-                    ctx.draw_series([Circle::new((x, mean), 3, colour.filled())])?;
-                }
+                draw_segment(&mut ctx, segment, colour, lower)?;
             }
             // Drawn empty so that the legend lists every series, even one with no finite point.
             ctx.draw_series(LineSeries::new(
@@ -245,6 +227,37 @@ pub fn line_chart(path: &Path, chart: &LineChart) -> Result<(), PlotError> {
     })
 }
 
+/// One unbroken run of a series' points (x, mean, ci95): its band, with the lower edge at
+/// `lower(mean, ci95)`, and its mean line.
+fn draw_segment<DB: DrawingBackend>(
+    ctx: &mut ChartContext<'_, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
+    segment: &[(f64, f64, f64)],
+    colour: RGBColor,
+    lower: impl Fn(f64, f64) -> f64,
+) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
+    // The band's outline: the upper edge left to right, then the lower edge back.
+    let outline: Vec<(f64, f64)> = segment
+        .iter()
+        .map(|&(x, mean, ci)| (x, mean + ci))
+        .chain(
+            segment
+                .iter()
+                .rev()
+                .map(|&(x, mean, ci)| (x, lower(mean, ci))),
+        )
+        .collect();
+    ctx.draw_series([Polygon::new(outline, colour.mix(BAND_ALPHA).filled())])?;
+    ctx.draw_series(LineSeries::new(
+        segment.iter().map(|&(x, mean, _)| (x, mean)),
+        colour.stroke_width(2),
+    ))?;
+    // A point between two gaps has no line to show it.
+    if let [(x, mean, _)] = segment[..] {
+        ctx.draw_series([Circle::new((x, mean), 3, colour.filled())])?;
+    }
+    Ok(())
+}
+
 /// One bar: the value of `label` (a metric, a method) within `group` on the x axis.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Bar {
@@ -267,33 +280,7 @@ pub fn bar_chart(path: &Path, title: &str, y_label: &str, bars: &[Bar]) -> Resul
         g as f64 - BAR_SPAN / 2.0 + l as f64 * width
     };
     let drawn: Vec<&Bar> = bars.iter().filter(|b| b.value.mean.is_finite()).collect();
-    let whisker = |v: Estimate| if v.ci95.is_finite() { v.ci95 } else { 0.0 };
-
-    let y_range = span(
-        drawn
-            .iter()
-            .flat_map(|b| {
-                [
-                    b.value.mean - whisker(b.value),
-                    b.value.mean + whisker(b.value),
-                ]
-            })
-            .chain([0.0]),
-        0.05,
-    );
-    // Room for the legend on the side the bars grow towards.
-    let room = 0.25 * (y_range.end - y_range.start);
-    let (y_range, corner) = if y_range.end.abs() >= y_range.start.abs() {
-        (
-            y_range.start..y_range.end + room,
-            SeriesLabelPosition::UpperRight,
-        )
-    } else {
-        (
-            y_range.start - room..y_range.end,
-            SeriesLabelPosition::LowerRight,
-        )
-    };
+    let (y_range, corner) = bar_y_range(&drawn);
     let x_range = -0.5..groups.len().max(1) as f64 - 0.5;
 
     render(path, CHART_SIZE, |root| {
@@ -341,12 +328,7 @@ pub fn bar_chart(path: &Path, title: &str, y_label: &str, bars: &[Bar]) -> Resul
             }))?;
             ctx.draw_series(mine().map(|b| {
                 let (centre, v) = (left(b) + width / 2.0, b.value);
-                // Just beyond the whisker's end, on the side the bar grows to.
-                let (y, anchor, offset) = if v.mean >= 0.0 {
-                    (v.mean + whisker(v), VPos::Bottom, -4)
-                } else {
-                    (v.mean - whisker(v), VPos::Top, 4)
-                };
+                let (y, anchor, offset) = value_place(v);
                 let style = TextStyle::from((FONT, 13).into_font());
                 EmptyElement::at((centre, y))
                     + Text::new(
@@ -359,6 +341,54 @@ pub fn bar_chart(path: &Path, title: &str, y_label: &str, bars: &[Bar]) -> Resul
 
         draw_legend(&mut ctx, corner)
     })
+}
+
+/// A bar's whisker: its 95% half-width, none when that is not finite.
+fn whisker(v: Estimate) -> f64 {
+    if v.ci95.is_finite() {
+        v.ci95
+    } else {
+        0.0
+    }
+}
+
+/// The y range of a bar chart, from zero over every bar and whisker, with room for the legend on
+/// the side the bars grow towards, and the legend's corner there.
+fn bar_y_range(drawn: &[&Bar]) -> (Range<f64>, SeriesLabelPosition) {
+    let y_range = span(
+        drawn
+            .iter()
+            .flat_map(|b| {
+                [
+                    b.value.mean - whisker(b.value),
+                    b.value.mean + whisker(b.value),
+                ]
+            })
+            .chain([0.0]),
+        0.05,
+    );
+    let room = 0.25 * (y_range.end - y_range.start);
+    if y_range.end.abs() >= y_range.start.abs() {
+        (
+            y_range.start..y_range.end + room,
+            SeriesLabelPosition::UpperRight,
+        )
+    } else {
+        (
+            y_range.start - room..y_range.end,
+            SeriesLabelPosition::LowerRight,
+        )
+    }
+}
+
+/// Where a bar's mean is written: just beyond its whisker's end, on the side the bar grows to
+/// (y, the text's vertical anchor, its offset in pixels).
+fn value_place(v: Estimate) -> (f64, VPos, i32) {
+    if v.mean >= 0.0 {
+        (v.mean + whisker(v), VPos::Bottom, -4)
+    } else {
+        (v.mean - whisker(v), VPos::Top, 4)
+    }
 }
 
 pub struct TrajectoryChart<'a> {
@@ -455,20 +485,7 @@ fn trajectory_panel(
     .label("IoT device")
     .legend(|(x, y)| TriangleMarker::new((x + 7, y), 6, BLACK.filled()));
 
-    if let (Some(first), Some(last)) = (cells.first(), cells.last()) {
-        ctx.draw_series(LineSeries::new(
-            cells.iter().map(centre),
-            colour.stroke_width(3),
-        ))?
-        .label(format!("path ({} moves)", cells.len() - 1))
-        .legend(move |(x, y)| PathElement::new([(x, y), (x + 24, y)], colour.stroke_width(3)));
-        ctx.draw_series([Circle::new(centre(first), 8, colour.filled())])?
-            .label("start")
-            .legend(move |(x, y)| Circle::new((x + 7, y), 6, colour.filled()));
-        ctx.draw_series([Cross::new(centre(last), 8, BLACK.stroke_width(3))])?
-            .label("end")
-            .legend(|(x, y)| Cross::new((x + 7, y), 6, BLACK.stroke_width(2)));
-    }
+    draw_path(&mut ctx, cells, colour)?;
 
     ctx.configure_series_labels()
         .position(SeriesLabelPosition::UpperLeft)
@@ -476,6 +493,31 @@ fn trajectory_panel(
         .background_style(WHITE.mix(0.85))
         .border_style(BLACK.mix(0.4))
         .draw()
+}
+
+/// The UAV's path through the cell centres, from a start marker to an end marker.
+fn draw_path<DB: DrawingBackend>(
+    ctx: &mut ChartContext<'_, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
+    cells: &[(u32, u32)],
+    colour: RGBColor,
+) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
+    let (Some(first), Some(last)) = (cells.first(), cells.last()) else {
+        return Ok(());
+    };
+    let centre = |&(x, y): &(u32, u32)| (x as f64, y as f64);
+    ctx.draw_series(LineSeries::new(
+        cells.iter().map(centre),
+        colour.stroke_width(3),
+    ))?
+    .label(format!("path ({} moves)", cells.len() - 1))
+    .legend(move |(x, y)| PathElement::new([(x, y), (x + 24, y)], colour.stroke_width(3)));
+    ctx.draw_series([Circle::new(centre(first), 8, colour.filled())])?
+        .label("start")
+        .legend(move |(x, y)| Circle::new((x + 7, y), 6, colour.filled()));
+    ctx.draw_series([Cross::new(centre(last), 8, BLACK.stroke_width(3))])?
+        .label("end")
+        .legend(|(x, y)| Cross::new((x + 7, y), 6, BLACK.stroke_width(2)));
+    Ok(())
 }
 
 /// Draws on a white canvas of `size` pixels and writes it to the PNG file `path`.
