@@ -633,96 +633,107 @@ impl Scan<'_> {
     /// The next chunk's transitions, `None` at a clean end of file. On error `offset` stays at
     /// the bad chunk.
     fn next_chunk(&mut self) -> Result<Option<Vec<Transition>>, DatasetError> {
-        let o = self.offset;
-        let rest = &self.bytes[o..];
+        let rest = &self.bytes[self.offset..];
         if rest.is_empty() {
             return Ok(None);
         }
-        let corrupt = |offset: usize, reason: String| DatasetError::Corrupt {
+        let payload_len = self.check_frame(rest)?;
+        self.check_fields(rest)?;
+        let count = u32_at(rest, 12) as usize;
+        let transitions = self.decode(
+            &rest[CHUNK_HEADER_LEN..CHUNK_HEADER_LEN + payload_len],
+            count,
+        )?;
+        self.offset += CHUNK_HEADER_LEN + payload_len + CRC_LEN;
+        Ok(Some(transitions))
+    }
+
+    /// The bad chunk at `offset`, and why.
+    fn corrupt(&self, reason: String) -> DatasetError {
+        DatasetError::Corrupt {
             path: self.path.to_path_buf(),
-            offset: offset as u64,
+            offset: self.offset as u64,
             reason,
-        };
+        }
+    }
+
+    /// Checks that `rest` starts with a whole chunk (header, magic, length) whose CRC32 holds;
+    /// returns its payload's length.
+    fn check_frame(&self, rest: &[u8]) -> Result<usize, DatasetError> {
         if rest.len() < CHUNK_HEADER_LEN {
-            return Err(corrupt(
-                o,
-                format!(
-                    "chunk header cut short: {} of its {CHUNK_HEADER_LEN} bytes",
-                    rest.len()
-                ),
-            ));
+            return Err(self.corrupt(format!(
+                "chunk header cut short: {} of its {CHUNK_HEADER_LEN} bytes",
+                rest.len()
+            )));
         }
         if &rest[..4] != CHUNK_MAGIC {
-            return Err(corrupt(
-                o,
-                format!(
-                    "no chunk magic {:?} here, found {:02x?}",
-                    String::from_utf8_lossy(CHUNK_MAGIC),
-                    &rest[..4]
-                ),
-            ));
+            return Err(self.corrupt(format!(
+                "no chunk magic {:?} here, found {:02x?}",
+                String::from_utf8_lossy(CHUNK_MAGIC),
+                &rest[..4]
+            )));
         }
         let payload_len = u32_at(rest, 16) as usize;
         let total = CHUNK_HEADER_LEN + payload_len + CRC_LEN;
         if rest.len() < total {
-            return Err(corrupt(
-                o,
-                format!("chunk cut short: {} of its {total} bytes", rest.len()),
-            ));
+            return Err(self.corrupt(format!(
+                "chunk cut short: {} of its {total} bytes",
+                rest.len()
+            )));
         }
         // The checksum comes before every other field is trusted, so a flipped bit anywhere in
         // the chunk is reported as such.
         let stored = u32_at(rest, total - CRC_LEN);
         let computed = crc32fast::hash(&rest[..total - CRC_LEN]);
         if stored != computed {
-            return Err(corrupt(
-                o,
-                format!("chunk CRC32 is {stored:#010x}, its bytes give {computed:#010x}"),
-            ));
+            return Err(self.corrupt(format!(
+                "chunk CRC32 is {stored:#010x}, its bytes give {computed:#010x}"
+            )));
         }
+        Ok(payload_len)
+    }
+
+    /// Checks the chunk header's schema version, device count and task against the file's.
+    fn check_fields(&self, rest: &[u8]) -> Result<(), DatasetError> {
         let version = u16_at(rest, 4);
         if version != SCHEMA_VERSION {
             return Err(DatasetError::SchemaVersion {
                 path: self.path.to_path_buf(),
-                offset: o as u64 + 4,
+                offset: self.offset as u64 + 4,
                 found: version,
             });
         }
-        let (devices, task, count) = (u16_at(rest, 6), u32_at(rest, 8), u32_at(rest, 12) as usize);
+        let (devices, task) = (u16_at(rest, 6), u32_at(rest, 8));
         if devices != self.header.devices || task != self.header.task {
-            return Err(corrupt(
-                o,
-                format!(
-                    "chunk of task {task} with K = {devices} in the file of task {} with K = {}",
-                    self.header.task, self.header.devices
-                ),
-            ));
+            return Err(self.corrupt(format!(
+                "chunk of task {task} with K = {devices} in the file of task {} with K = {}",
+                self.header.task, self.header.devices
+            )));
         }
-        let mut payload = &rest[CHUNK_HEADER_LEN..CHUNK_HEADER_LEN + payload_len];
+        Ok(())
+    }
+
+    /// Decodes and checks the `count` transitions of a chunk's payload.
+    fn decode(&self, mut payload: &[u8], count: usize) -> Result<Vec<Transition>, DatasetError> {
         // A count is at most the payload length, since every transition takes several bytes.
-        let mut transitions = Vec::with_capacity(count.min(payload_len));
+        let mut transitions = Vec::with_capacity(count.min(payload.len()));
         for index in 0..count {
             let (t, remaining) = postcard::take_from_bytes::<Transition>(payload).map_err(|e| {
-                corrupt(
-                    o,
-                    format!("transition {index} of {count} does not decode: {e}"),
-                )
+                self.corrupt(format!(
+                    "transition {index} of {count} does not decode: {e}"
+                ))
             })?;
-            check_transition(&t, self.header, self.path, o as u64, index)?;
+            check_transition(&t, self.header, self.path, self.offset as u64, index)?;
             transitions.push(t);
             payload = remaining;
         }
         if !payload.is_empty() {
-            return Err(corrupt(
-                o,
-                format!(
-                    "{} bytes left in the payload after its {count} transitions",
-                    payload.len()
-                ),
-            ));
+            return Err(self.corrupt(format!(
+                "{} bytes left in the payload after its {count} transitions",
+                payload.len()
+            )));
         }
-        self.offset += total;
-        Ok(Some(transitions))
+        Ok(transitions)
     }
 
     /// After a bad chunk at `offset`: whether a good chunk starts anywhere after it. A crash only
