@@ -251,44 +251,11 @@ pub fn collect(
             source,
         }
     })?;
-    let mut writer = DatasetWriter::create(out, header.clone())?;
+    let mut writer = DatasetWriter::create(out, header)?;
 
     let steps = match rollout_policy {
-        None => {
-            progress.set_length(config.collect.dqn_steps as u64);
-            let (sampled, agent) =
-                online_dqn_dataset(config, task, header.task, 0, seed, |n, _| {
-                    progress.inc(n as u64);
-                    true
-                })?;
-            for chunk in sampled.chunks(config.run.batch_size) {
-                writer.append(chunk)?;
-            }
-            let agent_file = agent_path(out);
-            checkpoint::save(
-                &agent_file,
-                agent.q_network(),
-                Method::OnlineDqn.name(),
-                1,
-                config,
-            )?;
-            agent.steps() as u64
-        }
-        Some(policy) => {
-            progress.set_length(wanted as u64);
-            let mut collector = Collector::new(&config.world, task, header.task, 0, policy, seed);
-            let mut chunk = Vec::with_capacity(config.run.batch_size);
-            let mut left = wanted;
-            while left > 0 {
-                let n = left.min(config.run.batch_size);
-                chunk.clear();
-                collector.fill(n, &mut chunk);
-                writer.append(&chunk)?;
-                progress.inc(n as u64);
-                left -= n;
-            }
-            collector.seq
-        }
+        None => write_replay_sample(config, task, out, &mut writer, progress)?,
+        Some(policy) => write_rollout(config, task, policy, &mut writer, progress)?,
     };
     writer.sync()?;
     Ok(CollectSummary {
@@ -298,6 +265,63 @@ pub fn collect(
         steps,
         bytes: writer.len_bytes(),
     })
+}
+
+/// Trains the online DQN agent, writes the sample of its replay buffer and saves the agent beside
+/// dataset `out`; returns its environment steps.
+fn write_replay_sample(
+    config: &Config,
+    task: &TaskConfig,
+    out: &Path,
+    writer: &mut DatasetWriter,
+    progress: &ProgressBar,
+) -> Result<u64, CollectError> {
+    progress.set_length(config.collect.dqn_steps as u64);
+    let task_id = writer.header().task;
+    let (sampled, agent) =
+        online_dqn_dataset(config, task, task_id, 0, config.collect.seed, |n, _| {
+            progress.inc(n as u64);
+            true
+        })?;
+    for chunk in sampled.chunks(config.run.batch_size) {
+        writer.append(chunk)?;
+    }
+    let agent_file = agent_path(out);
+    checkpoint::save(
+        &agent_file,
+        agent.q_network(),
+        Method::OnlineDqn.name(),
+        1,
+        config,
+    )?;
+    Ok(agent.steps() as u64)
+}
+
+/// Rolls `policy` out into `writer`, `run.batch_size` transitions a chunk; returns the steps
+/// taken.
+fn write_rollout(
+    config: &Config,
+    task: &TaskConfig,
+    policy: Box<dyn Policy>,
+    writer: &mut DatasetWriter,
+    progress: &ProgressBar,
+) -> Result<u64, CollectError> {
+    let wanted = config.collect.transitions;
+    progress.set_length(wanted as u64);
+    let task_id = writer.header().task;
+    let mut collector =
+        Collector::new(&config.world, task, task_id, 0, policy, config.collect.seed);
+    let mut chunk = Vec::with_capacity(config.run.batch_size);
+    let mut left = wanted;
+    while left > 0 {
+        let n = left.min(config.run.batch_size);
+        chunk.clear();
+        collector.fill(n, &mut chunk);
+        writer.append(&chunk)?;
+        progress.inc(n as u64);
+        left -= n;
+    }
+    Ok(collector.seq)
 }
 
 #[cfg(test)]
