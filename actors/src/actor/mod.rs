@@ -219,12 +219,11 @@ pub fn run(
     };
     tracing::info!(task = %task.name, actor = format!("{actor:08x}"), policy = %options.policy, seed = options.seed, "actor started");
 
-    let Some(mut source) = start_source(run, config, options, &task, &metrics, node, &mut summary)?
+    let Some(source) = start_source(run, config, options, &task, &metrics, node, &mut summary)?
     else {
         return Ok(summary);
     };
 
-    let limit = options.transitions.unwrap_or(u64::MAX);
     let control = Control {
         process: &process,
         ready,
@@ -236,100 +235,24 @@ pub fn run(
         &task.name,
         &config.run,
     )?)?;
-    let mut sender = Sender::new(
-        &publisher,
-        acks,
-        (task_id, actor),
-        config.run.keep_until_stored,
-        &metrics,
-    );
-    let mut seq = 0u64;
-    let mut next_look = Instant::now();
-    let mut phase = Phase::Sending;
-    metrics.set_phase(phase);
-    loop {
-        // Signals and announcements are looked at every CONTROL_EVERY, not every batch: a look
-        // costs a syscall and two receives, a batch of 64 steps a few microseconds.
-        if Instant::now() >= next_look {
-            if control.stop_requested(Duration::ZERO)? {
-                break;
-            }
-            next_look = Instant::now() + CONTROL_EVERY;
-        }
-        sender.read_acks()?;
-        if let Source::Fixed(_) = &source {
-            // A store that went away took what it held unwritten with it, and a replay sample,
-            // unlike a rollout, has no more data to come: send it again from what is stored.
-            if let Some(to) = sender.rewind_if_store_changed() {
-                seq = to;
-            }
-        }
-        let left = match &source {
-            Source::Rollout(_) => limit - seq,
-            Source::Fixed(list) => limit.min(list.len() as u64).saturating_sub(seq),
-        };
-        let count = left.min(publisher.batch_size() as u64) as usize;
-        let now = if count == 0 {
-            Phase::Sent
-        } else {
-            Phase::Sending
-        };
-        if now != phase {
-            phase = now;
-            metrics.set_phase(phase);
-        }
-        if count == 0 {
-            if seq >= limit {
-                tracing::info!(published = seq, "published the requested transitions");
-                if sender.wait_until_stored(&control)? {
-                    tracing::info!("the store has acknowledged them all");
-                }
-                break;
-            }
-            // Everything sampled is sent; stay until the store announces the dataset.
-            transport::keep_running(node, POLL);
-            continue;
-        }
-        let start = Instant::now();
-        let mut batch = publisher.loan(seq, count)?;
-        let sent = match &mut source {
-            Source::Rollout(rollout) => {
-                for slot in batch.slots_mut() {
-                    rollout.write_step(slot);
-                }
-                sender.send_rollout(batch, &control)?
-            }
-            Source::Fixed(list) => {
-                write_sample(batch.slots_mut(), list, seq);
-                sender.send_sample(batch, list, &control)?
-            }
-        };
-        let waited = sender.take_waited();
-        summary.backpressure += waited;
-        metrics.backpressure_wait.inc_by(waited.as_secs_f64());
-        match sent {
-            Sent::Delivered => {}
-            Sent::Lost => metrics.transitions_lost.inc_by(count as u64),
-            Sent::Rewind(to) => {
-                seq = to;
-                continue;
-            }
-            Sent::Stopped => break,
-        }
-        metrics
-            .batch_duration
-            .observe(start.elapsed().as_secs_f64());
-        seq += count as u64;
-        if let Source::Rollout(rollout) = &mut source {
-            summary.steps += count as u64;
-            metrics.steps.inc_by(count as u64);
-            for episode in rollout.drain_finished() {
-                summary.episodes += 1;
-                metrics.observe_episode(&episode);
-            }
-        }
-    }
-    summary.published = sender.published();
+    let mut feed = Feed {
+        source,
+        publisher: &publisher,
+        sender: Sender::new(
+            &publisher,
+            acks,
+            (task_id, actor),
+            config.run.keep_until_stored,
+            &metrics,
+        ),
+        metrics: &metrics,
+        seq: 0,
+        limit: options.transitions.unwrap_or(u64::MAX),
+        summary,
+    };
+    feed.send_all(&control)?;
+    let mut summary = feed.summary;
+    summary.published = feed.sender.published();
     tracing::info!(
         published = summary.published,
         steps = summary.steps,
@@ -337,6 +260,129 @@ pub fn run(
         "actor stopped"
     );
     Ok(summary)
+}
+
+/// The actor's sending loop: where its transitions come from, the sender they go through, and
+/// how far it got.
+struct Feed<'a, 's> {
+    source: Source,
+    publisher: &'a TransitionPublisher<'s>,
+    sender: Sender<'a, 's>,
+    metrics: &'a metrics::ActorMetrics,
+    /// The number of the next transition to send.
+    seq: u64,
+    /// Stop after this many transitions (`--transitions`).
+    limit: u64,
+    summary: ActorSummary,
+}
+
+impl<'a, 's> Feed<'a, 's> {
+    /// Sends batch after batch until a stop is requested, or the limit is reached and stored.
+    fn send_all(&mut self, control: &Control) -> Result<(), ActorError> {
+        let mut next_look = Instant::now();
+        let mut phase = Phase::Sending;
+        self.metrics.set_phase(phase);
+        loop {
+            // Signals and announcements are looked at every CONTROL_EVERY, not every batch: a
+            // look costs a syscall and two receives, a batch of 64 steps a few microseconds.
+            if Instant::now() >= next_look {
+                if control.stop_requested(Duration::ZERO)? {
+                    return Ok(());
+                }
+                next_look = Instant::now() + CONTROL_EVERY;
+            }
+            self.sender.read_acks()?;
+            if let Source::Fixed(_) = &self.source {
+                // A store that went away took what it held unwritten with it, and a replay
+                // sample, unlike a rollout, has no more data to come: send it again from what is
+                // stored.
+                if let Some(to) = self.sender.rewind_if_store_changed() {
+                    self.seq = to;
+                }
+            }
+            let count = self.next_count();
+            let now = if count == 0 {
+                Phase::Sent
+            } else {
+                Phase::Sending
+            };
+            if now != phase {
+                phase = now;
+                self.metrics.set_phase(phase);
+            }
+            if count == 0 {
+                if self.seq >= self.limit {
+                    tracing::info!(published = self.seq, "published the requested transitions");
+                    if self.sender.wait_until_stored(control)? {
+                        tracing::info!("the store has acknowledged them all");
+                    }
+                    return Ok(());
+                }
+                // Everything sampled is sent; stay until the store announces the dataset.
+                transport::keep_running(&control.process.node, POLL);
+                continue;
+            }
+            let start = Instant::now();
+            let sent = self.send_batch(count, control)?;
+            let waited = self.sender.take_waited();
+            self.summary.backpressure += waited;
+            self.metrics.backpressure_wait.inc_by(waited.as_secs_f64());
+            match sent {
+                Sent::Delivered => {}
+                Sent::Lost => self.metrics.transitions_lost.inc_by(count as u64),
+                Sent::Rewind(to) => {
+                    self.seq = to;
+                    continue;
+                }
+                Sent::Stopped => return Ok(()),
+            }
+            self.metrics
+                .batch_duration
+                .observe(start.elapsed().as_secs_f64());
+            self.seq += count as u64;
+            self.count_steps(count);
+        }
+    }
+
+    /// Transitions the next batch holds: 0 once everything there is to send is sent.
+    fn next_count(&self) -> usize {
+        let left = match &self.source {
+            Source::Rollout(_) => self.limit - self.seq,
+            Source::Fixed(list) => (self.limit.min(list.len() as u64)).saturating_sub(self.seq),
+        };
+        left.min(self.publisher.batch_size() as u64) as usize
+    }
+
+    /// Loans a batch of `count` slots from `seq` on, writes the source's transitions into it and
+    /// sends it.
+    fn send_batch(&mut self, count: usize, control: &Control) -> Result<Sent, ActorError> {
+        let publisher: &'a TransitionPublisher<'s> = self.publisher;
+        let mut batch = publisher.loan(self.seq, count)?;
+        match &mut self.source {
+            Source::Rollout(rollout) => {
+                for slot in batch.slots_mut() {
+                    rollout.write_step(slot);
+                }
+                self.sender.send_rollout(batch, control)
+            }
+            Source::Fixed(list) => {
+                write_sample(batch.slots_mut(), list, self.seq);
+                self.sender.send_sample(batch, list, control)
+            }
+        }
+    }
+
+    /// After a rollout's batch is sent: counts its steps and the episodes it finished.
+    fn count_steps(&mut self, count: usize) {
+        if let Source::Rollout(rollout) = &mut self.source {
+            self.summary.steps += count as u64;
+            self.metrics.steps.inc_by(count as u64);
+            for episode in rollout.drain_finished() {
+                self.summary.episodes += 1;
+                self.metrics.observe_episode(&episode);
+            }
+        }
+    }
 }
 
 /// What the actor sends: a rollout of its behaviour policy, or for `dqn-online` the replay
