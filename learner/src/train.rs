@@ -168,7 +168,7 @@ impl EpochRow {
     }
 }
 
-/// The loss figures of one gradient step.
+/// The loss figures of one gradient step, or their means over an epoch.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StepFigures {
     /// Eq. 7 on the minibatch (scaled rewards).
@@ -250,6 +250,30 @@ impl OfflineTrainer {
         }
     }
 
+    /// `steps` gradient steps, each a tick of `bar`; returns their figures' means.
+    fn epoch(
+        &mut self,
+        q: &mut QNetwork,
+        data: &Batch,
+        steps: usize,
+        bar: &ProgressBar,
+    ) -> StepFigures {
+        let (mut td_sum, mut cons_sum, mut q_sum) = (0.0, 0.0, 0.0);
+        for _ in 0..steps {
+            let step = self.step(q, data);
+            td_sum += step.td_loss;
+            cons_sum += step.conservative_loss;
+            q_sum += step.max_q;
+            bar.inc(1);
+        }
+        let k = steps as f64;
+        StepFigures {
+            td_loss: td_sum / k,
+            conservative_loss: cons_sum / k,
+            max_q: q_sum / k,
+        }
+    }
+
     /// Gradient steps so far.
     pub fn steps(&self) -> usize {
         self.steps
@@ -297,34 +321,23 @@ pub fn train(
             rows.push(row);
             continue;
         }
-        let (mut td_sum, mut cons_sum, mut q_sum) = (0.0, 0.0, 0.0);
-        for _ in 0..steps_per_epoch {
-            let step = trainer.step(q, data);
-            td_sum += step.td_loss;
-            cons_sum += step.conservative_loss;
-            q_sum += step.max_q;
-            bar.inc(1);
-        }
+        let means = trainer.epoch(q, data, steps_per_epoch, &bar);
         if let (Some(guard), Some(last_good)) = (&guard, kept.as_mut()) {
-            if guard.tripped(q, data) {
-                q.copy_from(last_good);
+            if guard.restore_if_tripped(q, last_good, data) {
                 kept = None;
                 tracing::info!(
                     epoch,
                     v_data = guard.v_data / cfg.reward_scale,
                     "the value guard stopped training; the previous epoch's network is kept"
                 );
-            } else {
-                last_good.copy_from(q);
             }
         }
-        let k = steps_per_epoch as f64;
         let row = EpochRow {
             epoch,
             steps: trainer.steps(),
-            td_loss: td_sum / k,
-            conservative_loss: cons_sum / k,
-            mean_q: q_sum / k / cfg.reward_scale,
+            td_loss: means.td_loss,
+            conservative_loss: means.conservative_loss,
+            mean_q: means.max_q / cfg.reward_scale,
             policy: evaluator.evaluate(q),
             seconds: started.elapsed().as_secs_f64(),
         };
@@ -396,6 +409,18 @@ impl ValueGuard {
 
     fn tripped(&self, q: &QNetwork, data: &Batch) -> bool {
         self.direction * (Self::mean_q(q, data) - self.v_data) > self.margin
+    }
+
+    /// After an epoch: puts `last_good` back into `q` if the guard tripped, else keeps `q` as the
+    /// new `last_good`; returns whether it tripped.
+    fn restore_if_tripped(&self, q: &mut QNetwork, last_good: &mut QNetwork, data: &Batch) -> bool {
+        let tripped = self.tripped(q, data);
+        if tripped {
+            q.copy_from(last_good);
+        } else {
+            last_good.copy_from(q);
+        }
+        tripped
     }
 }
 
