@@ -34,6 +34,7 @@ use std::path::PathBuf;
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant, SystemTime};
 
+use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use indicatif::MultiProgress;
@@ -234,16 +235,7 @@ pub fn launch(
         &run,
         PROCESS,
     )?;
-    let dataset_ready = transport::control_subscriber(
-        &transport::dataset_ready_service(&node, &names, config)?,
-        config,
-    )?;
-    let checkpoint_ready = transport::control_subscriber(
-        &transport::checkpoint_ready_service(&node, &names, config)?,
-        config,
-    )?;
-    let shutdown =
-        transport::control_publisher(&transport::shutdown_service(&node, &names, config)?)?;
+    let announcements = Announcements::open(&node, &names, config)?;
 
     let mut children = plan(&run, config)?;
     for child in &children {
@@ -265,61 +257,13 @@ pub fn launch(
     start_children(&supervisor, &mut children, config, &node)?;
     tracing::info!(run = %run.root().display(), children = children.len(), "launched");
 
-    let mut ready_tasks = vec![false; config.tasks.len()];
-    let mut shutdown_sent = false;
-    let mut shutdown_at = Instant::now();
-    let mut last_targets = String::new();
-    let outcome = loop {
-        if !transport::keep_running(&node, TICK) {
-            break Err(LaunchError::Interrupted);
-        }
-        if let Err(error) = supervisor.poll(&mut children, &node) {
-            break Err(error);
-        }
-        count_announcements(
-            &dataset_ready,
-            &checkpoint_ready,
-            &mut ready_tasks,
-            &launcher_metrics,
-        )?;
-        last_targets = write_targets(&run, &children, last_targets)?;
-        launcher_metrics
-            .children_running
-            .set(children.iter().filter(|c| c.child.is_some()).count() as i64);
-
-        let learning_done = children
-            .iter()
-            .filter(|c| c.role == Role::MetaLearner)
-            .all(|c| c.done);
-        let collecting_done = ready_tasks.iter().all(|r| *r)
-            && children
-                .iter()
-                .filter(|c| c.role == Role::Actor)
-                .all(|c| c.done || c.child.is_none());
-        if learning_done && collecting_done && !shutdown_sent {
-            tracing::info!("meta-learning finished; announcing the shutdown");
-            transport::announce(
-                &shutdown,
-                Shutdown {
-                    schema_version: SCHEMA_VERSION,
-                    reserved: 0,
-                },
-            )?;
-            shutdown_sent = true;
-            shutdown_at = Instant::now();
-        }
-        if shutdown_sent
-            && children
-                .iter()
-                .all(|c| c.child.is_none() && c.restart_at.is_none())
-        {
-            break Ok(());
-        }
-        if shutdown_sent && shutdown_at.elapsed() > GRACE {
-            tracing::warn!("children still running {GRACE:?} after the shutdown; stopping them");
-            break Ok(());
-        }
-    };
+    let outcome = supervise(
+        &supervisor,
+        &mut children,
+        &node,
+        &announcements,
+        config.tasks.len(),
+    );
     stop_all(&mut children);
     transport::cleanup_dead_nodes(&node);
     if let Some(display) = display {
@@ -333,6 +277,107 @@ pub fn launch(
         results,
         references: heuristic_references(config),
     })
+}
+
+/// The announcements the launcher hears (datasets and checkpoints ready) and makes (the
+/// shutdown).
+struct Announcements {
+    dataset_ready: Subscriber<ipc::Service, DatasetReady, ()>,
+    checkpoint_ready: Subscriber<ipc::Service, CheckpointReady, ()>,
+    shutdown: Publisher<ipc::Service, Shutdown, ()>,
+}
+
+impl Announcements {
+    fn open(
+        node: &Node<ipc::Service>,
+        names: &ServiceNames,
+        config: &Config,
+    ) -> Result<Self, LaunchError> {
+        Ok(Self {
+            dataset_ready: transport::control_subscriber(
+                &transport::dataset_ready_service(node, names, config)?,
+                config,
+            )?,
+            checkpoint_ready: transport::control_subscriber(
+                &transport::checkpoint_ready_service(node, names, config)?,
+                config,
+            )?,
+            shutdown: transport::control_publisher(&transport::shutdown_service(
+                node, names, config,
+            )?)?,
+        })
+    }
+}
+
+/// Supervises the children until they have all finished after the shutdown (announced once
+/// meta-learning is done and every one of the `tasks` datasets is ready), or SIGINT/SIGTERM.
+fn supervise(
+    supervisor: &Supervisor,
+    children: &mut [Supervised],
+    node: &Node<ipc::Service>,
+    announcements: &Announcements,
+    tasks: usize,
+) -> Result<(), LaunchError> {
+    let metrics = supervisor.metrics;
+    let mut ready_tasks = vec![false; tasks];
+    let mut shutdown_sent = false;
+    let mut shutdown_at = Instant::now();
+    let mut last_targets = String::new();
+    loop {
+        if !transport::keep_running(node, TICK) {
+            return Err(LaunchError::Interrupted);
+        }
+        supervisor.poll(children, node)?;
+        count_announcements(
+            &announcements.dataset_ready,
+            &announcements.checkpoint_ready,
+            &mut ready_tasks,
+            metrics,
+        )?;
+        last_targets = write_targets(&supervisor.run, children, last_targets)?;
+        metrics
+            .children_running
+            .set(children.iter().filter(|c| c.child.is_some()).count() as i64);
+
+        if !shutdown_sent && work_done(children, &ready_tasks) {
+            tracing::info!("meta-learning finished; announcing the shutdown");
+            transport::announce(
+                &announcements.shutdown,
+                Shutdown {
+                    schema_version: SCHEMA_VERSION,
+                    reserved: 0,
+                },
+            )?;
+            shutdown_sent = true;
+            shutdown_at = Instant::now();
+        }
+        if shutdown_sent
+            && children
+                .iter()
+                .all(|c| c.child.is_none() && c.restart_at.is_none())
+        {
+            return Ok(());
+        }
+        if shutdown_sent && shutdown_at.elapsed() > GRACE {
+            tracing::warn!("children still running {GRACE:?} after the shutdown; stopping them");
+            return Ok(());
+        }
+    }
+}
+
+/// Whether the run's work is done: the meta-learner finished and every task's dataset is ready,
+/// its actors finished or gone.
+fn work_done(children: &[Supervised], ready_tasks: &[bool]) -> bool {
+    let learning_done = children
+        .iter()
+        .filter(|c| c.role == Role::MetaLearner)
+        .all(|c| c.done);
+    let collecting_done = ready_tasks.iter().all(|r| *r)
+        && children
+            .iter()
+            .filter(|c| c.role == Role::Actor)
+            .all(|c| c.done || c.child.is_none());
+    learning_done && collecting_done
 }
 
 /// Starts the children in their order: the store first, and ready, so the actors' first batches
