@@ -4,7 +4,6 @@
 //! the tunnel (`uavmeta tunnel serve` / `join`) over a loopback Zenoh link connects them. The
 //! launch test checks, from /proc, that B's processes never open anything of A's domain.
 
-use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -12,12 +11,11 @@ use std::time::Duration;
 
 use uavmeta_actors::actor::ActorOptions;
 use uavmeta_proto::config::RunConfig;
-use uavmeta_proto::dataset::DatasetReader;
 use uavmeta_proto::metrics;
 use uavmeta_proto::transport::{self, RunDir};
 
 mod support;
-use support::{run_dir, wait_until, within, Proc};
+use support::{dataset_seqs, run_dir, wait_until, within, Proc};
 
 /// Two meta-train tasks (so no meta-learning: the run is done when its datasets are), one local
 /// actor per task on host A.
@@ -222,26 +220,6 @@ fn iceoryx_files(pid: i32) -> Vec<String> {
     paths
 }
 
-/// Per task, per actor, the sequence numbers in A's dataset files, each once.
-fn dataset_seqs(run: &Path) -> BTreeMap<String, BTreeMap<u32, Vec<u64>>> {
-    let mut out = BTreeMap::new();
-    for entry in std::fs::read_dir(run.join("datasets")).expect("datasets dir") {
-        let reader = DatasetReader::open(entry.expect("entry").path()).expect("dataset");
-        let mut per_actor: BTreeMap<u32, Vec<u64>> = BTreeMap::new();
-        for t in reader.transitions() {
-            per_actor.entry(t.actor).or_default().push(t.seq);
-        }
-        for seqs in per_actor.values_mut() {
-            let n = seqs.len();
-            seqs.sort_unstable();
-            seqs.dedup();
-            assert_eq!(seqs.len(), n, "a transition is stored twice");
-        }
-        out.insert(reader.header().task_name.clone(), per_actor);
-    }
-    out
-}
-
 fn final_metrics(run: &Path, process: &str) -> Vec<metrics::Sample> {
     let path = run.join("metrics").join(format!("{process}.prom"));
     let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
@@ -337,10 +315,8 @@ fn start_host_a(hosts: &Hosts, extra: &[String]) -> (Proc, Proc) {
 
 fn start_tunnel(hosts: &Hosts, name: &str) -> Proc {
     let run = hosts.run_a.root().display().to_string();
-    let tunnel = Proc::spawn(name, &strings(&["tunnel", "serve", "--run", &run]));
-    wait_until("the tunnel to serve", within(60), || {
-        tunnel.stderr().contains("serving the run")
-    });
+    let mut tunnel = Proc::spawn(name, &strings(&["tunnel", "serve", "--run", &run]));
+    tunnel.logs("serving the run", within(60));
     tunnel
 }
 
@@ -363,7 +339,7 @@ fn a_killed_and_restarted_tunnel_loses_nothing_unaccounted_and_the_remote_actor_
     const PUBLISHED: u64 = 1_000_000;
     let hosts = Hosts::new("kill");
     let (store, tunnel) = start_host_a(&hosts, &["collect.transitions=10000000".into()]);
-    let join = hosts.join(hosts.run_a.id());
+    let mut join = hosts.join(hosts.run_a.id());
     let task = "lambda-0";
     let transitions = PUBLISHED.to_string();
     let mut actor = hosts.actor_b(task, &["--transitions", &transitions]);
@@ -381,9 +357,7 @@ fn a_killed_and_restarted_tunnel_loses_nothing_unaccounted_and_the_remote_actor_
     tunnel.signal(libc::SIGKILL);
     tunnel.wait(within(10));
     let at_kill = stored(&hosts.run_a) as usize;
-    wait_until("host B to notice", within(60), || {
-        join.stderr().contains("lost the run's tunnel")
-    });
+    join.logs("lost the run's tunnel", within(60));
     let _tunnel = start_tunnel(&hosts, "tunnel-restarted");
     actor.succeeds(within(240));
     // SIGTERM: the store syncs and writes its final metrics.

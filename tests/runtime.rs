@@ -10,14 +10,13 @@ use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use uavmeta_proto::config::InnerLoss;
-use uavmeta_proto::dataset::DatasetReader;
 use uavmeta_proto::metrics::{self, Metric, Sample};
 use uavmeta_proto::transport::Method;
 
 mod support;
 use support::{
-    child_pid, child_pids, config_args, launch, missing_tool, run_dir, wait_until, within,
-    Finished, Proc, BIN,
+    child_pid, child_pids, config_args, dataset_seqs, launch, missing_tool, run_dir, wait_until,
+    within, Finished, Proc, BIN,
 };
 
 fn stderr(finished: &Finished) -> String {
@@ -85,32 +84,6 @@ fn scrape(run: &Path, process: &str) -> Vec<Sample> {
     let text = metrics::scrape("127.0.0.1", port).unwrap_or_else(|e| panic!("{process}: {e}"));
     promtool_check(&text, process);
     metrics::parse(&text).unwrap_or_else(|e| panic!("{process}: {e}"))
-}
-
-/// Every dataset file of a run: per task, per actor, the sorted sequence numbers.
-fn dataset_seqs(run: &Path) -> BTreeMap<String, BTreeMap<u32, Vec<u64>>> {
-    let mut out = BTreeMap::new();
-    for entry in std::fs::read_dir(run.join("datasets")).expect("datasets dir") {
-        let path = entry.expect("entry").path();
-        let reader = DatasetReader::open(&path).unwrap_or_else(|e| panic!("{e}"));
-        let mut per_actor: BTreeMap<u32, Vec<u64>> = BTreeMap::new();
-        for t in reader.transitions() {
-            per_actor.entry(t.actor).or_default().push(t.seq);
-        }
-        for seqs in per_actor.values_mut() {
-            let n = seqs.len();
-            seqs.sort_unstable();
-            seqs.dedup();
-            assert_eq!(
-                seqs.len(),
-                n,
-                "{}: a transition is stored twice",
-                path.display()
-            );
-        }
-        out.insert(reader.header().task_name.clone(), per_actor);
-    }
-    out
 }
 
 /// Transitions missing from a file: below each actor's highest stored number, not stored.

@@ -865,23 +865,33 @@ const UNFINISHED_SEGMENT_AGE: Duration = Duration::from_secs(10);
 /// Removes iceoryx2 shared-memory segments that a process killed between creating and sizing them
 /// left at size zero. iceoryx2 0.10's dead-node sweep waits, without a timeout, for such a segment
 /// to be initialised (`posix_shared_memory::open_impl` on `MappingSizeIsZero`), so one such
-/// leftover would hang every later node creation on the host. Found by the chaos test.
+/// leftover would hang every later sweep in the domain. Found by the chaos test. A zero-size
+/// segment younger than [`UNFINISHED_SEGMENT_AGE`] may be a creation in progress, or the leftover
+/// of a process killed a moment ago and restarted at once (a tunnel restarted after kill -9 hung
+/// here in tests/remote.rs), so it is waited for: sized, gone, or old enough to remove.
 fn remove_unfinished_segments(config: &iceoryx2::config::Config) {
     let prefix = config.global.prefix.to_string();
     let Ok(entries) = std::fs::read_dir("/dev/shm") else {
         return;
     };
-    for entry in entries.flatten() {
-        let unfinished = entry.file_name().to_string_lossy().starts_with(&prefix)
-            && entry.metadata().is_ok_and(|m| {
-                m.len() == 0
-                    && m.modified()
-                        .ok()
-                        .and_then(|at| at.elapsed().ok())
-                        .is_some_and(|age| age > UNFINISHED_SEGMENT_AGE)
-            });
-        if unfinished && std::fs::remove_file(entry.path()).is_ok() {
-            tracing::warn!(path = %entry.path().display(), "removed an iceoryx2 segment a killed process left unfinished");
+    let zero_sized = entries
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().starts_with(&prefix))
+        .filter(|e| e.metadata().is_ok_and(|m| m.len() == 0))
+        .map(|e| e.path());
+    for path in zero_sized.collect::<Vec<_>>() {
+        while let Ok(metadata) = std::fs::metadata(&path) {
+            let age = metadata.modified().ok().and_then(|at| at.elapsed().ok());
+            if metadata.len() > 0 {
+                break;
+            }
+            if age.is_some_and(|age| age > UNFINISHED_SEGMENT_AGE) {
+                if std::fs::remove_file(&path).is_ok() {
+                    tracing::warn!(path = %path.display(), "removed an iceoryx2 segment a killed process left unfinished");
+                }
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(50));
         }
     }
 }

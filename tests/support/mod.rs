@@ -4,9 +4,12 @@
 // Each test file compiles this module on its own and uses a part of it.
 #![allow(dead_code)]
 
+use std::collections::BTreeMap;
 use std::path::Path;
 use std::process::{Child, Command};
 use std::time::{Duration, Instant};
+
+use uavmeta_proto::dataset::DatasetReader;
 
 pub const BIN: &str = env!("CARGO_BIN_EXE_uavmeta");
 
@@ -175,6 +178,28 @@ impl Proc {
         finished
     }
 
+    /// Waits until the process has logged `needle`, at most `timeout`; fails at once if the
+    /// process exits first. Either failure shows what it logged.
+    pub fn logs(&mut self, needle: &str, timeout: Duration) {
+        let start = Instant::now();
+        while !self.stderr().contains(needle) {
+            if let Some(status) = self.child.try_wait().expect("try_wait") {
+                panic!(
+                    "{} exited ({status}) before logging `{needle}`; its stderr:\n{}",
+                    self.name,
+                    self.stderr()
+                );
+            }
+            assert!(
+                start.elapsed() < timeout,
+                "{} did not log `{needle}` within {timeout:?}; its stderr:\n{}",
+                self.name,
+                self.stderr()
+            );
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+
     pub fn running(&mut self) -> bool {
         matches!(self.child.try_wait(), Ok(None))
     }
@@ -250,4 +275,30 @@ pub fn missing_tool(tool: &str, error: &std::io::Error) {
     let ci = std::env::var("CI").is_ok_and(|ci| ci == "true");
     assert!(!ci, "{tool}, required under CI=true: {error}");
     eprintln!("skipped: {tool} is not installed ({error}); `make test` installs it");
+}
+
+/// Every dataset file of a run: per task, per actor, the sorted sequence numbers.
+pub fn dataset_seqs(run: &Path) -> BTreeMap<String, BTreeMap<u32, Vec<u64>>> {
+    let mut out = BTreeMap::new();
+    for entry in std::fs::read_dir(run.join("datasets")).expect("datasets dir") {
+        let path = entry.expect("entry").path();
+        let reader = DatasetReader::open(&path).unwrap_or_else(|e| panic!("{e}"));
+        let mut per_actor: BTreeMap<u32, Vec<u64>> = BTreeMap::new();
+        for t in reader.transitions() {
+            per_actor.entry(t.actor).or_default().push(t.seq);
+        }
+        for seqs in per_actor.values_mut() {
+            let n = seqs.len();
+            seqs.sort_unstable();
+            seqs.dedup();
+            assert_eq!(
+                seqs.len(),
+                n,
+                "{}: a transition is stored twice",
+                path.display()
+            );
+        }
+        out.insert(reader.header().task_name.clone(), per_actor);
+    }
+    out
 }

@@ -1,0 +1,75 @@
+//! Start-up in an iceoryx2 domain that a killed process left behind, with real shared memory.
+
+use std::fs::File;
+use std::path::PathBuf;
+use std::time::{Duration, Instant, SystemTime};
+
+use uavmeta_proto::config::RunConfig;
+use uavmeta_proto::transport;
+
+/// A domain of this test's own, removed when dropped.
+struct Domain(RunConfig);
+
+impl Domain {
+    fn new(name: &str) -> Self {
+        let domain = format!("{name}{}", std::process::id());
+        Domain(RunConfig {
+            domain,
+            ..RunConfig::default()
+        })
+    }
+
+    /// A segment at size zero in the domain, as a process killed between `shm_open` and
+    /// `ftruncate` leaves it, last modified `age` ago.
+    fn zero_sized_segment(&self, name: &str, age: Duration) -> PathBuf {
+        let path = PathBuf::from(format!("/dev/shm/iox2_{}_{name}", self.0.domain));
+        let file = File::create(&path).expect("create the segment");
+        file.set_modified(SystemTime::now() - age)
+            .expect("age the segment");
+        path
+    }
+}
+
+impl Drop for Domain {
+    fn drop(&mut self) {
+        let _ = transport::remove_domain(&self.0);
+    }
+}
+
+#[test]
+fn a_young_unfinished_segment_is_waited_for_until_it_is_old_enough_to_remove() {
+    let domain = Domain::new("unfinishedold");
+    let segment = domain.zero_sized_segment("killed", Duration::from_secs(8));
+    let start = Instant::now();
+    let node = transport::node("starting", &domain.0).expect("a node despite the leftover");
+    assert!(!segment.exists(), "the leftover segment is still there");
+    assert!(
+        start.elapsed() >= Duration::from_secs(1),
+        "removed after {:?}, before it was 10 s old: it could have been a creation in progress",
+        start.elapsed()
+    );
+    drop(node);
+}
+
+#[test]
+fn a_segment_sized_while_waited_for_is_a_finished_creation_and_kept() {
+    let domain = Domain::new("unfinishedsized");
+    let segment = domain.zero_sized_segment("creating", Duration::ZERO);
+    let sizing = {
+        let segment = segment.clone();
+        std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_millis(300));
+            File::options()
+                .write(true)
+                .open(&segment)
+                .and_then(|f| f.set_len(4096))
+                .expect("size the segment");
+        })
+    };
+    let node = transport::node("starting", &domain.0).expect("a node");
+    sizing.join().expect("the sizing thread");
+    assert!(segment.exists(), "a segment being created was removed");
+    assert_eq!(std::fs::metadata(&segment).expect("stat").len(), 4096);
+    drop(node);
+    std::fs::remove_file(&segment).expect("remove the test's segment");
+}
