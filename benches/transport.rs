@@ -34,6 +34,7 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
 use iceoryx2::node::Node;
+use iceoryx2::port::publisher::Publisher;
 use iceoryx2::prelude::ipc;
 
 use uavmeta_actors::actor::{ActorOptions, Rollout};
@@ -376,6 +377,8 @@ fn measure(
         })
         .collect();
     let mut since_first: Vec<Option<(Duration, u64)>> = vec![None; actors];
+    let mut acknowledged = vec![0u64; actors];
+    let mut last_ack_refresh = Instant::now();
     let mut first: Option<Instant> = None;
     let mut watched_at_first = Duration::ZERO;
     let deadline = Instant::now() + Duration::from_secs(300);
@@ -389,14 +392,8 @@ fn measure(
                 let header = sample.user_header();
                 latencies.push(header.age_seconds());
                 received += sample.payload().len() as u64;
-                let ack = StoreAck {
-                    schema_version: SCHEMA_VERSION,
-                    task: 0,
-                    actor: header.actor,
-                    reserved: 0,
-                    next_seq: header.first_seq + header.count as u64,
-                };
-                transport::acknowledge(&acks, ack).expect("acknowledge");
+                let next_seq = header.first_seq + header.count as u64;
+                acknowledge(&acks, header.actor, next_seq);
                 if first.is_none() {
                     first = Some(Instant::now());
                     watched_at_first = watched.iter().map(|&pid| process_cpu(pid)).sum();
@@ -405,10 +402,20 @@ fn measure(
                     .iter()
                     .position(|&id| id == header.actor)
                     .expect("a batch of one of the bench's actors");
+                acknowledged[i] = next_seq;
                 match &mut since_first[i] {
                     Some((_, count)) => *count += sample.payload().len() as u64,
                     none => *none = Some((run_time(children[i].id()), 0)),
                 }
+            }
+            // Repeated as the store repeats them: with several actors, one actor's
+            // acknowledgements can overwrite another's in the service's buffer, and an actor
+            // whose window is full then waits for one that never comes.
+            None if last_ack_refresh.elapsed() >= store::ACK_REFRESH_EVERY => {
+                for (&actor, &next_seq) in ids.iter().zip(&acknowledged) {
+                    acknowledge(&acks, actor, next_seq);
+                }
+                last_ack_refresh = Instant::now();
             }
             None => match idle {
                 Idle::Spin => std::hint::spin_loop(),
@@ -432,14 +439,7 @@ fn measure(
     // Every actor waits for the acknowledgement of its last batch before exiting; repeated here
     // as the store repeats them, since other actors' acknowledgements may have overwritten it.
     for &actor in &ids {
-        let ack = StoreAck {
-            schema_version: SCHEMA_VERSION,
-            task: 0,
-            actor,
-            reserved: 0,
-            next_seq: n,
-        };
-        transport::acknowledge(&acks, ack).expect("acknowledge");
+        acknowledge(&acks, actor, n);
     }
     for mut child in children {
         let _ = child.wait();
@@ -451,6 +451,19 @@ fn measure(
         watched_cpu_per_transition: watched_cpu.as_secs_f64() / total as f64,
         latencies,
     }
+}
+
+/// Tells `actor` (of task 0, the bench's only task) that the store holds everything before
+/// `next_seq`, as the store's acknowledgement does.
+fn acknowledge(acks: &Publisher<ipc::Service, StoreAck, ()>, actor: u32, next_seq: u64) {
+    let ack = StoreAck {
+        schema_version: SCHEMA_VERSION,
+        task: 0,
+        actor,
+        reserved: 0,
+        next_seq,
+    };
+    transport::acknowledge(acks, ack).expect("acknowledge");
 }
 
 /// Host B of a tunnel case, on this machine: `uavmeta tunnel serve` serves the bench's run

@@ -50,8 +50,9 @@ pub const PROCESS: &str = "store";
 /// transport bench's receiver waits the same, to measure publish-to-store latency.
 pub const IDLE_WAIT: Duration = Duration::from_micros(200);
 
-/// Interval between repeats of every actor's acknowledgement (`TaskStore::acknowledge_all`).
-const ACK_REFRESH_EVERY: Duration = Duration::from_millis(100);
+/// Interval between repeats of every actor's acknowledgement (`TaskStore::acknowledge_all`). The
+/// transport bench's receiver repeats its acknowledgements as often.
+pub const ACK_REFRESH_EVERY: Duration = Duration::from_millis(100);
 
 /// Interval between sweeps for dead processes' iceoryx2 resources: a dead subscriber of a control
 /// service would otherwise hold a full buffer.
