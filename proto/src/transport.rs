@@ -881,10 +881,10 @@ fn remove_unfinished_segments(config: &iceoryx2::config::Config) {
         .map(|e| e.path());
     for path in zero_sized.collect::<Vec<_>>() {
         while let Ok(metadata) = std::fs::metadata(&path) {
-            let age = metadata.modified().ok().and_then(|at| at.elapsed().ok());
             if metadata.len() > 0 {
                 break;
             }
+            let age = metadata.modified().ok().and_then(|at| at.elapsed().ok());
             if age.is_some_and(|age| age > UNFINISHED_SEGMENT_AGE) {
                 if std::fs::remove_file(&path).is_ok() {
                     tracing::warn!(path = %path.display(), "removed an iceoryx2 segment a killed process left unfinished");
