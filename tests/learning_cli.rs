@@ -379,6 +379,30 @@ fn meta_train_writes_w0_that_meta_test_fine_tunes() {
     let (_, rows) = csv(d, "runs/maml/meta_train.csv");
     assert_eq!(without_seconds(rows), log);
 
+    // Averaging the evaluation over three adaptations changes the returns, not the training.
+    let averaged: Vec<&str> = meta
+        .iter()
+        .copied()
+        .chain(["meta.eval_adaptations=3"])
+        .collect();
+    let out = ["--datasets", "data", "--out", "runs/maml-averaged"];
+    stdout(&uavmeta(d, "meta-train", &averaged, &out));
+    assert!(
+        read(d, "runs/maml-averaged/w0.safetensors") == weights,
+        "evaluating changed w0"
+    );
+    let (_, averaged_rows) = csv(d, "runs/maml-averaged/meta_train.csv");
+    let averaged_log = without_seconds(averaged_rows);
+    for (one, three) in log.iter().zip(&averaged_log) {
+        assert_eq!(one[..4], three[..4], "meta-losses");
+    }
+    assert!(
+        log.iter()
+            .zip(&averaged_log)
+            .any(|(one, three)| one[4..] != three[4..]),
+        "three adaptations scored exactly as one: {averaged_log:?}"
+    );
+
     let text = stdout(&uavmeta(
         d,
         "meta-test",

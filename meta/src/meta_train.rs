@@ -202,16 +202,10 @@ pub fn meta_train_with<H: MetaTrainHook>(
         let epoch = maml.meta_epoch(&meta_tasks)?;
         let evaluate = e == meta.meta_epochs || (meta.eval_every > 0 && e % meta.eval_every == 0);
         let returns = evaluate.then(|| {
-            meta_tasks
-                .iter()
-                .zip(&mut evaluators)
-                .enumerate()
+            (meta_tasks.iter().zip(&mut evaluators).enumerate())
                 .map(|(i, (task, evaluator))| {
-                    // Shots of their own stream, so the evaluation interval leaves training unchanged.
-                    let mut rng =
-                        ChaCha8Rng::seed_from_u64(opts.seed ^ ((e as u64) << 32) ^ i as u64);
-                    let shots = task.sample(meta.shots, meta.query_shots, &mut rng);
-                    evaluator.evaluate(&maml.adapted(&shots.support)).ret.mean
+                    let stream = opts.seed ^ ((e as u64) << 32) ^ i as u64;
+                    adapted_return(&maml, meta, task, evaluator, stream)
                 })
                 .collect::<Vec<f64>>()
         });
@@ -250,6 +244,27 @@ pub fn meta_train_with<H: MetaTrainHook>(
     bar.finish_and_clear();
     let w0 = hook.checkpoint_path(meta.meta_epochs);
     Ok(Some(MetaTrainResult { tasks, rows, w0 }))
+}
+
+/// `task`'s greedy return after adaptation (eq. 14 on fresh support shots), averaged over
+/// `meta.eval_adaptations` independent adaptations. The shots come from streams of their own,
+/// keyed by `stream` (seed, meta-epoch and task), so evaluating leaves training unchanged.
+fn adapted_return(
+    maml: &Maml,
+    meta: &MetaConfig,
+    task: &MetaTask,
+    evaluator: &mut Evaluator,
+    stream: u64,
+) -> f64 {
+    let adaptations = meta.eval_adaptations;
+    let total: f64 = (0..adaptations as u64)
+        .map(|a| {
+            let mut rng = ChaCha8Rng::seed_from_u64(stream ^ (a << 48));
+            let shots = task.sample(meta.shots, meta.query_shots, &mut rng);
+            evaluator.evaluate(&maml.adapted(&shots.support)).ret.mean
+        })
+        .sum();
+    total / adaptations as f64
 }
 
 /// Whether w0 is checkpointed after meta-epoch `epoch`.

@@ -476,6 +476,10 @@ pub struct MetaConfig {
     /// Meta-epochs between evaluations of each task's adapted greedy policy on its environment
     /// (costly: `learner.eval_episodes` episodes per task); 0 evaluates only after the last.
     pub eval_every: usize,
+    /// Independent adaptations (each on fresh `shots` support shots) per task and evaluation;
+    /// the reported return is their mean, so that a figure-4 point measures the adapted return
+    /// rather than sampling one adaptation of it.
+    pub eval_adaptations: usize,
 }
 
 impl Default for MetaConfig {
@@ -496,6 +500,7 @@ impl Default for MetaConfig {
             checkpoint_every: 10,
             target_update_every: 1,
             eval_every: 10,
+            eval_adaptations: 1,
         }
     }
 }
@@ -1079,6 +1084,13 @@ impl Config {
         }
         if m.inner_steps == 0 {
             return Err(self.invalid("meta.inner_steps", &m.inner_steps, "at least 1"));
+        }
+        if m.eval_adaptations == 0 {
+            return Err(self.invalid(
+                "meta.eval_adaptations",
+                &m.eval_adaptations,
+                "at least 1 adaptation per evaluation",
+            ));
         }
         if m.checkpoint_every == 0 || m.target_update_every == 0 {
             return Err(self.invalid(

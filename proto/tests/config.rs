@@ -83,6 +83,15 @@ fn negative_lambda() {
 }
 
 #[test]
+fn no_adaptation_to_evaluate() {
+    error_of(
+        "[meta]\neval_adaptations = 0\n",
+        &[],
+        &["meta.eval_adaptations", "0", "at least 1"],
+    );
+}
+
+#[test]
 fn unknown_key() {
     error_of(
         "[world]\ndevices = 10\nheight = 120.0\n",
