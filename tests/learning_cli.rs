@@ -303,7 +303,8 @@ fn meta_train_writes_w0_that_meta_test_fine_tunes() {
     let (header, rows) = csv(d, "runs/maml/meta_train.csv");
     assert_eq!(
         header,
-        "meta_epoch,meta_loss,loss_lambda-0,loss_lambda-100,return_lambda-0,return_lambda-100,seconds"
+        "meta_epoch,meta_loss,loss_lambda-0,loss_lambda-100,return_lambda-0,return_lambda-100,\
+         zero_shot_lambda-0,zero_shot_lambda-100,seconds"
     );
     assert_eq!(rows.len(), 4, "one row per meta-epoch");
     for (i, row) in rows.iter().enumerate() {
@@ -316,7 +317,7 @@ fn meta_train_writes_w0_that_meta_test_fine_tunes() {
             "{row:?}"
         );
         let evaluated = epoch % 2 == 0;
-        for ret in &row[4..6] {
+        for ret in &row[4..8] {
             assert_eq!(!ret.is_empty(), evaluated, "meta-epoch {epoch}: {row:?}");
             if evaluated {
                 assert!(number(ret) < 0.0, "{row:?}");
@@ -379,7 +380,8 @@ fn meta_train_writes_w0_that_meta_test_fine_tunes() {
     let (_, rows) = csv(d, "runs/maml/meta_train.csv");
     assert_eq!(without_seconds(rows), log);
 
-    // Averaging the evaluation over three adaptations changes the returns, not the training.
+    // Averaging the evaluation over three adaptations changes the adapted returns, not the
+    // training nor w0's zero-shot returns.
     let averaged: Vec<&str> = meta
         .iter()
         .copied()
@@ -395,11 +397,12 @@ fn meta_train_writes_w0_that_meta_test_fine_tunes() {
     let averaged_log = without_seconds(averaged_rows);
     for (one, three) in log.iter().zip(&averaged_log) {
         assert_eq!(one[..4], three[..4], "meta-losses");
+        assert_eq!(one[6..8], three[6..8], "zero-shot returns");
     }
     assert!(
         log.iter()
             .zip(&averaged_log)
-            .any(|(one, three)| one[4..] != three[4..]),
+            .any(|(one, three)| one[4..6] != three[4..6]),
         "three adaptations scored exactly as one: {averaged_log:?}"
     );
 

@@ -129,7 +129,7 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     );
     check_csv(
         &meta.join("fig4b_returns.csv"),
-        "seed,meta_epoch,task,return",
+        "seed,meta_epoch,task,return,zero_shot",
         seeds * config.meta.meta_epochs * meta_tasks,
     );
     check_csv(
@@ -180,6 +180,7 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     for png in [
         "meta-training/fig4a_meta_loss.png",
         "meta-training/fig4b_returns.png",
+        "meta-training/fig4c_zero_shot.png",
         "convergence/fig5.png",
         "shots/fig6.png",
         "tasks/fig7.png",

@@ -7,8 +7,9 @@
 //! - `config.toml`: the full config, first, so the directory alone reproduces the run;
 //! - `meta_train.csv`: one row per meta-epoch with the meta-loss (eq. 15), each task's query loss
 //!   (empty when the task was not sampled that meta-epoch) and, every `meta.eval_every`
-//!   meta-epochs and after the last, each task's greedy return after adaptation (eq. 14 on k
-//!   fresh support shots) measured on its true environment;
+//!   meta-epochs and after the last, each task's greedy return on its true environment after
+//!   adaptation (eq. 14 on k fresh support shots, averaged over `meta.eval_adaptations`
+//!   adaptations) and, as the reference it is measured against, w0's own with no adaptation;
 //! - `w0-eNNNN.*` every `meta.checkpoint_every` meta-epochs and `w0.*` after the last: checkpoints
 //!   of the meta-learned initial weights (`uavmeta_learner::checkpoint`), the `--init` of
 //!   meta-test, each with MAML's training state beside it ([`Maml::save_state`]), so a run
@@ -55,11 +56,19 @@ pub struct MetaTrainOptions<'a> {
 #[derive(Debug, Clone, PartialEq)]
 pub struct MetaRow {
     pub epoch: MetaEpoch,
-    /// Per task (config order among meta-train tasks): the greedy return after adaptation, in
-    /// evaluated meta-epochs.
-    pub returns: Option<Vec<f64>>,
+    /// Each task's greedy returns, in evaluated meta-epochs.
+    pub evaluation: Option<Evaluation>,
     /// Wall-clock seconds since meta-training started.
     pub seconds: f64,
+}
+
+/// One evaluation of every meta-train task (config order): w0's greedy return after adaptation,
+/// and with none.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Evaluation {
+    pub adapted: Vec<f64>,
+    /// What the adaptation is measured against: w0 itself, zero-shot.
+    pub zero_shot: Vec<f64>,
 }
 
 /// What a finished run left behind.
@@ -201,30 +210,25 @@ pub fn meta_train_with<H: MetaTrainHook>(
     for e in start + 1..=meta.meta_epochs {
         let epoch = maml.meta_epoch(&meta_tasks)?;
         let evaluate = e == meta.meta_epochs || (meta.eval_every > 0 && e % meta.eval_every == 0);
-        let returns = evaluate.then(|| {
-            (meta_tasks.iter().zip(&mut evaluators).enumerate())
-                .map(|(i, (task, evaluator))| {
-                    let stream = opts.seed ^ ((e as u64) << 32) ^ i as u64;
-                    adapted_return(&maml, meta, task, evaluator, stream)
-                })
-                .collect::<Vec<f64>>()
-        });
+        let evaluation =
+            evaluate.then(|| evaluation(&maml, meta, &meta_tasks, &mut evaluators, opts.seed, e));
         let row = MetaRow {
             epoch,
-            returns,
+            evaluation,
             seconds: started.elapsed().as_secs_f64(),
         };
         csv.line(&csv_line(&row, tasks.len()))
             .map_err(MetaError::from)?;
         bar.set_message(format!("meta-loss {:.4}", row.epoch.meta_loss));
-        if let Some(returns) = &row.returns {
-            let mean = returns.iter().sum::<f64>() / returns.len() as f64;
+        if let Some(evaluation) = &row.evaluation {
+            let mean = |returns: &[f64]| returns.iter().sum::<f64>() / returns.len() as f64;
             bar.suspend(|| {
                 tracing::info!(
                     meta_epoch = e,
                     meta_loss = row.epoch.meta_loss,
-                    mean_return = mean,
-                    "adapted greedy returns"
+                    mean_adapted = mean(&evaluation.adapted),
+                    mean_zero_shot = mean(&evaluation.zero_shot),
+                    "greedy returns"
                 )
             });
         }
@@ -244,6 +248,28 @@ pub fn meta_train_with<H: MetaTrainHook>(
     bar.finish_and_clear();
     let w0 = hook.checkpoint_path(meta.meta_epochs);
     Ok(Some(MetaTrainResult { tasks, rows, w0 }))
+}
+
+/// Every task's greedy returns after meta-epoch `epoch`, adapted and zero-shot.
+fn evaluation(
+    maml: &Maml,
+    meta: &MetaConfig,
+    tasks: &[MetaTask],
+    evaluators: &mut [Evaluator],
+    seed: u64,
+    epoch: usize,
+) -> Evaluation {
+    Evaluation {
+        adapted: (tasks.iter().zip(evaluators.iter_mut()).enumerate())
+            .map(|(i, (task, evaluator))| {
+                let stream = seed ^ ((epoch as u64) << 32) ^ i as u64;
+                adapted_return(maml, meta, task, evaluator, stream)
+            })
+            .collect(),
+        zero_shot: (evaluators.iter_mut())
+            .map(|evaluator| evaluator.evaluate(maml.w0()).ret.mean)
+            .collect(),
+    }
 }
 
 /// `task`'s greedy return after adaptation (eq. 14 on fresh support shots), averaged over
@@ -306,8 +332,10 @@ fn open_csv(path: &Path, tasks: &[TaskConfig], kept: usize) -> Result<CsvLog, Me
     for t in tasks {
         header.push_str(&format!(",loss_{}", t.name));
     }
-    for t in tasks {
-        header.push_str(&format!(",return_{}", t.name));
+    for prefix in ["return", "zero_shot"] {
+        for t in tasks {
+            header.push_str(&format!(",{prefix}_{}", t.name));
+        }
     }
     header.push_str(",seconds");
     let done = |line: &str| {
@@ -323,16 +351,17 @@ fn csv_line(row: &MetaRow, tasks: usize) -> String {
     for &(task, loss) in &row.epoch.task_losses {
         losses[task] = loss.to_string();
     }
-    let returns = match &row.returns {
-        Some(r) => r.iter().map(f64::to_string).collect(),
+    let cells = |pick: fn(&Evaluation) -> &Vec<f64>| match &row.evaluation {
+        Some(evaluation) => pick(evaluation).iter().map(f64::to_string).collect(),
         None => vec![String::new(); tasks],
     };
     format!(
-        "{},{},{},{},{:.3}",
+        "{},{},{},{},{},{:.3}",
         row.epoch.epoch,
         row.epoch.meta_loss,
         losses.join(","),
-        returns.join(","),
+        cells(|e| &e.adapted).join(","),
+        cells(|e| &e.zero_shot).join(","),
         row.seconds
     )
 }

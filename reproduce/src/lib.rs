@@ -64,7 +64,7 @@ use uavmeta_proto::config::{Config, InnerLoss, TaskConfig, TaskRole};
 use uavmeta_proto::stats::PolicyMetrics;
 
 use claims::Claim;
-use runs::{InitKey, InitKind, Method, Plan, SeedResult};
+use runs::{meta_train_tasks, InitKey, InitKind, Method, Plan, SeedResult};
 use uavmeta_meta::{create_dir, write_file};
 
 /// One of the paper's experiments.
@@ -326,14 +326,17 @@ fn plan(config: &Config, experiments: &[Experiment]) -> Plan {
     let episodes = config.learner.eval_episodes;
     for &e in experiments {
         match e {
-            Experiment::MetaTraining => plan.init(
-                config,
-                InitKey {
+            Experiment::MetaTraining => {
+                let key = InitKey {
                     kind: InitKind::Maml(InnerLoss::Cql),
                     tasks: r.meta_tasks,
-                },
-                e,
-            ),
+                };
+                plan.init(config, key, e);
+                // The summary sets each task's returns beside its online agent's.
+                for task in meta_train_tasks(config, r.meta_tasks) {
+                    plan.reference(&task.name, episodes, e);
+                }
+            }
             Experiment::Convergence => {
                 for method in Method::ALL {
                     let key = unseen(method, r.main_shots, r.meta_tasks);

@@ -25,7 +25,7 @@ use uavmeta_proto::stats::PolicyMetrics;
 use super::Experiment;
 use uavmeta_meta::meta_test::{fine_tune, load_shots, FineTune};
 use uavmeta_meta::meta_train::{
-    algorithm_name, dataset_path, load_tasks, meta_train, MetaTrainOptions,
+    algorithm_name, dataset_path, load_tasks, meta_train, Evaluation, MetaTrainOptions,
 };
 use uavmeta_meta::{create_dir, pretrain, MetaError};
 
@@ -260,11 +260,11 @@ pub fn meta_train_tasks(config: &Config, n: usize) -> impl Iterator<Item = &Task
 }
 
 /// The meta-train curve of a w0 (figure 4): meta-loss per meta-epoch, and per evaluated
-/// meta-epoch each task's greedy return after adaptation.
+/// meta-epoch each task's greedy return after adaptation and zero-shot.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct MetaCurve {
     pub meta_loss: Vec<f64>,
-    pub returns: Vec<(usize, Vec<f64>)>,
+    pub evaluations: Vec<(usize, Evaluation)>,
 }
 
 /// A finished fine-tuning run.
@@ -524,33 +524,36 @@ fn ensure_w0(
     })?;
     let curve = MetaCurve {
         meta_loss: result.rows.iter().map(|r| r.epoch.meta_loss).collect(),
-        returns: result
-            .rows
-            .iter()
-            .filter_map(|r| r.returns.clone().map(|ret| (r.epoch.epoch, ret)))
+        evaluations: (result.rows.iter())
+            .filter_map(|r| r.evaluation.clone().map(|ev| (r.epoch.epoch, ev)))
             .collect(),
     };
     Ok((result.w0, curve))
 }
 
-/// Reads back `meta_train.csv` of `tasks` tasks (columns: meta_epoch, meta_loss, one loss and
-/// then one return per task, seconds; empty returns on meta-epochs that were not evaluated).
+/// Reads back `meta_train.csv` of `tasks` tasks (columns: meta_epoch, meta_loss, one loss, then
+/// one adapted and then one zero-shot return per task, seconds; empty returns on meta-epochs that
+/// were not evaluated).
 fn parse_meta_csv(text: &str, tasks: usize) -> Option<MetaCurve> {
     let mut curve = MetaCurve::default();
     for line in text.lines().skip(1) {
         let cells: Vec<&str> = line.split(',').collect();
-        if cells.len() != 3 + 2 * tasks {
+        if cells.len() != 3 + 3 * tasks {
             return None;
         }
         let epoch: usize = cells[0].parse().ok()?;
         curve.meta_loss.push(cells[1].parse().ok()?);
-        let returns = &cells[2 + tasks..2 + 2 * tasks];
+        let returns = &cells[2 + tasks..2 + 3 * tasks];
         if returns.iter().all(|c| !c.is_empty()) {
-            let parsed = returns
+            let mut parsed = returns
                 .iter()
                 .map(|c| c.parse().ok())
-                .collect::<Option<_>>()?;
-            curve.returns.push((epoch, parsed));
+                .collect::<Option<Vec<f64>>>()?;
+            let zero_shot = parsed.split_off(tasks);
+            let adapted = parsed;
+            curve
+                .evaluations
+                .push((epoch, Evaluation { adapted, zero_shot }));
         }
     }
     Some(curve)
@@ -562,12 +565,16 @@ mod tests {
 
     #[test]
     fn meta_csv_reads_back_losses_and_evaluated_returns() {
-        let text = "meta_epoch,meta_loss,loss_a,loss_b,return_a,return_b,seconds\n\
-                    1,2.5,1,1.5,,,0.1\n\
-                    2,2.0,0.9,1.1,-800,-900.5,0.2\n";
+        let text = "meta_epoch,meta_loss,loss_a,loss_b,return_a,return_b,zero_shot_a,zero_shot_b,seconds\n\
+                    1,2.5,1,1.5,,,,,0.1\n\
+                    2,2.0,0.9,1.1,-800,-900.5,-850,-700,0.2\n";
         let curve = parse_meta_csv(text, 2).unwrap();
         assert_eq!(curve.meta_loss, vec![2.5, 2.0]);
-        assert_eq!(curve.returns, vec![(2, vec![-800.0, -900.5])]);
+        let evaluation = Evaluation {
+            adapted: vec![-800.0, -900.5],
+            zero_shot: vec![-850.0, -700.0],
+        };
+        assert_eq!(curve.evaluations, vec![(2, evaluation)]);
         // A file of another task count is not this w0's.
         assert!(parse_meta_csv(text, 3).is_none());
     }

@@ -71,9 +71,13 @@ pub fn run_train(args: MetaTrainArgs) -> Result<()> {
             "meta-epoch {}: meta-loss {:.4}",
             last.epoch.epoch, last.epoch.meta_loss
         );
-        if let Some(returns) = &last.returns {
-            for (task, ret) in result.tasks.iter().zip(returns) {
-                println!("  {}: greedy return after adaptation {ret:.1}", task.name);
+        if let Some(evaluation) = &last.evaluation {
+            let returns = evaluation.adapted.iter().zip(&evaluation.zero_shot);
+            for (task, (adapted, zero_shot)) in result.tasks.iter().zip(returns) {
+                println!(
+                    "  {}: greedy return after adaptation {adapted:.1} (w0 zero-shot {zero_shot:.1})",
+                    task.name
+                );
             }
         }
     }

@@ -1,8 +1,11 @@
-//! Figure 4: CQL-MAML's meta-training.
+//! Figure 4: CQL-MAML's meta-training, its adapted returns beside w0's zero-shot ones and the
+//! online agents'.
 
 use super::*;
+use uavmeta_meta::meta_train::Evaluation;
 
-/// Figure 4: CQL-MAML's meta-loss and the tasks' adapted returns per meta-epoch.
+/// Figure 4: CQL-MAML's meta-loss, and the tasks' returns per evaluated meta-epoch after
+/// adaptation (4b) and zero-shot (4c).
 pub(super) fn meta_training(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let r = &ctx.config.reproduce;
     let key = InitKey {
@@ -18,18 +21,48 @@ pub(super) fn meta_training(ctx: &Context, dir: &Path) -> Result<Section, Reprod
     write_csvs(&curves, &tasks, dir)?;
     let losses: Vec<Vec<f64>> = curves.iter().map(|(_, c)| c.meta_loss.clone()).collect();
     plot_loss(&losses, dir)?;
-    plot_returns(&curves, &tasks, dir)?;
+    for panel in [ADAPTED, ZERO_SHOT] {
+        plot_returns(&curves, &tasks, &panel, dir)?;
+    }
     Ok(Section {
         body: summary(ctx, &curves, &losses, &tasks),
         claims: Vec::new(),
     })
 }
 
-/// Per seed, task `i`'s adapted returns / 100 at each evaluated meta-epoch.
-fn per_task(curves: &[(u64, &MetaCurve)], i: usize) -> Vec<Vec<f64>> {
+/// Which of an evaluation's returns a panel of figure 4 shows.
+struct Panel {
+    file: &'static str,
+    title: &'static str,
+    pick: fn(&Evaluation) -> &Vec<f64>,
+}
+
+const ADAPTED: Panel = Panel {
+    file: "fig4b_returns.png",
+    title: "Figure 4b: greedy return / 100 after adaptation, per meta-train task",
+    pick: |e| &e.adapted,
+};
+
+const ZERO_SHOT: Panel = Panel {
+    file: "fig4c_zero_shot.png",
+    title: "Figure 4c: w0's greedy return / 100 with no adaptation, per meta-train task",
+    pick: |e| &e.zero_shot,
+};
+
+/// Per seed, task `i`'s returns / 100 (those `pick` takes) at each evaluated meta-epoch.
+fn per_task(
+    curves: &[(u64, &MetaCurve)],
+    i: usize,
+    pick: fn(&Evaluation) -> &Vec<f64>,
+) -> Vec<Vec<f64>> {
     curves
         .iter()
-        .map(|(_, c)| c.returns.iter().map(|(_, r)| r[i] / 100.0).collect())
+        .map(|(_, c)| {
+            c.evaluations
+                .iter()
+                .map(|(_, ev)| pick(ev)[i] / 100.0)
+                .collect()
+        })
         .collect()
 }
 
@@ -40,14 +73,19 @@ fn write_csvs(
     dir: &Path,
 ) -> Result<(), ReproduceError> {
     let mut loss_csv = String::from("seed,meta_epoch,meta_loss\n");
-    let mut ret_csv = String::from("seed,meta_epoch,task,return\n");
+    let mut ret_csv = String::from("seed,meta_epoch,task,return,zero_shot\n");
     for (seed, curve) in curves {
         for (e, loss) in curve.meta_loss.iter().enumerate() {
             let _ = writeln!(loss_csv, "{seed},{},{loss}", e + 1);
         }
-        for (epoch, returns) in &curve.returns {
-            for (task, ret) in tasks.iter().zip(returns) {
-                let _ = writeln!(ret_csv, "{seed},{epoch},{},{ret}", task.name);
+        for (epoch, ev) in &curve.evaluations {
+            for (i, task) in tasks.iter().enumerate() {
+                let (adapted, zero_shot) = (ev.adapted[i], ev.zero_shot[i]);
+                let _ = writeln!(
+                    ret_csv,
+                    "{seed},{epoch},{},{adapted},{zero_shot}",
+                    task.name
+                );
             }
         }
     }
@@ -77,28 +115,29 @@ fn plot_loss(losses: &[Vec<f64>], dir: &Path) -> Result<(), ReproduceError> {
     Ok(())
 }
 
-/// Figure 4b: each meta-train task's adapted return at the evaluated meta-epochs.
+/// Figure 4b or 4c: each meta-train task's return at the evaluated meta-epochs.
 fn plot_returns(
     curves: &[(u64, &MetaCurve)],
     tasks: &[&TaskConfig],
+    panel: &Panel,
     dir: &Path,
 ) -> Result<(), ReproduceError> {
     let evaluated: Vec<f64> = curves
         .first()
-        .map(|(_, c)| c.returns.iter().map(|(e, _)| *e as f64).collect())
+        .map(|(_, c)| c.evaluations.iter().map(|(e, _)| *e as f64).collect())
         .unwrap_or_default();
     let series: Vec<Series> = tasks
         .iter()
         .enumerate()
         .map(|(i, t)| Series {
             label: t.name.clone(),
-            band: Band::from_runs(evaluated.clone(), &per_task(curves, i)),
+            band: Band::from_runs(evaluated.clone(), &per_task(curves, i, panel.pick)),
         })
         .collect();
     plot::line_chart(
-        &dir.join("fig4b_returns.png"),
+        &dir.join(panel.file),
         &LineChart {
-            title: "Figure 4b: greedy return / 100 after adaptation, per meta-train task",
+            title: panel.title,
             x_label: "meta-epoch",
             y_label: "return / 100",
             series: &series,
@@ -110,7 +149,7 @@ fn plot_returns(
 }
 
 /// The summary's body: the run, the meta-loss's first and last values, and a table of each
-/// task's adapted return.
+/// task's returns against its online agent's.
 fn summary(
     ctx: &Context,
     curves: &[(u64, &MetaCurve)],
@@ -118,15 +157,17 @@ fn summary(
     tasks: &[&TaskConfig],
 ) -> String {
     let r = &ctx.config.reproduce;
+    let episodes = ctx.config.learner.eval_episodes;
     let mut body = format!(
-        "CQL-MAML meta-trained on the first {} meta-train tasks for {} meta-epochs, {}; each task's \
-         adapted greedy return evaluated every {} meta-epochs over {} episodes. SPEC section 6 states no \
-         claim for this figure.\n\n",
+        "CQL-MAML meta-trained on the first {} meta-train tasks for {} meta-epochs, {}; every {} \
+         meta-epochs each task's greedy return over {episodes} episodes, after adaptation (eq. 14, \
+         the mean of {} adaptations on fresh support shots) and with none (w0 zero-shot). SPEC \
+         section 6 states no claim for this figure.\n\n",
         r.meta_tasks,
         ctx.config.meta.meta_epochs,
         ctx.seeds_note(),
         r.meta_eval_every,
-        ctx.config.learner.eval_episodes
+        ctx.config.meta.eval_adaptations,
     );
     let first = est(losses.iter().filter_map(|l| l.first().copied()));
     let last = est(losses.iter().filter_map(|l| l.last().copied()));
@@ -136,19 +177,22 @@ fn summary(
     );
     let _ = writeln!(
         body,
-        "| task | adapted return, first evaluation | adapted return, last evaluation |\n| --- | --- | --- |"
+        "| task | online agent | adapted, first evaluation | adapted, last evaluation | w0 zero-shot, last evaluation |\n\
+         | --- | --- | --- | --- | --- |"
     );
     for (i, task) in tasks.iter().enumerate() {
-        let runs = per_task(curves, i);
-        let at = |pick: fn(&Vec<f64>) -> Option<&f64>| {
-            est(runs.iter().filter_map(|r| pick(r).map(|v| v * 100.0)))
+        let at = |pick, end: fn(&Vec<f64>) -> Option<&f64>| {
+            let runs = per_task(curves, i, pick);
+            est(runs.iter().filter_map(|r| end(r).map(|v| v * 100.0)))
         };
+        let online = est(ctx.online(&task.name, episodes).iter().map(|m| m.ret.mean));
         let _ = writeln!(
             body,
-            "| {} | {:.0} | {:.0} |",
+            "| {} | {online:.0} | {:.0} | {:.0} | {:.0} |",
             task.name,
-            at(|r| r.first()),
-            at(|r| r.last())
+            at(ADAPTED.pick, |r| r.first()),
+            at(ADAPTED.pick, |r| r.last()),
+            at(ZERO_SHOT.pick, |r| r.last()),
         );
     }
     body
