@@ -550,10 +550,11 @@ fn parse_meta_csv(text: &str, tasks: usize) -> Option<MetaCurve> {
                 .map(|c| c.parse().ok())
                 .collect::<Option<Vec<f64>>>()?;
             let zero_shot = parsed.split_off(tasks);
-            let adapted = parsed;
-            curve
-                .evaluations
-                .push((epoch, Evaluation { adapted, zero_shot }));
+            let evaluation = Evaluation {
+                adapted: parsed,
+                zero_shot,
+            };
+            curve.evaluations.push((epoch, evaluation));
         }
     }
     Some(curve)

@@ -181,8 +181,11 @@ fn summary(
          | --- | --- | --- | --- | --- |"
     );
     for (i, task) in tasks.iter().enumerate() {
-        let at = |pick, end: fn(&Vec<f64>) -> Option<&f64>| {
-            let runs = per_task(curves, i, pick);
+        let (adapted, zero_shot) = (
+            per_task(curves, i, ADAPTED.pick),
+            per_task(curves, i, ZERO_SHOT.pick),
+        );
+        let at = |runs: &[Vec<f64>], end: fn(&Vec<f64>) -> Option<&f64>| {
             est(runs.iter().filter_map(|r| end(r).map(|v| v * 100.0)))
         };
         let online = est(ctx.online(&task.name, episodes).iter().map(|m| m.ret.mean));
@@ -190,9 +193,9 @@ fn summary(
             body,
             "| {} | {online:.0} | {:.0} | {:.0} | {:.0} |",
             task.name,
-            at(ADAPTED.pick, |r| r.first()),
-            at(ADAPTED.pick, |r| r.last()),
-            at(ZERO_SHOT.pick, |r| r.last()),
+            at(&adapted, |r| r.first()),
+            at(&adapted, |r| r.last()),
+            at(&zero_shot, |r| r.last()),
         );
     }
     body
