@@ -30,8 +30,10 @@
 //!
 //! `L` is the CQL loss of eq. 8 (CQL-MAML, the paper's method) or the DQN loss of eq. 7 (DQN-MAML,
 //! its baseline), with the learner's TD options (`learner.double_dqn`, `learner.huber`) so that
-//! MAML and plain offline training optimise the same loss. Second-order MAML differentiates the
-//! query loss through every inner step (the inner gradients are built with `create_graph`);
+//! MAML and plain offline training optimise the same loss. `meta.huber` gives MAML alone the Huber
+//! TD form: on a task whose values `w0` misjudges by far (lambda-0), squared TD errors otherwise
+//! decide where the few inner steps go (docs/EXPERIMENTS.md, C6). Second-order MAML differentiates
+//! the query loss through every inner step (the inner gradients are built with `create_graph`);
 //! first-order MAML (`meta.first_order`) treats the inner gradients as constants, so the
 //! meta-gradient of a task is the gradient of its query loss at `w_i`.
 //!
@@ -93,7 +95,8 @@ use crate::MetaError;
 pub struct MamlConfig {
     /// CQL-MAML (eq. 8) or DQN-MAML (eq. 7).
     pub inner_loss: InnerLoss,
-    /// Discount and TD options shared with offline training (`[learner]`).
+    /// Discount and TD options shared with offline training (`[learner]`), Huber also with
+    /// `meta.huber`.
     pub td: TdConfig,
     /// CQL's conservative weight alpha.
     pub alpha: f64,
@@ -122,7 +125,10 @@ impl MamlConfig {
         let m = &config.meta;
         Self {
             inner_loss: m.inner_loss,
-            td: TdConfig::from(&config.learner),
+            td: TdConfig {
+                huber: config.learner.huber || m.huber,
+                ..TdConfig::from(&config.learner)
+            },
             alpha: config.learner.alpha,
             tasks_per_meta_epoch: m.tasks_per_meta_epoch,
             shots: m.shots,

@@ -1,6 +1,6 @@
 //! MAML correctness: the meta-gradient against finite differences, first versus second order,
-//! meta-training lowering the meta-loss on held-out query data, and a resumed meta-training
-//! continuing exactly as an uninterrupted one.
+//! meta-training lowering the meta-loss on held-out query data, a resumed meta-training continuing
+//! exactly as an uninterrupted one, and `meta.huber` reaching MAML's losses.
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -10,7 +10,7 @@ use uavmeta_learner::checkpoint;
 use uavmeta_learner::dqn::TdConfig;
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_meta::maml::{Maml, MamlConfig, MetaTask, StepSize, TaskShots};
-use uavmeta_proto::config::InnerLoss;
+use uavmeta_proto::config::{Config, InnerLoss};
 
 const OBS: usize = 3;
 const ACTIONS: usize = 5;
@@ -397,6 +397,36 @@ fn meta_training_lowers_the_meta_loss_on_held_out_query_data() {
             "first_order = {first_order}: held-out meta-loss {before} -> {after}"
         );
     }
+}
+
+/// `meta.huber` puts the Huber TD form into MAML's losses, as `learner.huber` does, without
+/// turning it on for fine-tuning.
+#[test]
+fn meta_huber_gives_mamls_losses_the_huber_td_form() {
+    single_threaded();
+    let with = |key: &str| {
+        let config = Config::from_toml_str("", "--set", &[format!("{key}=true")]).expect("config");
+        (MamlConfig::from_config(&config), config.learner.huber)
+    };
+    let ((meta_huber, fine_tuning_huber), (learner_huber, _)) =
+        (with("meta.huber"), with("learner.huber"));
+    assert!(
+        !fine_tuning_huber,
+        "meta.huber must leave learner.huber off"
+    );
+    let squared = MamlConfig::from_config(&Config::default());
+    let w = QNetworkConfig::new(OBS, ACTIONS, &[6]).init(3).parameters();
+    let shots = batch(32, 2.0, Kind::Float, &mut ChaCha8Rng::seed_from_u64(4));
+    let loss = |c: &MamlConfig| c.task_loss(&w, &w, &shots).double_value(&[]);
+    let (meta, learner, eq7) = (loss(&meta_huber), loss(&learner_huber), loss(&squared));
+    assert_eq!(
+        meta, learner,
+        "meta.huber and learner.huber give MAML different losses"
+    );
+    assert!(
+        (meta - eq7).abs() > 1e-3 * eq7.abs(),
+        "the Huber loss {meta} equals the squared one {eq7}"
+    );
 }
 
 /// w0's weights, exactly (f32 widens to f64 without rounding).

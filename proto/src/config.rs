@@ -468,6 +468,9 @@ pub struct MetaConfig {
     pub learn_inner_lr: bool,
     /// CQL-MAML (the paper's method) or DQN-MAML (its baseline).
     pub inner_loss: InnerLoss,
+    /// Huber instead of squared TD error in MAML's losses (eqs. 14-15), whatever
+    /// `learner.huber` says for fine-tuning; off to match eq. 7.
+    pub huber: bool,
     /// Meta-epochs between w0 checkpoints.
     pub checkpoint_every: usize,
     /// Meta-epochs between refreshes of the target network Qhat from w0; Qhat is held constant
@@ -497,6 +500,7 @@ impl Default for MetaConfig {
             first_order: false,
             learn_inner_lr: false,
             inner_loss: InnerLoss::Cql,
+            huber: false,
             checkpoint_every: 10,
             target_update_every: 1,
             eval_every: 10,
