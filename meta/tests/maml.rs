@@ -404,21 +404,24 @@ fn meta_training_lowers_the_meta_loss_on_held_out_query_data() {
 #[test]
 fn meta_huber_gives_mamls_losses_the_huber_td_form() {
     single_threaded();
-    let with = |key: &str| {
-        let config = Config::from_toml_str("", "--set", &[format!("{key}=true")]).expect("config");
-        (MamlConfig::from_config(&config), config.learner.huber)
-    };
-    let ((meta_huber, fine_tuning_huber), (learner_huber, _)) =
-        (with("meta.huber"), with("learner.huber"));
+    let set =
+        |key: &str| Config::from_toml_str("", "--set", &[format!("{key}=true")]).expect("config");
+    let (meta_set, learner_set) = (set("meta.huber"), set("learner.huber"));
     assert!(
-        !fine_tuning_huber,
+        !meta_set.learner.huber,
         "meta.huber must leave learner.huber off"
     );
-    let squared = MamlConfig::from_config(&Config::default());
     let w = QNetworkConfig::new(OBS, ACTIONS, &[6]).init(3).parameters();
     let shots = batch(32, 2.0, Kind::Float, &mut ChaCha8Rng::seed_from_u64(4));
-    let loss = |c: &MamlConfig| c.task_loss(&w, &w, &shots).double_value(&[]);
-    let (meta, learner, eq7) = (loss(&meta_huber), loss(&learner_huber), loss(&squared));
+    let loss = |c: &Config| {
+        let maml = MamlConfig::from_config(c);
+        maml.task_loss(&w, &w, &shots).double_value(&[])
+    };
+    let (meta, learner, eq7) = (
+        loss(&meta_set),
+        loss(&learner_set),
+        loss(&Config::default()),
+    );
     assert_eq!(
         meta, learner,
         "meta.huber and learner.huber give MAML different losses"

@@ -468,8 +468,8 @@ pub struct MetaConfig {
     pub learn_inner_lr: bool,
     /// CQL-MAML (the paper's method) or DQN-MAML (its baseline).
     pub inner_loss: InnerLoss,
-    /// Huber instead of squared TD error in MAML's losses (eqs. 14-15), whatever
-    /// `learner.huber` says for fine-tuning; off to match eq. 7.
+    /// Huber instead of squared TD error in MAML's losses (eqs. 14-15) even when fine-tuning keeps
+    /// the square; `learner.huber` turns it on for both. Off to match eq. 7.
     pub huber: bool,
     /// Meta-epochs between w0 checkpoints.
     pub checkpoint_every: usize,
