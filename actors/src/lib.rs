@@ -1,13 +1,11 @@
 //! The UAV side of uavmeta: the world, the policies that act in it, and the processes that run
 //! them.
 //!
-//! - [`world`]: [`world::World`], one task's environment (SPEC sections 1 and 3), built from
-//!   `uavmeta_proto::config`'s `WorldConfig` and `TaskConfig`; a step allocates nothing.
-//! - [`rollout`]: the [`rollout::Policy`] trait, single episodes with their
-//!   `uavmeta_proto::stats::EpisodeMetrics`, and Monte-Carlo evaluation over fixed episode seeds.
+//! - [`world`], [`rollout`]: re-exported from `uavmeta_world`, the libtorch-free crate that owns
+//!   the environment, rollouts and evaluation.
 //! - [`policy`]: the behaviour policies.
-//!   - [`policy::heuristics`]: random, stalest-first, greedy, epsilon-mixed and replayed
-//!     policies, and the `PolicySpec` parser behind `--policy` and `collect.policy`.
+//!   - [`policy::heuristics`]: re-exported from `uavmeta_world`: random, stalest-first, greedy,
+//!     epsilon-mixed and replayed policies, and the `PolicySpec` parser.
 //!   - [`policy::dqn_online`]: the online DQN agent (epsilon-greedy, replay buffer, target
 //!     network) whose replay buffer becomes the paper's datasets.
 //!   - [`policy::q_policy`]: a `uavmeta_learner` Q-network's greedy policy, and the evaluator
@@ -33,5 +31,5 @@ pub mod actor;
 pub mod collect;
 pub mod evaluator;
 pub mod policy;
-pub mod rollout;
-pub mod world;
+
+pub use uavmeta_world::{rollout, world};

@@ -2,5 +2,6 @@
 //! online DQN agent whose replay buffer becomes the paper's datasets.
 
 pub mod dqn_online;
-pub mod heuristics;
 pub mod q_policy;
+
+pub use uavmeta_world::heuristics;

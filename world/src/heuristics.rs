@@ -196,7 +196,7 @@ pub enum PolicySpec {
     Epsilon(f64),
     /// `actions:FILE`
     Actions(PathBuf),
-    /// `dqn-online`: an online DQN agent (`crate::policy::dqn_online`), which learns in the task's world
+    /// `dqn-online`: an online DQN agent (`uavmeta_actors::policy::dqn_online`), which learns in the task's world
     /// and is therefore trained by `collect`, not built here.
     DqnOnline,
 }

@@ -181,7 +181,7 @@ mod tests {
     use uavmeta_proto::config::{Config, RainZone};
 
     use super::*;
-    use crate::policy::heuristics::RandomPolicy;
+    use crate::heuristics::RandomPolicy;
 
     #[test]
     fn trajectory_is_the_first_evaluation_episode() {
