@@ -127,8 +127,7 @@ fn best_rates(runs: &mut [Box<dyn FnMut() -> usize + '_>]) -> Vec<f64> {
 
 /// The behaviour policy `spec` as an actor with `--seed 0` builds it.
 fn behaviour(config: &Config, spec: &PolicySpec) -> Box<dyn Policy> {
-    spec.build(config.world.action_count(), 0, usize::MAX)
-        .expect("a rollout policy")
+    spec.build(config, 0, None).expect("a rollout policy")
 }
 
 /// The environment alone: policy `spec` (an actor's `--seed 0`) in one task's world, episode i in

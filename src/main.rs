@@ -78,6 +78,8 @@ impl Write for AboveRows {
 }
 
 fn main() -> ExitCode {
+    // Before any thread or libtorch call: the same bits on every CPU (learner::numerics).
+    uavmeta_learner::numerics::pin();
     let terminal = MultiProgress::new();
     let rows = terminal.clone();
     tracing_subscriber::fmt()

@@ -239,7 +239,7 @@ pub fn collect(
             None
         }
         spec => Some(
-            spec.build(config.world.action_count(), seed, wanted)
+            spec.build(config, seed, Some(wanted))
                 .map_err(policy_error)?,
         ),
     };

@@ -141,6 +141,7 @@ fn policy_specs_parse_and_print() {
         ("random", PolicySpec::Random),
         ("stalest", PolicySpec::Stalest),
         ("greedy", PolicySpec::Greedy),
+        ("planner", PolicySpec::Planner),
         ("eps:0.25", PolicySpec::Epsilon(0.25)),
         ("actions:run/a.txt", PolicySpec::Actions("run/a.txt".into())),
     ] {
@@ -176,9 +177,35 @@ fn action_file(text: &str) -> tempfile::NamedTempFile {
 fn replay_follows_the_file_across_episodes() {
     let file = action_file("3\n\n49\n0\n");
     let spec = PolicySpec::Actions(file.path().into());
-    let mut policy = spec.build(50, 0, 3).expect("three actions suffice");
+    let mut policy = spec
+        .build(&Config::default(), 0, Some(3))
+        .expect("three actions suffice");
     let w = world("", 0.0, None);
     assert_eq!([policy.act(&w), policy.act(&w), policy.act(&w)], [3, 49, 0]);
+    // Past its end the list plays again from the start (an actor's rollout has no end).
+    assert_eq!(policy.act(&w), 3);
+}
+
+/// An actor asks for no fixed number of steps: any non-empty list serves it, an empty one is
+/// refused rather than replayed.
+#[test]
+fn replay_for_an_unbounded_rollout_needs_one_action() {
+    let file = action_file("7\n");
+    let mut policy = PolicySpec::Actions(file.path().into())
+        .build(&Config::default(), 0, None)
+        .expect("one action suffices");
+    let w = world("", 0.0, None);
+    assert_eq!([policy.act(&w), policy.act(&w)], [7, 7]);
+    let empty = action_file("\n");
+    let message = PolicySpec::Actions(empty.path().into())
+        .build(&Config::default(), 0, None)
+        .err()
+        .expect("empty list")
+        .to_string();
+    assert!(
+        message.contains("holds 0 actions") && message.contains("needs 1"),
+        "{message}"
+    );
 }
 
 #[test]
@@ -186,7 +213,7 @@ fn replay_errors_name_file_line_and_value() {
     let file = action_file("1\n2\n\nfifty\n");
     let path = file.path().display().to_string();
     let message = PolicySpec::Actions(file.path().into())
-        .build(50, 0, 1)
+        .build(&Config::default(), 0, Some(1))
         .err()
         .expect("bad line")
         .to_string();
@@ -197,7 +224,7 @@ fn replay_errors_name_file_line_and_value() {
 
     let file = action_file("1\n50\n");
     let message = PolicySpec::Actions(file.path().into())
-        .build(50, 0, 1)
+        .build(&Config::default(), 0, Some(1))
         .err()
         .expect("out of range")
         .to_string();
@@ -208,7 +235,7 @@ fn replay_errors_name_file_line_and_value() {
 
     let file = action_file("1\n2\n");
     let message = PolicySpec::Actions(file.path().into())
-        .build(50, 0, 100)
+        .build(&Config::default(), 0, Some(100))
         .err()
         .expect("too short")
         .to_string();
@@ -218,7 +245,7 @@ fn replay_errors_name_file_line_and_value() {
     );
 
     let message = PolicySpec::Actions("/nonexistent/actions.txt".into())
-        .build(50, 0, 1)
+        .build(&Config::default(), 0, Some(1))
         .err()
         .expect("missing")
         .to_string();

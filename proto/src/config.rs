@@ -67,6 +67,8 @@ pub struct Config {
     pub reproduce: ReproduceConfig,
     #[serde(default)]
     pub tunnel: TunnelConfig,
+    #[serde(default)]
+    pub planner: PlannerConfig,
     /// Where the config was read from; not part of the TOML.
     #[serde(skip)]
     pub origin: String,
@@ -577,6 +579,42 @@ impl Default for TunnelConfig {
     }
 }
 
+/// The planner reference (SPEC section 5, `uavmeta_world::planner`): a beam search over the
+/// horizon that knows the world, the row every method's gap to "achievable" is read against.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PlannerConfig {
+    /// States kept per step of the search. Exact (dynamic programming) once it holds every
+    /// distinct state; on the default world, returns grow with it up to about 2048
+    /// (docs/EXPERIMENTS.md, P).
+    pub beam_width: usize,
+    /// The most memory one search may take, in MiB; a width and horizon that need more are
+    /// refused up front.
+    pub max_memory_mib: u64,
+}
+
+impl Default for PlannerConfig {
+    fn default() -> Self {
+        Self {
+            beam_width: 256,
+            max_memory_mib: 1024,
+        }
+    }
+}
+
+impl PlannerConfig {
+    /// Bytes one search holds at its peak: width x T back-pointers, the beam, and one step's
+    /// width x 5K children with their width x K aged AoI vectors of K entries.
+    pub fn memory_bytes(&self, world: &WorldConfig) -> u128 {
+        let (w, t, k) = (
+            self.beam_width as u128,
+            world.horizon as u128,
+            world.devices as u128,
+        );
+        w * (t * 8 + (2 * k + 24) + 5 * k * 64 + k * k * 2)
+    }
+}
+
 /// Longest `run.domain`: the iceoryx2 prefix of every shared-memory name grows with it.
 pub const MAX_DOMAIN_LEN: usize = 32;
 
@@ -664,6 +702,7 @@ impl Default for Config {
             run: RunConfig::default(),
             reproduce: ReproduceConfig::default(),
             tunnel: TunnelConfig::default(),
+            planner: PlannerConfig::default(),
             origin: "<defaults>".into(),
         }
     }
@@ -788,6 +827,35 @@ impl Config {
         self.validate_run()?;
         self.validate_tunnel()?;
         self.validate_reproduce_keys()?;
+        self.validate_planner()?;
+        Ok(())
+    }
+
+    /// The `[planner]` section: a width of at least one, and a search that fits its memory bound.
+    fn validate_planner(&self) -> Result<(), ConfigError> {
+        let p = &self.planner;
+        if p.beam_width == 0 {
+            return Err(self.invalid(
+                "planner.beam_width",
+                &p.beam_width,
+                "at least 1 state kept per step",
+            ));
+        }
+        let need = p.memory_bytes(&self.world);
+        if need > (p.max_memory_mib as u128) << 20 {
+            return Err(self.invalid(
+                "planner.beam_width",
+                &p.beam_width,
+                &format!(
+                    "a search that fits planner.max_memory_mib = {} MiB; with world.horizon = {} \
+                     and world.devices = {} it needs {} MiB",
+                    p.max_memory_mib,
+                    self.world.horizon,
+                    self.world.devices,
+                    need >> 20
+                ),
+            ));
+        }
         Ok(())
     }
 

@@ -58,8 +58,7 @@ use std::time::{Duration, Instant};
 
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
 use rayon::prelude::*;
-use uavmeta_actors::policy::heuristics::PolicySpec;
-use uavmeta_actors::rollout::evaluate;
+use uavmeta_actors::policy::heuristics::reference_metrics;
 use uavmeta_proto::config::{Config, InnerLoss, TaskConfig, TaskRole};
 use uavmeta_proto::stats::PolicyMetrics;
 
@@ -195,9 +194,6 @@ pub fn rain_tasks(config: &Config) -> impl Iterator<Item = &TaskConfig> {
         .tasks_with_role(TaskRole::MetaTest)
         .filter(|t| t.rain.is_some())
 }
-
-/// Heuristic reference lines.
-const HEURISTICS: [&str; 3] = ["random", "stalest", "greedy"];
 
 /// The heuristics' figures on a task over a number of episodes.
 #[derive(Debug, Clone)]
@@ -389,7 +385,8 @@ fn plan(config: &Config, experiments: &[Experiment]) -> Plan {
     plan
 }
 
-/// The heuristics on every reference task of the plan: seed-free, so computed once.
+/// The reference policies (random, the heuristics, the planner) on every reference task of the
+/// plan: seed-free, so computed once.
 fn heuristic_refs(config: &Config, plan: &Plan) -> Vec<HeuristicRef> {
     plan.references
         .iter()
@@ -398,26 +395,9 @@ fn heuristic_refs(config: &Config, plan: &Plan) -> Vec<HeuristicRef> {
                 .task(&need.key.task)
                 .expect("validate_reproduce and rain_tasks name existing tasks");
             let episodes = need.key.episodes;
-            let policies = HEURISTICS
+            let policies = reference_metrics(config, task, episodes)
                 .into_iter()
-                .map(|name| {
-                    let spec: PolicySpec = name.parse().expect("the heuristics' names parse");
-                    let mut policy = spec
-                        .build(
-                            config.world.action_count(),
-                            config.learner.eval_seed,
-                            episodes * config.world.horizon as usize,
-                        )
-                        .expect("heuristics build for any world");
-                    let metrics = evaluate(
-                        &config.world,
-                        task,
-                        policy.as_mut(),
-                        episodes,
-                        config.learner.eval_seed,
-                    );
-                    (name, metrics)
-                })
+                .map(|(spec, metrics)| (spec.name(), metrics))
                 .collect();
             HeuristicRef {
                 task: task.name.clone(),

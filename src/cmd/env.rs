@@ -6,7 +6,7 @@ use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use serde::Serialize;
 use uavmeta_actors::policy::heuristics::PolicySpec;
-use uavmeta_actors::rollout::{rollout, StepRecord};
+use uavmeta_actors::rollout::{episode_worlds, evaluation_worlds, run_worlds, StepRecord};
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 
 use super::common::{ConfigArgs, TaskArgs};
@@ -23,13 +23,17 @@ pub struct RolloutArgs {
     config: ConfigArgs,
     #[command(flatten)]
     task: TaskArgs,
-    /// random | stalest | greedy | eps:P | actions:FILE (one action index per line, replayed
-    /// across episodes).
+    /// random | stalest | greedy | planner | eps:P | actions:FILE (one action index per line,
+    /// replayed across episodes).
     #[arg(long, default_value = "stalest", value_parser = clap::value_parser!(PolicySpecArg))]
     policy: PolicySpecArg,
     /// Monte-Carlo episodes.
     #[arg(long, default_value_t = 20)]
     episodes: usize,
+    /// Evaluate exactly as the tables do: one episode from every start cell where the world is
+    /// deterministic (no moving rain), `--episodes` Monte-Carlo episodes where it is not.
+    #[arg(long)]
+    exact: bool,
     /// Seed of the episodes (start cells, rain moves) and of the policy's own randomness.
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -87,29 +91,27 @@ fn run_rollout(args: RolloutArgs) -> Result<()> {
     let task = args.task.resolve(&mut config)?;
     let spec = &args.policy.0;
     let steps = args.episodes * config.world.horizon as usize;
-    let mut policy = spec.build(config.world.action_count(), args.seed, steps)?;
+    let mut policy = spec.build(&config, args.seed, Some(steps))?;
 
     let stdout = io::stdout();
     let mut out = io::BufWriter::new(stdout.lock());
     let mut trace_error = None;
-    let episodes = rollout(
-        &config.world,
-        &task,
-        policy.as_mut(),
-        args.episodes,
-        args.seed,
-        |episode, step| {
-            if args.trace && trace_error.is_none() {
-                let line = TraceLine { episode, step };
-                if let Err(e) = serde_json::to_writer(&mut out, &line)
-                    .map_err(io::Error::from)
-                    .and_then(|()| writeln!(out))
-                {
-                    trace_error = Some(e);
-                }
+    let worlds = match args.exact {
+        true => evaluation_worlds(&config.world, &task, args.episodes, args.seed),
+        false => episode_worlds(&config.world, &task, args.episodes, args.seed).collect(),
+    };
+    let count = worlds.len();
+    let episodes = run_worlds(worlds, policy.as_mut(), |episode, step| {
+        if args.trace && trace_error.is_none() {
+            let line = TraceLine { episode, step };
+            if let Err(e) = serde_json::to_writer(&mut out, &line)
+                .map_err(io::Error::from)
+                .and_then(|()| writeln!(out))
+            {
+                trace_error = Some(e);
             }
-        },
-    );
+        }
+    });
     if let Some(e) = trace_error {
         return Err(e).context("writing the trace");
     }
@@ -130,7 +132,7 @@ fn run_rollout(args: RolloutArgs) -> Result<()> {
     } else {
         let header = format!(
             "{} on task {} (lambda = {}), seed {}, {} episodes of {} steps",
-            spec, task.name, task.lambda, args.seed, args.episodes, config.world.horizon
+            spec, task.name, task.lambda, args.seed, count, config.world.horizon
         );
         let table = table(&header, &episodes, &mean);
         if args.trace {

@@ -6,6 +6,9 @@
 //! - [`GreedyPolicy`]: serve the device that makes this step cheapest, fly towards the stalest.
 //! - [`EpsilonPolicy`]: stalest, with a uniform random action with probability P.
 //! - [`ReplayPolicy`]: a fixed list of action indices read from a file.
+//!
+//! `PolicySpec` also names the planner reference (`crate::planner`), which is no heuristic but is
+//! picked the same way.
 
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -14,7 +17,11 @@ use std::str::FromStr;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use crate::rollout::Policy;
+use uavmeta_proto::config::{Config, TaskConfig};
+use uavmeta_proto::stats::PolicyMetrics;
+
+use crate::planner::PlannerPolicy;
+use crate::rollout::{evaluate, Policy};
 use crate::world::{Move, World};
 
 /// A policy that cannot be parsed or built.
@@ -123,7 +130,7 @@ impl Policy for EpsilonPolicy {
     }
 }
 
-/// Replays a fixed list of action indices, continuing across episodes.
+/// Replays a fixed list of action indices, continuing across episodes, in a loop.
 #[derive(Debug, Clone)]
 pub struct ReplayPolicy {
     actions: Vec<usize>,
@@ -175,12 +182,10 @@ impl ReplayPolicy {
 }
 
 impl Policy for ReplayPolicy {
-    /// Panics past the end of the list: [`PolicySpec::build`] checks the length up front.
+    /// Past the end of the list it starts again from the first action (an actor publishing
+    /// without end replays the list in a loop); [`PolicySpec::build`] refuses an empty list.
     fn act(&mut self, _world: &World) -> usize {
-        let action = *self
-            .actions
-            .get(self.next)
-            .unwrap_or_else(|| panic!("replayed all {} actions", self.actions.len()));
+        let action = self.actions[self.next % self.actions.len()];
         self.next += 1;
         action
     }
@@ -196,12 +201,15 @@ pub enum PolicySpec {
     Epsilon(f64),
     /// `actions:FILE`
     Actions(PathBuf),
+    /// `planner`: the planner reference (`crate::planner`), with the config's `[planner]`.
+    Planner,
     /// `dqn-online`: an online DQN agent (`uavmeta_actors::policy::dqn_online`), which learns in the task's world
     /// and is therefore trained by `collect`, not built here.
     DqnOnline,
 }
 
-const SPEC_FORMS: &str = "random, stalest, greedy, dqn-online, eps:P (0 <= P <= 1) or actions:FILE";
+const SPEC_FORMS: &str =
+    "random, stalest, greedy, planner, dqn-online, eps:P (0 <= P <= 1) or actions:FILE";
 
 impl FromStr for PolicySpec {
     type Err = PolicyError;
@@ -216,6 +224,7 @@ impl FromStr for PolicySpec {
                 "random" => Ok(Self::Random),
                 "stalest" => Ok(Self::Stalest),
                 "greedy" => Ok(Self::Greedy),
+                "planner" => Ok(Self::Planner),
                 "dqn-online" => Ok(Self::DqnOnline),
                 _ => Err(bad(format!("expected {SPEC_FORMS}"))),
             },
@@ -238,6 +247,7 @@ impl fmt::Display for PolicySpec {
             Self::Random => write!(f, "random"),
             Self::Stalest => write!(f, "stalest"),
             Self::Greedy => write!(f, "greedy"),
+            Self::Planner => write!(f, "planner"),
             Self::Epsilon(p) => write!(f, "eps:{p}"),
             Self::Actions(path) => write!(f, "actions:{}", path.display()),
             Self::DqnOnline => write!(f, "dqn-online"),
@@ -246,23 +256,39 @@ impl fmt::Display for PolicySpec {
 }
 
 impl PolicySpec {
-    /// The policy, its random stream seeded by `seed`, for a world of `action_count` actions that
-    /// will be asked for `steps` actions in all (a replayed list must hold that many).
+    /// The policy's name as `--policy` spells it, without the argument of `eps:P` and
+    /// `actions:FILE`.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Self::Random => "random",
+            Self::Stalest => "stalest",
+            Self::Greedy => "greedy",
+            Self::Planner => "planner",
+            Self::DqnOnline => "dqn-online",
+            Self::Epsilon(_) => "eps",
+            Self::Actions(_) => "actions",
+        }
+    }
+
+    /// The policy, its random stream seeded by `seed`, for `config`'s world, asked for `steps`
+    /// actions in all (a replayed list must hold that many; `None`: as many as it holds).
     pub fn build(
         &self,
-        action_count: usize,
+        config: &Config,
         seed: u64,
-        steps: usize,
+        steps: Option<usize>,
     ) -> Result<Box<dyn Policy>, PolicyError> {
+        let action_count = config.world.action_count();
         Ok(match self {
             Self::Random => Box::new(RandomPolicy::new(seed)),
             Self::Stalest => Box::new(StalestPolicy),
             Self::Greedy => Box::new(GreedyPolicy),
             Self::Epsilon(p) => Box::new(EpsilonPolicy::new(*p, seed)),
+            Self::Planner => Box::new(PlannerPolicy::new(&config.planner)),
             Self::Actions(path) => {
                 let replay = ReplayPolicy::from_file(path, action_count)?;
-                if replay.len() < steps {
-                    return Err(PolicyError::TooShort { path: path.clone(), have: replay.len(), need: steps });
+                if let Some(need) = Some(steps.unwrap_or(1)).filter(|&need| replay.len() < need) {
+                    return Err(PolicyError::TooShort { path: path.clone(), have: replay.len(), need });
                 }
                 Box::new(replay)
             }
@@ -274,6 +300,37 @@ impl PolicySpec {
             }
         })
     }
+}
+
+/// The reference rows of every results table and figure, in their order: uniform random, the two
+/// heuristics and the planner reference, so a learned return reads between "random" and
+/// "achievable".
+pub const REFERENCES: [PolicySpec; 4] = [
+    PolicySpec::Random,
+    PolicySpec::Stalest,
+    PolicySpec::Greedy,
+    PolicySpec::Planner,
+];
+
+/// Each of [`REFERENCES`] on `task`, evaluated as learned policies are
+/// ([`crate::rollout::evaluate`]: every start cell where the world is deterministic, else
+/// `episodes` Monte-Carlo episodes), its randomness seeded by `learner.eval_seed`.
+pub fn reference_metrics(
+    config: &Config,
+    task: &TaskConfig,
+    episodes: usize,
+) -> Vec<(PolicySpec, PolicyMetrics)> {
+    let seed = config.learner.eval_seed;
+    REFERENCES
+        .into_iter()
+        .map(|spec| {
+            let mut policy = spec
+                .build(config, seed, None)
+                .expect("the references need no file");
+            let metrics = evaluate(&config.world, task, policy.as_mut(), episodes, seed);
+            (spec, metrics)
+        })
+        .collect()
 }
 
 /// The device with the largest delta_k A_k, ties to the lowest index.

@@ -6,9 +6,12 @@
 //! - [`rollout`]: the [`rollout::Policy`] trait, single episodes with their
 //!   `uavmeta_proto::stats::EpisodeMetrics`, and evaluation: exact over every start cell where
 //!   the world is deterministic, Monte-Carlo over fixed episode seeds where the rain moves.
+//! - [`planner`]: the planner reference, a beam search that knows the world (SPEC section 5),
+//!   the measure of what is achievable.
 //! - [`heuristics`]: random, stalest-first, greedy, epsilon-mixed and replayed policies, and the
 //!   `PolicySpec` parser behind `--policy` and `collect.policy`.
 
 pub mod heuristics;
+pub mod planner;
 pub mod rollout;
 pub mod world;

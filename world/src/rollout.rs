@@ -1,8 +1,13 @@
-//! Running policies in the world: one episode, or a Monte-Carlo evaluation over fixed episodes.
+//! Running policies in the world: one episode, or an evaluation.
 //!
-//! The i-th episode of an evaluation with seed S always runs in the world seeded by
-//! [`episode_seed`]`(S, i)`, so every method evaluated with the same seed meets the same start
-//! cells and rain moves.
+//! SPEC section 5, "Evaluation": the world is deterministic given the start cell unless its rain
+//! moves, so the exact expected return of a deterministic policy under a uniform start is the
+//! mean over all L^2 start cells. [`evaluation_worlds`] therefore gives one episode per start
+//! cell on such a world (one in all if the config fixes the start), and Monte-Carlo episodes
+//! only where the rain moves: there the i-th episode of an evaluation with seed S runs in the
+//! world seeded by [`episode_seed`]`(S, i)`, so every method evaluated with the same seed meets
+//! the same start cells and rain moves. [`rollout`] always runs Monte-Carlo episodes, as
+//! `uavmeta env rollout --episodes N --seed S` asks.
 
 use serde::Serialize;
 use uavmeta_proto::config::{TaskConfig, WorldConfig};
@@ -115,9 +120,24 @@ pub fn rollout(
     policy: &mut dyn Policy,
     episodes: usize,
     seed: u64,
+    observe: impl FnMut(usize, &StepRecord<'_>),
+) -> Vec<EpisodeMetrics> {
+    run_worlds(
+        episode_worlds(world_cfg, task, episodes, seed),
+        policy,
+        observe,
+    )
+}
+
+/// Runs one episode of `policy` in each of `worlds`, handing each step with its episode index
+/// to `observe`.
+pub fn run_worlds(
+    worlds: impl IntoIterator<Item = World>,
+    policy: &mut dyn Policy,
     mut observe: impl FnMut(usize, &StepRecord<'_>),
 ) -> Vec<EpisodeMetrics> {
-    episode_worlds(world_cfg, task, episodes, seed)
+    worlds
+        .into_iter()
         .enumerate()
         .map(|(i, mut world)| run_episode_observed(&mut world, policy, |step| observe(i, step)))
         .collect()
@@ -140,7 +160,31 @@ pub fn episode_worlds(
     })
 }
 
-/// Monte-Carlo evaluation of `policy` on `task` over `episodes` fixed episodes.
+/// The worlds of one evaluation, each ready for its episode (every path that scores a policy
+/// builds them here): on a deterministic world one per start cell, row by row (or the one fixed
+/// start), whatever `episodes`; where the rain moves, `episodes` Monte-Carlo worlds of
+/// [`episode_worlds`].
+pub fn evaluation_worlds(
+    world_cfg: &WorldConfig,
+    task: &TaskConfig,
+    episodes: usize,
+    seed: u64,
+) -> Vec<World> {
+    let template = World::new(world_cfg, task, seed);
+    if !template.is_deterministic() {
+        return episode_worlds(world_cfg, task, episodes, seed).collect();
+    }
+    if world_cfg.start_cell.is_some() {
+        return vec![template];
+    }
+    let grid = template.grid_cells();
+    (0..grid * grid)
+        .map(|c| template.clone().with_start((c % grid, c / grid)))
+        .collect()
+}
+
+/// Evaluation of `policy` on `task` over [`evaluation_worlds`]: exact over every start cell where
+/// the world is deterministic, `episodes` fixed Monte-Carlo episodes where the rain moves.
 pub fn evaluate(
     world_cfg: &WorldConfig,
     task: &TaskConfig,
@@ -148,7 +192,21 @@ pub fn evaluate(
     episodes: usize,
     seed: u64,
 ) -> PolicyMetrics {
-    PolicyMetrics::from_episodes(&rollout(world_cfg, task, policy, episodes, seed, |_, _| {}))
+    PolicyMetrics::from_episodes(&evaluate_episodes(world_cfg, task, policy, episodes, seed))
+}
+
+/// The episodes of [`evaluate`], one per evaluation world.
+pub fn evaluate_episodes(
+    world_cfg: &WorldConfig,
+    task: &TaskConfig,
+    policy: &mut dyn Policy,
+    episodes: usize,
+    seed: u64,
+) -> Vec<EpisodeMetrics> {
+    evaluation_worlds(world_cfg, task, episodes, seed)
+        .iter_mut()
+        .map(|world| run_episode(world, policy))
+        .collect()
 }
 
 /// One episode's path through the grid, for drawing.

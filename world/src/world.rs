@@ -208,6 +208,78 @@ impl World {
         self.t = 0;
     }
 
+    /// This world with every episode starting from `cell`.
+    pub fn with_start(mut self, cell: (u32, u32)) -> World {
+        assert!(
+            cell.0 < self.grid && cell.1 < self.grid,
+            "start cell {cell:?} is off the {0} x {0} grid",
+            self.grid
+        );
+        self.start_cell = Some(cell);
+        self.reset();
+        self
+    }
+
+    /// Whether every episode from a given start cell is the same: no rain that moves. Exact
+    /// evaluation then needs one episode per start cell and no Monte-Carlo at all.
+    pub fn is_deterministic(&self) -> bool {
+        self.rain_moves_every.is_none() || self.task_rain.is_none()
+    }
+
+    /// The rain zone of each remaining step t..T of this episode, as the simulator will place it:
+    /// the moves depend only on the world's random stream, never on the actions, so a clone
+    /// stepped with any actions meets the same zones.
+    pub fn rain_schedule(&self) -> Vec<Option<RainZone>> {
+        let mut ahead = self.clone();
+        let remaining = self.horizon.saturating_sub(self.t);
+        (0..remaining)
+            .map(|_| {
+                let zone = ahead.rain;
+                ahead.step(Move::Hover.index() * self.devices);
+                zone
+            })
+            .collect()
+    }
+
+    /// Steps 1-2 for the UAV above `cell` under rain zone `zone`: the milliwatts charged for
+    /// scheduling `device`, and whether it is in outage. The planner's model of the world.
+    pub fn transmission_at(
+        &self,
+        cell: (u32, u32),
+        device: usize,
+        zone: Option<RainZone>,
+    ) -> (f64, bool) {
+        let at = (cell.1 * self.grid + cell.0) as usize * self.devices + device;
+        if zone.is_some_and(|z| z.contains(cell.0, cell.1)) {
+            (self.rain_mw[at], true)
+        } else {
+            (self.clear_mw[at], false)
+        }
+    }
+
+    /// The cell a move leads to from `cell` (P1b: a move off the grid stays).
+    pub fn moved(&self, cell: (u32, u32), mv: Move) -> (u32, u32) {
+        let (x, y) = cell;
+        let last = self.grid - 1;
+        match mv {
+            Move::North if y < last => (x, y + 1),
+            Move::South if y > 0 => (x, y - 1),
+            Move::East if x < last => (x + 1, y),
+            Move::West if x > 0 => (x - 1, y),
+            _ => (x, y),
+        }
+    }
+
+    /// lambda / K: the reward's weight of one milliwatt.
+    pub fn power_weight(&self) -> f64 {
+        self.power_weight
+    }
+
+    /// A_max.
+    pub fn aoi_max(&self) -> u16 {
+        self.aoi_max
+    }
+
     /// The raw observation s(t) = [x_u, y_u, A_1..A_K].
     pub fn observation(&self) -> &[u16] {
         &self.obs
@@ -261,15 +333,9 @@ impl World {
         let reward = -self.cost(weighted, power_mw);
 
         // 5. The move; one that would leave the grid leaves the UAV where it is (P1b).
-        let (x, y) = (self.obs[0], self.obs[1]);
-        let last = (self.grid - 1) as u16;
-        match mv {
-            Move::North if y < last => self.obs[1] = y + 1,
-            Move::South if y > 0 => self.obs[1] = y - 1,
-            Move::East if x < last => self.obs[0] = x + 1,
-            Move::West if x > 0 => self.obs[0] = x - 1,
-            _ => {}
-        }
+        let (x, y) = self.moved(self.uav(), mv);
+        self.obs[0] = x as u16;
+        self.obs[1] = y as u16;
 
         self.t += 1;
         if let Some(every) = self.rain_moves_every {
@@ -313,13 +379,7 @@ impl World {
     /// Steps 1-2: the power charged for scheduling `device` from the current cell, and whether the
     /// transmission is in outage.
     fn transmission(&self, device: usize) -> (f64, bool) {
-        let (x, y) = (self.obs[0] as u32, self.obs[1] as u32);
-        let at = (y * self.grid + x) as usize * self.devices + device;
-        if self.rain.is_some_and(|z| z.contains(x, y)) {
-            (self.rain_mw[at], true)
-        } else {
-            (self.clear_mw[at], false)
-        }
+        self.transmission_at(self.uav(), device, self.rain)
     }
 
     /// Places the rain zone uniformly at random, keeping its size.

@@ -430,12 +430,12 @@ fn start_source(
             }
         }
         spec => {
-            let policy = spec
-                .build(config.world.action_count(), options.seed, usize::MAX)
-                .map_err(|error| ActorError::Policy {
-                    spec: spec.to_string(),
-                    error,
-                })?;
+            let policy =
+                spec.build(config, options.seed, None)
+                    .map_err(|error| ActorError::Policy {
+                        spec: spec.to_string(),
+                        error,
+                    })?;
             Source::Rollout(Box::new(Rollout::new(config, task, policy, options.seed)))
         }
     };

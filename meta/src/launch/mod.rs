@@ -40,8 +40,7 @@ use iceoryx2::prelude::*;
 use indicatif::MultiProgress;
 use uavmeta_actors::actor::ActorOptions;
 use uavmeta_actors::evaluator::{self, EvaluationRow};
-use uavmeta_actors::policy::heuristics::PolicySpec;
-use uavmeta_actors::rollout::evaluate;
+use uavmeta_actors::policy::heuristics::{reference_metrics, PolicySpec, REFERENCES};
 use uavmeta_learner::store;
 use uavmeta_proto::config::{Config, TaskRole};
 use uavmeta_proto::metrics::{
@@ -162,9 +161,6 @@ pub struct LaunchReport {
     pub references: Vec<EvaluationRow>,
 }
 
-/// The heuristics of the results table, in its order.
-const HEURISTICS: [PolicySpec; 3] = [PolicySpec::Random, PolicySpec::Stalest, PolicySpec::Greedy];
-
 /// The learners of the results table, in its order, after the references.
 const LEARNERS: [Method; 6] = [
     Method::Cql,
@@ -175,40 +171,33 @@ const LEARNERS: [Method; 6] = [
     Method::MetaInit,
 ];
 
-/// Where a row goes in its task's block: the references (heuristics, then the online DQN agent)
+/// Where a row goes in its task's block: the references (random, the heuristics, the planner,
+/// then the online DQN agent)
 /// first, then the learners; `None` for a method the table does not know.
 fn row_rank(method: &str) -> Option<usize> {
-    let references = HEURISTICS.iter().map(ToString::to_string);
+    let references = REFERENCES.iter().map(ToString::to_string);
     let references = references.chain([Method::OnlineDqn.name().to_string()]);
     let mut order = references.chain(LEARNERS.iter().map(|m| m.name().to_string()));
     order.position(|name| name == method)
 }
 
-/// Whether a row is a reference (a heuristic or the online DQN agent) rather than a learner.
+/// Whether a row is a reference (random, a heuristic, the planner or the online DQN agent)
+/// rather than a learner.
 fn is_reference(method: &str) -> bool {
-    row_rank(method).is_some_and(|rank| rank <= HEURISTICS.len())
+    row_rank(method).is_some_and(|rank| rank <= REFERENCES.len())
 }
 
-/// Each heuristic on each meta-test task, over the episodes the evaluator scores checkpoints on.
-fn heuristic_references(config: &Config) -> Vec<EvaluationRow> {
-    let l = &config.learner;
-    let mut rows = Vec::new();
-    for task in config.tasks_with_role(TaskRole::MetaTest) {
-        for spec in HEURISTICS {
-            let mut policy = spec
-                .build(config.world.action_count(), l.eval_seed, 0)
-                .expect("heuristics build without a file");
-            let m = evaluate(
-                &config.world,
-                task,
-                policy.as_mut(),
-                l.eval_episodes,
-                l.eval_seed,
-            );
-            rows.push(EvaluationRow::new(&task.name, &spec.to_string(), 0, &m));
-        }
-    }
-    rows
+/// Each reference policy on each meta-test task, over the episodes the evaluator scores
+/// checkpoints on.
+fn reference_rows(config: &Config) -> Vec<EvaluationRow> {
+    config
+        .tasks_with_role(TaskRole::MetaTest)
+        .flat_map(|task| {
+            reference_metrics(config, task, config.learner.eval_episodes)
+                .into_iter()
+                .map(|(spec, m)| EvaluationRow::new(&task.name, &spec.to_string(), 0, &m))
+        })
+        .collect()
 }
 
 /// Runs `config` as one supervised run in `config.run.dir`, children started from `exe` (the
@@ -275,7 +264,7 @@ pub fn launch(
         run: run.root().to_path_buf(),
         restarts: children.iter().map(|c| c.failures).sum(),
         results,
-        references: heuristic_references(config),
+        references: reference_rows(config),
     })
 }
 

@@ -1,0 +1,413 @@
+//! The planner reference (SPEC section 5, "Planner reference"): a search that knows the world —
+//! its dynamics, its rewards and the rain zone as it will stand at every step — for the best
+//! action sequence from the episode's current state. It is not a learner: it is the measure of
+//! what is achievable, the row every method's gap is read against.
+//!
+//! **The search.** A beam search over the remaining horizon with duplicate detection. A node is
+//! a state (the UAV's cell, A_1..A_K) at step t with g, the cost sum_t -r(t) of the best path to
+//! it. Each step expands every node by all 5K actions, merges children that reach the same state
+//! (keeping the cheaper path: the future depends only on the state and t, since the rain
+//! schedule is fixed), ranks them by g + h and keeps the `beam_width` best. h estimates the cost
+//! of the next K steps if the devices were served stalest first (by delta A), the order that
+//! minimises their AoI (the rearrangement inequality):
+//! - AoI: sum_i i delta A_(i), i = 0 for the stalest: of two states with the same cost so far,
+//!   the one whose devices are fresher ranks first;
+//! - power: sum_i (lambda / K) P_min(i), P_min(i) the least power of serving the i-th stalest
+//!   device from any cell within i moves of the UAV's: of two states with the same AoI, the one
+//!   nearer the devices due next ranks first. It relaxes the path (each device's cell is chosen
+//!   apart), so it never overstates the power of that order.
+//!
+//! When twice `beam_width` holds every child of every step, nothing is pruned and the search is
+//! exact dynamic programming: it returns the optimal sequence
+//! (world/tests/planner.rs checks this against exhaustive enumeration on small worlds). On the
+//! default world it is a heuristic search whose quality grows with the width (docs/EXPERIMENTS.md,
+//! P). It draws no random numbers: ties are broken by the state's key, so a plan is a function of
+//! the world's state alone.
+//!
+//! **Cost.** Per step: width x 5K children of O(K) each plus a hash-map merge; memory:
+//! width x (K + 2) u16 for the beam and width x T back-pointers. [`PlannerConfig::validate`]
+//! refuses a width and horizon whose search would not fit in `planner.max_memory_mb`.
+
+use std::collections::HashMap;
+use std::hash::{BuildHasherDefault, Hasher};
+
+use uavmeta_proto::config::{PlannerConfig, RainZone};
+
+use crate::rollout::Policy;
+use crate::world::{Move, World};
+
+/// A planned action sequence from a world's current state to its horizon.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Plan {
+    /// Action indices `move * K + device`, one per remaining step.
+    pub actions: Vec<usize>,
+    /// -sum of the rewards the world will give for `actions`.
+    pub cost: f64,
+}
+
+/// The beam search of the module doc.
+#[derive(Debug, Clone)]
+pub struct Planner {
+    beam_width: usize,
+}
+
+/// The nodes kept at one step, in structure-of-arrays form.
+#[derive(Debug, Default)]
+struct Beam {
+    cells: Vec<(u32, u32)>,
+    /// A_1..A_K of node i at `[i * K..(i + 1) * K]`.
+    aoi: Vec<u16>,
+    /// Cost of the best path to each node.
+    g: Vec<f64>,
+}
+
+/// One child of the expansion: node `parent` with action `move * K + device`.
+#[derive(Debug, Clone, Copy)]
+struct Child {
+    /// g + h, the ranking.
+    score: f64,
+    g: f64,
+    /// Hash of the child's state; ties in score are broken by it.
+    key: u64,
+    parent: u32,
+    action: u32,
+    /// Index of (parent, device)'s aged AoI vector in the expansion's scratch arena.
+    aged: u32,
+    cell: (u32, u32),
+}
+
+/// Where each kept node came from, per step, for reading the plan backwards.
+type Trail = Vec<Vec<(u32, u32)>>;
+
+impl Planner {
+    /// A planner with `config`'s settings; the config must have passed `PlannerConfig::validate`.
+    pub fn new(config: &PlannerConfig) -> Planner {
+        Planner {
+            beam_width: config.beam_width,
+        }
+    }
+
+    /// The best action sequence the search finds from `world`'s current state to its horizon.
+    pub fn plan(&self, world: &World) -> Plan {
+        let reach = Reach::new(world);
+        let mut beam = Beam {
+            cells: vec![world.uav()],
+            aoi: world.aoi().to_vec(),
+            g: vec![0.0],
+        };
+        let mut trail: Trail = Vec::new();
+        for zone in world.rain_schedule() {
+            let (next, from) = self.step(world, &reach, &beam, zone);
+            beam = next;
+            trail.push(from);
+        }
+        let best = (0..beam.g.len())
+            .min_by(|&a, &b| beam.g[a].total_cmp(&beam.g[b]))
+            .unwrap_or(0);
+        let cost = beam.g.get(best).copied().unwrap_or(0.0);
+        Plan {
+            actions: read_back(&trail, best),
+            cost,
+        }
+    }
+
+    /// One step of the search: every node expanded by every action, children merged by state,
+    /// the best `beam_width` kept. Returns the new beam and each kept node's (parent, action).
+    fn step(
+        &self,
+        world: &World,
+        reach: &Reach,
+        beam: &Beam,
+        zone: Option<RainZone>,
+    ) -> (Beam, Vec<(u32, u32)>) {
+        let (mut children, aged) = expand(world, reach, beam, zone);
+        // Copies of one state share h, so the best copy always ranks before the others: ranking
+        // the children first and merging only the best 2 x width spares the merge most of them.
+        let shortlist = 2 * self.beam_width;
+        if children.len() > shortlist {
+            children.select_nth_unstable_by(shortlist - 1, rank);
+            children.truncate(shortlist);
+        }
+        let mut kept = merge(children, &aged, world.devices());
+        if kept.len() > self.beam_width {
+            kept.select_nth_unstable_by(self.beam_width - 1, rank);
+            kept.truncate(self.beam_width);
+        }
+        kept.sort_unstable_by(rank);
+        let k = world.devices();
+        let mut next = Beam::default();
+        let mut from = Vec::with_capacity(kept.len());
+        for c in &kept {
+            next.cells.push(c.cell);
+            let at = c.aged as usize * k;
+            next.aoi.extend_from_slice(&aged[at..at + k]);
+            next.g.push(c.g);
+            from.push((c.parent, c.action));
+        }
+        (next, from)
+    }
+}
+
+/// Every child of every node, and the scratch arena of aged AoI vectors they point into (one per
+/// node and device: the move does not change the AoI).
+fn expand(
+    world: &World,
+    reach: &Reach,
+    beam: &Beam,
+    zone: Option<RainZone>,
+) -> (Vec<Child>, Vec<u16>) {
+    let k = world.devices();
+    let cap = world.aoi_max();
+    let delta = world.delta();
+    let mut aged = Vec::with_capacity(beam.g.len() * k * k);
+    let mut children = Vec::with_capacity(beam.g.len() * k * 5);
+    let mut due = DueOrder::new(k);
+    for (i, &cell) in beam.cells.iter().enumerate() {
+        let aoi = &beam.aoi[i * k..(i + 1) * k];
+        for device in 0..k {
+            let slot = aged.len() / k;
+            // SPEC section 1, steps 1-4 for (cell, device).
+            let (power_mw, outage) = world.transmission_at(cell, device, zone);
+            aged.extend(aoi.iter().map(|&a| a.saturating_add(1).min(cap)));
+            let vector = &mut aged[slot * k..];
+            if !outage {
+                vector[device] = 1;
+            }
+            let weighted: f64 = vector.iter().zip(delta).map(|(&a, &d)| d * a as f64).sum();
+            let g = beam.g[i] + weighted + world.power_weight() * power_mw;
+            let aoi_to_go = due.sort(vector, delta);
+            let aoi_key = hash_aoi(vector);
+            for mv in Move::ALL {
+                let next = world.moved(cell, mv);
+                let power_to_go = world.power_weight() * reach.power_to_go(next, &due.order);
+                children.push(Child {
+                    score: g + aoi_to_go + power_to_go,
+                    g,
+                    key: mix(aoi_key, ((next.0 as u64) << 32) | next.1 as u64),
+                    parent: i as u32,
+                    action: (mv.index() * k + device) as u32,
+                    aged: slot as u32,
+                    cell: next,
+                });
+            }
+        }
+    }
+    (children, aged)
+}
+
+/// The devices in the order stalest first would serve them, and the AoI part of h.
+struct DueOrder {
+    order: Vec<usize>,
+    weighted: Vec<f64>,
+}
+
+impl DueOrder {
+    fn new(k: usize) -> DueOrder {
+        DueOrder {
+            order: (0..k).collect(),
+            weighted: vec![0.0; k],
+        }
+    }
+
+    /// Orders the devices by delta A, largest first (ties to the lower index), and returns
+    /// sum_i i (delta A)_(i): the AoI cost of the next K steps under that order, up to a
+    /// constant.
+    fn sort(&mut self, aoi: &[u16], delta: &[f64]) -> f64 {
+        for ((w, &a), &d) in self.weighted.iter_mut().zip(aoi).zip(delta) {
+            *w = d * a as f64;
+        }
+        let weighted = &self.weighted;
+        self.order
+            .sort_unstable_by(|&a, &b| weighted[b].total_cmp(&weighted[a]).then(a.cmp(&b)));
+        self.order
+            .iter()
+            .enumerate()
+            .map(|(i, &j)| i as f64 * weighted[j])
+            .sum()
+    }
+}
+
+/// P_min: for every cell c, device j and distance d < K, the least clear-sky power of serving j
+/// from a cell within d moves of c, at `[(c * K + j) * K + d]`.
+struct Reach {
+    grid: u32,
+    k: usize,
+    min_mw: Vec<f64>,
+}
+
+impl Reach {
+    fn new(world: &World) -> Reach {
+        let (grid, k) = (world.grid_cells(), world.devices());
+        let cells = (grid * grid) as usize;
+        let mut min_mw = vec![f64::INFINITY; cells * k * k];
+        for c in 0..cells {
+            let (cx, cy) = (c as u32 % grid, c as u32 / grid);
+            for o in 0..cells {
+                let (ox, oy) = (o as u32 % grid, o as u32 / grid);
+                let distance = (cx.abs_diff(ox) + cy.abs_diff(oy)) as usize;
+                for j in 0..k {
+                    let mw = world.transmission_at((ox, oy), j, None).0;
+                    let row = &mut min_mw[(c * k + j) * k..(c * k + j + 1) * k];
+                    for best in row.iter_mut().skip(distance) {
+                        *best = best.min(mw);
+                    }
+                }
+            }
+        }
+        Reach { grid, k, min_mw }
+    }
+
+    /// sum_i P_min(cell, order[i], i): the power part of h, in milliwatts.
+    fn power_to_go(&self, cell: (u32, u32), order: &[usize]) -> f64 {
+        let c = (cell.1 * self.grid + cell.0) as usize;
+        order
+            .iter()
+            .enumerate()
+            .map(|(d, &j)| self.min_mw[(c * self.k + j) * self.k + d])
+            .sum()
+    }
+}
+
+/// The children with one per state: the cheapest path to it (ties to the first expanded).
+fn merge(children: Vec<Child>, aged: &[u16], k: usize) -> Vec<Child> {
+    let same = |a: &Child, b: &Child| {
+        let (x, y) = (a.aged as usize * k, b.aged as usize * k);
+        a.cell == b.cell && aged[x..x + k] == aged[y..y + k]
+    };
+    let mut index: HashMap<u64, u32, BuildHasherDefault<KeyHasher>> =
+        HashMap::with_capacity_and_hasher(children.len(), Default::default());
+    let mut kept: Vec<Child> = Vec::with_capacity(children.len());
+    for child in children {
+        // Open addressing over the 64-bit key: a true hash collision probes on.
+        let mut key = child.key;
+        loop {
+            match index.get(&key) {
+                None => {
+                    index.insert(key, kept.len() as u32);
+                    kept.push(child);
+                    break;
+                }
+                Some(&at) if same(&kept[at as usize], &child) => {
+                    if child.g < kept[at as usize].g {
+                        kept[at as usize] = child;
+                    }
+                    break;
+                }
+                Some(_) => key = key.wrapping_add(1),
+            }
+        }
+    }
+    kept
+}
+
+/// The ranking: lower g + h first, then by state key and action, so the order is total and the
+/// search deterministic.
+fn rank(a: &Child, b: &Child) -> std::cmp::Ordering {
+    a.score
+        .total_cmp(&b.score)
+        .then(a.key.cmp(&b.key))
+        .then(a.parent.cmp(&b.parent))
+        .then(a.action.cmp(&b.action))
+}
+
+/// The actions from the root to node `last` of the final beam.
+fn read_back(trail: &Trail, last: usize) -> Vec<usize> {
+    let mut actions = vec![0; trail.len()];
+    let mut node = last;
+    for (t, from) in trail.iter().enumerate().rev() {
+        let (parent, action) = from[node];
+        actions[t] = action as usize;
+        node = parent as usize;
+    }
+    actions
+}
+
+/// The hasher of the merge's map: its keys are already mixed 64-bit hashes, used as they are.
+#[derive(Default)]
+struct KeyHasher(u64);
+
+impl Hasher for KeyHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.0 = (self.0 << 8) | b as u64;
+        }
+    }
+
+    fn write_u64(&mut self, n: u64) {
+        self.0 = n;
+    }
+}
+
+/// FNV-1a over the AoI vector.
+fn hash_aoi(aoi: &[u16]) -> u64 {
+    aoi.iter().fold(0xcbf2_9ce4_8422_2325, |h, &a| {
+        (h ^ a as u64).wrapping_mul(0x0100_0000_01b3)
+    })
+}
+
+/// SplitMix64's finaliser over two words.
+fn mix(a: u64, b: u64) -> u64 {
+    let mut z = a ^ b.wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+/// The planner as a policy: at the first step of an episode it plans to the horizon from the
+/// world's state (the world it is handed, which is the true one: it reads the rain schedule
+/// from it), then plays the plan. A world whose state leaves the plan (another policy stepped
+/// it) is planned for again from where it stands.
+#[derive(Debug, Clone)]
+pub struct PlannerPolicy {
+    planner: Planner,
+    plan: Vec<usize>,
+    /// The step of the episode `plan[0]` is for.
+    from_t: u32,
+    /// The UAV's cell and AoI the plan expects at each step, to notice a world that left it.
+    expected: Vec<u16>,
+}
+
+impl PlannerPolicy {
+    pub fn new(config: &PlannerConfig) -> PlannerPolicy {
+        PlannerPolicy {
+            planner: Planner::new(config),
+            plan: Vec::new(),
+            from_t: 0,
+            expected: Vec::new(),
+        }
+    }
+
+    /// The observation the plan expects at step `t`, if it covers it.
+    fn expected_at(&self, t: u32, len: usize) -> Option<&[u16]> {
+        let i = t.checked_sub(self.from_t)? as usize;
+        (i < self.plan.len()).then(|| &self.expected[i * len..(i + 1) * len])
+    }
+
+    /// Plans from `world`'s state and records the observations the plan will meet.
+    fn replan(&mut self, world: &World) {
+        let plan = self.planner.plan(world);
+        let mut ahead = world.clone();
+        self.expected.clear();
+        for &a in &plan.actions {
+            self.expected.extend_from_slice(ahead.observation());
+            ahead.step(a);
+        }
+        self.plan = plan.actions;
+        self.from_t = world.t();
+    }
+}
+
+impl Policy for PlannerPolicy {
+    fn act(&mut self, world: &World) -> usize {
+        let len = world.observation().len();
+        // A new episode (new start, new rain draws) or a world that left the plan.
+        if world.t() == 0 || self.expected_at(world.t(), len) != Some(world.observation()) {
+            self.replan(world);
+        }
+        self.plan[(world.t() - self.from_t) as usize]
+    }
+}
