@@ -78,8 +78,11 @@ impl Write for AboveRows {
 }
 
 fn main() -> ExitCode {
-    // Before any thread or libtorch call: the same bits on every CPU (learner::numerics).
-    uavmeta_learner::numerics::pin();
+    // Before any thread or libtorch call: the same bits on another CPU (learner::numerics).
+    if let Err(error) = uavmeta_learner::numerics::pin() {
+        eprintln!("uavmeta: {error}");
+        return ExitCode::FAILURE;
+    }
     let terminal = MultiProgress::new();
     let rows = terminal.clone();
     tracing_subscriber::fmt()

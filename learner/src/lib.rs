@@ -10,8 +10,8 @@
 //! - [`train`]: offline training with either loss, evaluated each epoch through the
 //!   [`train::EvaluatePolicy`] hook; per-epoch table on stderr and `train.csv`.
 //! - [`progress`]: the CSV log and the progress bar of a training loop (offline and meta).
-//! - [`numerics`]: the environment that pins libtorch's kernels to AVX2, so results are the same
-//!   bits on every x86-64 CPU.
+//! - [`numerics`]: the environment that pins libtorch's kernels (MKL's branch, ATen's vector
+//!   width), so results are the same bits on another CPU.
 //! - [`checkpoint`]: safetensors weights + JSON metadata + the run's config, written atomically
 //!   and checked (sizes, length, CRC32) on load.
 //! - [`store`]: the dataset store process, appending each task's transitions to its dataset file;

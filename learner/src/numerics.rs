@@ -1,43 +1,73 @@
-//! Pinned numerics: the same config and seed give the same bits on any x86-64 CPU with AVX2,
-//! Intel or AMD, with or without AVX-512.
+//! Pinned numerics: the same config and seed give the same bits on another CPU.
 //!
 //! libtorch picks its kernels by the CPU it runs on: MKL's sgemm takes AVX-512 paths on Intel
-//! CPUs that have it and AVX2 paths elsewhere, and ATen's vectorised kernels (reductions such as
-//! logsumexp, Adam's updates) use 512-bit vectors where the CPU has them. Different vector widths
-//! sum in different orders, so a dataset or checkpoint made on one machine differed in its last
-//! bits from another's, and training amplified that into another results table. [`pin`] fixes
-//! every such choice to AVX2 before libtorch starts:
+//! CPUs that have it and other paths elsewhere, and ATen's vectorised kernels (reductions such
+//! as logsumexp, Adam's updates) use 512-bit vectors where the CPU has them. Different vector
+//! widths sum in different orders, so a dataset or checkpoint made on one machine differed in its
+//! last bits from another's, and training amplified that into another results table. [`pin`] sets
+//! the environment both read once, before libtorch starts, in one of three modes chosen by
+//! `UAVMETA_NUMERICS`:
 //!
-//! - `MKL_CBWR=AVX2,STRICT`: MKL's conditional numerical reproducibility, the AVX2 code branch
-//!   on every CPU, strict mode for bitwise-identical gemm whatever the alignment;
-//! - `ATEN_CPU_CAPABILITY=avx2`: ATen's kernels at 256-bit vectors;
-//! - `ONEDNN_MAX_CPU_ISA=AVX2`: oneDNN's JIT kernels, where libtorch uses them, likewise.
+//! | mode | MKL | ATen | same bits on |
+//! | --- | --- | --- | --- |
+//! | `avx2` (default) | `MKL_CBWR=AVX2,STRICT` | `ATEN_CPU_CAPABILITY=avx2` | every Intel CPU with AVX2, with or without AVX-512; every AMD CPU of one MKL dispatch |
+//! | `compatible` | `MKL_CBWR=COMPATIBLE,STRICT` | `ATEN_CPU_CAPABILITY=avx2` | every x86-64 CPU with AVX2, Intel or AMD |
+//! | `native` | as the CPU dispatches | as the CPU dispatches | this machine only |
 //!
-//! What it costs is measured in docs/BENCHMARKS.md ("Pinned numerics"). A variable the
-//! environment already sets is left as it is, and `UAVMETA_NUMERICS=native` turns the pinning off
-//! for whoever wants the machine's fastest paths and accepts machine-dependent bits.
+//! MKL honours its named branches (AVX2, AVX512) only on Intel CPUs; on others it runs its
+//! automatic dispatch in reproducible (STRICT) mode, and only COMPATIBLE (SSE2 code) is the same
+//! code on both vendors. COMPATIBLE makes training about 1.9x slower, AVX2 costs nothing
+//! measurable (docs/BENCHMARKS.md, "Pinned numerics"), hence the default. `ONEDNN_MAX_CPU_ISA`
+//! is capped at AVX2 likewise for the oneDNN kernels libtorch may use. A variable the
+//! environment already sets is left as it is.
 
-/// The variables [`pin`] sets, with their values.
-pub const PINNED: [(&str, &str); 3] = [
-    ("MKL_CBWR", "AVX2,STRICT"),
-    ("ATEN_CPU_CAPABILITY", "avx2"),
-    ("ONEDNN_MAX_CPU_ISA", "AVX2"),
+/// The variable that chooses the mode: `avx2` (also when unset), `compatible` or `native`.
+pub const MODE_VARIABLE: &str = "UAVMETA_NUMERICS";
+
+/// The modes [`pin`] knows, and what each sets.
+pub const MODES: [(&str, &[(&str, &str)]); 3] = [
+    (
+        "avx2",
+        &[
+            ("MKL_CBWR", "AVX2,STRICT"),
+            ("ATEN_CPU_CAPABILITY", "avx2"),
+            ("ONEDNN_MAX_CPU_ISA", "AVX2"),
+        ],
+    ),
+    (
+        "compatible",
+        &[
+            ("MKL_CBWR", "COMPATIBLE,STRICT"),
+            ("ATEN_CPU_CAPABILITY", "avx2"),
+            ("ONEDNN_MAX_CPU_ISA", "AVX2"),
+        ],
+    ),
+    ("native", &[]),
 ];
 
-/// The variable that turns the pinning off when it is `native`.
-pub const OPT_OUT: &str = "UAVMETA_NUMERICS";
+/// An unknown `UAVMETA_NUMERICS`.
+#[derive(Debug, thiserror::Error)]
+#[error("{MODE_VARIABLE}={value}: expected avx2 (the default), compatible or native")]
+pub struct UnknownMode {
+    pub value: String,
+}
 
-/// Sets each of [`PINNED`] that the environment does not set, unless [`OPT_OUT`] is `native`.
-/// Call it first thing in `main`: before the first libtorch operation, which reads them once,
-/// and before any thread starts, since it changes the process environment. Child processes
-/// inherit the result.
-pub fn pin() {
-    if std::env::var(OPT_OUT).is_ok_and(|v| v == "native") {
-        return;
-    }
-    for (name, value) in PINNED {
+/// Sets the variables of the mode `UAVMETA_NUMERICS` names (`avx2` when unset) that the
+/// environment does not set already. Call it first thing in `main`: before the first libtorch
+/// operation, which reads them once, and before any thread starts, since it changes the process
+/// environment. Child processes inherit the result.
+pub fn pin() -> Result<(), UnknownMode> {
+    let mode = std::env::var(MODE_VARIABLE).unwrap_or_else(|_| "avx2".into());
+    let (_, settings) = MODES
+        .iter()
+        .find(|(name, _)| *name == mode)
+        .ok_or(UnknownMode {
+            value: mode.clone(),
+        })?;
+    for (name, value) in settings.iter() {
         if std::env::var_os(name).is_none() {
             std::env::set_var(name, value);
         }
     }
+    Ok(())
 }
