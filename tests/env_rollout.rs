@@ -138,3 +138,30 @@ fn bad_input_fails_with_a_clear_message() {
         assert!(stderr.contains(expected), "{args:?}: {stderr}");
     }
 }
+
+/// `--exact` runs one episode per start cell where the world is deterministic (the named rain
+/// task: 100 cells, whatever `--episodes`), and the Monte-Carlo episodes where a one-off task's
+/// rain moves (`--rain-moves-every`, which names the task after it).
+#[test]
+fn exact_evaluation_covers_every_start_cell_unless_the_rain_moves() {
+    let config = config_file();
+    let json = |extra: &[&str]| -> serde_json::Value {
+        let mut args = vec!["env", "rollout", "--json", "--exact", "--episodes", "3"];
+        args.extend_from_slice(extra);
+        let output = Command::new(env!("CARGO_BIN_EXE_uavmeta"))
+            .args(&args)
+            .arg("--config")
+            .arg(config.path())
+            .output()
+            .expect("run uavmeta");
+        serde_json::from_str(&stdout(&output)).expect("one JSON summary")
+    };
+    let fixed = json(&["--task", "wet"]);
+    assert_eq!(fixed["episodes"].as_array().map(Vec::len), Some(100));
+    let moving = json(&["--lambda", "300", "--rain", "0,0,4,9", "--rain-moves-every", "2"]);
+    assert_eq!(moving["task"], "lambda-300-rain-0-0-4-9-moves-2");
+    assert_eq!(moving["episodes"].as_array().map(Vec::len), Some(3));
+    // The rain that moves does not stay on the western half, where the fixed one keeps it.
+    let outages = |v: &serde_json::Value| v["mean"]["outages"]["mean"].as_f64().expect("outages");
+    assert!(outages(&moving) != outages(&fixed), "{moving}");
+}

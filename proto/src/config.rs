@@ -249,6 +249,17 @@ pub struct TaskConfig {
 }
 
 impl TaskConfig {
+    /// As [`TaskConfig::one_off`], its rain zone moving every `every` steps
+    /// (`--rain-moves-every N`); the name says so.
+    pub fn one_off_moving(lambda: f64, rain: RainZone, every: u32) -> Self {
+        let task = Self::one_off(lambda, Some(rain));
+        Self {
+            name: format!("{}-moves-{every}", task.name),
+            rain_moves_every: Some(every),
+            ..task
+        }
+    }
+
     /// A task given on the command line (`--lambda X [--rain x0,y0,x1,y1]`) instead of by name.
     pub fn one_off(lambda: f64, rain: Option<RainZone>) -> Self {
         let name = match rain {

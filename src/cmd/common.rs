@@ -23,7 +23,7 @@ impl ConfigArgs {
     }
 }
 
-/// `--task NAME`, or a one-off task from `--lambda X [--rain x0,y0,x1,y1]`.
+/// `--task NAME`, or a one-off task from `--lambda X [--rain x0,y0,x1,y1 [--rain-moves-every N]]`.
 #[derive(Args, Debug, Clone)]
 pub struct TaskArgs {
     /// A task named in the config.
@@ -35,6 +35,9 @@ pub struct TaskArgs {
     /// The rain zone of a one-off task, cells x0,y0,x1,y1 inclusive.
     #[arg(long, requires = "lambda", value_parser = clap::value_parser!(RainZoneArg))]
     pub rain: Option<RainZoneArg>,
+    /// Relocate the one-off task's rain zone uniformly at random every N steps.
+    #[arg(long, requires = "rain", value_name = "N")]
+    pub rain_moves_every: Option<u32>,
 }
 
 #[derive(Debug, Clone)]
@@ -53,7 +56,11 @@ impl TaskArgs {
         match (&self.task, self.lambda) {
             (Some(name), _) => Ok(config.task(name)?.clone()),
             (None, Some(lambda)) => {
-                let task = TaskConfig::one_off(lambda, self.rain.as_ref().map(|r| r.0));
+                let rain = self.rain.as_ref().map(|r| r.0);
+                let task = match (rain, self.rain_moves_every) {
+                    (Some(zone), Some(every)) => TaskConfig::one_off_moving(lambda, zone, every),
+                    _ => TaskConfig::one_off(lambda, rain),
+                };
                 if config.task(&task.name).is_err() {
                     config.tasks.push(task.clone());
                     config.validate()?;

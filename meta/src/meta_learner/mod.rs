@@ -17,6 +17,9 @@
 //!    pretrained on the union of the meta-train tasks' shots (CQL-pretrain, `crate::pretrain`),
 //!    each for `learner.epochs` epochs, checkpointing and announcing every epoch.
 //!
+//! The two inits of the run are also saved where a user looks for them, to fine-tune on another
+//! task afterwards: `inits/w0` (the final meta-learned init) and `inits/cql-pretrain`.
+//!
 //! **Restart.** Every w0 checkpoint carries MAML's training state (the outer Adam moments, the
 //! target network, the sampling stream: [`Maml::save_state`]), so a restarted meta-learner resumes
 //! meta-training from its latest w0 checkpoint exactly as an uninterrupted run continues. It skips
@@ -130,6 +133,8 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
     let Some(trained) = meta_train_with(&options, &mut hook)? else {
         return Ok(Outcome::Stopped);
     };
+    let (w0, meta) = checkpoint::load(&trained.w0, config)?;
+    save_init(run, config, "w0", &w0, &meta.algorithm, meta.epoch)?;
 
     // 3. Meta-test on each unseen task (`meta_test::meta_test_with`): the MAML init fine-tuned
     //    with the loss its checkpoint names, and its baselines on the same shots.
@@ -192,7 +197,18 @@ impl MetaTest<'_> {
                     let (_, tasks) = load_tasks(config, datasets, seed)?;
                     // Stop requests are honoured between the pretraining's meta-epochs.
                     match pretrain::pretrain(config, &tasks, seed, |_| stop().map(|stop| !stop))? {
-                        Some(q) => pretrained = Some(q),
+                        Some(q) => {
+                            let epochs = config.meta.meta_epochs;
+                            save_init(
+                                run,
+                                config,
+                                pretrain::ALGORITHM,
+                                &q,
+                                pretrain::ALGORITHM,
+                                epochs,
+                            )?;
+                            pretrained = Some(q);
+                        }
                         None => return Ok(Outcome::Stopped),
                     }
                 }
@@ -201,6 +217,22 @@ impl MetaTest<'_> {
         }
         Ok(Outcome::Finished)
     }
+}
+
+/// Saves an init a user fine-tunes from (`uavmeta meta-test --init` or `train --init`) where
+/// they look for it: `inits/NAME` in the run directory (`inits/w0`, `inits/cql-pretrain`).
+fn save_init(
+    run: &RunDir,
+    config: &Config,
+    name: &str,
+    q: &QNetwork,
+    algorithm: &str,
+    epoch: usize,
+) -> Result<(), MetaProcessError> {
+    let path = run.root().join("inits").join(name);
+    checkpoint::save(&path, q, algorithm, epoch, config)?;
+    tracing::info!(init = %path.display(), "saved");
+    Ok(())
 }
 
 /// Waits until the store has announced every task's dataset; `false` if told to stop first.
