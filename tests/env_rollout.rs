@@ -158,7 +158,14 @@ fn exact_evaluation_covers_every_start_cell_unless_the_rain_moves() {
     };
     let fixed = json(&["--task", "wet"]);
     assert_eq!(fixed["episodes"].as_array().map(Vec::len), Some(100));
-    let moving = json(&["--lambda", "300", "--rain", "0,0,4,9", "--rain-moves-every", "2"]);
+    let moving = json(&[
+        "--lambda",
+        "300",
+        "--rain",
+        "0,0,4,9",
+        "--rain-moves-every",
+        "2",
+    ]);
     assert_eq!(moving["task"], "lambda-300-rain-0-0-4-9-moves-2");
     assert_eq!(moving["episodes"].as_array().map(Vec::len), Some(3));
     // The rain that moves does not stay on the western half, where the fixed one keeps it.

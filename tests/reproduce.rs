@@ -141,7 +141,8 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     check_csv(
         &out.join("convergence/references.csv"),
         "reference,task,seed,return,aoi,power_mw,outages",
-        seeds + 3,
+        // The online agent per seed; random, stalest, greedy and the planner once.
+        seeds + 4,
     );
     check_csv(
         &out.join("shots/curves.csv"),
@@ -156,7 +157,7 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     check_csv(
         &out.join("aoi-power/bars.csv"),
         "method,seed,aoi,power_mw",
-        4 * seeds + 3,
+        4 * seeds + 4,
     );
     check_csv(
         &out.join("resilience/curves.csv"),

@@ -118,6 +118,8 @@ pub struct MamlConfig {
     pub target_update_every: usize,
     /// Outer steps per meta-epoch; 0 = one pass over the largest support set.
     pub outer_steps_per_meta_epoch: usize,
+    /// Decay of the moving average of w0 that is published as the init; 0 = the last iterate.
+    pub w0_average_decay: f64,
 }
 
 impl MamlConfig {
@@ -140,6 +142,7 @@ impl MamlConfig {
             learn_inner_lr: m.learn_inner_lr,
             target_update_every: m.target_update_every,
             outer_steps_per_meta_epoch: m.outer_steps_per_meta_epoch,
+            w0_average_decay: m.w0_average_decay,
         }
     }
 
@@ -479,7 +482,10 @@ impl OuterAdam {
 /// optimiser.
 pub struct Maml {
     config: MamlConfig,
+    /// The iterate eq. 16 updates.
     w0: QNetwork,
+    /// The moving average of `w0` published as the init, when `w0_average_decay` > 0.
+    average: Option<QNetwork>,
     /// Meta-SGD's per-weight step sizes (leaves that require grad), when `learn_inner_lr`.
     inner_lr: Option<Vec<Tensor>>,
     target: QNetwork,
@@ -523,9 +529,11 @@ impl Maml {
         });
         let optimizer = OuterAdam::new(&meta_parameters(&w0, &inner_lr), config.eta_outer);
         let target = w0.duplicate();
+        let average = (config.w0_average_decay > 0.0).then(|| w0.duplicate());
         Ok(Self {
             config,
             w0,
+            average,
             inner_lr,
             target,
             optimizer,
@@ -557,6 +565,12 @@ impl Maml {
         for (i, lr) in self.inner_lr.iter().flatten().enumerate() {
             tensors.push((format!("inner_lr.{i}"), lr.detach()));
         }
+        // With averaging the checkpoint holds the average, so the iterate goes here.
+        if self.average.is_some() {
+            for (i, p) in self.w0.parameters().into_iter().enumerate() {
+                tensors.push((format!("iterate.{i}"), p.detach()));
+            }
+        }
         let progress = MamlProgress {
             epochs_done: self.epochs_done,
             adam_steps: self.optimizer.steps,
@@ -567,8 +581,9 @@ impl Maml {
         checkpoint::save_state(path, &tensors, &progress)
     }
 
-    /// Continues a meta-training from `w0` (loaded from checkpoint `path`) and the state saved
-    /// beside it by [`save_state`](Self::save_state), under `config`.
+    /// Continues a meta-training from `w0` (loaded from checkpoint `path`: the published init,
+    /// the average when averaging) and the state saved beside it by
+    /// [`save_state`](Self::save_state), under `config`.
     pub fn resume(w0: QNetwork, config: MamlConfig, path: &Path) -> Result<Self, MetaError> {
         let (tensors, progress): (_, MamlProgress) = checkpoint::load_state(path)?;
         let params = w0.parameters();
@@ -601,6 +616,17 @@ impl Maml {
             let saved = take(format!("target.{i}"), p)?;
             tch::no_grad(|| t.copy_(&saved));
         }
+        let average = match config.w0_average_decay > 0.0 {
+            true => {
+                let average = w0.duplicate();
+                for (i, (p, mut dst)) in params.iter().zip(w0.parameters()).enumerate() {
+                    let saved = take(format!("iterate.{i}"), p)?;
+                    tch::no_grad(|| dst.copy_(&saved));
+                }
+                Some(average)
+            }
+            false => None,
+        };
         let inner_lr = match config.learn_inner_lr {
             true => Some(
                 (params.iter().enumerate())
@@ -622,6 +648,7 @@ impl Maml {
         Ok(Self {
             config,
             w0,
+            average,
             inner_lr,
             target,
             optimizer,
@@ -634,9 +661,21 @@ impl Maml {
         &self.config
     }
 
-    /// The meta-learned initial weights.
+    /// The meta-learned initial weights: the moving average of the iterates when
+    /// `w0_average_decay` > 0, else the last iterate.
     pub fn w0(&self) -> &QNetwork {
-        &self.w0
+        self.average.as_ref().unwrap_or(&self.w0)
+    }
+
+    /// Polyak averaging: init <- decay * init + (1 - decay) * w0.
+    fn update_average(&self) {
+        let Some(average) = &self.average else { return };
+        let decay = self.config.w0_average_decay;
+        tch::no_grad(|| {
+            for (mut a, w) in average.parameters().into_iter().zip(self.w0.parameters()) {
+                let _ = a.g_mul_scalar_(decay).g_add_(&(w * (1.0 - decay)));
+            }
+        });
     }
 
     /// Meta-epochs run so far.
@@ -687,6 +726,7 @@ impl Maml {
             );
             // Eq. 16: Adam(eta_outer) on w0 (and the step sizes).
             self.optimizer.step(&params);
+            self.update_average();
             meta_loss += losses.iter().sum::<f64>();
             for (i, loss) in picked.into_iter().zip(losses) {
                 loss_sums[i].0 += loss;

@@ -37,6 +37,7 @@ fn config(inner_loss: InnerLoss, inner_steps: usize, first_order: bool) -> MamlC
         learn_inner_lr: false,
         target_update_every: 1,
         outer_steps_per_meta_epoch: 1,
+        w0_average_decay: 0.0,
     }
 }
 
@@ -446,13 +447,14 @@ fn weights(maml: &Maml) -> Vec<f64> {
 #[test]
 fn an_interrupted_and_resumed_meta_training_ends_at_the_uninterrupted_w0() {
     single_threaded();
-    for learn_inner_lr in [false, true] {
-        resumed_ends_where_uninterrupted_ends(learn_inner_lr);
+    for (learn_inner_lr, average) in [(false, 0.0), (true, 0.0), (false, 0.9)] {
+        resumed_ends_where_uninterrupted_ends(learn_inner_lr, average);
     }
 }
 
-/// With Meta-SGD the learned step sizes and their Adam moments are part of the saved state.
-fn resumed_ends_where_uninterrupted_ends(learn_inner_lr: bool) {
+/// With Meta-SGD the learned step sizes and their Adam moments are part of the saved state;
+/// with averaging, the checkpoint holds the average and the state the iterate.
+fn resumed_ends_where_uninterrupted_ends(learn_inner_lr: bool, average: f64) {
     let mut rng = ChaCha8Rng::seed_from_u64(20);
     let tasks: Vec<MetaTask> = (0..3)
         .map(|i| MetaTask {
@@ -469,6 +471,7 @@ fn resumed_ends_where_uninterrupted_ends(learn_inner_lr: bool) {
     c.target_update_every = 4;
     c.tasks_per_meta_epoch = 2;
     c.learn_inner_lr = learn_inner_lr;
+    c.w0_average_decay = average;
     let hidden = [16];
     let network = || QNetworkConfig::new(OBS, ACTIONS, &hidden).init(21);
     let (seed, epochs, interrupted_at) = (22, 10, 6);
@@ -500,7 +503,7 @@ fn resumed_ends_where_uninterrupted_ends(learn_inner_lr: bool) {
     assert_eq!(
         weights(&resumed),
         weights(&straight),
-        "resumed != uninterrupted (learn_inner_lr {learn_inner_lr})"
+        "resumed != uninterrupted (learn_inner_lr {learn_inner_lr}, average {average})"
     );
 
     // The same w0 without its state (fresh moments, target and sampling) ends elsewhere: the
@@ -538,4 +541,41 @@ fn a_corrupt_training_state_is_refused_naming_the_file() {
         err.contains("corrupt") && err.contains("state.safetensors"),
         "{err}"
     );
+}
+
+/// With `w0_average_decay` = d the published init is the moving average of the iterates, which
+/// averaging leaves as they are: after two outer steps from w_0, d^2 w_0 + d (1 - d) w_1 +
+/// (1 - d) w_2, with w_1 and w_2 the iterates of the same run without averaging.
+#[test]
+fn averaged_init_is_the_moving_average_of_the_iterates() {
+    single_threaded();
+    let mut rng = ChaCha8Rng::seed_from_u64(30);
+    let tasks: Vec<MetaTask> = (0..2)
+        .map(|i| MetaTask {
+            name: format!("task-{i}"),
+            support: batch(16, i as f64, Kind::Float, &mut rng),
+            query: batch(16, i as f64, Kind::Float, &mut rng),
+        })
+        .collect();
+    let network = || QNetworkConfig::new(OBS, ACTIONS, &[8]).init(31);
+    let plain = config(InnerLoss::Cql, 1, false);
+    let d = 0.5;
+    let averaged = MamlConfig {
+        w0_average_decay: d,
+        ..plain.clone()
+    };
+    let mut last = Maml::new(network(), plain, 32).expect("maml");
+    let w_0 = weights(&last);
+    last.meta_epoch(&tasks).expect("tasks");
+    let w_1 = weights(&last);
+    last.meta_epoch(&tasks).expect("tasks");
+    let w_2 = weights(&last);
+    let mut mean = Maml::new(network(), averaged, 32).expect("maml");
+    mean.meta_epoch(&tasks).expect("tasks");
+    mean.meta_epoch(&tasks).expect("tasks");
+    let expected: Vec<f64> = (0..w_0.len())
+        .map(|i| d * d * w_0[i] + d * (1.0 - d) * w_1[i] + (1.0 - d) * w_2[i])
+        .collect();
+    assert!(relative_error(&weights(&mean), &expected) < 1e-5);
+    assert!(relative_error(&w_2, &expected) > 1e-3, "the iterate is not the average");
 }

@@ -492,6 +492,12 @@ pub struct MetaConfig {
     /// Meta-epochs between evaluations of each task's adapted greedy policy on its environment
     /// (costly: `learner.eval_episodes` episodes per task); 0 evaluates only after the last.
     pub eval_every: usize,
+    /// Polyak averaging of the meta-iterates: after every outer step the published init becomes
+    /// `decay * init + (1 - decay) * w0`, an exponential moving average of w0 over the last
+    /// 1 / (1 - decay) outer steps; checkpoints, evaluations and the meta-test use it, while eq.
+    /// 16 keeps updating w0 itself. 0 = off: the init is the last iterate, whose return swung by
+    /// up to 2.4k between neighbouring meta-epochs (docs/EXPERIMENTS.md, C7).
+    pub w0_average_decay: f64,
     /// Independent adaptations (each on fresh `shots` support shots) per task and evaluation;
     /// the reported return is their mean, so that a figure-4 point measures the adapted return
     /// rather than sampling one adaptation of it.
@@ -517,6 +523,7 @@ impl Default for MetaConfig {
             checkpoint_every: 10,
             target_update_every: 1,
             eval_every: 10,
+            w0_average_decay: 0.0,
             eval_adaptations: 1,
         }
     }
@@ -1167,6 +1174,13 @@ impl Config {
         }
         if m.inner_steps == 0 {
             return Err(self.invalid("meta.inner_steps", &m.inner_steps, "at least 1"));
+        }
+        if !(0.0..1.0).contains(&m.w0_average_decay) {
+            return Err(self.invalid(
+                "meta.w0_average_decay",
+                &m.w0_average_decay,
+                "a decay in [0, 1): 0 = no averaging",
+            ));
         }
         if m.eval_adaptations == 0 {
             return Err(self.invalid(
