@@ -577,5 +577,8 @@ fn averaged_init_is_the_moving_average_of_the_iterates() {
         .map(|i| d * d * w_0[i] + d * (1.0 - d) * w_1[i] + (1.0 - d) * w_2[i])
         .collect();
     assert!(relative_error(&weights(&mean), &expected) < 1e-5);
-    assert!(relative_error(&w_2, &expected) > 1e-3, "the iterate is not the average");
+    assert!(
+        relative_error(&w_2, &expected) > 1e-3,
+        "the iterate is not the average"
+    );
 }

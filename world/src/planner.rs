@@ -12,10 +12,15 @@
 //! minimises their AoI (the rearrangement inequality):
 //! - AoI: sum_i i delta A_(i), i = 0 for the stalest: of two states with the same cost so far,
 //!   the one whose devices are fresher ranks first;
-//! - power: sum_i (lambda / K) P_min(i), P_min(i) the least power of serving the i-th stalest
+//! - power: b sum_i (lambda / K) P_min(i), P_min(i) the least power of serving the i-th stalest
 //!   device from any cell within i moves of the UAV's: of two states with the same AoI, the one
 //!   nearer the devices due next ranks first. It relaxes the path (each device's cell is chosen
-//!   apart), so it never overstates the power of that order.
+//!   apart) but assumes the stalest-first order, which the best policy leaves more often the
+//!   more power weighs; b = `planner.h_power_weight` (0.25) discounts it. Without the power
+//!   part the search lost the round robin on lambda-300 (-6388); at full weight it kept it but
+//!   fell 3% short on lambda-1000 and 11% on a small world where serving out of order pays;
+//!   at 0.25 it loses nothing on lambda 100-600 and finds the exact optimum there
+//!   (docs/EXPERIMENTS.md, P).
 //!
 //! When twice `beam_width` holds every child of every step, nothing is pruned and the search is
 //! exact dynamic programming: it returns the optimal sequence
@@ -49,6 +54,8 @@ pub struct Plan {
 #[derive(Debug, Clone)]
 pub struct Planner {
     beam_width: usize,
+    /// b, the weight of h's power part.
+    h_power_weight: f64,
 }
 
 /// The nodes kept at one step, in structure-of-arrays form.
@@ -84,6 +91,7 @@ impl Planner {
     pub fn new(config: &PlannerConfig) -> Planner {
         Planner {
             beam_width: config.beam_width,
+            h_power_weight: config.h_power_weight,
         }
     }
 
@@ -120,7 +128,7 @@ impl Planner {
         beam: &Beam,
         zone: Option<RainZone>,
     ) -> (Beam, Vec<(u32, u32)>) {
-        let (mut children, aged) = expand(world, reach, beam, zone);
+        let (mut children, aged) = expand(world, reach, self.h_power_weight, beam, zone);
         // Copies of one state share h, so the best copy always ranks before the others: ranking
         // the children first and merging only the best 2 x width spares the merge most of them.
         let shortlist = 2 * self.beam_width;
@@ -153,6 +161,7 @@ impl Planner {
 fn expand(
     world: &World,
     reach: &Reach,
+    h_power_weight: f64,
     beam: &Beam,
     zone: Option<RainZone>,
 ) -> (Vec<Child>, Vec<u16>) {
@@ -179,7 +188,8 @@ fn expand(
             let aoi_key = hash_aoi(vector);
             for mv in Move::ALL {
                 let next = world.moved(cell, mv);
-                let power_to_go = world.power_weight() * reach.power_to_go(next, &due.order);
+                let power_to_go =
+                    h_power_weight * world.power_weight() * reach.power_to_go(next, &due.order);
                 children.push(Child {
                     score: g + aoi_to_go + power_to_go,
                     g,
