@@ -41,7 +41,7 @@ pub fn resolve(args: &TaskArgs) -> Result<(Config, TaskConfig), PyErr> {
     .map_err(config_error)?;
     match (&args.task, args.lam) {
         (Some(name), Some(lam)) => Err(PyValueError::new_err(format!(
-            "task = {name:?} and lam = {lam}: name a task of the config, or define a one-off \
+            "task = {name:?} and lam = {lam:?}: name a task of the config, or define a one-off \
              task with lam (and rain), not both"
         ))),
         (Some(name), None) => {

@@ -208,8 +208,13 @@ impl Worlds {
         })
     }
 
-    /// Starts episode 0 of seed `seeds[i]` in every env i; returns the (N, 2 + K) observations.
-    fn reset<'py>(&mut self, py: Python<'py>, seeds: Vec<u64>) -> PyResult<Bound<'py, PyArray2<f32>>> {
+    /// Starts a new episode in every env i: episode 0 of `seeds[i]`, or where that is None the
+    /// episode after env i's last one; returns the (N, 2 + K) observations.
+    fn reset<'py>(
+        &mut self,
+        py: Python<'py>,
+        seeds: Vec<Option<u64>>,
+    ) -> PyResult<Bound<'py, PyArray2<f32>>> {
         let (n, d) = (self.worlds.len(), self.obs_len());
         if seeds.len() != n {
             return Err(PyValueError::new_err(format!(
@@ -219,7 +224,7 @@ impl Worlds {
         }
         let mut obs = vec![0.0f32; n * d];
         for (i, seed) in seeds.into_iter().enumerate() {
-            self.reset_env(i, Some(seed));
+            self.reset_env(i, seed);
             self.write_obs(i, &mut obs[i * d..(i + 1) * d]);
         }
         obs.into_pyarray(py).reshape([n, d])

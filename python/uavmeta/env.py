@@ -40,7 +40,41 @@ def action_index(action, count):
     return a
 
 
-class UavEnv(gymnasium.Env):
+class WorldProperties:
+    """What the task's world is, for drawing, policies and users; ``_worlds`` is the native
+    ``Worlds``."""
+
+    @property
+    def device_cells(self):
+        return self._worlds.device_cells
+
+    @property
+    def devices(self):
+        return self._worlds.devices
+
+    @property
+    def grid_cells(self):
+        return self._worlds.grid_cells
+
+    @property
+    def horizon(self):
+        return self._worlds.horizon
+
+    @property
+    def lam(self):
+        return self._worlds.lam
+
+    @property
+    def task_name(self):
+        return self._worlds.task_name
+
+    @property
+    def config_toml(self):
+        """The whole config the env was built from, every key written out."""
+        return self._worlds.config_toml
+
+
+class UavEnv(WorldProperties, gymnasium.Env):
     """The UAV world of one task (SPEC sections 1-3), stepped in Rust.
 
     - Observation: ``Box`` of 2 + K float32 values, **raw** by default: [x_u, y_u, A_1..A_K]
@@ -99,10 +133,10 @@ class UavEnv(gymnasium.Env):
         return cls(config=path, task=task, **kwargs)
 
     def reset(self, *, seed=None, options=None):
+        seed = None if seed is None else _args.seed(seed)
         super().reset(seed=seed)
         if seed is None and not self._started:
             seed = int(self.np_random.integers(2**63))
-        seed = None if seed is None else _args.seed(seed)
         obs = self._worlds.reset_one(0, seed)
         self._started = True
         self._cells = [self.uav]
@@ -139,32 +173,3 @@ class UavEnv(gymnasium.Env):
     def trajectory(self):
         """The UAV's cells in this episode so far, from the start cell."""
         return list(self._cells)
-
-    @property
-    def device_cells(self):
-        return self._worlds.device_cells
-
-    @property
-    def devices(self):
-        return self._worlds.devices
-
-    @property
-    def grid_cells(self):
-        return self._worlds.grid_cells
-
-    @property
-    def horizon(self):
-        return self._worlds.horizon
-
-    @property
-    def lam(self):
-        return self._worlds.lam
-
-    @property
-    def task_name(self):
-        return self._worlds.task_name
-
-    @property
-    def config_toml(self):
-        """The whole config the env was built from, every key written out."""
-        return self._worlds.config_toml

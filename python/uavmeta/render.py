@@ -65,6 +65,8 @@ def _aoi_colour(a, aoi_max):
 
 def _draw_path(img, n, px, cells):
     half = max(1, px // 16)
+    r, c = _centre(n, px, *cells[0])  # the start: a square
+    img[r - 3 * half : r + 3 * half + 1, c - 3 * half : c + 3 * half + 1] = PATH
     for (xa, ya), (xb, yb) in zip(cells, cells[1:]):
         (ra, ca), (rb, cb) = _centre(n, px, xa, ya), _centre(n, px, xb, yb)
         r0, r1 = sorted((ra, rb))

@@ -8,7 +8,7 @@ from gymnasium import spaces
 from . import _args
 from ._uavmeta import Worlds
 from . import render as _render
-from .env import observation_space
+from .env import WorldProperties, observation_space
 
 try:  # Gymnasium >= 1.1 names the autoreset modes.
     from gymnasium.vector import AutoresetMode
@@ -18,7 +18,7 @@ except ImportError:  # Gymnasium 1.0: next-step autoreset is the only mode.
     _NEXT_STEP = "NextStep"
 
 
-class VectorEnv(_GymVectorEnv):
+class VectorEnv(WorldProperties, _GymVectorEnv):
     """``num_envs`` worlds of one task, stepped together by the Rust world with the GIL
     released: no Python per env or per step of an env.
 
@@ -61,26 +61,33 @@ class VectorEnv(_GymVectorEnv):
         self.single_action_space = spaces.Discrete(5 * self._worlds.devices)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_space = batch_space(self.single_action_space, num_envs)
+        self._started = False
 
     @classmethod
     def from_config(cls, num_envs, path, task=None, **kwargs):
         return cls(num_envs, config=path, task=task, **kwargs)
 
     def reset(self, *, seed=None, options=None):
-        super().reset(seed=seed)
         n = self.num_envs
         if seed is None:
-            # As SyncVectorEnv's unseeded sub-envs: fresh entropy, one seed per env.
-            seeds = [int(s) for s in self.np_random.integers(2**63, size=n)]
+            super().reset()
+            # As SyncVectorEnv's unseeded sub-envs: each goes on to its next episode, or, on the
+            # first reset, starts from fresh entropy.
+            seeds = [None] * n
+            if not self._started:
+                seeds = [int(s) for s in self.np_random.integers(2**63, size=n)]
         elif isinstance(seed, (list, tuple, np.ndarray)):
             if len(seed) != n:
                 raise ValueError(
                     f"seed has {len(seed)} entries: expected one per env, num_envs = {n}"
                 )
             seeds = [_args.seed(s, f"seed[{i}]") for i, s in enumerate(seed)]
+            super().reset(seed=seeds[0])
         else:
             base = _args.seed(seed)
             seeds = [_args.seed(base + i, f"seed + {i}") for i in range(n)]
+            super().reset(seed=base)
+        self._started = True
         return self._worlds.reset(seeds), {}
 
     def step(self, actions):
