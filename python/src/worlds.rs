@@ -27,6 +27,9 @@ pub fn episode_seed(seed: u64, episode: usize) -> u64 {
     rollout::episode_seed(seed, episode)
 }
 
+/// The most envs one `Worlds` holds: a step's arrays are then about 1 GiB at K = 10.
+const MAX_ENVS: usize = 1 << 24;
+
 /// N worlds of one task (see the module doc for seeds and autoreset).
 #[pyclass(module = "uavmeta._uavmeta")]
 pub struct Worlds {
@@ -181,10 +184,10 @@ impl Worlds {
         rain_moves_every: Option<u32>,
         overrides: Vec<String>,
     ) -> PyResult<Self> {
-        if num_envs == 0 {
-            return Err(PyValueError::new_err(
-                "num_envs = 0: expected at least 1 env",
-            ));
+        if !(1..=MAX_ENVS).contains(&num_envs) {
+            return Err(PyValueError::new_err(format!(
+                "num_envs = {num_envs}: expected 1 to {MAX_ENVS} envs"
+            )));
         }
         let args = TaskArgs {
             config,

@@ -55,6 +55,8 @@ def trace(run_cli, tmp_path, episodes, seed, policy, *task):
 def assert_same_steps(env, steps, act, seed):
     """Runs env from reset(seed) through the CLI's steps, choosing each action with act(obs, step)
     and checking every step's cell, reward, AoI, power, outage and device."""
+    worlds = env.unwrapped._worlds
+    scale = np.array(worlds.observation_scale) if worlds.normalised else np.ones(2 + env.devices)
     obs, _ = env.reset(seed=seed)
     episode = 0
     for s in steps:
@@ -68,7 +70,7 @@ def assert_same_steps(env, steps, act, seed):
         assert reward == s["reward"], s
         assert info["power_mw"] == s["power_mw"] and info["outage"] == s["outage"], s
         assert info["device"] == s["device"], s
-        assert obs[2:].astype(int).tolist() == s["aoi"], s
+        assert np.rint(obs[2:] * scale[2:]).astype(int).tolist() == s["aoi"], s
         assert info["aoi"] == pytest.approx(np.mean(s["aoi"]), rel=1e-12)
         assert not terminated and truncated == (s["t"] == env.horizon - 1)
 

@@ -81,3 +81,9 @@ def test_bad_actions_raise_value_errors_naming_them(actions, needle):
         env.step(actions)
     assert needle in str(error.value), str(error.value)
     env.step(np.array([0, 1, 2]))  # the env is still usable
+
+
+@pytest.mark.parametrize("num_envs", [0, 1 << 30, -2])
+def test_a_bad_num_envs_raises_a_value_error(num_envs):
+    with pytest.raises(ValueError, match=f"num_envs = {num_envs}"):
+        uavmeta.VectorEnv(num_envs, lam=300.0)
