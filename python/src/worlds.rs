@@ -292,8 +292,9 @@ impl Worlds {
                 actions.len()
             )));
         }
-        for (i, &a) in actions.iter().enumerate() {
-            self.check_action(&format!("actions[{i}]"), a)?;
+        let count = self.action_count() as i64;
+        if let Some(i) = actions.iter().position(|a| !(0..count).contains(a)) {
+            self.check_action(&format!("actions[{i}]"), actions[i])?;
         }
         let out = py.detach(|| self.step_all(actions));
         Ok((
