@@ -39,7 +39,12 @@ pub fn load_dataset<'py>(
         .detach(|| DatasetReader::open(&path))
         .map_err(dataset_error)?;
     let out = PyDict::new(py);
-    arrays(py, &out, reader.transitions(), reader.header().observation_len())?;
+    arrays(
+        py,
+        &out,
+        reader.transitions(),
+        reader.header().observation_len(),
+    )?;
     let header = reader.header();
     out.set_item("task_name", &header.task_name)?;
     out.set_item("task_id", header.task)?;
@@ -69,7 +74,10 @@ fn arrays(
     obs_len: usize,
 ) -> PyResult<()> {
     let rows = |f: fn(&Transition) -> &[u16]| -> PyResult<Bound<'_, PyArray2<u16>>> {
-        let flat: Vec<u16> = transitions.iter().flat_map(|t| f(t).iter().copied()).collect();
+        let flat: Vec<u16> = transitions
+            .iter()
+            .flat_map(|t| f(t).iter().copied())
+            .collect();
         let array = Array2::from_shape_vec((transitions.len(), obs_len), flat)
             .map_err(|e| PyValueError::new_err(e.to_string()))?;
         Ok(array.into_pyarray(py))
@@ -92,15 +100,25 @@ fn column<'py, T: numpy::Element>(
     transitions: &[Transition],
     f: impl Fn(&Transition) -> T,
 ) -> Bound<'py, PyArray1<T>> {
-    transitions.iter().map(f).collect::<Vec<T>>().into_pyarray(py)
+    transitions
+        .iter()
+        .map(f)
+        .collect::<Vec<T>>()
+        .into_pyarray(py)
 }
 
 /// lam, rain, rain_moves_every and role of the file's task in `config_path`, after checking the
 /// file was collected in that config's world.
-fn task_metadata(out: &Bound<'_, PyDict>, reader: &DatasetReader, config_path: &Path) -> PyResult<()> {
+fn task_metadata(
+    out: &Bound<'_, PyDict>,
+    reader: &DatasetReader,
+    config_path: &Path,
+) -> PyResult<()> {
     let config = Config::load(config_path, &[]).map_err(config_error)?;
     reader.check_world(&config).map_err(dataset_error)?;
-    let task = config.task(&reader.header().task_name).map_err(config_error)?;
+    let task = config
+        .task(&reader.header().task_name)
+        .map_err(config_error)?;
     out.set_item("lam", task.lambda)?;
     out.set_item("rain", task.rain.map(|z| (z.x0, z.y0, z.x1, z.y1)))?;
     out.set_item("rain_moves_every", task.rain_moves_every)?;

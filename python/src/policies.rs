@@ -17,7 +17,7 @@ use crate::worlds::Worlds;
 
 /// The policies by name.
 enum Kind {
-    Random(RandomPolicy),
+    Random(Box<RandomPolicy>),
     Stalest(StalestPolicy),
     Greedy(GreedyPolicy),
 }
@@ -55,7 +55,7 @@ impl Heuristic {
     #[pyo3(signature = (name, worlds, *, normalised, seed=0))]
     fn new(name: &str, worlds: PyRef<'_, Worlds>, normalised: bool, seed: u64) -> PyResult<Self> {
         let kind = match name {
-            "random" => Kind::Random(RandomPolicy::new(seed)),
+            "random" => Kind::Random(Box::new(RandomPolicy::new(seed))),
             "stalest" => Kind::Stalest(StalestPolicy),
             "greedy" => Kind::Greedy(GreedyPolicy),
             _ => {
@@ -127,7 +127,10 @@ impl Heuristic {
         if (x - rounded).abs() > 1e-3 || !(min..=max).contains(&rounded) {
             let what = if c < 2 { "a cell coordinate" } else { "an AoI" };
             let form = match self.normalised {
-                true => format!("divided by {} (the policy reads normalised observations)", self.to_raw[c]),
+                true => format!(
+                    "divided by {} (the policy reads normalised observations)",
+                    self.to_raw[c]
+                ),
                 false => "(the policy reads raw observations)".to_string(),
             };
             return Err(PyValueError::new_err(format!(

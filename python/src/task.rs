@@ -66,7 +66,9 @@ pub fn resolve(args: &TaskArgs) -> Result<(Config, TaskConfig), PyErr> {
                     config.tasks.len() - 1
                 }
             };
-            config.validate().map_err(|e| one_off_error(e, index, args))?;
+            config
+                .validate()
+                .map_err(|e| one_off_error(e, index, args))?;
             Ok((config, task))
         }
     }
@@ -74,7 +76,9 @@ pub fn resolve(args: &TaskArgs) -> Result<(Config, TaskConfig), PyErr> {
 
 /// The one-off task of `lam` with the caller's rain; its name says its rain and how it moves.
 fn one_off(lam: f64, args: &TaskArgs) -> TaskConfig {
-    let rain = args.rain.map(|(x0, y0, x1, y1)| RainZone { x0, y0, x1, y1 });
+    let rain = args
+        .rain
+        .map(|(x0, y0, x1, y1)| RainZone { x0, y0, x1, y1 });
     let mut task = TaskConfig::one_off(lam, rain);
     task.rain_moves_every = args.rain_moves_every;
     if let Some(every) = args.rain_moves_every {

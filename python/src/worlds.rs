@@ -281,11 +281,15 @@ impl Worlds {
     /// Steps all N envs with `actions` (N action indices) in one call, the GIL released, with
     /// next-step autoreset. Returns (obs, reward, terminated, truncated, aoi, power_mw, outage,
     /// device, stepped): `stepped` is false for the envs autoreset by this call.
-    fn step<'py>(&mut self, py: Python<'py>, actions: PyReadonlyArray1<'py, i64>) -> PyResult<StepBatch<'py>> {
+    fn step<'py>(
+        &mut self,
+        py: Python<'py>,
+        actions: PyReadonlyArray1<'py, i64>,
+    ) -> PyResult<StepBatch<'py>> {
         let (n, d) = (self.worlds.len(), self.obs_len());
-        let actions = actions
-            .as_slice()
-            .map_err(|e| PyValueError::new_err(format!("actions: {e}: expected a contiguous array")))?;
+        let actions = actions.as_slice().map_err(|e| {
+            PyValueError::new_err(format!("actions: {e}: expected a contiguous array"))
+        })?;
         if actions.len() != n {
             return Err(PyValueError::new_err(format!(
                 "actions has {} entries: expected one per env, num_envs = {n}",
@@ -312,7 +316,10 @@ impl Worlds {
 
     /// Env i's state for drawing: ((x, y) of the UAV, step t, the rain zone now or None, A_1..A_K).
     #[allow(clippy::type_complexity)]
-    fn state(&self, i: usize) -> PyResult<((u32, u32), u32, Option<(u32, u32, u32, u32)>, Vec<u16>)> {
+    fn state(
+        &self,
+        i: usize,
+    ) -> PyResult<((u32, u32), u32, Option<(u32, u32, u32, u32)>, Vec<u16>)> {
         self.check_env(i)?;
         let w = &self.worlds[i];
         let rain = w.rain_zone().map(|z| (z.x0, z.y0, z.x1, z.y1));
