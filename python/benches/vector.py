@@ -6,8 +6,9 @@ Run on one core, in the virtualenv where the package is installed:
 
     taskset -c 1 python python/benches/vector.py
 
-Every loop steps with actions drawn beforehand (a pool of 64 batches, cycled), so it times the
-env alone, and runs for at least --seconds; the figure is the best of --repeats loops.
+Every loop steps with actions drawn beforehand (a pool of up to 64 batches, cycled), so it times
+the env alone, for at least --seconds; the three envs take turns, --rounds loops each, and the
+table gives the best and the median loop of each.
 """
 
 import argparse
@@ -105,28 +106,24 @@ def check_numpy_world_is_the_world():
         np.testing.assert_array_equal(got[3], want[3])
 
 
-def steps_per_second(env, n, seconds, repeats):
-    env.reset(seed=0) if not isinstance(env, NumpyWorld) else env.reset()
-    pool = np.random.default_rng(0).integers(0, 50, (64, n))
-    best = 0.0
-    for _ in range(repeats):
-        steps, start = 0, time.perf_counter()
-        while True:
-            for actions in pool[: max(1, min(64, 4096 // n))]:
-                env.step(actions)
-                steps += 1
-            elapsed = time.perf_counter() - start
-            if elapsed >= seconds:
-                break
-        best = max(best, steps * n / elapsed)
-    return best
+def rate(env, pool, seconds):
+    """Env steps per second of one loop of at least ``seconds``."""
+    n = pool.shape[1]
+    steps, start = 0, time.perf_counter()
+    while True:
+        for actions in pool:
+            env.step(actions)
+            steps += 1
+        elapsed = time.perf_counter() - start
+        if elapsed >= seconds:
+            return steps * n / elapsed
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[1, 64, 4096])
-    parser.add_argument("--seconds", type=float, default=2.0)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--seconds", type=float, default=0.5, help="per loop")
+    parser.add_argument("--rounds", type=int, default=7, help="loops per env, interleaved")
     args = parser.parse_args()
     check_numpy_world_is_the_world()
     makers = {
@@ -138,14 +135,28 @@ def main():
             n, uavmeta.UavEnv(lam=300.0)._worlds.device_cells, 300.0, rain=(3, 3, 5, 5)
         ),
     }
+    results = {name: [] for name in makers}
+    for n in args.sizes:
+        envs = {name: make(n) for name, make in makers.items()}
+        for env in envs.values():
+            env.reset(seed=0) if not isinstance(env, NumpyWorld) else env.reset()
+        pool = np.random.default_rng(0).integers(0, 50, (max(1, min(64, 4096 // n)), n))
+        rates = {name: [] for name in makers}
+        # Interleaved, so that a burst of load elsewhere on the machine hits every env alike.
+        for _ in range(args.rounds):
+            for name, env in envs.items():
+                rates[name].append(rate(env, pool, args.seconds))
+        for name in makers:
+            results[name].append((max(rates[name]), float(np.median(rates[name]))))
+    print("best (median) of", args.rounds, "interleaved loops of", args.seconds, "s, env steps/s")
     print("| env | " + " | ".join(f"N = {n}" for n in args.sizes) + " |")
     print("| --- |" + " ---: |" * len(args.sizes))
-    for name, make in makers.items():
-        cells = []
-        for n in args.sizes:
-            rate = steps_per_second(make(n), n, args.seconds, args.repeats)
-            cells.append(f"{rate / 1e6:.3f} M" if rate >= 1e6 else f"{rate / 1e3:.1f} k")
-        print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
+    for name, cells in results.items():
+        print(f"| {name} | " + " | ".join(f"{fmt(b)} ({fmt(m)})" for b, m in cells) + " |")
+
+
+def fmt(rate):
+    return f"{rate / 1e6:.2f} M" if rate >= 1e6 else f"{rate / 1e3:.0f} k"
 
 
 if __name__ == "__main__":
