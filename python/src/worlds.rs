@@ -151,8 +151,17 @@ impl Worlds {
     }
 }
 
-/// One env's step as `UavEnv.step` returns it, before Python adds the dict.
-type StepOne<'py> = (Bound<'py, PyArray1<f32>>, f64, bool, f64, f64, bool, usize);
+/// One env's step as `UavEnv.step` returns it, before Python adds the dict, and the UAV's cell.
+type StepOne<'py> = (
+    Bound<'py, PyArray1<f32>>,
+    f64,
+    bool,
+    f64,
+    f64,
+    bool,
+    usize,
+    (u32, u32),
+);
 
 /// A batched step: obs, reward, terminated, truncated, aoi, power_mw, outage, device, stepped.
 type StepBatch<'py> = (
@@ -254,8 +263,8 @@ impl Worlds {
         Ok(obs.into_pyarray(py))
     }
 
-    /// One step of env i: (obs, reward, truncated, aoi, power_mw, outage, device). Env i must
-    /// have been reset and not yet have reached its horizon.
+    /// One step of env i: (obs, reward, truncated, aoi, power_mw, outage, device, the UAV's cell
+    /// after the move). Env i must have been reset and not yet have reached its horizon.
     fn step_one<'py>(&mut self, py: Python<'py>, i: usize, action: i64) -> PyResult<StepOne<'py>> {
         self.check_env(i)?;
         let action = self.check_action("action", action)?;
@@ -275,6 +284,7 @@ impl Worlds {
             step.power_mw,
             step.outage,
             step.device,
+            self.worlds[i].uav(),
         ))
     }
 

@@ -189,3 +189,16 @@ def test_render_draws_the_grid_rain_devices_and_uav():
         assert pixel(x, y, dx=1) not in (uavmeta.render.BACKGROUND, uavmeta.render.RAIN)
     picture = uavmeta.render.trajectory(env, [(0, 0), (0, 1), (1, 1)])
     assert picture.shape == frame.shape
+
+
+def test_action_indices_are_move_times_k_plus_device():
+    assert uavmeta.MOVES == ("north", "south", "east", "west", "hover")
+    assert uavmeta.action("west", 4) == 34 and uavmeta.action_parts(34) == ("west", 4)
+    assert uavmeta.action("hover", 2, devices=5) == 22
+    env = uavmeta.UavEnv(lam=300.0, start_cell=[5, 5])
+    env.reset(seed=0)
+    for move, cell in [("north", (5, 6)), ("east", (6, 6)), ("south", (6, 5)), ("west", (5, 5))]:
+        _, _, _, _, info = env.step(uavmeta.action(move, 7))
+        assert env.uav == cell and info["device"] == 7
+    with pytest.raises(ValueError, match="move = 'up'"):
+        uavmeta.action("up", 0)

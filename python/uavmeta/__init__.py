@@ -31,6 +31,23 @@ MOVES = tuple(_MOVES)
 
 ENV_ID = "uavmeta/UAV-v0"
 
+
+def action(move, device, devices=10):
+    """The action index of flying ``move`` (a name of :data:`MOVES`) and serving ``device``
+    among ``devices`` (K): ``MOVES.index(move) * K + device``."""
+    if move not in MOVES:
+        raise ValueError(f"move = {move!r}: expected one of {', '.join(MOVES)}")
+    if not 0 <= device < devices:
+        raise ValueError(f"device = {device!r}: expected 0 <= device < {devices}")
+    return MOVES.index(move) * devices + device
+
+
+def action_parts(a, devices=10):
+    """(move name, device) of action index ``a`` among K = ``devices`` devices."""
+    if not 0 <= a < len(MOVES) * devices:
+        raise ValueError(f"action = {a!r}: expected 0 <= action < {len(MOVES) * devices}")
+    return MOVES[a // devices], a % devices
+
 if ENV_ID not in gymnasium.registry:
     gymnasium.register(
         id=ENV_ID,
@@ -45,6 +62,8 @@ __all__ = [
     "DatasetError",
     "UavEnv",
     "VectorEnv",
+    "action",
+    "action_parts",
     "episode_seed",
     "load_dataset",
     "policies",

@@ -144,8 +144,8 @@ class UavEnv(WorldProperties, gymnasium.Env):
 
     def step(self, action):
         a = action_index(action, self.action_space.n)
-        obs, reward, truncated, aoi, power_mw, outage, device = self._worlds.step_one(0, a)
-        self._cells.append(self.uav)
+        obs, reward, truncated, aoi, power_mw, outage, device, cell = self._worlds.step_one(0, a)
+        self._cells.append(cell)
         info = {"aoi": aoi, "power_mw": power_mw, "outage": outage, "device": device}
         return obs, reward, False, truncated, info
 
