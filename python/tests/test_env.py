@@ -13,8 +13,8 @@ from conftest import CONFIG
 
 @pytest.mark.parametrize("normalised", [False, True])
 def test_check_env_passes(normalised):
-    env = uavmeta.UavEnv(lam=300.0, rain=(3, 3, 5, 5), normalised=normalised)
-    check_env(env, skip_render_check=False)
+    env = gymnasium.make(uavmeta.ENV_ID, lam=300.0, rain=(3, 3, 5, 5), normalised=normalised)
+    check_env(env.unwrapped, skip_render_check=False)
 
 
 def test_make_and_from_config_build_the_named_task():
