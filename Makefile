@@ -9,12 +9,12 @@ TORCH_VERSION := 2.13.0
 TORCH_VENV ?= $(HOME)/.cache/uavmeta/torch-$(TORCH_VERSION)
 CONFIG ?= configs/default.toml
 
-.PHONY: run test build bench libtorch test-tools interop
+.PHONY: run test build bench libtorch test-tools interop python
 
 run: build
 	target/release/uavmeta launch --config $(CONFIG)
 
-test: libtorch test-tools interop
+test: libtorch test-tools interop python
 	cargo test --workspace --release
 
 build: libtorch
@@ -59,3 +59,12 @@ $(TORCH_VENV)/.interop-installed: $(INTEROP_REQUIREMENTS) $(TORCH_VENV)/.install
 	@$(TORCH_VENV)/bin/pip install --no-input --disable-pip-version-check -q \
 	  -c $(TORCH_VENV)/torch-constraint.txt -r $(INTEROP_REQUIREMENTS) && touch $@ || \
 	  echo "the interop packages ($(INTEROP_REQUIREMENTS)) are not installed; tests/interop.rs skips"
+
+# The Python package (python/, `import uavmeta`; PyO3, built by maturin) installed into the same
+# virtualenv, where tests/python.rs runs its pytest suite against gymnasium, numpy and
+# stable-baselines3. Installed again on every run: cargo rebuilds only what changed (python/target),
+# so an unchanged package costs seconds. If it cannot be built the test skips, except under CI=true.
+python: interop
+	@PATH="$(TORCH_VENV)/bin:$$PATH" $(TORCH_VENV)/bin/pip install --no-input --disable-pip-version-check -q \
+	  --no-build-isolation --no-deps --force-reinstall ./python || \
+	  echo "the Python package (python/) is not installed; tests/python.rs skips"

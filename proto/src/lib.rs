@@ -12,6 +12,9 @@
 //! - [`metrics`]: every metric name and help text the processes export (so a renamed metric is a
 //!   compile error in every reader), the /metrics endpoint they serve and the client that reads it.
 //!
+//! `transport`, `process` and `metrics` are the default feature `ipc`; without it (as
+//! `uavmeta-world` and the Python package take this crate) neither iceoryx2 nor Prometheus is built.
+//!
 //! ```
 //! use uavmeta_proto::config::Config;
 //! let config = Config::from_toml_str("[world]\ndevices = 5", "example.toml", &["tasks.0.lambda=7".into()]).unwrap();
@@ -21,7 +24,10 @@
 
 pub mod config;
 pub mod dataset;
+#[cfg(feature = "ipc")]
 pub mod metrics;
+#[cfg(feature = "ipc")]
 pub mod process;
 pub mod stats;
+#[cfg(feature = "ipc")]
 pub mod transport;

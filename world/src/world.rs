@@ -297,6 +297,24 @@ impl World {
         }
     }
 
+    /// Puts the UAV and the AoI counters where the raw observation `obs` = [x_u, y_u, A_1..A_K]
+    /// says, keeping the step counter and the rain zone: policies that read the world (the
+    /// heuristics) can then act on an observation alone, as the Python package's batched
+    /// policies do.
+    ///
+    /// Panics unless `obs` has 2 + K values, the cell is on the grid and every A_k is in
+    /// 1..=aoi_max; callers check untrusted observations first.
+    pub fn set_observation(&mut self, obs: &[u16]) {
+        assert_eq!(obs.len(), self.obs.len(), "observation length");
+        let grid = self.grid as u16;
+        assert!(obs[0] < grid && obs[1] < grid, "cell off the grid");
+        assert!(
+            obs[2..].iter().all(|&a| (1..=self.aoi_max).contains(&a)),
+            "AoI outside 1..=aoi_max"
+        );
+        self.obs.copy_from_slice(obs);
+    }
+
     /// One step of SPEC section 1 with action `a = move * K + device`.
     pub fn step(&mut self, action: usize) -> Step {
         let Some(&(mv, device)) = self.action_parts.get(action) else {

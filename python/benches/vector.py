@@ -1,0 +1,163 @@
+"""Steps per second of the batched world from Python (docs/BENCHMARKS.md, "The world from
+Python"): uavmeta.VectorEnv beside gymnasium.vector.SyncVectorEnv of uavmeta.UavEnv and beside
+NumpyWorld, the same world written in a page of numpy, at N = 1, 64 and 4096 envs.
+
+Run on one core, in the virtualenv where the package is installed:
+
+    taskset -c 1 python python/benches/vector.py
+
+Every loop steps with actions drawn beforehand (a pool of up to 64 batches, cycled), so it times
+the env alone, for at least --seconds; the three envs take turns, --rounds loops each, and the
+table gives the best and the median loop of each.
+"""
+
+import argparse
+import time
+
+import gymnasium
+import numpy as np
+
+import uavmeta
+
+MOVES = np.array([(0, 1), (0, -1), (1, 0), (-1, 0), (0, 0)])
+
+
+class NumpyWorld:
+    """SPEC section 1 (defaults, one rain zone, no moving rain) for N envs in numpy, with
+    next-step autoreset: the comparison a Python user could write in an afternoon."""
+
+    def __init__(self, n, device_cells, lam, rain=None, grid=10, horizon=100, aoi_max=100,
+                 start_cell=None, seed=0):
+        self.n, self.grid, self.horizon, self.aoi_max = n, grid, horizon, aoi_max
+        self.cells = np.asarray(device_cells)
+        self.k = len(self.cells)
+        self.weight = lam / self.k
+        self.rain = rain
+        self.start_cell = start_cell
+        self.rng = np.random.default_rng(seed)
+        # P = (2^(M/B) - 1) sigma^2 / g0 (h^2 + d^2) W, in mW; rain: * 10^(gamma_R d_km / 10).
+        xs, ys = np.meshgrid(np.arange(grid), np.arange(grid), indexing="xy")
+        ux, uy = xs.reshape(-1, 1), ys.reshape(-1, 1)  # cell c = y * grid + x
+        slant2 = 100.0**2 + ((ux - self.cells[:, 0]) * 100.0) ** 2 + ((uy - self.cells[:, 1]) * 100.0) ** 2
+        watts_per_m2 = (2.0**5 - 1) * 10 ** (-130 / 10) / 10 ** (-30 / 10)
+        self.clear_mw = watts_per_m2 * slant2 * 1e3
+        gamma = 0.2051 * 12.5**0.9679
+        self.rain_mw = self.clear_mw * 10 ** (gamma * np.sqrt(slant2) / 1e3 / 10)
+        self.rows = np.arange(n)
+        self.pending = np.zeros(n, bool)
+        self.pos = np.zeros((n, 2), np.int64)
+        self.aoi = np.ones((n, self.k), np.int64)
+        self.t = np.zeros(n, np.int64)
+
+    def _reset(self, mask):
+        m = int(mask.sum())
+        if self.start_cell is None:
+            self.pos[mask] = self.rng.integers(0, self.grid, (m, 2))
+        else:
+            self.pos[mask] = self.start_cell
+        self.aoi[mask] = 1
+        self.t[mask] = 0
+
+    def reset(self):
+        self._reset(np.ones(self.n, bool))
+        self.pending[:] = False
+        return self._obs()
+
+    def _obs(self):
+        return np.concatenate([self.pos, self.aoi], axis=1).astype(np.float32)
+
+    def step(self, actions):
+        restart = self.pending.copy()
+        move, dev = np.divmod(actions, self.k)
+        x, y = self.pos[:, 0], self.pos[:, 1]
+        cell = y * self.grid + x
+        outage = np.zeros(self.n, bool)
+        if self.rain is not None:
+            x0, y0, x1, y1 = self.rain
+            outage = (x0 <= x) & (x <= x1) & (y0 <= y) & (y <= y1)
+        power = np.where(outage, self.rain_mw[cell, dev], self.clear_mw[cell, dev])
+        np.minimum(self.aoi + 1, self.aoi_max, out=self.aoi)
+        served = ~outage
+        self.aoi[self.rows[served], dev[served]] = 1
+        reward = -(self.aoi.sum(axis=1) + self.weight * power)
+        self.pos += MOVES[move]
+        np.clip(self.pos, 0, self.grid - 1, out=self.pos)
+        self.t += 1
+        truncated = self.t >= self.horizon
+        if restart.any():  # next-step autoreset: these envs did not step
+            self._reset(restart)
+            reward[restart], truncated[restart] = 0.0, False
+        self.pending = truncated.copy()
+        return self._obs(), reward, np.zeros(self.n, bool), truncated, {}
+
+
+def check_numpy_world_is_the_world():
+    """Same start, same actions: NumpyWorld's rewards are uavmeta's (so the race is fair)."""
+    ours = uavmeta.VectorEnv(3, lam=300.0, rain=(3, 3, 5, 5), start_cell=[4, 2])
+    theirs = NumpyWorld(3, ours._worlds.device_cells, 300.0, rain=(3, 3, 5, 5), start_cell=(4, 2))
+    a, _ = ours.reset(seed=0)
+    np.testing.assert_array_equal(a, theirs.reset())
+    rng = np.random.default_rng(1)
+    for _ in range(250):
+        actions = rng.integers(0, 50, 3)
+        got, want = ours.step(actions), theirs.step(actions)
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_allclose(got[1], want[1], rtol=1e-12)
+        np.testing.assert_array_equal(got[3], want[3])
+
+
+def rate(env, pool, seconds):
+    """Env steps per second of one loop of at least ``seconds``."""
+    n = pool.shape[1]
+    steps, start = 0, time.perf_counter()
+    while True:
+        for actions in pool:
+            env.step(actions)
+            steps += 1
+        elapsed = time.perf_counter() - start
+        if elapsed >= seconds:
+            return steps * n / elapsed
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[1, 64, 4096])
+    parser.add_argument("--seconds", type=float, default=0.5, help="per loop")
+    parser.add_argument("--rounds", type=int, default=7, help="loops per env, interleaved")
+    args = parser.parse_args()
+    check_numpy_world_is_the_world()
+    makers = {
+        "uavmeta.VectorEnv": lambda n: uavmeta.VectorEnv(n, lam=300.0, rain=(3, 3, 5, 5)),
+        "SyncVectorEnv(UavEnv)": lambda n: gymnasium.vector.SyncVectorEnv(
+            [lambda: uavmeta.UavEnv(lam=300.0, rain=(3, 3, 5, 5)) for _ in range(n)]
+        ),
+        "NumpyWorld": lambda n: NumpyWorld(
+            n, uavmeta.UavEnv(lam=300.0)._worlds.device_cells, 300.0, rain=(3, 3, 5, 5)
+        ),
+    }
+    results = {name: [] for name in makers}
+    for n in args.sizes:
+        envs = {name: make(n) for name, make in makers.items()}
+        for env in envs.values():
+            env.reset(seed=0) if not isinstance(env, NumpyWorld) else env.reset()
+        pool = np.random.default_rng(0).integers(0, 50, (max(1, min(64, 4096 // n)), n))
+        rates = {name: [] for name in makers}
+        # Interleaved, so that a burst of load elsewhere on the machine hits every env alike.
+        for _ in range(args.rounds):
+            for name, env in envs.items():
+                rates[name].append(rate(env, pool, args.seconds))
+        for name in makers:
+            results[name].append((max(rates[name]), float(np.median(rates[name]))))
+    print("best (median) of", args.rounds, "interleaved loops of", args.seconds, "s, env steps/s")
+    print("| env | " + " | ".join(f"N = {n}" for n in args.sizes) + " |")
+    print("| --- |" + " ---: |" * len(args.sizes))
+    for name, cells in results.items():
+        print(f"| {name} | " + " | ".join(f"{fmt(b)} ({fmt(m)})" for b, m in cells) + " |")
+
+
+def fmt(rate):
+    return f"{rate / 1e6:.2f} M" if rate >= 1e6 else f"{rate / 1e3:.0f} k"
+
+
+if __name__ == "__main__":
+    main()

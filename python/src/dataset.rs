@@ -1,0 +1,145 @@
+//! A `.uavds` dataset file (`uavmeta_proto::dataset`) as numpy arrays with its task's metadata.
+//!
+//! The file is read with the strict `DatasetReader`: any damage (a bad magic, a CRC32 that does
+//! not match, a torn tail) raises `uavmeta.DatasetError` with the reader's message, which names
+//! the file and the byte offset. The task's lambda and rain come from the config saved beside the
+//! file (`FILE.config.toml`, written by `uavmeta collect`) or the one given.
+
+use std::path::{Path, PathBuf};
+
+use numpy::ndarray::Array2;
+use numpy::{IntoPyArray, PyArray1, PyArray2};
+use pyo3::exceptions::{PyFileNotFoundError, PyOSError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+use uavmeta_proto::config::Config;
+use uavmeta_proto::dataset::{DatasetError as ReadError, DatasetReader, Transition};
+
+use crate::task::config_error;
+
+pyo3::create_exception!(
+    _uavmeta,
+    DatasetError,
+    PyValueError,
+    "A dataset file that is damaged or not a uavmeta dataset; the message names the file and the byte offset."
+);
+
+/// Reads `path` into a dict of numpy arrays (obs, action, reward, next_obs, truncated, task,
+/// actor, episode, step, seq; one row per transition) and its metadata (task_name, task_id,
+/// devices, world_hash, chunks, and, from the config, lam, rain, rain_moves_every, role and
+/// config_path). `config` defaults to `FILE.config.toml` when that exists.
+#[pyfunction]
+#[pyo3(signature = (path, config=None))]
+pub fn load_dataset<'py>(
+    py: Python<'py>,
+    path: PathBuf,
+    config: Option<PathBuf>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let reader = py
+        .detach(|| DatasetReader::open(&path))
+        .map_err(dataset_error)?;
+    let out = PyDict::new(py);
+    arrays(
+        py,
+        &out,
+        reader.transitions(),
+        reader.header().observation_len(),
+    )?;
+    let header = reader.header();
+    out.set_item("task_name", &header.task_name)?;
+    out.set_item("task_id", header.task)?;
+    out.set_item("devices", header.devices)?;
+    out.set_item("world_hash", header.world_hash)?;
+    out.set_item("chunks", reader.chunks())?;
+    out.set_item("path", path.display().to_string())?;
+    let config_path = config.or_else(|| Some(saved_config(&path)).filter(|p| p.exists()));
+    if let Some(config_path) = config_path {
+        task_metadata(&out, &reader, &config_path)?;
+    }
+    Ok(out)
+}
+
+/// Where `uavmeta collect` saves the config of dataset `path`: `path` with `.config.toml` added.
+fn saved_config(path: &Path) -> PathBuf {
+    let mut name = path.as_os_str().to_owned();
+    name.push(".config.toml");
+    PathBuf::from(name)
+}
+
+/// The transitions as columns.
+fn arrays(
+    py: Python<'_>,
+    out: &Bound<'_, PyDict>,
+    transitions: &[Transition],
+    obs_len: usize,
+) -> PyResult<()> {
+    let rows = |f: fn(&Transition) -> &[u16]| -> PyResult<Bound<'_, PyArray2<u16>>> {
+        let flat: Vec<u16> = transitions
+            .iter()
+            .flat_map(|t| f(t).iter().copied())
+            .collect();
+        let array = Array2::from_shape_vec((transitions.len(), obs_len), flat)
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        Ok(array.into_pyarray(py))
+    };
+    out.set_item("obs", rows(|t| &t.obs)?)?;
+    out.set_item("next_obs", rows(|t| &t.next_obs)?)?;
+    out.set_item("action", column(py, transitions, |t| t.action as i64))?;
+    out.set_item("reward", column(py, transitions, |t| t.reward))?;
+    out.set_item("truncated", column(py, transitions, |t| t.truncated))?;
+    out.set_item("task", column(py, transitions, |t| t.task))?;
+    out.set_item("actor", column(py, transitions, |t| t.actor))?;
+    out.set_item("episode", column(py, transitions, |t| t.episode))?;
+    out.set_item("step", column(py, transitions, |t| t.step))?;
+    out.set_item("seq", column(py, transitions, |t| t.seq))?;
+    Ok(())
+}
+
+fn column<'py, T: numpy::Element>(
+    py: Python<'py>,
+    transitions: &[Transition],
+    f: impl Fn(&Transition) -> T,
+) -> Bound<'py, PyArray1<T>> {
+    transitions
+        .iter()
+        .map(f)
+        .collect::<Vec<T>>()
+        .into_pyarray(py)
+}
+
+/// lam, rain, rain_moves_every and role of the file's task in `config_path`, after checking the
+/// file was collected in that config's world.
+fn task_metadata(
+    out: &Bound<'_, PyDict>,
+    reader: &DatasetReader,
+    config_path: &Path,
+) -> PyResult<()> {
+    let config = Config::load(config_path, &[]).map_err(config_error)?;
+    reader.check_world(&config).map_err(dataset_error)?;
+    let task = config
+        .task(&reader.header().task_name)
+        .map_err(config_error)?;
+    out.set_item("lam", task.lambda)?;
+    out.set_item("rain", task.rain.map(|z| (z.x0, z.y0, z.x1, z.y1)))?;
+    out.set_item("rain_moves_every", task.rain_moves_every)?;
+    let role = match task.role {
+        uavmeta_proto::config::TaskRole::MetaTrain => "meta-train",
+        uavmeta_proto::config::TaskRole::MetaTest => "meta-test",
+    };
+    out.set_item("role", role)?;
+    out.set_item("config_path", config_path.display().to_string())?;
+    Ok(())
+}
+
+/// A reader error as a Python exception with the reader's message: a missing file is a
+/// `FileNotFoundError`, another failed read an `OSError`, anything wrong inside the file a
+/// `DatasetError`.
+fn dataset_error(e: ReadError) -> PyErr {
+    match &e {
+        ReadError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
+            PyFileNotFoundError::new_err(e.to_string())
+        }
+        ReadError::Io { source, .. } => PyOSError::new_err(format!("{e}: {source}")),
+        _ => DatasetError::new_err(e.to_string()),
+    }
+}

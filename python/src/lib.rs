@@ -1,0 +1,37 @@
+//! The native half of the Python package `uavmeta`: the world of `uavmeta-world` and the dataset
+//! format of `uavmeta-proto`, converted to numpy at the edge. It knows nothing of Gymnasium; the
+//! Python half (`python/uavmeta`) builds `UavEnv` and `VectorEnv` on [`worlds::Worlds`].
+//!
+//! - [`task`]: a config file, a task name or one-off arguments to the world and task they mean,
+//!   with every bad argument a `ValueError` naming the key and the value.
+//! - [`worlds`]: [`worlds::Worlds`], N worlds of one task stepped in one call on numpy arrays
+//!   with the GIL released, with Gymnasium's next-step autoreset and the CLI's episode seeds.
+//! - [`policies`]: the heuristics (random, stalest, greedy) as batched functions of observations.
+//! - [`dataset`]: a `.uavds` file as numpy arrays with its task's metadata.
+//!
+//! No libtorch and no iceoryx2: a user's own torch never meets ours in one process.
+//!
+//! ```python
+//! import uavmeta._uavmeta as native
+//! worlds = native.Worlds(num_envs=4, lam=300.0)
+//! obs = worlds.reset([0, 1, 2, 3])          # (4, 12) float32
+//! ```
+
+use pyo3::prelude::*;
+
+pub mod dataset;
+pub mod policies;
+pub mod task;
+pub mod worlds;
+
+#[pymodule]
+fn _uavmeta(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<worlds::Worlds>()?;
+    m.add_class::<policies::Heuristic>()?;
+    // The planner reference (world/src/planner.rs) joins `policies` here once it lands.
+    m.add_function(wrap_pyfunction!(dataset::load_dataset, m)?)?;
+    m.add_function(wrap_pyfunction!(worlds::episode_seed, m)?)?;
+    m.add("DatasetError", m.py().get_type::<dataset::DatasetError>())?;
+    m.add("ACTION_MOVES", uavmeta_proto::config::MOVES.to_vec())?;
+    Ok(())
+}

@@ -1,0 +1,119 @@
+//! From the Python arguments (a config file, a task name, or a one-off lambda, rain zone and
+//! `rain_moves_every`, plus `world.*` overrides) to the world and task they mean, exactly as the
+//! CLI's `--config`, `--set`, `--task`, `--lambda` and `--rain` resolve them, so a Python env and
+//! `uavmeta env rollout` with the same arguments step the same world.
+//!
+//! Every error is a Python exception carrying the config crate's message, which names the file or
+//! override, the key and the value; errors about the one-off task name the Python argument
+//! (`lam`, `rain`, `rain_moves_every`) instead of the config's `tasks[i]`.
+
+use std::path::PathBuf;
+
+use pyo3::exceptions::{PyOSError, PyValueError};
+use pyo3::PyErr;
+use uavmeta_proto::config::{Config, ConfigError, RainZone, TaskConfig};
+
+/// The task of SPEC section 2 that an env gets when no task is named: the paper's unseen one.
+pub const DEFAULT_LAMBDA: f64 = 300.0;
+
+/// What the Python caller asked for.
+#[derive(Debug, Clone, Default)]
+pub struct TaskArgs {
+    /// A config file; SPEC's defaults when absent.
+    pub config: Option<PathBuf>,
+    /// A task of the config, by name.
+    pub task: Option<String>,
+    /// The lambda of a one-off task.
+    pub lam: Option<f64>,
+    /// The one-off task's rain zone (x0, y0, x1, y1), inclusive.
+    pub rain: Option<(u32, u32, u32, u32)>,
+    pub rain_moves_every: Option<u32>,
+    /// `KEY=VALUE` overrides in `--set` form (dotted keys, TOML values).
+    pub overrides: Vec<String>,
+}
+
+/// The validated config and the task the arguments name.
+pub fn resolve(args: &TaskArgs) -> Result<(Config, TaskConfig), PyErr> {
+    let mut config = match &args.config {
+        Some(path) => Config::load(path, &args.overrides),
+        None => Config::from_toml_str("", "the default config (SPEC)", &args.overrides),
+    }
+    .map_err(config_error)?;
+    match (&args.task, args.lam) {
+        (Some(name), Some(lam)) => Err(PyValueError::new_err(format!(
+            "task = {name:?} and lam = {lam:?}: name a task of the config, or define a one-off \
+             task with lam (and rain), not both"
+        ))),
+        (Some(name), None) => {
+            if args.rain.is_some() || args.rain_moves_every.is_some() {
+                return Err(PyValueError::new_err(format!(
+                    "task = {name:?}: rain and rain_moves_every define a one-off task; give \
+                     them with lam, or set them in the config's task"
+                )));
+            }
+            let task = config.task(name).map_err(config_error)?.clone();
+            Ok((config, task))
+        }
+        (None, lam) => {
+            let task = one_off(lam.unwrap_or(DEFAULT_LAMBDA), args);
+            let index = match config.tasks.iter().position(|t| t.name == task.name) {
+                Some(i) => {
+                    config.tasks[i] = task.clone();
+                    i
+                }
+                None => {
+                    config.tasks.push(task.clone());
+                    config.tasks.len() - 1
+                }
+            };
+            config
+                .validate()
+                .map_err(|e| one_off_error(e, index, args))?;
+            Ok((config, task))
+        }
+    }
+}
+
+/// The one-off task of `lam` with the caller's rain; its name says its rain and how it moves.
+fn one_off(lam: f64, args: &TaskArgs) -> TaskConfig {
+    let rain = args
+        .rain
+        .map(|(x0, y0, x1, y1)| RainZone { x0, y0, x1, y1 });
+    let mut task = TaskConfig::one_off(lam, rain);
+    task.rain_moves_every = args.rain_moves_every;
+    if let Some(every) = args.rain_moves_every {
+        task.name = format!("{}-moves-{every}", task.name);
+    }
+    task
+}
+
+/// A config error as the Python exception that fits: unreadable files are `OSError`s, the rest
+/// `ValueError`s, each with the config crate's message.
+pub fn config_error(e: ConfigError) -> PyErr {
+    match e {
+        ConfigError::Read { .. } => PyOSError::new_err(e.to_string()),
+        _ => PyValueError::new_err(e.to_string()),
+    }
+}
+
+/// As [`config_error`], naming the Python argument when the bad key is the one-off task's.
+fn one_off_error(e: ConfigError, index: usize, args: &TaskArgs) -> PyErr {
+    if let ConfigError::Invalid {
+        key,
+        value,
+        expected,
+        ..
+    } = &e
+    {
+        let prefix = format!("tasks[{index}].");
+        if let Some(field) = key.strip_prefix(&prefix) {
+            let (argument, value) = match (field, args.rain) {
+                ("lambda", _) => ("lam", value.clone()),
+                ("rain", Some(rain)) => ("rain", format!("{rain:?}")),
+                _ => (field, value.clone()),
+            };
+            return PyValueError::new_err(format!("{argument} = {value}: expected {expected}"));
+        }
+    }
+    config_error(e)
+}

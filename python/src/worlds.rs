@@ -1,0 +1,424 @@
+//! [`Worlds`]: N worlds of one task, stepped in one call on numpy arrays with the GIL released.
+//!
+//! **Seeds.** Env i keeps a base seed and an episode counter. `reset` with a seed S starts
+//! episode 0 of S; every later reset without a seed (including an autoreset) starts the next
+//! episode. Episode e of base S runs in the world seeded [`uavmeta_world::rollout::episode_seed`]
+//! `(S, e)`, exactly as `uavmeta env rollout --seed S` runs its episode e, so the CLI and Python
+//! meet the same start cells and rain moves.
+//!
+//! **Autoreset** is Gymnasium 1.x's next-step mode: the step after env i reaches its horizon
+//! ignores env i's action, resets it and reports reward 0, not truncated, and no info for it.
+
+use std::path::PathBuf;
+
+use numpy::{IntoPyArray, PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1};
+use pyo3::exceptions::{PyIndexError, PyRuntimeError, PyValueError};
+use pyo3::prelude::*;
+use uavmeta_proto::config::{Config, TaskConfig};
+use uavmeta_world::rollout;
+use uavmeta_world::world::World;
+
+use crate::task::{resolve, TaskArgs};
+
+/// The world seed of episode `episode` of base seed `seed`: the one `uavmeta env rollout --seed`
+/// gives its episode `episode`.
+#[pyfunction]
+pub fn episode_seed(seed: u64, episode: usize) -> u64 {
+    rollout::episode_seed(seed, episode)
+}
+
+/// The most envs one `Worlds` holds: a step's arrays are then about 1 GiB at K = 10.
+const MAX_ENVS: usize = 1 << 24;
+
+/// N worlds of one task (see the module doc for seeds and autoreset).
+#[pyclass(module = "uavmeta._uavmeta")]
+pub struct Worlds {
+    worlds: Vec<World>,
+    base_seeds: Vec<u64>,
+    episodes: Vec<usize>,
+    /// Env i reached its horizon in the last step: the next step resets it.
+    pending_reset: Vec<bool>,
+    /// Observations as the networks see them (x/(L-1), y/(L-1), A/aoi_max) instead of raw.
+    normalised: bool,
+    config: Config,
+    task: TaskConfig,
+}
+
+/// What one batched step returns, one entry per env.
+#[derive(Default)]
+struct StepOut {
+    obs: Vec<f32>,
+    reward: Vec<f64>,
+    truncated: Vec<bool>,
+    aoi: Vec<f64>,
+    power_mw: Vec<f64>,
+    outage: Vec<bool>,
+    device: Vec<i64>,
+    /// Env i stepped (false where it was autoreset instead): the mask of every info key.
+    stepped: Vec<bool>,
+}
+
+impl Worlds {
+    fn obs_len(&self) -> usize {
+        self.config.world.observation_len()
+    }
+
+    fn action_count(&self) -> usize {
+        self.config.world.action_count()
+    }
+
+    /// Starts env i's next episode: episode 0 of `seed` if given, else the episode after its
+    /// last one.
+    fn reset_env(&mut self, i: usize, seed: Option<u64>) {
+        match seed {
+            Some(seed) => {
+                self.base_seeds[i] = seed;
+                self.episodes[i] = 0;
+            }
+            None => self.episodes[i] += 1,
+        }
+        let world = &mut self.worlds[i];
+        world.reseed(rollout::episode_seed(self.base_seeds[i], self.episodes[i]));
+        world.reset();
+        self.pending_reset[i] = false;
+    }
+
+    fn write_obs(&self, i: usize, out: &mut [f32]) {
+        let world = &self.worlds[i];
+        if self.normalised {
+            world.write_normalised(out);
+        } else {
+            for (o, &v) in out.iter_mut().zip(world.observation()) {
+                *o = v as f32;
+            }
+        }
+    }
+
+    /// Steps every env with its action (already checked), autoresetting those that reached
+    /// their horizon in the previous step.
+    fn step_all(&mut self, actions: &[i64]) -> StepOut {
+        let (n, d) = (self.worlds.len(), self.obs_len());
+        let mut out = StepOut {
+            obs: vec![0.0; n * d],
+            reward: vec![0.0; n],
+            truncated: vec![false; n],
+            aoi: vec![0.0; n],
+            power_mw: vec![0.0; n],
+            outage: vec![false; n],
+            device: vec![0; n],
+            stepped: vec![false; n],
+        };
+        for (i, &action) in actions.iter().enumerate() {
+            if self.pending_reset[i] {
+                self.reset_env(i, None);
+            } else {
+                let step = self.worlds[i].step(action as usize);
+                out.reward[i] = step.reward;
+                out.truncated[i] = step.truncated;
+                out.aoi[i] = step.aoi_mean;
+                out.power_mw[i] = step.power_mw;
+                out.outage[i] = step.outage;
+                out.device[i] = step.device as i64;
+                out.stepped[i] = true;
+                self.pending_reset[i] = step.truncated;
+            }
+            self.write_obs(i, &mut out.obs[i * d..(i + 1) * d]);
+        }
+        out
+    }
+
+    fn check_env(&self, i: usize) -> PyResult<()> {
+        if i < self.worlds.len() {
+            Ok(())
+        } else {
+            Err(PyIndexError::new_err(format!(
+                "env {i}: expected an index below num_envs = {}",
+                self.worlds.len()
+            )))
+        }
+    }
+
+    fn check_action(&self, key: &str, action: i64) -> PyResult<usize> {
+        let count = self.action_count();
+        if (0..count as i64).contains(&action) {
+            Ok(action as usize)
+        } else {
+            Err(PyValueError::new_err(format!(
+                "{key} = {action}: expected an action index in 0..{count} (a = move * K + device, K = {})",
+                self.config.world.devices
+            )))
+        }
+    }
+}
+
+/// One env's step as `UavEnv.step` returns it, before Python adds the dict, and the UAV's cell.
+type StepOne<'py> = (
+    Bound<'py, PyArray1<f32>>,
+    f64,
+    bool,
+    f64,
+    f64,
+    bool,
+    usize,
+    (u32, u32),
+);
+
+/// A batched step: obs, reward, terminated, truncated, aoi, power_mw, outage, device, stepped.
+type StepBatch<'py> = (
+    Bound<'py, PyArray2<f32>>,
+    Bound<'py, PyArray1<f64>>,
+    Bound<'py, PyArray1<bool>>,
+    Bound<'py, PyArray1<bool>>,
+    Bound<'py, PyArray1<f64>>,
+    Bound<'py, PyArray1<f64>>,
+    Bound<'py, PyArray1<bool>>,
+    Bound<'py, PyArray1<i64>>,
+    Bound<'py, PyArray1<bool>>,
+);
+
+#[pymethods]
+impl Worlds {
+    /// `num_envs` worlds of the task that `config`, `task`, `lam`, `rain`, `rain_moves_every`
+    /// and the `KEY=VALUE` `overrides` name (see `uavmeta.UavEnv`). Call `reset` before stepping.
+    #[new]
+    #[pyo3(signature = (num_envs, *, normalised=false, config=None, task=None, lam=None, rain=None, rain_moves_every=None, overrides=Vec::new()))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        num_envs: usize,
+        normalised: bool,
+        config: Option<PathBuf>,
+        task: Option<String>,
+        lam: Option<f64>,
+        rain: Option<(u32, u32, u32, u32)>,
+        rain_moves_every: Option<u32>,
+        overrides: Vec<String>,
+    ) -> PyResult<Self> {
+        if !(1..=MAX_ENVS).contains(&num_envs) {
+            return Err(PyValueError::new_err(format!(
+                "num_envs = {num_envs}: expected 1 to {MAX_ENVS} envs"
+            )));
+        }
+        let args = TaskArgs {
+            config,
+            task,
+            lam,
+            rain,
+            rain_moves_every,
+            overrides,
+        };
+        let (config, task) = resolve(&args)?;
+        let template = World::new(&config.world, &task, 0);
+        Ok(Self {
+            worlds: vec![template; num_envs],
+            base_seeds: vec![0; num_envs],
+            episodes: vec![0; num_envs],
+            // Until the first reset, a step resets first.
+            pending_reset: vec![true; num_envs],
+            normalised,
+            config,
+            task,
+        })
+    }
+
+    /// Starts a new episode in every env i: episode 0 of `seeds[i]`, or where that is None the
+    /// episode after env i's last one; returns the (N, 2 + K) observations.
+    fn reset<'py>(
+        &mut self,
+        py: Python<'py>,
+        seeds: Vec<Option<u64>>,
+    ) -> PyResult<Bound<'py, PyArray2<f32>>> {
+        let (n, d) = (self.worlds.len(), self.obs_len());
+        if seeds.len() != n {
+            return Err(PyValueError::new_err(format!(
+                "seed has {} entries: expected one per env, num_envs = {n}",
+                seeds.len()
+            )));
+        }
+        let mut obs = vec![0.0f32; n * d];
+        for (i, seed) in seeds.into_iter().enumerate() {
+            self.reset_env(i, seed);
+            self.write_obs(i, &mut obs[i * d..(i + 1) * d]);
+        }
+        obs.into_pyarray(py).reshape([n, d])
+    }
+
+    /// Starts env i's next episode (episode 0 of `seed` if given); returns its observation.
+    #[pyo3(signature = (i, seed=None))]
+    fn reset_one<'py>(
+        &mut self,
+        py: Python<'py>,
+        i: usize,
+        seed: Option<u64>,
+    ) -> PyResult<Bound<'py, PyArray1<f32>>> {
+        self.check_env(i)?;
+        self.reset_env(i, seed);
+        self.observation(py, i)
+    }
+
+    /// Env i's current observation, 2 + K values.
+    fn observation<'py>(&self, py: Python<'py>, i: usize) -> PyResult<Bound<'py, PyArray1<f32>>> {
+        self.check_env(i)?;
+        let mut obs = vec![0.0f32; self.obs_len()];
+        self.write_obs(i, &mut obs);
+        Ok(obs.into_pyarray(py))
+    }
+
+    /// One step of env i: (obs, reward, truncated, aoi, power_mw, outage, device, the UAV's cell
+    /// after the move). Env i must have been reset and not yet have reached its horizon.
+    fn step_one<'py>(&mut self, py: Python<'py>, i: usize, action: i64) -> PyResult<StepOne<'py>> {
+        self.check_env(i)?;
+        let action = self.check_action("action", action)?;
+        if self.pending_reset[i] {
+            return Err(PyRuntimeError::new_err(
+                "the episode has ended (or never started): call reset() before step()",
+            ));
+        }
+        let step = self.worlds[i].step(action);
+        self.pending_reset[i] = step.truncated;
+        let obs = self.observation(py, i)?;
+        Ok((
+            obs,
+            step.reward,
+            step.truncated,
+            step.aoi_mean,
+            step.power_mw,
+            step.outage,
+            step.device,
+            self.worlds[i].uav(),
+        ))
+    }
+
+    /// Steps all N envs with `actions` (N action indices) in one call, the GIL released, with
+    /// next-step autoreset. Returns (obs, reward, terminated, truncated, aoi, power_mw, outage,
+    /// device, stepped): `stepped` is false for the envs autoreset by this call.
+    fn step<'py>(
+        &mut self,
+        py: Python<'py>,
+        actions: PyReadonlyArray1<'py, i64>,
+    ) -> PyResult<StepBatch<'py>> {
+        let (n, d) = (self.worlds.len(), self.obs_len());
+        let actions = actions.as_slice().map_err(|e| {
+            PyValueError::new_err(format!("actions: {e}: expected a contiguous array"))
+        })?;
+        if actions.len() != n {
+            return Err(PyValueError::new_err(format!(
+                "actions has {} entries: expected one per env, num_envs = {n}",
+                actions.len()
+            )));
+        }
+        let count = self.action_count() as i64;
+        if let Some(i) = actions.iter().position(|a| !(0..count).contains(a)) {
+            self.check_action(&format!("actions[{i}]"), actions[i])?;
+        }
+        let out = py.detach(|| self.step_all(actions));
+        Ok((
+            out.obs.into_pyarray(py).reshape([n, d])?,
+            out.reward.into_pyarray(py),
+            vec![false; n].into_pyarray(py),
+            out.truncated.into_pyarray(py),
+            out.aoi.into_pyarray(py),
+            out.power_mw.into_pyarray(py),
+            out.outage.into_pyarray(py),
+            out.device.into_pyarray(py),
+            out.stepped.into_pyarray(py),
+        ))
+    }
+
+    /// Env i's state for drawing: ((x, y) of the UAV, step t, the rain zone now or None, A_1..A_K).
+    #[allow(clippy::type_complexity)]
+    fn state(
+        &self,
+        i: usize,
+    ) -> PyResult<((u32, u32), u32, Option<(u32, u32, u32, u32)>, Vec<u16>)> {
+        self.check_env(i)?;
+        let w = &self.worlds[i];
+        let rain = w.rain_zone().map(|z| (z.x0, z.y0, z.x1, z.y1));
+        Ok((w.uav(), w.t(), rain, w.aoi().to_vec()))
+    }
+
+    #[getter]
+    fn num_envs(&self) -> usize {
+        self.worlds.len()
+    }
+
+    #[getter]
+    fn devices(&self) -> usize {
+        self.config.world.devices
+    }
+
+    #[getter]
+    fn grid_cells(&self) -> u32 {
+        self.config.world.grid_cells
+    }
+
+    #[getter]
+    fn horizon(&self) -> u32 {
+        self.config.world.horizon
+    }
+
+    #[getter]
+    fn aoi_max(&self) -> u32 {
+        self.config.world.aoi_max
+    }
+
+    #[getter]
+    fn normalised(&self) -> bool {
+        self.normalised
+    }
+
+    #[getter]
+    fn lam(&self) -> f64 {
+        self.task.lambda
+    }
+
+    #[getter]
+    fn task_name(&self) -> String {
+        self.task.name.clone()
+    }
+
+    /// The task's configured rain zone (x0, y0, x1, y1), or None.
+    #[getter]
+    fn task_rain(&self) -> Option<(u32, u32, u32, u32)> {
+        self.task.rain.map(|z| (z.x0, z.y0, z.x1, z.y1))
+    }
+
+    #[getter]
+    fn rain_moves_every(&self) -> Option<u32> {
+        self.task.rain_moves_every
+    }
+
+    #[getter]
+    fn device_cells(&self) -> Vec<(u32, u32)> {
+        self.worlds[0].device_cells().to_vec()
+    }
+
+    #[getter]
+    fn delta(&self) -> Vec<f64> {
+        self.worlds[0].delta().to_vec()
+    }
+
+    /// Divisors from a raw observation to the normalised one: L-1, L-1, aoi_max, ...
+    #[getter]
+    fn observation_scale(&self) -> Vec<f32> {
+        self.config.world.observation_scale()
+    }
+
+    /// The whole config, every key written out, with the task among its `[[tasks]]`.
+    #[getter]
+    fn config_toml(&self) -> String {
+        self.config.to_toml_string()
+    }
+
+    /// Where the config came from (a file, with its overrides).
+    #[getter]
+    fn config_origin(&self) -> String {
+        self.config.origin.clone()
+    }
+}
+
+impl Worlds {
+    /// The resolved config and task, for the policies built on an env.
+    pub fn config_and_task(&self) -> (&Config, &TaskConfig) {
+        (&self.config, &self.task)
+    }
+}

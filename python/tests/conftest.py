@@ -1,0 +1,35 @@
+"""Shared fixtures: the repository, the ``uavmeta`` binary the CLI comparisons run, and its
+default config. tests/python.rs runs this suite with UAVMETA_BIN set to the binary cargo built."""
+
+import os
+import pathlib
+import subprocess
+
+import pytest
+
+REPO = pathlib.Path(__file__).resolve().parents[2]
+CONFIG = REPO / "configs" / "default.toml"
+
+
+@pytest.fixture(scope="session")
+def uavmeta_bin():
+    """The CLI (UAVMETA_BIN, else target/release/uavmeta); the tests that compare with it skip
+    without it, except under CI=true."""
+    path = os.environ.get("UAVMETA_BIN") or str(REPO / "target" / "release" / "uavmeta")
+    if not os.path.exists(path):
+        if os.environ.get("CI") == "true":
+            pytest.fail(f"required under CI=true: the uavmeta binary {path}")
+        pytest.skip(f"no uavmeta binary at {path} (set UAVMETA_BIN)")
+    return path
+
+
+@pytest.fixture(scope="session")
+def run_cli(uavmeta_bin):
+    def run(*args, cwd=None):
+        out = subprocess.run(
+            [uavmeta_bin, *map(str, args)], capture_output=True, text=True, cwd=cwd
+        )
+        assert out.returncode == 0, out.stderr
+        return out
+
+    return run

@@ -1,0 +1,71 @@
+"""The uavmeta UAV world from Python.
+
+The world of the paper "Resilient UAV Trajectory Planning via Few-Shot Meta-Offline
+Reinforcement Learning" (SPEC sections 1-3 of this repository), stepped by the same Rust code
+as the ``uavmeta`` command line, without libtorch:
+
+- :class:`UavEnv`, a ``gymnasium.Env``, registered as ``uavmeta/UAV-v0``;
+- :class:`VectorEnv`, N worlds stepped in one call in Rust (Gymnasium's ``VectorEnv`` API,
+  next-step autoreset), also reachable as ``gymnasium.make_vec("uavmeta/UAV-v0", n,
+  vectorization_mode="vector_entry_point")``;
+- :mod:`uavmeta.policies`, the heuristics (random, stalest, greedy) as batched functions of
+  observations;
+- :func:`load_dataset`, a ``.uavds`` file as numpy arrays with its task's metadata;
+- :mod:`uavmeta.render`, RGB pictures of the world and of a trajectory.
+
+Actions are ``a = move * K + device`` with the moves in :data:`MOVES` order.
+"""
+
+import gymnasium
+
+from ._uavmeta import ACTION_MOVES as _MOVES
+from ._uavmeta import DatasetError, episode_seed
+from .dataset import Dataset, load_dataset
+from .env import UavEnv
+from .vector import VectorEnv
+from . import policies, render
+
+#: The five moves in action-index order: north (0, +1), south (0, -1), east (+1, 0),
+#: west (-1, 0), hover.
+MOVES = tuple(_MOVES)
+
+ENV_ID = "uavmeta/UAV-v0"
+
+
+def action(move, device, devices=10):
+    """The action index of flying ``move`` (a name of :data:`MOVES`) and serving ``device``
+    among ``devices`` (K): ``MOVES.index(move) * K + device``."""
+    if move not in MOVES:
+        raise ValueError(f"move = {move!r}: expected one of {', '.join(MOVES)}")
+    if not 0 <= device < devices:
+        raise ValueError(f"device = {device!r}: expected 0 <= device < {devices}")
+    return MOVES.index(move) * devices + device
+
+
+def action_parts(a, devices=10):
+    """(move name, device) of action index ``a`` among K = ``devices`` devices."""
+    if not 0 <= a < len(MOVES) * devices:
+        raise ValueError(f"action = {a!r}: expected 0 <= action < {len(MOVES) * devices}")
+    return MOVES[a // devices], a % devices
+
+if ENV_ID not in gymnasium.registry:
+    gymnasium.register(
+        id=ENV_ID,
+        entry_point="uavmeta.env:UavEnv",
+        vector_entry_point="uavmeta.vector:VectorEnv",
+    )
+
+__all__ = [
+    "ENV_ID",
+    "MOVES",
+    "Dataset",
+    "DatasetError",
+    "UavEnv",
+    "VectorEnv",
+    "action",
+    "action_parts",
+    "episode_seed",
+    "load_dataset",
+    "policies",
+    "render",
+]

@@ -1,0 +1,175 @@
+"""``UavEnv``: one world of one task as a ``gymnasium.Env``."""
+
+import operator
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces
+
+from . import _args
+from ._uavmeta import Worlds
+from . import render as _render
+
+
+def observation_space(worlds):
+    """Box of 2 + K float32 values: raw [x, y, A_1..A_K] (x, y in 0..L-1, A in 1..aoi_max), or
+    each divided by L-1, L-1, aoi_max when the worlds are normalised."""
+    last = float(worlds.grid_cells - 1)
+    k = worlds.devices
+    low = np.array([0.0, 0.0] + [1.0] * k, dtype=np.float32)
+    high = np.array([last, last] + [float(worlds.aoi_max)] * k, dtype=np.float32)
+    if worlds.normalised:
+        scale = np.array(worlds.observation_scale, dtype=np.float32)
+        low, high = low / scale, high / scale
+    return spaces.Box(low, high, dtype=np.float32)
+
+
+def action_index(action, count):
+    """An action as a Python int, or a ValueError naming it."""
+    try:
+        a = operator.index(action)
+    except TypeError:
+        raise ValueError(
+            f"action = {action!r}: expected an integer action index in 0..{count}"
+        ) from None
+    if not 0 <= a < count:
+        raise ValueError(
+            f"action = {action!r}: expected an action index in 0..{count} "
+            f"(a = move * K + device)"
+        )
+    return a
+
+
+class WorldProperties:
+    """What the task's world is, for drawing, policies and users; ``_worlds`` is the native
+    ``Worlds``."""
+
+    @property
+    def device_cells(self):
+        return self._worlds.device_cells
+
+    @property
+    def devices(self):
+        return self._worlds.devices
+
+    @property
+    def grid_cells(self):
+        return self._worlds.grid_cells
+
+    @property
+    def horizon(self):
+        return self._worlds.horizon
+
+    @property
+    def lam(self):
+        return self._worlds.lam
+
+    @property
+    def task_name(self):
+        return self._worlds.task_name
+
+    @property
+    def config_toml(self):
+        """The whole config the env was built from, every key written out."""
+        return self._worlds.config_toml
+
+
+class UavEnv(WorldProperties, gymnasium.Env):
+    """The UAV world of one task (SPEC sections 1-3), stepped in Rust.
+
+    - Observation: ``Box`` of 2 + K float32 values, **raw** by default: [x_u, y_u, A_1..A_K]
+      with the cell in 0..L-1 and every AoI in 1..aoi_max. ``normalised=True`` divides them by
+      L-1, L-1 and aoi_max, as the project's networks see them.
+    - Action: ``Discrete(5K)``, ``a = move * K + device``, moves in ``uavmeta.MOVES`` order
+      (north, south, east, west, hover).
+    - Reward: r(t) = -(sum_j delta_j A_j + lambda / K * P_mW).
+    - ``terminated`` is always False; ``truncated`` is True at the horizon T.
+    - ``info``: ``aoi`` (mean AoI over the devices after the step), ``power_mw`` (the power
+      spent), ``outage`` (the UAV was in rain) and ``device`` (the served device).
+
+    The task: ``config`` (a TOML file; SPEC's defaults when absent) and ``task`` (a task name
+    in it), or a one-off ``lam`` with optional ``rain`` = (x0, y0, x1, y1) and
+    ``rain_moves_every``; with neither, lambda = 300. Any other keyword is a ``world.*`` key
+    (``horizon=20``, ``devices=5``, ``start_cell=[0, 0]``, ...), and ``set`` takes raw
+    ``KEY=VALUE`` overrides as the CLI's ``--set``. Bad arguments raise ``ValueError``.
+
+    Seeds: ``reset(seed=S)`` starts episode 0 of S and each later ``reset()`` the next
+    episode, the episodes ``uavmeta env rollout --seed S`` runs. As Gymnasium specifies, a
+    first ``reset()`` without a seed draws one from fresh entropy: pass a seed to reproduce.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
+
+    def __init__(
+        self,
+        *,
+        config=None,
+        task=None,
+        lam=None,
+        rain=None,
+        rain_moves_every=None,
+        normalised=False,
+        render_mode="rgb_array",
+        set=None,
+        **world,
+    ):
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode = {render_mode!r}: expected 'rgb_array' or None")
+        self._worlds = Worlds(
+            1,
+            **_args.native_kwargs(
+                config, task, lam, rain, rain_moves_every, normalised, set, world
+            ),
+        )
+        self.render_mode = render_mode
+        self.observation_space = observation_space(self._worlds)
+        self.action_space = spaces.Discrete(5 * self._worlds.devices)
+        self._started = False
+        self._cells = []
+
+    @classmethod
+    def from_config(cls, path, task=None, **kwargs):
+        """The env of task ``task`` of the config file ``path`` (or a one-off ``lam=``)."""
+        return cls(config=path, task=task, **kwargs)
+
+    def reset(self, *, seed=None, options=None):
+        seed = None if seed is None else _args.seed(seed)
+        super().reset(seed=seed)
+        if seed is None and not self._started:
+            seed = int(self.np_random.integers(2**63))
+        obs = self._worlds.reset_one(0, seed)
+        self._started = True
+        self._cells = [self.uav]
+        return obs, {}
+
+    def step(self, action):
+        a = action_index(action, self.action_space.n)
+        obs, reward, truncated, aoi, power_mw, outage, device, cell = self._worlds.step_one(0, a)
+        self._cells.append(cell)
+        info = {"aoi": aoi, "power_mw": power_mw, "outage": outage, "device": device}
+        return obs, reward, False, truncated, info
+
+    def render(self):
+        """An RGB array (H, W, 3) of the grid, the rain zone, the devices (coloured by AoI) and
+        the UAV with its path so far."""
+        return _render.frame(self._worlds, 0, trajectory=self._cells)
+
+    def render_trajectory(self, cells=None):
+        """An RGB array of a whole path (default: this episode's) over the world."""
+        return _render.frame(self._worlds, 0, trajectory=self._cells if cells is None else cells)
+
+    # What the world is, for drawing, policies and users.
+    @property
+    def uav(self):
+        """The UAV's cell (x, y)."""
+        return self._worlds.state(0)[0]
+
+    @property
+    def rain_zone(self):
+        """The rain zone now (x0, y0, x1, y1), or None."""
+        return self._worlds.state(0)[2]
+
+    @property
+    def trajectory(self):
+        """The UAV's cells in this episode so far, from the start cell."""
+        return list(self._cells)
