@@ -4,6 +4,8 @@
 //! Without them the Python half is skipped with the reason, except under `CI=true`, where it
 //! fails.
 
+mod support;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
@@ -185,50 +187,10 @@ fn bad_input_is_an_error_naming_the_file_or_value() {
     assert!(!d.join("z.npz").exists());
 }
 
-/// The Python interpreter of the virtualenv whose torch the build links: VIRTUAL_ENV when a shell
-/// has one active, else the venv that holds the repo's `.libtorch` link target
-/// (`VENV/lib/pythonX.Y/site-packages/torch`, made by `make`), else the one on PATH.
-fn python() -> PathBuf {
-    if let Some(venv) = std::env::var_os("VIRTUAL_ENV") {
-        return PathBuf::from(venv).join("bin/python");
-    }
-    let libtorch = Path::new(env!("CARGO_MANIFEST_DIR")).join(".libtorch");
-    match std::fs::canonicalize(libtorch)
-        .ok()
-        .and_then(|torch| torch.ancestors().nth(4).map(Path::to_path_buf))
-    {
-        Some(venv) if venv.join("bin/python").exists() => venv.join("bin/python"),
-        _ => PathBuf::from("python3"),
-    }
-}
-
-/// Whether numpy, d3rlpy, minari and pyarrow import; without them the caller skips, but under
-/// `CI=true` the test fails.
-fn consumers_installed(python: &Path) -> bool {
-    let imported = Command::new(python)
-        .args(["-c", "import numpy, d3rlpy, minari, pyarrow"])
-        .output();
-    let why = match imported {
-        Ok(out) if out.status.success() => return true,
-        Ok(out) => String::from_utf8_lossy(&out.stderr).into_owned(),
-        Err(e) => e.to_string(),
-    };
-    let why = format!(
-        "{} cannot import the consumers (`make interop` installs tests/interop-requirements.txt): {why}",
-        python.display()
-    );
-    assert!(
-        std::env::var("CI").map_or(true, |ci| ci != "true"),
-        "required under CI=true: {why}"
-    );
-    eprintln!("skipped: {why}");
-    false
-}
-
 #[test]
 fn exports_load_in_numpy_d3rlpy_and_minari_as_the_source() {
-    let python = python();
-    if !consumers_installed(&python) {
+    let python = support::venv_python();
+    if !support::python_imports(&python, "numpy, d3rlpy, minari, pyarrow", "make interop") {
         return;
     }
     let dir = tempfile::tempdir().expect("temp dir");

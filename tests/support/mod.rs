@@ -302,3 +302,43 @@ pub fn dataset_seqs(run: &Path) -> BTreeMap<String, BTreeMap<u32, Vec<u64>>> {
     }
     out
 }
+
+/// The Python the consumer tests run: the active virtualenv's, else the libtorch virtualenv's
+/// (`VENV/lib/pythonX.Y/site-packages/torch`, which `.libtorch` points into, made by `make`), else
+/// the one on PATH.
+pub fn venv_python() -> std::path::PathBuf {
+    if let Some(venv) = std::env::var_os("VIRTUAL_ENV") {
+        return std::path::PathBuf::from(venv).join("bin/python");
+    }
+    let libtorch = Path::new(env!("CARGO_MANIFEST_DIR")).join(".libtorch");
+    match std::fs::canonicalize(libtorch)
+        .ok()
+        .and_then(|torch| torch.ancestors().nth(4).map(Path::to_path_buf))
+    {
+        Some(venv) if venv.join("bin/python").exists() => venv.join("bin/python"),
+        _ => std::path::PathBuf::from("python3"),
+    }
+}
+
+/// Whether `python` imports `modules` (comma-separated, as in an import statement). Without them
+/// the caller skips, saying why and that `installer` installs them; under `CI=true` it fails.
+pub fn python_imports(python: &Path, modules: &str, installer: &str) -> bool {
+    let imported = Command::new(python)
+        .args(["-c", &format!("import {modules}")])
+        .output();
+    let why = match imported {
+        Ok(out) if out.status.success() => return true,
+        Ok(out) => String::from_utf8_lossy(&out.stderr).into_owned(),
+        Err(e) => e.to_string(),
+    };
+    let why = format!(
+        "{} cannot import {modules} (`{installer}` installs them): {why}",
+        python.display()
+    );
+    assert!(
+        std::env::var("CI").map_or(true, |ci| ci != "true"),
+        "required under CI=true: {why}"
+    );
+    eprintln!("skipped: {why}");
+    false
+}
