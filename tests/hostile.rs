@@ -260,3 +260,75 @@ fn dataset_inspect_names_a_fabricated_transition_in_a_file_with_valid_crcs() {
         out.stderr
     );
 }
+
+#[test]
+fn a_launch_into_a_run_of_another_config_is_refused_naming_the_key_and_fresh_moves_it_aside() {
+    let run = Run::new("reuse");
+    let path = run.path();
+    let run_arg = path.display().to_string();
+    // A run made with the random policy: a store started by hand writes its config.toml.
+    let store = Proc::spawn("store", &run.args(&["store", "--run", &run_arg], &[]));
+    wait_until("the store", within(60), || {
+        path.join("ports/store.port").exists()
+    });
+    store.signal(libc::SIGTERM);
+    store.succeeds(within(60));
+    let config_file = path.join("config.toml");
+    let made_with = std::fs::read_to_string(&config_file).expect("config.toml");
+
+    let other = ["collect.policy=\"stalest\""];
+    let out = Proc::spawn("launch", &run.args(&["launch"], &other)).wait(within(60));
+    assert!(!out.status.success(), "launched into another config's run");
+    assert!(
+        out.stderr.contains("collect.policy") && out.stderr.contains("--fresh"),
+        "{}",
+        out.stderr
+    );
+    assert!(!path.join("logs/launcher.log").exists() && !path.join("logs/store.log").exists());
+    assert_eq!(
+        std::fs::read_to_string(&config_file).expect("config"),
+        made_with
+    );
+    let resumed =
+        Proc::spawn("launch", &run.args(&["launch", "--resume"], &other)).wait(within(60));
+    assert!(!resumed.status.success() && resumed.stderr.contains("collect.policy"));
+
+    let launcher = Proc::spawn("launch", &run.args(&["launch", "--fresh"], &other));
+    let moved = path.with_file_name("run.moved-1");
+    wait_until("the fresh run's store", within(60), || {
+        path.join("ports/store.port").exists()
+    });
+    assert_eq!(
+        std::fs::read_to_string(moved.join("config.toml")).expect("the old run, moved"),
+        made_with
+    );
+    let fresh = std::fs::read_to_string(&config_file).expect("the new config");
+    assert!(fresh.contains("policy = \"stalest\""), "{fresh}");
+    launcher.signal(libc::SIGTERM);
+    launcher.wait(within(120));
+}
+
+#[test]
+fn an_oversized_config_is_refused_before_any_process_starts() {
+    let run = Run::new("big");
+    let path = run.path();
+    let cases: [(&[&str], &str); 4] = [
+        (&["run.batch_size=10000000"], "run.batch_size"),
+        (
+            &["world.grid_cells=1000", "world.devices=64"],
+            "world.grid_cells",
+        ),
+        (&["collect.actors_per_task=1000"], "collect.actors_per_task"),
+        // Within the config's caps, beyond this machine: 3 actors x 77 GB of shared memory.
+        (
+            &["run.batch_size=16384", "run.subscriber_buffer=4096"],
+            "/dev/shm has",
+        ),
+    ];
+    for (overrides, needle) in cases {
+        let out = Proc::spawn("launch", &run.args(&["launch"], overrides)).wait(within(60));
+        assert!(!out.status.success(), "{overrides:?} was launched");
+        assert!(out.stderr.contains(needle), "{overrides:?}: {}", out.stderr);
+        assert!(!path.exists(), "{overrides:?}: the run directory was made");
+    }
+}

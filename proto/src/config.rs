@@ -788,6 +788,7 @@ impl Config {
         self.validate_run()?;
         self.validate_tunnel()?;
         self.validate_reproduce_keys()?;
+        self.validate_limits()?;
         Ok(())
     }
 
@@ -1347,4 +1348,82 @@ fn apply_override(
     }
     table.insert(last, toml_edit::Item::Value(value));
     Ok(())
+}
+
+// Resource limits (issue #31): what one config may ask of a machine, whatever the machine. The
+// launcher also checks a config against the machine it runs on before starting anything
+// (`uavmeta_meta::launch::resources`); these caps keep every estimate far from overflow and a
+// typo (a batch of 10 000 000) from reaching any process.
+
+/// Most tasks in `[[tasks]]`: each has a dataset file, services and actors of its own.
+pub const MAX_TASKS: usize = 64;
+/// Most actors of a run on one host, tasks x `collect.actors_per_task`.
+pub const MAX_ACTORS: usize = 256;
+/// Largest `run.batch_size`: an actor's shared memory grows with batch x subscriber buffer.
+pub const MAX_BATCH_SIZE: usize = 16_384;
+/// Largest `run.subscriber_buffer` (and `run.control_buffer`).
+pub const MAX_SUBSCRIBER_BUFFER: usize = 4_096;
+/// Most entries of a world's power table, grid_cells^2 x K: two tables of 8 bytes an entry,
+/// 256 MiB, in every process that builds the world.
+pub const MAX_POWER_TABLE: u64 = 1 << 24;
+
+impl Config {
+    /// The resource caps above.
+    fn validate_limits(&self) -> Result<(), ConfigError> {
+        let r = &self.run;
+        let actors = self.tasks.len() * self.collect.actors_per_task;
+        let cells = u64::from(self.world.grid_cells).pow(2);
+        let table = cells * self.world.devices as u64;
+        let tasks = self.tasks.len();
+        let checks: [(bool, &str, &dyn fmt::Debug, String); 6] = [
+            (
+                tasks > MAX_TASKS,
+                "tasks",
+                &tasks,
+                format!("at most {MAX_TASKS} tasks"),
+            ),
+            (
+                actors > MAX_ACTORS,
+                "collect.actors_per_task",
+                &self.collect.actors_per_task,
+                format!(
+                    "at most {MAX_ACTORS} actors in all, {} tasks x actors_per_task",
+                    self.tasks.len()
+                ),
+            ),
+            (
+                r.batch_size > MAX_BATCH_SIZE,
+                "run.batch_size",
+                &r.batch_size,
+                format!("at most {MAX_BATCH_SIZE}"),
+            ),
+            (
+                r.subscriber_buffer > MAX_SUBSCRIBER_BUFFER,
+                "run.subscriber_buffer",
+                &r.subscriber_buffer,
+                format!("at most {MAX_SUBSCRIBER_BUFFER}"),
+            ),
+            (
+                r.control_buffer > MAX_SUBSCRIBER_BUFFER,
+                "run.control_buffer",
+                &r.control_buffer,
+                format!("at most {MAX_SUBSCRIBER_BUFFER}"),
+            ),
+            (
+                table > MAX_POWER_TABLE,
+                "world.grid_cells",
+                &self.world.grid_cells,
+                format!(
+                    "grid_cells^2 x devices at most {MAX_POWER_TABLE} power-table entries (256 MiB \
+                     in every process); {cells} cells x {} devices is {table}",
+                    self.world.devices
+                ),
+            ),
+        ];
+        let failed = checks.into_iter().find(|(failed, ..)| *failed);
+        match failed {
+            Some((_, key, value, expected)) => Err(self.invalid(key, value, &expected)),
+            None => Ok(()),
+        }
+    }
 }

@@ -879,6 +879,7 @@ fn remove_unfinished_segments(config: &iceoryx2::config::Config) {
         .filter(|e| e.file_name().to_string_lossy().starts_with(&prefix))
         .filter(|e| e.metadata().is_ok_and(|m| m.len() == 0))
         .map(|e| e.path());
+    let start = std::time::Instant::now();
     for path in zero_sized.collect::<Vec<_>>() {
         while let Ok(metadata) = std::fs::metadata(&path) {
             if metadata.len() > 0 {
@@ -1031,6 +1032,21 @@ fn open_error(
         action: "open or create",
         message: error.to_string(),
     }
+}
+
+/// Samples a subscriber may hold borrowed at once: iceoryx2 0.10's default, which the transition
+/// service keeps.
+const SUBSCRIBER_BORROWED: usize = 2;
+
+/// Bytes of shared memory one actor's transition publisher maps: iceoryx2 sizes its data
+/// segment for every sample that can be in flight (each subscriber's buffer and borrowed
+/// samples, plus the one the actor loans), each a batch of `run.batch_size` slots. The launcher
+/// checks the run's total against /dev/shm before it starts anything.
+pub fn actor_shared_memory(run: &RunConfig) -> u64 {
+    let samples = TRANSITION_SUBSCRIBERS * (run.subscriber_buffer + SUBSCRIBER_BORROWED) + 1;
+    let batch =
+        std::mem::size_of::<TransitionSlot>() * run.batch_size + std::mem::size_of::<BatchHeader>();
+    samples as u64 * batch as u64
 }
 
 /// A task's transition service.

@@ -56,6 +56,10 @@ use crate::meta_learner;
 
 mod display;
 mod metrics;
+pub mod resources;
+pub mod reuse;
+
+pub use reuse::Reuse;
 
 /// How often the run's `prometheus.yml` has Prometheus scrape every process; `uavmeta dashboard
 /// render` takes it for the interval of its rates.
@@ -112,6 +116,10 @@ pub enum LaunchError {
     Policy { origin: String, message: String },
     #[error("stopped by a termination request")]
     Interrupted,
+    #[error("run directory {}: {message}", dir.display())]
+    Reuse { dir: PathBuf, message: String },
+    #[error("this machine cannot hold the run: {message}")]
+    Resources { message: String },
     #[error(
         "tunnel.wait_for_hosts: after {seconds} s (tunnel.wait_seconds), hosts {missing} have \
          announced no actor and the store has {stored} transitions; is `uavmeta tunnel join \
@@ -214,12 +222,15 @@ fn heuristic_references(config: &Config) -> Vec<EvaluationRow> {
 /// Runs `config` as one supervised run in `config.run.dir`, children started from `exe` (the
 /// `uavmeta` binary). With a `terminal`, it shows what every process is doing there (`display`);
 /// whatever else writes to that terminal meanwhile (the log lines) must go through its
-/// `suspend`.
+/// `suspend`. A directory that holds a run already is used as `reuse` says ([`reuse::prepare`]).
 pub fn launch(
     exe: PathBuf,
     config: &Config,
+    reuse: Reuse,
     terminal: Option<&MultiProgress>,
 ) -> Result<LaunchReport, LaunchError> {
+    resources::check_here(config)?;
+    reuse::prepare(config, reuse)?;
     let run = RunDir::create(&config.run.dir)?;
     write_atomic(&run.config_file(), config.to_toml_string().as_bytes())?;
     write_prometheus_yml(&run)?;
