@@ -332,3 +332,36 @@ fn an_oversized_config_is_refused_before_any_process_starts() {
         assert!(!path.exists(), "{overrides:?}: the run directory was made");
     }
 }
+
+#[test]
+fn a_forged_shutdown_ends_the_launch_with_an_error_instead_of_a_wait_for_ever() {
+    let run = Run::new("shut");
+    let path = run.path();
+    let launcher = Proc::spawn(
+        "launch",
+        &run.args(&["launch"], &["meta.meta_epochs=100000"]),
+    );
+    wait_until("the store and the meta-learner", within(120), || {
+        ["store", "meta-learner"]
+            .iter()
+            .all(|p| path.join(format!("ports/{p}.port")).exists())
+    });
+    let run_dir = RunDir::open(&path).expect("run");
+    let config = Config::load(&run_dir.config_file(), &[]).expect("config");
+    let node = transport::node("forger", &config.run).expect("node");
+    let service = transport::shutdown_service(&node, &ServiceNames::new(&run_dir), &config)
+        .expect("shutdown service");
+    let publisher = transport::control_publisher(&service).expect("publisher");
+    let shutdown = transport::Shutdown {
+        schema_version: transport::SCHEMA_VERSION,
+        reserved: 0,
+    };
+    transport::announce(&publisher, shutdown).expect("announce");
+    let out = launcher.wait(within(180));
+    assert!(!out.status.success(), "a launch cut short exited 0");
+    assert!(
+        out.stderr.contains("by another process than this launcher"),
+        "{}",
+        out.stderr
+    );
+}

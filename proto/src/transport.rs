@@ -862,13 +862,19 @@ pub fn cleanup_dead_nodes(node: &Node<ipc::Service>) -> u64 {
 /// A segment at size zero older than this is no creation in progress (that takes microseconds).
 const UNFINISHED_SEGMENT_AGE: Duration = Duration::from_secs(10);
 
+/// Longest that [`remove_unfinished_segments`] waits in all, however many segments it meets: a
+/// segment that keeps being truncated to size zero (by another user: iceoryx2's files are
+/// world-writable) would otherwise stay young, and waited for, for ever.
+const UNFINISHED_SEGMENTS_BOUND: Duration = Duration::from_secs(12);
+
 /// Removes iceoryx2 shared-memory segments that a process killed between creating and sizing them
 /// left at size zero. iceoryx2 0.10's dead-node sweep waits, without a timeout, for such a segment
 /// to be initialised (`posix_shared_memory::open_impl` on `MappingSizeIsZero`), so one such
 /// leftover would hang every later sweep in the domain. Found by the chaos test. A zero-size
 /// segment younger than [`UNFINISHED_SEGMENT_AGE`] may be a creation in progress, or the leftover
 /// of a process killed a moment ago and restarted at once (a tunnel restarted after kill -9 hung
-/// here in tests/remote.rs), so it is waited for: sized, gone, or old enough to remove.
+/// here in tests/remote.rs), so it is waited for: sized, gone, or old enough to remove; all of it
+/// within [`UNFINISHED_SEGMENTS_BOUND`], after which what is left is given up on with a warning.
 fn remove_unfinished_segments(config: &iceoryx2::config::Config) {
     let prefix = config.global.prefix.to_string();
     let Ok(entries) = std::fs::read_dir("/dev/shm") else {
@@ -892,7 +898,115 @@ fn remove_unfinished_segments(config: &iceoryx2::config::Config) {
                 }
                 break;
             }
+            if start.elapsed() > UNFINISHED_SEGMENTS_BOUND {
+                tracing::warn!(path = %path.display(), waited = ?start.elapsed(), "gave up on an iceoryx2 segment that stays at size zero (truncated again and again?)");
+                return;
+            }
             std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+}
+
+/// Sweeps for dead processes' iceoryx2 resources on a thread of its own, with a node of its own,
+/// so that a sweep that waits (on a segment left unfinished, or one another user truncates) never
+/// stops the loop that asked for it. [`Cleaner::request`] returns a ticket at once;
+/// [`Cleaner::finished`] tells when a sweep that started after it has ended.
+pub struct Cleaner {
+    shared: Arc<CleanerState>,
+}
+
+#[derive(Default)]
+struct CleanerState {
+    /// Sweeps requested so far, and whether the owner has gone.
+    requested: std::sync::Mutex<(u64, bool)>,
+    wake: std::sync::Condvar,
+    /// Requests served: every ticket up to this one has had a whole sweep after it.
+    done: AtomicU64,
+}
+
+impl Cleaner {
+    /// Starts the thread; its node is `<process>-cleaner` in `run.domain`.
+    pub fn start(process: &str, run: &RunConfig) -> Self {
+        let shared = Arc::new(CleanerState::default());
+        let state = Arc::clone(&shared);
+        let (name, run) = (format!("{process}-cleaner"), run.clone());
+        let spawned = std::thread::Builder::new()
+            .name("iceoryx2-cleaner".into())
+            .spawn(move || state.serve(&name, &run));
+        if let Err(error) = spawned {
+            tracing::warn!(%error, "cannot start the iceoryx2 cleaner thread; dead processes' resources stay");
+        }
+        Self { shared }
+    }
+
+    /// Asks for a sweep; returns its ticket.
+    pub fn request(&self) -> u64 {
+        let mut requested = self.shared.lock();
+        requested.0 += 1;
+        self.shared.wake.notify_one();
+        requested.0
+    }
+
+    /// Whether a sweep has ended since `ticket` was requested.
+    pub fn finished(&self, ticket: u64) -> bool {
+        self.shared.done.load(Ordering::Acquire) >= ticket
+    }
+
+    /// Asks for a sweep and waits for it, at most `bound`; whether it ended in time.
+    pub fn sweep_within(&self, bound: Duration) -> bool {
+        let ticket = self.request();
+        let start = std::time::Instant::now();
+        while !self.finished(ticket) {
+            if start.elapsed() > bound {
+                tracing::warn!(
+                    ?bound,
+                    "the iceoryx2 clean-up did not finish in time; going on without it"
+                );
+                return false;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        true
+    }
+}
+
+impl Drop for Cleaner {
+    fn drop(&mut self) {
+        self.shared.lock().1 = true;
+        self.shared.wake.notify_one();
+    }
+}
+
+impl CleanerState {
+    fn lock(&self) -> std::sync::MutexGuard<'_, (u64, bool)> {
+        self.requested.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// The thread: one sweep per wake-up that found new requests, until the owner goes.
+    fn serve(&self, name: &str, run: &RunConfig) {
+        let node = match node(name, run) {
+            Ok(node) => node,
+            Err(error) => {
+                tracing::warn!(%error, "the iceoryx2 cleaner has no node; dead processes' resources stay");
+                return;
+            }
+        };
+        loop {
+            let ticket = {
+                let mut requested = self.lock();
+                while requested.0 == self.done.load(Ordering::Acquire) && !requested.1 {
+                    requested = self.wake.wait(requested).unwrap_or_else(|e| e.into_inner());
+                }
+                if requested.1 {
+                    return;
+                }
+                requested.0
+            };
+            let cleaned = cleanup_dead_nodes(&node);
+            if cleaned > 0 {
+                tracing::info!(cleaned, "removed iceoryx2 resources of dead processes");
+            }
+            self.done.store(ticket, Ordering::Release);
         }
     }
 }

@@ -155,6 +155,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
     let _server = process.serve_metrics(run, config, store.metrics.registry.clone())?;
     tracing::info!(run = run.id(), tasks = store.tasks.len(), "store ready");
 
+    let cleaner = transport::Cleaner::start(&format!("{}-{PROCESS}", run.id()), &config.run);
     let mut idle = false;
     let mut last_cleanup = Instant::now();
     let mut last_ack_refresh = Instant::now();
@@ -173,7 +174,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
             last_ack_refresh = Instant::now();
         }
         if last_cleanup.elapsed() >= CLEANUP_EVERY {
-            transport::cleanup_dead_nodes(node);
+            cleaner.request();
             last_cleanup = Instant::now();
         }
     }
