@@ -49,6 +49,9 @@ use uavmeta_proto::transport::{
 
 const BIN: &str = env!("CARGO_BIN_EXE_uavmeta");
 
+#[path = "transport/validation.rs"]
+mod validation;
+
 /// Transitions each actor publishes, per batch size: enough for about a second of sending.
 fn per_actor(batch: usize) -> u64 {
     if batch == 1 {
@@ -586,7 +589,14 @@ fn main() {
         .skip(1)
         .filter(|a| !a.starts_with('-'))
         .collect();
-    const SECTIONS: [&str; 5] = ["floor", "policies", "keep", "actors", "tunnel"];
+    const SECTIONS: [&str; 6] = [
+        "floor",
+        "policies",
+        "keep",
+        "actors",
+        "tunnel",
+        "validation",
+    ];
     let (actor_counts, batches) = ([1, 2, 4], [1, 64, 1024]);
     let all_cases: Vec<String> = actor_counts
         .iter()
@@ -635,6 +645,9 @@ fn main() {
     }
     println!();
 
+    if section("validation") {
+        validation::run();
+    }
     if section("floor") {
         let step = Duration::from_secs_f64(1.0 / env);
         println!("| batch | iceoryx2 loan + send, nothing written | per transition | over the environment step |");

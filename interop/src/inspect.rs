@@ -2,7 +2,9 @@
 //! transitions cover, reward and return statistics, and how often each action was taken.
 //!
 //! The file is read by `DatasetReader::open`, which checks every CRC32, so a summary exists only
-//! for an undamaged file.
+//! for an undamaged file. With the run's config, every transition is also checked as the store
+//! checks what it appends (`uavmeta_world::validate`): a file that fails is named with each
+//! failing check, and `uavmeta dataset inspect` exits with an error.
 
 use std::collections::BTreeSet;
 use std::fmt;
@@ -11,6 +13,7 @@ use std::path::PathBuf;
 use uavmeta_proto::config::{Config, TaskConfig, MOVES};
 use uavmeta_proto::dataset::{DatasetHeader, DatasetReader, SCHEMA_VERSION};
 use uavmeta_proto::stats::Estimate;
+use uavmeta_world::validate::{Rejection, Validator};
 
 use crate::{runs, InteropError};
 
@@ -35,6 +38,49 @@ pub struct Summary {
     pub rewards: Vec<f64>,
     /// Transitions per action index, `move * K + device`.
     pub actions: Vec<u64>,
+    /// With a config: the checks the store makes, run on every transition.
+    pub validation: Option<Validation>,
+}
+
+/// What the store's checks found in a file.
+#[derive(Debug, Clone, Default)]
+pub struct Validation {
+    /// Transitions that fail a check, per check (the `reason` label's values), in check order.
+    pub failed: Vec<(&'static str, u64)>,
+    /// The first failure, with its transition's index in the file.
+    pub first: Option<(usize, Rejection)>,
+}
+
+impl Validation {
+    /// Checks every transition against `task`'s world.
+    fn run(
+        config: &Config,
+        task: &TaskConfig,
+        transitions: &[uavmeta_proto::dataset::Transition],
+    ) -> Self {
+        let mut validator = Validator::new(&config.world, task);
+        let mut found = Self::default();
+        for (index, t) in transitions.iter().enumerate() {
+            let Err(rejection) = validator.check(t.into()) else {
+                continue;
+            };
+            match found
+                .failed
+                .iter_mut()
+                .find(|(r, _)| *r == rejection.reason)
+            {
+                Some((_, count)) => *count += 1,
+                None => found.failed.push((rejection.reason, 1)),
+            }
+            found.first.get_or_insert((index, rejection));
+        }
+        found
+    }
+
+    /// Transitions that fail any check.
+    pub fn failures(&self) -> u64 {
+        self.failed.iter().map(|(_, n)| n).sum()
+    }
 }
 
 impl Summary {
@@ -60,7 +106,12 @@ impl Summary {
             actions[usize::from(t.action)] += 1;
         }
         let runs = runs::split(Vec::from(transitions));
+        let validation = task
+            .as_ref()
+            .zip(config)
+            .map(|((task, _), config)| Validation::run(config, task, transitions));
         Ok(Self {
+            validation,
             path,
             bytes,
             chunks: reader.chunks(),
@@ -169,7 +220,36 @@ impl fmt::Display for Summary {
             self.episode_returns.len()
         )?;
         self.write_statistics(f)?;
-        self.write_actions(f)
+        self.write_actions(f)?;
+        self.write_validation(f)
+    }
+}
+
+impl Summary {
+    fn write_validation(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let Some(v) = &self.validation else {
+            return writeln!(
+                f,
+                "checks       not run: give the run's config with --config"
+            );
+        };
+        if v.failed.is_empty() {
+            return writeln!(
+                f,
+                "checks       every transition passes the store's checks (uavmeta_world::validate)"
+            );
+        }
+        let counts: Vec<String> = v.failed.iter().map(|(r, n)| format!("{r}: {n}")).collect();
+        writeln!(
+            f,
+            "checks       {} transitions FAIL the store's checks ({})",
+            v.failures(),
+            counts.join(", ")
+        )?;
+        if let Some((index, rejection)) = &v.first {
+            writeln!(f, "             first: transition {index}: {rejection}")?;
+        }
+        Ok(())
     }
 }
 

@@ -585,6 +585,17 @@ pub struct TunnelConfig {
     pub wait_for_hosts: Vec<String>,
     /// How long the launcher waits for `wait_for_hosts` before it gives up.
     pub wait_seconds: f64,
+    /// The run's CA certificate (PEM). With a `tls/` endpoint, which any address beyond loopback
+    /// needs, a remote host is admitted only with a certificate this CA signed (mutual TLS).
+    /// `uavmeta tunnel certs` makes the CA and every host's certificate.
+    pub ca: PathBuf,
+    /// This host's certificate (PEM), signed by `ca`, naming the address remote hosts connect to.
+    pub certificate: PathBuf,
+    /// The private key (PEM) of `certificate`; readable by this user only.
+    pub private_key: PathBuf,
+    /// A file of `user:password` lines (Zenoh's user-password dictionary): a remote host must also
+    /// present one of them (`uavmeta tunnel join --credentials FILE`). Empty: certificates only.
+    pub credentials: PathBuf,
 }
 
 impl Default for TunnelConfig {
@@ -593,6 +604,10 @@ impl Default for TunnelConfig {
             listen: String::new(),
             wait_for_hosts: Vec::new(),
             wait_seconds: 120.0,
+            ca: PathBuf::new(),
+            certificate: PathBuf::new(),
+            private_key: PathBuf::new(),
+            credentials: PathBuf::new(),
         }
     }
 }
@@ -849,6 +864,7 @@ impl Config {
         self.validate_run()?;
         self.validate_tunnel()?;
         self.validate_reproduce_keys()?;
+        self.validate_limits()?;
         self.validate_planner()?;
         Ok(())
     }
@@ -1281,7 +1297,7 @@ impl Config {
         if !t.wait_seconds.is_finite() || t.wait_seconds <= 0.0 {
             return Err(self.invalid("tunnel.wait_seconds", &t.wait_seconds, "seconds > 0"));
         }
-        Ok(())
+        self.validate_tunnel_security()
     }
 
     /// The `[reproduce]` keys on their own ([`Config::validate_reproduce`] checks them against
@@ -1451,4 +1467,140 @@ fn apply_override(
     }
     table.insert(last, toml_edit::Item::Value(value));
     Ok(())
+}
+
+// Resource limits (issue #31): what one config may ask of a machine, whatever the machine. The
+// launcher also checks a config against the machine it runs on before starting anything
+// (`uavmeta_meta::launch::resources`); these caps keep every estimate far from overflow and a
+// typo (a batch of 10 000 000) from reaching any process.
+
+/// Most tasks in `[[tasks]]`: each has a dataset file, services and actors of its own.
+pub const MAX_TASKS: usize = 64;
+/// Most actors of a run on one host, tasks x `collect.actors_per_task`.
+pub const MAX_ACTORS: usize = 256;
+/// Largest `run.batch_size`: an actor's shared memory grows with batch x subscriber buffer.
+pub const MAX_BATCH_SIZE: usize = 16_384;
+/// Largest `run.subscriber_buffer` (and `run.control_buffer`).
+pub const MAX_SUBSCRIBER_BUFFER: usize = 4_096;
+/// Most entries of a world's power table, grid_cells^2 x K: two tables of 8 bytes an entry,
+/// 256 MiB, in every process that builds the world.
+pub const MAX_POWER_TABLE: u64 = 1 << 24;
+
+impl Config {
+    /// The resource caps above.
+    fn validate_limits(&self) -> Result<(), ConfigError> {
+        let r = &self.run;
+        let actors = self.tasks.len() * self.collect.actors_per_task;
+        let cells = u64::from(self.world.grid_cells).pow(2);
+        let table = cells * self.world.devices as u64;
+        let tasks = self.tasks.len();
+        let checks: [(bool, &str, &dyn fmt::Debug, String); 6] = [
+            (
+                tasks > MAX_TASKS,
+                "tasks",
+                &tasks,
+                format!("at most {MAX_TASKS} tasks"),
+            ),
+            (
+                actors > MAX_ACTORS,
+                "collect.actors_per_task",
+                &self.collect.actors_per_task,
+                format!(
+                    "at most {MAX_ACTORS} actors in all, {} tasks x actors_per_task",
+                    self.tasks.len()
+                ),
+            ),
+            (
+                r.batch_size > MAX_BATCH_SIZE,
+                "run.batch_size",
+                &r.batch_size,
+                format!("at most {MAX_BATCH_SIZE}"),
+            ),
+            (
+                r.subscriber_buffer > MAX_SUBSCRIBER_BUFFER,
+                "run.subscriber_buffer",
+                &r.subscriber_buffer,
+                format!("at most {MAX_SUBSCRIBER_BUFFER}"),
+            ),
+            (
+                r.control_buffer > MAX_SUBSCRIBER_BUFFER,
+                "run.control_buffer",
+                &r.control_buffer,
+                format!("at most {MAX_SUBSCRIBER_BUFFER}"),
+            ),
+            (
+                table > MAX_POWER_TABLE,
+                "world.grid_cells",
+                &self.world.grid_cells,
+                format!(
+                    "grid_cells^2 x devices at most {MAX_POWER_TABLE} power-table entries (256 MiB \
+                     in every process); {cells} cells x {} devices is {table}",
+                    self.world.devices
+                ),
+            ),
+        ];
+        let failed = checks.into_iter().find(|(failed, ..)| *failed);
+        match failed {
+            Some((_, key, value, expected)) => Err(self.invalid(key, value, &expected)),
+            None => Ok(()),
+        }
+    }
+}
+
+/// Whether a Zenoh endpoint (`PROTOCOL/ADDRESS:PORT`) names a loopback address, which only this
+/// host's own processes can reach.
+pub fn is_loopback_endpoint(endpoint: &str) -> bool {
+    let address = endpoint.split_once('/').map_or(endpoint, |(_, a)| a);
+    let host = match address.rsplit_once(':') {
+        Some((host, _port)) => host,
+        None => address,
+    };
+    let host = host.trim_start_matches('[').trim_end_matches(']');
+    host == "localhost"
+        || host
+            .parse::<std::net::IpAddr>()
+            .is_ok_and(|ip| ip.is_loopback())
+}
+
+// The tunnel's security (issue #31): secure by default.
+impl Config {
+    /// A `tls/` endpoint needs the CA, certificate and key; any other beyond loopback is refused,
+    /// since it would let whoever reaches it join the run, unauthenticated and in clear.
+    fn validate_tunnel_security(&self) -> Result<(), ConfigError> {
+        let t = &self.tunnel;
+        if t.listen.is_empty() {
+            return Ok(());
+        }
+        if t.listen.starts_with("tls/") {
+            let files = [
+                ("tunnel.ca", &t.ca),
+                ("tunnel.certificate", &t.certificate),
+                ("tunnel.private_key", &t.private_key),
+            ];
+            return match files
+                .into_iter()
+                .find(|(_, path)| path.as_os_str().is_empty())
+            {
+                Some((key, path)) => Err(self.invalid(
+                    key,
+                    path,
+                    "a PEM file for the tls/ endpoint of tunnel.listen (`uavmeta tunnel certs` \
+                     makes the run's CA and host certificates)",
+                )),
+                None => Ok(()),
+            };
+        }
+        if is_loopback_endpoint(&t.listen) {
+            return Ok(());
+        }
+        Err(self.invalid(
+            "tunnel.listen",
+            &t.listen,
+            "a loopback address, or a tls/ endpoint such as tls/0.0.0.0:7447 with tunnel.ca, \
+             tunnel.certificate and tunnel.private_key set: any other would let every host that \
+             reaches it join the run, unauthenticated and unencrypted. Make the files with \
+             `uavmeta tunnel certs --dir DIR --host NAME --address ADDRESS` (README, \
+             \"Actors on other hosts\")",
+        ))
+    }
 }

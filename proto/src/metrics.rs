@@ -124,7 +124,10 @@ pub mod store {
         TRANSITIONS_RECEIVED: Counter "store_transitions_received_total", "Transitions received from actors.";
         TRANSITIONS_STORED: Counter "store_transitions_stored_total", "Transitions appended to the dataset file by this store process.";
         /// Labelled by `reason` too, one of [`DROPPED_REASONS`].
-        TRANSITIONS_DROPPED: Counter "store_transitions_dropped_total", "Received transitions not stored: duplicate (sequence number already stored), surplus (the dataset was complete), foreign (another run, world or schema).";
+        TRANSITIONS_DROPPED: Counter "store_transitions_dropped_total", "Received transitions not stored: duplicate (sequence number already stored), surplus (the dataset was complete), foreign (another run, world or schema), invalid (the batch failed validation; see store_transitions_rejected_total).";
+        /// Labelled by `actor` and `reason` too, one of [`REJECTION_REASONS`]; actors beyond
+        /// [`REJECTION_ACTORS`] distinct ids share the actor label [`OTHER_ACTORS`].
+        TRANSITIONS_REJECTED: Counter "store_transitions_rejected_total", "Transitions of batches dropped whole because one transition failed validation, by actor and by the check it failed: non_finite, action, position, aoi, step, reward, next_state (the world gives another), sequence_window (numbered far ahead of what the actor has stored).";
         TRANSITIONS_MISSING: Counter "store_transitions_missing_total", "Sequence numbers skipped by an actor's batches: transitions lost in transit, counted from the dataset file on start.";
         DATASET_TRANSITIONS: Gauge "store_dataset_transitions", "Transitions in the task's dataset file.";
         DATASET_READY: Gauge "store_dataset_ready", "1 once the task's dataset holds collect.transitions and is announced.";
@@ -138,8 +141,44 @@ pub mod store {
     pub const SURPLUS: &str = "surplus";
     /// `reason`: from another run, world or schema.
     pub const FOREIGN: &str = "foreign";
+    /// `reason`: the batch failed validation ([`TRANSITIONS_REJECTED`] says which check).
+    pub const INVALID: &str = "invalid";
     /// Why a received transition was not stored: the `reason` label's fixed set.
-    pub const DROPPED_REASONS: [&str; 3] = [DUPLICATE, SURPLUS, FOREIGN];
+    pub const DROPPED_REASONS: [&str; 4] = [DUPLICATE, SURPLUS, FOREIGN, INVALID];
+
+    /// Rejection `reason`: a reward that is NaN or infinite.
+    pub const NON_FINITE: &str = "non_finite";
+    /// Rejection `reason`: an action not below 5K.
+    pub const ACTION: &str = "action";
+    /// Rejection `reason`: a cell off the grid, or not the world's fixed start cell at step 0.
+    pub const POSITION: &str = "position";
+    /// Rejection `reason`: an AoI outside [1, aoi_max], or above what the step index allows.
+    pub const AOI: &str = "aoi";
+    /// Rejection `reason`: a step index at or past the horizon, or a truncation flag that
+    /// disagrees with it.
+    pub const STEP: &str = "step";
+    /// Rejection `reason`: the reward is not what the world gives for (s, a).
+    pub const REWARD: &str = "reward";
+    /// Rejection `reason`: s(t+1) is not what the world gives for (s, a).
+    pub const NEXT_STATE: &str = "next_state";
+    /// Rejection `reason`: a first sequence number far ahead of what the actor has stored.
+    pub const SEQUENCE_WINDOW: &str = "sequence_window";
+    /// The rejection `reason` label's fixed set.
+    pub const REJECTION_REASONS: [&str; 8] = [
+        NON_FINITE,
+        ACTION,
+        POSITION,
+        AOI,
+        STEP,
+        REWARD,
+        NEXT_STATE,
+        SEQUENCE_WINDOW,
+    ];
+    /// Distinct actor ids the rejection counter labels by their own id; the label set stays
+    /// small whatever ids a hostile publisher makes up.
+    pub const REJECTION_ACTORS: usize = 256;
+    /// The `actor` label of rejections from actors beyond [`REJECTION_ACTORS`].
+    pub const OTHER_ACTORS: &str = "other";
 }
 
 /// The evaluator's metrics; its gauges are labelled by `task` and `method`.

@@ -496,19 +496,48 @@ impl ServiceNames {
         format!("{}/control/shutdown", self.prefix)
     }
 
-    /// The services a remote actor uses, which a tunnel carries between hosts: every task's
-    /// transitions and acknowledgements, the dataset announcements and the shutdown.
-    pub fn remote_actor_services<'t>(
+    /// The services a remote actor uses and which way each crosses a tunnel: the one
+    /// declaration of what a remote host may send (its transitions) and what only the learner's
+    /// host sends (acknowledgements, dataset announcements, the shutdown).
+    pub fn tunnel_routes<'t>(
         &self,
         tasks: impl IntoIterator<Item = &'t TaskConfig>,
-    ) -> Vec<String> {
-        let mut names: Vec<String> = tasks
+    ) -> Vec<(String, Crossing)> {
+        let mut routes: Vec<(String, Crossing)> = tasks
             .into_iter()
-            .flat_map(|t| [self.transitions(&t.name), self.acks(&t.name)])
+            .flat_map(|t| {
+                [
+                    (self.transitions(&t.name), Crossing::ToLearner),
+                    (self.acks(&t.name), Crossing::ToRemote),
+                ]
+            })
             .collect();
-        names.extend([self.dataset_ready(), self.shutdown()]);
-        names
+        routes.push((self.dataset_ready(), Crossing::ToRemote));
+        routes.push((self.shutdown(), Crossing::ToRemote));
+        routes
     }
+
+    /// The copy of `service` that carries it to remote hosts, `uavmeta/<run>/to-remote/...`: no
+    /// process of the learner's host reads it, so what a remote host publishes into it reaches
+    /// none of them.
+    pub fn to_remote(&self, service: &str) -> String {
+        let rest = service
+            .strip_prefix(&self.prefix)
+            .unwrap_or(service)
+            .trim_start_matches('/');
+        format!("{}/to-remote/{rest}", self.prefix)
+    }
+}
+
+/// Which way a service crosses a tunnel ([`ServiceNames::tunnel_routes`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Crossing {
+    /// Remote hosts publish into it, under its own name, and the learner's host reads it.
+    ToLearner,
+    /// Only the learner's host publishes: its tunnel copies the service into
+    /// [`ServiceNames::to_remote`], which crosses, and a remote host's tunnel copies that into its
+    /// own service; nothing crosses back into the original.
+    ToRemote,
 }
 
 /// A run's directory and the layout of everything in it.
@@ -862,13 +891,19 @@ pub fn cleanup_dead_nodes(node: &Node<ipc::Service>) -> u64 {
 /// A segment at size zero older than this is no creation in progress (that takes microseconds).
 const UNFINISHED_SEGMENT_AGE: Duration = Duration::from_secs(10);
 
+/// Longest that [`remove_unfinished_segments`] waits in all, however many segments it meets: a
+/// segment that keeps being truncated to size zero (by another user: iceoryx2's files are
+/// world-writable) would otherwise stay young, and waited for, for ever.
+const UNFINISHED_SEGMENTS_BOUND: Duration = Duration::from_secs(12);
+
 /// Removes iceoryx2 shared-memory segments that a process killed between creating and sizing them
 /// left at size zero. iceoryx2 0.10's dead-node sweep waits, without a timeout, for such a segment
 /// to be initialised (`posix_shared_memory::open_impl` on `MappingSizeIsZero`), so one such
 /// leftover would hang every later sweep in the domain. Found by the chaos test. A zero-size
 /// segment younger than [`UNFINISHED_SEGMENT_AGE`] may be a creation in progress, or the leftover
 /// of a process killed a moment ago and restarted at once (a tunnel restarted after kill -9 hung
-/// here in tests/remote.rs), so it is waited for: sized, gone, or old enough to remove.
+/// here in tests/remote.rs), so it is waited for: sized, gone, or old enough to remove; all of it
+/// within [`UNFINISHED_SEGMENTS_BOUND`], after which what is left is given up on with a warning.
 fn remove_unfinished_segments(config: &iceoryx2::config::Config) {
     let prefix = config.global.prefix.to_string();
     let Ok(entries) = std::fs::read_dir("/dev/shm") else {
@@ -879,6 +914,7 @@ fn remove_unfinished_segments(config: &iceoryx2::config::Config) {
         .filter(|e| e.file_name().to_string_lossy().starts_with(&prefix))
         .filter(|e| e.metadata().is_ok_and(|m| m.len() == 0))
         .map(|e| e.path());
+    let start = std::time::Instant::now();
     for path in zero_sized.collect::<Vec<_>>() {
         while let Ok(metadata) = std::fs::metadata(&path) {
             if metadata.len() > 0 {
@@ -891,7 +927,115 @@ fn remove_unfinished_segments(config: &iceoryx2::config::Config) {
                 }
                 break;
             }
+            if start.elapsed() > UNFINISHED_SEGMENTS_BOUND {
+                tracing::warn!(path = %path.display(), waited = ?start.elapsed(), "gave up on an iceoryx2 segment that stays at size zero (truncated again and again?)");
+                return;
+            }
             std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+}
+
+/// Sweeps for dead processes' iceoryx2 resources on a thread of its own, with a node of its own,
+/// so that a sweep that waits (on a segment left unfinished, or one another user truncates) never
+/// stops the loop that asked for it. [`Cleaner::request`] returns a ticket at once;
+/// [`Cleaner::finished`] tells when a sweep that started after it has ended.
+pub struct Cleaner {
+    shared: Arc<CleanerState>,
+}
+
+#[derive(Default)]
+struct CleanerState {
+    /// Sweeps requested so far, and whether the owner has gone.
+    requested: std::sync::Mutex<(u64, bool)>,
+    wake: std::sync::Condvar,
+    /// Requests served: every ticket up to this one has had a whole sweep after it.
+    done: AtomicU64,
+}
+
+impl Cleaner {
+    /// Starts the thread; its node is `<process>-cleaner` in `run.domain`.
+    pub fn start(process: &str, run: &RunConfig) -> Self {
+        let shared = Arc::new(CleanerState::default());
+        let state = Arc::clone(&shared);
+        let (name, run) = (format!("{process}-cleaner"), run.clone());
+        let spawned = std::thread::Builder::new()
+            .name("iceoryx2-cleaner".into())
+            .spawn(move || state.serve(&name, &run));
+        if let Err(error) = spawned {
+            tracing::warn!(%error, "cannot start the iceoryx2 cleaner thread; dead processes' resources stay");
+        }
+        Self { shared }
+    }
+
+    /// Asks for a sweep; returns its ticket.
+    pub fn request(&self) -> u64 {
+        let mut requested = self.shared.lock();
+        requested.0 += 1;
+        self.shared.wake.notify_one();
+        requested.0
+    }
+
+    /// Whether a sweep has ended since `ticket` was requested.
+    pub fn finished(&self, ticket: u64) -> bool {
+        self.shared.done.load(Ordering::Acquire) >= ticket
+    }
+
+    /// Asks for a sweep and waits for it, at most `bound`; whether it ended in time.
+    pub fn sweep_within(&self, bound: Duration) -> bool {
+        let ticket = self.request();
+        let start = std::time::Instant::now();
+        while !self.finished(ticket) {
+            if start.elapsed() > bound {
+                tracing::warn!(
+                    ?bound,
+                    "the iceoryx2 clean-up did not finish in time; going on without it"
+                );
+                return false;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        true
+    }
+}
+
+impl Drop for Cleaner {
+    fn drop(&mut self) {
+        self.shared.lock().1 = true;
+        self.shared.wake.notify_one();
+    }
+}
+
+impl CleanerState {
+    fn lock(&self) -> std::sync::MutexGuard<'_, (u64, bool)> {
+        self.requested.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// The thread: one sweep per wake-up that found new requests, until the owner goes.
+    fn serve(&self, name: &str, run: &RunConfig) {
+        let node = match node(name, run) {
+            Ok(node) => node,
+            Err(error) => {
+                tracing::warn!(%error, "the iceoryx2 cleaner has no node; dead processes' resources stay");
+                return;
+            }
+        };
+        loop {
+            let ticket = {
+                let mut requested = self.lock();
+                while requested.0 == self.done.load(Ordering::Acquire) && !requested.1 {
+                    requested = self.wake.wait(requested).unwrap_or_else(|e| e.into_inner());
+                }
+                if requested.1 {
+                    return;
+                }
+                requested.0
+            };
+            let cleaned = cleanup_dead_nodes(&node);
+            if cleaned > 0 {
+                tracing::info!(cleaned, "removed iceoryx2 resources of dead processes");
+            }
+            self.done.store(ticket, Ordering::Release);
         }
     }
 }
@@ -1033,6 +1177,21 @@ fn open_error(
     }
 }
 
+/// Samples a subscriber may hold borrowed at once: iceoryx2 0.10's default, which the transition
+/// service keeps.
+const SUBSCRIBER_BORROWED: usize = 2;
+
+/// Bytes of shared memory one actor's transition publisher maps: iceoryx2 sizes its data
+/// segment for every sample that can be in flight (each subscriber's buffer and borrowed
+/// samples, plus the one the actor loans), each a batch of `run.batch_size` slots. The launcher
+/// checks the run's total against /dev/shm before it starts anything.
+pub fn actor_shared_memory(run: &RunConfig) -> u64 {
+    let samples = TRANSITION_SUBSCRIBERS * (run.subscriber_buffer + SUBSCRIBER_BORROWED) + 1;
+    let batch =
+        std::mem::size_of::<TransitionSlot>() * run.batch_size + std::mem::size_of::<BatchHeader>();
+    samples as u64 * batch as u64
+}
+
 /// A task's transition service.
 pub type TransitionService = PubSubFactory<ipc::Service, [TransitionSlot], BatchHeader>;
 /// A control service carrying `T`.
@@ -1060,8 +1219,8 @@ pub fn transition_service(
         .map_err(|e| open_error(node.config(), &name, &service, e))
 }
 
-/// Opens (or creates) a control service, whose history lets late joiners catch up.
-fn control_service<T: fmt::Debug + ZeroCopySend + 'static>(
+/// Opens (or creates) the control service `service`, whose history lets late joiners catch up.
+pub fn control_service<T: fmt::Debug + ZeroCopySend + 'static>(
     node: &Node<ipc::Service>,
     service: String,
     config: &Config,
@@ -1227,7 +1386,15 @@ pub fn ack_service(
     task: &str,
     run: &RunConfig,
 ) -> Result<AckService, TransportError> {
-    let service = names.acks(task);
+    ack_service_at(node, names.acks(task), run)
+}
+
+/// Opens (or creates) an acknowledgement service named `service` (a task's, or its tunnel copy).
+pub fn ack_service_at(
+    node: &Node<ipc::Service>,
+    service: String,
+    run: &RunConfig,
+) -> Result<AckService, TransportError> {
     let name = service_name(&service)?;
     node.service_builder(&name)
         .publish_subscribe::<StoreAck>()

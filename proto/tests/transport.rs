@@ -73,3 +73,56 @@ fn a_segment_sized_while_waited_for_is_a_finished_creation_and_kept() {
     drop(node);
     std::fs::remove_file(&segment).expect("remove the test's segment");
 }
+
+/// Another user's process truncating a segment again and again, as iceoryx2's files are
+/// world-writable: the segment never gets old enough to remove, and must not be waited for ever.
+fn truncate_again_and_again(
+    segment: PathBuf,
+) -> (
+    std::sync::Arc<std::sync::atomic::AtomicBool>,
+    std::thread::JoinHandle<()>,
+) {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let stop = std::sync::Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    let handle = std::thread::spawn(move || {
+        while !flag.load(Ordering::Relaxed) {
+            if let Ok(file) = File::options().write(true).open(&segment) {
+                let _ = file.set_len(0);
+                let _ = file.set_modified(SystemTime::now());
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    });
+    (stop, handle)
+}
+
+#[test]
+fn a_segment_truncated_again_and_again_is_given_up_on_and_the_cleaner_never_blocks_its_caller() {
+    use std::sync::atomic::Ordering;
+    let domain = Domain::new("truncated");
+    let segment = domain.zero_sized_segment("hostile", Duration::ZERO);
+    let (stop, truncating) = truncate_again_and_again(segment.clone());
+    // Node creation sweeps: it gives up on the segment instead of waiting for it to age.
+    let node = transport::node("starting", &domain.0).expect("a node despite the truncation");
+    assert!(segment.exists(), "a young segment was removed");
+    // The cleaner's sweeps run on its thread: a request returns at once, and each sweep ends.
+    let cleaner = transport::Cleaner::start("truncated", &domain.0);
+    let first = cleaner.request();
+    assert!(
+        !cleaner.finished(first + 1),
+        "a ticket not yet asked for is not finished"
+    );
+    let start = Instant::now();
+    while !cleaner.finished(first) {
+        assert!(
+            start.elapsed() < Duration::from_secs(180),
+            "the sweep never ended"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    stop.store(true, Ordering::Relaxed);
+    truncating.join().expect("the truncating thread");
+    drop((cleaner, node));
+    std::fs::remove_file(&segment).expect("remove the test's segment");
+}

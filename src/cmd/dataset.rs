@@ -51,8 +51,9 @@ pub struct ExportArgs {
 pub struct InspectArgs {
     /// The dataset file (.uavds).
     dataset: PathBuf,
-    /// The config it was collected with, for the task's lambda and rain [default: FILE.config.toml
-    /// when it exists].
+    /// The config it was collected with, for the task's lambda and rain and the store's checks of
+    /// every transition [default: FILE.config.toml, or the run's config.toml for a file in a
+    /// run's datasets/, when it exists].
     #[arg(long)]
     config: Option<PathBuf>,
 }
@@ -121,15 +122,32 @@ fn inspect(args: InspectArgs) -> Result<()> {
         Some(file) => Some(Config::load(&file, &[])?),
         None => saved_config(&args.dataset)?,
     };
-    print!("{}", Summary::new(&reader, config.as_ref())?);
-    Ok(())
+    let summary = Summary::new(&reader, config.as_ref())?;
+    print!("{summary}");
+    match summary.validation.as_ref().and_then(|v| v.first.as_ref()) {
+        Some((index, rejection)) => anyhow::bail!(
+            "{}: {} transitions fail the store's checks; the first, transition {index}: {rejection}",
+            args.dataset.display(),
+            summary.validation.as_ref().map_or(0, |v| v.failures()),
+        ),
+        None => Ok(()),
+    }
 }
 
-/// The config `uavmeta collect` saved beside `dataset`, if there is one.
+/// The config `uavmeta collect` saved beside `dataset`, or the config of the run whose
+/// `datasets/` holds it, if there is one.
 fn saved_config(dataset: &Path) -> Result<Option<Config>> {
-    let file = config_path(dataset);
-    Ok(match file.exists() {
-        true => Some(Config::load(&file, &[])?),
-        false => None,
-    })
+    let beside = config_path(dataset);
+    let in_run = dataset
+        .parent()
+        .filter(|dir| dir.file_name().is_some_and(|name| name == "datasets"))
+        .and_then(Path::parent)
+        .map(|run| run.join("config.toml"));
+    match std::iter::once(beside)
+        .chain(in_run)
+        .find(|file| file.exists())
+    {
+        Some(file) => Ok(Some(Config::load(&file, &[])?)),
+        None => Ok(None),
+    }
 }

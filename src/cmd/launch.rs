@@ -7,6 +7,7 @@ use std::path::PathBuf;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use indicatif::MultiProgress;
+use uavmeta_meta::launch::Reuse;
 use uavmeta_proto::config::Config;
 use uavmeta_proto::transport::RunDir;
 
@@ -44,6 +45,13 @@ impl RunArgs {
 pub struct LaunchArgs {
     #[command(flatten)]
     pub config: ConfigArgs,
+    /// Continue the run in run.dir, which must exist and have been made with this config (the
+    /// default also continues a run of the same config, and starts one where there is none).
+    #[arg(long, conflicts_with = "fresh")]
+    pub resume: bool,
+    /// Move a run already in run.dir aside (to `<dir>.moved-N`) and start afresh.
+    #[arg(long)]
+    pub fresh: bool,
 }
 
 /// `terminal`: the rows on stderr that the log lines go through (`main`), where the run is shown
@@ -53,7 +61,12 @@ pub fn run(args: LaunchArgs, terminal: MultiProgress) -> Result<()> {
     let exe = std::env::current_exe()
         .context("cannot find the uavmeta binary to start the run's processes")?;
     let terminal = std::io::stderr().is_terminal().then_some(&terminal);
-    let report = uavmeta_meta::launch::launch(exe, &config, terminal)?;
+    let reuse = match (args.resume, args.fresh) {
+        (true, _) => Reuse::Resume,
+        (_, true) => Reuse::Fresh,
+        _ => Reuse::IfSame,
+    };
+    let report = uavmeta_meta::launch::launch(exe, &config, reuse, terminal)?;
     print!("{}", uavmeta_meta::launch::results_table(&report));
     Ok(())
 }

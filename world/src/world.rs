@@ -186,6 +186,20 @@ impl World {
         w
     }
 
+    /// This world under another task of the same world config: the power tables are shared,
+    /// not computed again (on a large grid they are most of a world's memory).
+    pub fn with_task(&self, task: &TaskConfig) -> World {
+        let mut w = World {
+            power_weight: task.lambda / self.devices as f64,
+            task_rain: task.rain,
+            rain: task.rain,
+            rain_moves_every: task.rain_moves_every,
+            ..self.clone()
+        };
+        w.reset();
+        w
+    }
+
     /// Restarts the world's random stream, so the next episodes are those of `seed`.
     pub fn reseed(&mut self, seed: u64) {
         self.rng = ChaCha8Rng::seed_from_u64(seed);
@@ -275,11 +289,6 @@ impl World {
         self.power_weight
     }
 
-    /// A_max.
-    pub fn aoi_max(&self) -> u16 {
-        self.aoi_max
-    }
-
     /// The raw observation s(t) = [x_u, y_u, A_1..A_K].
     pub fn observation(&self) -> &[u16] {
         &self.obs
@@ -325,35 +334,10 @@ impl World {
         // 1-2. The scheduled device transmits; in rain it is in outage and spends more.
         let (power_mw, outage) = self.transmission(device);
 
-        // 3. Every AoI ages by one, then the device heard from restarts at 1.
-        let cap = self.aoi_max;
-        // At most 64 devices of at most 65535 each: the sum fits in u32.
-        let mut total = 0u32;
-        for a in self.obs[2..].iter_mut() {
-            *a = a.saturating_add(1).min(cap);
-            total += *a as u32;
-        }
-        if !outage {
-            let a = &mut self.obs[2 + device];
-            total -= (*a - 1) as u32;
-            *a = 1;
-        }
-        let weighted = match self.uniform_delta {
-            Some(d) => d * total as f64,
-            None => self.obs[2..]
-                .iter()
-                .zip(&self.delta)
-                .map(|(&a, &d)| d * a as f64)
-                .sum(),
-        };
-
-        // 4. Reward.
-        let reward = -self.cost(weighted, power_mw);
-
-        // 5. The move; one that would leave the grid leaves the UAV where it is (P1b).
-        let (x, y) = self.moved(self.uav(), mv);
-        self.obs[0] = x as u16;
-        self.obs[1] = y as u16;
+        // 3-5. AoI, reward and move, on the world's own observation.
+        let mut obs = std::mem::take(&mut self.obs);
+        let (reward, total) = self.advance(&mut obs, mv, device, power_mw, outage);
+        self.obs = obs;
 
         self.t += 1;
         if let Some(every) = self.rain_moves_every {
@@ -370,6 +354,105 @@ impl World {
             aoi_mean: total as f64 / self.devices as f64,
             truncated: self.t >= self.horizon,
         }
+    }
+
+    /// Steps 3-5 of SPEC section 1 on the raw observation `obs`, the transmission's power and
+    /// outage given: ages the AoI, computes the reward, makes the move. Returns the reward and
+    /// the sum of the AoI after the update.
+    fn advance(
+        &self,
+        obs: &mut [u16],
+        mv: Move,
+        device: usize,
+        power_mw: f64,
+        outage: bool,
+    ) -> (f64, u32) {
+        // 3. Every AoI ages by one, then the device heard from restarts at 1.
+        let cap = self.aoi_max;
+        // At most 64 devices of at most 65535 each: the sum fits in u32.
+        let mut total = 0u32;
+        for a in obs[2..].iter_mut() {
+            *a = a.saturating_add(1).min(cap);
+            total += *a as u32;
+        }
+        if !outage {
+            let a = &mut obs[2 + device];
+            total -= (*a - 1) as u32;
+            *a = 1;
+        }
+        let weighted = match self.uniform_delta {
+            Some(d) => d * total as f64,
+            None => obs[2..]
+                .iter()
+                .zip(&self.delta)
+                .map(|(&a, &d)| d * a as f64)
+                .sum(),
+        };
+
+        // 4. Reward.
+        let reward = -self.cost(weighted, power_mw);
+
+        // 5. The move; one that would leave the grid leaves the UAV where it is (P1b).
+        let (x, y) = self.moved((obs[0] as u32, obs[1] as u32), mv);
+        obs[0] = x as u16;
+        obs[1] = y as u16;
+        (reward, total)
+    }
+
+    /// What taking `action` in the raw observation `obs` gives, with the transmission in outage
+    /// or not: the reward, with s(t+1) written into `next`. The world's own episode is untouched,
+    /// so this checks a transition someone claims this world made (`crate::validate`). `None`
+    /// when `obs` is not a state of this world (length, cell off the grid, an AoI of 0) or
+    /// `action` is not below 5K. Which outages are possible is [`World::possible_outages`].
+    pub fn outcome(
+        &self,
+        obs: &[u16],
+        action: usize,
+        outage: bool,
+        next: &mut [u16],
+    ) -> Option<f64> {
+        let &(mv, device) = self.action_parts.get(action)?;
+        let (x, y) = (*obs.first()? as u32, *obs.get(1)? as u32);
+        let in_state = obs.len() == 2 + self.devices && next.len() == obs.len();
+        if !in_state || x >= self.grid || y >= self.grid || obs[2..].contains(&0) {
+            return None;
+        }
+        let device = device as usize;
+        let at = (y * self.grid + x) as usize * self.devices + device;
+        let power_mw = if outage {
+            self.rain_mw[at]
+        } else {
+            self.clear_mw[at]
+        };
+        next.copy_from_slice(obs);
+        Some(self.advance(next, mv, device, power_mw, outage).0)
+    }
+
+    /// The outage values a step with index `step` (0 at an episode's start) from cell (x, y) can
+    /// have: none without rain; the task's zone decides while it has not moved; either once the
+    /// zone may have moved (it moves to places drawn from the world's random stream).
+    pub fn possible_outages(&self, x: u32, y: u32, step: u32) -> &'static [bool] {
+        match (self.task_rain, self.rain_moves_every) {
+            (None, _) => &[false],
+            (Some(zone), every) if every.is_none_or(|every| step < every) => {
+                if zone.contains(x, y) {
+                    &[true]
+                } else {
+                    &[false]
+                }
+            }
+            (Some(_), _) => &[false, true],
+        }
+    }
+
+    /// A_max, the cap of every AoI counter.
+    pub fn aoi_max(&self) -> u16 {
+        self.aoi_max
+    }
+
+    /// The fixed start cell of every episode, if the world has one.
+    pub fn start_cell(&self) -> Option<(u32, u32)> {
+        self.start_cell
     }
 
     /// This step's cost -r(t) if `device` were scheduled now. The move happens after the

@@ -9,6 +9,7 @@ pub struct StoreMetrics {
     pub transitions_received: IntCounterVec,
     pub transitions_stored: IntCounterVec,
     pub transitions_dropped: IntCounterVec,
+    pub transitions_rejected: IntCounterVec,
     pub transitions_missing: IntCounterVec,
     pub dataset_transitions: IntGaugeVec,
     pub dataset_ready: IntGaugeVec,
@@ -25,6 +26,8 @@ impl StoreMetrics {
             transitions_received: TRANSITIONS_RECEIVED.counter_vec(&registry, &task),
             transitions_stored: TRANSITIONS_STORED.counter_vec(&registry, &task),
             transitions_dropped: TRANSITIONS_DROPPED.counter_vec(&registry, &["task", "reason"]),
+            transitions_rejected: TRANSITIONS_REJECTED
+                .counter_vec(&registry, &["task", "actor", "reason"]),
             transitions_missing: TRANSITIONS_MISSING.counter_vec(&registry, &task),
             dataset_transitions: DATASET_TRANSITIONS.int_gauge_vec(&registry, &task),
             dataset_ready: DATASET_READY.int_gauge_vec(&registry, &task),

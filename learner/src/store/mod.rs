@@ -18,8 +18,17 @@
 //! as surplus. With one actor per task the file is therefore the same bytes for the same config
 //! and seed, whatever the timing.
 //!
+//! **Validation.** Nothing a publisher sends is trusted: before a batch's transitions are
+//! selected, every one of them is checked against the task's world (`uavmeta_world::validate`:
+//! finite, in range, and the world's own step from s(t) under a), and its first sequence number
+//! must lie within [`sequence_window`] of what the store holds of that actor, so a forged number
+//! far ahead cannot make every later batch of a real actor a duplicate. A batch that fails is
+//! dropped whole, unacknowledged, and counted per actor and reason
+//! (`store_transitions_rejected_total`) with a rate-limited log line; the store keeps running.
+//!
 //! Accounting, checked by the end-to-end tests: transitions the actors published = stored +
-//! dropped (duplicate, surplus, foreign), and missing counts transitions that never arrived.
+//! dropped (duplicate, surplus, foreign, invalid), and missing counts transitions that never
+//! arrived.
 
 use std::collections::HashMap;
 use std::time::{Duration, Instant};
@@ -28,7 +37,7 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use iceoryx2::sample::Sample;
-use uavmeta_proto::config::{Config, ConfigError};
+use uavmeta_proto::config::{Config, ConfigError, RunConfig};
 use uavmeta_proto::dataset::{
     DatasetError, DatasetHeader, DatasetReader, DatasetWriter, Transition,
 };
@@ -37,9 +46,13 @@ use uavmeta_proto::transport::{
     SCHEMA_VERSION,
 };
 
-use uavmeta_proto::metrics::store::{DROPPED_REASONS, DUPLICATE, FOREIGN, SURPLUS};
+use uavmeta_proto::metrics::store::{
+    DROPPED_REASONS, DUPLICATE, FOREIGN, INVALID, OTHER_ACTORS, REJECTION_ACTORS, SEQUENCE_WINDOW,
+    SURPLUS,
+};
 use uavmeta_proto::metrics::MetricsError;
 use uavmeta_proto::process::Process;
+use uavmeta_world::validate::{Claimed, Rejection, Validator};
 
 mod metrics;
 
@@ -57,6 +70,18 @@ pub const ACK_REFRESH_EVERY: Duration = Duration::from_millis(100);
 /// Interval between sweeps for dead processes' iceoryx2 resources: a dead subscriber of a control
 /// service would otherwise hold a full buffer.
 const CLEANUP_EVERY: Duration = Duration::from_secs(2);
+
+/// At most one log line per this interval for dropped batches of each kind (foreign, rejected);
+/// the next line says how many it stands for.
+const DROP_LOG_EVERY: Duration = Duration::from_secs(5);
+
+/// How far ahead of the next number the store expects of an actor a batch may start, in
+/// transitions: an actor keeps at most `2 * run.subscriber_buffer + 2` batches unacknowledged
+/// (`uavmeta_actors::actor`), so a real actor's gap (batches lost with a killed store, or dropped
+/// by a tunnel) stays within that many; four times it leaves room for all of them.
+pub fn sequence_window(run: &RunConfig) -> u64 {
+    4 * (2 * run.subscriber_buffer as u64 + 2) * run.batch_size as u64
+}
 
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
@@ -130,6 +155,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
     let _server = process.serve_metrics(run, config, store.metrics.registry.clone())?;
     tracing::info!(run = run.id(), tasks = store.tasks.len(), "store ready");
 
+    let cleaner = transport::Cleaner::start(&format!("{}-{PROCESS}", run.id()), &config.run);
     let mut idle = false;
     let mut last_cleanup = Instant::now();
     let mut last_ack_refresh = Instant::now();
@@ -148,7 +174,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
             last_ack_refresh = Instant::now();
         }
         if last_cleanup.elapsed() >= CLEANUP_EVERY {
-            transport::cleanup_dead_nodes(node);
+            cleaner.request();
             last_cleanup = Instant::now();
         }
     }
@@ -186,7 +212,34 @@ struct Store<'a> {
     subscribers: Vec<BatchSubscriber>,
     /// The transitions of the batch being stored, kept to reuse its allocation.
     buffer: Vec<Transition>,
+    /// In task order: every transition is checked against its task's world.
+    validators: Vec<Validator>,
+    /// [`sequence_window`] of the run.
+    seq_window: u64,
+    /// Actor ids the rejection metric labels by their own id (at most [`REJECTION_ACTORS`]).
+    labelled_actors: std::collections::HashSet<u32>,
+    foreign_log: LogLimit,
+    rejection_log: LogLimit,
     summary: StoreSummary,
+}
+
+/// A log line at most every [`DROP_LOG_EVERY`]; the lines in between are counted, not written.
+#[derive(Default)]
+struct LogLimit {
+    last: Option<Instant>,
+    suppressed: u64,
+}
+
+impl LogLimit {
+    /// Whether to write a line now; if so, how many were suppressed since the last one.
+    fn allow(&mut self) -> Option<u64> {
+        if self.last.is_some_and(|at| at.elapsed() < DROP_LOG_EVERY) {
+            self.suppressed += 1;
+            return None;
+        }
+        self.last = Some(Instant::now());
+        Some(std::mem::take(&mut self.suppressed))
+    }
 }
 
 impl<'a> Store<'a> {
@@ -216,6 +269,11 @@ impl<'a> Store<'a> {
             tasks,
             subscribers,
             buffer: Vec::with_capacity(config.run.batch_size),
+            validators: Validator::for_tasks(&config.world, &config.tasks),
+            seq_window: sequence_window(&config.run),
+            labelled_actors: Default::default(),
+            foreign_log: LogLimit::default(),
+            rejection_log: LogLimit::default(),
             summary: StoreSummary::default(),
         };
         for i in 0..store.tasks.len() {
@@ -261,7 +319,9 @@ impl<'a> Store<'a> {
             self.obs_len,
             slots.len(),
         ) {
-            tracing::warn!("dropped a batch: {error}");
+            if let Some(suppressed) = self.foreign_log.allow() {
+                tracing::warn!(suppressed, "dropped a batch: {error}");
+            }
             metrics
                 .transitions_dropped
                 .with_label_values(&[name, FOREIGN])
@@ -269,11 +329,87 @@ impl<'a> Store<'a> {
             self.summary.dropped += slots.len() as u64;
             return Ok(());
         }
+        if let Err(rejection) = self.validate(i, &header, slots) {
+            self.reject(i, &header, slots.len() as u64, &rejection);
+            return Ok(());
+        }
         let acknowledged = self.select(i, &header, slots);
         drop(sample);
         self.append(i)?;
         self.tasks[i].acknowledge(header.actor, acknowledged)?;
         self.announce_if_complete(i)
+    }
+
+    /// Checks a batch of task `i` whose header passed: its first sequence number within the
+    /// actor's window, and every transition one the task's world makes.
+    fn validate(
+        &mut self,
+        i: usize,
+        header: &BatchHeader,
+        slots: &[TransitionSlot],
+    ) -> Result<(), Rejection> {
+        let next = self.tasks[i]
+            .next_seq
+            .get(&header.actor)
+            .copied()
+            .unwrap_or(0);
+        if header.first_seq > next.saturating_add(self.seq_window) {
+            return Err(Rejection {
+                reason: SEQUENCE_WINDOW,
+                detail: format!(
+                    "first sequence number {}, but the store holds this actor's numbers below \
+                     {next} and admits at most {} ahead",
+                    header.first_seq, self.seq_window
+                ),
+            });
+        }
+        let validator = &mut self.validators[i];
+        for (index, slot) in slots.iter().enumerate() {
+            validator
+                .check(Claimed::from_slot(slot, self.obs_len))
+                .map_err(|r| Rejection {
+                    detail: format!(
+                        "transition {index} (sequence number {}): {}",
+                        header.first_seq + index as u64,
+                        r.detail
+                    ),
+                    ..r
+                })?;
+        }
+        Ok(())
+    }
+
+    /// Counts a batch of task `i` that failed validation as dropped, and says so at most every
+    /// [`DROP_LOG_EVERY`].
+    fn reject(&mut self, i: usize, header: &BatchHeader, count: u64, rejection: &Rejection) {
+        let name = self.tasks[i].name.as_str();
+        let actor = if self.labelled_actors.contains(&header.actor)
+            || self.labelled_actors.len() < REJECTION_ACTORS
+        {
+            self.labelled_actors.insert(header.actor);
+            header.actor.to_string()
+        } else {
+            OTHER_ACTORS.to_string()
+        };
+        let metrics = &self.metrics;
+        metrics
+            .transitions_rejected
+            .with_label_values(&[name, &actor, rejection.reason])
+            .inc_by(count);
+        metrics
+            .transitions_dropped
+            .with_label_values(&[name, INVALID])
+            .inc_by(count);
+        self.summary.dropped += count;
+        if let Some(suppressed) = self.rejection_log.allow() {
+            tracing::warn!(
+                task = name,
+                actor = header.actor,
+                transitions = count,
+                suppressed,
+                "dropped a batch that failed validation: {rejection}"
+            );
+        }
     }
 
     /// Fills the buffer with the batch's transitions that task `i`'s file lacks, counting

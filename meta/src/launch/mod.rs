@@ -55,6 +55,10 @@ use crate::meta_learner;
 
 mod display;
 mod metrics;
+pub mod resources;
+pub mod reuse;
+
+pub use reuse::Reuse;
 
 /// How often the run's `prometheus.yml` has Prometheus scrape every process; `uavmeta dashboard
 /// render` takes it for the interval of its rates.
@@ -72,6 +76,9 @@ const STORE_START: Duration = Duration::from_secs(30);
 /// announcement) before it is killed.
 const GRACE: Duration = Duration::from_secs(20);
 const BACKOFF_FIRST: Duration = Duration::from_millis(500);
+/// How long a failed child's restart waits, past its backoff, for the sweep of its iceoryx2
+/// resources (`transport::Cleaner`, on a thread of its own); then it restarts regardless.
+const CLEANUP_WAIT: Duration = Duration::from_secs(15);
 const BACKOFF_MAX: Duration = Duration::from_secs(10);
 
 /// The launcher's process name: node, port file, metrics snapshot.
@@ -112,6 +119,26 @@ pub enum LaunchError {
     #[error("stopped by a termination request")]
     Interrupted,
     #[error(
+        "every process of the run has exited, but its work is not done ({ready} of {tasks} \
+         datasets announced, meta-learning {learning}) and the launcher announced no shutdown: \
+         was one announced from outside? The run stays as it is; launch again to continue it"
+    )]
+    EndedEarly {
+        ready: usize,
+        tasks: usize,
+        learning: &'static str,
+    },
+    #[error(
+        "a shutdown was announced on the run's services by another process than this launcher, \
+         before the run's work was done; its processes stop, so the run ends here unfinished \
+         (launch again to continue it)"
+    )]
+    ForeignShutdown,
+    #[error("run directory {}: {message}", dir.display())]
+    Reuse { dir: PathBuf, message: String },
+    #[error("this machine cannot hold the run: {message}")]
+    Resources { message: String },
+    #[error(
         "tunnel.wait_for_hosts: after {seconds} s (tunnel.wait_seconds), hosts {missing} have \
          announced no actor and the store has {stored} transitions; is `uavmeta tunnel join \
          --connect <this host's address for {endpoint}>` running there, with actors?"
@@ -147,6 +174,8 @@ struct Supervised {
     restart_at: Option<Instant>,
     /// Exited successfully: not restarted.
     done: bool,
+    /// The sweep of its resources requested when it last failed.
+    cleanup: Option<u64>,
 }
 
 /// What a finished launch reports.
@@ -203,12 +232,15 @@ fn reference_rows(config: &Config) -> Vec<EvaluationRow> {
 /// Runs `config` as one supervised run in `config.run.dir`, children started from `exe` (the
 /// `uavmeta` binary). With a `terminal`, it shows what every process is doing there (`display`);
 /// whatever else writes to that terminal meanwhile (the log lines) must go through its
-/// `suspend`.
+/// `suspend`. A directory that holds a run already is used as `reuse` says ([`reuse::prepare`]).
 pub fn launch(
     exe: PathBuf,
     config: &Config,
+    reuse: Reuse,
     terminal: Option<&MultiProgress>,
 ) -> Result<LaunchReport, LaunchError> {
+    resources::check_here(config)?;
+    reuse::prepare(config, reuse)?;
     let run = RunDir::create(&config.run.dir)?;
     write_atomic(&run.config_file(), config.to_toml_string().as_bytes())?;
     write_prometheus_yml(&run)?;
@@ -241,6 +273,7 @@ pub fn launch(
         max_restarts: config.run.max_restarts,
         hang_timeout: Duration::from_secs_f64(config.run.hang_timeout_seconds),
         metrics: &launcher_metrics,
+        cleaner: transport::Cleaner::start(&format!("{}-{PROCESS}", run.id()), &config.run),
     };
 
     start_children(&supervisor, &mut children, config, &node)?;
@@ -254,7 +287,7 @@ pub fn launch(
         config.tasks.len(),
     );
     stop_all(&mut children);
-    transport::cleanup_dead_nodes(&node);
+    supervisor.cleaner.sweep_within(CLEANUP_WAIT);
     if let Some(display) = display {
         display.finish();
     }
@@ -274,6 +307,8 @@ struct Announcements {
     dataset_ready: Subscriber<ipc::Service, DatasetReady, ()>,
     checkpoint_ready: Subscriber<ipc::Service, CheckpointReady, ()>,
     shutdown: Publisher<ipc::Service, Shutdown, ()>,
+    /// Every shutdown announced, to tell one the launcher did not make.
+    shutdowns: Subscriber<ipc::Service, Shutdown, ()>,
 }
 
 impl Announcements {
@@ -282,6 +317,7 @@ impl Announcements {
         names: &ServiceNames,
         config: &Config,
     ) -> Result<Self, LaunchError> {
+        let shutdown = transport::shutdown_service(node, names, config)?;
         Ok(Self {
             dataset_ready: transport::control_subscriber(
                 &transport::dataset_ready_service(node, names, config)?,
@@ -291,9 +327,8 @@ impl Announcements {
                 &transport::checkpoint_ready_service(node, names, config)?,
                 config,
             )?,
-            shutdown: transport::control_publisher(&transport::shutdown_service(
-                node, names, config,
-            )?)?,
+            shutdown: transport::control_publisher(&shutdown)?,
+            shutdowns: transport::control_subscriber(&shutdown, config)?,
         })
     }
 }
@@ -316,7 +351,12 @@ fn supervise(
         if !transport::keep_running(node, TICK) {
             return Err(LaunchError::Interrupted);
         }
-        supervisor.poll(children, node)?;
+        supervisor.poll(children)?;
+        // Before its own, any shutdown is another process's: the children stop on it, and the
+        // run must not end as if its work were done.
+        if !shutdown_sent && transport::shutdown_requested(&announcements.shutdowns)? {
+            return Err(LaunchError::ForeignShutdown);
+        }
         count_announcements(
             &announcements.dataset_ready,
             &announcements.checkpoint_ready,
@@ -340,18 +380,34 @@ fn supervise(
             shutdown_sent = true;
             shutdown_at = Instant::now();
         }
-        if shutdown_sent
-            && children
-                .iter()
-                .all(|c| c.child.is_none() && c.restart_at.is_none())
-        {
+        if shutdown_sent && all_exited(children) {
             return Ok(());
+        }
+        if !shutdown_sent && all_exited(children) {
+            return Err(LaunchError::EndedEarly {
+                ready: ready_tasks.iter().filter(|r| **r).count(),
+                tasks,
+                learning: match children
+                    .iter()
+                    .any(|c| c.role == Role::MetaLearner && !c.done)
+                {
+                    true => "unfinished",
+                    false => "finished",
+                },
+            });
         }
         if shutdown_sent && shutdown_at.elapsed() > GRACE {
             tracing::warn!("children still running {GRACE:?} after the shutdown; stopping them");
             return Ok(());
         }
     }
+}
+
+/// Whether no child runs or waits for a restart: a forged shutdown ends every one of them.
+fn all_exited(children: &[Supervised]) -> bool {
+    children
+        .iter()
+        .all(|c| c.child.is_none() && c.restart_at.is_none())
 }
 
 /// Whether the run's work is done: the meta-learner finished and every task's dataset is ready,
@@ -469,6 +525,7 @@ fn plan(run: &RunDir, config: &Config) -> Result<Vec<Supervised>, LaunchError> {
         failures: 0,
         restart_at: None,
         done: false,
+        cleanup: None,
     };
     let mut children = vec![child(
         store::PROCESS.into(),
@@ -535,6 +592,8 @@ struct Supervisor<'a> {
     /// Zero: never taken for hung.
     hang_timeout: Duration,
     metrics: &'a metrics::LauncherMetrics,
+    /// Sweeps dead children's iceoryx2 resources off the supervision loop.
+    cleaner: transport::Cleaner,
 }
 
 impl Supervisor<'_> {
@@ -601,14 +660,10 @@ impl Supervisor<'_> {
     }
 
     /// Reaps exited children, schedules restarts of failed ones and starts those that are due.
-    fn poll(
-        &self,
-        children: &mut [Supervised],
-        node: &Node<ipc::Service>,
-    ) -> Result<(), LaunchError> {
+    fn poll(&self, children: &mut [Supervised]) -> Result<(), LaunchError> {
         for c in children.iter_mut() {
             let Some(process) = c.child.as_mut() else {
-                if c.restart_at.is_some_and(|at| Instant::now() >= at) {
+                if self.restart_due(c) {
                     self.metrics.restarts.with_label_values(&[&c.name]).inc();
                     tracing::warn!(name = %c.name, attempt = c.failures, "restarting");
                     self.start(c)?;
@@ -644,7 +699,7 @@ impl Supervisor<'_> {
             c.failures += 1;
             // The dead child's ports still sit in the services; remove them before anyone
             // (its successor included) waits on them.
-            transport::cleanup_dead_nodes(node);
+            c.cleanup = Some(self.cleaner.request());
             if c.failures > self.max_restarts {
                 return Err(LaunchError::GaveUp {
                     name: c.name.clone(),
@@ -663,6 +718,21 @@ impl Supervisor<'_> {
 }
 
 impl Supervisor<'_> {
+    /// Whether a failed child's backoff is over and the sweep of its resources has ended (or
+    /// [`CLEANUP_WAIT`] more has passed: the sweep is stuck, and the child restarts regardless).
+    fn restart_due(&self, c: &Supervised) -> bool {
+        let Some(at) = c.restart_at else {
+            return false;
+        };
+        let now = Instant::now();
+        let swept = c.cleanup.is_none_or(|ticket| self.cleaner.finished(ticket));
+        if !swept && now >= at + CLEANUP_WAIT {
+            tracing::warn!(name = %c.name, "the iceoryx2 clean-up is stuck; restarting without it");
+            return true;
+        }
+        now >= at && swept
+    }
+
     /// How long child `name`'s heartbeat has not moved, if longer than the hang timeout.
     fn silent_for(&self, name: &str) -> Option<Duration> {
         if self.hang_timeout.is_zero() {
