@@ -28,7 +28,6 @@ pub mod worlds;
 fn _uavmeta(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<worlds::Worlds>()?;
     m.add_class::<policies::Heuristic>()?;
-    // The planner reference (world/src/planner.rs) joins `policies` here once it lands.
     m.add_function(wrap_pyfunction!(dataset::load_dataset, m)?)?;
     m.add_function(wrap_pyfunction!(worlds::episode_seed, m)?)?;
     m.add("DatasetError", m.py().get_type::<dataset::DatasetError>())?;

@@ -4,12 +4,16 @@
 //! `uavmeta env rollout --policy NAME` choose the same actions.
 //!
 //! The greedy policy prices a transmission with the task's configured rain zone: an observation
-//! does not say where a moving zone is now.
+//! does not say where a moving zone is now. The planner reference (`uavmeta_world::planner`)
+//! plans from each row at the step `t` it is told to the horizon, with the task's `[planner]`
+//! settings: exact wherever the rain does not move; it keeps its plan while the rows follow it,
+//! so an episode stepped one row at a time plans once.
 
 use numpy::{IntoPyArray, PyArray1, PyReadonlyArray2};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use uavmeta_world::heuristics::{GreedyPolicy, RandomPolicy, StalestPolicy};
+use uavmeta_world::planner::PlannerPolicy;
 use uavmeta_world::rollout::Policy;
 use uavmeta_world::world::World;
 
@@ -20,6 +24,7 @@ enum Kind {
     Random(Box<RandomPolicy>),
     Stalest(StalestPolicy),
     Greedy(GreedyPolicy),
+    Planner(Box<PlannerPolicy>),
 }
 
 impl Kind {
@@ -28,6 +33,7 @@ impl Kind {
             Kind::Random(p) => p.act(world),
             Kind::Stalest(p) => p.act(world),
             Kind::Greedy(p) => p.act(world),
+            Kind::Planner(p) => p.act(world),
         }
     }
 }
@@ -58,9 +64,13 @@ impl Heuristic {
             "random" => Kind::Random(Box::new(RandomPolicy::new(seed))),
             "stalest" => Kind::Stalest(StalestPolicy),
             "greedy" => Kind::Greedy(GreedyPolicy),
+            "planner" => {
+                let (config, _) = worlds.config_and_task();
+                Kind::Planner(Box::new(PlannerPolicy::new(&config.planner)))
+            }
             _ => {
                 return Err(PyValueError::new_err(format!(
-                    "policy = {name:?}: expected random, stalest or greedy"
+                    "policy = {name:?}: expected random, stalest, greedy or planner"
                 )))
             }
         };
@@ -84,12 +94,21 @@ impl Heuristic {
         })
     }
 
-    /// The action index of every row of `obs`, an (N, 2 + K) float32 array.
+    /// The action index of every row of `obs`, an (N, 2 + K) float32 array, at step `t` of the
+    /// episode (only the planner reads it: it plans the remaining T - t steps).
+    #[pyo3(signature = (obs, t=0))]
     fn __call__<'py>(
         &mut self,
         py: Python<'py>,
         obs: PyReadonlyArray2<'py, f32>,
+        t: u32,
     ) -> PyResult<Bound<'py, PyArray1<i64>>> {
+        let horizon = self.world.horizon();
+        if t >= horizon {
+            return Err(PyValueError::new_err(format!(
+                "t = {t}: expected a step of the episode, 0..{horizon}"
+            )));
+        }
         let d = self.to_raw.len();
         let obs = obs.as_array();
         if obs.ncols() != d {
@@ -105,6 +124,7 @@ impl Heuristic {
                 raw[c] = self.raw_value(r, c, v)?;
             }
             self.world.set_observation(&raw);
+            self.world.set_t(t);
             actions.push(self.kind.act(&self.world) as i64);
         }
         Ok(actions.into_pyarray(py))

@@ -112,6 +112,15 @@ def test_heuristics_choose_what_the_cli_chooses(run_cli, tmp_path, name):
         assert_same_steps(env, steps, lambda obs, s: policy(obs), seed=4)
 
 
+def test_the_planner_chooses_what_the_cli_chooses(run_cli, tmp_path):
+    steps = trace(run_cli, tmp_path, 2, 4, "planner", "--lambda", "600")
+    env = uavmeta.UavEnv(config=CONFIG, lam=600.0)
+    policy = uavmeta.policies.planner(env)
+    assert_same_steps(env, steps, lambda obs, s: policy(obs, t=env.t), seed=4)
+    with pytest.raises(ValueError, match="t = 100"):
+        policy(env.reset(seed=0)[0], t=100)
+
+
 def test_batched_heuristics_equal_one_row_at_a_time():
     env = uavmeta.VectorEnv(16, lam=300.0)
     obs, _ = env.reset(seed=0)

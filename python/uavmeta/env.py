@@ -165,6 +165,11 @@ class UavEnv(WorldProperties, gymnasium.Env):
         return self._worlds.state(0)[0]
 
     @property
+    def t(self):
+        """The step of the episode the env stands at: 0 after reset, the horizon at its end."""
+        return len(self._cells) - 1
+
+    @property
     def rain_zone(self):
         """The rain zone now (x0, y0, x1, y1), or None."""
         return self._worlds.state(0)[2]

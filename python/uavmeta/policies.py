@@ -9,16 +9,19 @@ same actions:
 - ``random(env, seed)``: uniform over the 5K actions, one draw per row from a stream seeded by
   ``seed`` (the CLI's ``--seed``);
 - ``stalest(env)``: serve the device with the largest delta_k A_k, fly towards it;
-- ``greedy(env)``: serve the device that makes this step cheapest, fly towards the stalest.
-
-The planner reference (SPEC section 5) joins them once the world crate has it.
+- ``greedy(env)``: serve the device that makes this step cheapest, fly towards the stalest;
+- ``planner(env)``: the planner reference (SPEC section 5), a search that knows the world, the
+  measure of what is achievable. Call it with the step ``t`` the observations are at
+  (``policy(obs, t=env.t)``): it plans the remaining T - t steps from each row, exactly where the
+  rain does not move (with the task's configured zone where it does). It keeps its plan while
+  the observations follow it, so an episode stepped one observation at a time plans once.
 """
 
 import numpy as np
 
 from ._uavmeta import Heuristic as _Heuristic
 
-NAMES = ("random", "stalest", "greedy")
+NAMES = ("random", "stalest", "greedy", "planner")
 
 
 class HeuristicPolicy:
@@ -29,13 +32,13 @@ class HeuristicPolicy:
         self.name = name
         self._native = _Heuristic(name, worlds, normalised=worlds.normalised, seed=seed)
 
-    def __call__(self, obs):
+    def __call__(self, obs, t=0):
         obs = np.asarray(obs, dtype=np.float32)
         if obs.ndim not in (1, 2):
             raise ValueError(
                 f"observations of shape {obs.shape}: expected (2 + K,) or (N, 2 + K)"
             )
-        actions = self._native(np.ascontiguousarray(np.atleast_2d(obs)))
+        actions = self._native(np.ascontiguousarray(np.atleast_2d(obs)), t=t)
         return int(actions[0]) if obs.ndim == 1 else actions
 
     def __repr__(self):
@@ -52,6 +55,10 @@ def stalest(env):
 
 def greedy(env):
     return HeuristicPolicy("greedy", env)
+
+
+def planner(env):
+    return HeuristicPolicy("planner", env)
 
 
 def make(name, env, seed=0):

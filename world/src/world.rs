@@ -324,6 +324,17 @@ impl World {
         self.obs.copy_from_slice(obs);
     }
 
+    /// Sets the step counter: the world then stands at step `t` of its episode (the planner
+    /// plans the remaining T - t steps). Panics past the horizon.
+    pub fn set_t(&mut self, t: u32) {
+        assert!(
+            t <= self.horizon,
+            "step {t} is past the horizon {}",
+            self.horizon
+        );
+        self.t = t;
+    }
+
     /// One step of SPEC section 1 with action `a = move * K + device`.
     pub fn step(&mut self, action: usize) -> Step {
         let Some(&(mv, device)) = self.action_parts.get(action) else {
