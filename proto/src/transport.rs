@@ -761,7 +761,8 @@ pub enum RunConfigError {
 }
 
 /// Writes `bytes` to `path` through a temporary file in the same directory, fsynced and renamed,
-/// so readers see the old content or the new, never a torn file.
+/// so readers see the old content or the new, never a torn file. A failure (a full disk) removes
+/// the temporary file.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), TransportError> {
     use std::io::Write;
     let io = |path: &Path, action, source| TransportError::Io {
@@ -771,9 +772,15 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), TransportError> {
     };
     let tmp = path.with_extension(format!("tmp.{}", std::process::id()));
     let mut file = std::fs::File::create(&tmp).map_err(|e| io(&tmp, "create", e))?;
-    file.write_all(bytes).map_err(|e| io(&tmp, "write", e))?;
-    file.sync_all().map_err(|e| io(&tmp, "sync", e))?;
-    std::fs::rename(&tmp, path).map_err(|e| io(path, "rename into place", e))
+    let written = file
+        .write_all(bytes)
+        .map_err(|e| io(&tmp, "write", e))
+        .and_then(|()| file.sync_all().map_err(|e| io(&tmp, "sync", e)))
+        .and_then(|()| std::fs::rename(&tmp, path).map_err(|e| io(path, "rename into place", e)));
+    if written.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    written
 }
 
 fn fnv1a(bytes: &[u8]) -> u64 {
