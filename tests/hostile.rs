@@ -365,3 +365,53 @@ fn a_forged_shutdown_ends_the_launch_with_an_error_instead_of_a_wait_for_ever() 
         out.stderr
     );
 }
+
+#[test]
+fn an_actor_replaying_an_action_file_publishes_its_share_and_stops() {
+    let run = Run::new("actions");
+    let path = run.path();
+    let run_arg = path.display().to_string();
+    let store = Proc::spawn("store", &run.args(&["store", "--run", &run_arg], &[]));
+    wait_until("the store", within(60), || {
+        path.join("ports/store.port").exists()
+    });
+    // The small config's collect.transitions = 300 actions, one index a line.
+    let file = run.dir.path().join("actions.txt");
+    std::fs::write(&file, "3\n".repeat(300)).expect("actions");
+    let policy = format!("actions:{}", file.display());
+    let args = [
+        "actor", "--run", &run_arg, "--task", "lambda-0", "--seed", "1", "--policy", &policy,
+    ];
+    Proc::spawn("actor", &args.map(String::from)).succeeds(within(120));
+    wait_until("300 stored", within(60), || {
+        let samples = scrape(&path, "store");
+        metrics::sum(
+            &samples,
+            names::DATASET_TRANSITIONS,
+            &[("task", "lambda-0")],
+        ) == 300.0
+    });
+    drop(store);
+}
+
+#[test]
+fn a_damaged_dataset_file_is_named_by_the_launch_not_left_to_a_timeout() {
+    let run = Run::new("empty");
+    let path = run.path();
+    let run_arg = path.display().to_string();
+    let store = Proc::spawn("store", &run.args(&["store", "--run", &run_arg], &[]));
+    wait_until("the store", within(60), || {
+        path.join("ports/store.port").exists()
+    });
+    store.signal(libc::SIGTERM);
+    store.succeeds(within(60));
+    let file = path.join("datasets/lambda-0.uavds");
+    std::fs::write(&file, b"").expect("an empty dataset file");
+    let out = Proc::spawn("launch", &run.args(&["launch"], &[])).wait(within(60));
+    assert!(!out.status.success());
+    assert!(
+        out.stderr.contains("the store exited") && out.stderr.contains("lambda-0.uavds"),
+        "{}",
+        out.stderr
+    );
+}

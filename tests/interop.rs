@@ -100,7 +100,10 @@ fn inspect_prints_the_header_counts_returns_and_action_histogram() {
         .copied()
         .filter(|l| moves.contains(&l.split_whitespace().next().unwrap_or("")))
         .collect();
-    let firsts: Vec<&str> = rows.iter().filter_map(|l| l.split_whitespace().next()).collect();
+    let firsts: Vec<&str> = rows
+        .iter()
+        .filter_map(|l| l.split_whitespace().next())
+        .collect();
     assert_eq!(firsts, moves, "{text}");
     let totals: Vec<u64> = rows
         .iter()
@@ -108,7 +111,10 @@ fn inspect_prints_the_header_counts_returns_and_action_histogram() {
         .collect();
     assert_eq!(totals.iter().sum::<u64>(), 200, "{text}");
     // And the store's checks, run on the file.
-    assert!(text.contains("every transition passes the store's checks"), "{text}");
+    assert!(
+        text.contains("every transition passes the store's checks"),
+        "{text}"
+    );
 }
 
 #[test]

@@ -244,8 +244,9 @@ fn train_writes_a_row_per_epoch_and_a_checkpoint_that_eval_scores() {
     let last = &rows[2];
     let lines: Vec<&str> = text.lines().collect();
     assert!(
-        lines[0]
-            .starts_with("runs/cql/final (cql, epoch 3) on `lambda-300`, 100 episodes seeded 12345"),
+        lines[0].starts_with(
+            "runs/cql/final (cql, epoch 3) on `lambda-300`, 100 episodes seeded 12345"
+        ),
         "{text}"
     );
     let expected = format!(

@@ -82,9 +82,11 @@ pub enum CheckpointError {
         expected_len: u64,
         expected: u32,
     },
-    #[error("{}: cannot load the weights", path.display())]
+    #[error("{}: cannot {action} the weights", path.display())]
     Weights {
         path: PathBuf,
+        /// "load" or "save": a full disk on save must not read as a damaged file.
+        action: &'static str,
         source: tch::TchError,
     },
     /// `key` is the config key whose value differs from the checkpoint's; `detail` says how.
@@ -131,6 +133,7 @@ pub fn save(
     q.vs.save(&tmp_weights)
         .map_err(|source| CheckpointError::Weights {
             path: tmp_weights.clone(),
+            action: "save",
             source,
         })?;
     let bytes = read(&tmp_weights, "read back")?;
@@ -190,6 +193,7 @@ pub fn save_state<S: Serialize>(
     let tmp = temp_name(&tensors_path, "safetensors");
     Tensor::write_safetensors(tensors, &tmp).map_err(|source| CheckpointError::Weights {
         path: tmp.clone(),
+        action: "save",
         source,
     })?;
     let bytes = read(&tmp, "read back")?;
@@ -220,6 +224,7 @@ pub fn load_state<S: DeserializeOwned>(
     let tensors =
         Tensor::read_safetensors(&tensors_path).map_err(|source| CheckpointError::Weights {
             path: tensors_path,
+            action: "load",
             source,
         })?;
     Ok((tensors, meta.state))
@@ -316,6 +321,7 @@ pub fn load(path: &Path, config: &Config) -> Result<(QNetwork, CheckpointMeta), 
     q.vs.load(&paths.weights)
         .map_err(|source| CheckpointError::Weights {
             path: paths.weights.clone(),
+            action: "load",
             source,
         })?;
     Ok((q, meta))

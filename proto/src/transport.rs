@@ -496,48 +496,19 @@ impl ServiceNames {
         format!("{}/control/shutdown", self.prefix)
     }
 
-    /// The services a remote actor uses and which way each crosses a tunnel: the one
-    /// declaration of what a remote host may send (its transitions) and what only the learner's
-    /// host sends (acknowledgements, dataset announcements, the shutdown).
-    pub fn tunnel_routes<'t>(
+    /// The services a remote actor uses, which a tunnel carries between hosts: every task's
+    /// transitions and acknowledgements, the dataset announcements and the shutdown.
+    pub fn remote_actor_services<'t>(
         &self,
         tasks: impl IntoIterator<Item = &'t TaskConfig>,
-    ) -> Vec<(String, Crossing)> {
-        let mut routes: Vec<(String, Crossing)> = tasks
+    ) -> Vec<String> {
+        let mut names: Vec<String> = tasks
             .into_iter()
-            .flat_map(|t| {
-                [
-                    (self.transitions(&t.name), Crossing::ToLearner),
-                    (self.acks(&t.name), Crossing::ToRemote),
-                ]
-            })
+            .flat_map(|t| [self.transitions(&t.name), self.acks(&t.name)])
             .collect();
-        routes.push((self.dataset_ready(), Crossing::ToRemote));
-        routes.push((self.shutdown(), Crossing::ToRemote));
-        routes
+        names.extend([self.dataset_ready(), self.shutdown()]);
+        names
     }
-
-    /// The copy of `service` that carries it to remote hosts, `uavmeta/<run>/to-remote/...`: no
-    /// process of the learner's host reads it, so what a remote host publishes into it reaches
-    /// none of them.
-    pub fn to_remote(&self, service: &str) -> String {
-        let rest = service
-            .strip_prefix(&self.prefix)
-            .unwrap_or(service)
-            .trim_start_matches('/');
-        format!("{}/to-remote/{rest}", self.prefix)
-    }
-}
-
-/// Which way a service crosses a tunnel ([`ServiceNames::tunnel_routes`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Crossing {
-    /// Remote hosts publish into it, under its own name, and the learner's host reads it.
-    ToLearner,
-    /// Only the learner's host publishes: its tunnel copies the service into
-    /// [`ServiceNames::to_remote`], which crosses, and a remote host's tunnel copies that into its
-    /// own service; nothing crosses back into the original.
-    ToRemote,
 }
 
 /// A run's directory and the layout of everything in it.
@@ -761,7 +732,8 @@ pub enum RunConfigError {
 }
 
 /// Writes `bytes` to `path` through a temporary file in the same directory, fsynced and renamed,
-/// so readers see the old content or the new, never a torn file.
+/// so readers see the old content or the new, never a torn file. A failure (a full disk) removes
+/// the temporary file.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), TransportError> {
     use std::io::Write;
     let io = |path: &Path, action, source| TransportError::Io {
@@ -771,9 +743,15 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), TransportError> {
     };
     let tmp = path.with_extension(format!("tmp.{}", std::process::id()));
     let mut file = std::fs::File::create(&tmp).map_err(|e| io(&tmp, "create", e))?;
-    file.write_all(bytes).map_err(|e| io(&tmp, "write", e))?;
-    file.sync_all().map_err(|e| io(&tmp, "sync", e))?;
-    std::fs::rename(&tmp, path).map_err(|e| io(path, "rename into place", e))
+    let written = file
+        .write_all(bytes)
+        .map_err(|e| io(&tmp, "write", e))
+        .and_then(|()| file.sync_all().map_err(|e| io(&tmp, "sync", e)))
+        .and_then(|()| std::fs::rename(&tmp, path).map_err(|e| io(path, "rename into place", e)));
+    if written.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    written
 }
 
 fn fnv1a(bytes: &[u8]) -> u64 {
@@ -1219,8 +1197,8 @@ pub fn transition_service(
         .map_err(|e| open_error(node.config(), &name, &service, e))
 }
 
-/// Opens (or creates) the control service `service`, whose history lets late joiners catch up.
-pub fn control_service<T: fmt::Debug + ZeroCopySend + 'static>(
+/// Opens (or creates) a control service, whose history lets late joiners catch up.
+fn control_service<T: fmt::Debug + ZeroCopySend + 'static>(
     node: &Node<ipc::Service>,
     service: String,
     config: &Config,
@@ -1386,15 +1364,7 @@ pub fn ack_service(
     task: &str,
     run: &RunConfig,
 ) -> Result<AckService, TransportError> {
-    ack_service_at(node, names.acks(task), run)
-}
-
-/// Opens (or creates) an acknowledgement service named `service` (a task's, or its tunnel copy).
-pub fn ack_service_at(
-    node: &Node<ipc::Service>,
-    service: String,
-    run: &RunConfig,
-) -> Result<AckService, TransportError> {
+    let service = names.acks(task);
     let name = service_name(&service)?;
     node.service_builder(&name)
         .publish_subscribe::<StoreAck>()

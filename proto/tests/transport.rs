@@ -126,3 +126,24 @@ fn a_segment_truncated_again_and_again_is_given_up_on_and_the_cleaner_never_bloc
     drop((cleaner, node));
     std::fs::remove_file(&segment).expect("remove the test's segment");
 }
+
+#[test]
+fn a_failed_atomic_write_leaves_no_temporary_file() {
+    let dir = tempfile::tempdir().expect("tmp");
+    // Renaming a file onto a non-empty directory fails, as a write to a full disk does.
+    let target = dir.path().join("targets.json");
+    std::fs::create_dir(&target).expect("dir");
+    std::fs::write(target.join("x"), b"x").expect("file");
+    let error = transport::write_atomic(&target, b"{}").expect_err("cannot replace a directory");
+    assert!(error.to_string().contains("targets.json"), "{error}");
+    let left: Vec<_> = std::fs::read_dir(dir.path())
+        .expect("list")
+        .flatten()
+        .map(|e| e.file_name())
+        .collect();
+    assert_eq!(
+        left,
+        vec![std::ffi::OsString::from("targets.json")],
+        "a temporary file was left"
+    );
+}

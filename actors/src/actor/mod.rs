@@ -193,6 +193,17 @@ enum Source {
     Fixed(Vec<Transition>),
 }
 
+/// The transitions an actor publishes at most: `--transitions`, else a replayed action list's
+/// share of the dataset (`collect.transitions`: the list must hold that many, and the actor stops
+/// there rather than run past its end), else no limit.
+fn transition_limit(options: &ActorOptions, config: &Config) -> u64 {
+    match (options.transitions, &options.policy) {
+        (Some(n), _) => n,
+        (None, PolicySpec::Actions(_)) => config.collect.transitions as u64,
+        (None, _) => u64::MAX,
+    }
+}
+
 /// Runs an actor of `run` until its task's dataset is complete, a shutdown, its transition limit,
 /// or SIGINT/SIGTERM.
 pub fn run(
@@ -247,7 +258,7 @@ pub fn run(
         ),
         metrics: &metrics,
         seq: 0,
-        limit: options.transitions.unwrap_or(u64::MAX),
+        limit: transition_limit(options, config),
         summary,
     };
     feed.send_all(&control)?;
@@ -430,8 +441,12 @@ fn start_source(
             }
         }
         spec => {
+            // A replayed list must hold the transitions the actor will publish, when bounded.
+            let limit = usize::try_from(transition_limit(options, config))
+                .ok()
+                .filter(|&n| n != usize::MAX);
             let policy =
-                spec.build(config, options.seed, None)
+                spec.build(config, options.seed, limit)
                     .map_err(|error| ActorError::Policy {
                         spec: spec.to_string(),
                         error,

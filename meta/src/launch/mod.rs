@@ -118,6 +118,12 @@ pub enum LaunchError {
     Policy { origin: String, message: String },
     #[error("stopped by a termination request")]
     Interrupted,
+    #[error("the store exited ({status}) before it was ready: {cause} (its log: {})", log.display())]
+    StoreFailed {
+        status: String,
+        cause: String,
+        log: PathBuf,
+    },
     #[error(
         "every process of the run has exited, but its work is not done ({ready} of {tasks} \
          datasets announced, meta-learning {learning}) and the launcher announced no shutdown: \
@@ -440,7 +446,7 @@ fn start_children(
         .position(|c| c.role == Role::Store)
         .expect("the plan has a store");
     supervisor.start(&mut children[store_index])?;
-    wait_for_port(run, store::PROCESS, STORE_START)?;
+    wait_for_store(run, &mut children[store_index])?;
     for child in children.iter_mut().filter(|c| c.role == Role::Tunnel) {
         supervisor.start(child)?;
         // What an actor host needs to join (README, Actors on other hosts).
@@ -459,6 +465,39 @@ fn start_children(
         supervisor.start(child)?;
     }
     Ok(())
+}
+
+/// Waits for the store's port file, at most [`STORE_START`]; a store that exits first is named
+/// with its exit status and the last line of its log (a damaged dataset file, say), not left to
+/// a timeout.
+fn wait_for_store(run: &RunDir, store: &mut Supervised) -> Result<(), LaunchError> {
+    let start = Instant::now();
+    while start.elapsed() < STORE_START {
+        if run.port_file(store::PROCESS).exists() {
+            wait_for_port(run, store::PROCESS, STORE_START)?;
+            return Ok(());
+        }
+        let exited = store
+            .child
+            .as_mut()
+            .and_then(|c| c.try_wait().ok().flatten());
+        if let Some(status) = exited {
+            let log = run.log_file(&store.name);
+            let text = std::fs::read_to_string(&log).unwrap_or_default();
+            return Err(LaunchError::StoreFailed {
+                status: describe(status),
+                cause: text
+                    .lines()
+                    .rev()
+                    .find(|l| !l.trim().is_empty())
+                    .unwrap_or("")
+                    .to_string(),
+                log,
+            });
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    Ok(wait_for_port(run, store::PROCESS, Duration::ZERO).map(drop)?)
 }
 
 /// Reads the store's dataset and the meta-learner's checkpoint announcements into `ready_tasks`
@@ -830,7 +869,11 @@ fn write_targets(
     }
     let text = serde_json::to_string_pretty(&targets).expect("JSON values always serialise");
     if text != last {
-        write_atomic(&run.prometheus_targets(), text.as_bytes())?;
+        // Scrape targets are a convenience: a full disk must not end the run for them.
+        if let Err(error) = write_atomic(&run.prometheus_targets(), text.as_bytes()) {
+            tracing::warn!(%error, "cannot rewrite the Prometheus targets; trying again");
+            return Ok(last);
+        }
         for host in remote_hosts(run) {
             let names: Vec<&str> = host.processes.iter().map(|p| p.name.as_str()).collect();
             tracing::info!(host = %host.host, processes = ?names, "remote actor host");
