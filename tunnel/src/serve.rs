@@ -24,15 +24,7 @@ pub fn serve(run: &RunDir, config: &Config) -> Result<(), TunnelError> {
     transport::cleanup_dead_nodes(&node);
     let services = RunServices::open(&node, run, config)?;
     let shutdown = transport::control_subscriber(&services.shutdown, config)?;
-    let security = session::Security::of_config(&config.tunnel);
-    let keys = [
-        "tunnel.ca",
-        "tunnel.certificate",
-        "tunnel.private_key",
-        "tunnel.credentials",
-    ];
-    security.check_files(endpoint, keys)?;
-    let session = session::listen(endpoint, &security)?;
+    let session = session::listen(endpoint)?;
     let zenoh_error = |e: zenoh::Error| TunnelError::Zenoh {
         endpoint: endpoint.clone(),
         message: e.to_string(),
