@@ -42,6 +42,17 @@ impl Run {
         args.extend(config_args(self.dir.path(), &self.path(), &all));
         args
     }
+
+    /// A store of this run started by hand, once it serves (its port file is written).
+    fn start_store(&self) -> Proc {
+        let path = self.path();
+        let run_arg = path.display().to_string();
+        let store = Proc::spawn("store", &self.args(&["store", "--run", &run_arg], &[]));
+        wait_until("the store", within(60), || {
+            path.join("ports/store.port").exists()
+        });
+        store
+    }
 }
 
 impl Drop for Run {
@@ -265,12 +276,8 @@ fn dataset_inspect_names_a_fabricated_transition_in_a_file_with_valid_crcs() {
 fn a_launch_into_a_run_of_another_config_is_refused_naming_the_key_and_fresh_moves_it_aside() {
     let run = Run::new("reuse");
     let path = run.path();
-    let run_arg = path.display().to_string();
     // A run made with the random policy: a store started by hand writes its config.toml.
-    let store = Proc::spawn("store", &run.args(&["store", "--run", &run_arg], &[]));
-    wait_until("the store", within(60), || {
-        path.join("ports/store.port").exists()
-    });
+    let store = run.start_store();
     store.signal(libc::SIGTERM);
     store.succeeds(within(60));
     let config_file = path.join("config.toml");
@@ -371,10 +378,7 @@ fn an_actor_replaying_an_action_file_publishes_its_share_and_stops() {
     let run = Run::new("actions");
     let path = run.path();
     let run_arg = path.display().to_string();
-    let store = Proc::spawn("store", &run.args(&["store", "--run", &run_arg], &[]));
-    wait_until("the store", within(60), || {
-        path.join("ports/store.port").exists()
-    });
+    let store = run.start_store();
     // The small config's collect.transitions = 300 actions, one index a line.
     let file = run.dir.path().join("actions.txt");
     std::fs::write(&file, "3\n".repeat(300)).expect("actions");
@@ -398,11 +402,7 @@ fn an_actor_replaying_an_action_file_publishes_its_share_and_stops() {
 fn a_damaged_dataset_file_is_named_by_the_launch_not_left_to_a_timeout() {
     let run = Run::new("empty");
     let path = run.path();
-    let run_arg = path.display().to_string();
-    let store = Proc::spawn("store", &run.args(&["store", "--run", &run_arg], &[]));
-    wait_until("the store", within(60), || {
-        path.join("ports/store.port").exists()
-    });
+    let store = run.start_store();
     store.signal(libc::SIGTERM);
     store.succeeds(within(60));
     let file = path.join("datasets/lambda-0.uavds");
