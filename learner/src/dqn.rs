@@ -77,6 +77,24 @@ impl TdConfig {
         });
         td_errors(q, &next_v, batch, self.gamma, self.huber)
     }
+
+    /// [`TdConfig::td_errors`] with each transition's own bootstrap discount, `discounts` [B]:
+    /// `y_i = r_i + d_i * V(s'_i)`. For n-step returns, where `r_i` already sums the n discounted
+    /// rewards and `d_i = gamma^n_i` (`n_i` shorter at an episode's end).
+    pub fn td_errors_discounted(
+        &self,
+        q: &Tensor,
+        batch: &Batch,
+        discounts: &Tensor,
+        target: impl FnOnce(&Tensor) -> Tensor,
+        online: impl FnOnce(&Tensor) -> Tensor,
+    ) -> Tensor {
+        let next_v = tch::no_grad(|| {
+            let next_q_target = target(&batch.next_obs); // Qhat(s', .) [B, A]
+            next_value(self.bootstrap, &next_q_target, || online(&batch.next_obs))
+        });
+        td_term(q, &(next_v * discounts), batch, self.huber)
+    }
 }
 
 impl From<&LearnerConfig> for TdConfig {
@@ -118,8 +136,13 @@ pub fn q_taken(q: &Tensor, batch: &Batch) -> Tensor {
 /// [`next_value`]): `(y - Q(s, a))^2`, or its Huber form. `q` = `Q_w(s, .)` [B, A] carries the
 /// graph; the result is [B], whose mean is the loss.
 pub fn td_errors(q: &Tensor, next_v: &Tensor, batch: &Batch, gamma: f64, huber: bool) -> Tensor {
+    td_term(q, &(next_v * gamma), batch, huber)
+}
+
+/// `(y - Q(s, a))^2` (or its Huber form) with `y = r + discounted_next_v`, [B].
+fn td_term(q: &Tensor, discounted_next_v: &Tensor, batch: &Batch, huber: bool) -> Tensor {
     // y = r + gamma * V(s'), a constant of the optimisation (eq. 7's target term).
-    let target = (&batch.rewards + next_v * gamma).detach();
+    let target = (&batch.rewards + discounted_next_v).detach();
     let q_sa = q_taken(q, batch); // [B]
     if huber {
         q_sa.huber_loss(&target, Reduction::None, 1.0)

@@ -338,6 +338,14 @@ pub struct CollectConfig {
     /// usual 500: at lambda = 0 the best and second-best actions differ by a fraction of a percent
     /// of Q, and a target refreshed every 500 steps moves more than that (docs/EXPERIMENTS.md, A2).
     pub dqn_target_update_every: usize,
+    /// Steps in the online agent's bootstrapped return: the target of a transition is
+    /// `sum_{k<n} gamma^k r_{t+k} + gamma^n V(s_{t+n})`, cut short at the episode's end (the
+    /// horizon, which still bootstraps) and at the newest transition of the buffer. 1 is eq. 7.
+    /// The dataset stays one-step transitions whatever this is.
+    pub dqn_n_step: usize,
+    /// The online agent's learning rate falls linearly from `dqn_lr` at `learning_starts` to
+    /// `dqn_lr * dqn_lr_final_fraction` at `dqn_steps`; 1 keeps it constant.
+    pub dqn_lr_final_fraction: f64,
     /// The dataset is sampled from the newest this many transitions of the agent's final replay
     /// buffer; 0 = the whole buffer (the paper's "sampled from the replay buffer").
     pub sample_newest: usize,
@@ -375,6 +383,8 @@ impl Default for CollectConfig {
             dqn_huber: true,
             dqn_grad_clip_norm: 10.0,
             dqn_target_update_every: 2_000,
+            dqn_n_step: 1,
+            dqn_lr_final_fraction: 1.0,
             sample_newest: 0,
         }
     }
@@ -1116,6 +1126,20 @@ impl Config {
                 "collect.dqn_grad_clip_norm",
                 &c.dqn_grad_clip_norm,
                 "a finite norm >= 0 (0 = no clipping)",
+            ));
+        }
+        if c.dqn_n_step == 0 || c.dqn_n_step > self.world.horizon as usize {
+            return Err(self.invalid(
+                "collect.dqn_n_step",
+                &c.dqn_n_step,
+                &format!("a step count in [1, world.horizon = {}]", self.world.horizon),
+            ));
+        }
+        if !(0.0..=1.0).contains(&c.dqn_lr_final_fraction) {
+            return Err(self.invalid(
+                "collect.dqn_lr_final_fraction",
+                &c.dqn_lr_final_fraction,
+                "a fraction in [0, 1] (1 = a constant rate)",
             ));
         }
         Ok(())

@@ -351,3 +351,22 @@ fn reproduce_section_is_checked_alone_and_against_the_tasks() {
     eight.reproduce.task_counts = vec![2, 4, 8];
     eight.validate_reproduce().expect("fits the default tasks");
 }
+
+#[test]
+fn online_agent_n_step_and_learning_rate_schedule_are_checked() {
+    error_of(
+        "[collect]\ndqn_n_step = 0\n",
+        &[],
+        &["collect.dqn_n_step", "0", "[1, world.horizon = 100]"],
+    );
+    error_of(
+        "[world]\nhorizon = 20\n[collect]\ndqn_n_step = 21\n",
+        &[],
+        &["collect.dqn_n_step", "21", "world.horizon = 20"],
+    );
+    error_of(
+        "[collect]\ndqn_lr_final_fraction = 1.5\n",
+        &[],
+        &["collect.dqn_lr_final_fraction", "1.5", "a fraction in [0, 1]"],
+    );
+}

@@ -7,7 +7,11 @@ use anyhow::Result;
 use clap::Args;
 use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::checkpoint;
+use uavmeta_actors::policy::heuristics::PolicySpec;
+use uavmeta_actors::rollout::evaluate;
 use uavmeta_learner::train::EvaluatePolicy;
+use uavmeta_proto::config::{Config, TaskConfig};
+use uavmeta_proto::stats::EpisodeMetrics;
 
 use super::common::{ConfigArgs, TaskArgs};
 
@@ -26,6 +30,10 @@ pub struct EvalArgs {
     /// Seed of the episodes [default: learner.eval_seed].
     #[arg(long)]
     seed: Option<u64>,
+    /// Also print every episode (its start cell and metrics) and count the start cells that trap
+    /// the policy: episodes whose return is below the random policy's mean on the task.
+    #[arg(long)]
+    per_episode: bool,
 }
 
 pub fn run(args: EvalArgs) -> Result<()> {
@@ -37,7 +45,8 @@ pub fn run(args: EvalArgs) -> Result<()> {
         None => config.learner.eval_episodes,
     };
     let seed = args.seed.unwrap_or(config.learner.eval_seed);
-    let m = Evaluator::new(&config.world, &task, episodes, seed).evaluate(&q);
+    let evaluator = Evaluator::new(&config.world, &task, episodes, seed);
+    let m = evaluator.clone().evaluate(&q);
     println!(
         "{} ({}, epoch {}) on `{}`, {} episodes seeded {seed}:",
         args.checkpoint.display(),
@@ -50,5 +59,35 @@ pub fn run(args: EvalArgs) -> Result<()> {
     println!("  AoI       {:.3}", m.aoi);
     println!("  power mW  {:.4}", m.power_mw);
     println!("  outages   {:.2}", m.outages);
+    if args.per_episode {
+        print_episodes(&config, &task, &evaluator.episodes(&q), seed);
+    }
     Ok(())
+}
+
+/// One line per episode, then how many fall below the random policy's mean return (evaluated
+/// over the same worlds): the start cells that trap the policy.
+fn print_episodes(
+    config: &Config,
+    task: &TaskConfig,
+    episodes: &[((u16, u16), EpisodeMetrics)],
+    seed: u64,
+) {
+    let mut random = PolicySpec::Random
+        .build(config, seed, None)
+        .expect("the random policy needs no file");
+    let floor = evaluate(&config.world, task, random.as_mut(), episodes.len(), seed).ret.mean;
+    println!("  episode  start     return     AoI  power mW  outages");
+    for (i, ((x, y), e)) in episodes.iter().enumerate() {
+        let trap = if e.ret < floor { "  trapped" } else { "" };
+        println!(
+            "  {i:>7}  ({x:>2},{y:>2})  {:>9.1}  {:>6.2}  {:>8.4}  {:>7}{trap}",
+            e.ret, e.aoi, e.power_mw, e.outages
+        );
+    }
+    let trapped = episodes.iter().filter(|(_, e)| e.ret < floor).count();
+    println!(
+        "  trapped   {trapped} of {} episodes below the random policy's mean return ({floor:.1})",
+        episodes.len()
+    );
 }

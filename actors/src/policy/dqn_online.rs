@@ -4,7 +4,8 @@
 //! Settings: the `[collect]` section (`dqn_steps`, `replay_capacity`, `learning_starts`,
 //! `train_every`, `eps_start`, `eps_end`, `eps_decay_steps`, its network `dqn_hidden` and rate
 //! `dqn_lr`, and the stabilisers `dqn_double`, `dqn_huber`, `dqn_grad_clip_norm`,
-//! `dqn_target_update_every`) and `[learner]`'s `gamma`, `reward_scale` and `batch`, so the
+//! `dqn_target_update_every`, the n-step return `dqn_n_step` and the learning-rate schedule
+//! `dqn_lr_final_fraction`) and `[learner]`'s `gamma`, `reward_scale` and `batch`, so the
 //! online agent and the offline learners see the same rewards.
 //!
 //! The paper gives no settings for this agent; SPEC section 5 asks for what a practitioner would
@@ -22,6 +23,7 @@
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use tch::nn::{self, OptimizerConfig};
+use tch::Tensor;
 use uavmeta_learner::batch::{Batch, BatchError};
 use uavmeta_learner::dqn::{Bootstrap, TdConfig};
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
@@ -91,6 +93,54 @@ impl ReplayBuffer {
         (0..n)
             .map(|_| &self.items[rng.random_range(0..self.items.len())])
             .collect()
+    }
+
+    /// The slot of the transition stored after the one in slot `i`, if the buffer holds it.
+    fn successor(&self, i: usize) -> Option<usize> {
+        let j = (i + 1) % self.capacity;
+        (j < self.items.len() && j != self.next && self.items[j].seq == self.items[i].seq + 1)
+            .then_some(j)
+    }
+
+    /// The `n`-step transition from slot `i` and its bootstrap discount: the rewards of up to
+    /// `n` consecutive transitions summed with discounts `gamma^k`, the last one's next state, and
+    /// `gamma^m` for the `m <= n` transitions taken. The window stops at the episode's last
+    /// transition (the horizon bootstraps from its next state) and at the newest stored one.
+    fn n_step(&self, i: usize, n: usize, gamma: f64) -> (Transition, f64) {
+        let first = &self.items[i];
+        let (mut last, mut reward, mut discount) = (first, 0.0, 1.0);
+        let mut slot = Some(i);
+        for _ in 0..n {
+            let Some(j) = slot else { break };
+            last = &self.items[j];
+            reward += discount * f64::from(last.reward);
+            discount *= gamma;
+            slot = if last.truncated { None } else { self.successor(j) };
+        }
+        let t = Transition {
+            reward: reward as f32,
+            next_obs: last.next_obs.clone(),
+            truncated: last.truncated,
+            ..first.clone()
+        };
+        (t, discount)
+    }
+
+    /// `batch` `n`-step transitions (see [`ReplayBuffer::n_step`]) from uniformly drawn slots,
+    /// with their discounts.
+    fn sample_n_step(
+        &self,
+        rng: &mut ChaCha8Rng,
+        batch: usize,
+        n: usize,
+        gamma: f64,
+    ) -> (Vec<Transition>, Vec<f32>) {
+        (0..batch)
+            .map(|_| {
+                let (t, d) = self.n_step(rng.random_range(0..self.items.len()), n, gamma);
+                (t, d as f32)
+            })
+            .unzip()
     }
 }
 
@@ -198,6 +248,15 @@ impl OnlineDqn {
         Ok(())
     }
 
+    /// The learning rate of the next gradient step: `dqn_lr`, falling linearly to
+    /// `dqn_lr * dqn_lr_final_fraction` between `learning_starts` and `dqn_steps`.
+    pub fn learning_rate(&self) -> f64 {
+        let c = &self.collect;
+        let span = c.dqn_steps.saturating_sub(c.learning_starts).max(1);
+        let progress = (self.steps.saturating_sub(c.learning_starts) as f64 / span as f64).min(1.0);
+        c.dqn_lr * (1.0 - (1.0 - c.dqn_lr_final_fraction) * progress)
+    }
+
     /// The exploration rate of the next step.
     pub fn epsilon(&self) -> f64 {
         epsilon(&self.collect, self.steps)
@@ -257,18 +316,35 @@ impl OnlineDqn {
     /// ALGO: one Adam step on eq. 7 (with the configured stabilisers) over a uniform minibatch of
     /// the replay buffer.
     fn gradient_step(&mut self) -> Result<(), BatchError> {
-        let sample = self.replay.sample(&mut self.rng, self.learner.batch);
-        let mb = Batch::new(&sample, &self.world_cfg, self.learner.reward_scale)?;
-        let q_all = self.q.forward(&mb.obs); // [B, A]
-        let loss = self
-            .td
-            .td_errors(
+        self.opt.set_lr(self.learning_rate());
+        let loss = if self.collect.dqn_n_step == 1 {
+            let sample = self.replay.sample(&mut self.rng, self.learner.batch);
+            let mb = Batch::new(&sample, &self.world_cfg, self.learner.reward_scale)?;
+            let q_all = self.q.forward(&mb.obs); // [B, A]
+            self.td.td_errors(
                 &q_all,
                 &mb,
                 |s| self.target.forward(s),
                 |s| self.q.forward(s),
             )
-            .mean(None); // eq. 7 and its stabilisers
+        } else {
+            let (sample, discounts) = self.replay.sample_n_step(
+                &mut self.rng,
+                self.learner.batch,
+                self.collect.dqn_n_step,
+                self.td.gamma,
+            );
+            let mb = Batch::new(&sample, &self.world_cfg, self.learner.reward_scale)?;
+            let q_all = self.q.forward(&mb.obs); // [B, A]
+            self.td.td_errors_discounted(
+                &q_all,
+                &mb,
+                &Tensor::from_slice(&discounts),
+                |s| self.target.forward(s),
+                |s| self.q.forward(s),
+            )
+        }
+        .mean(None); // eq. 7 (n-step when dqn_n_step > 1) and its stabilisers
         let clip = self.collect.dqn_grad_clip_norm;
         if clip > 0.0 {
             self.opt.backward_step_clip_norm(&loss, clip);
@@ -303,5 +379,74 @@ impl OnlineDqn {
     /// Environment steps taken so far.
     pub fn steps(&self) -> usize {
         self.steps
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A transition of episode `episode`, step `step`, seq `seq`, reward `reward`, whose next
+    /// observation's first value is `seq + 1` (so a window's end can be read off).
+    fn transition(seq: u64, episode: u64, step: u32, reward: f32, truncated: bool) -> Transition {
+        Transition {
+            task: 0,
+            actor: 0,
+            episode,
+            step,
+            seq,
+            obs: vec![seq as u16],
+            action: 0,
+            reward,
+            next_obs: vec![seq as u16 + 1],
+            truncated,
+        }
+    }
+
+    /// Episodes of 3 steps, rewards -1, -2, -3, ... in seq order.
+    fn buffer(capacity: usize, pushed: u64) -> ReplayBuffer {
+        let mut b = ReplayBuffer::new(capacity);
+        for seq in 0..pushed {
+            let step = (seq % 3) as u32;
+            b.push(transition(seq, seq / 3, step, -(seq as f32 + 1.0), step == 2));
+        }
+        b
+    }
+
+    fn slot_of(b: &ReplayBuffer, seq: u64) -> usize {
+        b.items.iter().position(|t| t.seq == seq).unwrap()
+    }
+
+    #[test]
+    fn n_step_windows_sum_discounted_rewards_and_stop_at_the_episode_and_the_buffer_end() {
+        let gamma = 0.5;
+        let b = buffer(100, 8);
+        // Within an episode: seq 0, 1, 2 with n = 3 (seq 2 ends the episode).
+        let (t, d) = b.n_step(slot_of(&b, 0), 3, gamma);
+        assert_eq!((t.reward, d, t.next_obs[0], t.obs[0]), (-1.0 - 1.0 - 0.75, 0.125, 3, 0));
+        // Cut at the episode's end: from seq 1, n = 3 takes seq 1 and 2 only.
+        let (t, d) = b.n_step(slot_of(&b, 1), 3, gamma);
+        assert_eq!((t.reward, d, t.next_obs[0]), (-2.0 - 1.5, 0.25, 3));
+        assert!(t.truncated);
+        // Cut at the newest transition: seq 7 has no successor.
+        let (t, d) = b.n_step(slot_of(&b, 7), 3, gamma);
+        assert_eq!((t.reward, d, t.next_obs[0]), (-8.0, 0.5, 8));
+        // n = 1 is the transition itself.
+        let (t, d) = b.n_step(slot_of(&b, 4), 1, gamma);
+        assert_eq!((t.reward, d, t.next_obs[0]), (-5.0, 0.5, 5));
+    }
+
+    #[test]
+    fn n_step_windows_follow_the_ring_and_never_wrap_from_the_newest_to_the_oldest() {
+        let gamma = 0.5;
+        // Capacity 4 after 7 pushes holds seq 3, 4, 5, 6; slots [4, 5, 6, 3], the oldest at 3.
+        let b = buffer(4, 7);
+        assert_eq!(b.iter().map(|t| t.seq).collect::<Vec<_>>(), [3, 4, 5, 6]);
+        // seq 3 -> 4 -> 5 (the episode's end) crosses the ring's seam at slot 3 -> 0.
+        let (t, d) = b.n_step(slot_of(&b, 3), 3, gamma);
+        assert_eq!((t.reward, d, t.next_obs[0]), (-4.0 - 2.5 - 1.5, 0.125, 6));
+        // seq 6 is the newest: its successor slot holds seq 3, which is not seq 7.
+        let (t, d) = b.n_step(slot_of(&b, 6), 3, gamma);
+        assert_eq!((t.reward, d, t.next_obs[0]), (-7.0, 0.5, 7));
     }
 }

@@ -70,13 +70,19 @@ impl Evaluator {
     }
 }
 
-impl EvaluatePolicy for Evaluator {
-    fn evaluate(&mut self, q: &QNetwork) -> PolicyMetrics {
+impl Evaluator {
+    /// Each evaluation episode of `q`'s greedy policy: its start cell `(x, y)` and its metrics, in
+    /// the order of [`evaluation_worlds`].
+    pub fn episodes(&self, q: &QNetwork) -> Vec<((u16, u16), EpisodeMetrics)> {
         let mut worlds = evaluation_worlds(&self.world, &self.task, self.episodes, self.seed);
         if worlds.is_empty() {
-            return PolicyMetrics::from_episodes(&[]);
+            return Vec::new();
         }
         worlds.iter_mut().for_each(World::reset);
+        let starts: Vec<(u16, u16)> = worlds
+            .iter()
+            .map(|w| (w.observation()[0], w.observation()[1]))
+            .collect();
         let (e, d) = (worlds.len(), q.obs_len());
         let mut obs = vec![0f32; e * d];
         let mut actions = vec![0i64; e];
@@ -91,7 +97,16 @@ impl EvaluatePolicy for Evaluator {
                 tally.add(&world.step(action as usize));
             }
         }
-        let episodes: Vec<EpisodeMetrics> = tallies.into_iter().map(EpisodeTally::finish).collect();
+        starts
+            .into_iter()
+            .zip(tallies.into_iter().map(EpisodeTally::finish))
+            .collect()
+    }
+}
+
+impl EvaluatePolicy for Evaluator {
+    fn evaluate(&mut self, q: &QNetwork) -> PolicyMetrics {
+        let episodes: Vec<EpisodeMetrics> = self.episodes(q).into_iter().map(|(_, m)| m).collect();
         PolicyMetrics::from_episodes(&episodes)
     }
 }
