@@ -110,6 +110,11 @@ pub struct MamlConfig {
     pub inner_steps: usize,
     pub eta_inner: f64,
     pub eta_outer: f64,
+    /// Eq. 16's step size at the last of `meta_epochs` meta-epochs, as a fraction of
+    /// `eta_outer`; it falls linearly from `eta_outer` in the first. 1 = constant.
+    pub eta_outer_final_fraction: f64,
+    /// Meta-epochs E_meta the step size's schedule spans.
+    pub meta_epochs: usize,
     /// Treat the inner gradients as constants (first-order MAML).
     pub first_order: bool,
     /// Meta-SGD: learn eq. 14's step size per weight.
@@ -138,12 +143,22 @@ impl MamlConfig {
             inner_steps: m.inner_steps,
             eta_inner: m.eta_inner,
             eta_outer: m.eta_outer,
+            eta_outer_final_fraction: m.eta_outer_final_fraction,
+            meta_epochs: m.meta_epochs,
             first_order: m.first_order,
             learn_inner_lr: m.learn_inner_lr,
             target_update_every: m.target_update_every,
             outer_steps_per_meta_epoch: m.outer_steps_per_meta_epoch,
             w0_average_decay: m.w0_average_decay,
         }
+    }
+
+    /// Eq. 16's step size in meta-epoch `epoch` (0-based): linear from `eta_outer` to
+    /// `eta_outer * eta_outer_final_fraction` at the last of `meta_epochs`.
+    pub fn eta_outer_at(&self, epoch: usize) -> f64 {
+        let last = self.meta_epochs.saturating_sub(1).max(1);
+        let progress = (epoch as f64 / last as f64).min(1.0);
+        self.eta_outer * (1.0 - (1.0 - self.eta_outer_final_fraction) * progress)
     }
 
     /// Outer steps of one meta-epoch over `tasks`.
@@ -694,6 +709,7 @@ impl Maml {
         {
             self.target.copy_from(&self.w0); // Qhat <- w0, constant until the next refresh
         }
+        self.optimizer.lr = self.config.eta_outer_at(self.epochs_done);
         let steps = self.config.outer_steps(tasks);
         let mut passes: Vec<SupportPass> = tasks
             .iter()

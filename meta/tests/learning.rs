@@ -1,6 +1,7 @@
 //! Meta-training learns, measured in the true world: a `w0` meta-trained on five lambdas scores
 //! far better zero-shot on the unseen lambda = 300 than the random init it started from, and
-//! than the uniform random policy.
+//! than the uniform random policy; and, averaged over the meta-iterates, it holds still (within
+//! 4%) over the last 30 meta-epochs.
 //!
 //! The meta-train datasets come from a cheap behaviour policy (the stalest heuristic with 10%
 //! random actions) rather than online DQN agents, so that the test takes seconds; what is
@@ -43,11 +44,9 @@ fn meta_task(config: &Config, name: &str, seed: u64) -> MetaTask {
     }
 }
 
-#[test]
-fn a_meta_trained_w0_beats_a_random_init_zero_shot_on_an_unseen_lambda() {
-    tch::set_num_threads(1);
-    let config = Config::load(DEFAULT_CONFIG.as_ref(), &[]).unwrap();
-    let tasks: Vec<MetaTask> = [
+/// Five of the default config's meta-train tasks.
+fn meta_tasks(config: &Config) -> Vec<MetaTask> {
+    [
         "lambda-0",
         "lambda-200",
         "lambda-500",
@@ -56,8 +55,15 @@ fn a_meta_trained_w0_beats_a_random_init_zero_shot_on_an_unseen_lambda() {
     ]
     .iter()
     .zip(1..)
-    .map(|(name, seed)| meta_task(&config, name, seed))
-    .collect();
+    .map(|(name, seed)| meta_task(config, name, seed))
+    .collect()
+}
+
+#[test]
+fn a_meta_trained_w0_beats_a_random_init_zero_shot_on_an_unseen_lambda() {
+    tch::set_num_threads(1);
+    let config = Config::load(DEFAULT_CONFIG.as_ref(), &[]).unwrap();
+    let tasks = meta_tasks(&config);
     let w = &config.world;
     let init = QNetworkConfig::for_world(w, &config.learner.hidden).init(5);
     let unseen = config.task("lambda-300").unwrap();
@@ -101,5 +107,44 @@ fn a_meta_trained_w0_beats_a_random_init_zero_shot_on_an_unseen_lambda() {
         "w0 {} vs random {}",
         after.ret,
         random.ret
+    );
+}
+
+/// With configs/default.toml's averaging of the meta-iterates (`meta.w0_average_decay`), w0's
+/// zero-shot return on the unseen lambda = 300, evaluated exactly over the 100 start cells after
+/// each of the last 30 meta-epochs, varies by less than 4% of its (max - min over mean). Measured
+/// here: 2.5% averaged, 7.4% for the last iterate (decay 1e-12), so the test fails without the
+/// averaging. Issue #30 asks 2% of the full run on every seed, which is not reached yet
+/// (docs/EXPERIMENTS.md, C7).
+#[test]
+fn w0_zero_shot_varies_by_under_4_percent_over_the_last_30_meta_epochs() {
+    tch::set_num_threads(1);
+    let config = Config::load(DEFAULT_CONFIG.as_ref(), &[]).unwrap();
+    assert!(config.meta.w0_average_decay > 0.0, "the default config averages w0");
+    let tasks = meta_tasks(&config);
+    let w = &config.world;
+    let init = QNetworkConfig::for_world(w, &config.learner.hidden).init(5);
+    let mut evaluator = Evaluator::new(w, config.task("lambda-300").unwrap(), 1, EVAL_SEED);
+    let mut maml = Maml::new(init, MamlConfig::from_config(&config), 6).unwrap();
+    let epochs = config.meta.meta_epochs;
+    let mut returns = Vec::new();
+    for epoch in 0..epochs {
+        maml.meta_epoch(&tasks).unwrap();
+        if epoch + 30 >= epochs {
+            let m = evaluator.evaluate(maml.w0());
+            assert_eq!(m.episodes, 100, "exact: one episode per start cell");
+            returns.push(m.ret.mean);
+        }
+    }
+    let mean = returns.iter().sum::<f64>() / returns.len() as f64;
+    let (lo, hi) = returns
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &r| (lo.min(r), hi.max(r)));
+    let swing = (hi - lo) / mean.abs();
+    eprintln!("w0 over the last 30 meta-epochs: {lo:.1} to {hi:.1}, swing {:.2}%", 100.0 * swing);
+    assert!(
+        swing < 0.04,
+        "w0 swings by {:.2}% over the last 30 meta-epochs ({lo:.1} to {hi:.1})",
+        100.0 * swing
     );
 }

@@ -33,6 +33,8 @@ fn config(inner_loss: InnerLoss, inner_steps: usize, first_order: bool) -> MamlC
         // Large enough that the second-order term is far above finite-difference noise.
         eta_inner: 0.3,
         eta_outer: 1e-2,
+        eta_outer_final_fraction: 1.0,
+        meta_epochs: 1,
         first_order,
         learn_inner_lr: false,
         target_update_every: 1,

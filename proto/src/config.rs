@@ -483,6 +483,9 @@ pub struct MetaConfig {
     pub inner_steps: usize,
     pub eta_inner: f64,
     pub eta_outer: f64,
+    /// Eq. 16's step size falls linearly over the meta-epochs, from `eta_outer` in the first to
+    /// `eta_outer * eta_outer_final_fraction` in the last; 1 keeps it constant.
+    pub eta_outer_final_fraction: f64,
     /// First-order MAML: do not differentiate through the inner steps.
     pub first_order: bool,
     /// Meta-SGD (Li et al., 2017): learn eq. 14's step size, one per weight, initialised to
@@ -526,6 +529,7 @@ impl Default for MetaConfig {
             inner_steps: 1,
             eta_inner: 1e-2,
             eta_outer: 1e-3,
+            eta_outer_final_fraction: 1.0,
             first_order: false,
             learn_inner_lr: false,
             inner_loss: InnerLoss::Cql,
@@ -1216,6 +1220,13 @@ impl Config {
                 "meta.w0_average_decay",
                 &m.w0_average_decay,
                 "a decay in [0, 1): 0 = no averaging",
+            ));
+        }
+        if !(0.0..=1.0).contains(&m.eta_outer_final_fraction) {
+            return Err(self.invalid(
+                "meta.eta_outer_final_fraction",
+                &m.eta_outer_final_fraction,
+                "a fraction in [0, 1] (1 = a constant step size)",
             ));
         }
         if m.eval_adaptations == 0 {

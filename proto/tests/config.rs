@@ -353,7 +353,7 @@ fn reproduce_section_is_checked_alone_and_against_the_tasks() {
 }
 
 #[test]
-fn online_agent_n_step_and_learning_rate_schedule_are_checked() {
+fn learning_rate_schedules_and_n_step_are_checked() {
     error_of(
         "[collect]\ndqn_n_step = 0\n",
         &[],
@@ -368,5 +368,10 @@ fn online_agent_n_step_and_learning_rate_schedule_are_checked() {
         "[collect]\ndqn_lr_final_fraction = 1.5\n",
         &[],
         &["collect.dqn_lr_final_fraction", "1.5", "a fraction in [0, 1]"],
+    );
+    error_of(
+        "[meta]\neta_outer_final_fraction = -0.1\n",
+        &[],
+        &["meta.eta_outer_final_fraction", "-0.1", "a fraction in [0, 1]"],
     );
 }
