@@ -66,7 +66,17 @@ pub fn run(args: LaunchArgs, terminal: MultiProgress) -> Result<()> {
         (_, true) => Reuse::Fresh,
         _ => Reuse::IfSame,
     };
-    let report = uavmeta_meta::launch::launch(exe, &config, reuse, terminal)?;
-    print!("{}", uavmeta_meta::launch::results_table(&report));
+    let report = uavmeta_meta::launch::launch_seeds(exe, &config, reuse, terminal)?;
+    if report.seeds.len() > 1 {
+        for (seed, r) in &report.seeds {
+            println!("seed {seed}:");
+            print!("{}", uavmeta_meta::launch::results_table(r));
+        }
+        println!(
+            "\nover seeds {:?} (learned rows: mean ± 95% interval over the seeds):",
+            config.run.seeds
+        );
+    }
+    print!("{}", uavmeta_meta::launch::results_table(&report.aggregate));
     Ok(())
 }

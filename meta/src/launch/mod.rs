@@ -57,8 +57,10 @@ mod display;
 mod metrics;
 pub mod resources;
 pub mod reuse;
+pub mod seeds;
 
 pub use reuse::Reuse;
+pub use seeds::{launch_seeds, SeedsReport};
 
 /// How often the run's `prometheus.yml` has Prometheus scrape every process; `uavmeta dashboard
 /// render` takes it for the interval of its rates.
@@ -979,8 +981,8 @@ pub fn results_table(report: &LaunchReport) -> String {
         return out;
     }
     let header = format!(
-        "{:<14} {:<13} {:>6} {:>22} {:>14} {:>18} {:>12}",
-        "task", "method", "epoch", "return", "AoI", "power (mW)", "outages"
+        "{:<14} {:<13} {:>6} {:>22} {:>12} {:>14} {:>18} {:>12}",
+        "task", "method", "epoch", "return", "vs planner", "AoI", "power (mW)", "outages"
     );
     out.push_str(&header);
     out.push('\n');
@@ -990,13 +992,15 @@ pub fn results_table(report: &LaunchReport) -> String {
         let rows = report.references.iter().chain(&report.results);
         let mut rows: Vec<&EvaluationRow> = rows.filter(|r| r.task == task).collect();
         rows.sort_by_key(|r| row_rank(&r.method));
+        let planner = PolicySpec::Planner.to_string();
+        let planner = rows.iter().find(|r| r.method == planner).map(|r| r.ret);
         for (i, r) in rows.iter().enumerate() {
             let reference = is_reference(&r.method);
             if i > 0 && !reference && is_reference(&rows[i - 1].method) {
                 out.push_str(&format!("{}\n", "-".repeat(header.len())));
             }
             out.push_str(&format!(
-                "{:<14} {:<13} {:>6} {:>22} {:>14} {:>18} {:>12}\n",
+                "{:<14} {:<13} {:>6} {:>22} {:>12} {:>14} {:>18} {:>12}\n",
                 r.task,
                 r.method,
                 if reference {
@@ -1005,6 +1009,8 @@ pub fn results_table(report: &LaunchReport) -> String {
                     r.epoch.to_string()
                 },
                 format!("{:.1} ± {:.1}", r.ret, r.ret_ci95),
+                // Returns are costs: a row 3% below the planner reads -3.0%.
+                planner.map_or("-".to_string(), |p| format!("{:+.1}%", 100.0 * (r.ret - p) / p.abs())),
                 format!("{:.2} ± {:.2}", r.aoi, r.aoi_ci95),
                 format!("{:.3} ± {:.3}", r.power_watts * 1e3, r.power_ci95 * 1e3),
                 format!("{:.1} ± {:.1}", r.outages, r.outages_ci95),
@@ -1046,7 +1052,11 @@ mod tests {
                 row("online-dqn", -7000.0, 0.5),
                 row("cql", -16000.0, 0.5),
             ],
-            references: vec![row("greedy", -7800.0, 0.325), row("random", -13000.0, 1.3)],
+            references: vec![
+                row("greedy", -7800.0, 0.325),
+                row("random", -13000.0, 1.3),
+                row("planner", -6500.0, 0.3),
+            ],
         };
         let table = results_table(&report);
         let methods: Vec<&str> = table
@@ -1058,6 +1068,7 @@ mod tests {
         let expected = [
             "random",
             "greedy",
+            "planner",
             "online-dqn",
             &rule,
             "cql",
@@ -1073,6 +1084,9 @@ mod tests {
         }
         assert!(table.contains("power (mW)"), "{table}");
         assert!(table.contains("0.325 ± 0.000"), "{table}");
+        // Each row's distance to the planner: cql-maml's -7100 is 9.2% below its -6500.
+        let cql_maml = table.lines().find(|l| l.contains(" cql-maml ")).unwrap();
+        assert!(cql_maml.contains("-9.2%"), "{table}");
         // References have no epoch.
         assert!(
             table
