@@ -71,11 +71,22 @@ impl TdConfig {
         target: impl FnOnce(&Tensor) -> Tensor,
         online: impl FnOnce(&Tensor) -> Tensor,
     ) -> Tensor {
-        let next_v = tch::no_grad(|| {
+        let next_v = self.next_values(batch, target, online);
+        td_errors(q, &next_v, batch, self.gamma, self.huber)
+    }
+
+    /// `V(s')` [B] of each transition of `batch`, without a graph: [`next_value`] of the target
+    /// network `Qhat(s', .)`, with the online network's choice for [`Bootstrap::Double`].
+    fn next_values(
+        &self,
+        batch: &Batch,
+        target: impl FnOnce(&Tensor) -> Tensor,
+        online: impl FnOnce(&Tensor) -> Tensor,
+    ) -> Tensor {
+        tch::no_grad(|| {
             let next_q_target = target(&batch.next_obs); // Qhat(s', .) [B, A]
             next_value(self.bootstrap, &next_q_target, || online(&batch.next_obs))
-        });
-        td_errors(q, &next_v, batch, self.gamma, self.huber)
+        })
     }
 
     /// [`TdConfig::td_errors`] with each transition's own bootstrap discount, `discounts` [B]:
@@ -89,10 +100,7 @@ impl TdConfig {
         target: impl FnOnce(&Tensor) -> Tensor,
         online: impl FnOnce(&Tensor) -> Tensor,
     ) -> Tensor {
-        let next_v = tch::no_grad(|| {
-            let next_q_target = target(&batch.next_obs); // Qhat(s', .) [B, A]
-            next_value(self.bootstrap, &next_q_target, || online(&batch.next_obs))
-        });
+        let next_v = self.next_values(batch, target, online);
         td_term(q, &(next_v * discounts), batch, self.huber)
     }
 }
