@@ -24,7 +24,15 @@ pub fn serve(run: &RunDir, config: &Config) -> Result<(), TunnelError> {
     transport::cleanup_dead_nodes(&node);
     let services = RunServices::open(&node, run, config)?;
     let shutdown = transport::control_subscriber(&services.shutdown, config)?;
-    let session = session::listen(endpoint)?;
+    let security = session::Security::of_config(&config.tunnel);
+    let keys = [
+        "tunnel.ca",
+        "tunnel.certificate",
+        "tunnel.private_key",
+        "tunnel.credentials",
+    ];
+    security.check_files(endpoint, keys)?;
+    let session = session::listen(endpoint, &security)?;
     let zenoh_error = |e: zenoh::Error| TunnelError::Zenoh {
         endpoint: endpoint.clone(),
         message: e.to_string(),
