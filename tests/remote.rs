@@ -583,3 +583,81 @@ fn a_stranger_is_refused_with_one_error_that_names_no_run() {
         serve.stderr
     );
 }
+
+/// Publishes `message` into `service` of host B's domain, as a hostile remote host can.
+fn forge<T: std::fmt::Debug + iceoryx2::prelude::ZeroCopySend + Copy + 'static>(
+    node: &iceoryx2::node::Node<iceoryx2::prelude::ipc::Service>,
+    config: &uavmeta_proto::config::Config,
+    service: String,
+    message: T,
+) {
+    let service = transport::control_service::<T>(node, service, config).expect("service");
+    let publisher = transport::control_publisher(&service).expect("publisher");
+    transport::announce(&publisher, message).expect("announce");
+}
+
+/// Least privilege across the tunnel: a remote host that publishes a Shutdown and a
+/// DatasetReady, into its own services and into the copies that cross, reaches no process of the
+/// learner's host, whose store keeps storing what the remote actor sends.
+#[test]
+fn a_remote_hosts_forged_shutdown_and_dataset_ready_reach_nothing_on_the_learners_host() {
+    use uavmeta_proto::config::Config;
+    use uavmeta_proto::transport::{DatasetReady, ServiceNames, Shutdown, SCHEMA_VERSION};
+    let hosts = Hosts::new("forge");
+    let (mut store, mut tunnel) = start_host_a(&hosts, &["collect.transitions=10000000".into()]);
+    let mut join = hosts.join(hosts.run_a.id());
+    let config_b = hosts.dir_b().join("config.toml");
+    wait_until("host B's run directory", within(60), || config_b.exists());
+    join.logs("bridging the run's services", within(60));
+    let config = Config::load(&config_b, &[]).expect("B's config");
+    let names = ServiceNames::new(&RunDir::open(&hosts.dir_b()).expect("B's run"));
+    let node = transport::node("forger", &config.run).expect("a node in B's domain");
+    let shutdown = Shutdown {
+        schema_version: SCHEMA_VERSION,
+        reserved: 0,
+    };
+    let ready = DatasetReady {
+        schema_version: SCHEMA_VERSION,
+        task: 0,
+        transitions: 10_000_000,
+    };
+    for service in [names.shutdown(), names.to_remote(&names.shutdown())] {
+        forge(&node, &config, service, shutdown);
+    }
+    for service in [
+        names.dataset_ready(),
+        names.to_remote(&names.dataset_ready()),
+    ] {
+        forge(&node, &config, service, ready);
+    }
+    // A remote actor publishes after the forgeries: the tunnel carries, and A's store takes it.
+    let actor = hosts.actor_b("lambda-0", &["--transitions", "2000"]);
+    wait_until("host B's transitions in A's store", within(120), || {
+        stored(&hosts.run_a) >= 2000.0
+    });
+    drop(actor);
+    assert!(
+        store.running() && tunnel.running(),
+        "a forged message stopped host A's processes"
+    );
+    // A's own services keep what was announced in their history: nothing.
+    let config_a = Config::load(&hosts.run_a.config_file(), &[]).expect("A's config");
+    let node_a = transport::node("witness", &config_a.run).expect("a node in A's domain");
+    let names_a = ServiceNames::new(&hosts.run_a);
+    let heard = |service: String| -> usize {
+        let service =
+            transport::control_service::<Shutdown>(&node_a, service, &config_a).expect("service");
+        let subscriber = transport::control_subscriber(&service, &config_a).expect("subscriber");
+        std::iter::from_fn(|| subscriber.receive().expect("receive")).count()
+    };
+    assert_eq!(
+        heard(names_a.shutdown()),
+        0,
+        "a forged Shutdown reached host A"
+    );
+    let ready_service =
+        transport::dataset_ready_service(&node_a, &names_a, &config_a).expect("service");
+    let subscriber = transport::control_subscriber(&ready_service, &config_a).expect("subscriber");
+    let announced = std::iter::from_fn(|| subscriber.receive().expect("receive")).count();
+    assert_eq!(announced, 0, "a forged DatasetReady reached host A");
+}

@@ -12,7 +12,7 @@ use uavmeta_proto::transport::{
 use zenoh::sample::SampleKind;
 use zenoh::{Session, Wait};
 
-use crate::bridge::{Bridge, RunServices};
+use crate::bridge::{Bridge, Forwarders, RunServices, Side};
 use crate::handshake::{self, Hello, Outcome, RunInfo};
 use crate::session::{self, hosts_key, run_key};
 use crate::{TunnelError, POLL, SHUTDOWN_LINGER};
@@ -77,7 +77,8 @@ pub fn join(options: &JoinOptions) -> Result<(), TunnelError> {
     // A killed predecessor's subscribers would block the actors on full buffers.
     transport::cleanup_dead_nodes(&node);
     let services = RunServices::open(&node, &run, &config)?;
-    let shutdown = transport::control_subscriber(&services.shutdown, &config)?;
+    let shutdown = transport::control_subscriber(services.shutdown(), &config)?;
+    let forwarders = Forwarders::new(&services, &config, Side::Remote)?;
     let present = Arc::new(AtomicBool::new(false));
     let _presence = watch_presence(&session, options, present.clone())?;
     tracing::info!(run = run.id(), dir = %run.root().display(), "joined the run: start actors with `uavmeta actor --run {}`", run.root().display());
@@ -91,6 +92,7 @@ pub fn join(options: &JoinOptions) -> Result<(), TunnelError> {
         if let Some(bridge) = &mut bridge {
             bridge.relay();
         }
+        forwarders.pump();
         if last_announce.is_none_or(|at| at.elapsed() >= ANNOUNCE_EVERY) {
             last_announce = Some(Instant::now());
             announce(&session, &run, options);

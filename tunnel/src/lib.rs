@@ -7,8 +7,12 @@
 //! the run, and plain `uavmeta actor --run DIR` processes publish into it as on the learner's host.
 //!
 //! Both sides run an [`iceoryx2_link::Link`] over the [`iceoryx2_link_tunnel::Tunnel`] with the
-//! Zenoh carrier, restricted to the services a remote actor uses
-//! ([`ServiceNames::remote_actor_services`]): the same payload types and service names from
+//! Zenoh carrier, restricted to the services a remote actor uses, each only its way
+//! (`ServiceNames::tunnel_routes`, declared once in `uavmeta_proto::transport`): transitions cross
+//! under their own name; acknowledgements, dataset announcements and the shutdown cross only as
+//! `to-remote/` copies that the learner host's tunnel fills and a remote host's tunnel empties
+//! into its own services, so nothing a remote host publishes reaches a learner-host process but
+//! its transitions, which the store validates. The same payload types and service names from
 //! `uavmeta_proto`, relayed byte for byte. The crates are used as a library rather than by
 //! running their CLI (`iox2-link-tunnel-zenoh`) as a child because the tunnel must (1) create
 //! the run's services with uavmeta's settings before it mirrors them (a mirror gets iceoryx2's
