@@ -55,7 +55,7 @@ pub struct TlsCommonName(String);
 
 pub struct LinkUnicastTls {
     // The underlying socket as returned from the async-rustls library, split
-    // into a read half and a write half (uavmeta's patch, see PATCHED.md).
+    // into a read half and a write half (uavmeta's patch: vendor/PATCHES.md).
     // NOTE: upstream kept the whole TlsStream in an UnsafeCell and let the
     //       reading task and the writing task each take `&mut` to it at the
     //       same time, guarded by two different mutexes. A TlsStream's reads
