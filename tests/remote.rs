@@ -41,13 +41,31 @@ actors_per_task = 1
 batch_size = 16
 "#;
 
-/// The two hosts of one test: domains, directories, the Zenoh endpoint, and A's run.
+/// The two hosts of one test: domains, directories, the Zenoh endpoint, and A's run. The tunnel
+/// runs as a real deployment would: mutual TLS with certificates made by `uavmeta tunnel certs`
+/// for this test, and a password on top.
 struct Hosts {
     dir: tempfile::TempDir,
     domain_a: String,
     domain_b: String,
     endpoint: String,
     run_a: RunDir,
+}
+
+/// `uavmeta tunnel certs` for `host` in `dir` (the CA is made by the first call).
+fn certs(dir: &Path, host: &str) {
+    let dir = dir.display().to_string();
+    let args = [
+        "tunnel",
+        "certs",
+        "--dir",
+        &dir,
+        "--host",
+        host,
+        "--address",
+        "127.0.0.1",
+    ];
+    Proc::spawn("certs", &strings(&args)).succeeds(within(60));
 }
 
 impl Hosts {
@@ -60,10 +78,16 @@ impl Hosts {
             .expect("a free port")
             .port();
         let run_a = RunDir::create(&dir.path().join("host-a-run")).expect("run dir");
+        let tls = dir.path().join("tls");
+        certs(&tls, "learner");
+        certs(&tls, "hostb");
+        std::fs::write(tls.join("passwords"), "hostb:correct-horse\n").expect("dictionary");
+        std::fs::write(tls.join("hostb.credentials"), "hostb:correct-horse\n")
+            .expect("credentials");
         Hosts {
             domain_a: format!("{name}a{pid}"),
             domain_b: format!("{name}b{pid}"),
-            endpoint: format!("tcp/127.0.0.1:{port}"),
+            endpoint: format!("tls/127.0.0.1:{port}"),
             run_a,
             dir,
         }
@@ -77,6 +101,24 @@ impl Hosts {
         self.path().join("host-b-run")
     }
 
+    fn tls(&self, file: &str) -> String {
+        self.path().join("tls").join(file).display().to_string()
+    }
+
+    /// `join`'s flags that admit host B: its certificate, key and password, and the run's CA.
+    fn b_credentials(&self) -> Vec<String> {
+        strings(&[
+            "--ca",
+            &self.tls("ca.pem"),
+            "--certificate",
+            &self.tls("hostb.pem"),
+            "--private-key",
+            &self.tls("hostb.key"),
+            "--credentials",
+            &self.tls("hostb.credentials"),
+        ])
+    }
+
     /// `--config` and `--set`s of host A.
     fn config_args(&self, extra: &[String]) -> Vec<String> {
         let config = self.path().join("config.toml");
@@ -86,6 +128,10 @@ impl Hosts {
             format!("run.dir={}", self.run_a.root().display()),
             format!("run.domain={}", self.domain_a),
             format!("tunnel.listen={}", self.endpoint),
+            format!("tunnel.ca={}", self.tls("ca.pem")),
+            format!("tunnel.certificate={}", self.tls("learner.pem")),
+            format!("tunnel.private_key={}", self.tls("learner.key")),
+            format!("tunnel.credentials={}", self.tls("passwords")),
         ];
         for set in sets.iter().chain(extra) {
             args.extend(["--set".to_string(), set.clone()]);
@@ -108,7 +154,9 @@ impl Hosts {
             "--host",
             "hostb",
         ];
-        Proc::spawn("join", &strings(&args))
+        let mut args = strings(&args);
+        args.extend(self.b_credentials());
+        Proc::spawn("join", &args)
     }
 
     /// An actor on host B, once `join` has made B's directory for the run.
@@ -398,58 +446,218 @@ fn a_killed_and_restarted_tunnel_loses_nothing_unaccounted_and_the_remote_actor_
     );
 }
 
-/// Bad input gets clear errors: an unreachable endpoint (retried with backoff, named), a run the
-/// learner's host does not serve (its runs named).
-#[test]
-fn joining_an_unreachable_endpoint_or_an_unknown_run_fails_with_a_message_naming_it() {
-    let hosts = Hosts::new("bad");
-    let unreachable = Proc::spawn(
-        "unreachable",
-        &strings(&[
-            "tunnel",
-            "join",
-            "--connect",
-            &hosts.endpoint,
-            "--run-id",
-            "nothing-0",
-            "--dir",
-            &hosts.dir_b().display().to_string(),
-            "--domain",
-            &hosts.domain_b,
-            "--patience",
-            "2",
-        ]),
-    );
-    let out = unreachable.wait(within(60)).stderr;
-    assert!(!out.is_empty() && out.contains("trying again"), "{out}");
+/// `tunnel join` of host B to `run_id` with `credentials`, given up after 3 s: its stderr.
+fn refused_join(hosts: &Hosts, endpoint: &str, run_id: &str, credentials: &[String]) -> String {
+    let dir_b = hosts.dir_b().display().to_string();
+    let mut args = strings(&[
+        "tunnel",
+        "join",
+        "--connect",
+        endpoint,
+        "--run-id",
+        run_id,
+        "--dir",
+        &dir_b,
+        "--domain",
+        &hosts.domain_b,
+        "--host",
+        "hostb",
+        "--patience",
+        "3",
+    ]);
+    args.extend(credentials.iter().cloned());
+    let out = Proc::spawn("refused", &args).wait(within(120));
     assert!(
-        out.contains(&format!(
-            "cannot reach the run's tunnel at `{}`",
-            hosts.endpoint
-        )),
-        "{out}"
+        !out.status.success(),
+        "joined with {credentials:?}: {}",
+        out.stderr
     );
+    assert!(
+        !hosts.dir_b().join("config.toml").exists(),
+        "{credentials:?} got the config"
+    );
+    out.stderr
+}
+
+/// Bad input and strangers get one clear error that reveals nothing of the runs served: an
+/// unreachable endpoint, a run id not served, no certificate, another CA's certificate, a wrong
+/// password; and plain TCP beyond loopback is refused on both sides.
+#[test]
+fn a_stranger_is_refused_with_one_error_that_names_no_run() {
+    let hosts = Hosts::new("bad");
+    let admitted = hosts.b_credentials();
+    let unreachable = refused_join(&hosts, &hosts.endpoint, hosts.run_a.id(), &admitted);
+    assert!(unreachable.contains("trying again"), "{unreachable}");
 
     let (_store, _tunnel) = start_host_a(&hosts, &[]);
-    let unknown = Proc::spawn(
-        "unknown",
+    let another_ca = hosts.path().join("other-ca");
+    certs(&another_ca, "hostb");
+    let other = |file: &str| another_ca.join(file).display().to_string();
+    let wrong_password = hosts.path().join("wrong.credentials");
+    std::fs::write(&wrong_password, "hostb:guess\n").expect("credentials");
+    let plain = hosts.endpoint.replace("tls/", "tcp/");
+    let tls = hosts.endpoint.as_str();
+    let no_password = admitted[..6].to_vec();
+    let cases: Vec<(&str, &str, &str, Vec<String>)> = vec![
+        ("a run id not served", tls, "no-such-run", admitted.clone()),
+        (
+            "no certificate (plain TCP)",
+            &plain,
+            hosts.run_a.id(),
+            vec![],
+        ),
+        ("no password", tls, hosts.run_a.id(), no_password),
+        (
+            "another CA's certificate",
+            tls,
+            hosts.run_a.id(),
+            strings(&[
+                "--ca",
+                &hosts.tls("ca.pem"),
+                "--certificate",
+                &other("hostb.pem"),
+                "--private-key",
+                &other("hostb.key"),
+                "--credentials",
+                &hosts.tls("hostb.credentials"),
+            ]),
+        ),
+        (
+            "a wrong password",
+            tls,
+            hosts.run_a.id(),
+            strings(&[
+                "--ca",
+                &hosts.tls("ca.pem"),
+                "--certificate",
+                &hosts.tls("hostb.pem"),
+                "--private-key",
+                &hosts.tls("hostb.key"),
+                "--credentials",
+                &wrong_password.display().to_string(),
+            ]),
+        ),
+    ];
+    for (what, endpoint, run_id, credentials) in cases {
+        let out = refused_join(&hosts, endpoint, run_id, &credentials);
+        let expected = format!("cannot join run `{run_id}` at `{endpoint}`");
+        assert!(out.contains(&expected), "{what}: {out}");
+        assert!(
+            !out.contains(hosts.run_a.id()) || run_id == hosts.run_a.id(),
+            "{what} named the served run: {out}"
+        );
+    }
+
+    // Plain TCP beyond loopback: refused before any connection, on either side.
+    let plain = Proc::spawn(
+        "plain-join",
         &strings(&[
             "tunnel",
             "join",
             "--connect",
-            &hosts.endpoint,
+            "tcp/10.0.0.1:7447",
             "--run-id",
-            "no-such-run",
+            "r",
             "--dir",
             &hosts.dir_b().display().to_string(),
-            "--domain",
-            &hosts.domain_b,
         ]),
-    );
-    let out = unknown.wait(within(60)).stderr;
-    assert!(out.contains("serves no run `no-such-run`"), "{out}");
+    )
+    .wait(within(60));
     assert!(
-        out.contains(hosts.run_a.id()),
-        "the served run is named: {out}"
+        !plain.status.success() && plain.stderr.contains("needs a tls/ endpoint"),
+        "{}",
+        plain.stderr
     );
+    let mut args = strings(&[
+        "tunnel",
+        "serve",
+        "--run",
+        &hosts.path().join("plain").display().to_string(),
+    ]);
+    args.extend(hosts.config_args(&[]));
+    args.extend(strings(&["--set", "tunnel.listen=tcp/0.0.0.0:7447"]));
+    let serve = Proc::spawn("plain-serve", &args).wait(within(60));
+    assert!(
+        !serve.status.success() && serve.stderr.contains("tunnel certs"),
+        "{}",
+        serve.stderr
+    );
+}
+
+/// Publishes `message` into `service` of host B's domain, as a hostile remote host can.
+fn forge<T: std::fmt::Debug + iceoryx2::prelude::ZeroCopySend + Copy + 'static>(
+    node: &iceoryx2::node::Node<iceoryx2::prelude::ipc::Service>,
+    config: &uavmeta_proto::config::Config,
+    service: String,
+    message: T,
+) {
+    let service = transport::control_service::<T>(node, service, config).expect("service");
+    let publisher = transport::control_publisher(&service).expect("publisher");
+    transport::announce(&publisher, message).expect("announce");
+}
+
+/// Least privilege across the tunnel: a remote host that publishes a Shutdown and a
+/// DatasetReady, into its own services and into the copies that cross, reaches no process of the
+/// learner's host, whose store keeps storing what the remote actor sends.
+#[test]
+fn a_remote_hosts_forged_shutdown_and_dataset_ready_reach_nothing_on_the_learners_host() {
+    use uavmeta_proto::config::Config;
+    use uavmeta_proto::transport::{DatasetReady, ServiceNames, Shutdown, SCHEMA_VERSION};
+    let hosts = Hosts::new("forge");
+    let (mut store, mut tunnel) = start_host_a(&hosts, &["collect.transitions=10000000".into()]);
+    let mut join = hosts.join(hosts.run_a.id());
+    let config_b = hosts.dir_b().join("config.toml");
+    wait_until("host B's run directory", within(60), || config_b.exists());
+    join.logs("bridging the run's services", within(60));
+    let config = Config::load(&config_b, &[]).expect("B's config");
+    let names = ServiceNames::new(&RunDir::open(&hosts.dir_b()).expect("B's run"));
+    let node = transport::node("forger", &config.run).expect("a node in B's domain");
+    let shutdown = Shutdown {
+        schema_version: SCHEMA_VERSION,
+        reserved: 0,
+    };
+    let ready = DatasetReady {
+        schema_version: SCHEMA_VERSION,
+        task: 0,
+        transitions: 10_000_000,
+    };
+    for service in [names.shutdown(), names.to_remote(&names.shutdown())] {
+        forge(&node, &config, service, shutdown);
+    }
+    for service in [
+        names.dataset_ready(),
+        names.to_remote(&names.dataset_ready()),
+    ] {
+        forge(&node, &config, service, ready);
+    }
+    // A remote actor publishes after the forgeries: the tunnel carries, and A's store takes it.
+    let actor = hosts.actor_b("lambda-0", &["--transitions", "2000"]);
+    wait_until("host B's transitions in A's store", within(120), || {
+        stored(&hosts.run_a) >= 2000.0
+    });
+    drop(actor);
+    assert!(
+        store.running() && tunnel.running(),
+        "a forged message stopped host A's processes"
+    );
+    // A's own services keep what was announced in their history: nothing.
+    let config_a = Config::load(&hosts.run_a.config_file(), &[]).expect("A's config");
+    let node_a = transport::node("witness", &config_a.run).expect("a node in A's domain");
+    let names_a = ServiceNames::new(&hosts.run_a);
+    let heard = |service: String| -> usize {
+        let service =
+            transport::control_service::<Shutdown>(&node_a, service, &config_a).expect("service");
+        let subscriber = transport::control_subscriber(&service, &config_a).expect("subscriber");
+        std::iter::from_fn(|| subscriber.receive().expect("receive")).count()
+    };
+    assert_eq!(
+        heard(names_a.shutdown()),
+        0,
+        "a forged Shutdown reached host A"
+    );
+    let ready_service =
+        transport::dataset_ready_service(&node_a, &names_a, &config_a).expect("service");
+    let subscriber = transport::control_subscriber(&ready_service, &config_a).expect("subscriber");
+    let announced = std::iter::from_fn(|| subscriber.receive().expect("receive")).count();
+    assert_eq!(announced, 0, "a forged DatasetReady reached host A");
 }

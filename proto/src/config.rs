@@ -599,6 +599,17 @@ pub struct TunnelConfig {
     pub wait_for_hosts: Vec<String>,
     /// How long the launcher waits for `wait_for_hosts` before it gives up.
     pub wait_seconds: f64,
+    /// The run's CA certificate (PEM). With a `tls/` endpoint, which any address beyond loopback
+    /// needs, a remote host is admitted only with a certificate this CA signed (mutual TLS).
+    /// `uavmeta tunnel certs` makes the CA and every host's certificate.
+    pub ca: PathBuf,
+    /// This host's certificate (PEM), signed by `ca`, naming the address remote hosts connect to.
+    pub certificate: PathBuf,
+    /// The private key (PEM) of `certificate`; readable by this user only.
+    pub private_key: PathBuf,
+    /// A file of `user:password` lines (Zenoh's user-password dictionary): a remote host must also
+    /// present one of them (`uavmeta tunnel join --credentials FILE`). Empty: certificates only.
+    pub credentials: PathBuf,
 }
 
 impl Default for TunnelConfig {
@@ -607,6 +618,10 @@ impl Default for TunnelConfig {
             listen: String::new(),
             wait_for_hosts: Vec::new(),
             wait_seconds: 120.0,
+            ca: PathBuf::new(),
+            certificate: PathBuf::new(),
+            private_key: PathBuf::new(),
+            credentials: PathBuf::new(),
         }
     }
 }
@@ -1317,7 +1332,7 @@ impl Config {
         if !t.wait_seconds.is_finite() || t.wait_seconds <= 0.0 {
             return Err(self.invalid("tunnel.wait_seconds", &t.wait_seconds, "seconds > 0"));
         }
-        Ok(())
+        self.validate_tunnel_security()
     }
 
     /// The `[reproduce]` keys on their own ([`Config::validate_reproduce`] checks them against
@@ -1564,5 +1579,63 @@ impl Config {
             Some((_, key, value, expected)) => Err(self.invalid(key, value, &expected)),
             None => Ok(()),
         }
+    }
+}
+
+/// Whether a Zenoh endpoint (`PROTOCOL/ADDRESS:PORT`) names a loopback address, which only this
+/// host's own processes can reach.
+pub fn is_loopback_endpoint(endpoint: &str) -> bool {
+    let address = endpoint.split_once('/').map_or(endpoint, |(_, a)| a);
+    let host = match address.rsplit_once(':') {
+        Some((host, _port)) => host,
+        None => address,
+    };
+    let host = host.trim_start_matches('[').trim_end_matches(']');
+    host == "localhost"
+        || host
+            .parse::<std::net::IpAddr>()
+            .is_ok_and(|ip| ip.is_loopback())
+}
+
+// The tunnel's security (issue #31): secure by default.
+impl Config {
+    /// A `tls/` endpoint needs the CA, certificate and key; any other beyond loopback is refused,
+    /// since it would let whoever reaches it join the run, unauthenticated and in clear.
+    fn validate_tunnel_security(&self) -> Result<(), ConfigError> {
+        let t = &self.tunnel;
+        if t.listen.is_empty() {
+            return Ok(());
+        }
+        if t.listen.starts_with("tls/") {
+            let files = [
+                ("tunnel.ca", &t.ca),
+                ("tunnel.certificate", &t.certificate),
+                ("tunnel.private_key", &t.private_key),
+            ];
+            return match files
+                .into_iter()
+                .find(|(_, path)| path.as_os_str().is_empty())
+            {
+                Some((key, path)) => Err(self.invalid(
+                    key,
+                    path,
+                    "a PEM file for the tls/ endpoint of tunnel.listen (`uavmeta tunnel certs` \
+                     makes the run's CA and host certificates)",
+                )),
+                None => Ok(()),
+            };
+        }
+        if is_loopback_endpoint(&t.listen) {
+            return Ok(());
+        }
+        Err(self.invalid(
+            "tunnel.listen",
+            &t.listen,
+            "a loopback address, or a tls/ endpoint such as tls/0.0.0.0:7447 with tunnel.ca, \
+             tunnel.certificate and tunnel.private_key set: any other would let every host that \
+             reaches it join the run, unauthenticated and unencrypted. Make the files with \
+             `uavmeta tunnel certs --dir DIR --host NAME --address ADDRESS` (README, \
+             \"Actors on other hosts\")",
+        ))
     }
 }

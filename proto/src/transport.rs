@@ -496,19 +496,48 @@ impl ServiceNames {
         format!("{}/control/shutdown", self.prefix)
     }
 
-    /// The services a remote actor uses, which a tunnel carries between hosts: every task's
-    /// transitions and acknowledgements, the dataset announcements and the shutdown.
-    pub fn remote_actor_services<'t>(
+    /// The services a remote actor uses and which way each crosses a tunnel: the one
+    /// declaration of what a remote host may send (its transitions) and what only the learner's
+    /// host sends (acknowledgements, dataset announcements, the shutdown).
+    pub fn tunnel_routes<'t>(
         &self,
         tasks: impl IntoIterator<Item = &'t TaskConfig>,
-    ) -> Vec<String> {
-        let mut names: Vec<String> = tasks
+    ) -> Vec<(String, Crossing)> {
+        let mut routes: Vec<(String, Crossing)> = tasks
             .into_iter()
-            .flat_map(|t| [self.transitions(&t.name), self.acks(&t.name)])
+            .flat_map(|t| {
+                [
+                    (self.transitions(&t.name), Crossing::ToLearner),
+                    (self.acks(&t.name), Crossing::ToRemote),
+                ]
+            })
             .collect();
-        names.extend([self.dataset_ready(), self.shutdown()]);
-        names
+        routes.push((self.dataset_ready(), Crossing::ToRemote));
+        routes.push((self.shutdown(), Crossing::ToRemote));
+        routes
     }
+
+    /// The copy of `service` that carries it to remote hosts, `uavmeta/<run>/to-remote/...`: no
+    /// process of the learner's host reads it, so what a remote host publishes into it reaches
+    /// none of them.
+    pub fn to_remote(&self, service: &str) -> String {
+        let rest = service
+            .strip_prefix(&self.prefix)
+            .unwrap_or(service)
+            .trim_start_matches('/');
+        format!("{}/to-remote/{rest}", self.prefix)
+    }
+}
+
+/// Which way a service crosses a tunnel ([`ServiceNames::tunnel_routes`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Crossing {
+    /// Remote hosts publish into it, under its own name, and the learner's host reads it.
+    ToLearner,
+    /// Only the learner's host publishes: its tunnel copies the service into
+    /// [`ServiceNames::to_remote`], which crosses, and a remote host's tunnel copies that into its
+    /// own service; nothing crosses back into the original.
+    ToRemote,
 }
 
 /// A run's directory and the layout of everything in it.
@@ -1197,8 +1226,8 @@ pub fn transition_service(
         .map_err(|e| open_error(node.config(), &name, &service, e))
 }
 
-/// Opens (or creates) a control service, whose history lets late joiners catch up.
-fn control_service<T: fmt::Debug + ZeroCopySend + 'static>(
+/// Opens (or creates) the control service `service`, whose history lets late joiners catch up.
+pub fn control_service<T: fmt::Debug + ZeroCopySend + 'static>(
     node: &Node<ipc::Service>,
     service: String,
     config: &Config,
@@ -1364,7 +1393,15 @@ pub fn ack_service(
     task: &str,
     run: &RunConfig,
 ) -> Result<AckService, TransportError> {
-    let service = names.acks(task);
+    ack_service_at(node, names.acks(task), run)
+}
+
+/// Opens (or creates) an acknowledgement service named `service` (a task's, or its tunnel copy).
+pub fn ack_service_at(
+    node: &Node<ipc::Service>,
+    service: String,
+    run: &RunConfig,
+) -> Result<AckService, TransportError> {
     let name = service_name(&service)?;
     node.service_builder(&name)
         .publish_subscribe::<StoreAck>()

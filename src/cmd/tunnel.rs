@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use anyhow::{bail, Result};
 use clap::{Args, Subcommand};
-use uavmeta_tunnel::JoinOptions;
+use uavmeta_tunnel::{JoinOptions, Security};
 
 use super::launch::RunArgs;
 
@@ -17,6 +17,23 @@ pub enum TunnelCommand {
     /// On an actor host: join a run served at ENDPOINT, then start actors with
     /// `uavmeta actor --run DIR --task T --seed S`.
     Join(JoinArgs),
+    /// Make the run's CA in DIR (once) and a certificate and key for one host, for a tls/
+    /// endpoint: copy ca.pem and the host's NAME.pem and NAME.key to that host.
+    Certs(CertsArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct CertsArgs {
+    /// Where the CA and the certificates live (ca.key stays here, with the learner's host).
+    #[arg(long, value_name = "DIR")]
+    pub dir: PathBuf,
+    /// The host's name: its files are NAME.pem and NAME.key.
+    #[arg(long, value_name = "NAME")]
+    pub host: String,
+    /// An address or DNS name the certificate is valid for (repeat): the learner host's must
+    /// include the one remote hosts connect to.
+    #[arg(long = "address", value_name = "ADDRESS")]
+    pub addresses: Vec<String>,
 }
 
 #[derive(Args, Debug)]
@@ -49,6 +66,19 @@ pub struct JoinArgs {
     /// Give up after this many seconds without reaching the learner's host.
     #[arg(long, default_value_t = 120.0, value_name = "SECONDS")]
     pub patience: f64,
+    /// The run's CA certificate (PEM), which signed the learner host's certificate.
+    #[arg(long, value_name = "FILE")]
+    pub ca: Option<PathBuf>,
+    /// This host's certificate (PEM), signed by the run's CA (`uavmeta tunnel certs`).
+    #[arg(long, value_name = "FILE")]
+    pub certificate: Option<PathBuf>,
+    /// This host's private key (PEM).
+    #[arg(long = "private-key", value_name = "FILE")]
+    pub private_key: Option<PathBuf>,
+    /// A file whose line `user:password` the learner host's tunnel.credentials lists; a file,
+    /// so that the password is never on a command line.
+    #[arg(long, value_name = "FILE")]
+    pub credentials: Option<PathBuf>,
 }
 
 pub fn run(command: TunnelCommand) -> Result<()> {
@@ -63,6 +93,20 @@ pub fn run(command: TunnelCommand) -> Result<()> {
                 );
             }
             uavmeta_tunnel::serve(&run, &config)?;
+        }
+        TunnelCommand::Certs(args) => {
+            let made = uavmeta_tunnel::certs::make(&args.dir, &args.host, &args.addresses)?;
+            let ca = match made.new_ca {
+                true => "made",
+                false => "reused",
+            };
+            println!(
+                "CA {} ({ca}); host `{}`: {} and {}",
+                made.ca.display(),
+                args.host,
+                made.certificate.display(),
+                made.private_key.display()
+            );
         }
         TunnelCommand::Join(args) => {
             if !(args.patience.is_finite() && args.patience >= 0.0) {
@@ -82,6 +126,12 @@ pub fn run(command: TunnelCommand) -> Result<()> {
                 host,
                 metrics_host: args.metrics_host,
                 patience: Duration::from_secs_f64(args.patience),
+                security: Security {
+                    ca: args.ca,
+                    certificate: args.certificate,
+                    private_key: args.private_key,
+                    credentials: args.credentials,
+                },
             })?;
         }
     }

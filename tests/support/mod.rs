@@ -122,8 +122,16 @@ impl Proc {
     /// `program` with `args`, in a process group of its own.
     pub fn spawn_program(program: &str, name: &str, args: &[String]) -> Proc {
         use std::os::unix::process::CommandExt;
-        let out = tempfile::NamedTempFile::new().expect("stdout file");
-        let err = tempfile::NamedTempFile::new().expect("stderr file");
+        let keep = std::env::var_os("UAVMETA_TEST_KEEP").is_some();
+        let file = |suffix: &str| {
+            tempfile::Builder::new()
+                .prefix(&format!("uavmeta-{name}-"))
+                .suffix(suffix)
+                .disable_cleanup(keep)
+                .tempfile()
+        };
+        let out = file(".out").expect("stdout file");
+        let err = file(".err").expect("stderr file");
         let child = Command::new(program)
             .args(args)
             .stdout(out.reopen().expect("stdout"))
@@ -227,6 +235,7 @@ impl Drop for Proc {
 pub fn run_dir(prefix: &str) -> tempfile::TempDir {
     tempfile::Builder::new()
         .prefix(prefix)
+        .disable_cleanup(std::env::var_os("UAVMETA_TEST_KEEP").is_some())
         .tempdir()
         .expect("temp dir")
 }

@@ -2,17 +2,20 @@
 //! link that relays them over the Zenoh session.
 
 use std::collections::BTreeSet;
+use std::fmt;
 use std::time::Instant;
 
 use iceoryx2::node::Node;
 use iceoryx2::port::backpressure_strategy::BackpressureStrategy;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use iceoryx2_integrations_zenoh_link_carrier::ZenohCarrier;
 use iceoryx2_link::Link;
 use iceoryx2_link_tunnel::Tunnel;
-use uavmeta_proto::config::Config;
-use uavmeta_proto::transport::{self, AckService, ControlService, RunDir, ServiceNames};
-use uavmeta_proto::transport::{DatasetReady, Shutdown, TransitionService};
+use uavmeta_proto::config::{Config, TaskConfig};
+use uavmeta_proto::transport::{self, AckService, ControlService, Crossing, RunDir, ServiceNames};
+use uavmeta_proto::transport::{DatasetReady, Shutdown, StoreAck, TransitionService};
 use zenoh::Session;
 
 use crate::{TunnelError, DISCOVER_EVERY};
@@ -21,11 +24,16 @@ use crate::{TunnelError, DISCOVER_EVERY};
 /// settings and schema attribute before any link exists. Without them, the link would create a
 /// service the other side offers as a mirror with iceoryx2's defaults, which uavmeta's openers
 /// then refuse; held open, they are the local side the link exports and relays into.
+///
+/// Only the services of [`ServiceNames::tunnel_routes`] cross, and each only its way: a task's
+/// transitions under their own name, everything the learner's host alone announces through its
+/// `to-remote/` copy, which [`Forwarders`] fill on the learner's host and empty on a remote one.
 pub(crate) struct RunServices {
     _transitions: Vec<TransitionService>,
-    _acks: Vec<AckService>,
-    _dataset_ready: ControlService<DatasetReady>,
-    pub shutdown: ControlService<Shutdown>,
+    acks: Vec<(AckService, AckService)>,
+    dataset_ready: (ControlService<DatasetReady>, ControlService<DatasetReady>),
+    /// The run's own shutdown service, and its copy that crosses.
+    shutdown: (ControlService<Shutdown>, ControlService<Shutdown>),
     /// The names the link may bridge, and no other.
     pub names: BTreeSet<String>,
 }
@@ -38,20 +46,146 @@ impl RunServices {
     ) -> Result<Self, TunnelError> {
         let names = ServiceNames::new(run);
         let tasks = &config.tasks;
+        let crossing = |service: String| names.to_remote(&service);
+        let acks = |t: &TaskConfig| -> Result<_, TunnelError> {
+            Ok((
+                transport::ack_service(node, &names, &t.name, &config.run)?,
+                transport::ack_service_at(node, crossing(names.acks(&t.name)), &config.run)?,
+            ))
+        };
+        let routes = names.tunnel_routes(tasks);
         Ok(Self {
             _transitions: tasks
                 .iter()
                 .map(|t| transport::transition_service(node, &names, &t.name, &config.run))
                 .collect::<Result<_, _>>()?,
-            _acks: tasks
-                .iter()
-                .map(|t| transport::ack_service(node, &names, &t.name, &config.run))
-                .collect::<Result<_, _>>()?,
-            _dataset_ready: transport::dataset_ready_service(node, &names, config)?,
-            shutdown: transport::shutdown_service(node, &names, config)?,
-            names: names.remote_actor_services(tasks).into_iter().collect(),
+            acks: tasks.iter().map(acks).collect::<Result<_, _>>()?,
+            dataset_ready: (
+                transport::control_service(node, names.dataset_ready(), config)?,
+                transport::control_service(node, crossing(names.dataset_ready()), config)?,
+            ),
+            shutdown: (
+                transport::control_service(node, names.shutdown(), config)?,
+                transport::control_service(node, crossing(names.shutdown()), config)?,
+            ),
+            names: routes
+                .into_iter()
+                .map(|(service, way)| match way {
+                    Crossing::ToLearner => service,
+                    Crossing::ToRemote => crossing(service),
+                })
+                .collect(),
         })
     }
+
+    /// The run's own shutdown service on this host.
+    pub fn shutdown(&self) -> &ControlService<Shutdown> {
+        &self.shutdown.0
+    }
+}
+
+/// Copies what one service receives into another, by copy (a few bytes each).
+struct Forward<T: fmt::Debug + ZeroCopySend + Copy + 'static> {
+    from: Subscriber<ipc::Service, T, ()>,
+    to: Publisher<ipc::Service, T, ()>,
+}
+
+impl<T: fmt::Debug + ZeroCopySend + Copy + 'static> Forward<T> {
+    fn pump(&self) -> Result<(), TunnelError> {
+        while let Some(sample) = self
+            .from
+            .receive()
+            .map_err(transport::receive_failed("receive what crosses the tunnel"))?
+        {
+            transport::announce(&self.to, *sample)?;
+        }
+        Ok(())
+    }
+}
+
+/// Which way the [`Forwarders`] copy.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Side {
+    /// The learner's host: its services into their `to-remote/` copies.
+    Learner,
+    /// A remote host: the `to-remote/` copies into its own services.
+    Remote,
+}
+
+/// The copies between a run's services and their `to-remote/` copies that make acknowledgements
+/// and announcements one-way: on the learner's host nothing reads a `to-remote/` service, so a
+/// remote host that publishes into one reaches no process there.
+pub(crate) struct Forwarders {
+    acks: Vec<Forward<StoreAck>>,
+    dataset_ready: Forward<DatasetReady>,
+    shutdown: Forward<Shutdown>,
+    /// When a failed copy was last logged: a link coming or going makes a receive fail for a
+    /// moment, which must neither stop the tunnel nor flood its log.
+    last_warning: std::cell::Cell<Option<Instant>>,
+}
+
+impl Forwarders {
+    pub fn new(services: &RunServices, config: &Config, side: Side) -> Result<Self, TunnelError> {
+        let acks = services
+            .acks
+            .iter()
+            .map(|(own, crossing)| {
+                let (from, to) = ordered(own, crossing, side);
+                Ok(Forward {
+                    from: transport::ack_subscriber(from)?,
+                    to: transport::ack_publisher(to)?,
+                })
+            })
+            .collect::<Result<_, TunnelError>>()?;
+        Ok(Self {
+            acks,
+            dataset_ready: control_forward(&services.dataset_ready, config, side)?,
+            shutdown: control_forward(&services.shutdown, config, side)?,
+            last_warning: Default::default(),
+        })
+    }
+
+    /// Copies everything waiting; a failure is logged (at most every few seconds) and the next
+    /// round tries again.
+    pub fn pump(&self) {
+        let pumped = self
+            .acks
+            .iter()
+            .try_for_each(Forward::pump)
+            .and_then(|()| self.dataset_ready.pump())
+            .and_then(|()| self.shutdown.pump());
+        if let Err(error) = pumped {
+            let quiet = self
+                .last_warning
+                .get()
+                .is_some_and(|at| at.elapsed() < DISCOVER_EVERY * 50);
+            if !quiet {
+                self.last_warning.set(Some(Instant::now()));
+                tracing::warn!(%error, "cannot copy what crosses the tunnel; trying again");
+            }
+        }
+    }
+}
+
+/// (from, to) of a service and its copy on `side`.
+fn ordered<'s, S>(own: &'s S, crossing: &'s S, side: Side) -> (&'s S, &'s S) {
+    match side {
+        Side::Learner => (own, crossing),
+        Side::Remote => (crossing, own),
+    }
+}
+
+fn control_forward<T: fmt::Debug + ZeroCopySend + Copy + 'static>(
+    (own, crossing): &(ControlService<T>, ControlService<T>),
+    config: &Config,
+    side: Side,
+) -> Result<Forward<T>, TunnelError> {
+    let (from, to) = ordered(own, crossing, side);
+    Ok(Forward {
+        // With history: a remote host that joins late still hears what was announced.
+        from: transport::control_subscriber(from, config)?,
+        to: transport::control_publisher(to)?,
+    })
 }
 
 /// A link relaying the run's services over a Zenoh session.

@@ -4,12 +4,12 @@
 use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
-use uavmeta_proto::config::Config;
+use uavmeta_proto::config::{Config, TunnelConfig};
 use uavmeta_proto::transport::{RunDir, SCHEMA_VERSION};
 use zenoh::query::Query;
 use zenoh::{Session, Wait};
 
-use crate::session::{run_key, ALL_RUNS};
+use crate::session::run_key;
 use crate::TunnelError;
 
 /// How long a remote host waits for the answer to one handshake query.
@@ -36,11 +36,15 @@ pub struct RunInfo {
 
 impl RunInfo {
     pub fn new(run: &RunDir, config: &Config) -> Self {
+        let shared = Config {
+            tunnel: TunnelConfig::default(),
+            ..config.clone()
+        };
         Self {
             schema_version: SCHEMA_VERSION,
             run_id: run.id().into(),
             run_hash: run.hash(),
-            config: config.to_toml_string(),
+            config: shared.to_toml_string(),
         }
     }
 }
@@ -95,7 +99,8 @@ pub(crate) enum Outcome {
 }
 
 /// The remote host's side: asks `endpoint`'s session for `run_id`; refusals and schema
-/// mismatches are errors, silence is [`Outcome::Unanswered`] unless the host serves other runs.
+/// mismatches are errors, silence is [`Outcome::Unanswered`] (a run id not served is silence
+/// too: nothing tells a stranger which runs are).
 pub(crate) fn ask(
     session: &Session,
     endpoint: &str,
@@ -134,33 +139,7 @@ pub(crate) fn ask(
         }
         return Ok(Outcome::Joined(info));
     }
-    let served = served_runs(session).map_err(zenoh_error)?;
-    if served.is_empty() {
-        return Ok(Outcome::Unanswered);
-    }
-    Err(TunnelError::UnknownRun {
-        endpoint: endpoint.into(),
-        run: run_id.into(),
-        served: served.join(", "),
-    })
-}
-
-/// The runs whose tunnels answer on this session: their liveliness tokens.
-fn served_runs(session: &Session) -> Result<Vec<String>, zenoh::Error> {
-    let tokens = session
-        .liveliness()
-        .get(ALL_RUNS)
-        .timeout(ANSWER_TIMEOUT)
-        .wait()?;
-    let mut runs = Vec::new();
-    while let Ok(reply) = tokens.recv() {
-        if let Ok(sample) = reply.result() {
-            let key = sample.key_expr().as_str();
-            runs.push(key.rsplit('/').next().unwrap_or(key).to_string());
-        }
-    }
-    runs.sort();
-    Ok(runs)
+    Ok(Outcome::Unanswered)
 }
 
 #[cfg(test)]
@@ -230,7 +209,7 @@ mod tests {
             .expect("a free port")
             .port();
         let endpoint = format!("tcp/127.0.0.1:{port}");
-        let server = session::listen(&endpoint).expect("listen");
+        let server = session::listen(&endpoint, &Default::default()).expect("listen");
         let ours = info();
         let _current = server
             .declare_queryable(run_key("r-0000"))
@@ -250,7 +229,7 @@ mod tests {
             })
             .wait()
             .expect("queryable");
-        let client = session::connect(&endpoint).expect("connect");
+        let client = session::connect(&endpoint, &Default::default()).expect("connect");
         assert_eq!(
             ask_until_answered(&client, &endpoint, "r-0000")
                 .expect("joined")

@@ -12,7 +12,7 @@ use uavmeta_proto::transport::{
 use zenoh::sample::SampleKind;
 use zenoh::{Session, Wait};
 
-use crate::bridge::{Bridge, RunServices};
+use crate::bridge::{Bridge, Forwarders, RunServices, Side};
 use crate::handshake::{self, Hello, Outcome, RunInfo};
 use crate::session::{self, hosts_key, run_key};
 use crate::{TunnelError, POLL, SHUTDOWN_LINGER};
@@ -47,7 +47,13 @@ pub struct JoinOptions {
     pub metrics_host: String,
     /// Give up reaching the learner's host after this long.
     pub patience: Duration,
+    /// The files that admit this host (`--ca`, `--certificate`, `--private-key`,
+    /// `--credentials`).
+    pub security: session::Security,
 }
+
+/// The flags that name [`JoinOptions::security`]'s files, in `Security::check_files`' order.
+const SECURITY_FLAGS: [&str; 4] = ["--ca", "--certificate", "--private-key", "--credentials"];
 
 /// Joins the run, then relays its services until SIGINT/SIGTERM or shortly after its shutdown.
 pub fn join(options: &JoinOptions) -> Result<(), TunnelError> {
@@ -60,6 +66,7 @@ pub fn join(options: &JoinOptions) -> Result<(), TunnelError> {
             ),
         });
     }
+    check_endpoint(options)?;
     let hello = Hello {
         schema_version: SCHEMA_VERSION,
         host: options.host.clone(),
@@ -70,7 +77,8 @@ pub fn join(options: &JoinOptions) -> Result<(), TunnelError> {
     // A killed predecessor's subscribers would block the actors on full buffers.
     transport::cleanup_dead_nodes(&node);
     let services = RunServices::open(&node, &run, &config)?;
-    let shutdown = transport::control_subscriber(&services.shutdown, &config)?;
+    let shutdown = transport::control_subscriber(services.shutdown(), &config)?;
+    let forwarders = Forwarders::new(&services, &config, Side::Remote)?;
     let present = Arc::new(AtomicBool::new(false));
     let _presence = watch_presence(&session, options, present.clone())?;
     tracing::info!(run = run.id(), dir = %run.root().display(), "joined the run: start actors with `uavmeta actor --run {}`", run.root().display());
@@ -84,6 +92,7 @@ pub fn join(options: &JoinOptions) -> Result<(), TunnelError> {
         if let Some(bridge) = &mut bridge {
             bridge.relay();
         }
+        forwarders.pump();
         if last_announce.is_none_or(|at| at.elapsed() >= ANNOUNCE_EVERY) {
             last_announce = Some(Instant::now());
             announce(&session, &run, options);
@@ -99,15 +108,31 @@ pub fn join(options: &JoinOptions) -> Result<(), TunnelError> {
     Ok(())
 }
 
+/// Refuses to join in clear beyond loopback (the run's data and this host's actors would be open
+/// to anyone on the way), and files named by the flags that cannot be read.
+fn check_endpoint(options: &JoinOptions) -> Result<(), TunnelError> {
+    let endpoint = &options.endpoint;
+    if !endpoint.starts_with("tls/") && !uavmeta_proto::config::is_loopback_endpoint(endpoint) {
+        return Err(TunnelError::Refused {
+            endpoint: endpoint.clone(),
+            message: "joining beyond loopback needs a tls/ endpoint, with --ca, --certificate \
+                      and --private-key from the run's `uavmeta tunnel certs`"
+                .into(),
+        });
+    }
+    options.security.check_files(endpoint, SECURITY_FLAGS)
+}
+
 /// Connects to the endpoint and shakes hands, retrying with backoff (and saying so) while the
-/// endpoint cannot be reached or its tunnel does not answer yet, for up to `patience`.
+/// endpoint cannot be reached, refuses this host or its tunnel does not answer for the run, for
+/// up to `patience`; then one error that does not tell these apart.
 fn reach(options: &JoinOptions, hello: &Hello) -> Result<(Session, RunInfo), TunnelError> {
     let start = Instant::now();
     let mut backoff = FIRST_BACKOFF;
     let mut session = None;
     loop {
         let problem = match &session {
-            None => match session::connect(&options.endpoint) {
+            None => match session::connect(&options.endpoint, &options.security) {
                 Ok(opened) => {
                     session = Some(opened);
                     continue;
@@ -120,10 +145,10 @@ fn reach(options: &JoinOptions, hello: &Hello) -> Result<(Session, RunInfo), Tun
             },
         };
         if start.elapsed() + backoff > options.patience {
-            return Err(TunnelError::Unreachable {
+            return Err(TunnelError::NotAdmitted {
                 endpoint: options.endpoint.clone(),
+                run: options.run_id.clone(),
                 waited: start.elapsed(),
-                message: problem,
             });
         }
         tracing::warn!(endpoint = %options.endpoint, "{problem}; trying again in {backoff:?}");

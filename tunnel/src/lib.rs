@@ -7,8 +7,12 @@
 //! the run, and plain `uavmeta actor --run DIR` processes publish into it as on the learner's host.
 //!
 //! Both sides run an [`iceoryx2_link::Link`] over the [`iceoryx2_link_tunnel::Tunnel`] with the
-//! Zenoh carrier, restricted to the services a remote actor uses
-//! ([`ServiceNames::remote_actor_services`]): the same payload types and service names from
+//! Zenoh carrier, restricted to the services a remote actor uses, each only its way
+//! (`ServiceNames::tunnel_routes`, declared once in `uavmeta_proto::transport`): transitions cross
+//! under their own name; acknowledgements, dataset announcements and the shutdown cross only as
+//! `to-remote/` copies that the learner host's tunnel fills and a remote host's tunnel empties
+//! into its own services, so nothing a remote host publishes reaches a learner-host process but
+//! its transitions, which the store validates. The same payload types and service names from
 //! `uavmeta_proto`, relayed byte for byte. The crates are used as a library rather than by
 //! running their CLI (`iox2-link-tunnel-zenoh`) as a child because the tunnel must (1) create
 //! the run's services with uavmeta's settings before it mirrors them (a mirror gets iceoryx2's
@@ -17,9 +21,20 @@
 //! and (3) tell the learner's host which remote actors it carries. The CLI can do none of these,
 //! and the library costs the same Zenoh build.
 //!
+//! **Who may join** ([`session::Security`]): Zenoh's own mutual TLS on a `tls/` endpoint (the
+//! run's CA signs the learner host's and every remote host's certificate; `uavmeta tunnel certs`
+//! makes them with rcgen) and, on top, Zenoh's user-password authentication (`tunnel.credentials`,
+//! a dictionary file; `join --credentials FILE`). An endpoint beyond loopback without TLS is
+//! refused by `Config::validate` (learner) and by `join` (remote). A remote host that is refused,
+//! asks for a run id that is not served, or cannot connect gets the same error
+//! ([`TunnelError::NotAdmitted`]): nothing about the runs served leaks. docs/SECURITY.md has the
+//! threat model.
+//!
 //! **Handshake** ([`handshake`]): before bridging, `join` asks the learner's host, by Zenoh query
-//! on `uavmeta/runs/<run id>`, for the run; the answer carries the run's hash, config and schema
-//! version. Each side refuses the other's mismatching schema version with an error naming both.
+//! on `uavmeta/runs/<run id>`, for the run; the answer carries the run's hash, config (without
+//! its `[tunnel]` section: paths of the learner host's keys are none of a remote host's business)
+//! and schema version. Each side refuses the other's mismatching schema version with an error
+//! naming both.
 //!
 //! **Losing the other side**: the learner's tunnel holds a Zenoh liveliness token; when it goes
 //! (killed, restarted), `join` drops its link, so remote actors see their store's subscriber go
@@ -44,13 +59,15 @@ use uavmeta_proto::config::ConfigError;
 use uavmeta_proto::transport::TransportError;
 
 mod bridge;
+pub mod certs;
 pub mod handshake;
 mod join;
 mod serve;
-mod session;
+pub mod session;
 
 pub use join::{join, JoinOptions};
 pub use serve::serve;
+pub use session::Security;
 
 /// How often a tunnel looks for new local or remote services; relaying runs in between.
 const DISCOVER_EVERY: Duration = Duration::from_millis(100);
@@ -69,20 +86,19 @@ pub enum TunnelError {
     Config(#[from] ConfigError),
     #[error("zenoh endpoint `{endpoint}`: {message}")]
     Zenoh { endpoint: String, message: String },
-    #[error("cannot reach the run's tunnel at `{endpoint}` within {waited:?}: {message}")]
-    Unreachable {
-        endpoint: String,
-        waited: Duration,
-        message: String,
-    },
+    /// One error for an endpoint that cannot be reached, a run id it does not serve and a
+    /// certificate or credentials it refuses, so that a stranger learns nothing of the runs there.
     #[error(
-        "the host at `{endpoint}` serves no run `{run}`; it serves: {served} (the learner host's \
-         `uavmeta launch` logs the run id to join, as does its `uavmeta tunnel serve`)"
+        "cannot join run `{run}` at `{endpoint}` within {waited:?}: nothing there admitted this \
+         host to that run. An unreachable endpoint, a run id it does not serve, and a certificate \
+         or credentials it refuses look the same from here; check the run id the learner host's \
+         `uavmeta launch` logs, this host's --ca, --certificate, --private-key and --credentials, \
+         and the learner host's tunnel log"
     )]
-    UnknownRun {
+    NotAdmitted {
         endpoint: String,
         run: String,
-        served: String,
+        waited: Duration,
     },
     #[error("the run's host at `{endpoint}` refused this host: {message}")]
     Refused { endpoint: String, message: String },

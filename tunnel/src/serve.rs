@@ -3,11 +3,11 @@
 use std::time::Instant;
 
 use uavmeta_proto::config::Config;
-use uavmeta_proto::transport::{self, write_atomic, RunDir};
+use uavmeta_proto::transport::{self, write_atomic, RemoteHost, RunDir};
 use zenoh::sample::Sample;
 use zenoh::Wait;
 
-use crate::bridge::{Bridge, RunServices};
+use crate::bridge::{Bridge, Forwarders, RunServices, Side};
 use crate::handshake::{self, RunInfo};
 use crate::session::{self, hosts_key, run_key};
 use crate::{TunnelError, POLL, SHUTDOWN_LINGER};
@@ -23,8 +23,17 @@ pub fn serve(run: &RunDir, config: &Config) -> Result<(), TunnelError> {
     // A killed predecessor's subscribers would block the actors on full buffers.
     transport::cleanup_dead_nodes(&node);
     let services = RunServices::open(&node, run, config)?;
-    let shutdown = transport::control_subscriber(&services.shutdown, config)?;
-    let session = session::listen(endpoint)?;
+    let shutdown = transport::control_subscriber(services.shutdown(), config)?;
+    let forwarders = Forwarders::new(&services, config, Side::Learner)?;
+    let security = session::Security::of_config(&config.tunnel);
+    let keys = [
+        "tunnel.ca",
+        "tunnel.certificate",
+        "tunnel.private_key",
+        "tunnel.credentials",
+    ];
+    security.check_files(endpoint, keys)?;
+    let session = session::listen(endpoint, &security)?;
     let zenoh_error = |e: zenoh::Error| TunnelError::Zenoh {
         endpoint: endpoint.clone(),
         message: e.to_string(),
@@ -41,9 +50,13 @@ pub fn serve(run: &RunDir, config: &Config) -> Result<(), TunnelError> {
         action: "create",
         source,
     })?;
+    let announcements = std::sync::Mutex::new(Announcements::default());
     let _hosts = session
         .declare_subscriber(hosts_key(run.id(), "*"))
-        .callback(move |sample| record_host(&hosts_dir, &sample))
+        .callback(move |sample| {
+            let mut seen = announcements.lock().unwrap_or_else(|e| e.into_inner());
+            seen.record(&hosts_dir, &sample)
+        })
         .wait()
         .map_err(zenoh_error)?;
     let mut bridge = Bridge::new(
@@ -63,6 +76,7 @@ pub fn serve(run: &RunDir, config: &Config) -> Result<(), TunnelError> {
     tracing::info!(run = run.id(), %endpoint, "serving the run to remote actor hosts");
     let mut shutdown_at = None;
     while transport::keep_running(&node, POLL) {
+        forwarders.pump();
         bridge.relay();
         if shutdown_at.is_none() && transport::shutdown_requested(&shutdown)? {
             shutdown_at = Some(Instant::now());
@@ -75,12 +89,81 @@ pub fn serve(run: &RunDir, config: &Config) -> Result<(), TunnelError> {
     Ok(())
 }
 
-/// Writes what a remote host announced where the launcher reads it.
-fn record_host(dir: &std::path::Path, sample: &Sample) {
-    let key = sample.key_expr().as_str();
-    let host = key.rsplit('/').next().unwrap_or(key);
-    let path = dir.join(format!("{host}.json"));
-    if let Err(error) = write_atomic(&path, &sample.payload().to_bytes()) {
-        tracing::warn!(%error, "cannot record a remote host's announcement");
+/// Remote hosts a run records at most; later ones are ignored.
+const MAX_HOSTS: usize = 64;
+/// Processes one host may announce.
+const MAX_PROCESSES: usize = 256;
+/// A host's announcement is recorded at most this often.
+const RECORD_EVERY: std::time::Duration = std::time::Duration::from_secs(1);
+
+/// What remote hosts announced lately, so that each is recorded at most every [`RECORD_EVERY`]
+/// and at most [`MAX_HOSTS`] are.
+#[derive(Default)]
+struct Announcements {
+    last: std::collections::HashMap<String, Instant>,
+}
+
+impl Announcements {
+    /// Writes what a remote host announced where the launcher reads it, if it is well-formed:
+    /// a plain host name, processes of plain names, all at one `ADDRESS:PORT` address of the
+    /// host's (a remote host names where its own processes answer, never a list of anyone's).
+    fn record(&mut self, dir: &std::path::Path, sample: &Sample) {
+        let key = sample.key_expr().as_str();
+        let host = key.rsplit('/').next().unwrap_or(key);
+        let known = self.last.contains_key(host);
+        if !known && self.last.len() >= MAX_HOSTS {
+            return;
+        }
+        if self
+            .last
+            .get(host)
+            .is_some_and(|at| at.elapsed() < RECORD_EVERY)
+        {
+            return;
+        }
+        let announced: Option<RemoteHost> =
+            serde_json::from_slice(&sample.payload().to_bytes()).ok();
+        match announced.filter(|a| well_formed(host, a)) {
+            Some(_) => {
+                self.last.insert(host.to_string(), Instant::now());
+                let path = dir.join(format!("{host}.json"));
+                if let Err(error) = write_atomic(&path, &sample.payload().to_bytes()) {
+                    tracing::warn!(%error, "cannot record a remote host's announcement");
+                }
+            }
+            None if !known => {
+                tracing::warn!(host = %host.escape_debug(), "ignored a malformed remote host announcement")
+            }
+            None => {}
+        }
     }
+}
+
+fn plain_name(name: &str) -> bool {
+    (1..=64).contains(&name.len())
+        && !name.starts_with('.')
+        && name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'))
+}
+
+fn well_formed(host: &str, announced: &RemoteHost) -> bool {
+    let address = |p: &uavmeta_proto::transport::RemoteProcess| {
+        let (address, port) = p.metrics.rsplit_once(':')?;
+        port.parse::<u16>().ok().map(|_| address.to_string())
+    };
+    let addresses: std::collections::BTreeSet<Option<String>> =
+        announced.processes.iter().map(address).collect();
+    let names: std::collections::BTreeSet<&str> = announced
+        .processes
+        .iter()
+        .map(|p| p.name.as_str())
+        .collect();
+    plain_name(host)
+        && announced.host == host
+        && announced.processes.len() <= MAX_PROCESSES
+        && names.len() == announced.processes.len()
+        && names.iter().all(|n| plain_name(n))
+        && addresses.len() <= 1
+        && !addresses.contains(&None)
 }

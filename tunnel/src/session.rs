@@ -1,4 +1,9 @@
-//! Zenoh sessions and the keys uavmeta declares on them besides the tunnel's own.
+//! Zenoh sessions and the keys uavmeta declares on them besides the tunnel's own, and who may
+//! open one: Zenoh's own mutual TLS (a `tls/` endpoint; each side presents a certificate the
+//! run's CA signed) and user-password authentication (a dictionary file on the learner's host, a
+//! credentials file on a remote host). Nothing here is uavmeta's own cryptography.
+
+use std::path::{Path, PathBuf};
 
 use zenoh::{Session, Wait};
 
@@ -9,26 +14,151 @@ pub(crate) fn run_key(run_id: &str) -> String {
     format!("uavmeta/runs/{run_id}")
 }
 
-/// Every run a host serves, for the error naming them when a requested one is not among them.
-pub(crate) const ALL_RUNS: &str = "uavmeta/runs/*";
-
 /// Where a remote host announces its actors' metrics endpoints.
 pub(crate) fn hosts_key(run_id: &str, host: &str) -> String {
     format!("uavmeta/runs/{run_id}/hosts/{host}")
 }
 
+/// The files that admit a host to a run's tunnel; every path names a PEM or text file, never a
+/// secret itself.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Security {
+    /// The run's CA certificate: the other side's certificate must be signed by it.
+    pub ca: Option<PathBuf>,
+    /// This host's certificate and its private key.
+    pub certificate: Option<PathBuf>,
+    pub private_key: Option<PathBuf>,
+    /// On the learner's host, a file of `user:password` lines; on a remote host, a file with its
+    /// own `user:password` line.
+    pub credentials: Option<PathBuf>,
+}
+
+impl Security {
+    /// The learner host's settings from `[tunnel]` (empty paths are unset).
+    pub fn of_config(t: &uavmeta_proto::config::TunnelConfig) -> Self {
+        let set = |p: &PathBuf| (!p.as_os_str().is_empty()).then(|| p.clone());
+        Self {
+            ca: set(&t.ca),
+            certificate: set(&t.certificate),
+            private_key: set(&t.private_key),
+            credentials: set(&t.credentials),
+        }
+    }
+
+    /// Each file set, with the key or flag that names it, must be readable now: Zenoh would only
+    /// say that a link failed.
+    pub fn check_files(&self, endpoint: &str, names: [&str; 4]) -> Result<(), TunnelError> {
+        let files = [
+            &self.ca,
+            &self.certificate,
+            &self.private_key,
+            &self.credentials,
+        ];
+        for (name, file) in names.into_iter().zip(files) {
+            if let Some(path) = file {
+                std::fs::File::open(path).map_err(|e| TunnelError::Zenoh {
+                    endpoint: endpoint.into(),
+                    message: format!("{name} = {}: cannot read it: {e}", path.display()),
+                })?;
+            }
+        }
+        let tls = endpoint.starts_with("tls/");
+        let missing = [&self.ca, &self.certificate, &self.private_key]
+            .iter()
+            .zip(names)
+            .find(|(file, _)| file.is_none())
+            .map(|(_, name)| name);
+        match (tls, missing) {
+            (true, Some(name)) => Err(TunnelError::Zenoh {
+                endpoint: endpoint.into(),
+                message: format!(
+                    "a tls/ endpoint needs {name} (`uavmeta tunnel certs` makes the files)"
+                ),
+            }),
+            _ => Ok(()),
+        }
+    }
+}
+
 /// The learner's host: a peer listening on `endpoint`.
-pub(crate) fn listen(endpoint: &str) -> Result<Session, TunnelError> {
-    open(endpoint, "peer", "listen/endpoints")
+pub(crate) fn listen(endpoint: &str, security: &Security) -> Result<Session, TunnelError> {
+    open(endpoint, "peer", "listen/endpoints", security)
 }
 
 /// A remote host: a client of the learner host's peer at `endpoint`. A client's session fails to
-/// open while it cannot connect, so an unreachable endpoint is an error to report, not a wait.
-pub(crate) fn connect(endpoint: &str) -> Result<Session, TunnelError> {
-    open(endpoint, "client", "connect/endpoints")
+/// open while it cannot connect (or is refused), so that is an error to report, not a wait.
+pub(crate) fn connect(endpoint: &str, security: &Security) -> Result<Session, TunnelError> {
+    open(endpoint, "client", "connect/endpoints", security)
 }
 
-fn open(endpoint: &str, mode: &str, endpoints_key: &str) -> Result<Session, TunnelError> {
+/// Zenoh's settings for `security`, as (key, JSON value) pairs; `listening` picks the TLS keys of
+/// a listener or of a connecting client.
+fn security_settings(
+    security: &Security,
+    listening: bool,
+) -> Result<Vec<(&'static str, String)>, String> {
+    let json = |value: &str| serde_json::to_string(value).expect("strings serialise");
+    let path = |p: &Path| json(&p.display().to_string());
+    let mut settings = Vec::new();
+    let (certificate, key) = match listening {
+        true => (
+            "transport/link/tls/listen_certificate",
+            "transport/link/tls/listen_private_key",
+        ),
+        false => (
+            "transport/link/tls/connect_certificate",
+            "transport/link/tls/connect_private_key",
+        ),
+    };
+    if let Some(ca) = &security.ca {
+        settings.push(("transport/link/tls/root_ca_certificate", path(ca)));
+        // Mutual TLS: the listener asks every client for a certificate the CA signed.
+        settings.push(("transport/link/tls/enable_mtls", "true".into()));
+        settings.push(("transport/link/tls/verify_name_on_connect", "true".into()));
+    }
+    if let Some(file) = &security.certificate {
+        settings.push((certificate, path(file)));
+    }
+    if let Some(file) = &security.private_key {
+        settings.push((key, path(file)));
+    }
+    match (&security.credentials, listening) {
+        (Some(file), true) => settings.push(("transport/auth/usrpwd/dictionary_file", path(file))),
+        (Some(file), false) => {
+            let (user, password) = read_credentials(file)?;
+            settings.push(("transport/auth/usrpwd/user", json(&user)));
+            settings.push(("transport/auth/usrpwd/password", json(&password)));
+        }
+        (None, _) => {}
+    }
+    Ok(settings)
+}
+
+/// The first `user:password` line of a remote host's credentials file.
+fn read_credentials(file: &Path) -> Result<(String, String), String> {
+    let text = std::fs::read_to_string(file)
+        .map_err(|e| format!("credentials file {}: cannot read it: {e}", file.display()))?;
+    let line = text
+        .lines()
+        .map(str::trim)
+        .find(|l| !l.is_empty() && !l.starts_with('#'));
+    match line.and_then(|l| l.split_once(':')) {
+        Some((user, password)) if !user.is_empty() && !password.is_empty() => {
+            Ok((user.to_string(), password.to_string()))
+        }
+        _ => Err(format!(
+            "credentials file {}: expected a line `user:password`",
+            file.display()
+        )),
+    }
+}
+
+fn open(
+    endpoint: &str,
+    mode: &str,
+    endpoints_key: &str,
+    security: &Security,
+) -> Result<Session, TunnelError> {
     let error = |message: String| TunnelError::Zenoh {
         endpoint: endpoint.into(),
         message,
@@ -54,6 +184,12 @@ fn open(endpoint: &str, mode: &str, endpoints_key: &str) -> Result<Session, Tunn
         config
             .insert_json5(key, &value)
             .map_err(|e| error(format!("config {key} = {value}: {e}")))?;
+    }
+    for (key, value) in security_settings(security, mode == "peer").map_err(error)? {
+        // The value is left out of the error: it may be a password.
+        config
+            .insert_json5(key, &value)
+            .map_err(|e| error(format!("config {key}: {e}")))?;
     }
     zenoh::open(config).wait().map_err(|e| error(e.to_string()))
 }
