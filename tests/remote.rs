@@ -107,16 +107,12 @@ impl Hosts {
 
     /// `join`'s flags that admit host B: its certificate, key and password, and the run's CA.
     fn b_credentials(&self) -> Vec<String> {
-        strings(&[
-            "--ca",
+        join_flags(
             &self.tls("ca.pem"),
-            "--certificate",
             &self.tls("hostb.pem"),
-            "--private-key",
             &self.tls("hostb.key"),
-            "--credentials",
             &self.tls("hostb.credentials"),
-        ])
+        )
     }
 
     /// `--config` and `--set`s of host A.
@@ -479,6 +475,21 @@ fn refused_join(hosts: &Hosts, endpoint: &str, run_id: &str, credentials: &[Stri
     out.stderr
 }
 
+/// `tunnel join`'s credential flags: the CA to trust, the host's certificate and key, and its
+/// `user:password` file.
+fn join_flags(ca: &str, certificate: &str, private_key: &str, credentials: &str) -> Vec<String> {
+    strings(&[
+        "--ca",
+        ca,
+        "--certificate",
+        certificate,
+        "--private-key",
+        private_key,
+        "--credentials",
+        credentials,
+    ])
+}
+
 /// Bad input and strangers get one clear error that reveals nothing of the runs served: an
 /// unreachable endpoint, a run id not served, no certificate, another CA's certificate, a wrong
 /// password; and plain TCP beyond loopback is refused on both sides.
@@ -511,31 +522,23 @@ fn a_stranger_is_refused_with_one_error_that_names_no_run() {
             "another CA's certificate",
             tls,
             hosts.run_a.id(),
-            strings(&[
-                "--ca",
+            join_flags(
                 &hosts.tls("ca.pem"),
-                "--certificate",
                 &other("hostb.pem"),
-                "--private-key",
                 &other("hostb.key"),
-                "--credentials",
                 &hosts.tls("hostb.credentials"),
-            ]),
+            ),
         ),
         (
             "a wrong password",
             tls,
             hosts.run_a.id(),
-            strings(&[
-                "--ca",
+            join_flags(
                 &hosts.tls("ca.pem"),
-                "--certificate",
                 &hosts.tls("hostb.pem"),
-                "--private-key",
                 &hosts.tls("hostb.key"),
-                "--credentials",
                 &wrong_password.display().to_string(),
-            ]),
+            ),
         ),
     ];
     for (what, endpoint, run_id, credentials) in cases {

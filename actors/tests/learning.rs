@@ -150,14 +150,13 @@ fn online_dqn_comes_within_8_percent_of_the_planner_on_a_small_world() {
 #[test]
 fn cql_on_500_shots_of_the_agents_replay_comes_within_10_percent_of_the_agent() {
     single_threaded();
-    // 250 one-pass epochs of 8 steps: the budget by which CQL from a random init has converged
-    // on these shots (docs/EXPERIMENTS.md).
+    // SPEC's 100 one-pass epochs of 8 steps, as `make run` trains: on the shots of the 60 000-step
+    // agents CQL has converged by then (make run's three seeds end 1.7-3.1% below their agents).
+    // The 250 epochs this test took with the 15 000-step agents' shots end 10.5% below here:
+    // CQL declines after it has converged (docs/EXPERIMENTS.md, D).
     let config = Config::load(
         DEFAULT_CONFIG.as_ref(),
-        &[
-            "learner.epochs=250".into(),
-            "learner.eval_episodes=5".into(),
-        ],
+        &["learner.eval_episodes=5".into()],
     )
     .unwrap();
     let agent = trained_agent();
