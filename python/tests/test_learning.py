@@ -31,7 +31,7 @@ def mean_return(env, act):
     return total / EPISODES
 
 
-def test_sb3_dqn_beats_the_random_policy():
+def test_sb3_dqn_beats_the_random_policy(tmp_path):
     torch.manual_seed(0)
     torch.set_num_threads(1)
 
@@ -45,6 +45,10 @@ def test_sb3_dqn_beats_the_random_policy():
         exploration_final_eps=0.02, learning_rate=1e-3, gamma=0.95,
         policy_kwargs=dict(net_arch=[128, 128]), device="cpu",
     )
+    # SB3's default logger makes a folder under /tmp that nobody removes; pytest removes tmp_path.
+    from stable_baselines3.common.logger import configure
+
+    model.set_logger(configure(str(tmp_path), []))
     model.learn(total_timesteps=20_000)
 
     env = uavmeta.UavEnv(lam=LAM, normalised=True)
