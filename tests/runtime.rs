@@ -185,7 +185,9 @@ fn a_small_launch_completes_and_accounts_for_every_transition() {
 /// The return of `method` on lambda-300 in the table of `text` that follows the line starting
 /// with `after` (the first table when `after` is empty).
 fn table_return(text: &str, after: &str, method: &str) -> f64 {
-    let rest = &text[text.find(after).unwrap_or_else(|| panic!("no `{after}` in:\n{text}"))..];
+    let rest = &text[text
+        .find(after)
+        .unwrap_or_else(|| panic!("no `{after}` in:\n{text}"))..];
     let line = rest
         .lines()
         .find(|l| l.starts_with("lambda-300") && l.split_whitespace().nth(1) == Some(method))
@@ -204,18 +206,28 @@ fn a_launch_over_two_seeds_runs_each_in_its_own_directory_and_reports_their_mean
         .iter()
         .map(|s| {
             let seed_run = run.join(format!("seed-{s}"));
-            assert!(seed_run.join("evaluations.csv").exists(), "{}", seed_run.display());
+            assert!(
+                seed_run.join("evaluations.csv").exists(),
+                "{}",
+                seed_run.display()
+            );
             std::fs::read(seed_run.join("datasets/lambda-300.uavds")).expect("seed's dataset")
         })
         .collect();
-    assert_ne!(datasets[0], datasets[1], "the seeds' actors share randomness");
+    assert_ne!(
+        datasets[0], datasets[1],
+        "the seeds' actors share randomness"
+    );
     for method in ["cql", "cql-maml", "maml-init"] {
         let (a, b) = (
             table_return(&table, "seed 0:", method),
             table_return(&table, "seed 1:", method),
         );
         let mean = table_return(&table, "over seeds [0, 1]", method);
-        assert!((mean - (a + b) / 2.0).abs() < 0.1, "{method}: {mean} is not the mean of {a} and {b}:\n{table}");
+        assert!(
+            (mean - (a + b) / 2.0).abs() < 0.1,
+            "{method}: {mean} is not the mean of {a} and {b}:\n{table}"
+        );
     }
 }
 

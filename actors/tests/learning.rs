@@ -120,7 +120,12 @@ fn online_dqn_comes_within_8_percent_of_the_planner_on_a_small_world() {
     let config = Config::load(DEFAULT_CONFIG.as_ref(), &sets).unwrap();
     let task = uavmeta_proto::config::TaskConfig::one_off(300.0, None);
     let exact = |policy: &mut dyn Policy| evaluate(&config.world, &task, policy, 1, 0).ret.mean;
-    let planner = exact(PolicySpec::Planner.build(&config, 0, None).unwrap().as_mut());
+    let planner = exact(
+        PolicySpec::Planner
+            .build(&config, 0, None)
+            .unwrap()
+            .as_mut(),
+    );
     let greedy = exact(&mut GreedyPolicy);
     let seeds = 0..3;
     let returns: Vec<f64> = seeds
@@ -130,7 +135,10 @@ fn online_dqn_comes_within_8_percent_of_the_planner_on_a_small_world() {
             agent.train().unwrap();
             let dqn = Evaluator::new(&config.world, &task, 1, 0).evaluate(agent.q_network());
             assert_eq!(dqn.episodes, 16, "one episode per start cell");
-            eprintln!("seed {seed}: online DQN {:.1}, planner {planner:.1}, greedy {greedy:.1}", dqn.ret.mean);
+            eprintln!(
+                "seed {seed}: online DQN {:.1}, planner {planner:.1}, greedy {greedy:.1}",
+                dqn.ret.mean
+            );
             dqn.ret.mean
         })
         .collect();
@@ -154,11 +162,8 @@ fn cql_on_500_shots_of_the_agents_replay_comes_within_10_percent_of_the_agent() 
     // agents CQL has converged by then (make run's three seeds end 1.7-3.1% below their agents).
     // The 250 epochs this test took with the 15 000-step agents' shots end 10.5% below here:
     // CQL declines after it has converged (docs/EXPERIMENTS.md, D).
-    let config = Config::load(
-        DEFAULT_CONFIG.as_ref(),
-        &["learner.eval_episodes=5".into()],
-    )
-    .unwrap();
+    let config =
+        Config::load(DEFAULT_CONFIG.as_ref(), &["learner.eval_episodes=5".into()]).unwrap();
     let agent = trained_agent();
     let (q, _) = train_offline(&config, &agent.dataset, Algorithm::Cql);
     let task = config.task("lambda-300").unwrap();

@@ -120,7 +120,10 @@ fn a_meta_trained_w0_beats_a_random_init_zero_shot_on_an_unseen_lambda() {
 fn w0_zero_shot_varies_by_under_4_percent_over_the_last_30_meta_epochs() {
     tch::set_num_threads(1);
     let config = Config::load(DEFAULT_CONFIG.as_ref(), &[]).unwrap();
-    assert!(config.meta.w0_average_decay > 0.0, "the default config averages w0");
+    assert!(
+        config.meta.w0_average_decay > 0.0,
+        "the default config averages w0"
+    );
     let tasks = meta_tasks(&config);
     let w = &config.world;
     let init = QNetworkConfig::for_world(w, &config.learner.hidden).init(5);
@@ -139,9 +142,14 @@ fn w0_zero_shot_varies_by_under_4_percent_over_the_last_30_meta_epochs() {
     let mean = returns.iter().sum::<f64>() / returns.len() as f64;
     let (lo, hi) = returns
         .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &r| (lo.min(r), hi.max(r)));
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &r| {
+            (lo.min(r), hi.max(r))
+        });
     let swing = (hi - lo) / mean.abs();
-    eprintln!("w0 over the last 30 meta-epochs: {lo:.1} to {hi:.1}, swing {:.2}%", 100.0 * swing);
+    eprintln!(
+        "w0 over the last 30 meta-epochs: {lo:.1} to {hi:.1}, swing {:.2}%",
+        100.0 * swing
+    );
     assert!(
         swing < 0.04,
         "w0 swings by {:.2}% over the last 30 meta-epochs ({lo:.1} to {hi:.1})",

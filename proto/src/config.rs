@@ -1151,7 +1151,10 @@ impl Config {
             return Err(self.invalid(
                 "collect.dqn_n_step",
                 &c.dqn_n_step,
-                &format!("a step count in [1, world.horizon = {}]", self.world.horizon),
+                &format!(
+                    "a step count in [1, world.horizon = {}]",
+                    self.world.horizon
+                ),
             ));
         }
         if !(0.0..=1.0).contains(&c.dqn_lr_final_fraction) {

@@ -367,11 +367,19 @@ fn learning_rate_schedules_and_n_step_are_checked() {
     error_of(
         "[collect]\ndqn_lr_final_fraction = 1.5\n",
         &[],
-        &["collect.dqn_lr_final_fraction", "1.5", "a fraction in [0, 1]"],
+        &[
+            "collect.dqn_lr_final_fraction",
+            "1.5",
+            "a fraction in [0, 1]",
+        ],
     );
     error_of(
         "[meta]\neta_outer_final_fraction = -0.1\n",
         &[],
-        &["meta.eta_outer_final_fraction", "-0.1", "a fraction in [0, 1]"],
+        &[
+            "meta.eta_outer_final_fraction",
+            "-0.1",
+            "a fraction in [0, 1]",
+        ],
     );
 }

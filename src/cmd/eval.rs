@@ -5,10 +5,10 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use clap::Args;
-use uavmeta_actors::policy::q_policy::Evaluator;
-use uavmeta_learner::checkpoint;
 use uavmeta_actors::policy::heuristics::PolicySpec;
+use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_actors::rollout::evaluate;
+use uavmeta_learner::checkpoint;
 use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_proto::config::{Config, TaskConfig};
 use uavmeta_proto::stats::EpisodeMetrics;
@@ -76,7 +76,9 @@ fn print_episodes(
     let mut random = PolicySpec::Random
         .build(config, seed, None)
         .expect("the random policy needs no file");
-    let floor = evaluate(&config.world, task, random.as_mut(), episodes.len(), seed).ret.mean;
+    let floor = evaluate(&config.world, task, random.as_mut(), episodes.len(), seed)
+        .ret
+        .mean;
     println!("  episode  start     return     AoI  power mW  outages");
     for (i, ((x, y), e)) in episodes.iter().enumerate() {
         let trap = if e.ret < floor { "  trapped" } else { "" };

@@ -115,7 +115,11 @@ impl ReplayBuffer {
             last = &self.items[j];
             reward += discount * f64::from(last.reward);
             discount *= gamma;
-            slot = if last.truncated { None } else { self.successor(j) };
+            slot = if last.truncated {
+                None
+            } else {
+                self.successor(j)
+            };
         }
         let t = Transition {
             reward: reward as f32,
@@ -408,7 +412,13 @@ mod tests {
         let mut b = ReplayBuffer::new(capacity);
         for seq in 0..pushed {
             let step = (seq % 3) as u32;
-            b.push(transition(seq, seq / 3, step, -(seq as f32 + 1.0), step == 2));
+            b.push(transition(
+                seq,
+                seq / 3,
+                step,
+                -(seq as f32 + 1.0),
+                step == 2,
+            ));
         }
         b
     }
@@ -423,7 +433,10 @@ mod tests {
         let b = buffer(100, 8);
         // Within an episode: seq 0, 1, 2 with n = 3 (seq 2 ends the episode).
         let (t, d) = b.n_step(slot_of(&b, 0), 3, gamma);
-        assert_eq!((t.reward, d, t.next_obs[0], t.obs[0]), (-1.0 - 1.0 - 0.75, 0.125, 3, 0));
+        assert_eq!(
+            (t.reward, d, t.next_obs[0], t.obs[0]),
+            (-1.0 - 1.0 - 0.75, 0.125, 3, 0)
+        );
         // Cut at the episode's end: from seq 1, n = 3 takes seq 1 and 2 only.
         let (t, d) = b.n_step(slot_of(&b, 1), 3, gamma);
         assert_eq!((t.reward, d, t.next_obs[0]), (-2.0 - 1.5, 0.25, 3));

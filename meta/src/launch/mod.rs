@@ -1010,7 +1010,10 @@ pub fn results_table(report: &LaunchReport) -> String {
                 },
                 format!("{:.1} ± {:.1}", r.ret, r.ret_ci95),
                 // Returns are costs: a row 3% below the planner reads -3.0%.
-                planner.map_or("-".to_string(), |p| format!("{:+.1}%", 100.0 * (r.ret - p) / p.abs())),
+                planner.map_or("-".to_string(), |p| format!(
+                    "{:+.1}%",
+                    100.0 * (r.ret - p) / p.abs()
+                )),
                 format!("{:.2} ± {:.2}", r.aoi, r.aoi_ci95),
                 format!("{:.3} ± {:.3}", r.power_watts * 1e3, r.power_ci95 * 1e3),
                 format!("{:.1} ± {:.1}", r.outages, r.outages_ci95),

@@ -99,7 +99,8 @@ fn aggregate(dir: &Path, seeds: &[(u64, LaunchReport)]) -> LaunchReport {
 
 /// One row whose figures are the rows' means, each with the 95% interval over the rows.
 fn mean_row(rows: &[&EvaluationRow]) -> EvaluationRow {
-    let over = |pick: fn(&EvaluationRow) -> f64| Estimate::from_samples(rows.iter().map(|r| pick(r)));
+    let over =
+        |pick: fn(&EvaluationRow) -> f64| Estimate::from_samples(rows.iter().map(|r| pick(r)));
     let (ret, aoi) = (over(|r| r.ret), over(|r| r.aoi));
     let (power, outages) = (over(|r| r.power_watts), over(|r| r.outages));
     EvaluationRow {
@@ -151,8 +152,14 @@ mod tests {
     #[test]
     fn the_aggregate_is_the_mean_over_seeds_with_the_interval_over_seeds() {
         let seeds = vec![
-            (0, report(vec![row("cql", -7000.0), row("cql-maml", -6900.0)])),
-            (1, report(vec![row("cql", -7200.0), row("cql-maml", -6800.0)])),
+            (
+                0,
+                report(vec![row("cql", -7000.0), row("cql-maml", -6900.0)]),
+            ),
+            (
+                1,
+                report(vec![row("cql", -7200.0), row("cql-maml", -6800.0)]),
+            ),
             (2, report(vec![row("cql", -7100.0)])),
         ];
         let a = aggregate(Path::new("runs/x"), &seeds);
