@@ -9,9 +9,8 @@ use uavmeta_actors::policy::heuristics::PolicySpec;
 use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_actors::rollout::evaluate;
 use uavmeta_learner::checkpoint;
-use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_proto::config::{Config, TaskConfig};
-use uavmeta_proto::stats::EpisodeMetrics;
+use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 
 use super::common::{ConfigArgs, TaskArgs};
 
@@ -45,8 +44,9 @@ pub fn run(args: EvalArgs) -> Result<()> {
         None => config.learner.eval_episodes,
     };
     let seed = args.seed.unwrap_or(config.learner.eval_seed);
-    let evaluator = Evaluator::new(&config.world, &task, episodes, seed);
-    let m = evaluator.clone().evaluate(&q);
+    // Every episode once: the summary below and, with --per-episode, the listing.
+    let runs = Evaluator::new(&config.world, &task, episodes, seed).episodes(&q);
+    let m = PolicyMetrics::from_episodes(&runs.iter().map(|(_, e)| *e).collect::<Vec<_>>());
     println!(
         "{} ({}, epoch {}) on `{}`, {} episodes seeded {seed}:",
         args.checkpoint.display(),
@@ -60,7 +60,7 @@ pub fn run(args: EvalArgs) -> Result<()> {
     println!("  power mW  {:.4}", m.power_mw);
     println!("  outages   {:.2}", m.outages);
     if args.per_episode {
-        print_episodes(&config, &task, &evaluator.episodes(&q), seed);
+        print_episodes(&config, &task, &runs, seed);
     }
     Ok(())
 }
