@@ -176,6 +176,18 @@ pub fn online_dqn_dataset(
         }
         left -= n;
     }
+    if let (Some((step, ret)), Some(&(_, last))) =
+        (agent.selected(), agent.selection_evaluations().last())
+    {
+        tracing::info!(
+            task = task_id,
+            actor,
+            step,
+            ret,
+            last,
+            "online DQN: kept the best snapshot"
+        );
+    }
     let buffer: Vec<Transition> = agent
         .replay_buffer()
         .newest(config.collect.sample_newest)

@@ -103,21 +103,7 @@ fn online_dqn_reaches_the_heuristics_on_the_default_config() {
 #[test]
 fn online_dqn_comes_within_8_percent_of_the_planner_on_a_small_world() {
     single_threaded();
-    let sets: Vec<String> = [
-        "world.grid_cells=4",
-        "world.devices=3",
-        "world.horizon=20",
-        "world.cell_m=200",
-        "world.layout_seed=3",
-        "collect.dqn_steps=8000",
-        "collect.replay_capacity=8000",
-        "collect.eps_decay_steps=3000",
-        "collect.learning_starts=500",
-        "collect.dqn_target_update_every=500",
-    ]
-    .map(String::from)
-    .into();
-    let config = Config::load(DEFAULT_CONFIG.as_ref(), &sets).unwrap();
+    let config = small_world(&[]);
     let task = uavmeta_proto::config::TaskConfig::one_off(300.0, None);
     let exact = |policy: &mut dyn Policy| evaluate(&config.world, &task, policy, 1, 0).ret.mean;
     let planner = exact(
@@ -153,6 +139,78 @@ fn online_dqn_comes_within_8_percent_of_the_planner_on_a_small_world() {
             "seed {seed}: online DQN {ret:.1} is more than 15% short of the planner's {planner:.1}"
         );
     }
+}
+
+/// configs/default.toml on the small world of the planner's tests (4 x 4 cells, 3 devices, 20
+/// steps) with an 8 000-step online agent, and `extra` settings.
+fn small_world(extra: &[&str]) -> Config {
+    let sets: Vec<String> = [
+        "world.grid_cells=4",
+        "world.devices=3",
+        "world.horizon=20",
+        "world.cell_m=200",
+        "world.layout_seed=3",
+        "collect.dqn_steps=8000",
+        "collect.replay_capacity=8000",
+        "collect.eps_decay_steps=3000",
+        "collect.learning_starts=500",
+        "collect.dqn_target_update_every=500",
+    ]
+    .iter()
+    .chain(extra)
+    .map(|s| s.to_string())
+    .collect();
+    Config::load(DEFAULT_CONFIG.as_ref(), &sets).unwrap()
+}
+
+/// Snapshot selection (`collect.dqn_select_every`) keeps the best of the greedy policies it
+/// evaluates and touches nothing else: with and without it the same seed fills the same replay
+/// buffer, and the kept policy is the best of the candidates (every 1 000 steps once epsilon is
+/// at its floor, and the last), each scored here exactly over the 16 start cells.
+#[test]
+fn snapshot_selection_keeps_the_best_candidate_and_leaves_training_alone() {
+    single_threaded();
+    let off = small_world(&["collect.dqn_select_every=0", "collect.dqn_steps=6000"]);
+    let on = small_world(&["collect.dqn_select_every=1000", "collect.dqn_steps=6000"]);
+    let task = uavmeta_proto::config::TaskConfig::one_off(300.0, None);
+    let exact = Evaluator::new(&off.world, &task, 1, 0);
+    let mut plain = OnlineDqn::new(&off, &task, 0, 0, 5);
+    let mut candidates = vec![];
+    while plain.steps() < off.collect.dqn_steps {
+        plain.train_steps(1000).unwrap();
+        if plain.steps() >= 3500 {
+            candidates.push((
+                plain.steps(),
+                exact.clone().evaluate(plain.q_network()).ret.mean,
+            ));
+        }
+    }
+    let mut selecting = OnlineDqn::new(&on, &task, 0, 0, 5);
+    selecting.train().unwrap();
+
+    let buffer = |a: &OnlineDqn| a.replay_buffer().iter().cloned().collect::<Vec<_>>();
+    assert!(
+        buffer(&plain) == buffer(&selecting),
+        "selection changed the replay buffer"
+    );
+    assert_eq!(plain.episode_returns(), selecting.episode_returns());
+    let best = candidates
+        .iter()
+        .copied()
+        .reduce(|b, c| if c.1 > b.1 { c } else { b })
+        .unwrap();
+    eprintln!(
+        "candidates (step, return): {candidates:?}; kept {:?}",
+        selecting.selected()
+    );
+    assert_eq!(selecting.selected(), Some(best));
+    let kept = exact.clone().evaluate(selecting.q_network()).ret.mean;
+    assert_eq!(
+        kept, best.1,
+        "the kept network does not score its recorded return"
+    );
+    let last = candidates.last().unwrap().1;
+    assert!(kept >= last, "kept {kept} below the last policy's {last}");
 }
 
 #[test]

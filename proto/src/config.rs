@@ -346,6 +346,15 @@ pub struct CollectConfig {
     /// The online agent's learning rate falls linearly from `dqn_lr` at `learning_starts` to
     /// `dqn_lr * dqn_lr_final_fraction` at `dqn_steps`; 1 keeps it constant.
     pub dqn_lr_final_fraction: f64,
+    /// Environment steps between exact evaluations of the online agent's greedy policy (over
+    /// every start cell; `learner.eval_episodes` Monte-Carlo episodes of its own seed where the
+    /// rain moves), from the step epsilon reaches `eps_end` to `dqn_steps`, the last step always
+    /// among them. The agent's policy, saved as the task's online reference, is the best of those
+    /// snapshots rather than the last, as an online learner with a simulator may choose
+    /// (Stable-Baselines3's EvalCallback): the last iterate's return moves by 1-3% between
+    /// neighbouring evaluations (docs/EXPERIMENTS.md, A5). Training, and so the replay buffer and
+    /// the dataset sampled from it, is the same whatever this is. 0 = keep the last policy.
+    pub dqn_select_every: usize,
     /// The dataset is sampled from the newest this many transitions of the agent's final replay
     /// buffer; 0 = the whole buffer (the paper's "sampled from the replay buffer").
     pub sample_newest: usize,
@@ -385,6 +394,7 @@ impl Default for CollectConfig {
             dqn_target_update_every: 2_000,
             dqn_n_step: 1,
             dqn_lr_final_fraction: 1.0,
+            dqn_select_every: 0,
             sample_newest: 0,
         }
     }

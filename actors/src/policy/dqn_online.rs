@@ -4,8 +4,8 @@
 //! Settings: the `[collect]` section (`dqn_steps`, `replay_capacity`, `learning_starts`,
 //! `train_every`, `eps_start`, `eps_end`, `eps_decay_steps`, its network `dqn_hidden` and rate
 //! `dqn_lr`, and the stabilisers `dqn_double`, `dqn_huber`, `dqn_grad_clip_norm`,
-//! `dqn_target_update_every`, the n-step return `dqn_n_step` and the learning-rate schedule
-//! `dqn_lr_final_fraction`) and `[learner]`'s `gamma`, `reward_scale` and `batch`, so the
+//! `dqn_target_update_every`, the n-step return `dqn_n_step`, the learning-rate schedule
+//! `dqn_lr_final_fraction` and the snapshot selection `dqn_select_every`) and `[learner]`'s `gamma`, `reward_scale` and `batch`, so the
 //! online agent and the offline learners see the same rewards.
 //!
 //! The paper gives no settings for this agent; SPEC section 5 asks for what a practitioner would
@@ -19,6 +19,11 @@
 //! `eps_decay_steps`), store the transition, and every `train_every` steps one Adam step on
 //! eq. 7 over a uniform minibatch of the buffer. Time limits are not terminal: the last
 //! transition of an episode is stored with `truncated = true` and still bootstraps.
+//!
+//! Snapshot selection (`dqn_select_every` > 0): once epsilon is at its floor, every
+//! `dqn_select_every` steps and at the last step the greedy policy is evaluated exactly on the
+//! agent's own task, and the best one is kept as the agent's policy. It only reads the network:
+//! training, the replay buffer and the dataset are the same with or without it.
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -27,10 +32,11 @@ use tch::Tensor;
 use uavmeta_learner::batch::{Batch, BatchError};
 use uavmeta_learner::dqn::{Bootstrap, TdConfig};
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
+use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_proto::config::{CollectConfig, Config, LearnerConfig, TaskConfig, WorldConfig};
 use uavmeta_proto::dataset::Transition;
 
-use crate::policy::q_policy::QPolicy;
+use crate::policy::q_policy::{Evaluator, QPolicy};
 use crate::rollout::Policy;
 use crate::world::World;
 
@@ -165,6 +171,14 @@ fn epsilon(c: &CollectConfig, step: usize) -> f64 {
 /// Episodes behind [`OnlineDqn::recent_return`]: one return is noise, the mean of 20 a trend.
 pub const RECENT_EPISODES: usize = 20;
 
+/// A greedy policy kept by snapshot selection, with its evaluated return.
+struct Snapshot {
+    q: QNetwork,
+    ret: f64,
+    /// The environment step it was taken at.
+    step: usize,
+}
+
 /// One online DQN agent training in one task's world.
 pub struct OnlineDqn {
     collect: CollectConfig,
@@ -187,6 +201,12 @@ pub struct OnlineDqn {
     episode_return: f64,
     /// Returns of every finished episode, in order.
     returns: Vec<f64>,
+    /// The episodes snapshot selection scores a policy on.
+    selector: Evaluator,
+    /// The best snapshot so far (`collect.dqn_select_every` > 0).
+    best: Option<Snapshot>,
+    /// Every selection evaluation: (environment step, return).
+    evaluations: Vec<(usize, f64)>,
 }
 
 impl OnlineDqn {
@@ -225,6 +245,10 @@ impl OnlineDqn {
             episode: 0,
             episode_return: 0.0,
             returns: Vec::new(),
+            // Drawn last, so that the draws above are those of an agent without selection.
+            selector: Evaluator::new(w, task, l.eval_episodes, seeds.random()),
+            best: None,
+            evaluations: Vec::new(),
         }
     }
 
@@ -306,6 +330,10 @@ impl OnlineDqn {
             self.gradient_step()?;
         }
 
+        if self.selection_due() {
+            self.select();
+        }
+
         if !step.truncated {
             return Ok(None);
         }
@@ -365,14 +393,57 @@ impl OnlineDqn {
         Ok(())
     }
 
+    /// Whether the step just taken is due a selection evaluation: every `dqn_select_every` steps
+    /// once epsilon is at its floor, and the last of `dqn_steps`.
+    fn selection_due(&self) -> bool {
+        let c = &self.collect;
+        c.dqn_select_every > 0
+            && (self.steps == c.dqn_steps
+                || (self.steps >= c.learning_starts + c.eps_decay_steps
+                    && self.steps.is_multiple_of(c.dqn_select_every)))
+    }
+
+    /// Scores the live network's greedy policy and keeps it if it beats the best snapshot (the
+    /// earlier one on a tie).
+    fn select(&mut self) {
+        let ret = self.selector.evaluate(&self.q).ret.mean;
+        self.evaluations.push((self.steps, ret));
+        match &mut self.best {
+            Some(best) if ret <= best.ret => {}
+            Some(best) => {
+                best.q.copy_from(&self.q);
+                (best.ret, best.step) = (ret, self.steps);
+            }
+            None => {
+                self.best = Some(Snapshot {
+                    q: self.q.duplicate(),
+                    ret,
+                    step: self.steps,
+                })
+            }
+        }
+    }
+
+    /// The step and evaluated return of the snapshot selection has kept so far, if any.
+    pub fn selected(&self) -> Option<(usize, f64)> {
+        self.best.as_ref().map(|b| (b.step, b.ret))
+    }
+
+    /// Every selection evaluation so far, (environment step, return), in order; the last one is
+    /// the live network's at that step.
+    pub fn selection_evaluations(&self) -> &[(usize, f64)] {
+        &self.evaluations
+    }
+
     /// The replay buffer, from which the paper's offline dataset of this task is sampled.
     pub fn replay_buffer(&self) -> &ReplayBuffer {
         &self.replay
     }
 
-    /// The online Q-network; its greedy policy ([`QPolicy`]) is the "online DQN" reference.
+    /// The agent's Q-network, whose greedy policy ([`QPolicy`]) is the "online DQN" reference:
+    /// the best snapshot when selection is on and has run, else the network being trained.
     pub fn q_network(&self) -> &QNetwork {
-        &self.q
+        self.best.as_ref().map_or(&self.q, |b| &b.q)
     }
 
     /// Returns of the finished training episodes, in order.
