@@ -645,9 +645,13 @@ pub struct PlannerConfig {
     /// distinct state; on the default world 4x wider (1024) gains under 0.2% at 4x the time
     /// (docs/EXPERIMENTS.md, P).
     pub beam_width: usize,
-    /// b, the weight of the power part of the search's cost-to-go estimate h
-    /// (`uavmeta_world::planner`); 0 ranks states by their cost so far and AoI alone.
-    pub h_power_weight: f64,
+    /// The weights b of the power part of the search's cost-to-go estimate h
+    /// (`uavmeta_world::planner`): the search runs once per weight and the cheapest plan is kept.
+    /// The weight that ranks best moves with lambda (0.5 on lambda-300, 0.125 on lambda-1000 and
+    /// lambda-2000), and the four together beat each alone on every lambda measured, by up to 3.7%
+    /// at lambda-2000, at four times the cost (docs/EXPERIMENTS.md, P2). 0 ranks states by their
+    /// cost so far and AoI alone.
+    pub h_power_weights: Vec<f64>,
     /// The most memory one search may take, in MiB; a width and horizon that need more are
     /// refused up front.
     pub max_memory_mib: u64,
@@ -657,7 +661,7 @@ impl Default for PlannerConfig {
     fn default() -> Self {
         Self {
             beam_width: 256,
-            h_power_weight: 0.25,
+            h_power_weights: vec![0.5, 0.25, 0.125, 0.0625],
             max_memory_mib: 1024,
         }
     }
@@ -903,11 +907,13 @@ impl Config {
                 "at least 1 state kept per step",
             ));
         }
-        if !(p.h_power_weight.is_finite() && p.h_power_weight >= 0.0) {
+        if p.h_power_weights.is_empty()
+            || !p.h_power_weights.iter().all(|b| b.is_finite() && *b >= 0.0)
+        {
             return Err(self.invalid(
-                "planner.h_power_weight",
-                &p.h_power_weight,
-                "a finite weight >= 0",
+                "planner.h_power_weights",
+                &p.h_power_weights,
+                "a non-empty list of finite weights >= 0",
             ));
         }
         let need = p.memory_bytes(&self.world);

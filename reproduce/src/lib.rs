@@ -214,7 +214,7 @@ pub fn run(opts: &ReproduceOptions) -> Result<ReproduceReport, ReproduceError> {
         });
     }
     let plan = plan(config, opts.experiments);
-    let heuristics = heuristic_refs(config, &plan);
+    let heuristics = heuristic_refs(config, &plan, opts.jobs)?;
     let seeds = run_seeds(opts, &plan)?;
 
     let ctx = figures::Context {
@@ -386,10 +386,22 @@ fn plan(config: &Config, experiments: &[Experiment]) -> Plan {
 }
 
 /// The reference policies (random, the heuristics, the planner) on every reference task of the
-/// plan: seed-free, so computed once.
-fn heuristic_refs(config: &Config, plan: &Plan) -> Vec<HeuristicRef> {
+/// plan: seed-free, so computed once, the tasks spread over `jobs` threads (the planner's four
+/// searches take about half a minute per task).
+fn heuristic_refs(
+    config: &Config,
+    plan: &Plan,
+    jobs: usize,
+) -> Result<Vec<HeuristicRef>, ReproduceError> {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(jobs.max(1))
+        .build()?;
+    Ok(pool.install(|| heuristic_refs_on_pool(config, plan)))
+}
+
+fn heuristic_refs_on_pool(config: &Config, plan: &Plan) -> Vec<HeuristicRef> {
     plan.references
-        .iter()
+        .par_iter()
         .map(|need| {
             let task = config
                 .task(&need.key.task)

@@ -16,11 +16,14 @@
 //!   device from any cell within i moves of the UAV's: of two states with the same AoI, the one
 //!   nearer the devices due next ranks first. It relaxes the path (each device's cell is chosen
 //!   apart) but assumes the stalest-first order, which the best policy leaves more often the
-//!   more power weighs; b = `planner.h_power_weight` (0.25) discounts it. Without the power
-//!   part the search lost the round robin on lambda-300 (-6388); at full weight it kept it but
-//!   fell 3% short on lambda-1000 and 11% on a small world where serving out of order pays;
-//!   at 0.25 it loses nothing on lambda 100-600 and finds the exact optimum there
-//!   (docs/EXPERIMENTS.md, P).
+//!   more power weighs; b discounts it. Without the power part the search lost the round robin
+//!   on lambda-300 (-6388); at full weight it kept it but fell 3% short on lambda-1000 and 11%
+//!   on a small world where serving out of order pays (docs/EXPERIMENTS.md, P).
+//!
+//! No one b suits every lambda (0.5 ranks best on lambda-300, 0.125 on lambda-1000), so the
+//! search runs once per weight of `planner.h_power_weights` (0.5, 0.25, 0.125, 0.0625) and keeps
+//! the cheapest plan: each is a plan the world will score as planned, so the portfolio is never
+//! worse than its best member (docs/EXPERIMENTS.md, P2).
 //!
 //! When twice `beam_width` holds every child of every step, nothing is pruned and the search is
 //! exact dynamic programming: it returns the optimal sequence
@@ -50,12 +53,12 @@ pub struct Plan {
     pub cost: f64,
 }
 
-/// The beam search of the module doc.
+/// The beam searches of the module doc, one per weight b of h's power part.
 #[derive(Debug, Clone)]
 pub struct Planner {
     beam_width: usize,
-    /// b, the weight of h's power part.
-    h_power_weight: f64,
+    /// b, the weights of h's power part.
+    h_power_weights: Vec<f64>,
 }
 
 /// The nodes kept at one step, in structure-of-arrays form.
@@ -91,13 +94,23 @@ impl Planner {
     pub fn new(config: &PlannerConfig) -> Planner {
         Planner {
             beam_width: config.beam_width,
-            h_power_weight: config.h_power_weight,
+            h_power_weights: config.h_power_weights.clone(),
         }
     }
 
-    /// The best action sequence the search finds from `world`'s current state to its horizon.
+    /// The cheapest action sequence the searches find from `world`'s current state to its
+    /// horizon (the first weight's on a tie).
     pub fn plan(&self, world: &World) -> Plan {
         let reach = Reach::new(world);
+        self.h_power_weights
+            .iter()
+            .map(|&b| self.search(world, &reach, b))
+            .reduce(|best, plan| if plan.cost < best.cost { plan } else { best })
+            .expect("planner.h_power_weights is not empty (PlannerConfig::validate)")
+    }
+
+    /// One beam search with weight `b` of h's power part.
+    fn search(&self, world: &World, reach: &Reach, b: f64) -> Plan {
         let mut beam = Beam {
             cells: vec![world.uav()],
             aoi: world.aoi().to_vec(),
@@ -105,7 +118,7 @@ impl Planner {
         };
         let mut trail: Trail = Vec::new();
         for zone in world.rain_schedule() {
-            let (next, from) = self.step(world, &reach, &beam, zone);
+            let (next, from) = self.step(world, reach, b, &beam, zone);
             beam = next;
             trail.push(from);
         }
@@ -125,10 +138,11 @@ impl Planner {
         &self,
         world: &World,
         reach: &Reach,
+        b: f64,
         beam: &Beam,
         zone: Option<RainZone>,
     ) -> (Beam, Vec<(u32, u32)>) {
-        let (mut children, aged) = expand(world, reach, self.h_power_weight, beam, zone);
+        let (mut children, aged) = expand(world, reach, b, beam, zone);
         // Copies of one state share h, so the best copy always ranks before the others: ranking
         // the children first and merging only the best 2 x width spares the merge most of them.
         let shortlist = 2 * self.beam_width;

@@ -169,7 +169,7 @@ fn planner_beats_both_heuristics_on_the_default_world() {
 
 /// On a small world where power weighs so much that the best policy leaves the round robin
 /// (it serves the nearer devices more often), the default search finds what a search 256 times
-/// wider finds, from every start cell: h's discounted power part (`planner.h_power_weight`)
+/// wider finds, from every start cell: h's discounted power part (`planner.h_power_weights`)
 /// does not push it towards the stalest-first order.
 #[test]
 fn the_default_search_finds_the_wide_searchs_plans_where_serving_out_of_order_pays() {
@@ -206,6 +206,51 @@ fn the_default_search_finds_the_wide_searchs_plans_where_serving_out_of_order_pa
     assert!(planned.ret.mean > stalest.ret.mean);
 }
 
+/// The default planner runs one search per weight of `planner.h_power_weights` and keeps the
+/// cheapest plan: on lambda-1000 of configs/default.toml's world, from every tenth start cell, its plan costs
+/// what the world charges for it, no more than any one weight's plan, and the same as the
+/// cheapest of them; and no one weight is the cheapest from every one of those cells.
+#[test]
+fn the_portfolio_keeps_the_cheapest_of_its_searches() {
+    let cfg = config("layout_seed = 7");
+    let task = TaskConfig::one_off(1000.0, None);
+    let portfolio = Planner::new(&cfg.planner);
+    let alone: Vec<Planner> = cfg
+        .planner
+        .h_power_weights
+        .iter()
+        .map(|&b| {
+            Planner::new(&PlannerConfig {
+                h_power_weights: vec![b],
+                ..cfg.planner.clone()
+            })
+        })
+        .collect();
+    let grid = cfg.world.grid_cells;
+    let mut cheapest_weights = std::collections::BTreeSet::new();
+    for cell in (0..grid * grid).step_by(10) {
+        let world = World::new(&cfg.world, &task, 0).with_start((cell % grid, cell / grid));
+        let plan = portfolio.plan(&world);
+        assert!((replay(&world, &plan.actions) - plan.cost).abs() <= 1e-6 * plan.cost.abs());
+        let costs: Vec<f64> = alone.iter().map(|p| p.plan(&world).cost).collect();
+        let (best, min) =
+            costs.iter().enumerate().fold(
+                (0, f64::INFINITY),
+                |(i, m), (j, &c)| if c < m { (j, c) } else { (i, m) },
+            );
+        assert_eq!(
+            plan.cost, min,
+            "cell {cell}: portfolio {} against {costs:?}",
+            plan.cost
+        );
+        cheapest_weights.insert(best);
+    }
+    assert!(
+        cheapest_weights.len() > 1,
+        "one weight ({cheapest_weights:?}) was the cheapest from every cell: the portfolio adds nothing here"
+    );
+}
+
 /// A width of 0, and a width and horizon whose search cannot fit the memory bound, are refused
 /// naming the key, the value and what was expected.
 #[test]
@@ -223,6 +268,14 @@ fn planner_keys_are_checked() {
             && zero.contains("at least 1"),
         "{zero}"
     );
+    for weights in ["[]", "[0.25, -1.0]", "[nan]"] {
+        let text = bad(&format!("[planner]\nh_power_weights = {weights}\n"));
+        assert!(
+            text.contains("planner.h_power_weights")
+                && text.contains("a non-empty list of finite weights >= 0"),
+            "{weights}: {text}"
+        );
+    }
     let huge = bad("[world]\nhorizon = 100000000\n[planner]\nbeam_width = 100000\n");
     assert!(
         huge.contains("planner.beam_width")
