@@ -44,7 +44,10 @@ fn trained_agent() -> &'static TrainedAgent {
     static AGENT: OnceLock<TrainedAgent> = OnceLock::new();
     AGENT.get_or_init(|| {
         single_threaded();
-        let config = Config::load(DEFAULT_CONFIG.as_ref(), &[]).unwrap();
+        // Half of configs/default.toml's 120 000 steps, to keep the suite quick: these tests
+        // check that the learners learn, not how close to the planner they come.
+        let config =
+            Config::load(DEFAULT_CONFIG.as_ref(), &["collect.dqn_steps=60000".into()]).unwrap();
         let task = config.task("lambda-300").unwrap().clone();
         let (dataset, agent) = online_dqn_dataset(&config, &task, 0, 0, 1, |_, _| true).unwrap();
         assert_eq!(agent.steps(), config.collect.dqn_steps);
