@@ -15,8 +15,8 @@ use uavmeta_proto::transport::Method;
 
 mod support;
 use support::{
-    child_pid, child_pids, config_args, dataset_seqs, launch, missing_tool, run_dir, wait_until,
-    within, Finished, Proc, BIN,
+    child_pid, child_pids, config_args, dataset_seqs, launch, missing_tool, run_dir, table_return,
+    wait_until, within, Finished, Proc, BIN,
 };
 
 fn stderr(finished: &Finished) -> String {
@@ -180,19 +180,6 @@ fn a_small_launch_completes_and_accounts_for_every_transition() {
         metrics::sum(&evaluator, metrics::evaluator::CHECKPOINTS_EVALUATED, &[]) >= 2.0 + 2.0 * 2.0
     );
     assert!(run.join("prometheus.yml").exists());
-}
-
-/// The return of `method` on lambda-300 in the table of `text` that follows the line starting
-/// with `after` (the first table when `after` is empty).
-fn table_return(text: &str, after: &str, method: &str) -> f64 {
-    let rest = &text[text
-        .find(after)
-        .unwrap_or_else(|| panic!("no `{after}` in:\n{text}"))..];
-    let line = rest
-        .lines()
-        .find(|l| l.starts_with("lambda-300") && l.split_whitespace().nth(1) == Some(method))
-        .unwrap_or_else(|| panic!("no {method} row after `{after}` in:\n{text}"));
-    line.split_whitespace().nth(3).unwrap().parse().unwrap()
 }
 
 #[test]

@@ -185,6 +185,10 @@ pub fn quick_config(config: &Config) -> Config {
     r.resilience_epochs = r.resilience_epochs.min(4);
     r.resilience_eval_episodes = r.resilience_eval_episodes.min(2);
     r.meta_eval_every = 1;
+    // A narrow single search: the planner's rows only have to exist here, and its default
+    // portfolio costs about half a minute per reference task (docs/BENCHMARKS.md).
+    quick.planner.beam_width = quick.planner.beam_width.min(16);
+    quick.planner.h_power_weights.truncate(1);
     quick
 }
 
