@@ -16,7 +16,7 @@ use std::path::Path;
 use uavmeta_proto::config::Config;
 
 mod support;
-use support::{run_dir, within, Proc};
+use support::{run_dir, table_row, within, Proc};
 
 const DEFAULT_CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/configs/default.toml");
 
@@ -77,20 +77,11 @@ enum Clears {
 /// (mean, half-width of the 95% interval) of `method`'s return on lambda-300 in the aggregate
 /// table of a multi-seed launch's output.
 fn aggregate_row(text: &str, method: &str) -> (f64, f64) {
-    let after = "over seeds [0, 1, 2]";
-    let rest = &text[text
-        .find(after)
-        .unwrap_or_else(|| panic!("no `{after}` in:\n{text}"))..];
-    let line = rest
-        .lines()
-        .find(|l| l.starts_with("lambda-300") && l.split_whitespace().nth(1) == Some(method))
-        .unwrap_or_else(|| panic!("no {method} row after `{after}` in:\n{text}"));
-    let fields: Vec<&str> = line.split_whitespace().collect();
-    // task, method, epoch, return, ±, interval, vs planner, ...
+    let fields = table_row(text, "over seeds [0, 1, 2]", method);
     let number = |i: usize| -> f64 {
         fields[i]
             .parse()
-            .unwrap_or_else(|e| panic!("field {i} of `{line}`: {e}"))
+            .unwrap_or_else(|e| panic!("field {i} of {fields:?}: {e}"))
     };
     (number(3), number(5))
 }

@@ -358,15 +358,22 @@ pub fn python_imports(python: &Path, modules: &str, installer: &str) -> bool {
     false
 }
 
-/// The return of `method` on lambda-300 in the table of `text` that follows the line starting
-/// with `after` (the first table when `after` is empty).
-pub fn table_return(text: &str, after: &str, method: &str) -> f64 {
+/// The fields of `method`'s row on lambda-300 in the table of `text` that follows the line
+/// starting with `after` (the first table when `after` is empty): task, method, epoch, return,
+/// `±`, its interval, vs planner, ...
+pub fn table_row<'a>(text: &'a str, after: &str, method: &str) -> Vec<&'a str> {
     let rest = &text[text
         .find(after)
         .unwrap_or_else(|| panic!("no `{after}` in:\n{text}"))..];
-    let line = rest
-        .lines()
+    rest.lines()
         .find(|l| l.starts_with("lambda-300") && l.split_whitespace().nth(1) == Some(method))
-        .unwrap_or_else(|| panic!("no {method} row after `{after}` in:\n{text}"));
-    line.split_whitespace().nth(3).unwrap().parse().unwrap()
+        .unwrap_or_else(|| panic!("no {method} row after `{after}` in:\n{text}"))
+        .split_whitespace()
+        .collect()
+}
+
+/// The return of `method` on lambda-300 in the table of `text` that follows the line starting
+/// with `after` (the first table when `after` is empty).
+pub fn table_return(text: &str, after: &str, method: &str) -> f64 {
+    table_row(text, after, method)[3].parse().unwrap()
 }
