@@ -648,9 +648,9 @@ pub struct PlannerConfig {
     /// The weights b of the power part of the search's cost-to-go estimate h
     /// (`uavmeta_world::planner`): the search runs once per weight and the cheapest plan is kept.
     /// The weight that ranks best moves with lambda (0.5 on lambda-300, 0.125 on lambda-1000 and
-    /// lambda-2000), and the four together beat each alone on every lambda measured, by up to 3.7%
-    /// at lambda-2000, at four times the cost (docs/EXPERIMENTS.md, P2). 0 ranks states by their
-    /// cost so far and AoI alone.
+    /// lambda-2000), and the four together beat each alone on every lambda measured (each alone
+    /// loses up to 4.2%, at lambda-2000), at four times the cost (docs/EXPERIMENTS.md, P2). 0
+    /// ranks states by their cost so far and AoI alone.
     pub h_power_weights: Vec<f64>,
     /// The most memory one search may take, in MiB; a width and horizon that need more are
     /// refused up front.
