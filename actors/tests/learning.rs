@@ -101,8 +101,9 @@ fn online_dqn_reaches_the_heuristics_on_the_default_config() {
 /// On a world small enough for the planner to be the optimum (4 x 4 cells, 3 devices, 20 steps:
 /// world/tests/planner.rs checks the default search against one 256 times wider there), online
 /// DQN comes within 8% of it on the mean of three seeds and within 15% on each, evaluated exactly
-/// over the 16 start cells, where the greedy heuristic is 62% short. (Eight seeds at this budget
-/// ended 1.6-12.4% short, 4.9% on average.)
+/// over the 16 start cells, where the greedy heuristic is 62% short. It keeps its best snapshot
+/// as configs/default.toml does (`collect.dqn_select_every`). (Before selection, eight seeds at
+/// this budget ended 1.6-12.4% short, 4.9% on average.)
 #[test]
 fn online_dqn_comes_within_8_percent_of_the_planner_on_a_small_world() {
     single_threaded();

@@ -207,9 +207,9 @@ fn the_default_search_finds_the_wide_searchs_plans_where_serving_out_of_order_pa
 }
 
 /// The default planner runs one search per weight of `planner.h_power_weights` and keeps the
-/// cheapest plan: on lambda-1000 of configs/default.toml's world, from every tenth start cell, its plan costs
-/// what the world charges for it, no more than any one weight's plan, and the same as the
-/// cheapest of them; and no one weight is the cheapest from every one of those cells.
+/// cheapest plan: on lambda-1000 of configs/default.toml's world, from every tenth start cell,
+/// its plan costs what the world charges for it, no more than any one weight's plan, and the
+/// same as the cheapest of them; and no one weight is the cheapest from every one of those cells.
 #[test]
 fn the_portfolio_keeps_the_cheapest_of_its_searches() {
     let cfg = config("layout_seed = 7");

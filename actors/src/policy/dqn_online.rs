@@ -5,8 +5,9 @@
 //! `train_every`, `eps_start`, `eps_end`, `eps_decay_steps`, its network `dqn_hidden` and rate
 //! `dqn_lr`, and the stabilisers `dqn_double`, `dqn_huber`, `dqn_grad_clip_norm`,
 //! `dqn_target_update_every`, the n-step return `dqn_n_step`, the learning-rate schedule
-//! `dqn_lr_final_fraction` and the snapshot selection `dqn_select_every`) and `[learner]`'s `gamma`, `reward_scale` and `batch`, so the
-//! online agent and the offline learners see the same rewards.
+//! `dqn_lr_final_fraction` and the snapshot selection `dqn_select_every`) and `[learner]`'s
+//! `gamma`, `reward_scale` and `batch`, so the online agent and the offline learners see the same
+//! rewards.
 //!
 //! The paper gives no settings for this agent; SPEC section 5 asks for what a practitioner would
 //! use. The defaults are the usual DQN stabilisers: Double DQN, the Huber loss, gradient-norm
