@@ -87,9 +87,12 @@ impl ActorOptions {
 
     /// The process name: node, port file and metrics snapshot.
     pub fn process_name(&self) -> String {
-        format!("actor-{}-{:08x}", self.task, self.actor_id())
+        format!("{PROCESS_PREFIX}{}-{:08x}", self.task, self.actor_id())
     }
 }
+
+/// How every actor's process name begins.
+pub const PROCESS_PREFIX: &str = "actor-";
 
 /// What an actor is doing, exported as `uavmeta_actor_phase{phase}` for the launcher's display
 /// and dashboards.

@@ -38,7 +38,7 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use indicatif::MultiProgress;
-use uavmeta_actors::actor::ActorOptions;
+use uavmeta_actors::actor::{self, ActorOptions};
 use uavmeta_actors::evaluator::{self, EvaluationRow};
 use uavmeta_actors::policy::heuristics::{reference_metrics, PolicySpec, REFERENCES};
 use uavmeta_learner::store;
@@ -884,8 +884,11 @@ fn write_targets(
     Ok(text)
 }
 
-/// Waits until every host of `tunnel.wait_for_hosts` has announced itself and the store has
-/// stored a transition (only remote actors run yet, so it came through the tunnel).
+/// Waits until every host of `tunnel.wait_for_hosts` has announced itself with its actors and
+/// the store has stored a transition (only remote actors run yet, so it came through the tunnel).
+/// A host's first announcement can come before its actors have started: waiting for one that
+/// lists them puts them in the Prometheus targets however soon they finish (the tunnel records a
+/// host's announcement at most once a second).
 fn wait_for_remote_hosts(
     run: &RunDir,
     config: &Config,
@@ -904,7 +907,7 @@ fn wait_for_remote_hosts(
         let hosts = remote_hosts(run);
         let missing: Vec<&String> = wanted
             .iter()
-            .filter(|w| !hosts.iter().any(|h| &h.host == *w))
+            .filter(|w| !hosts.iter().any(|h| &h.host == *w && announces_actors(h)))
             .collect();
         let stored = std::fs::read_to_string(run.port_file(store::PROCESS))
             .ok()
@@ -927,6 +930,13 @@ fn wait_for_remote_hosts(
             });
         }
     }
+}
+
+/// Whether `host`'s announcement lists at least one actor.
+fn announces_actors(host: &RemoteHost) -> bool {
+    host.processes
+        .iter()
+        .any(|p| p.name.starts_with(actor::PROCESS_PREFIX))
 }
 
 /// The remote actor hosts that announced themselves through the tunnel lately.
