@@ -400,28 +400,26 @@ fn heuristic_refs(
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(jobs.max(1))
         .build()?;
-    Ok(pool.install(|| heuristic_refs_on_pool(config, plan)))
-}
-
-fn heuristic_refs_on_pool(config: &Config, plan: &Plan) -> Vec<HeuristicRef> {
-    plan.references
-        .par_iter()
-        .map(|need| {
-            let task = config
-                .task(&need.key.task)
-                .expect("validate_reproduce and rain_tasks name existing tasks");
-            let episodes = need.key.episodes;
-            let policies = reference_metrics(config, task, episodes)
-                .into_iter()
-                .map(|(spec, metrics)| (spec.name(), metrics))
-                .collect();
-            HeuristicRef {
-                task: task.name.clone(),
-                episodes,
-                policies,
-            }
-        })
-        .collect()
+    Ok(pool.install(|| {
+        plan.references
+            .par_iter()
+            .map(|need| {
+                let task = config
+                    .task(&need.key.task)
+                    .expect("validate_reproduce and rain_tasks name existing tasks");
+                let episodes = need.key.episodes;
+                let policies = reference_metrics(config, task, episodes)
+                    .into_iter()
+                    .map(|(spec, metrics)| (spec.name(), metrics))
+                    .collect();
+                HeuristicRef {
+                    task: task.name.clone(),
+                    episodes,
+                    policies,
+                }
+            })
+            .collect()
+    }))
 }
 
 /// Every item of the plan for every seed, on a pool of `opts.jobs` threads; results in seed

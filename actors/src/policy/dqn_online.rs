@@ -172,14 +172,6 @@ fn epsilon(c: &CollectConfig, step: usize) -> f64 {
 /// Episodes behind [`OnlineDqn::recent_return`]: one return is noise, the mean of 20 a trend.
 pub const RECENT_EPISODES: usize = 20;
 
-/// A greedy policy kept by snapshot selection, with its evaluated return.
-struct Snapshot {
-    q: QNetwork,
-    ret: f64,
-    /// The environment step it was taken at.
-    step: usize,
-}
-
 /// One online DQN agent training in one task's world.
 pub struct OnlineDqn {
     collect: CollectConfig,
@@ -204,8 +196,9 @@ pub struct OnlineDqn {
     returns: Vec<f64>,
     /// The episodes snapshot selection scores a policy on.
     selector: Evaluator,
-    /// The best snapshot so far (`collect.dqn_select_every` > 0).
-    best: Option<Snapshot>,
+    /// The best snapshot so far (`collect.dqn_select_every` > 0); its step and return are
+    /// [`OnlineDqn::selected`].
+    best: Option<QNetwork>,
     /// Every selection evaluation: (environment step, return).
     evaluations: Vec<(usize, f64)>,
 }
@@ -408,26 +401,22 @@ impl OnlineDqn {
     /// earlier one on a tie).
     fn select(&mut self) {
         let ret = self.selector.evaluate(&self.q).ret.mean;
+        let better = self.selected().is_none_or(|(_, best)| ret > best);
         self.evaluations.push((self.steps, ret));
-        match &mut self.best {
-            Some(best) if ret <= best.ret => {}
-            Some(best) => {
-                best.q.copy_from(&self.q);
-                (best.ret, best.step) = (ret, self.steps);
-            }
-            None => {
-                self.best = Some(Snapshot {
-                    q: self.q.duplicate(),
-                    ret,
-                    step: self.steps,
-                })
-            }
+        match (&mut self.best, better) {
+            (_, false) => {}
+            (Some(best), true) => best.copy_from(&self.q),
+            (None, true) => self.best = Some(self.q.duplicate()),
         }
     }
 
-    /// The step and evaluated return of the snapshot selection has kept so far, if any.
+    /// The step and evaluated return of the snapshot selection has kept so far (the first of the
+    /// best), if any.
     pub fn selected(&self) -> Option<(usize, f64)> {
-        self.best.as_ref().map(|b| (b.step, b.ret))
+        self.evaluations
+            .iter()
+            .copied()
+            .reduce(|best, e| if e.1 > best.1 { e } else { best })
     }
 
     /// Every selection evaluation so far, (environment step, return), in order; the last one is
@@ -444,7 +433,7 @@ impl OnlineDqn {
     /// The agent's Q-network, whose greedy policy ([`QPolicy`]) is the "online DQN" reference:
     /// the best snapshot when selection is on and has run, else the network being trained.
     pub fn q_network(&self) -> &QNetwork {
-        self.best.as_ref().map_or(&self.q, |b| &b.q)
+        self.best.as_ref().unwrap_or(&self.q)
     }
 
     /// Returns of the finished training episodes, in order.
