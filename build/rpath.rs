@@ -2,7 +2,7 @@
 //! that torch-sys built against into the package's binaries, tests and benchmarks as an rpath, so
 //! that they run with no LD_LIBRARY_PATH set.
 
-fn main() {
+pub fn main() {
     // torch-sys has `links = "tch"` and exports its lib dir to direct dependents as this variable.
     if let Ok(dir) = std::env::var("DEP_TCH_LIBTORCH_LIB") {
         // That dir is under the repo's `.libtorch` link (.cargo/config.toml); the rpath names the

@@ -105,10 +105,14 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path();
     let out_arg = out.to_str().unwrap();
+    // The agents train three to a population (`collect.population`), so the grouped path of the
+    // dataset stage is the one exercised.
     succeed(&uavmeta(&[
         "--experiment",
         "all",
         "--quick",
+        "--set",
+        "collect.population=3",
         "--out",
         out_arg,
     ]));
@@ -242,6 +246,8 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
         "--experiment",
         "meta-training",
         "--quick",
+        "--set",
+        "collect.population=3",
         "--out",
         out_arg,
     ]));
@@ -274,6 +280,39 @@ fn unknown_experiments_and_bad_sections_are_refused_by_name() {
             && stderr.contains("reproduce.unseen_task")
             && stderr.contains("meta-test")
             && !stderr.contains("panicked"),
+        "{stderr}"
+    );
+
+    // A device libtorch does not have, and a population of none.
+    if !tch::Cuda::is_available() {
+        let output = uavmeta(&[
+            "--quick",
+            "--set",
+            "run.device=\"cuda\"",
+            "--out",
+            dir.path().to_str().unwrap(),
+        ]);
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert_eq!(output.status.code(), Some(1), "{stderr}");
+        assert!(
+            stderr.contains("run.device = \"cuda\"")
+                && stderr.contains("CUDA device")
+                && !stderr.contains("panicked"),
+            "{stderr}"
+        );
+    }
+    let output = uavmeta(&[
+        "--quick",
+        "--set",
+        "collect.population=0",
+        "--out",
+        dir.path().to_str().unwrap(),
+    ]);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        output.status.code() == Some(1)
+            && stderr.contains("collect.population")
+            && stderr.contains("at least 1"),
         "{stderr}"
     );
 }

@@ -18,13 +18,15 @@ use std::path::{Path, PathBuf};
 use indicatif::ProgressBar;
 use uavmeta_learner::batch::BatchError;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
+use uavmeta_learner::qnet::QNetwork;
 use uavmeta_proto::config::{Config, ConfigError, TaskConfig, WorldConfig};
 use uavmeta_proto::dataset::{
     sample_shots, DatasetError, DatasetHeader, DatasetWriter, Transition,
 };
 use uavmeta_proto::transport::Method;
 
-use crate::policy::dqn_online::OnlineDqn;
+use crate::policy::dqn_online::{AgentState, OnlineDqn};
+use crate::policy::dqn_population::{DqnPopulation, MemberSpec};
 use crate::policy::heuristics::{PolicyError, PolicySpec};
 use crate::rollout::{episode_seed, Policy};
 use crate::world::World;
@@ -176,12 +178,50 @@ pub fn online_dqn_dataset(
         }
         left -= n;
     }
+    let sampled = replay_sample(config, agent.state(), seed)?;
+    Ok((sampled, agent))
+}
+
+/// The datasets of several online agents trained as one population ([`DqnPopulation`]), one per
+/// member spec, under `config` (every member's seed is its spec's), with their networks on
+/// `device`: each member's sample and policy network, in spec order. With one member this is
+/// [`online_dqn_dataset`] bit for bit. `progress` gets each block of training steps.
+pub fn online_dqn_datasets(
+    config: &Config,
+    members: &[MemberSpec],
+    device: tch::Device,
+    mut progress: impl FnMut(usize),
+) -> Result<Vec<(Vec<Transition>, QNetwork)>, CollectError> {
+    let mut population = DqnPopulation::new(config, members, device);
+    let mut left = config.collect.dqn_steps;
+    while left > 0 {
+        let n = left.min(DQN_PROGRESS_STEPS);
+        population.train_steps(n)?;
+        progress(n);
+        left -= n;
+    }
+    (members.iter().enumerate())
+        .map(|(i, m)| {
+            let sampled = replay_sample(config, population.member(i), m.seed)?;
+            Ok((sampled, population.q_network(i)))
+        })
+        .collect()
+}
+
+/// Logs which snapshot an agent kept, and samples its dataset: `collect.transitions` transitions
+/// drawn from its final replay buffer (the newest `collect.sample_newest` of it, when that is not
+/// 0), in time order.
+fn replay_sample(
+    config: &Config,
+    agent: &AgentState,
+    seed: u64,
+) -> Result<Vec<Transition>, CollectError> {
     if let (Some((step, ret)), Some(&(_, last))) =
         (agent.selected(), agent.selection_evaluations().last())
     {
         tracing::info!(
-            task = task_id,
-            actor,
+            task = agent.task(),
+            actor = agent.actor(),
             step,
             ret,
             last,
@@ -200,7 +240,7 @@ pub fn online_dqn_dataset(
         episode_seed(seed, usize::MAX),
     )?;
     sampled.sort_unstable_by_key(|t| t.seq);
-    Ok((sampled, agent))
+    Ok(sampled)
 }
 
 /// Where the config of dataset `out` is saved: `out` with `.config.toml` appended.
@@ -240,14 +280,7 @@ pub fn collect(
     // Everything that can be refused is checked before a file is written.
     let rollout_policy = match &spec {
         PolicySpec::DqnOnline => {
-            let available = config.collect.sampled_window();
-            if available < wanted {
-                return Err(CollectError::ReplayTooSmall {
-                    origin: config.origin.clone(),
-                    wanted,
-                    available,
-                });
-            }
+            check_replay_window(config)?;
             None
         }
         spec => Some(
@@ -279,6 +312,20 @@ pub fn collect(
     })
 }
 
+/// Refuses a config whose online agent's replay buffer holds fewer transitions than its dataset
+/// is to sample.
+fn check_replay_window(config: &Config) -> Result<(), CollectError> {
+    let (wanted, available) = (config.collect.transitions, config.collect.sampled_window());
+    if available < wanted {
+        return Err(CollectError::ReplayTooSmall {
+            origin: config.origin.clone(),
+            wanted,
+            available,
+        });
+    }
+    Ok(())
+}
+
 /// Trains the online DQN agent, writes the sample of its replay buffer and saves the agent beside
 /// dataset `out`; returns its environment steps.
 fn write_replay_sample(
@@ -295,18 +342,82 @@ fn write_replay_sample(
             progress.inc(n as u64);
             true
         })?;
+    write_sample(config, out, writer, &sampled, agent.q_network())?;
+    Ok(agent.steps() as u64)
+}
+
+/// Writes a replay sample into `writer`, `run.batch_size` transitions a chunk, and saves the
+/// agent `q` that made it beside dataset `out`.
+fn write_sample(
+    config: &Config,
+    out: &Path,
+    writer: &mut DatasetWriter,
+    sampled: &[Transition],
+    q: &QNetwork,
+) -> Result<(), CollectError> {
     for chunk in sampled.chunks(config.run.batch_size) {
         writer.append(chunk)?;
     }
-    let agent_file = agent_path(out);
-    checkpoint::save(
-        &agent_file,
-        agent.q_network(),
-        Method::OnlineDqn.name(),
-        1,
-        config,
-    )?;
-    Ok(agent.steps() as u64)
+    checkpoint::save(&agent_path(out), q, Method::OnlineDqn.name(), 1, config)?;
+    Ok(())
+}
+
+/// One dataset of [`collect_population`]: collected with `config` (its `collect.seed` the
+/// member's seed) on task `task` into `out`.
+pub struct PopulationJob<'a> {
+    pub config: &'a Config,
+    pub task: &'a str,
+    pub out: &'a Path,
+}
+
+/// [`collect()`] with `dqn-online` for several datasets at once, their agents trained as one
+/// population on `device` ([`online_dqn_datasets`]). The jobs' configs may differ only in
+/// `collect.seed`; each dataset and agent is written as `collect` writes it, with its own
+/// config. With one job the files are `collect`'s bit for bit. `progress` counts training steps
+/// (of the population, not of each member).
+pub fn collect_population(
+    jobs: &[PopulationJob],
+    device: tch::Device,
+    progress: &ProgressBar,
+) -> Result<(), CollectError> {
+    let Some(first) = jobs.first() else {
+        return Ok(());
+    };
+    let shared = first.config;
+    check_replay_window(shared)?;
+    let mut writers = Vec::with_capacity(jobs.len());
+    let mut members = Vec::with_capacity(jobs.len());
+    for job in jobs {
+        let mut same = job.config.clone();
+        same.collect.seed = shared.collect.seed;
+        assert!(
+            same == *shared,
+            "a population's configs differ beyond collect.seed"
+        );
+        let task = job.config.task(job.task)?;
+        let header = DatasetHeader::for_task(job.config, job.task)?;
+        members.push(MemberSpec {
+            task: task.clone(),
+            task_id: header.task,
+            actor: 0,
+            seed: job.config.collect.seed,
+        });
+        let config_file = config_path(job.out);
+        std::fs::write(&config_file, job.config.to_toml_string()).map_err(|source| {
+            CollectError::WriteConfig {
+                path: config_file.clone(),
+                source,
+            }
+        })?;
+        writers.push(DatasetWriter::create(job.out, header)?);
+    }
+    progress.set_length(shared.collect.dqn_steps as u64);
+    let results = online_dqn_datasets(shared, &members, device, |n| progress.inc(n as u64))?;
+    for ((job, mut writer), (sampled, q)) in jobs.iter().zip(writers).zip(results) {
+        write_sample(job.config, job.out, &mut writer, &sampled, &q)?;
+        writer.sync()?;
+    }
+    Ok(())
 }
 
 /// Rolls `policy` out into `writer`, `run.batch_size` transitions a chunk; returns the steps

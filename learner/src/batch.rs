@@ -142,6 +142,21 @@ impl Batch {
         }
     }
 
+    /// Equal-sized batches stacked along a new leading dimension: member i of a population
+    /// sees `parts[i]` (obs [N, B, D], actions [N, B], ..), on `device`. `parts` must not be
+    /// empty.
+    pub fn stack(parts: &[Batch], device: tch::Device) -> Batch {
+        let column = |pick: fn(&Batch) -> &Tensor| {
+            Tensor::stack(&parts.iter().map(pick).collect::<Vec<_>>(), 0).to_device(device)
+        };
+        Batch {
+            obs: column(|b| &b.obs),
+            actions: column(|b| &b.actions),
+            rewards: column(|b| &b.rewards),
+            next_obs: column(|b| &b.next_obs),
+        }
+    }
+
     /// The rows `index` ([M] i64) of every column: a minibatch.
     pub fn select(&self, index: &Tensor) -> Batch {
         Batch {

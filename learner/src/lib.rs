@@ -3,6 +3,9 @@
 //! - [`qnet`]: [`qnet::QNetwork`], the MLP of SPEC section 5, built by
 //!   [`qnet::QNetworkConfig::init`] with a seeded, global-state-free initialisation, and a
 //!   functional forward pass on explicit (fast) weights for MAML.
+//! - [`population`]: [`population::QPopulation`], N networks of one shape with stacked
+//!   parameters, trained in lockstep as one computation.
+//! - [`optim`]: [`optim::FusedAdam`], libtorch's one-pass Adam kernel, which tch does not wrap.
 //! - [`batch`]: [`batch::Batch`], `proto::dataset` transitions as normalised tensors.
 //! - [`dqn`]: the DQN loss, paper eq. 7, and the one TD-target computation every learner uses
 //!   ([`dqn::TdConfig::td_errors`]; double DQN and Huber as options, off by default).
@@ -54,6 +57,8 @@ pub mod checkpoint;
 pub mod cql;
 pub mod dqn;
 pub mod numerics;
+pub mod optim;
+pub mod population;
 pub mod progress;
 pub mod qnet;
 pub mod store;

@@ -17,7 +17,7 @@ use indicatif::ProgressBar;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use tch::{nn, nn::OptimizerConfig, Tensor};
+use tch::Tensor;
 use uavmeta_proto::config::{Config, LearnerConfig};
 use uavmeta_proto::stats::PolicyMetrics;
 use uavmeta_proto::transport;
@@ -26,6 +26,7 @@ use crate::batch::Batch;
 use crate::checkpoint::{self, CheckpointError};
 use crate::cql::{conservative_term, CqlLoss};
 use crate::dqn::{q_taken, TdConfig};
+use crate::optim::FusedAdam;
 use crate::progress::{progress_bar, CsvError, CsvLog};
 use crate::qnet::QNetwork;
 
@@ -187,7 +188,7 @@ pub struct OfflineTrainer {
     alpha: f64,
     td: TdConfig,
     target_update_every: usize,
-    opt: nn::Optimizer,
+    opt: FusedAdam,
     target: QNetwork,
     order: MinibatchOrder,
     steps: usize,
@@ -208,9 +209,7 @@ impl OfflineTrainer {
             alpha: cfg.alpha,
             td: TdConfig::from(cfg),
             target_update_every: cfg.target_update_every,
-            opt: nn::Adam::default()
-                .build(&q.vs, cfg.lr)
-                .expect("Adam over a CPU VarStore always builds"),
+            opt: FusedAdam::new(q.parameters(), cfg.lr),
             target: q.duplicate(),
             order: MinibatchOrder::new(rows, cfg.batch.min(rows), seed),
             steps: 0,

@@ -67,8 +67,8 @@
 //!
 //! # Resuming
 //!
-//! Eq. 16's Adam is written out here ([`OuterAdam`], libtorch's update rule) rather than taken
-//! from `tch::nn::Optimizer`, whose moments cannot be read or restored. [`Maml::save_state`] stores
+//! Eq. 16's Adam is libtorch's fused kernel ([`FusedAdam`]) rather than `tch::nn::Optimizer`,
+//! whose moments cannot be read or restored. [`Maml::save_state`] stores
 //! the moments, the target network, the sampling stream and the epoch count beside a `w0`
 //! checkpoint, and [`Maml::resume`] continues from them exactly as if never interrupted.
 
@@ -84,6 +84,7 @@ use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_learner::cql::{conservative_rows, eq8};
 use uavmeta_learner::dqn::TdConfig;
+use uavmeta_learner::optim::FusedAdam;
 use uavmeta_learner::qnet::QNetwork;
 use uavmeta_proto::config::{Config, InnerLoss};
 use uavmeta_proto::transport;
@@ -435,64 +436,6 @@ pub struct MetaEpoch {
     pub task_losses: Vec<(usize, f64)>,
 }
 
-/// Eq. 16's optimiser: Adam with libtorch's defaults (beta1 0.9, beta2 0.999, eps 1e-8, no weight
-/// decay) and libtorch's update rule, over `w0`'s parameters, with moments that can be saved.
-struct OuterAdam {
-    lr: f64,
-    /// Updates made so far, t in the bias corrections.
-    steps: u64,
-    /// First and second moment estimates, one per parameter.
-    m: Vec<Tensor>,
-    v: Vec<Tensor>,
-}
-
-impl OuterAdam {
-    const BETA1: f64 = 0.9;
-    const BETA2: f64 = 0.999;
-    const EPS: f64 = 1e-8;
-
-    fn new(params: &[Tensor], lr: f64) -> Self {
-        Self {
-            lr,
-            steps: 0,
-            m: params.iter().map(Tensor::zeros_like).collect(),
-            v: params.iter().map(Tensor::zeros_like).collect(),
-        }
-    }
-
-    fn zero_grad(params: &[Tensor]) {
-        for p in params {
-            let mut grad = p.grad();
-            if grad.defined() {
-                let _ = grad.zero_();
-            }
-        }
-    }
-
-    /// w0 <- w0 - lr * m_hat / (sqrt(v_hat) + eps), from the gradients in `params`.
-    fn step(&mut self, params: &[Tensor]) {
-        self.steps += 1;
-        let t = self.steps as i32;
-        let bias1 = 1.0 - Self::BETA1.powi(t);
-        let bias2 = 1.0 - Self::BETA2.powi(t);
-        tch::no_grad(|| {
-            for ((p, m), v) in params.iter().zip(&mut self.m).zip(&mut self.v) {
-                let grad = p.grad();
-                let _ = m
-                    .g_mul_scalar_(Self::BETA1)
-                    .g_add_(&(&grad * (1.0 - Self::BETA1)));
-                let _ = v
-                    .g_mul_scalar_(Self::BETA2)
-                    .addcmul_(&grad, &(&grad * (1.0 - Self::BETA2)));
-                let denom = v.sqrt() / bias2.sqrt() + Self::EPS;
-                let _ = p
-                    .shallow_clone()
-                    .addcdiv_(&(&*m * (-self.lr / bias1)), &denom);
-            }
-        });
-    }
-}
-
 /// The meta-learner: `w0`, Meta-SGD's step sizes, the target network and the outer Adam
 /// optimiser.
 pub struct Maml {
@@ -504,7 +447,7 @@ pub struct Maml {
     /// Meta-SGD's per-weight step sizes (leaves that require grad), when `learn_inner_lr`.
     inner_lr: Option<Vec<Tensor>>,
     target: QNetwork,
-    optimizer: OuterAdam,
+    optimizer: FusedAdam,
     rng: ChaCha8Rng,
     epochs_done: usize,
 }
@@ -542,7 +485,7 @@ impl Maml {
                 })
                 .collect()
         });
-        let optimizer = OuterAdam::new(&meta_parameters(&w0, &inner_lr), config.eta_outer);
+        let optimizer = FusedAdam::new(meta_parameters(&w0, &inner_lr), config.eta_outer);
         let target = w0.duplicate();
         let average = (config.w0_average_decay > 0.0).then(|| w0.duplicate());
         Ok(Self {
@@ -570,7 +513,7 @@ impl Maml {
     /// before `w0` itself is saved there.
     pub fn save_state(&self, path: &Path) -> Result<(), CheckpointError> {
         let mut tensors = Vec::new();
-        for (i, (m, v)) in self.optimizer.m.iter().zip(&self.optimizer.v).enumerate() {
+        for (i, (m, v)) in self.optimizer.moments().enumerate() {
             tensors.push((format!("adam.m.{i}"), m.shallow_clone()));
             tensors.push((format!("adam.v.{i}"), v.shallow_clone()));
         }
@@ -588,7 +531,7 @@ impl Maml {
         }
         let progress = MamlProgress {
             epochs_done: self.epochs_done,
-            adam_steps: self.optimizer.steps,
+            adam_steps: self.optimizer.steps(),
             rng_seed: self.rng.get_seed(),
             rng_stream: self.rng.get_stream(),
             rng_word_pos: self.rng.get_word_pos(),
@@ -651,12 +594,16 @@ impl Maml {
             false => None,
         };
         let meta_params = meta_parameters(&w0, &inner_lr);
-        let mut optimizer = OuterAdam::new(&meta_params, config.eta_outer);
-        for (i, p) in meta_params.iter().enumerate() {
-            optimizer.m[i] = take(format!("adam.m.{i}"), p)?;
-            optimizer.v[i] = take(format!("adam.v.{i}"), p)?;
-        }
-        optimizer.steps = progress.adam_steps;
+        let moments = (meta_params.iter().enumerate())
+            .map(|(i, p)| {
+                Ok((
+                    take(format!("adam.m.{i}"), p)?,
+                    take(format!("adam.v.{i}"), p)?,
+                ))
+            })
+            .collect::<Result<Vec<_>, CheckpointError>>()?;
+        let mut optimizer = FusedAdam::new(meta_params, config.eta_outer);
+        optimizer.restore(moments, progress.adam_steps);
         let mut rng = ChaCha8Rng::from_seed(progress.rng_seed);
         rng.set_stream(progress.rng_stream);
         rng.set_word_pos(progress.rng_word_pos);
@@ -709,7 +656,8 @@ impl Maml {
         {
             self.target.copy_from(&self.w0); // Qhat <- w0, constant until the next refresh
         }
-        self.optimizer.lr = self.config.eta_outer_at(self.epochs_done);
+        self.optimizer
+            .set_lr(self.config.eta_outer_at(self.epochs_done));
         let steps = self.config.outer_steps(tasks);
         let mut passes: Vec<SupportPass> = tasks
             .iter()
@@ -731,8 +679,7 @@ impl Maml {
                 .collect();
             // Eqs. 14-15, with the meta-gradient accumulated into w0's (and the step sizes')
             // gradients.
-            let params = meta_parameters(&self.w0, &self.inner_lr);
-            OuterAdam::zero_grad(&params);
+            self.optimizer.zero_grad();
             let target = self.target.parameters();
             let losses = self.config.backward_meta_loss(
                 &self.w0.parameters(),
@@ -741,7 +688,7 @@ impl Maml {
                 &shots,
             );
             // Eq. 16: Adam(eta_outer) on w0 (and the step sizes).
-            self.optimizer.step(&params);
+            self.optimizer.step();
             self.update_average();
             meta_loss += losses.iter().sum::<f64>();
             for (i, loss) in picked.into_iter().zip(losses) {

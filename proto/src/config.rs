@@ -358,6 +358,13 @@ pub struct CollectConfig {
     /// The dataset is sampled from the newest this many transitions of the agent's final replay
     /// buffer; 0 = the whole buffer (the paper's "sampled from the replay buffer").
     pub sample_newest: usize,
+    /// Where a command trains several online agents (`uavmeta reproduce`'s datasets), up to this
+    /// many train as one population: stacked networks stepped and updated as one computation
+    /// (`actors::policy::dqn_population`). A population of one is the single agent bit for bit;
+    /// larger ones give each member its separate run up to float rounding. 1 (one at a time) is
+    /// the fastest on CPU, where a [256, 256] step already runs at 60-70% of its matrix
+    /// products' floor; stacking is for accelerators (docs/BENCHMARKS.md, "Populations").
+    pub population: usize,
 }
 
 impl CollectConfig {
@@ -396,6 +403,7 @@ impl Default for CollectConfig {
             dqn_lr_final_fraction: 1.0,
             dqn_select_every: 0,
             sample_newest: 0,
+            population: 1,
         }
     }
 }
@@ -594,6 +602,10 @@ pub struct RunConfig {
     /// Only a tunnel (`uavmeta tunnel`) connects domains. A remote host's copy of the config
     /// names its own (`uavmeta tunnel join --domain`).
     pub domain: String,
+    /// The libtorch device populations of learners are made on: `cpu`, `cuda` or `cuda:N`.
+    /// Asking for CUDA where libtorch sees no GPU is an error when the population is made. The
+    /// CUDA path is device placement only and untested here (no GPU on the project's machines).
+    pub device: String,
 }
 
 /// Remote actor hosts reach the run through iceoryx2's tunnel over Zenoh (`uavmeta tunnel`).
@@ -698,6 +710,7 @@ impl Default for RunConfig {
             hang_timeout_seconds: 60.0,
             control_buffer: 256,
             domain: String::new(),
+            device: "cpu".into(),
         }
     }
 }
@@ -1131,6 +1144,9 @@ impl Config {
         if c.actors_per_task == 0 {
             return Err(self.invalid("collect.actors_per_task", &c.actors_per_task, "at least 1"));
         }
+        if c.population == 0 {
+            return Err(self.invalid("collect.population", &c.population, "at least 1"));
+        }
         for (key, value) in [
             ("collect.eps_start", c.eps_start),
             ("collect.eps_end", c.eps_end),
@@ -1296,6 +1312,10 @@ impl Config {
         }
         if r.control_buffer == 0 {
             return Err(self.invalid("run.control_buffer", &r.control_buffer, "at least 1"));
+        }
+        let cuda_index = r.device.strip_prefix("cuda:").map(str::parse::<usize>);
+        if !(r.device == "cpu" || r.device == "cuda" || matches!(cuda_index, Some(Ok(_)))) {
+            return Err(self.invalid("run.device", &r.device, "cpu, cuda or cuda:N"));
         }
         if !r.hang_timeout_seconds.is_finite() || r.hang_timeout_seconds < 0.0 {
             return Err(self.invalid(

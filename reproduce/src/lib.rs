@@ -50,6 +50,11 @@ pub enum ReproduceError {
     Meta(#[from] MetaError),
     #[error(transparent)]
     Collect(#[from] CollectError),
+    #[error("{origin}: {error}")]
+    Device {
+        origin: String,
+        error: uavmeta_learner::population::DeviceError,
+    },
 }
 
 use std::fmt::Write as _;
@@ -449,11 +454,7 @@ fn run_seeds(opts: &ReproduceOptions, plan: &Plan) -> Result<Vec<SeedResult>, Re
         .start_handler(move |_| tch::set_num_threads(torch_threads))
         .build()?;
     let results = pool.install(|| -> Result<Vec<SeedResult>, ReproduceError> {
-        for_each_seed(&seeds, &plan.datasets, |seed, need| {
-            runs::dataset(config, out, seed, &need.key)?;
-            done(&need.users);
-            Ok(())
-        })?;
+        collect_datasets(config, out, &seeds, plan, &done)?;
         let references = for_each_seed(&seeds, &plan.references, |seed, need| {
             let metrics = runs::reference(config, out, seed, &need.key)?;
             done(&need.users);
@@ -518,6 +519,47 @@ fn progress_bars(
             (e, bar)
         })
         .collect()
+}
+
+/// Every seed's datasets of the plan that are not cached, on the current pool: their online
+/// agents trained in populations of up to `collect.population` members on `run.device` (one
+/// population per worker at a time).
+fn collect_datasets(
+    config: &Config,
+    out: &Path,
+    seeds: &[u64],
+    plan: &Plan,
+    done: &(impl Fn(&[Experiment]) + Sync),
+) -> Result<(), ReproduceError> {
+    let device = uavmeta_learner::population::device(&config.run.device).map_err(|error| {
+        ReproduceError::Device {
+            origin: config.origin.clone(),
+            error,
+        }
+    })?;
+    let mut missing = Vec::new();
+    for &seed in seeds {
+        for need in &plan.datasets {
+            let job = runs::DatasetJob::new(config, out, seed, &need.key)?;
+            if job.cached() {
+                tracing::debug!(seed, task = %need.key, "dataset cached");
+                done(&need.users);
+            } else {
+                missing.push((job, &need.users));
+            }
+        }
+    }
+    missing
+        .par_chunks(config.collect.population)
+        .with_max_len(1)
+        .try_for_each(|group| {
+            let jobs: Vec<&runs::DatasetJob> = group.iter().map(|(job, _)| job).collect();
+            runs::collect_datasets(&jobs, device)?;
+            for (_, users) in group {
+                done(users);
+            }
+            Ok(())
+        })
 }
 
 /// `work(seed, item)` for every seed and item, on the current pool, one pair per task; the

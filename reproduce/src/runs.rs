@@ -11,7 +11,9 @@
 use std::path::{Path, PathBuf};
 
 use indicatif::ProgressBar;
-use uavmeta_actors::collect::{agent_path, collect, config_path};
+use uavmeta_actors::collect::{
+    agent_path, collect, collect_population, config_path, PopulationJob,
+};
 use uavmeta_actors::policy::heuristics::PolicySpec;
 use uavmeta_actors::policy::q_policy::{Evaluator, QPolicy};
 use uavmeta_actors::rollout::{record_trajectory, Trajectory};
@@ -368,12 +370,60 @@ fn datasets_dir(out: &Path, seed: u64) -> PathBuf {
     seed_dir(out, seed).join("datasets")
 }
 
-/// Seed `seed`'s dataset of `task`, collected by the actors' code path unless cached.
-pub fn dataset(config: &Config, out: &Path, seed: u64, task: &str) -> Result<(), ReproduceError> {
-    let datasets = datasets_dir(out, seed);
-    create_dir(&datasets)?;
-    let path = dataset_path(&datasets, task);
-    ensure_dataset(&collection_config(config, seed), task, &path)
+/// One dataset the plan needs: seed `seed`'s of task `task`.
+pub struct DatasetJob {
+    task: String,
+    collection: Config,
+    path: PathBuf,
+}
+
+impl DatasetJob {
+    /// Seed `seed`'s dataset of `task`, with the config that collects it.
+    pub fn new(config: &Config, out: &Path, seed: u64, task: &str) -> Result<Self, ReproduceError> {
+        let datasets = datasets_dir(out, seed);
+        create_dir(&datasets)?;
+        Ok(Self {
+            task: task.to_string(),
+            collection: collection_config(config, seed),
+            path: dataset_path(&datasets, task),
+        })
+    }
+
+    /// Whether the file is complete and was collected with the same world, tasks, collection
+    /// and learner (the online DQN agent, the reference line, saved beside it).
+    pub fn cached(&self) -> bool {
+        dataset_cached(&self.collection, &self.path)
+    }
+}
+
+/// Collects `jobs` (none of them cached) by the actors' code path: with the online DQN agent,
+/// their agents trained as one population on `device` ([`collect_population`]); with another
+/// behaviour policy, one after another.
+pub fn collect_datasets(jobs: &[&DatasetJob], device: tch::Device) -> Result<(), ReproduceError> {
+    let Some(first) = jobs.first() else {
+        return Ok(());
+    };
+    if first.collection.collect.policy != PolicySpec::DqnOnline.to_string() {
+        for job in jobs {
+            collect(
+                &job.collection,
+                &job.task,
+                &job.path,
+                &ProgressBar::hidden(),
+            )?;
+        }
+        return Ok(());
+    }
+    let population: Vec<PopulationJob> = jobs
+        .iter()
+        .map(|job| PopulationJob {
+            config: &job.collection,
+            task: &job.task,
+            out: &job.path,
+        })
+        .collect();
+    collect_population(&population, device, &ProgressBar::hidden())?;
+    Ok(())
 }
 
 /// The online DQN agent behind seed `seed`'s dataset of a task (saved by `collect`), evaluated.
@@ -456,25 +506,20 @@ pub fn fine_tune_run(
     Ok(RunResult { rows, trajectory })
 }
 
-/// Collects `task`'s dataset into `path` with `collection` (the actors' code path), unless the
-/// file there is complete and was collected with the same world, tasks, collection and learner.
-fn ensure_dataset(collection: &Config, task: &str, path: &Path) -> Result<(), ReproduceError> {
-    if saved_collection_matches(&config_path(path), collection) {
-        let complete = DatasetReader::open(path).is_ok_and(|reader| {
-            reader.check_world(collection).is_ok()
-                && reader.transitions().len() == collection.collect.transitions
-        });
-        // The online DQN agent, the reference line, is saved last.
-        let complete = complete
-            && (collection.collect.policy != PolicySpec::DqnOnline.to_string()
-                || checkpoint::read_meta(&agent_path(path)).is_ok());
-        if complete {
-            tracing::debug!(dataset = %path.display(), "reusing");
-            return Ok(());
-        }
+/// Whether the dataset at `path` is complete and was collected with `collection`'s world, tasks,
+/// collection and learner.
+fn dataset_cached(collection: &Config, path: &Path) -> bool {
+    if !saved_collection_matches(&config_path(path), collection) {
+        return false;
     }
-    collect(collection, task, path, &ProgressBar::hidden())?;
-    Ok(())
+    let complete = DatasetReader::open(path).is_ok_and(|reader| {
+        reader.check_world(collection).is_ok()
+            && reader.transitions().len() == collection.collect.transitions
+    });
+    // The online DQN agent, the reference line, is saved last.
+    complete
+        && (collection.collect.policy != PolicySpec::DqnOnline.to_string()
+            || checkpoint::read_meta(&agent_path(path)).is_ok())
 }
 
 /// Trains the init of `key` into `DIR/<cql-maml|dqn-maml|cql-pretrain>-tasks-N/`, unless that

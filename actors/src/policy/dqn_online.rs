@@ -28,10 +28,10 @@
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use tch::nn::{self, OptimizerConfig};
 use tch::Tensor;
 use uavmeta_learner::batch::{Batch, BatchError};
 use uavmeta_learner::dqn::{Bootstrap, TdConfig};
+use uavmeta_learner::optim::{clip_grad_norm, FusedAdam};
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_proto::config::{CollectConfig, Config, LearnerConfig, TaskConfig, WorldConfig};
@@ -172,23 +172,19 @@ fn epsilon(c: &CollectConfig, step: usize) -> f64 {
 /// Episodes behind [`OnlineDqn::recent_return`]: one return is noise, the mean of 20 a trend.
 pub const RECENT_EPISODES: usize = 20;
 
-/// One online DQN agent training in one task's world.
-pub struct OnlineDqn {
-    collect: CollectConfig,
-    learner: LearnerConfig,
-    world_cfg: WorldConfig,
-    td: TdConfig,
+/// What one online DQN agent owns apart from its network and optimiser: its world, exploration
+/// stream, replay buffer, episode returns and snapshot selection. [`OnlineDqn`] has one;
+/// a population of agents trained as one computation
+/// ([`crate::policy::dqn_population::DqnPopulation`]) has one per member, so the two share every
+/// rule of the loop but the gradient step.
+pub struct AgentState {
     world: World,
-    q: QNetwork,
-    target: QNetwork,
-    opt: nn::Optimizer,
     replay: ReplayBuffer,
     rng: ChaCha8Rng,
     task: u32,
     actor: u32,
     /// Environment steps taken.
     steps: usize,
-    gradient_steps: usize,
     episode: u64,
     /// Return of the episode in progress.
     episode_return: f64,
@@ -197,109 +193,72 @@ pub struct OnlineDqn {
     /// The episodes snapshot selection scores a policy on.
     selector: Evaluator,
     /// The best snapshot so far (`collect.dqn_select_every` > 0); its step and return are
-    /// [`OnlineDqn::selected`].
+    /// [`AgentState::selected`].
     best: Option<QNetwork>,
     /// Every selection evaluation: (environment step, return).
     evaluations: Vec<(usize, f64)>,
 }
 
-impl OnlineDqn {
-    /// An untrained agent for task `task` (index `task_id` in the config's `[[tasks]]`), acting as
-    /// actor `actor`. Its network, world and exploration all derive from `seed`.
-    pub fn new(config: &Config, task: &TaskConfig, task_id: u32, actor: u32, seed: u64) -> Self {
+impl AgentState {
+    /// The state of the agent for task `task` (index `task_id`) acting as actor `actor`, and the
+    /// seed of its network: all of them drawn from `seed`, in an order fixed once and for all.
+    pub fn new(
+        config: &Config,
+        task: &TaskConfig,
+        task_id: u32,
+        actor: u32,
+        seed: u64,
+    ) -> (Self, u64) {
         let w = &config.world;
-        let l = &config.learner;
         let mut seeds = ChaCha8Rng::seed_from_u64(seed);
-        let c = &config.collect;
-        let q = QNetworkConfig::for_world(w, &c.dqn_hidden).init(seeds.random());
-        let target = q.duplicate();
-        let opt = nn::Adam::default()
-            .build(&q.vs, c.dqn_lr)
-            .expect("Adam over a CPU VarStore always builds");
+        let network_seed = seeds.random();
         let world = World::new(w, task, seeds.random());
-        Self {
-            collect: c.clone(),
-            learner: l.clone(),
-            world_cfg: w.clone(),
-            td: TdConfig {
-                gamma: l.gamma,
-                bootstrap: Bootstrap::double_if(c.dqn_double),
-                huber: c.dqn_huber,
-            },
+        let rng = ChaCha8Rng::seed_from_u64(seeds.random());
+        // Drawn last, so that the draws above are those of an agent without selection.
+        let selector = Evaluator::new(w, task, config.learner.eval_episodes, seeds.random());
+        let state = Self {
             world,
-            q,
-            target,
-            opt,
             replay: ReplayBuffer::new(config.collect.replay_capacity),
-            rng: ChaCha8Rng::seed_from_u64(seeds.random()),
+            rng,
             task: task_id,
             actor,
             steps: 0,
-            gradient_steps: 0,
             episode: 0,
             episode_return: 0.0,
             returns: Vec::new(),
-            // Drawn last, so that the draws above are those of an agent without selection.
-            selector: Evaluator::new(w, task, l.eval_episodes, seeds.random()),
+            selector,
             best: None,
             evaluations: Vec::new(),
-        }
-    }
-
-    /// Trains for `collect.dqn_steps` environment steps.
-    pub fn train(&mut self) -> Result<(), BatchError> {
-        self.train_steps(self.collect.dqn_steps)
-    }
-
-    /// Trains for `steps` more environment steps, logging the recent return every
-    /// [`RECENT_EPISODES`] episodes.
-    pub fn train_steps(&mut self, steps: usize) -> Result<(), BatchError> {
-        for _ in 0..steps {
-            if self.step()?.is_some() && self.returns.len().is_multiple_of(RECENT_EPISODES) {
-                tracing::info!(
-                    task = self.task,
-                    actor = self.actor,
-                    steps = self.steps,
-                    episodes = self.returns.len(),
-                    epsilon = self.epsilon(),
-                    mean_return = self.recent_return(),
-                    "online DQN"
-                );
-            }
-        }
-        Ok(())
-    }
-
-    /// The learning rate of the next gradient step: `dqn_lr`, falling linearly to
-    /// `dqn_lr * dqn_lr_final_fraction` between `learning_starts` and `dqn_steps`.
-    pub fn learning_rate(&self) -> f64 {
-        let c = &self.collect;
-        let span = c.dqn_steps.saturating_sub(c.learning_starts).max(1);
-        let progress = (self.steps.saturating_sub(c.learning_starts) as f64 / span as f64).min(1.0);
-        c.dqn_lr * (1.0 - (1.0 - c.dqn_lr_final_fraction) * progress)
-    }
-
-    /// The exploration rate of the next step.
-    pub fn epsilon(&self) -> f64 {
-        epsilon(&self.collect, self.steps)
-    }
-
-    /// Mean return of the last [`RECENT_EPISODES`] finished episodes (of all of them while fewer
-    /// have finished); `None` before the first.
-    pub fn recent_return(&self) -> Option<f64> {
-        let recent = &self.returns[self.returns.len().saturating_sub(RECENT_EPISODES)..];
-        (!recent.is_empty()).then(|| recent.iter().sum::<f64>() / recent.len() as f64)
-    }
-
-    /// One environment step (and the gradient step it is due); the episode's return when the step
-    /// ended an episode.
-    pub fn step(&mut self) -> Result<Option<f64>, BatchError> {
-        // ALGO: epsilon-greedy behaviour.
-        let action = if self.rng.random_bool(epsilon(&self.collect, self.steps)) {
-            self.rng.random_range(0..self.world.action_count())
-        } else {
-            QPolicy::new(&self.q).act(&self.world)
         };
+        (state, network_seed)
+    }
+
+    /// ALGO: epsilon-greedy behaviour, the random half: `Some(uniform action)` with probability
+    /// `epsilon`, `None` when the greedy action is due.
+    pub fn explore(&mut self, epsilon: f64) -> Option<usize> {
+        self.rng
+            .random_bool(epsilon)
+            .then(|| self.rng.random_range(0..self.world.action_count()))
+    }
+
+    /// The task index its transitions carry.
+    pub fn task(&self) -> u32 {
+        self.task
+    }
+
+    /// The actor number its transitions carry.
+    pub fn actor(&self) -> u32 {
+        self.actor
+    }
+
+    /// The world the agent acts in.
+    pub fn world(&self) -> &World {
+        &self.world
+    }
+
+    /// Takes `action`, stores the transition and, at the horizon, starts the next episode;
+    /// returns the finished episode's return.
+    pub fn advance(&mut self, action: usize) -> Option<f64> {
         let obs = self.world.observation().to_vec();
         let step_index = self.world.t();
         let step = self.world.step(action);
@@ -317,97 +276,73 @@ impl OnlineDqn {
         });
         self.steps += 1;
         self.episode_return += step.reward;
-
-        if self.steps >= self.collect.learning_starts
-            && self.steps.is_multiple_of(self.collect.train_every)
-        {
-            self.gradient_step()?;
-        }
-
-        if self.selection_due() {
-            self.select();
-        }
-
         if !step.truncated {
-            return Ok(None);
+            return None;
         }
         let finished = self.episode_return;
         self.returns.push(finished);
         self.episode += 1;
         self.episode_return = 0.0;
         self.world.reset();
-        Ok(Some(finished))
+        Some(finished)
     }
 
-    /// ALGO: one Adam step on eq. 7 (with the configured stabilisers) over a uniform minibatch of
-    /// the replay buffer.
-    fn gradient_step(&mut self) -> Result<(), BatchError> {
-        self.opt.set_lr(self.learning_rate());
-        let loss = if self.collect.dqn_n_step == 1 {
-            let sample = self.replay.sample(&mut self.rng, self.learner.batch);
-            let mb = Batch::new(&sample, &self.world_cfg, self.learner.reward_scale)?;
-            let q_all = self.q.forward(&mb.obs); // [B, A]
-            self.td.td_errors(
-                &q_all,
-                &mb,
-                |s| self.target.forward(s),
-                |s| self.q.forward(s),
-            )
+    /// A uniform minibatch of the replay buffer as tensors, with each row's bootstrap discount
+    /// when `collect.dqn_n_step` > 1 (n-step windows, [`ReplayBuffer::n_step`]).
+    pub fn sample(
+        &mut self,
+        collect: &CollectConfig,
+        learner: &LearnerConfig,
+        world: &WorldConfig,
+    ) -> Result<(Batch, Option<Vec<f32>>), BatchError> {
+        if collect.dqn_n_step == 1 {
+            let sample = self.replay.sample(&mut self.rng, learner.batch);
+            Ok((Batch::new(&sample, world, learner.reward_scale)?, None))
         } else {
             let (sample, discounts) = self.replay.sample_n_step(
                 &mut self.rng,
-                self.learner.batch,
-                self.collect.dqn_n_step,
-                self.td.gamma,
+                learner.batch,
+                collect.dqn_n_step,
+                learner.gamma,
             );
-            let mb = Batch::new(&sample, &self.world_cfg, self.learner.reward_scale)?;
-            let q_all = self.q.forward(&mb.obs); // [B, A]
-            self.td.td_errors_discounted(
-                &q_all,
-                &mb,
-                &Tensor::from_slice(&discounts),
-                |s| self.target.forward(s),
-                |s| self.q.forward(s),
-            )
+            let batch = Batch::new(&sample, world, learner.reward_scale)?;
+            Ok((batch, Some(discounts)))
         }
-        .mean(None); // eq. 7 (n-step when dqn_n_step > 1) and its stabilisers
-        let clip = self.collect.dqn_grad_clip_norm;
-        if clip > 0.0 {
-            self.opt.backward_step_clip_norm(&loss, clip);
-        } else {
-            self.opt.backward_step(&loss);
-        }
-        self.gradient_steps += 1;
-        if self
-            .gradient_steps
-            .is_multiple_of(self.collect.dqn_target_update_every)
-        {
-            self.target.copy_from(&self.q);
-        }
-        Ok(())
     }
 
-    /// Whether the step just taken is due a selection evaluation: every `dqn_select_every` steps
-    /// once epsilon is at its floor, and the last of `dqn_steps`.
-    fn selection_due(&self) -> bool {
-        let c = &self.collect;
-        c.dqn_select_every > 0
-            && (self.steps == c.dqn_steps
-                || (self.steps >= c.learning_starts + c.eps_decay_steps
-                    && self.steps.is_multiple_of(c.dqn_select_every)))
-    }
-
-    /// Scores the live network's greedy policy and keeps it if it beats the best snapshot (the
-    /// earlier one on a tie).
-    fn select(&mut self) {
-        let ret = self.selector.evaluate(&self.q).ret.mean;
+    /// Scores `q`'s greedy policy (the live network) and keeps it if it beats the best snapshot
+    /// (the earlier one on a tie).
+    pub fn select(&mut self, q: &QNetwork) {
+        let ret = self.selector.evaluate(q).ret.mean;
         let better = self.selected().is_none_or(|(_, best)| ret > best);
         self.evaluations.push((self.steps, ret));
         match (&mut self.best, better) {
             (_, false) => {}
-            (Some(best), true) => best.copy_from(&self.q),
-            (None, true) => self.best = Some(self.q.duplicate()),
+            (Some(best), true) => best.copy_from(q),
+            (None, true) => self.best = Some(q.duplicate()),
         }
+    }
+
+    /// Logs the recent return every [`RECENT_EPISODES`] episodes, after an episode `finished`.
+    pub fn log_progress(&self, finished: Option<f64>, epsilon: f64) {
+        if finished.is_some() && self.returns.len().is_multiple_of(RECENT_EPISODES) {
+            tracing::info!(
+                task = self.task,
+                actor = self.actor,
+                steps = self.steps,
+                episodes = self.returns.len(),
+                epsilon,
+                mean_return = self.recent_return(),
+                "online DQN"
+            );
+        }
+    }
+
+    /// Mean return of the last [`RECENT_EPISODES`] finished episodes (of all of them while fewer
+    /// have finished); `None` before the first.
+    pub fn recent_return(&self) -> Option<f64> {
+        let recent = &self.returns[self.returns.len().saturating_sub(RECENT_EPISODES)..];
+        (!recent.is_empty()).then(|| recent.iter().sum::<f64>() / recent.len() as f64)
     }
 
     /// The step and evaluated return of the snapshot selection has kept so far (the first of the
@@ -425,15 +360,14 @@ impl OnlineDqn {
         &self.evaluations
     }
 
+    /// The best snapshot, when selection has run.
+    pub fn best(&self) -> Option<&QNetwork> {
+        self.best.as_ref()
+    }
+
     /// The replay buffer, from which the paper's offline dataset of this task is sampled.
     pub fn replay_buffer(&self) -> &ReplayBuffer {
         &self.replay
-    }
-
-    /// The agent's Q-network, whose greedy policy ([`QPolicy`]) is the "online DQN" reference:
-    /// the best snapshot when selection is on and has run, else the network being trained.
-    pub fn q_network(&self) -> &QNetwork {
-        self.best.as_ref().unwrap_or(&self.q)
     }
 
     /// Returns of the finished training episodes, in order.
@@ -444,6 +378,208 @@ impl OnlineDqn {
     /// Environment steps taken so far.
     pub fn steps(&self) -> usize {
         self.steps
+    }
+}
+
+/// The rules of the loop that depend only on the step count, shared by [`OnlineDqn`] and the
+/// population.
+pub struct Schedule<'a>(pub &'a CollectConfig);
+
+impl Schedule<'_> {
+    /// The exploration rate of step `step`.
+    pub fn epsilon(&self, step: usize) -> f64 {
+        epsilon(self.0, step)
+    }
+
+    /// The learning rate of the gradient step after `step` environment steps: `dqn_lr`, falling
+    /// linearly to `dqn_lr * dqn_lr_final_fraction` between `learning_starts` and `dqn_steps`.
+    pub fn learning_rate(&self, step: usize) -> f64 {
+        let c = self.0;
+        let span = c.dqn_steps.saturating_sub(c.learning_starts).max(1);
+        let progress = (step.saturating_sub(c.learning_starts) as f64 / span as f64).min(1.0);
+        c.dqn_lr * (1.0 - (1.0 - c.dqn_lr_final_fraction) * progress)
+    }
+
+    /// Whether a gradient step is due once `steps` environment steps are taken.
+    pub fn train_due(&self, steps: usize) -> bool {
+        steps >= self.0.learning_starts && steps.is_multiple_of(self.0.train_every)
+    }
+
+    /// Whether a selection evaluation is due once `steps` environment steps are taken: every
+    /// `dqn_select_every` steps once epsilon is at its floor, and the last of `dqn_steps`.
+    pub fn selection_due(&self, steps: usize) -> bool {
+        let c = self.0;
+        c.dqn_select_every > 0
+            && (steps == c.dqn_steps
+                || (steps >= c.learning_starts + c.eps_decay_steps
+                    && steps.is_multiple_of(c.dqn_select_every)))
+    }
+
+    /// Whether the target network is refreshed after `gradient_steps` gradient steps.
+    pub fn target_due(&self, gradient_steps: usize) -> bool {
+        gradient_steps.is_multiple_of(self.0.dqn_target_update_every)
+    }
+}
+
+/// The TD loss the online agent trains on: eq. 7 with `[collect]`'s stabilisers.
+pub fn td_config(config: &Config) -> TdConfig {
+    TdConfig {
+        gamma: config.learner.gamma,
+        bootstrap: Bootstrap::double_if(config.collect.dqn_double),
+        huber: config.collect.dqn_huber,
+    }
+}
+
+/// One online DQN agent training in one task's world.
+pub struct OnlineDqn {
+    collect: CollectConfig,
+    learner: LearnerConfig,
+    world_cfg: WorldConfig,
+    td: TdConfig,
+    state: AgentState,
+    q: QNetwork,
+    target: QNetwork,
+    opt: FusedAdam,
+    gradient_steps: usize,
+}
+
+impl OnlineDqn {
+    /// An untrained agent for task `task` (index `task_id` in the config's `[[tasks]]`), acting as
+    /// actor `actor`. Its network, world and exploration all derive from `seed`.
+    pub fn new(config: &Config, task: &TaskConfig, task_id: u32, actor: u32, seed: u64) -> Self {
+        let c = &config.collect;
+        let (state, network_seed) = AgentState::new(config, task, task_id, actor, seed);
+        let q = QNetworkConfig::for_world(&config.world, &c.dqn_hidden).init(network_seed);
+        let target = q.duplicate();
+        let opt = FusedAdam::new(q.parameters(), c.dqn_lr);
+        Self {
+            collect: c.clone(),
+            learner: config.learner.clone(),
+            world_cfg: config.world.clone(),
+            td: td_config(config),
+            state,
+            q,
+            target,
+            opt,
+            gradient_steps: 0,
+        }
+    }
+
+    /// Trains for `collect.dqn_steps` environment steps.
+    pub fn train(&mut self) -> Result<(), BatchError> {
+        self.train_steps(self.collect.dqn_steps)
+    }
+
+    /// Trains for `steps` more environment steps, logging the recent return every
+    /// [`RECENT_EPISODES`] episodes.
+    pub fn train_steps(&mut self, steps: usize) -> Result<(), BatchError> {
+        for _ in 0..steps {
+            let finished = self.step()?;
+            self.state.log_progress(finished, self.epsilon());
+        }
+        Ok(())
+    }
+
+    /// The learning rate of the next gradient step (see [`Schedule::learning_rate`]).
+    pub fn learning_rate(&self) -> f64 {
+        Schedule(&self.collect).learning_rate(self.state.steps)
+    }
+
+    /// The exploration rate of the next step.
+    pub fn epsilon(&self) -> f64 {
+        Schedule(&self.collect).epsilon(self.state.steps)
+    }
+
+    /// Mean return of the last [`RECENT_EPISODES`] finished episodes; `None` before the first.
+    pub fn recent_return(&self) -> Option<f64> {
+        self.state.recent_return()
+    }
+
+    /// One environment step (and the gradient step it is due); the episode's return when the step
+    /// ended an episode.
+    pub fn step(&mut self) -> Result<Option<f64>, BatchError> {
+        // ALGO: epsilon-greedy behaviour.
+        let action = match self.state.explore(self.epsilon()) {
+            Some(random) => random,
+            None => QPolicy::new(&self.q).act(self.state.world()),
+        };
+        let finished = self.state.advance(action);
+        if Schedule(&self.collect).train_due(self.state.steps) {
+            self.gradient_step()?;
+        }
+        if Schedule(&self.collect).selection_due(self.state.steps) {
+            self.state.select(&self.q);
+        }
+        Ok(finished)
+    }
+
+    /// ALGO: one Adam step on eq. 7 (with the configured stabilisers) over a uniform minibatch of
+    /// the replay buffer.
+    fn gradient_step(&mut self) -> Result<(), BatchError> {
+        self.opt.set_lr(self.learning_rate());
+        let (mb, discounts) = self
+            .state
+            .sample(&self.collect, &self.learner, &self.world_cfg)?;
+        let q_all = self.q.forward(&mb.obs); // [B, A]
+        let target = |s: &Tensor| self.target.forward(s);
+        let online = |s: &Tensor| self.q.forward(s);
+        let loss = match discounts {
+            None => self.td.td_errors(&q_all, &mb, target, online),
+            Some(d) => {
+                let d = Tensor::from_slice(&d);
+                self.td
+                    .td_errors_discounted(&q_all, &mb, &d, target, online)
+            }
+        }
+        .mean(None); // eq. 7 (n-step when dqn_n_step > 1) and its stabilisers
+        self.opt.zero_grad();
+        loss.backward();
+        let clip = self.collect.dqn_grad_clip_norm;
+        if clip > 0.0 {
+            clip_grad_norm(&self.q.parameters(), clip);
+        }
+        self.opt.step();
+        self.gradient_steps += 1;
+        if Schedule(&self.collect).target_due(self.gradient_steps) {
+            self.target.copy_from(&self.q);
+        }
+        Ok(())
+    }
+
+    /// The step and evaluated return of the snapshot selection has kept so far, if any.
+    pub fn selected(&self) -> Option<(usize, f64)> {
+        self.state.selected()
+    }
+
+    /// Every selection evaluation so far, (environment step, return), in order.
+    pub fn selection_evaluations(&self) -> &[(usize, f64)] {
+        self.state.selection_evaluations()
+    }
+
+    /// The replay buffer, from which the paper's offline dataset of this task is sampled.
+    pub fn replay_buffer(&self) -> &ReplayBuffer {
+        self.state.replay_buffer()
+    }
+
+    /// The agent's Q-network, whose greedy policy ([`QPolicy`]) is the "online DQN" reference:
+    /// the best snapshot when selection is on and has run, else the network being trained.
+    pub fn q_network(&self) -> &QNetwork {
+        self.state.best().unwrap_or(&self.q)
+    }
+
+    /// Returns of the finished training episodes, in order.
+    pub fn episode_returns(&self) -> &[f64] {
+        self.state.episode_returns()
+    }
+
+    /// Environment steps taken so far.
+    pub fn steps(&self) -> usize {
+        self.state.steps
+    }
+
+    /// Its per-agent state: world, replay buffer, returns, selection.
+    pub fn state(&self) -> &AgentState {
+        &self.state
     }
 }
 

@@ -2,6 +2,7 @@
 //! online DQN agent whose replay buffer becomes the paper's datasets.
 
 pub mod dqn_online;
+pub mod dqn_population;
 pub mod q_policy;
 
 pub use uavmeta_world::heuristics;
