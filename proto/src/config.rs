@@ -1673,8 +1673,7 @@ impl Config {
             "a loopback address, or a tls/ endpoint such as tls/0.0.0.0:7447 with tunnel.ca, \
              tunnel.certificate and tunnel.private_key set: any other would let every host that \
              reaches it join the run, unauthenticated and unencrypted. Make the files with \
-             `uavmeta tunnel certs --dir DIR --host NAME --address ADDRESS` (README, \
-             \"Actors on other hosts\")",
+             `uavmeta tunnel certs --dir DIR --host NAME --address ADDRESS` (docs/REMOTE.md)",
         ))
     }
 }

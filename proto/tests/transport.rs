@@ -147,3 +147,77 @@ fn a_failed_atomic_write_leaves_no_temporary_file() {
         "a temporary file was left"
     );
 }
+
+/// The static config file of a service, in the domain's services directory, as iceoryx2 names it:
+/// found by creating the service once (and dropping it, which removes the file again).
+fn service_file(domain: &Domain, service: &str) -> PathBuf {
+    use iceoryx2::prelude::*;
+    let config = transport::iceoryx_config(&domain.0).expect("the domain's config");
+    let dir = PathBuf::from(config.global.service_dir().to_string());
+    let node = transport::node("probe", &domain.0).expect("a node");
+    let name: ServiceName = service.try_into().expect("a service name");
+    let created = node
+        .service_builder(&name)
+        .publish_subscribe::<u64>()
+        .open_or_create()
+        .expect("the service");
+    let files: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .expect("the services directory")
+        .flatten()
+        .map(|e| e.path())
+        .collect();
+    drop((created, node));
+    assert_eq!(
+        files.len(),
+        1,
+        "one service, one static config file: {files:?}"
+    );
+    files[0].clone()
+}
+
+/// What a process killed while creating a service leaves: its static config file empty and still
+/// writable (iceoryx2 makes it read-only once written). iceoryx2 0.10 takes that for a creation in
+/// progress for ever, so every later open fails with `HangsInCreation`; a store killed at that
+/// moment could never be restarted (the chaos test). Once the file is older than any creation
+/// takes, starting a node removes it and the service opens again.
+#[test]
+fn a_service_left_half_created_by_a_killed_process_opens_again() {
+    use iceoryx2::prelude::*;
+    use std::os::unix::fs::PermissionsExt;
+    let domain = Domain::new("halfcreated");
+    let service = "uavmeta/test/acks";
+    let file = service_file(&domain, service);
+    assert!(!file.exists(), "dropping the service keeps its file");
+    let leftover = File::create(&file).expect("the leftover file");
+    leftover
+        .set_permissions(std::fs::Permissions::from_mode(0o600))
+        .expect("writable, as during creation");
+    leftover
+        .set_modified(SystemTime::now() - Duration::from_secs(60))
+        .expect("age the leftover");
+    drop(leftover);
+
+    let open = |node: &Node<ipc::Service>| {
+        let name: ServiceName = service.try_into().expect("a service name");
+        node.service_builder(&name)
+            .publish_subscribe::<u64>()
+            .open_or_create()
+            .map(drop)
+    };
+    // The leftover is as the killed store's was: the service cannot be opened.
+    let config = transport::iceoryx_config(&domain.0).expect("the domain's config");
+    let plain = NodeBuilder::new()
+        .config(&config)
+        .create::<ipc::Service>()
+        .expect("a node that sweeps nothing");
+    let error = open(&plain).expect_err("a half-created service opens");
+    assert!(
+        format!("{error:?}").contains("HangsInCreation"),
+        "{error:?}"
+    );
+    drop(plain);
+
+    let node = transport::node("restarted", &domain.0).expect("a node");
+    assert!(!file.exists(), "the leftover is still there");
+    open(&node).expect("the service opens again");
+}

@@ -451,7 +451,7 @@ fn start_children(
     wait_for_store(run, &mut children[store_index])?;
     for child in children.iter_mut().filter(|c| c.role == Role::Tunnel) {
         supervisor.start(child)?;
-        // What an actor host needs to join (README, Actors on other hosts).
+        // What an actor host needs to join (docs/REMOTE.md).
         tracing::info!(
             endpoint = %config.tunnel.listen,
             "remote actor hosts join with `uavmeta tunnel join --connect <this host's address for \
@@ -832,7 +832,7 @@ fn write_prometheus_yml(run: &RunDir) -> Result<(), LaunchError> {
     let text = format!(
         "# Scrapes every process of uavmeta run {id}. Ports are ephemeral; the launcher rewrites\n\
          # the targets file as processes (re)start: prometheus --config.file={yml}\n\
-         # Grafana: import {dashboard} (README, \"Dashboard\").\n\
+         # Grafana: import {dashboard} (docs/DASHBOARD.md).\n\
          global:\n  scrape_interval: {SCRAPE_INTERVAL_SECONDS}s\nscrape_configs:\n  - job_name: uavmeta\n    honor_labels: true\n    file_sd_configs:\n      - files: ['{targets}']\n",
         id = run.id(),
         yml = run.prometheus_yml().display(),
