@@ -9,9 +9,9 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use uavmeta_proto::config::InnerLoss;
+use uavmeta_proto::config::Loss;
+use uavmeta_proto::method::Method;
 use uavmeta_proto::metrics::{self, Metric, Sample};
-use uavmeta_proto::transport::Method;
 
 mod support;
 use support::{
@@ -805,7 +805,7 @@ fn an_evaluator_restarted_after_the_meta_learner_exited_catches_up_from_the_run_
     // Two w0 checkpoints, and two epochs of each fine-tuned method.
     assert_eq!(
         lines.len(),
-        1 + 2 + Method::fine_tuned(InnerLoss::Cql).len() * 2,
+        1 + 2 + Method::fine_tuned(Loss::Cql).len() * 2,
         "{complete}"
     );
 

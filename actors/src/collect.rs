@@ -23,7 +23,7 @@ use uavmeta_proto::config::{Config, ConfigError, TaskConfig, WorldConfig};
 use uavmeta_proto::dataset::{
     sample_shots, DatasetError, DatasetHeader, DatasetWriter, Transition,
 };
-use uavmeta_proto::transport::Method;
+use uavmeta_proto::method::Method;
 
 use crate::policy::dqn_online::{AgentState, OnlineDqn};
 use crate::policy::dqn_population::{DqnPopulation, MemberSpec};

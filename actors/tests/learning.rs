@@ -16,8 +16,8 @@ use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_actors::rollout::{evaluate, Policy};
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
-use uavmeta_learner::train::{train, Algorithm, EpochRow, EvaluatePolicy, TrainOptions};
-use uavmeta_proto::config::Config;
+use uavmeta_learner::train::{train, EpochRow, EvaluatePolicy, TrainOptions};
+use uavmeta_proto::config::{Config, Loss};
 use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::stats::PolicyMetrics;
 
@@ -227,7 +227,7 @@ fn cql_on_500_shots_of_the_agents_replay_comes_within_10_percent_of_the_agent() 
     let config =
         Config::load(DEFAULT_CONFIG.as_ref(), &["learner.eval_episodes=5".into()]).unwrap();
     let agent = trained_agent();
-    let (q, _) = train_offline(&config, &agent.dataset, Algorithm::Cql);
+    let (q, _) = train_offline(&config, &agent.dataset, Loss::Cql);
     let task = config.task("lambda-300").unwrap();
     let cql = Evaluator::new(&config.world, task, EVAL_EPISODES, EVAL_SEED).evaluate(&q);
     eprintln!(
@@ -269,7 +269,7 @@ fn stalest_dataset(config: &Config, transitions: usize) -> Vec<Transition> {
 fn train_offline(
     config: &Config,
     data: &[Transition],
-    algorithm: Algorithm,
+    algorithm: Loss,
 ) -> (QNetwork, Vec<EpochRow>) {
     let task = config.task("lambda-300").unwrap();
     let batch = Batch::new(data, &config.world, config.learner.reward_scale).unwrap();
@@ -302,7 +302,7 @@ fn cql_on_stalest() -> &'static CqlRun {
     RUN.get_or_init(|| {
         let config = offline_config();
         let task = config.task("lambda-300").unwrap();
-        let (q, rows) = train_offline(&config, &stalest_dataset(&config, 2000), Algorithm::Cql);
+        let (q, rows) = train_offline(&config, &stalest_dataset(&config, 2000), Loss::Cql);
         let policy = Evaluator::new(&config.world, task, EVAL_EPISODES, EVAL_SEED).evaluate(&q);
         CqlRun {
             policy,
@@ -346,7 +346,7 @@ fn offline_dqn_overestimates_and_cql_does_not() {
     single_threaded();
     let config = offline_config();
     let task = config.task("lambda-300").unwrap();
-    let (dqn_q, dqn_rows) = train_offline(&config, &stalest_dataset(&config, 2000), Algorithm::Dqn);
+    let (dqn_q, dqn_rows) = train_offline(&config, &stalest_dataset(&config, 2000), Loss::Dqn);
     let dqn_ret = Evaluator::new(&config.world, task, EVAL_EPISODES, EVAL_SEED)
         .evaluate(&dqn_q)
         .ret

@@ -17,8 +17,8 @@ use tch::nn::OptimizerConfig;
 use tch::{nn, Kind, Reduction, Tensor};
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
-use uavmeta_learner::train::{train, Algorithm, EvaluatePolicy, TrainOptions};
-use uavmeta_proto::config::Config;
+use uavmeta_learner::train::{train, EvaluatePolicy, TrainOptions};
+use uavmeta_proto::config::{Config, Loss};
 use uavmeta_proto::stats::PolicyMetrics;
 
 const OBS: i64 = 12;
@@ -72,7 +72,7 @@ fn bench(c: &mut Criterion) {
                 let mut q =
                     QNetworkConfig::new(OBS as usize, ACTIONS as usize, &[256, 256]).init(0);
                 let opts = TrainOptions {
-                    algorithm: Algorithm::Cql,
+                    algorithm: Loss::Cql,
                     config: &cfg,
                     seed: 0,
                     out_dir: None,

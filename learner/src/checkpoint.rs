@@ -24,7 +24,7 @@ use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 use tch::Tensor;
 use uavmeta_proto::config::Config;
-use uavmeta_proto::transport::Method;
+use uavmeta_proto::method::Method;
 
 use crate::qnet::{QNetwork, QNetworkConfig};
 

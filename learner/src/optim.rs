@@ -144,8 +144,8 @@ impl FusedAdam {
         );
         tch::no_grad(|| {
             for (i, (m, v)) in moments.into_iter().enumerate() {
-                let _ = self.exp_avgs[i].copy_(&m);
-                let _ = self.exp_avg_sqs[i].copy_(&v);
+                self.exp_avgs[i].copy_(&m);
+                self.exp_avg_sqs[i].copy_(&v);
                 let _ = self.steps[i].fill_(steps as f64);
             }
         });

@@ -8,9 +8,7 @@
 //! lives in `uavmeta-actors`, which implements it) and one row is written: to a table on stderr,
 //! to `train.csv` in the output directory, and to the returned list.
 
-use std::fmt;
 use std::path::{Path, PathBuf};
-use std::str::FromStr;
 use std::time::Instant;
 
 use indicatif::ProgressBar;
@@ -18,7 +16,7 @@ use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use tch::Tensor;
-use uavmeta_proto::config::{Config, LearnerConfig};
+use uavmeta_proto::config::{Config, LearnerConfig, Loss};
 use uavmeta_proto::stats::PolicyMetrics;
 use uavmeta_proto::transport;
 
@@ -33,35 +31,6 @@ use crate::qnet::QNetwork;
 /// Measures the greedy policy of a Q-network on the true environment.
 pub trait EvaluatePolicy {
     fn evaluate(&mut self, q: &QNetwork) -> PolicyMetrics;
-}
-
-/// The offline loss.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Algorithm {
-    /// Paper eq. 8.
-    Cql,
-    /// Paper eq. 7 on a fixed dataset: the baseline that overestimates.
-    Dqn,
-}
-
-impl fmt::Display for Algorithm {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(match self {
-            Algorithm::Cql => "cql",
-            Algorithm::Dqn => "dqn",
-        })
-    }
-}
-
-impl FromStr for Algorithm {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "cql" => Ok(Algorithm::Cql),
-            "dqn" => Ok(Algorithm::Dqn),
-            _ => Err(format!("`{s}`: expected `cql` or `dqn`")),
-        }
-    }
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -80,7 +49,7 @@ pub enum TrainError {
 
 /// One run's settings beyond the config's `[learner]` section.
 pub struct TrainOptions<'a> {
-    pub algorithm: Algorithm,
+    pub algorithm: Loss,
     /// The run's config: `[learner]` drives training, the whole is saved beside checkpoints.
     pub config: &'a Config,
     /// Seed of the minibatch order.
@@ -184,7 +153,7 @@ pub struct StepFigures {
 /// the data, a hard target update every `learner.target_update_every` steps. [`train`] drives
 /// it epoch by epoch; multi-task pretraining drives it on the union of tasks' shots.
 pub struct OfflineTrainer {
-    algorithm: Algorithm,
+    algorithm: Loss,
     alpha: f64,
     td: TdConfig,
     target_update_every: usize,
@@ -196,13 +165,7 @@ pub struct OfflineTrainer {
 
 impl OfflineTrainer {
     /// A trainer of `q` on `rows` transitions with `config`'s `[learner]` settings.
-    pub fn new(
-        q: &QNetwork,
-        rows: usize,
-        algorithm: Algorithm,
-        config: &Config,
-        seed: u64,
-    ) -> Self {
+    pub fn new(q: &QNetwork, rows: usize, algorithm: Loss, config: &Config, seed: u64) -> Self {
         let cfg = &config.learner;
         Self {
             algorithm,
@@ -228,11 +191,11 @@ impl OfflineTrainer {
             .td_errors(&q_all, &mb, |s| self.target.forward(s), |s| q.forward(s))
             .mean(None); // eq. 7
         let (loss, conservative) = match self.algorithm {
-            Algorithm::Cql => {
+            Loss::Cql => {
                 let l = CqlLoss::from_td(&q_all, td_loss.shallow_clone(), &mb, self.alpha); // eq. 8
                 (l.total, l.conservative)
             }
-            Algorithm::Dqn => (
+            Loss::Dqn => (
                 td_loss.shallow_clone(),
                 tch::no_grad(|| conservative_term(&q_all, &mb)),
             ),

@@ -7,8 +7,8 @@ use tch::Tensor;
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
-use uavmeta_learner::train::{train, Algorithm, EvaluatePolicy, TrainOptions};
-use uavmeta_proto::config::Config;
+use uavmeta_learner::train::{train, EvaluatePolicy, TrainOptions};
+use uavmeta_proto::config::{Config, Loss};
 use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 
@@ -82,7 +82,7 @@ fn cql_learns_the_bandit_and_writes_its_outputs() {
     let run = |out: Option<&std::path::Path>| {
         let mut q = QNetworkConfig::new(3, 5, &cfg.learner.hidden).init(0);
         let opts = TrainOptions {
-            algorithm: Algorithm::Cql,
+            algorithm: Loss::Cql,
             config: &cfg,
             seed: 4,
             out_dir: out,

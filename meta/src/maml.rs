@@ -86,7 +86,7 @@ use uavmeta_learner::cql::{conservative_rows, eq8};
 use uavmeta_learner::dqn::TdConfig;
 use uavmeta_learner::optim::FusedAdam;
 use uavmeta_learner::qnet::QNetwork;
-use uavmeta_proto::config::{Config, InnerLoss};
+use uavmeta_proto::config::{Config, Loss};
 use uavmeta_proto::transport;
 
 use crate::MetaError;
@@ -95,7 +95,7 @@ use crate::MetaError;
 #[derive(Debug, Clone, PartialEq)]
 pub struct MamlConfig {
     /// CQL-MAML (eq. 8) or DQN-MAML (eq. 7).
-    pub inner_loss: InnerLoss,
+    pub inner_loss: Loss,
     /// Discount and TD options shared with offline training (`[learner]`), Huber also with
     /// `meta.huber`.
     pub td: TdConfig,
@@ -201,9 +201,9 @@ impl MamlConfig {
         ));
         match self.inner_loss {
             // eq. 7: mean (r + gamma max_a' Qhat(s', a') - Q(s, a))^2
-            InnerLoss::Dqn => td,
+            Loss::Dqn => td,
             // eq. 8: 0.5 * eq. 7 + alpha * mean(logsumexp_a Q(s, a) - Q(s, a_data))
-            InnerLoss::Cql => eq8(&td, &mean(conservative_rows(&q, batch)), self.alpha),
+            Loss::Cql => eq8(&td, &mean(conservative_rows(&q, batch)), self.alpha),
         }
     }
 

@@ -13,12 +13,12 @@ use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::qnet::QNetwork;
-use uavmeta_learner::train::{train, Algorithm, EpochRow, EvaluatePolicy, TrainOptions};
-use uavmeta_proto::config::{Config, InnerLoss, TaskConfig};
+use uavmeta_learner::train::{train, EpochRow, EvaluatePolicy, TrainOptions};
+use uavmeta_proto::config::{Config, Loss, TaskConfig};
 use uavmeta_proto::dataset::DatasetReader;
+use uavmeta_proto::method::Method;
 
-use crate::meta_train::algorithm_name;
-use crate::{pretrain, MetaError};
+use crate::MetaError;
 
 /// The settings of one fine-tuning run, shared by meta-test and the baselines it is compared to.
 pub struct FineTune<'a> {
@@ -62,20 +62,17 @@ pub fn load_shots(
     })
 }
 
-/// The loss that fine-tunes an init written by meta-train or by multi-task pretraining.
-pub fn fine_tune_algorithm(init: &Path, algorithm: &str) -> Result<Algorithm, MetaError> {
-    [
-        (algorithm_name(InnerLoss::Cql), Algorithm::Cql),
-        (algorithm_name(InnerLoss::Dqn), Algorithm::Dqn),
-        (pretrain::ALGORITHM, Algorithm::Cql),
-    ]
-    .into_iter()
-    .find(|(name, _)| *name == algorithm)
-    .map(|(_, fine_tune)| fine_tune)
-    .ok_or_else(|| MetaError::NotMetaTrained {
-        path: init.to_path_buf(),
-        algorithm: algorithm.to_string(),
-    })
+/// The loss that fine-tunes an init written by meta-train or by multi-task pretraining: that of
+/// the method its checkpoint names.
+pub fn fine_tune_algorithm(init: &Path, algorithm: &str) -> Result<Loss, MetaError> {
+    Method::ALL
+        .into_iter()
+        .find(|m| m.init().is_some() && m.name() == algorithm)
+        .and_then(Method::loss)
+        .ok_or_else(|| MetaError::NotMetaTrained {
+            path: init.to_path_buf(),
+            algorithm: algorithm.to_string(),
+        })
 }
 
 /// Offline training of `q` on `shots` with the config's settings for `epochs` epochs, scored by
@@ -84,7 +81,7 @@ pub fn fine_tune_algorithm(init: &Path, algorithm: &str) -> Result<Algorithm, Me
 pub fn fine_tune(
     q: &mut QNetwork,
     shots: &Batch,
-    algorithm: Algorithm,
+    algorithm: Loss,
     run: &FineTune,
     evaluator: &mut dyn EvaluatePolicy,
 ) -> Result<Vec<EpochRow>, MetaError> {

@@ -30,9 +30,9 @@ use uavmeta_learner::checkpoint;
 use uavmeta_learner::progress::{progress_bar, CsvLog};
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::EvaluatePolicy;
-use uavmeta_proto::config::{Config, InnerLoss, MetaConfig, TaskConfig, TaskRole};
+use uavmeta_proto::config::{Config, MetaConfig, TaskConfig, TaskRole};
 use uavmeta_proto::dataset::{self, DatasetReader};
-use uavmeta_proto::transport::Method;
+use uavmeta_proto::method::Method;
 
 use crate::maml::{Maml, MamlConfig, MetaEpoch, MetaTask};
 use crate::{create_dir, write_file, MetaError};
@@ -115,12 +115,6 @@ impl MetaTrainHook for CheckpointFiles<'_> {
     }
 }
 
-/// The checkpoint algorithm name of a MAML run: `cql-maml` or `dqn-maml`, the name of the method
-/// its w0 becomes once fine-tuned.
-pub fn algorithm_name(inner_loss: InnerLoss) -> &'static str {
-    Method::maml(inner_loss).name()
-}
-
 /// The dataset file of `task` in a datasets directory.
 pub fn dataset_path(datasets: &Path, task: &str) -> PathBuf {
     datasets.join(format!("{task}.{}", dataset::FILE_EXTENSION))
@@ -197,7 +191,7 @@ pub fn meta_train_with<H: MetaTrainHook>(
         .iter()
         .map(|t| Evaluator::from_config(config, t))
         .collect();
-    let algorithm = algorithm_name(meta.inner_loss);
+    let algorithm = Method::maml(meta.inner_loss).name();
 
     let bar = progress_bar(
         opts.progress,

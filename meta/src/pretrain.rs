@@ -10,13 +10,10 @@
 
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
-use uavmeta_learner::train::{Algorithm, OfflineTrainer};
-use uavmeta_proto::config::Config;
+use uavmeta_learner::train::OfflineTrainer;
+use uavmeta_proto::config::{Config, Loss};
 
 use crate::maml::{MamlConfig, MetaTask};
-
-/// The checkpoint algorithm name of a pretrained init; it is fine-tuned with CQL.
-pub const ALGORITHM: &str = "cql-pretrain";
 
 /// A network trained with CQL on the union of `tasks`' shots, from the init of `seed`. After each
 /// meta-epoch's worth of steps it asks `keep_going` (with the count done), and returns `None`
@@ -33,7 +30,7 @@ pub fn pretrain<E>(
     budget.learner.batch = tasks.len() * (maml.shots + maml.query_shots);
     let w = &config.world;
     let mut q = QNetworkConfig::for_world(w, &config.learner.hidden).init(seed);
-    let mut trainer = OfflineTrainer::new(&q, union.len(), Algorithm::Cql, &budget, seed);
+    let mut trainer = OfflineTrainer::new(&q, union.len(), Loss::Cql, &budget, seed);
     for epoch in 1..=config.meta.meta_epochs {
         for _ in 0..maml.outer_steps(tasks) {
             trainer.step(&mut q, &union);

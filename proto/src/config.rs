@@ -470,12 +470,35 @@ impl Default for LearnerConfig {
     }
 }
 
-/// The inner-loop loss of MAML.
+/// A Q-learning loss: MAML's inner loss (`meta.inner_loss`), offline training's (`uavmeta train
+/// --algo`) and each fine-tuned method's.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
-pub enum InnerLoss {
+pub enum Loss {
+    /// Paper eq. 8.
     Cql,
+    /// Paper eq. 7 on a fixed dataset: the baseline that overestimates.
     Dqn,
+}
+
+impl fmt::Display for Loss {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Loss::Cql => "cql",
+            Loss::Dqn => "dqn",
+        })
+    }
+}
+
+impl std::str::FromStr for Loss {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "cql" => Ok(Loss::Cql),
+            "dqn" => Ok(Loss::Dqn),
+            _ => Err(format!("`{s}`: expected `cql` or `dqn`")),
+        }
+    }
 }
 
 /// SPEC section 5: MAML over CQL (Algorithm 4).
@@ -511,7 +534,7 @@ pub struct MetaConfig {
     /// `eta_inner`.
     pub learn_inner_lr: bool,
     /// CQL-MAML (the paper's method) or DQN-MAML (its baseline).
-    pub inner_loss: InnerLoss,
+    pub inner_loss: Loss,
     /// Huber instead of squared TD error in MAML's losses (eqs. 14-15) even when fine-tuning keeps
     /// the square; `learner.huber` turns it on for both. Off to match eq. 7.
     pub huber: bool,
@@ -550,7 +573,7 @@ impl Default for MetaConfig {
             eta_outer_final_fraction: 1.0,
             first_order: false,
             learn_inner_lr: false,
-            inner_loss: InnerLoss::Cql,
+            inner_loss: Loss::Cql,
             huber: false,
             checkpoint_every: 10,
             target_update_every: 1,

@@ -4,6 +4,8 @@
 //! - [`config`]: the experiment configuration (SPEC section 7), read from TOML with every SPEC
 //!   default, `--set` overrides and validation errors that name the file, key and value.
 //! - [`dataset`]: the on-disk dataset format that collectors and the store write and learners read.
+//! - [`method`]: [`method::Method`], which method made a checkpoint or a row: its name, label,
+//!   loss and init.
 //! - [`stats`]: episode metrics (SPEC section 1) and their Monte-Carlo summaries.
 //! - [`transport`]: the zero-copy payload types and iceoryx2 service names shared by the actor,
 //!   store, meta-learner and evaluator processes, with the schema version they must agree on,
@@ -24,6 +26,7 @@
 
 pub mod config;
 pub mod dataset;
+pub mod method;
 #[cfg(feature = "ipc")]
 pub mod metrics;
 #[cfg(feature = "ipc")]

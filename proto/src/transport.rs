@@ -62,8 +62,9 @@ use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
 use iceoryx2_bb_posix::signal::SignalHandler;
 
-use crate::config::{Config, InnerLoss, RunConfig, TaskConfig, MAX_DEVICES};
+use crate::config::{Config, RunConfig, TaskConfig, MAX_DEVICES};
 use crate::dataset::Transition;
+use crate::method::Method;
 
 /// The version of every payload below and of the service settings; bump it on any change.
 pub const SCHEMA_VERSION: u32 = 3;
@@ -359,84 +360,6 @@ pub struct StoreAck {
     /// Explicit padding, so the layout has no uninitialised bytes.
     pub reserved: u32,
     pub next_seq: u64,
-}
-
-/// The method that trained a checkpoint; `u32` on the wire.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub enum Method {
-    /// MAML's meta-initialisation w0 after a meta-epoch (Algorithm 4), not adapted to a task.
-    MetaInit,
-    /// w0 fine-tuned with CQL on the few shots of an unseen task: the paper's method.
-    CqlMaml,
-    /// CQL from a random initialisation on the same shots: the paper's main baseline.
-    Cql,
-    /// CQL pretrained on the union of the meta-train tasks' shots, fine-tuned like CQL-MAML: the
-    /// multi-task baseline that shows what MAML adds.
-    CqlPretrain,
-    /// The online DQN agent that made a task's dataset (one checkpoint, epoch 1): the paper's
-    /// "online" reference line.
-    OnlineDqn,
-    /// A DQN-MAML w0 (`meta.inner_loss = "dqn"`) fine-tuned with offline DQN (eq. 7): the paper's
-    /// ablation without the conservative term.
-    DqnMaml,
-    /// Offline DQN from a random initialisation on the same shots: DQN-MAML's baseline.
-    Dqn,
-}
-
-impl Method {
-    pub const ALL: [Method; 7] = [
-        Method::MetaInit,
-        Method::CqlMaml,
-        Method::Cql,
-        Method::CqlPretrain,
-        Method::OnlineDqn,
-        Method::DqnMaml,
-        Method::Dqn,
-    ];
-
-    /// A MAML init of this inner loss, fine-tuned with the same loss.
-    pub fn maml(inner_loss: InnerLoss) -> Method {
-        match inner_loss {
-            InnerLoss::Cql => Method::CqlMaml,
-            InnerLoss::Dqn => Method::DqnMaml,
-        }
-    }
-
-    /// The methods a meta-learner fine-tunes on each meta-test task, in order: the MAML init,
-    /// the same loss from a random init and, for CQL, the multi-task pretrained init.
-    pub fn fine_tuned(inner_loss: InnerLoss) -> &'static [Method] {
-        match inner_loss {
-            InnerLoss::Cql => &[Method::CqlMaml, Method::Cql, Method::CqlPretrain],
-            InnerLoss::Dqn => &[Method::DqnMaml, Method::Dqn],
-        }
-    }
-
-    /// The name used in file paths, metric labels and CSV rows.
-    pub fn name(self) -> &'static str {
-        match self {
-            Method::MetaInit => "maml-init",
-            Method::CqlMaml => "cql-maml",
-            Method::Cql => "cql",
-            Method::CqlPretrain => "cql-pretrain",
-            Method::OnlineDqn => "online-dqn",
-            Method::DqnMaml => "dqn-maml",
-            Method::Dqn => "dqn",
-        }
-    }
-
-    pub fn code(self) -> u32 {
-        self as u32
-    }
-
-    pub fn from_code(code: u32) -> Option<Method> {
-        Self::ALL.into_iter().find(|m| m.code() == code)
-    }
-}
-
-impl fmt::Display for Method {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.name())
-    }
 }
 
 /// A checkpoint is on disk (written atomically) at [`RunDir::checkpoint`] of these fields.

@@ -64,12 +64,13 @@ use std::time::{Duration, Instant};
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
 use rayon::prelude::*;
 use uavmeta_actors::policy::heuristics::reference_metrics;
-use uavmeta_proto::config::{Config, InnerLoss, TaskConfig, TaskRole};
+use uavmeta_proto::config::{Config, Loss, TaskConfig, TaskRole};
 use uavmeta_proto::stats::PolicyMetrics;
 
 use claims::Claim;
-use runs::{meta_train_tasks, InitKey, InitKind, Method, Plan, SeedResult};
+use runs::{meta_train_tasks, InitKey, Plan, SeedResult};
 use uavmeta_meta::{create_dir, write_file};
+use uavmeta_proto::method::{Init, Method};
 
 /// One of the paper's experiments.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -333,7 +334,7 @@ fn plan(config: &Config, experiments: &[Experiment]) -> Plan {
         match e {
             Experiment::MetaTraining => {
                 let key = InitKey {
-                    kind: InitKind::Maml(InnerLoss::Cql),
+                    kind: Init::Maml(Loss::Cql),
                     tasks: r.meta_tasks,
                 };
                 plan.init(config, key, e);
@@ -343,7 +344,7 @@ fn plan(config: &Config, experiments: &[Experiment]) -> Plan {
                 }
             }
             Experiment::Convergence => {
-                for method in Method::ALL {
+                for method in Method::FINE_TUNED {
                     let key = unseen(method, r.main_shots, r.meta_tasks);
                     plan.run(config, key, r.convergence_epochs, false, e);
                 }

@@ -19,106 +19,25 @@ use uavmeta_actors::policy::q_policy::{Evaluator, QPolicy};
 use uavmeta_actors::rollout::{record_trajectory, Trajectory};
 use uavmeta_learner::checkpoint::{self, CheckpointPaths};
 use uavmeta_learner::qnet::QNetworkConfig;
-use uavmeta_learner::train::{Algorithm, EpochRow, EvaluatePolicy};
-use uavmeta_proto::config::{Config, InnerLoss, TaskConfig, TaskRole};
+use uavmeta_learner::train::{EpochRow, EvaluatePolicy};
+use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
 use uavmeta_proto::dataset::DatasetReader;
 use uavmeta_proto::stats::PolicyMetrics;
 
 use super::Experiment;
 use uavmeta_meta::meta_test::{fine_tune, load_shots, FineTune};
 use uavmeta_meta::meta_train::{
-    algorithm_name, dataset_path, load_tasks, meta_train, Evaluation, MetaTrainOptions,
+    dataset_path, load_tasks, meta_train, Evaluation, MetaTrainOptions,
 };
 use uavmeta_meta::{create_dir, pretrain, MetaError};
+use uavmeta_proto::method::{Init, Method};
 
 use crate::ReproduceError;
-
-/// The paper's four methods on an unseen task, and the multi-task baseline CQL-pretrain.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Method {
-    CqlMaml,
-    Cql,
-    CqlPretrain,
-    Dqn,
-    DqnMaml,
-}
-
-impl Method {
-    pub const ALL: [Method; 5] = [
-        Method::CqlMaml,
-        Method::CqlPretrain,
-        Method::Cql,
-        Method::Dqn,
-        Method::DqnMaml,
-    ];
-
-    /// The CQL fine-tunings from the three inits every figure that compares inits shows.
-    pub const CQL_INITS: [Method; 3] = [Method::CqlMaml, Method::CqlPretrain, Method::Cql];
-
-    /// The name in CSV files and checkpoints.
-    pub fn name(self) -> &'static str {
-        match self {
-            Method::CqlMaml => algorithm_name(InnerLoss::Cql),
-            Method::Cql => "cql",
-            Method::CqlPretrain => pretrain::ALGORITHM,
-            Method::Dqn => "dqn",
-            Method::DqnMaml => algorithm_name(InnerLoss::Dqn),
-        }
-    }
-
-    /// The name in figures and tables, as the paper writes it.
-    pub fn label(self) -> &'static str {
-        match self {
-            Method::CqlMaml => "CQL-MAML",
-            Method::Cql => "CQL",
-            Method::CqlPretrain => "CQL-pretrain",
-            Method::Dqn => "DQN",
-            Method::DqnMaml => "DQN-MAML",
-        }
-    }
-
-    /// The fine-tuning loss.
-    fn algorithm(self) -> Algorithm {
-        match self {
-            Method::CqlMaml | Method::Cql | Method::CqlPretrain => Algorithm::Cql,
-            Method::Dqn | Method::DqnMaml => Algorithm::Dqn,
-        }
-    }
-
-    /// How its init is trained on the meta-train tasks; `None` for a random init.
-    pub fn init_kind(self) -> Option<InitKind> {
-        match self {
-            Method::CqlMaml => Some(InitKind::Maml(InnerLoss::Cql)),
-            Method::DqnMaml => Some(InitKind::Maml(InnerLoss::Dqn)),
-            Method::CqlPretrain => Some(InitKind::Pretrain),
-            Method::Cql | Method::Dqn => None,
-        }
-    }
-}
-
-/// How an init is trained on the meta-train tasks.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum InitKind {
-    /// MAML with this inner loss.
-    Maml(InnerLoss),
-    /// CQL on the union of the tasks' shots (`uavmeta_meta::pretrain`).
-    Pretrain,
-}
-
-impl InitKind {
-    /// The checkpoint algorithm name, also its cache directory's prefix.
-    fn name(self) -> &'static str {
-        match self {
-            InitKind::Maml(inner) => algorithm_name(inner),
-            InitKind::Pretrain => pretrain::ALGORITHM,
-        }
-    }
-}
 
 /// A trained init: how, and on how many meta-train tasks (the first n).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct InitKey {
-    pub kind: InitKind,
+    pub kind: Init,
     pub tasks: usize,
 }
 
@@ -135,7 +54,7 @@ pub struct RunKey {
 
 impl RunKey {
     pub fn init(&self) -> Option<InitKey> {
-        self.method.init_kind().map(|kind| InitKey {
+        self.method.init().map(|kind| InitKey {
             kind,
             tasks: self.meta_tasks,
         })
@@ -335,7 +254,7 @@ fn collection_config(config: &Config, seed: u64) -> Config {
 fn meta_config(config: &Config, key: InitKey, seed: u64) -> Config {
     let mut c = collection_config(config, seed);
     c.meta = config.meta.clone();
-    if let InitKind::Maml(inner) = key.kind {
+    if let Init::Maml(inner) = key.kind {
         c.meta.inner_loss = inner;
     }
     c.meta.eval_every = config.reproduce.meta_eval_every;
@@ -481,7 +400,9 @@ pub fn fine_tune_run(
     let rows = fine_tune(
         &mut q,
         &shots,
-        key.method.algorithm(),
+        key.method
+            .loss()
+            .expect("every run of the plan is a fine-tuned method"),
         &FineTune {
             config: &run_config,
             task,
@@ -535,13 +456,19 @@ fn ensure_w0(
     let meta = meta_config(config, key, seed);
     let out = dir.join(format!("{}-tasks-{}", key.kind.name(), key.tasks));
     let w0 = out.join("w0");
-    if key.kind == InitKind::Pretrain {
+    if key.kind == Init::Pretrain {
         if !saved_config_matches(&CheckpointPaths::new(&w0).config, &meta) {
             let (_, tasks) = load_tasks(&meta, datasets, seed)?;
             let q = pretrain::pretrain(&meta, &tasks, seed, |_| Ok::<_, ReproduceError>(true))?
                 .expect("a pretraining never told to stop finishes");
-            checkpoint::save(&w0, &q, pretrain::ALGORITHM, meta.meta.meta_epochs, &meta)
-                .map_err(MetaError::from)?;
+            checkpoint::save(
+                &w0,
+                &q,
+                Method::CqlPretrain.name(),
+                meta.meta.meta_epochs,
+                &meta,
+            )
+            .map_err(MetaError::from)?;
         }
         return Ok((w0, MetaCurve::default()));
     }

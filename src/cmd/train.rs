@@ -8,8 +8,9 @@ use clap::Args;
 use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::qnet::QNetworkConfig;
-use uavmeta_learner::train::{train, Algorithm, TrainOptions};
+use uavmeta_learner::train::{train, TrainOptions};
 use uavmeta_meta::meta_test::load_shots;
+use uavmeta_proto::config::Loss;
 
 use super::common::{ConfigArgs, TaskArgs};
 
@@ -20,8 +21,8 @@ pub struct TrainArgs {
     #[command(flatten)]
     task: TaskArgs,
     /// The offline loss: cql (eq. 8) or dqn (eq. 7).
-    #[arg(long, value_parser = |s: &str| s.parse::<Algorithm>())]
-    algo: Algorithm,
+    #[arg(long, value_parser = |s: &str| s.parse::<Loss>())]
+    algo: Loss,
     /// The task's dataset file.
     #[arg(long)]
     dataset: PathBuf,

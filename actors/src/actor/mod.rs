@@ -26,11 +26,12 @@ use iceoryx2::prelude::*;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_proto::config::{Config, ConfigError, TaskConfig};
 use uavmeta_proto::dataset::Transition;
+use uavmeta_proto::method::Method;
 use uavmeta_proto::metrics::MetricsError;
 use uavmeta_proto::process::Process;
 use uavmeta_proto::stats::EpisodeMetrics;
 use uavmeta_proto::transport::{
-    self, Method, RunDir, TransitionPublisher, TransitionSlot, TransportError, SCHEMA_VERSION,
+    self, RunDir, TransitionPublisher, TransitionSlot, TransportError, SCHEMA_VERSION,
 };
 
 use crate::collect::{online_dqn_dataset, CollectError};

@@ -21,12 +21,11 @@ use std::time::{Duration, Instant};
 use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
+use uavmeta_proto::method::Method;
 use uavmeta_proto::metrics::MetricsError;
 use uavmeta_proto::process::Process;
 use uavmeta_proto::stats::PolicyMetrics;
-use uavmeta_proto::transport::{
-    self, CheckpointReady, Method, RunDir, TransportError, SCHEMA_VERSION,
-};
+use uavmeta_proto::transport::{self, CheckpointReady, RunDir, TransportError, SCHEMA_VERSION};
 
 use crate::policy::q_policy::Evaluator;
 

@@ -19,8 +19,9 @@ use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
 use uavmeta_actors::actor::Phase;
 use uavmeta_learner::store;
 use uavmeta_proto::config::{Config, TaskRole};
+use uavmeta_proto::method::Method;
 use uavmeta_proto::metrics::{self, Metric, Sample};
-use uavmeta_proto::transport::{Method, RunDir};
+use uavmeta_proto::transport::RunDir;
 
 use crate::meta_learner;
 

@@ -43,12 +43,13 @@ use uavmeta_actors::evaluator::{self, EvaluationRow};
 use uavmeta_actors::policy::heuristics::{reference_metrics, PolicySpec, REFERENCES};
 use uavmeta_learner::store;
 use uavmeta_proto::config::{Config, TaskRole};
+use uavmeta_proto::method::Method;
 use uavmeta_proto::metrics::{
     parse, scrape, store::TRANSITIONS_STORED, sum, wait_for_port, MetricsError, MetricsServer,
 };
 use uavmeta_proto::transport::{
-    self, write_atomic, CheckpointReady, DatasetReady, Method, RemoteHost, RunDir, ServiceNames,
-    Shutdown, TransportError, SCHEMA_VERSION,
+    self, write_atomic, CheckpointReady, DatasetReady, RemoteHost, RunDir, ServiceNames, Shutdown,
+    TransportError, SCHEMA_VERSION,
 };
 
 use crate::meta_learner;

@@ -36,13 +36,14 @@ use iceoryx2::prelude::*;
 use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
-use uavmeta_learner::train::{Algorithm, EvaluatePolicy};
-use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
+use uavmeta_learner::train::EvaluatePolicy;
+use uavmeta_proto::config::{Config, Loss, TaskConfig, TaskRole};
+use uavmeta_proto::method::Method;
 use uavmeta_proto::metrics::MetricsError;
 use uavmeta_proto::process::Process;
 use uavmeta_proto::stats::PolicyMetrics;
 use uavmeta_proto::transport::{
-    self, CheckpointReady, DatasetReady, Method, RunDir, TransportError, SCHEMA_VERSION,
+    self, CheckpointReady, DatasetReady, RunDir, TransportError, SCHEMA_VERSION,
 };
 
 use crate::meta_test::{fine_tune, load_shots, meta_test_with, FineTune, MetaTestOptions};
@@ -202,9 +203,9 @@ impl MetaTest<'_> {
                             save_init(
                                 run,
                                 config,
-                                pretrain::ALGORITHM,
+                                Method::CqlPretrain.name(),
                                 &q,
-                                pretrain::ALGORITHM,
+                                Method::CqlPretrain.name(),
                                 epochs,
                             )?;
                             pretrained = Some(q);
@@ -326,8 +327,8 @@ impl MetaTest<'_> {
                         .init(self.seed.wrapping_add(1)),
                 };
                 let algorithm = match method {
-                    Method::Dqn => Algorithm::Dqn,
-                    _ => Algorithm::Cql,
+                    Method::Dqn => Loss::Dqn,
+                    _ => Loss::Cql,
                 };
                 let shots = load_shots(config, task, &dataset, shots, self.seed)?;
                 fine_tune(&mut q, &shots, algorithm, &settings, &mut hook)?

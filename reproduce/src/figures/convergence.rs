@@ -24,7 +24,7 @@ pub(super) fn convergence(ctx: &Context, dir: &Path) -> Result<Section, Reproduc
     let r = &c.reproduce;
     let refs = ctx.unseen_refs();
     let mut csv = format!("method,{CURVE_COLUMNS}\n");
-    let runs: Vec<(Method, Vec<Vec<f64>>)> = Method::ALL
+    let runs: Vec<(Method, Vec<Vec<f64>>)> = Method::FINE_TUNED
         .into_iter()
         .map(|method| {
             let key = unseen_key(c, method, r.main_shots, r.meta_tasks);

@@ -9,7 +9,7 @@ use uavmeta_meta::meta_train::Evaluation;
 pub(super) fn meta_training(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let r = &ctx.config.reproduce;
     let key = InitKey {
-        kind: InitKind::Maml(InnerLoss::Cql),
+        kind: Init::Maml(Loss::Cql),
         tasks: r.meta_tasks,
     };
     let tasks: Vec<&TaskConfig> = crate::runs::meta_train_tasks(ctx.config, r.meta_tasks).collect();

@@ -10,15 +10,16 @@ use std::path::Path;
 use uavmeta_actors::world::World;
 use uavmeta_learner::train::EpochRow;
 use uavmeta_plot::{self as plot, Band, Bar, LineChart, Reference, Series, TrajectoryChart};
-use uavmeta_proto::config::{Config, InnerLoss, RainZone, TaskConfig, TaskRole};
+use uavmeta_proto::config::{Config, Loss, RainZone, TaskConfig, TaskRole};
 use uavmeta_proto::stats::{Estimate, PolicyMetrics};
 
 use crate::claims::{
     self, converged_at, final_return, mean_swing, return_at, settle_epoch, Claim, Verdict,
 };
-use crate::runs::{InitKey, InitKind, MetaCurve, Method, RunKey, SeedResult};
+use crate::runs::{InitKey, MetaCurve, RunKey, SeedResult};
 use crate::{rain_tasks, Experiment, HeuristicRef};
 use uavmeta_meta::write_file;
+use uavmeta_proto::method::{Init, Method};
 
 use crate::ReproduceError;
 
@@ -56,7 +57,7 @@ pub fn unseen_key(config: &Config, method: Method, shots: usize, meta_tasks: usi
         task: r.unseen_task.clone(),
         method,
         shots,
-        meta_tasks: if method.init_kind().is_some() {
+        meta_tasks: if method.init().is_some() {
             meta_tasks
         } else {
             0
