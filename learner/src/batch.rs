@@ -6,10 +6,11 @@
 //! never terminal, so every transition bootstraps (SPEC section 5).
 
 use std::borrow::Borrow;
+use std::path::{Path, PathBuf};
 
 use tch::Tensor;
-use uavmeta_proto::config::WorldConfig;
-use uavmeta_proto::dataset::Transition;
+use uavmeta_proto::config::{Config, TaskConfig, WorldConfig};
+use uavmeta_proto::dataset::{DatasetError, DatasetReader, Transition};
 
 /// A transition that does not fit the world the network is built for.
 #[derive(Debug, thiserror::Error)]
@@ -37,6 +38,35 @@ pub enum BatchError {
     },
     #[error("an empty set of transitions cannot form a batch")]
     Empty,
+}
+
+/// Why a task's shots could not be loaded from its dataset file.
+#[derive(Debug, thiserror::Error)]
+pub enum ShotsError {
+    #[error(transparent)]
+    Dataset(#[from] DatasetError),
+    // The source is not in the message: `{:#}` prints the cause chain after it.
+    #[error("{}", path.display())]
+    Batch { path: PathBuf, source: BatchError },
+}
+
+/// `shots` transitions of `task` drawn (seeded) from the dataset file `path`, encoded for the
+/// config's world: what every offline learner trains on. The file must come from this world and
+/// this task.
+pub fn load_shots(
+    config: &Config,
+    task: &TaskConfig,
+    path: &Path,
+    shots: usize,
+    seed: u64,
+) -> Result<Batch, ShotsError> {
+    let picked = DatasetReader::open_task(path, config, &task.name)?.shots(shots, seed)?;
+    Batch::new(&picked, &config.world, config.learner.reward_scale).map_err(|source| {
+        ShotsError::Batch {
+            path: path.to_path_buf(),
+            source,
+        }
+    })
 }
 
 /// Transitions as tensors on the CPU, one row each.

@@ -9,7 +9,7 @@
 //!   (`<task-name>.uavds`), with a per-meta-epoch CSV, adapted-policy returns and `w0` checkpoints.
 //! - [`pretrain`]: CQL-pretrain, one CQL network on the union of the meta-train tasks' shots,
 //!   the multi-task baseline that shows what MAML adds.
-//! - [`meta_test`]: fine-tuning a `w0` checkpoint on N shots of an unseen task, through the
+//! - [`fine_tune`]: meta-test, fine-tuning a `w0` checkpoint on N shots of an unseen task, through the
 //!   learner's offline training so every method shares its settings and CSV columns.
 //! - [`meta_learner`]: the meta-learner process of a run; [`launch`]: `uavmeta launch`, the
 //!   supervisor of a run's processes. Each is a folder with its loop and its metrics.
@@ -44,16 +44,16 @@
 //! assert_eq!(adapted.forward(&tasks[0].query.obs).size(), [2, 5]);
 //! ```
 
+pub mod fine_tune;
 pub mod launch;
 pub mod maml;
 pub mod meta_learner;
-pub mod meta_test;
 pub mod meta_train;
 pub mod pretrain;
 
 use std::path::{Path, PathBuf};
 
-use uavmeta_learner::batch::BatchError;
+use uavmeta_learner::batch::{BatchError, ShotsError};
 use uavmeta_learner::checkpoint::CheckpointError;
 use uavmeta_learner::progress::CsvError;
 use uavmeta_learner::train::TrainError;
@@ -90,6 +90,15 @@ pub enum MetaError {
     Csv(#[from] CsvError),
     #[error(transparent)]
     Torch(#[from] tch::TchError),
+}
+
+impl From<ShotsError> for MetaError {
+    fn from(error: ShotsError) -> Self {
+        match error {
+            ShotsError::Dataset(e) => MetaError::Dataset(e),
+            ShotsError::Batch { path, source } => MetaError::Batch { path, source },
+        }
+    }
 }
 
 /// Creates `dir` and its parents, naming it on failure.

@@ -22,7 +22,7 @@
 //! 2. The heuristics' reference lines (random, stalest, greedy), which depend on no seed.
 //! 3. Seeds 0..N-1 on a pool of `jobs` threads, each item through the same code paths as the
 //!    runtime: `collect` with the online DQN behaviour policy (`collect.seed + s`), its agent as
-//!    the online reference, `meta_train`, and `meta_test`'s `fine_tune` with the greedy policy
+//!    the online reference, `meta_train`, and `fine_tune`'s `fine_tune` with the greedy policy
 //!    evaluated after every epoch. Results are kept in seed order, so they do not depend on
 //!    `jobs`.
 //! 4. Each experiment writes `OUT/<experiment>/` and returns its claims; `OUT/summary.md` gathers

@@ -25,7 +25,8 @@ use uavmeta_proto::dataset::DatasetReader;
 use uavmeta_proto::stats::PolicyMetrics;
 
 use super::Experiment;
-use uavmeta_meta::meta_test::{fine_tune, load_shots, FineTune};
+use uavmeta_learner::batch::load_shots;
+use uavmeta_meta::fine_tune::{fine_tune, FineTune};
 use uavmeta_meta::meta_train::{
     dataset_path, load_tasks, meta_train, Evaluation, MetaTrainOptions,
 };
@@ -390,7 +391,7 @@ pub fn fine_tune_run(
     let key = &run.need.key;
     let task = config.task(&key.task).map_err(MetaError::from)?;
     let dataset = dataset_path(&datasets_dir(out, seed), &task.name);
-    let shots = load_shots(config, task, &dataset, key.shots, seed)?;
+    let shots = load_shots(config, task, &dataset, key.shots, seed).map_err(MetaError::from)?;
     let mut q = match w0 {
         Some(w0) => checkpoint::load(w0, config).map_err(MetaError::from)?.0,
         None => QNetworkConfig::for_world(&config.world, &config.learner.hidden).init(seed),

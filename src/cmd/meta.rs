@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use clap::Args;
-use uavmeta_meta::meta_test::{meta_test, FineTune, MetaTestOptions};
+use uavmeta_meta::fine_tune::{meta_test, FineTune, MetaTestOptions};
 use uavmeta_meta::meta_train::{meta_train, MetaTrainOptions};
 
 use super::common::{ConfigArgs, TaskArgs};

@@ -6,10 +6,10 @@ use std::path::PathBuf;
 use anyhow::{Context, Result};
 use clap::Args;
 use uavmeta_actors::policy::q_policy::Evaluator;
+use uavmeta_learner::batch::load_shots;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::{train, TrainOptions};
-use uavmeta_meta::meta_test::load_shots;
 use uavmeta_proto::config::Loss;
 
 use super::common::{ConfigArgs, TaskArgs};

@@ -46,9 +46,10 @@ use uavmeta_proto::transport::{
     self, CheckpointReady, DatasetReady, RunDir, TransportError, SCHEMA_VERSION,
 };
 
-use crate::meta_test::{fine_tune, load_shots, meta_test_with, FineTune, MetaTestOptions};
+use crate::fine_tune::{fine_tune, meta_test_with, FineTune, MetaTestOptions};
 use crate::meta_train::{load_tasks, meta_train_with, MetaRow, MetaTrainHook, MetaTrainOptions};
 use crate::{pretrain, MetaError};
+use uavmeta_learner::batch::load_shots;
 
 mod metrics;
 
@@ -137,7 +138,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
     let (w0, meta) = checkpoint::load(&trained.w0, config)?;
     save_init(run, config, "w0", &w0, &meta.algorithm, meta.epoch)?;
 
-    // 3. Meta-test on each unseen task (`meta_test::meta_test_with`): the MAML init fine-tuned
+    // 3. Meta-test on each unseen task (`fine_tune::meta_test_with`): the MAML init fine-tuned
     //    with the loss its checkpoint names, and its baselines on the same shots.
     let meta_test = MetaTest {
         run,
@@ -330,7 +331,8 @@ impl MetaTest<'_> {
                     Method::Dqn => Loss::Dqn,
                     _ => Loss::Cql,
                 };
-                let shots = load_shots(config, task, &dataset, shots, self.seed)?;
+                let shots = load_shots(config, task, &dataset, shots, self.seed)
+                    .map_err(MetaError::from)?;
                 fine_tune(&mut q, &shots, algorithm, &settings, &mut hook)?
             }
         };

@@ -10,12 +10,11 @@
 use std::path::Path;
 
 use uavmeta_actors::policy::q_policy::Evaluator;
-use uavmeta_learner::batch::Batch;
+use uavmeta_learner::batch::{load_shots, Batch};
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::qnet::QNetwork;
 use uavmeta_learner::train::{train, EpochRow, EvaluatePolicy, TrainOptions};
 use uavmeta_proto::config::{Config, Loss, TaskConfig};
-use uavmeta_proto::dataset::DatasetReader;
 use uavmeta_proto::method::Method;
 
 use crate::MetaError;
@@ -42,24 +41,6 @@ pub struct MetaTestOptions<'a> {
     /// The task's dataset file; `shots` transitions are drawn from it, seeded by `fine_tune.seed`.
     pub dataset: &'a Path,
     pub shots: usize,
-}
-
-/// `shots` transitions of `task` drawn (seeded) from the dataset file `path`, encoded for the
-/// config's world. The file must come from this world and this task.
-pub fn load_shots(
-    config: &Config,
-    task: &TaskConfig,
-    path: &Path,
-    shots: usize,
-    seed: u64,
-) -> Result<Batch, MetaError> {
-    let picked = DatasetReader::open_task(path, config, &task.name)?.shots(shots, seed)?;
-    Batch::new(&picked, &config.world, config.learner.reward_scale).map_err(|source| {
-        MetaError::Batch {
-            path: path.to_path_buf(),
-            source,
-        }
-    })
 }
 
 /// The loss that fine-tunes an init written by meta-train or by multi-task pretraining: that of
