@@ -21,7 +21,8 @@ use uavmeta_proto::config::{Config, Loss};
 use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::stats::PolicyMetrics;
 
-const DEFAULT_CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../configs/default.toml");
+mod support;
+use support::DEFAULT_CONFIG;
 const EVAL_EPISODES: usize = 30;
 const EVAL_SEED: u64 = 777;
 
@@ -148,23 +149,14 @@ fn online_dqn_comes_within_8_percent_of_the_planner_on_a_small_world() {
 /// configs/default.toml on the small world of the planner's tests (4 x 4 cells, 3 devices, 20
 /// steps) with an 8 000-step online agent, and `extra` settings.
 fn small_world(extra: &[&str]) -> Config {
-    let sets: Vec<String> = [
-        "world.grid_cells=4",
-        "world.devices=3",
-        "world.horizon=20",
-        "world.cell_m=200",
-        "world.layout_seed=3",
+    let agent = [
         "collect.dqn_steps=8000",
         "collect.replay_capacity=8000",
         "collect.eps_decay_steps=3000",
         "collect.learning_starts=500",
         "collect.dqn_target_update_every=500",
-    ]
-    .iter()
-    .chain(extra)
-    .map(|s| s.to_string())
-    .collect();
-    Config::load(DEFAULT_CONFIG.as_ref(), &sets).unwrap()
+    ];
+    support::small_world(&[&agent[..], extra].concat())
 }
 
 /// Snapshot selection (`collect.dqn_select_every`) keeps the best of the greedy policies it

@@ -13,17 +13,12 @@ use uavmeta_learner::qnet::QNetwork;
 use uavmeta_proto::config::{Config, TaskConfig};
 use uavmeta_proto::dataset::Transition;
 
-const DEFAULT_CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../configs/default.toml");
+mod support;
 
-/// configs/default.toml on a 4 x 4 world of 3 devices with short agents whose every rule is due
-/// within the run: warm-up, the target refresh, clipping, selection.
+/// configs/default.toml on the small world with short agents whose every rule is due within the
+/// run: warm-up, the target refresh, clipping, selection.
 fn small_world(extra: &[&str]) -> Config {
-    let sets: Vec<String> = [
-        "world.grid_cells=4",
-        "world.devices=3",
-        "world.horizon=20",
-        "world.cell_m=200",
-        "world.layout_seed=3",
+    let agent = [
         "collect.dqn_steps=1500",
         "collect.replay_capacity=1000",
         "collect.eps_decay_steps=600",
@@ -31,12 +26,8 @@ fn small_world(extra: &[&str]) -> Config {
         "collect.dqn_target_update_every=300",
         "collect.dqn_select_every=500",
         "collect.dqn_grad_clip_norm=1",
-    ]
-    .iter()
-    .chain(extra)
-    .map(|s| s.to_string())
-    .collect();
-    Config::load(DEFAULT_CONFIG.as_ref(), &sets).unwrap()
+    ];
+    support::small_world(&[&agent[..], extra].concat())
 }
 
 fn spec(lambda: f64, task_id: u32, seed: u64) -> MemberSpec {

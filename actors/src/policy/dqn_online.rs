@@ -421,21 +421,33 @@ impl Schedule<'_> {
     }
 }
 
-/// The TD loss the online agent trains on: eq. 7 with `[collect]`'s stabilisers.
-pub fn td_config(config: &Config) -> TdConfig {
-    TdConfig {
-        gamma: config.learner.gamma,
-        bootstrap: Bootstrap::double_if(config.collect.dqn_double),
-        huber: config.collect.dqn_huber,
+/// What every online DQN agent of a config reads: `[collect]`, `[learner]`, the world, and the TD
+/// loss it trains on (eq. 7 with `[collect]`'s stabilisers).
+pub struct DqnSettings {
+    pub collect: CollectConfig,
+    pub learner: LearnerConfig,
+    pub world: WorldConfig,
+    pub td: TdConfig,
+}
+
+impl DqnSettings {
+    pub fn new(config: &Config) -> Self {
+        Self {
+            collect: config.collect.clone(),
+            learner: config.learner.clone(),
+            world: config.world.clone(),
+            td: TdConfig {
+                gamma: config.learner.gamma,
+                bootstrap: Bootstrap::double_if(config.collect.dqn_double),
+                huber: config.collect.dqn_huber,
+            },
+        }
     }
 }
 
 /// One online DQN agent training in one task's world.
 pub struct OnlineDqn {
-    collect: CollectConfig,
-    learner: LearnerConfig,
-    world_cfg: WorldConfig,
-    td: TdConfig,
+    settings: DqnSettings,
     state: AgentState,
     q: QNetwork,
     target: QNetwork,
@@ -453,10 +465,7 @@ impl OnlineDqn {
         let target = q.duplicate();
         let opt = FusedAdam::new(q.parameters(), c.dqn_lr);
         Self {
-            collect: c.clone(),
-            learner: config.learner.clone(),
-            world_cfg: config.world.clone(),
-            td: td_config(config),
+            settings: DqnSettings::new(config),
             state,
             q,
             target,
@@ -467,7 +476,7 @@ impl OnlineDqn {
 
     /// Trains for `collect.dqn_steps` environment steps.
     pub fn train(&mut self) -> Result<(), BatchError> {
-        self.train_steps(self.collect.dqn_steps)
+        self.train_steps(self.settings.collect.dqn_steps)
     }
 
     /// Trains for `steps` more environment steps, logging the recent return every
@@ -482,12 +491,12 @@ impl OnlineDqn {
 
     /// The learning rate of the next gradient step (see [`Schedule::learning_rate`]).
     pub fn learning_rate(&self) -> f64 {
-        Schedule(&self.collect).learning_rate(self.state.steps)
+        Schedule(&self.settings.collect).learning_rate(self.state.steps)
     }
 
     /// The exploration rate of the next step.
     pub fn epsilon(&self) -> f64 {
-        Schedule(&self.collect).epsilon(self.state.steps)
+        Schedule(&self.settings.collect).epsilon(self.state.steps)
     }
 
     /// Mean return of the last [`RECENT_EPISODES`] finished episodes; `None` before the first.
@@ -504,10 +513,10 @@ impl OnlineDqn {
             None => QPolicy::new(&self.q).act(self.state.world()),
         };
         let finished = self.state.advance(action);
-        if Schedule(&self.collect).train_due(self.state.steps) {
+        if Schedule(&self.settings.collect).train_due(self.state.steps) {
             self.gradient_step()?;
         }
-        if Schedule(&self.collect).selection_due(self.state.steps) {
+        if Schedule(&self.settings.collect).selection_due(self.state.steps) {
             self.state.select(&self.q);
         }
         Ok(finished)
@@ -517,30 +526,33 @@ impl OnlineDqn {
     /// the replay buffer.
     fn gradient_step(&mut self) -> Result<(), BatchError> {
         self.opt.set_lr(self.learning_rate());
-        let (mb, discounts) = self
-            .state
-            .sample(&self.collect, &self.learner, &self.world_cfg)?;
+        let (mb, discounts) = self.state.sample(
+            &self.settings.collect,
+            &self.settings.learner,
+            &self.settings.world,
+        )?;
         let q_all = self.q.forward(&mb.obs); // [B, A]
         let target = |s: &Tensor| self.target.forward(s);
         let online = |s: &Tensor| self.q.forward(s);
         let loss = match discounts {
-            None => self.td.td_errors(&q_all, &mb, target, online),
+            None => self.settings.td.td_errors(&q_all, &mb, target, online),
             Some(d) => {
                 let d = Tensor::from_slice(&d);
-                self.td
+                self.settings
+                    .td
                     .td_errors_discounted(&q_all, &mb, &d, target, online)
             }
         }
         .mean(None); // eq. 7 (n-step when dqn_n_step > 1) and its stabilisers
         self.opt.zero_grad();
         loss.backward();
-        let clip = self.collect.dqn_grad_clip_norm;
+        let clip = self.settings.collect.dqn_grad_clip_norm;
         if clip > 0.0 {
             clip_grad_norm(&self.q.parameters(), clip);
         }
         self.opt.step();
         self.gradient_steps += 1;
-        if Schedule(&self.collect).target_due(self.gradient_steps) {
+        if Schedule(&self.settings.collect).target_due(self.gradient_steps) {
             self.target.copy_from(&self.q);
         }
         Ok(())

@@ -13,13 +13,12 @@
 
 use tch::{Device, Tensor};
 use uavmeta_learner::batch::{Batch, BatchError};
-use uavmeta_learner::dqn::TdConfig;
 use uavmeta_learner::optim::FusedAdam;
 use uavmeta_learner::population::QPopulation;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
-use uavmeta_proto::config::{CollectConfig, Config, LearnerConfig, TaskConfig, WorldConfig};
+use uavmeta_proto::config::{Config, TaskConfig};
 
-use crate::policy::dqn_online::{td_config, AgentState, Schedule};
+use crate::policy::dqn_online::{AgentState, DqnSettings, Schedule};
 
 /// Who a member is: the task it trains on (and its index in the config's `[[tasks]]`), the actor
 /// number its transitions carry, and its seed.
@@ -33,10 +32,7 @@ pub struct MemberSpec {
 
 /// N online DQN agents of one configuration, stepped and trained together.
 pub struct DqnPopulation {
-    collect: CollectConfig,
-    learner: LearnerConfig,
-    world_cfg: WorldConfig,
-    td: TdConfig,
+    settings: DqnSettings,
     members: Vec<AgentState>,
     q: QPopulation,
     target: QPopulation,
@@ -65,10 +61,7 @@ impl DqnPopulation {
         let target = q.duplicate();
         let opt = FusedAdam::new(q.parameters(), c.dqn_lr);
         Self {
-            collect: c.clone(),
-            learner: config.learner.clone(),
-            world_cfg: config.world.clone(),
-            td: td_config(config),
+            settings: DqnSettings::new(config),
             obs: vec![0.0; members.len() * shape.obs_len],
             members: states,
             q,
@@ -90,7 +83,7 @@ impl DqnPopulation {
     /// One environment step of every member, then the gradient step and the selection
     /// evaluations it is due.
     pub fn step(&mut self) -> Result<(), BatchError> {
-        let epsilon = Schedule(&self.collect).epsilon(self.steps);
+        let epsilon = Schedule(&self.settings.collect).epsilon(self.steps);
         // ALGO: epsilon-greedy behaviour, each member with its own stream.
         let explored: Vec<Option<usize>> = self
             .members
@@ -103,15 +96,15 @@ impl DqnPopulation {
             Vec::new()
         };
         self.steps += 1;
-        let next_epsilon = Schedule(&self.collect).epsilon(self.steps);
+        let next_epsilon = Schedule(&self.settings.collect).epsilon(self.steps);
         for (i, (m, random)) in self.members.iter_mut().zip(explored).enumerate() {
             let finished = m.advance(random.unwrap_or_else(|| greedy[i]));
             m.log_progress(finished, next_epsilon);
         }
-        if Schedule(&self.collect).train_due(self.steps) {
+        if Schedule(&self.settings.collect).train_due(self.steps) {
             self.gradient_step()?;
         }
-        if Schedule(&self.collect).selection_due(self.steps) {
+        if Schedule(&self.settings.collect).selection_due(self.steps) {
             for (i, m) in self.members.iter_mut().enumerate() {
                 m.select(&self.q.member(i));
             }
@@ -141,11 +134,15 @@ impl DqnPopulation {
     /// stabilisers), each over a uniform minibatch of its own replay buffer.
     fn gradient_step(&mut self) -> Result<(), BatchError> {
         self.opt
-            .set_lr(Schedule(&self.collect).learning_rate(self.steps));
+            .set_lr(Schedule(&self.settings.collect).learning_rate(self.steps));
         let mut batches = Vec::with_capacity(self.members.len());
         let mut discounts = Vec::new();
         for m in &mut self.members {
-            let (batch, d) = m.sample(&self.collect, &self.learner, &self.world_cfg)?;
+            let (batch, d) = m.sample(
+                &self.settings.collect,
+                &self.settings.learner,
+                &self.settings.world,
+            )?;
             batches.push(batch);
             discounts.extend(d.unwrap_or_default());
         }
@@ -155,12 +152,13 @@ impl DqnPopulation {
         let target = |s: &Tensor| self.target.forward(s);
         let online = |s: &Tensor| self.q.forward(s);
         let errors = if discounts.is_empty() {
-            self.td.td_errors(&q_all, &mb, target, online)
+            self.settings.td.td_errors(&q_all, &mb, target, online)
         } else {
             let d = Tensor::from_slice(&discounts)
                 .view([batches.len() as i64, -1])
                 .to_device(device);
-            self.td
+            self.settings
+                .td
                 .td_errors_discounted(&q_all, &mb, &d, target, online)
         }; // [N, B]
            // Each member's eq. 7 (its mean over its batch), summed: member i's weights get
@@ -168,13 +166,13 @@ impl DqnPopulation {
         let loss = errors.mean_dim([-1].as_slice(), false, None).sum(None);
         self.opt.zero_grad();
         loss.backward();
-        let clip = self.collect.dqn_grad_clip_norm;
+        let clip = self.settings.collect.dqn_grad_clip_norm;
         if clip > 0.0 {
             self.q.clip_grad_norm(clip);
         }
         self.opt.step();
         self.gradient_steps += 1;
-        if Schedule(&self.collect).target_due(self.gradient_steps) {
+        if Schedule(&self.settings.collect).target_due(self.gradient_steps) {
             self.target.copy_from(&self.q);
         }
         Ok(())
