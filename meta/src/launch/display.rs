@@ -266,15 +266,15 @@ impl View {
 
     /// The latest return of every method on each meta-test task, in the results table's order.
     fn show_evaluations(&self) {
-        let Ok(mut rows) = super::latest_results(&self.run) else {
+        let Ok(mut rows) = super::report::latest_results(&self.run) else {
             return;
         };
-        rows.sort_by_key(|r| super::row_rank(&r.method));
+        rows.sort_by_key(|r| super::report::row_rank(&r.method));
         for (task, bar) in &self.evaluations {
             let returns: Vec<String> = rows
                 .iter()
                 .filter(|r| r.task == *task)
-                .map(|r| match super::is_reference(&r.method) {
+                .map(|r| match super::report::is_reference(&r.method) {
                     true => format!("{} {:.1}", r.method, r.ret),
                     false => format!("{}@{} {:.1}", r.method, r.epoch, r.ret),
                 })

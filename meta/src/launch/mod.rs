@@ -27,7 +27,6 @@
 //! everything they sent), then the meta-learner and the evaluator, then the store; a child still
 //! running after a grace period is killed.
 
-use std::collections::BTreeMap;
 use std::fs::OpenOptions;
 use std::os::unix::process::CommandExt;
 use std::path::PathBuf;
@@ -38,17 +37,14 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use indicatif::MultiProgress;
-use uavmeta_actors::actor::{self, ActorOptions};
-use uavmeta_actors::evaluator::{self, EvaluationRow};
-use uavmeta_actors::policy::heuristics::{reference_metrics, PolicySpec, REFERENCES};
+use uavmeta_actors::actor::ActorOptions;
+use uavmeta_actors::evaluator;
+use uavmeta_actors::policy::heuristics::PolicySpec;
 use uavmeta_learner::store;
 use uavmeta_proto::config::{Config, TaskRole};
-use uavmeta_proto::method::Method;
-use uavmeta_proto::metrics::{
-    parse, scrape, store::TRANSITIONS_STORED, sum, wait_for_port, MetricsError, MetricsServer,
-};
+use uavmeta_proto::metrics::{wait_for_port, MetricsError, MetricsServer};
 use uavmeta_proto::transport::{
-    self, write_atomic, CheckpointReady, DatasetReady, RemoteHost, RunDir, ServiceNames, Shutdown,
+    self, write_atomic, CheckpointReady, DatasetReady, RunDir, ServiceNames, Shutdown,
     TransportError, SCHEMA_VERSION,
 };
 
@@ -56,12 +52,19 @@ use crate::meta_learner;
 
 mod display;
 mod metrics;
+mod remote;
+mod report;
 pub mod resources;
 pub mod reuse;
 pub mod seeds;
+mod targets;
 
+use remote::{wait_for_remote_hosts, TUNNEL_PROCESS};
+use report::{latest_results, reference_rows};
+pub use report::{results_table, LaunchReport};
 pub use reuse::Reuse;
 pub use seeds::{launch_seeds, SeedsReport};
+use targets::{write_prometheus_yml, write_targets};
 
 /// How often the run's `prometheus.yml` has Prometheus scrape every process; `uavmeta dashboard
 /// render` takes it for the interval of its rates.
@@ -86,11 +89,6 @@ const BACKOFF_MAX: Duration = Duration::from_secs(10);
 
 /// The launcher's process name: node, port file, metrics snapshot.
 pub const PROCESS: &str = "launcher";
-/// The tunnel child's name (`uavmeta tunnel serve`; the tunnel crate is not linked here).
-const TUNNEL_PROCESS: &str = "tunnel";
-/// A remote host that has not announced itself for this long is gone: out of the targets.
-const REMOTE_HOST_SILENCE: Duration = Duration::from_secs(10);
-
 #[derive(Debug, thiserror::Error)]
 pub enum LaunchError {
     #[error(transparent)]
@@ -185,57 +183,6 @@ struct Supervised {
     done: bool,
     /// The sweep of its resources requested when it last failed.
     cleanup: Option<u64>,
-}
-
-/// What a finished launch reports.
-#[derive(Debug, Clone)]
-pub struct LaunchReport {
-    pub run: PathBuf,
-    pub restarts: u32,
-    /// The last evaluation of every (task, method).
-    pub results: Vec<EvaluationRow>,
-    /// The heuristics on every meta-test task, over the evaluator's episodes: what a learned
-    /// return is measured against.
-    pub references: Vec<EvaluationRow>,
-}
-
-/// The learners of the results table, in its order, after the references.
-const LEARNERS: [Method; 6] = [
-    Method::Cql,
-    Method::Dqn,
-    Method::CqlPretrain,
-    Method::CqlMaml,
-    Method::DqnMaml,
-    Method::MetaInit,
-];
-
-/// Where a row goes in its task's block: the references (random, the heuristics, the planner,
-/// then the online DQN agent)
-/// first, then the learners; `None` for a method the table does not know.
-fn row_rank(method: &str) -> Option<usize> {
-    let references = REFERENCES.iter().map(ToString::to_string);
-    let references = references.chain([Method::OnlineDqn.name().to_string()]);
-    let mut order = references.chain(LEARNERS.iter().map(|m| m.name().to_string()));
-    order.position(|name| name == method)
-}
-
-/// Whether a row is a reference (random, a heuristic, the planner or the online DQN agent)
-/// rather than a learner.
-fn is_reference(method: &str) -> bool {
-    row_rank(method).is_some_and(|rank| rank <= REFERENCES.len())
-}
-
-/// Each reference policy on each meta-test task, over the episodes the evaluator scores
-/// checkpoints on.
-fn reference_rows(config: &Config) -> Vec<EvaluationRow> {
-    config
-        .tasks_with_role(TaskRole::MetaTest)
-        .flat_map(|task| {
-            reference_metrics(config, task, config.learner.eval_episodes)
-                .into_iter()
-                .map(|(spec, m)| EvaluationRow::new(&task.name, &spec.to_string(), 0, &m))
-        })
-        .collect()
 }
 
 /// Runs `config` as one supervised run in `config.run.dir`, children started from `exe` (the
@@ -823,290 +770,5 @@ fn stop_role(children: &mut [Supervised], role: Role) {
                 Ok(None) => std::thread::sleep(Duration::from_millis(20)),
             }
         }
-    }
-}
-
-fn write_prometheus_yml(run: &RunDir) -> Result<(), LaunchError> {
-    // honor_labels: the launcher's restart and hang counters name the child in their `process`
-    // label, which must win over the target's `process` (the launcher) rather than be renamed
-    // `exported_process`.
-    let text = format!(
-        "# Scrapes every process of uavmeta run {id}. Ports are ephemeral; the launcher rewrites\n\
-         # the targets file as processes (re)start: prometheus --config.file={yml}\n\
-         # Grafana: import {dashboard} (docs/DASHBOARD.md).\n\
-         global:\n  scrape_interval: {SCRAPE_INTERVAL_SECONDS}s\nscrape_configs:\n  - job_name: uavmeta\n    honor_labels: true\n    file_sd_configs:\n      - files: ['{targets}']\n",
-        id = run.id(),
-        yml = run.prometheus_yml().display(),
-        dashboard = run.grafana_dashboard().display(),
-        targets = run.prometheus_targets().display(),
-    );
-    Ok(write_atomic(&run.prometheus_yml(), text.as_bytes())?)
-}
-
-/// Rewrites the Prometheus targets file when the set of live ports changed; returns its text.
-/// Every target has a `host` label: this host's name, or the remote host's that announced it.
-fn write_targets(
-    run: &RunDir,
-    children: &[Supervised],
-    last: String,
-) -> Result<String, LaunchError> {
-    let here = std::fs::read_to_string("/proc/sys/kernel/hostname")
-        .map(|h| h.trim().to_string())
-        .unwrap_or_else(|_| "localhost".into());
-    let mut targets = Vec::new();
-    for name in std::iter::once(PROCESS).chain(children.iter().map(|c| c.name.as_str())) {
-        if let Ok(port) = std::fs::read_to_string(run.port_file(name)) {
-            targets.push(serde_json::json!({
-                "targets": [format!("127.0.0.1:{}", port.trim())],
-                "labels": { "process": name, "run": run.id(), "host": here },
-            }));
-        }
-    }
-    for host in remote_hosts(run) {
-        for process in &host.processes {
-            targets.push(serde_json::json!({
-                "targets": [process.metrics],
-                "labels": { "process": process.name, "run": run.id(), "host": host.host },
-            }));
-        }
-    }
-    let text = serde_json::to_string_pretty(&targets).expect("JSON values always serialise");
-    if text != last {
-        // Scrape targets are a convenience: a full disk must not end the run for them.
-        if let Err(error) = write_atomic(&run.prometheus_targets(), text.as_bytes()) {
-            tracing::warn!(%error, "cannot rewrite the Prometheus targets; trying again");
-            return Ok(last);
-        }
-        for host in remote_hosts(run) {
-            let names: Vec<&str> = host.processes.iter().map(|p| p.name.as_str()).collect();
-            tracing::info!(host = %host.host, processes = ?names, "remote actor host");
-        }
-    }
-    Ok(text)
-}
-
-/// Waits until every host of `tunnel.wait_for_hosts` has announced itself with its actors and
-/// the store has stored a transition (only remote actors run yet, so it came through the tunnel).
-/// A host's first announcement can come before its actors have started: waiting for one that
-/// lists them puts them in the Prometheus targets however soon they finish (the tunnel records a
-/// host's announcement at most once a second).
-fn wait_for_remote_hosts(
-    run: &RunDir,
-    config: &Config,
-    node: &Node<ipc::Service>,
-) -> Result<(), LaunchError> {
-    let wanted = &config.tunnel.wait_for_hosts;
-    if wanted.is_empty() {
-        return Ok(());
-    }
-    tracing::info!(hosts = ?wanted, endpoint = %config.tunnel.listen, "waiting for remote actor hosts");
-    let deadline = Instant::now() + Duration::from_secs_f64(config.tunnel.wait_seconds);
-    let mut targets = String::new();
-    loop {
-        // Prometheus sees the remote actors from the start, however short-lived they are.
-        targets = write_targets(run, &[], targets)?;
-        let hosts = remote_hosts(run);
-        let missing: Vec<&String> = wanted
-            .iter()
-            .filter(|w| !hosts.iter().any(|h| &h.host == *w && announces_actors(h)))
-            .collect();
-        let stored = std::fs::read_to_string(run.port_file(store::PROCESS))
-            .ok()
-            .and_then(|port| scrape(&config.run.metrics_host, port.trim().parse().ok()?).ok())
-            .and_then(|text| parse(&text).ok())
-            .map_or(0.0, |samples| sum(&samples, TRANSITIONS_STORED, &[]));
-        if missing.is_empty() && stored > 0.0 {
-            tracing::info!(hosts = ?wanted, "remote actor hosts are publishing");
-            return Ok(());
-        }
-        if !transport::keep_running(node, TICK) {
-            return Err(LaunchError::Interrupted);
-        }
-        if Instant::now() >= deadline {
-            return Err(LaunchError::RemoteHosts {
-                missing: format!("{missing:?}"),
-                stored,
-                endpoint: config.tunnel.listen.clone(),
-                seconds: config.tunnel.wait_seconds,
-            });
-        }
-    }
-}
-
-/// Whether `host`'s announcement lists at least one actor.
-fn announces_actors(host: &RemoteHost) -> bool {
-    host.processes
-        .iter()
-        .any(|p| p.name.starts_with(actor::PROCESS_PREFIX))
-}
-
-/// The remote actor hosts that announced themselves through the tunnel lately.
-fn remote_hosts(run: &RunDir) -> Vec<RemoteHost> {
-    let entries = std::fs::read_dir(run.remote_hosts_dir());
-    let mut hosts: Vec<RemoteHost> = entries
-        .into_iter()
-        .flatten()
-        .flatten()
-        .filter(|entry| {
-            entry
-                .metadata()
-                .and_then(|m| m.modified())
-                .ok()
-                .and_then(|at| at.elapsed().ok())
-                .is_some_and(|age| age < REMOTE_HOST_SILENCE)
-        })
-        .filter_map(|entry| serde_json::from_slice(&std::fs::read(entry.path()).ok()?).ok())
-        .collect();
-    hosts.sort_by(|a, b| a.host.cmp(&b.host));
-    hosts
-}
-
-/// The last row of every (task, method) in the evaluator's CSV.
-fn latest_results(run: &RunDir) -> Result<Vec<EvaluationRow>, LaunchError> {
-    let path = run.evaluations_csv();
-    if !path.exists() {
-        return Ok(Vec::new());
-    }
-    let rows = evaluator::read_rows(&path).map_err(|source| LaunchError::Io {
-        path: path.clone(),
-        action: "read",
-        source,
-    })?;
-    let mut latest: BTreeMap<(String, String), EvaluationRow> = BTreeMap::new();
-    for row in rows {
-        latest.insert((row.task.clone(), row.method.clone()), row);
-    }
-    Ok(latest.into_values().collect())
-}
-
-/// The results table `uavmeta launch` ends with: per task, the references (heuristics, online
-/// DQN), a rule, then the learners at their last evaluated epoch. Power in mW, as everywhere.
-pub fn results_table(report: &LaunchReport) -> String {
-    let mut out = format!(
-        "run {} ({} restarts)\n",
-        report.run.display(),
-        report.restarts
-    );
-    if report.results.is_empty() {
-        out.push_str("no evaluations\n");
-        return out;
-    }
-    let header = format!(
-        "{:<14} {:<13} {:>6} {:>22} {:>12} {:>14} {:>18} {:>12}",
-        "task", "method", "epoch", "return", "vs planner", "AoI", "power (mW)", "outages"
-    );
-    out.push_str(&header);
-    out.push('\n');
-    let mut tasks: Vec<&str> = report.results.iter().map(|r| r.task.as_str()).collect();
-    tasks.dedup();
-    for task in tasks {
-        let rows = report.references.iter().chain(&report.results);
-        let mut rows: Vec<&EvaluationRow> = rows.filter(|r| r.task == task).collect();
-        rows.sort_by_key(|r| row_rank(&r.method));
-        let planner = PolicySpec::Planner.to_string();
-        let planner = rows.iter().find(|r| r.method == planner).map(|r| r.ret);
-        for (i, r) in rows.iter().enumerate() {
-            let reference = is_reference(&r.method);
-            if i > 0 && !reference && is_reference(&rows[i - 1].method) {
-                out.push_str(&format!("{}\n", "-".repeat(header.len())));
-            }
-            out.push_str(&format!(
-                "{:<14} {:<13} {:>6} {:>22} {:>12} {:>14} {:>18} {:>12}\n",
-                r.task,
-                r.method,
-                if reference {
-                    "-".to_string()
-                } else {
-                    r.epoch.to_string()
-                },
-                format!("{:.1} ± {:.1}", r.ret, r.ret_ci95),
-                // Returns are costs: a row 3% below the planner reads -3.0%.
-                planner.map_or("-".to_string(), |p| format!(
-                    "{:+.1}%",
-                    100.0 * (r.ret - p) / p.abs()
-                )),
-                format!("{:.2} ± {:.2}", r.aoi, r.aoi_ci95),
-                format!("{:.3} ± {:.3}", r.power_watts * 1e3, r.power_ci95 * 1e3),
-                format!("{:.1} ± {:.1}", r.outages, r.outages_ci95),
-            ));
-        }
-    }
-    out
-}
-
-#[cfg(test)]
-mod tests {
-    use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
-
-    use super::*;
-
-    fn row(method: &str, ret: f64, power_mw: f64) -> EvaluationRow {
-        let episode = EpisodeMetrics {
-            ret,
-            aoi: 5.0,
-            power_mw,
-            outages: 0,
-        };
-        EvaluationRow::new(
-            "lambda-300",
-            method,
-            40,
-            &PolicyMetrics::from_episodes(&[episode]),
-        )
-    }
-
-    #[test]
-    fn the_results_table_puts_references_above_a_rule_and_power_in_milliwatts() {
-        let report = LaunchReport {
-            run: PathBuf::from("runs/x"),
-            restarts: 0,
-            results: vec![
-                row("maml-init", -7400.0, 0.5),
-                row("cql-maml", -7100.0, 0.5),
-                row("online-dqn", -7000.0, 0.5),
-                row("cql", -16000.0, 0.5),
-            ],
-            references: vec![
-                row("greedy", -7800.0, 0.325),
-                row("random", -13000.0, 1.3),
-                row("planner", -6500.0, 0.3),
-            ],
-        };
-        let table = results_table(&report);
-        let methods: Vec<&str> = table
-            .lines()
-            .skip(2)
-            .map(|l| l.split_whitespace().nth(1).unwrap_or(l))
-            .collect();
-        let rule = "-".repeat(10);
-        let expected = [
-            "random",
-            "greedy",
-            "planner",
-            "online-dqn",
-            &rule,
-            "cql",
-            "cql-maml",
-            "maml-init",
-        ];
-        assert_eq!(methods.len(), expected.len(), "{table}");
-        for (got, want) in methods.iter().zip(expected) {
-            assert!(
-                got.starts_with(want),
-                "{got} where {want} belongs:\n{table}"
-            );
-        }
-        assert!(table.contains("power (mW)"), "{table}");
-        assert!(table.contains("0.325 ± 0.000"), "{table}");
-        // Each row's distance to the planner: cql-maml's -7100 is 9.2% below its -6500.
-        let cql_maml = table.lines().find(|l| l.contains(" cql-maml ")).unwrap();
-        assert!(cql_maml.contains("-9.2%"), "{table}");
-        // References have no epoch.
-        assert!(
-            table
-                .lines()
-                .any(|l| l.starts_with("lambda-300     greedy             -")),
-            "{table}"
-        );
     }
 }

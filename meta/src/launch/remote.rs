@@ -1,0 +1,95 @@
+//! Remote actor hosts: which have announced themselves through the tunnel, and the wait for
+//! those `tunnel.wait_for_hosts` names before the local processes start.
+
+use std::time::{Duration, Instant};
+
+use iceoryx2::prelude::*;
+use uavmeta_actors::actor;
+use uavmeta_learner::store;
+use uavmeta_proto::config::Config;
+use uavmeta_proto::metrics::{parse, scrape, store::TRANSITIONS_STORED, sum};
+use uavmeta_proto::transport::{self, RemoteHost, RunDir};
+
+use super::targets::write_targets;
+use super::{LaunchError, TICK};
+
+/// The tunnel child's name (`uavmeta tunnel serve`; the tunnel crate is not linked here).
+pub(super) const TUNNEL_PROCESS: &str = "tunnel";
+/// A remote host that has not announced itself for this long is gone: out of the targets.
+pub(super) const REMOTE_HOST_SILENCE: Duration = Duration::from_secs(10);
+
+/// Waits until every host of `tunnel.wait_for_hosts` has announced itself with its actors and
+/// the store has stored a transition (only remote actors run yet, so it came through the tunnel).
+/// A host's first announcement can come before its actors have started: waiting for one that
+/// lists them puts them in the Prometheus targets however soon they finish (the tunnel records a
+/// host's announcement at most once a second).
+pub(super) fn wait_for_remote_hosts(
+    run: &RunDir,
+    config: &Config,
+    node: &Node<ipc::Service>,
+) -> Result<(), LaunchError> {
+    let wanted = &config.tunnel.wait_for_hosts;
+    if wanted.is_empty() {
+        return Ok(());
+    }
+    tracing::info!(hosts = ?wanted, endpoint = %config.tunnel.listen, "waiting for remote actor hosts");
+    let deadline = Instant::now() + Duration::from_secs_f64(config.tunnel.wait_seconds);
+    let mut targets = String::new();
+    loop {
+        // Prometheus sees the remote actors from the start, however short-lived they are.
+        targets = write_targets(run, &[], targets)?;
+        let hosts = remote_hosts(run);
+        let missing: Vec<&String> = wanted
+            .iter()
+            .filter(|w| !hosts.iter().any(|h| &h.host == *w && announces_actors(h)))
+            .collect();
+        let stored = std::fs::read_to_string(run.port_file(store::PROCESS))
+            .ok()
+            .and_then(|port| scrape(&config.run.metrics_host, port.trim().parse().ok()?).ok())
+            .and_then(|text| parse(&text).ok())
+            .map_or(0.0, |samples| sum(&samples, TRANSITIONS_STORED, &[]));
+        if missing.is_empty() && stored > 0.0 {
+            tracing::info!(hosts = ?wanted, "remote actor hosts are publishing");
+            return Ok(());
+        }
+        if !transport::keep_running(node, TICK) {
+            return Err(LaunchError::Interrupted);
+        }
+        if Instant::now() >= deadline {
+            return Err(LaunchError::RemoteHosts {
+                missing: format!("{missing:?}"),
+                stored,
+                endpoint: config.tunnel.listen.clone(),
+                seconds: config.tunnel.wait_seconds,
+            });
+        }
+    }
+}
+
+/// Whether `host`'s announcement lists at least one actor.
+pub(super) fn announces_actors(host: &RemoteHost) -> bool {
+    host.processes
+        .iter()
+        .any(|p| p.name.starts_with(actor::PROCESS_PREFIX))
+}
+
+/// The remote actor hosts that announced themselves through the tunnel lately.
+pub(super) fn remote_hosts(run: &RunDir) -> Vec<RemoteHost> {
+    let entries = std::fs::read_dir(run.remote_hosts_dir());
+    let mut hosts: Vec<RemoteHost> = entries
+        .into_iter()
+        .flatten()
+        .flatten()
+        .filter(|entry| {
+            entry
+                .metadata()
+                .and_then(|m| m.modified())
+                .ok()
+                .and_then(|at| at.elapsed().ok())
+                .is_some_and(|age| age < REMOTE_HOST_SILENCE)
+        })
+        .filter_map(|entry| serde_json::from_slice(&std::fs::read(entry.path()).ok()?).ok())
+        .collect();
+    hosts.sort_by(|a, b| a.host.cmp(&b.host));
+    hosts
+}

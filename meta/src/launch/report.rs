@@ -1,0 +1,214 @@
+//! The results table a launch ends with: the references (random, the heuristics, the planner,
+//! the online DQN agents) and every learner's last evaluation, per meta-test task.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+use uavmeta_actors::evaluator::{self, EvaluationRow};
+use uavmeta_actors::policy::heuristics::{reference_metrics, PolicySpec, REFERENCES};
+use uavmeta_proto::config::{Config, TaskRole};
+use uavmeta_proto::method::Method;
+use uavmeta_proto::transport::RunDir;
+
+use super::LaunchError;
+
+/// What a finished launch reports.
+#[derive(Debug, Clone)]
+pub struct LaunchReport {
+    pub run: PathBuf,
+    pub restarts: u32,
+    /// The last evaluation of every (task, method).
+    pub results: Vec<EvaluationRow>,
+    /// The heuristics on every meta-test task, over the evaluator's episodes: what a learned
+    /// return is measured against.
+    pub references: Vec<EvaluationRow>,
+}
+
+/// The learners of the results table, in its order, after the references.
+pub(super) const LEARNERS: [Method; 6] = [
+    Method::Cql,
+    Method::Dqn,
+    Method::CqlPretrain,
+    Method::CqlMaml,
+    Method::DqnMaml,
+    Method::MetaInit,
+];
+
+/// Where a row goes in its task's block: the references (random, the heuristics, the planner,
+/// then the online DQN agent)
+/// first, then the learners; `None` for a method the table does not know.
+pub(super) fn row_rank(method: &str) -> Option<usize> {
+    let references = REFERENCES.iter().map(ToString::to_string);
+    let references = references.chain([Method::OnlineDqn.name().to_string()]);
+    let mut order = references.chain(LEARNERS.iter().map(|m| m.name().to_string()));
+    order.position(|name| name == method)
+}
+
+/// Whether a row is a reference (random, a heuristic, the planner or the online DQN agent)
+/// rather than a learner.
+pub(super) fn is_reference(method: &str) -> bool {
+    row_rank(method).is_some_and(|rank| rank <= REFERENCES.len())
+}
+
+/// Each reference policy on each meta-test task, over the episodes the evaluator scores
+/// checkpoints on.
+pub(super) fn reference_rows(config: &Config) -> Vec<EvaluationRow> {
+    config
+        .tasks_with_role(TaskRole::MetaTest)
+        .flat_map(|task| {
+            reference_metrics(config, task, config.learner.eval_episodes)
+                .into_iter()
+                .map(|(spec, m)| EvaluationRow::new(&task.name, &spec.to_string(), 0, &m))
+        })
+        .collect()
+}
+
+/// The last row of every (task, method) in the evaluator's CSV.
+pub(super) fn latest_results(run: &RunDir) -> Result<Vec<EvaluationRow>, LaunchError> {
+    let path = run.evaluations_csv();
+    if !path.exists() {
+        return Ok(Vec::new());
+    }
+    let rows = evaluator::read_rows(&path).map_err(|source| LaunchError::Io {
+        path: path.clone(),
+        action: "read",
+        source,
+    })?;
+    let mut latest: BTreeMap<(String, String), EvaluationRow> = BTreeMap::new();
+    for row in rows {
+        latest.insert((row.task.clone(), row.method.clone()), row);
+    }
+    Ok(latest.into_values().collect())
+}
+
+/// The results table `uavmeta launch` ends with: per task, the references (heuristics, online
+/// DQN), a rule, then the learners at their last evaluated epoch. Power in mW, as everywhere.
+pub fn results_table(report: &LaunchReport) -> String {
+    let mut out = format!(
+        "run {} ({} restarts)\n",
+        report.run.display(),
+        report.restarts
+    );
+    if report.results.is_empty() {
+        out.push_str("no evaluations\n");
+        return out;
+    }
+    let header = format!(
+        "{:<14} {:<13} {:>6} {:>22} {:>12} {:>14} {:>18} {:>12}",
+        "task", "method", "epoch", "return", "vs planner", "AoI", "power (mW)", "outages"
+    );
+    out.push_str(&header);
+    out.push('\n');
+    let mut tasks: Vec<&str> = report.results.iter().map(|r| r.task.as_str()).collect();
+    tasks.dedup();
+    for task in tasks {
+        let rows = report.references.iter().chain(&report.results);
+        let mut rows: Vec<&EvaluationRow> = rows.filter(|r| r.task == task).collect();
+        rows.sort_by_key(|r| row_rank(&r.method));
+        let planner = PolicySpec::Planner.to_string();
+        let planner = rows.iter().find(|r| r.method == planner).map(|r| r.ret);
+        for (i, r) in rows.iter().enumerate() {
+            let reference = is_reference(&r.method);
+            if i > 0 && !reference && is_reference(&rows[i - 1].method) {
+                out.push_str(&format!("{}\n", "-".repeat(header.len())));
+            }
+            out.push_str(&format!(
+                "{:<14} {:<13} {:>6} {:>22} {:>12} {:>14} {:>18} {:>12}\n",
+                r.task,
+                r.method,
+                if reference {
+                    "-".to_string()
+                } else {
+                    r.epoch.to_string()
+                },
+                format!("{:.1} ± {:.1}", r.ret, r.ret_ci95),
+                // Returns are costs: a row 3% below the planner reads -3.0%.
+                planner.map_or("-".to_string(), |p| format!(
+                    "{:+.1}%",
+                    100.0 * (r.ret - p) / p.abs()
+                )),
+                format!("{:.2} ± {:.2}", r.aoi, r.aoi_ci95),
+                format!("{:.3} ± {:.3}", r.power_watts * 1e3, r.power_ci95 * 1e3),
+                format!("{:.1} ± {:.1}", r.outages, r.outages_ci95),
+            ));
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
+
+    use super::*;
+
+    fn row(method: &str, ret: f64, power_mw: f64) -> EvaluationRow {
+        let episode = EpisodeMetrics {
+            ret,
+            aoi: 5.0,
+            power_mw,
+            outages: 0,
+        };
+        EvaluationRow::new(
+            "lambda-300",
+            method,
+            40,
+            &PolicyMetrics::from_episodes(&[episode]),
+        )
+    }
+
+    #[test]
+    fn the_results_table_puts_references_above_a_rule_and_power_in_milliwatts() {
+        let report = LaunchReport {
+            run: PathBuf::from("runs/x"),
+            restarts: 0,
+            results: vec![
+                row("maml-init", -7400.0, 0.5),
+                row("cql-maml", -7100.0, 0.5),
+                row("online-dqn", -7000.0, 0.5),
+                row("cql", -16000.0, 0.5),
+            ],
+            references: vec![
+                row("greedy", -7800.0, 0.325),
+                row("random", -13000.0, 1.3),
+                row("planner", -6500.0, 0.3),
+            ],
+        };
+        let table = results_table(&report);
+        let methods: Vec<&str> = table
+            .lines()
+            .skip(2)
+            .map(|l| l.split_whitespace().nth(1).unwrap_or(l))
+            .collect();
+        let rule = "-".repeat(10);
+        let expected = [
+            "random",
+            "greedy",
+            "planner",
+            "online-dqn",
+            &rule,
+            "cql",
+            "cql-maml",
+            "maml-init",
+        ];
+        assert_eq!(methods.len(), expected.len(), "{table}");
+        for (got, want) in methods.iter().zip(expected) {
+            assert!(
+                got.starts_with(want),
+                "{got} where {want} belongs:\n{table}"
+            );
+        }
+        assert!(table.contains("power (mW)"), "{table}");
+        assert!(table.contains("0.325 ± 0.000"), "{table}");
+        // Each row's distance to the planner: cql-maml's -7100 is 9.2% below its -6500.
+        let cql_maml = table.lines().find(|l| l.contains(" cql-maml ")).unwrap();
+        assert!(cql_maml.contains("-9.2%"), "{table}");
+        // References have no epoch.
+        assert!(
+            table
+                .lines()
+                .any(|l| l.starts_with("lambda-300     greedy             -")),
+            "{table}"
+        );
+    }
+}
