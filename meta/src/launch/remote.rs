@@ -10,8 +10,9 @@ use uavmeta_proto::config::Config;
 use uavmeta_proto::metrics::{parse, scrape, store::TRANSITIONS_STORED, sum};
 use uavmeta_proto::transport::{self, RemoteHost, RunDir};
 
+use super::supervise::TICK;
 use super::targets::write_targets;
-use super::{LaunchError, TICK};
+use super::LaunchError;
 
 /// The tunnel child's name (`uavmeta tunnel serve`; the tunnel crate is not linked here).
 pub(super) const TUNNEL_PROCESS: &str = "tunnel";
