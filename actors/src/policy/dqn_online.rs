@@ -381,46 +381,6 @@ impl AgentState {
     }
 }
 
-/// The rules of the loop that depend only on the step count, shared by [`OnlineDqn`] and the
-/// population.
-pub struct Schedule<'a>(pub &'a CollectConfig);
-
-impl Schedule<'_> {
-    /// The exploration rate of step `step`.
-    pub fn epsilon(&self, step: usize) -> f64 {
-        epsilon(self.0, step)
-    }
-
-    /// The learning rate of the gradient step after `step` environment steps: `dqn_lr`, falling
-    /// linearly to `dqn_lr * dqn_lr_final_fraction` between `learning_starts` and `dqn_steps`.
-    pub fn learning_rate(&self, step: usize) -> f64 {
-        let c = self.0;
-        let span = c.dqn_steps.saturating_sub(c.learning_starts).max(1);
-        let progress = (step.saturating_sub(c.learning_starts) as f64 / span as f64).min(1.0);
-        c.dqn_lr * (1.0 - (1.0 - c.dqn_lr_final_fraction) * progress)
-    }
-
-    /// Whether a gradient step is due once `steps` environment steps are taken.
-    pub fn train_due(&self, steps: usize) -> bool {
-        steps >= self.0.learning_starts && steps.is_multiple_of(self.0.train_every)
-    }
-
-    /// Whether a selection evaluation is due once `steps` environment steps are taken: every
-    /// `dqn_select_every` steps once epsilon is at its floor, and the last of `dqn_steps`.
-    pub fn selection_due(&self, steps: usize) -> bool {
-        let c = self.0;
-        c.dqn_select_every > 0
-            && (steps == c.dqn_steps
-                || (steps >= c.learning_starts + c.eps_decay_steps
-                    && steps.is_multiple_of(c.dqn_select_every)))
-    }
-
-    /// Whether the target network is refreshed after `gradient_steps` gradient steps.
-    pub fn target_due(&self, gradient_steps: usize) -> bool {
-        gradient_steps.is_multiple_of(self.0.dqn_target_update_every)
-    }
-}
-
 /// What every online DQN agent of a config reads: `[collect]`, `[learner]`, the world, and the TD
 /// loss it trains on (eq. 7 with `[collect]`'s stabilisers).
 pub struct DqnSettings {
@@ -442,6 +402,45 @@ impl DqnSettings {
                 huber: config.collect.dqn_huber,
             },
         }
+    }
+}
+
+impl DqnSettings {
+    // The rules of the loop that depend only on the step count, shared by `OnlineDqn` and the
+    // population.
+
+    /// The exploration rate of step `step`.
+    pub fn epsilon(&self, step: usize) -> f64 {
+        epsilon(&self.collect, step)
+    }
+
+    /// The learning rate of the gradient step after `step` environment steps: `dqn_lr`, falling
+    /// linearly to `dqn_lr * dqn_lr_final_fraction` between `learning_starts` and `dqn_steps`.
+    pub fn learning_rate(&self, step: usize) -> f64 {
+        let c = &self.collect;
+        let span = c.dqn_steps.saturating_sub(c.learning_starts).max(1);
+        let progress = (step.saturating_sub(c.learning_starts) as f64 / span as f64).min(1.0);
+        c.dqn_lr * (1.0 - (1.0 - c.dqn_lr_final_fraction) * progress)
+    }
+
+    /// Whether a gradient step is due once `steps` environment steps are taken.
+    pub fn train_due(&self, steps: usize) -> bool {
+        steps >= self.collect.learning_starts && steps.is_multiple_of(self.collect.train_every)
+    }
+
+    /// Whether a selection evaluation is due once `steps` environment steps are taken: every
+    /// `dqn_select_every` steps once epsilon is at its floor, and the last of `dqn_steps`.
+    pub fn selection_due(&self, steps: usize) -> bool {
+        let c = &self.collect;
+        c.dqn_select_every > 0
+            && (steps == c.dqn_steps
+                || (steps >= c.learning_starts + c.eps_decay_steps
+                    && steps.is_multiple_of(c.dqn_select_every)))
+    }
+
+    /// Whether the target network is refreshed after `gradient_steps` gradient steps.
+    pub fn target_due(&self, gradient_steps: usize) -> bool {
+        gradient_steps.is_multiple_of(self.collect.dqn_target_update_every)
     }
 }
 
@@ -489,14 +488,14 @@ impl OnlineDqn {
         Ok(())
     }
 
-    /// The learning rate of the next gradient step (see [`Schedule::learning_rate`]).
+    /// The learning rate of the next gradient step (see [`DqnSettings::learning_rate`]).
     pub fn learning_rate(&self) -> f64 {
-        Schedule(&self.settings.collect).learning_rate(self.state.steps)
+        self.settings.learning_rate(self.state.steps)
     }
 
     /// The exploration rate of the next step.
     pub fn epsilon(&self) -> f64 {
-        Schedule(&self.settings.collect).epsilon(self.state.steps)
+        self.settings.epsilon(self.state.steps)
     }
 
     /// Mean return of the last [`RECENT_EPISODES`] finished episodes; `None` before the first.
@@ -513,10 +512,10 @@ impl OnlineDqn {
             None => QPolicy::new(&self.q).act(self.state.world()),
         };
         let finished = self.state.advance(action);
-        if Schedule(&self.settings.collect).train_due(self.state.steps) {
+        if self.settings.train_due(self.state.steps) {
             self.gradient_step()?;
         }
-        if Schedule(&self.settings.collect).selection_due(self.state.steps) {
+        if self.settings.selection_due(self.state.steps) {
             self.state.select(&self.q);
         }
         Ok(finished)
@@ -552,7 +551,7 @@ impl OnlineDqn {
         }
         self.opt.step();
         self.gradient_steps += 1;
-        if Schedule(&self.settings.collect).target_due(self.gradient_steps) {
+        if self.settings.target_due(self.gradient_steps) {
             self.target.copy_from(&self.q);
         }
         Ok(())

@@ -18,7 +18,7 @@ use uavmeta_learner::population::QPopulation;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_proto::config::{Config, TaskConfig};
 
-use crate::policy::dqn_online::{AgentState, DqnSettings, Schedule};
+use crate::policy::dqn_online::{AgentState, DqnSettings};
 
 /// Who a member is: the task it trains on (and its index in the config's `[[tasks]]`), the actor
 /// number its transitions carry, and its seed.
@@ -37,8 +37,6 @@ pub struct DqnPopulation {
     q: QPopulation,
     target: QPopulation,
     opt: FusedAdam,
-    /// Environment steps each member has taken.
-    steps: usize,
     gradient_steps: usize,
     /// Each member's normalised observation, reused every step: [N * D].
     obs: Vec<f32>,
@@ -67,7 +65,6 @@ impl DqnPopulation {
             q,
             target,
             opt,
-            steps: 0,
             gradient_steps: 0,
         }
     }
@@ -83,7 +80,7 @@ impl DqnPopulation {
     /// One environment step of every member, then the gradient step and the selection
     /// evaluations it is due.
     pub fn step(&mut self) -> Result<(), BatchError> {
-        let epsilon = Schedule(&self.settings.collect).epsilon(self.steps);
+        let epsilon = self.settings.epsilon(self.steps());
         // ALGO: epsilon-greedy behaviour, each member with its own stream.
         let explored: Vec<Option<usize>> = self
             .members
@@ -95,16 +92,15 @@ impl DqnPopulation {
         } else {
             Vec::new()
         };
-        self.steps += 1;
-        let next_epsilon = Schedule(&self.settings.collect).epsilon(self.steps);
+        let next_epsilon = self.settings.epsilon(self.steps() + 1);
         for (i, (m, random)) in self.members.iter_mut().zip(explored).enumerate() {
             let finished = m.advance(random.unwrap_or_else(|| greedy[i]));
             m.log_progress(finished, next_epsilon);
         }
-        if Schedule(&self.settings.collect).train_due(self.steps) {
+        if self.settings.train_due(self.steps()) {
             self.gradient_step()?;
         }
-        if Schedule(&self.settings.collect).selection_due(self.steps) {
+        if self.settings.selection_due(self.steps()) {
             for (i, m) in self.members.iter_mut().enumerate() {
                 m.select(&self.q.member(i));
             }
@@ -133,8 +129,7 @@ impl DqnPopulation {
     /// ALGO: one Adam step on the sum over members of each member's eq. 7 (with the configured
     /// stabilisers), each over a uniform minibatch of its own replay buffer.
     fn gradient_step(&mut self) -> Result<(), BatchError> {
-        self.opt
-            .set_lr(Schedule(&self.settings.collect).learning_rate(self.steps));
+        self.opt.set_lr(self.settings.learning_rate(self.steps()));
         let mut batches = Vec::with_capacity(self.members.len());
         let mut discounts = Vec::new();
         for m in &mut self.members {
@@ -172,7 +167,7 @@ impl DqnPopulation {
         }
         self.opt.step();
         self.gradient_steps += 1;
-        if Schedule(&self.settings.collect).target_due(self.gradient_steps) {
+        if self.settings.target_due(self.gradient_steps) {
             self.target.copy_from(&self.q);
         }
         Ok(())
@@ -202,8 +197,8 @@ impl DqnPopulation {
         &self.q
     }
 
-    /// Environment steps each member has taken.
+    /// Environment steps each member has taken (they step in lockstep).
     pub fn steps(&self) -> usize {
-        self.steps
+        self.members[0].steps()
     }
 }
