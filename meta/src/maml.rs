@@ -137,7 +137,7 @@ impl MamlConfig {
                 huber: config.learner.huber || m.huber,
                 ..TdConfig::from(&config.learner)
             },
-            alpha: config.learner.alpha,
+            alpha: m.alpha,
             tasks_per_meta_epoch: m.tasks_per_meta_epoch,
             shots: m.shots,
             query_shots: m.query_shots,

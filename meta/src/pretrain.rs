@@ -28,6 +28,7 @@ pub fn pretrain<E>(
     let maml = MamlConfig::from_config(config);
     let mut budget = config.clone();
     budget.learner.batch = tasks.len() * (maml.shots + maml.query_shots);
+    budget.learner.alpha = maml.alpha;
     let w = &config.world;
     let mut q = QNetworkConfig::for_world(w, &config.learner.hidden).init(seed);
     let mut trainer = OfflineTrainer::new(&q, union.len(), Loss::Cql, &budget, seed);

@@ -535,6 +535,10 @@ pub struct MetaConfig {
     pub learn_inner_lr: bool,
     /// CQL-MAML (the paper's method) or DQN-MAML (its baseline).
     pub inner_loss: Loss,
+    /// Eq. 8's conservative weight alpha in MAML's losses (eqs. 14-15) and in CQL-pretrain's
+    /// multi-task training, the two inits; `learner.alpha` is the weight of the offline training
+    /// and fine-tuning on a task's shots. SPEC's alpha = 1 for both.
+    pub alpha: f64,
     /// Huber instead of squared TD error in MAML's losses (eqs. 14-15) even when fine-tuning keeps
     /// the square; `learner.huber` turns it on for both. Off to match eq. 7.
     pub huber: bool,
@@ -574,6 +578,7 @@ impl Default for MetaConfig {
             first_order: false,
             learn_inner_lr: false,
             inner_loss: Loss::Cql,
+            alpha: 1.0,
             huber: false,
             checkpoint_every: 10,
             target_update_every: 1,
@@ -1315,6 +1320,9 @@ impl Config {
                 &(m.checkpoint_every, m.target_update_every),
                 "both at least 1 meta-epoch",
             ));
+        }
+        if !m.alpha.is_finite() || m.alpha < 0.0 {
+            return Err(self.invalid("meta.alpha", &m.alpha, "a finite number >= 0"));
         }
         for (key, value) in [
             ("meta.eta_inner", m.eta_inner),

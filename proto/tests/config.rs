@@ -92,6 +92,15 @@ fn no_adaptation_to_evaluate() {
 }
 
 #[test]
+fn negative_meta_alpha() {
+    error_of(
+        "[meta]\nalpha = -1.0\n",
+        &[],
+        &["meta.alpha", "-1", "a finite number >= 0"],
+    );
+}
+
+#[test]
 fn unknown_key() {
     error_of(
         "[world]\ndevices = 10\nheight = 120.0\n",
