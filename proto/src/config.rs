@@ -5,10 +5,20 @@
 //! offending value and what was expected.
 
 use std::fmt;
+use std::ops::Bound::Excluded;
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
 
+use garde::Validate;
 use serde::{Deserialize, Serialize};
+
+mod rules;
+
+use rules::Broken;
+use rules::{
+    at_least, at_most, finite, first_broken, increasing, is_weight, list_of, non_empty, positive,
+    satisfies, toml_seed, widths, within,
+};
 
 /// The largest number of devices a world may have: the zero-copy transition slot of
 /// `proto::transport` stores observations in fixed-size arrays of `2 + MAX_DEVICES` entries.
@@ -48,26 +58,36 @@ pub enum ConfigError {
 }
 
 /// One experiment: the world, its tasks, and the settings of every stage.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Validate)]
 #[serde(deny_unknown_fields)]
+#[garde(allow_unvalidated)]
 pub struct Config {
     #[serde(default)]
+    #[garde(dive)]
     pub world: WorldConfig,
     #[serde(default = "default_tasks")]
+    #[garde(custom(non_empty("at least one [[tasks]] table")), dive)]
     pub tasks: Vec<TaskConfig>,
     #[serde(default)]
+    #[garde(dive)]
     pub collect: CollectConfig,
     #[serde(default)]
+    #[garde(dive)]
     pub learner: LearnerConfig,
     #[serde(default)]
+    #[garde(dive)]
     pub meta: MetaConfig,
     #[serde(default)]
+    #[garde(dive)]
     pub run: RunConfig,
     #[serde(default)]
+    #[garde(dive)]
     pub reproduce: ReproduceConfig,
     #[serde(default)]
+    #[garde(dive)]
     pub tunnel: TunnelConfig,
     #[serde(default)]
+    #[garde(dive)]
     pub planner: PlannerConfig,
     /// Where the config was read from; not part of the TOML.
     #[serde(skip)]
@@ -75,44 +95,63 @@ pub struct Config {
 }
 
 /// SPEC section 1: the grid, the devices, the UAV, the channel and the rain model.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Validate)]
 #[serde(deny_unknown_fields, default)]
+#[garde(allow_unvalidated)]
 pub struct WorldConfig {
     /// Cells per side, L.
+    #[garde(custom(within(
+        1..=MAX_GRID_CELLS,
+        format!("between 1 and {MAX_GRID_CELLS} cells per side")
+    )))]
     pub grid_cells: u32,
     /// Side of a cell in metres, r.
+    #[garde(custom(finite(0.0.., "a finite number >= 0")))]
     pub cell_m: f64,
     /// Number of IoT devices, K.
+    #[garde(custom(at_least(1)), custom(at_most(MAX_DEVICES)))]
     pub devices: usize,
     /// Explicit device cells `[[x, y], ...]`; when absent, `layout_seed` draws distinct cells.
     pub device_cells: Option<Vec<[u32; 2]>>,
     /// Seed of the device layout when `device_cells` is absent.
+    #[garde(custom(toml_seed()))]
     pub layout_seed: u64,
     /// Importance weight delta_k: one number for every device, or one per device.
+    #[garde(custom(satisfies(Delta::is_weights, "finite weights >= 0")))]
     pub delta: Delta,
     /// UAV height h in metres.
+    #[garde(custom(finite(0.0.., "a finite number >= 0")))]
     pub height_m: f64,
     /// Episode length T in steps; the end of an episode is a time limit, not a terminal state.
+    #[garde(custom(within(1.., "at least 1 step")))]
     pub horizon: u32,
     /// AoI cap A_max.
+    #[garde(custom(within(1..=u32::from(u16::MAX), "between 1 and 65535")))]
     pub aoi_max: u32,
     /// Fixed start cell of the UAV; uniform at random each episode when absent.
     pub start_cell: Option<[u32; 2]>,
     /// Channel gain at 1 m, g0, in dB.
+    #[garde(custom(finite(.., "a finite number of dB")))]
     pub g0_db: f64,
     /// Bandwidth B in Hz.
+    #[garde(custom(finite(0.0.., "a finite number >= 0")))]
     pub bandwidth_hz: f64,
     /// Bits per update M.
+    #[garde(custom(finite(0.0.., "a finite number >= 0")))]
     pub bits: f64,
     /// Noise power sigma^2 in dBm.
+    #[garde(custom(finite(.., "a finite number of dB")))]
     pub noise_dbm: f64,
     /// Which powers enter the reward: the scheduled device's only, or all K devices'.
     pub power_term: PowerTerm,
     /// Rain rate R in mm/h.
+    #[garde(custom(finite(0.0.., "a finite number >= 0")))]
     pub rain_mm_per_h: f64,
     /// ITU-R P.838 coefficient phi (k).
+    #[garde(custom(finite(0.0.., "a finite number >= 0")))]
     pub rain_phi: f64,
     /// ITU-R P.838 exponent varphi (alpha).
+    #[garde(custom(finite(0.0.., "a finite number >= 0")))]
     pub rain_varphi: f64,
 }
 
@@ -172,6 +211,62 @@ impl WorldConfig {
     pub fn rain_attenuation_db_per_km(&self) -> f64 {
         self.rain_phi * self.rain_mm_per_h.powf(self.rain_varphi)
     }
+
+    /// Whether cell `c` is inside the grid.
+    fn inside(&self, c: [u32; 2]) -> bool {
+        c[0] < self.grid_cells && c[1] < self.grid_cells
+    }
+
+    /// The devices fit the grid, one to a cell and each with its weight; the start is inside.
+    fn check_layout(&self) -> Result<(), Broken> {
+        let cells = self.grid_cells as usize * self.grid_cells as usize;
+        if self.devices > cells {
+            let expected = format!("between 1 and the number of cells, grid_cells^2 = {cells}");
+            return Err(Broken::new("world.devices", &self.devices, expected));
+        }
+        if let Some(device_cells) = &self.device_cells {
+            self.check_device_cells(device_cells)?;
+        }
+        if let Delta::PerDevice(d) = &self.delta {
+            if d.len() != self.devices {
+                let expected = format!("one weight or {} weights", self.devices);
+                return Err(Broken::new("world.delta", d, expected));
+            }
+        }
+        match self.start_cell {
+            Some(c) if !self.inside(c) => Err(Broken::new(
+                "world.start_cell",
+                &c,
+                "a cell inside the grid",
+            )),
+            _ => Ok(()),
+        }
+    }
+
+    /// One distinct cell inside the grid per device.
+    fn check_device_cells(&self, cells: &[[u32; 2]]) -> Result<(), Broken> {
+        if cells.len() != self.devices {
+            let expected = format!(
+                "one cell per device: {} cells (world.devices)",
+                self.devices
+            );
+            return Err(Broken::new("world.device_cells", &cells, expected));
+        }
+        for (i, c) in cells.iter().enumerate() {
+            let key = format!("world.device_cells[{i}]");
+            if !self.inside(*c) {
+                let expected = format!(
+                    "a cell inside the grid, each index below grid_cells = {}",
+                    self.grid_cells
+                );
+                return Err(Broken::new(key, c, expected));
+            }
+            if cells[..i].contains(c) {
+                return Err(Broken::new(key, c, "a cell no other device occupies"));
+            }
+        }
+        Ok(())
+    }
 }
 
 /// delta: a number for every device, or a list with one per device.
@@ -180,6 +275,21 @@ impl WorldConfig {
 pub enum Delta {
     Uniform(f64),
     PerDevice(Vec<f64>),
+}
+
+impl Delta {
+    /// The weights as written: one, or one per device.
+    pub fn weights(&self) -> &[f64] {
+        match self {
+            Delta::Uniform(d) => std::slice::from_ref(d),
+            Delta::PerDevice(d) => d,
+        }
+    }
+
+    /// Whether every weight is finite and at least 0.
+    fn is_weights(&self) -> bool {
+        self.weights().iter().all(is_weight)
+    }
 }
 
 /// Which transmit powers the reward charges.
@@ -234,17 +344,20 @@ pub enum TaskRole {
 }
 
 /// SPEC sections 2-3: one task is the world with its lambda and optional rain.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Validate)]
 #[serde(deny_unknown_fields)]
+#[garde(allow_unvalidated)]
 pub struct TaskConfig {
     pub name: String,
     /// The AoI-power trade-off.
+    #[garde(custom(finite(0.0.., "a finite number >= 0")))]
     pub lambda: f64,
     pub role: TaskRole,
     #[serde(default)]
     pub rain: Option<RainZone>,
     /// Relocate the rain zone uniformly at random every this many steps.
     #[serde(default)]
+    #[garde(inner(custom(within(1.., "at least 1 step"))))]
     pub rain_moves_every: Option<u32>,
 }
 
@@ -293,39 +406,49 @@ fn default_tasks() -> Vec<TaskConfig> {
 }
 
 /// SPEC section 4: how each task's dataset is collected, and the online DQN behaviour policy.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Validate)]
 #[serde(deny_unknown_fields, default)]
+#[garde(allow_unvalidated)]
 pub struct CollectConfig {
     /// Behaviour policy: `dqn-online`, `random`, `stalest`, `greedy` or `eps:P` (stalest with
     /// probability 1-P, uniform random with probability P).
     pub policy: String,
     /// Transitions kept per task (the paper's datasets hold 500).
+    #[garde(custom(at_least(1)))]
     pub transitions: usize,
     /// Actor processes per task in a launched run.
+    #[garde(custom(at_least(1)))]
     pub actors_per_task: usize,
     /// Base seed of the behaviour policies and their worlds.
+    #[garde(custom(toml_seed()))]
     pub seed: u64,
     /// Environment steps the online DQN agent trains for before its replay buffer is sampled.
     pub dqn_steps: usize,
     /// Replay buffer capacity of the online DQN agent.
+    #[garde(custom(at_least(1)))]
     pub replay_capacity: usize,
     /// Steps of uniform random actions before the first gradient step.
     pub learning_starts: usize,
     /// Environment steps between gradient steps.
+    #[garde(custom(at_least(1)))]
     pub train_every: usize,
     /// Epsilon-greedy schedule: linear from `eps_start` to `eps_end` over `eps_decay_steps`.
     /// `eps_end` 0.01 (Rainbow's and Dopamine's value): at 0.05 the agents of the AoI-dominated
     /// tasks (lambda 0 and 100) ended up to 7% below the heuristics on their worst seed, at 0.01
     /// within 1.7% (docs/EXPERIMENTS.md, section A).
+    #[garde(custom(within(0.0..=1.0, "a probability in [0, 1]")))]
     pub eps_start: f64,
+    #[garde(custom(within(0.0..=1.0, "a probability in [0, 1]")))]
     pub eps_end: f64,
     pub eps_decay_steps: usize,
     /// Hidden layer widths of the online agent's Q-network (SPEC section 5's [256, 256]; the
     /// offline learners' network is `learner.hidden`).
+    #[garde(custom(widths()))]
     pub dqn_hidden: Vec<usize>,
     /// Adam learning rate of the online agent. Lower than offline training's: the agent takes
     /// tens of thousands of steps on a buffer that keeps changing, and at 1e-3 its greedy policy
     /// swings by a fifth of its return from one evaluation to the next.
+    #[garde(custom(positive("a finite rate > 0")))]
     pub dqn_lr: f64,
     /// Double DQN targets for the online agent (van Hasselt et al.): the online network picks
     /// the next action, the target network values it.
@@ -333,10 +456,12 @@ pub struct CollectConfig {
     /// Huber (delta = 1) instead of the squared TD error for the online agent.
     pub dqn_huber: bool,
     /// Clip the online agent's gradient to this global L2 norm; 0 = no clipping.
+    #[garde(custom(finite(0.0.., "a finite norm >= 0 (0 = no clipping)")))]
     pub dqn_grad_clip_norm: f64,
     /// Gradient steps between the online agent's hard target-network updates. Slower than the
     /// usual 500: at lambda = 0 the best and second-best actions differ by a fraction of a percent
     /// of Q, and a target refreshed every 500 steps moves more than that (docs/EXPERIMENTS.md, A2).
+    #[garde(custom(at_least(1)))]
     pub dqn_target_update_every: usize,
     /// Steps in the online agent's bootstrapped return: the target of a transition is
     /// `sum_{k<n} gamma^k r_{t+k} + gamma^n V(s_{t+n})`, cut short at the episode's end (the
@@ -345,6 +470,7 @@ pub struct CollectConfig {
     pub dqn_n_step: usize,
     /// The online agent's learning rate falls linearly from `dqn_lr` at `learning_starts` to
     /// `dqn_lr * dqn_lr_final_fraction` at `dqn_steps`; 1 keeps it constant.
+    #[garde(custom(within(0.0..=1.0, "a fraction in [0, 1] (1 = a constant rate)")))]
     pub dqn_lr_final_fraction: f64,
     /// Environment steps between exact evaluations of the online agent's greedy policy (over
     /// every start cell; `learner.eval_episodes` Monte-Carlo episodes of its own seed where the
@@ -364,6 +490,7 @@ pub struct CollectConfig {
     /// larger ones give each member its separate run up to float rounding. 1 (one at a time) is
     /// the fastest on CPU, where a [256, 256] step already runs at 60-70% of its matrix
     /// products' floor; stacking is for accelerators (docs/BENCHMARKS.md, "Populations").
+    #[garde(custom(at_least(1)))]
     pub population: usize,
 }
 
@@ -409,30 +536,38 @@ impl Default for CollectConfig {
 }
 
 /// SPEC section 5: the Q-network and the DQN / CQL training settings shared by every method.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Validate)]
 #[serde(deny_unknown_fields, default)]
+#[garde(allow_unvalidated)]
 pub struct LearnerConfig {
     /// Hidden layer widths of the Q-network MLP.
+    #[garde(custom(widths()))]
     pub hidden: Vec<usize>,
     /// Discount factor gamma.
+    #[garde(custom(within(0.0..=1.0, "a discount in [0, 1]")))]
     pub gamma: f64,
     /// Rewards are multiplied by this before any loss sees them. A step costs around 100 (the
     /// AoI sum alone is K times the mean AoI), so unscaled Q-values reach -10^4 and Adam at
     /// lr = 1e-3 needs tens of thousands of steps just to move the output that far; 0.01 is the
     /// paper's own plotting scale (reward / 100). Reported Q-values are divided back.
+    #[garde(custom(positive("a finite number > 0")))]
     pub reward_scale: f64,
     /// CQL conservative weight alpha (eq. 8).
+    #[garde(custom(finite(0.0.., "a finite number >= 0")))]
     pub alpha: f64,
     /// Minibatch size.
+    #[garde(custom(at_least(1)))]
     pub batch: usize,
     /// Adam learning rate of offline training and fine-tuning (eta_outer, so every method
     /// shares the meta-learner's optimiser settings).
+    #[garde(custom(positive("a learning rate > 0")))]
     pub lr: f64,
     /// Training epochs E.
     pub epochs: usize,
     /// Gradient steps per epoch; 0 means one pass over the dataset, ceil(N / batch).
     pub steps_per_epoch: usize,
     /// Gradient steps between hard target-network updates.
+    #[garde(custom(at_least(1)))]
     pub target_update_every: usize,
     /// Double DQN targets (d3rlpy's choice); off to match eq. 7.
     pub double_dqn: bool,
@@ -442,10 +577,12 @@ pub struct LearnerConfig {
     /// previous epoch's network, once the mean Q of the data's own actions falls below
     /// `V_data - value_guard * |V_data|`, `V_data` = the shots' mean reward / (1 - gamma) (see
     /// `learner/src/train.rs`). 0 = no guard.
+    #[garde(custom(finite(0.0.., "a finite margin >= 0 (0 = no guard)")))]
     pub value_guard: f64,
     /// Monte-Carlo episodes of each evaluation of a greedy policy.
     pub eval_episodes: usize,
     /// Seed of the evaluation episodes, the same for every method and epoch.
+    #[garde(custom(toml_seed()))]
     pub eval_seed: u64,
 }
 
@@ -502,8 +639,9 @@ impl std::str::FromStr for Loss {
 }
 
 /// SPEC section 5: MAML over CQL (Algorithm 4).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Validate)]
 #[serde(deny_unknown_fields, default)]
+#[garde(allow_unvalidated)]
 pub struct MetaConfig {
     /// Meta-epochs E_meta.
     pub meta_epochs: usize,
@@ -515,17 +653,24 @@ pub struct MetaConfig {
     pub tasks_per_meta_epoch: usize,
     /// k: transitions drawn from a task's support set each meta-epoch; every inner step uses the
     /// same k, as in MAML.
+    #[garde(custom(at_least(1)))]
     pub shots: usize,
     /// Transitions of a task's query set per meta-loss evaluation.
+    #[garde(custom(at_least(1)))]
     pub query_shots: usize,
     /// Share of each task's dataset that forms its support set; the rest is its query set.
+    #[garde(custom(within((Excluded(0.0), Excluded(1.0)), "a share strictly between 0 and 1")))]
     pub support_fraction: f64,
     /// SGD steps of the inner loop.
+    #[garde(custom(at_least(1)))]
     pub inner_steps: usize,
+    #[garde(custom(positive("a learning rate > 0")))]
     pub eta_inner: f64,
+    #[garde(custom(positive("a learning rate > 0")))]
     pub eta_outer: f64,
     /// Eq. 16's step size falls linearly over the meta-epochs, from `eta_outer` in the first to
     /// `eta_outer * eta_outer_final_fraction` in the last; 1 keeps it constant.
+    #[garde(custom(within(0.0..=1.0, "a fraction in [0, 1] (1 = a constant step size)")))]
     pub eta_outer_final_fraction: f64,
     /// First-order MAML: do not differentiate through the inner steps.
     pub first_order: bool,
@@ -538,14 +683,17 @@ pub struct MetaConfig {
     /// Eq. 8's conservative weight alpha in MAML's losses (eqs. 14-15) and in CQL-pretrain's
     /// multi-task training, the two inits; `learner.alpha` is the weight of the offline training
     /// and fine-tuning on a task's shots. SPEC's alpha = 1 for both.
+    #[garde(custom(finite(0.0.., "a finite number >= 0")))]
     pub alpha: f64,
     /// Huber instead of squared TD error in MAML's losses (eqs. 14-15) even when fine-tuning keeps
     /// the square; `learner.huber` turns it on for both. Off to match eq. 7.
     pub huber: bool,
     /// Meta-epochs between w0 checkpoints.
+    #[garde(custom(within(1.., "at least 1 meta-epoch")))]
     pub checkpoint_every: usize,
     /// Meta-epochs between refreshes of the target network Qhat from w0; Qhat is held constant
     /// through the inner and outer losses in between (see `meta/src/maml.rs`).
+    #[garde(custom(within(1.., "at least 1 meta-epoch")))]
     pub target_update_every: usize,
     /// Meta-epochs between evaluations of each task's adapted greedy policy on its environment
     /// (costly: `learner.eval_episodes` episodes per task); 0 evaluates only after the last.
@@ -555,10 +703,12 @@ pub struct MetaConfig {
     /// 1 / (1 - decay) outer steps; checkpoints, evaluations and the meta-test use it, while eq.
     /// 16 keeps updating w0 itself. 0 = off: the init is the last iterate, whose return swung by
     /// up to 2.4k between neighbouring meta-epochs (docs/EXPERIMENTS.md, C7).
+    #[garde(custom(within(0.0..1.0, "a decay in [0, 1): 0 = no averaging")))]
     pub w0_average_decay: f64,
     /// Independent adaptations (each on fresh `shots` support shots) per task and evaluation;
     /// the reported return is their mean, so that a figure-4 point measures the adapted return
     /// rather than sampling one adaptation of it.
+    #[garde(custom(within(1.., "at least 1 adaptation per evaluation")))]
     pub eval_adaptations: usize,
 }
 
@@ -590,22 +740,27 @@ impl Default for MetaConfig {
 }
 
 /// Where a run writes, its seeds, its metrics endpoints and its iceoryx2 capacities.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Validate)]
 #[serde(deny_unknown_fields, default)]
+#[garde(allow_unvalidated)]
 pub struct RunConfig {
     /// Run directory: datasets, checkpoints, CSV files, port files.
     pub dir: PathBuf,
     /// Seeds of repeated runs; the first is the seed of a single run.
+    #[garde(custom(non_empty("at least one seed")), inner(custom(toml_seed())))]
     pub seeds: Vec<u64>,
     /// Address every /metrics endpoint binds.
     pub metrics_host: String,
     /// Port of the launcher's /metrics; children get 0 (an ephemeral port written to the run dir).
     pub metrics_port: u16,
     /// Transitions per zero-copy batch.
+    #[garde(custom(at_least(1)), custom(at_most(MAX_BATCH_SIZE)))]
     pub batch_size: usize,
     /// Batches a subscriber buffers before publishers wait.
+    #[garde(custom(at_least(1)), custom(at_most(MAX_SUBSCRIBER_BUFFER)))]
     pub subscriber_buffer: usize,
     /// Publishers (actors) a transition service admits.
+    #[garde(custom(at_least(1)))]
     pub max_publishers: usize,
     /// A rollout actor keeps a copy of every batch until the store acknowledges it appended, and
     /// sends what is unacknowledged again to a store that replaced a killed one, so a store crash
@@ -620,34 +775,47 @@ pub struct RunConfig {
     /// seconds is taken for hung (stopped, deadlocked, livelocked), killed and restarted like a
     /// crashed one; 0 = never. Every process beats at least every few seconds on this machine
     /// under load, so the default leaves a wide margin.
+    #[garde(custom(finite(0.0.., "seconds >= 0 (0 = never)")))]
     pub hang_timeout_seconds: f64,
     /// Announcements (dataset ready, checkpoint ready, shutdown) a control subscriber buffers;
     /// also the history a process joining late receives.
+    #[garde(custom(at_least(1)), custom(at_most(MAX_SUBSCRIBER_BUFFER)))]
     pub control_buffer: usize,
     /// The iceoryx2 domain of this host's processes of the run: their shared memory is named
     /// `iox2_<domain>_...` and iceoryx2's files live in `/tmp/iceoryx2/<domain>/`, so processes of
     /// two domains cannot see each other even on one machine; empty = iceoryx2's default domain.
     /// Only a tunnel (`uavmeta tunnel`) connects domains. A remote host's copy of the config
     /// names its own (`uavmeta tunnel join --domain`).
+    #[garde(custom(satisfies(
+        is_domain,
+        format!("at most {MAX_DOMAIN_LEN} letters, digits, '-' or '_' (empty = default)")
+    )))]
     pub domain: String,
     /// The libtorch device populations of learners are made on: `cpu`, `cuda` or `cuda:N`.
     /// Asking for CUDA where libtorch sees no GPU is an error when the population is made. The
     /// CUDA path is device placement only and untested here (no GPU on the project's machines).
+    #[garde(custom(satisfies(is_torch_device, "cpu, cuda or cuda:N")))]
     pub device: String,
 }
 
 /// Remote actor hosts reach the run through iceoryx2's tunnel over Zenoh (`uavmeta tunnel`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Validate)]
 #[serde(deny_unknown_fields, default)]
+#[garde(allow_unvalidated)]
 pub struct TunnelConfig {
     /// Zenoh endpoint where the launcher's tunnel accepts remote actor hosts, such as
     /// `tcp/0.0.0.0:7447`; empty = no tunnel, local actors only.
+    #[garde(custom(satisfies(
+        is_endpoint,
+        "a Zenoh endpoint PROTOCOL/ADDRESS such as tcp/0.0.0.0:7447, or empty"
+    )))]
     pub listen: String,
     /// Remote hosts (`uavmeta tunnel join --host`) whose actors the launcher waits for before it
     /// starts the local ones: until each has joined and the store has stored a transition, so
     /// that a run's data comes from every host it was planned with.
     pub wait_for_hosts: Vec<String>,
     /// How long the launcher waits for `wait_for_hosts` before it gives up.
+    #[garde(custom(positive("seconds > 0")))]
     pub wait_seconds: f64,
     /// The run's CA certificate (PEM). With a `tls/` endpoint, which any address beyond loopback
     /// needs, a remote host is admitted only with a certificate this CA signed (mutual TLS).
@@ -678,12 +846,14 @@ impl Default for TunnelConfig {
 
 /// The planner reference (SPEC section 5, `uavmeta_world::planner`): a beam search over the
 /// horizon that knows the world, the row every method's gap to "achievable" is read against.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Validate)]
 #[serde(deny_unknown_fields, default)]
+#[garde(allow_unvalidated)]
 pub struct PlannerConfig {
     /// States kept per step of the search. Exact (dynamic programming) once it holds every
     /// distinct state; on the default world 4x wider (1024) gains under 0.2% at 4x the time
     /// (docs/EXPERIMENTS.md, P).
+    #[garde(custom(within(1.., "at least 1 state kept per step")))]
     pub beam_width: usize,
     /// The weights b of the power part of the search's cost-to-go estimate h
     /// (`uavmeta_world::planner`): the search runs once per weight and the cheapest plan is kept.
@@ -691,6 +861,7 @@ pub struct PlannerConfig {
     /// lambda-2000), and the four together beat each alone on every lambda measured (each alone
     /// loses up to 4.2%, at lambda-2000), at four times the cost (docs/EXPERIMENTS.md, P2). 0
     /// ranks states by their cost so far and AoI alone.
+    #[garde(custom(list_of(is_weight, "a non-empty list of finite weights >= 0")))]
     pub h_power_weights: Vec<f64>,
     /// The most memory one search may take, in MiB; a width and horizon that need more are
     /// refused up front.
@@ -723,6 +894,28 @@ impl PlannerConfig {
 /// Longest `run.domain`: the iceoryx2 prefix of every shared-memory name grows with it.
 pub const MAX_DOMAIN_LEN: usize = 32;
 
+/// A `run.domain`: at most [`MAX_DOMAIN_LEN`] letters, digits, '-' or '_'.
+fn is_domain(domain: &str) -> bool {
+    domain.len() <= MAX_DOMAIN_LEN
+        && domain
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+}
+
+/// A libtorch device: `cpu`, `cuda` or `cuda:N`.
+fn is_torch_device(device: &str) -> bool {
+    let index = device.strip_prefix("cuda:").map(str::parse::<usize>);
+    device == "cpu" || device == "cuda" || matches!(index, Some(Ok(_)))
+}
+
+/// A Zenoh endpoint `PROTOCOL/ADDRESS`, or empty (no tunnel).
+fn is_endpoint(listen: &str) -> bool {
+    listen.is_empty()
+        || listen
+            .split_once('/')
+            .is_some_and(|(p, a)| !p.is_empty() && !a.is_empty())
+}
+
 impl Default for RunConfig {
     fn default() -> Self {
         Self {
@@ -747,31 +940,42 @@ impl Default for RunConfig {
 /// name tasks or counts of tasks are checked against `[[tasks]]` by
 /// [`Config::validate_reproduce`], when a reproduction starts, so that other commands accept a
 /// config whose tasks do not fit them.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Validate)]
 #[serde(deny_unknown_fields, default)]
+#[garde(allow_unvalidated)]
 pub struct ReproduceConfig {
     /// Seeds 0..seeds-1 behind every curve; seed s collects its own datasets with
     /// `collect.seed + s`, so the spread covers the data as well as the learning.
     pub seeds: usize,
     /// The main experiments meta-train on the first this many meta-train tasks, in config order.
+    #[garde(custom(at_least(1)))]
     pub meta_tasks: usize,
     /// Figure 7: meta-train on the first n meta-train tasks for each n.
+    #[garde(custom(increasing("a non-empty, strictly increasing list of task counts >= 1")))]
     pub task_counts: Vec<usize>,
     /// Figure 6: the shot counts CQL and CQL-MAML are fine-tuned on.
+    #[garde(custom(increasing("a non-empty, strictly increasing list of shot counts >= 1")))]
     pub shots: Vec<usize>,
     /// Shots of every other experiment (the paper's 500).
+    #[garde(custom(at_least(1)))]
     pub main_shots: usize,
     /// The unseen task of figures 5-8 (role `meta-test`).
+    #[garde(custom(non_empty("a task name")))]
     pub unseen_task: String,
     /// Figures 5 and 6: fine-tuning epochs.
+    #[garde(custom(at_least(1)))]
     pub convergence_epochs: usize,
     /// Figure 7: fine-tuning epochs after which the task counts are compared.
+    #[garde(custom(at_least(1)))]
     pub tasks_epochs: usize,
     /// Figure 8: the epoch whose AoI and power are compared.
+    #[garde(custom(at_least(1)))]
     pub aoi_power_epoch: usize,
     /// Figure 9: fine-tuning epochs on each rain task (meta-test tasks with a rain zone).
+    #[garde(custom(at_least(1)))]
     pub resilience_epochs: usize,
     /// Figure 9: Monte-Carlo episodes of each evaluation on a rain task.
+    #[garde(custom(at_least(1)))]
     pub resilience_eval_episodes: usize,
     /// Figure 4: meta-epochs between evaluations of the adapted policies; 0 evaluates only after
     /// the last.
@@ -921,590 +1125,139 @@ impl Config {
         self.tasks.iter().filter(move |t| t.role == role)
     }
 
-    /// Checks every constraint a config must meet beyond its types.
+    /// Checks every constraint a config must meet beyond its types: the rules its sections
+    /// declare on their fields, then the checks across fields. The error is the first broken.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        self.validate_seeds()?;
-        self.validate_world()?;
-        self.validate_world_physics()?;
-        self.validate_tasks()?;
-        self.validate_collect()?;
-        self.validate_learner()?;
-        self.validate_meta()?;
-        self.validate_run()?;
-        self.validate_tunnel()?;
-        self.validate_reproduce_keys()?;
-        self.validate_limits()?;
-        self.validate_planner()?;
-        Ok(())
+        self.check().map_err(|broken| broken.at(&self.origin))
     }
 
-    /// The `[planner]` section: a width of at least one, and a search that fits its memory bound.
-    fn validate_planner(&self) -> Result<(), ConfigError> {
-        let p = &self.planner;
-        if p.beam_width == 0 {
-            return Err(self.invalid(
-                "planner.beam_width",
-                &p.beam_width,
-                "at least 1 state kept per step",
-            ));
-        }
-        if p.h_power_weights.is_empty()
-            || !p.h_power_weights.iter().all(|b| b.is_finite() && *b >= 0.0)
-        {
-            return Err(self.invalid(
-                "planner.h_power_weights",
-                &p.h_power_weights,
-                "a non-empty list of finite weights >= 0",
-            ));
-        }
-        let need = p.memory_bytes(&self.world);
-        if need > (p.max_memory_mib as u128) << 20 {
-            return Err(self.invalid(
-                "planner.beam_width",
-                &p.beam_width,
-                &format!(
-                    "a search that fits planner.max_memory_mib = {} MiB; with world.horizon = {} \
-                     and world.devices = {} it needs {} MiB",
-                    p.max_memory_mib,
-                    self.world.horizon,
-                    self.world.devices,
-                    need >> 20
-                ),
-            ));
-        }
-        Ok(())
+    /// What [`Config::validate`] checks, the first broken check without the config's origin.
+    fn check(&self) -> Result<(), Broken> {
+        garde::Validate::validate(self).map_err(first_broken)?;
+        self.world.check_layout()?;
+        self.check_tasks()?;
+        self.check_n_step()?;
+        self.tunnel.check_hosts()?;
+        self.tunnel.check_security()?;
+        self.check_reproduce_seeds()?;
+        self.check_limits()?;
+        self.check_planner_memory()
     }
 
-    /// The error for `key` = `value`, which is not `expected`.
-    fn invalid(&self, key: &str, value: &dyn fmt::Debug, expected: &str) -> ConfigError {
-        ConfigError::Invalid {
-            origin: self.origin.clone(),
-            key: key.to_string(),
-            value: format!("{value:?}"),
-            expected: expected.to_string(),
-        }
-    }
-
-    /// Seeds are saved as TOML integers (i64), in every section that has one.
-    fn validate_seeds(&self) -> Result<(), ConfigError> {
-        let w = &self.world;
-        // TOML integers are i64: a larger seed could not be saved beside a dataset or checkpoint.
-        let seeds = [
-            ("world.layout_seed", w.layout_seed),
-            ("collect.seed", self.collect.seed),
-            ("learner.eval_seed", self.learner.eval_seed),
-        ];
-        for (key, seed) in seeds
-            .into_iter()
-            .chain(self.run.seeds.iter().map(|s| ("run.seeds", *s)))
-        {
-            if seed > i64::MAX as u64 {
-                return Err(self.invalid(key, &seed, &format!("a seed at most {}", i64::MAX)));
-            }
-        }
-        Ok(())
-    }
-
-    /// The `[world]` section's grid, devices and start.
-    fn validate_world(&self) -> Result<(), ConfigError> {
-        let w = &self.world;
-        let cells = (w.grid_cells as usize) * (w.grid_cells as usize);
-        // The world keeps a power table per cell and device, and observations are u16.
-        if w.grid_cells == 0 || w.grid_cells > MAX_GRID_CELLS {
-            return Err(self.invalid(
-                "world.grid_cells",
-                &w.grid_cells,
-                &format!("between 1 and {MAX_GRID_CELLS} cells per side"),
-            ));
-        }
-        if w.devices == 0 || w.devices > cells {
-            return Err(self.invalid(
-                "world.devices",
-                &w.devices,
-                &format!("between 1 and the number of cells, grid_cells^2 = {cells}"),
-            ));
-        }
-        if w.devices > MAX_DEVICES {
-            return Err(self.invalid(
-                "world.devices",
-                &w.devices,
-                &format!("at most {MAX_DEVICES}"),
-            ));
-        }
-        if let Some(device_cells) = &w.device_cells {
-            if device_cells.len() != w.devices {
-                return Err(self.invalid(
-                    "world.device_cells",
-                    device_cells,
-                    &format!("one cell per device: {} cells (world.devices)", w.devices),
-                ));
-            }
-            for (i, c) in device_cells.iter().enumerate() {
-                if c[0] >= w.grid_cells || c[1] >= w.grid_cells {
-                    return Err(self.invalid(
-                        &format!("world.device_cells[{i}]"),
-                        c,
-                        &format!(
-                            "a cell inside the grid, each index below grid_cells = {}",
-                            w.grid_cells
-                        ),
-                    ));
-                }
-                if device_cells[..i].contains(c) {
-                    return Err(self.invalid(
-                        &format!("world.device_cells[{i}]"),
-                        c,
-                        "a cell no other device occupies",
-                    ));
-                }
-            }
-        }
-        if let Delta::PerDevice(d) = &w.delta {
-            if d.len() != w.devices {
-                return Err(self.invalid(
-                    "world.delta",
-                    d,
-                    &format!("one weight or {} weights", w.devices),
-                ));
-            }
-        }
-        if w.delta_per_device()
-            .iter()
-            .any(|d| !d.is_finite() || *d < 0.0)
-        {
-            return Err(self.invalid("world.delta", &w.delta, "finite weights >= 0"));
-        }
-        if let Some(c) = w.start_cell {
-            if c[0] >= w.grid_cells || c[1] >= w.grid_cells {
-                return Err(self.invalid("world.start_cell", &c, "a cell inside the grid"));
-            }
-        }
-        Ok(())
-    }
-
-    /// The `[world]` section's physical constants and episode length.
-    fn validate_world_physics(&self) -> Result<(), ConfigError> {
-        let w = &self.world;
-        for (key, value) in [
-            ("world.cell_m", w.cell_m),
-            ("world.height_m", w.height_m),
-            ("world.bandwidth_hz", w.bandwidth_hz),
-            ("world.bits", w.bits),
-            ("world.rain_mm_per_h", w.rain_mm_per_h),
-            ("world.rain_phi", w.rain_phi),
-            ("world.rain_varphi", w.rain_varphi),
-        ] {
-            if !value.is_finite() || value < 0.0 {
-                return Err(self.invalid(key, &value, "a finite number >= 0"));
-            }
-        }
-        for (key, value) in [("world.g0_db", w.g0_db), ("world.noise_dbm", w.noise_dbm)] {
-            if !value.is_finite() {
-                return Err(self.invalid(key, &value, "a finite number of dB"));
-            }
-        }
-        if w.horizon == 0 {
-            return Err(self.invalid("world.horizon", &w.horizon, "at least 1 step"));
-        }
-        if w.aoi_max == 0 || w.aoi_max > u16::MAX as u32 {
-            return Err(self.invalid("world.aoi_max", &w.aoi_max, "between 1 and 65535"));
-        }
-        Ok(())
-    }
-
-    /// The `[[tasks]]` tables.
-    fn validate_tasks(&self) -> Result<(), ConfigError> {
-        let w = &self.world;
-        if self.tasks.is_empty() {
-            return Err(self.invalid("tasks", &"[]", "at least one [[tasks]] table"));
-        }
+    /// Every task's name is its own, and its rain fits the grid.
+    fn check_tasks(&self) -> Result<(), Broken> {
+        let cells = self.world.grid_cells;
         for (i, t) in self.tasks.iter().enumerate() {
-            if !t.lambda.is_finite() || t.lambda < 0.0 {
-                return Err(self.invalid(
-                    &format!("tasks[{i}].lambda"),
-                    &t.lambda,
-                    "a finite number >= 0",
-                ));
-            }
             if t.name.is_empty() || self.tasks[..i].iter().any(|o| o.name == t.name) {
-                return Err(self.invalid(
-                    &format!("tasks[{i}].name"),
-                    &t.name,
-                    "a non-empty name no other task has",
-                ));
+                let expected = "a non-empty name no other task has";
+                return Err(Broken::new(format!("tasks[{i}].name"), &t.name, expected));
             }
-            if let Some(r) = t.rain {
-                if r.x0 > r.x1 || r.y0 > r.y1 || r.x1 >= w.grid_cells || r.y1 >= w.grid_cells {
-                    return Err(self.invalid(
-                        &format!("tasks[{i}].rain"),
-                        &r,
-                        &format!(
-                            "a rectangle inside the grid: x0 <= x1 < {0}, y0 <= y1 < {0}",
-                            w.grid_cells
-                        ),
-                    ));
-                }
-            }
-            if t.rain_moves_every == Some(0) {
-                return Err(self.invalid(
-                    &format!("tasks[{i}].rain_moves_every"),
-                    &0,
-                    "at least 1 step",
-                ));
+            let outside =
+                |r: &RainZone| r.x0 > r.x1 || r.y0 > r.y1 || r.x1 >= cells || r.y1 >= cells;
+            if let Some(r) = t.rain.filter(outside) {
+                let expected =
+                    format!("a rectangle inside the grid: x0 <= x1 < {cells}, y0 <= y1 < {cells}");
+                return Err(Broken::new(format!("tasks[{i}].rain"), &r, expected));
             }
             if t.rain_moves_every.is_some() && t.rain.is_none() {
-                return Err(self.invalid(
-                    &format!("tasks[{i}].rain_moves_every"),
-                    &t.rain_moves_every,
-                    "a `rain` zone to move",
-                ));
+                let (key, value) = (format!("tasks[{i}].rain_moves_every"), &t.rain_moves_every);
+                return Err(Broken::new(key, value, "a `rain` zone to move"));
             }
         }
         Ok(())
     }
 
-    /// The `[collect]` section.
-    fn validate_collect(&self) -> Result<(), ConfigError> {
-        let c = &self.collect;
-        if c.transitions == 0 {
-            return Err(self.invalid("collect.transitions", &c.transitions, "at least 1"));
-        }
-        if c.actors_per_task == 0 {
-            return Err(self.invalid("collect.actors_per_task", &c.actors_per_task, "at least 1"));
-        }
-        if c.population == 0 {
-            return Err(self.invalid("collect.population", &c.population, "at least 1"));
-        }
-        for (key, value) in [
-            ("collect.eps_start", c.eps_start),
-            ("collect.eps_end", c.eps_end),
-        ] {
-            if !(0.0..=1.0).contains(&value) {
-                return Err(self.invalid(key, &value, "a probability in [0, 1]"));
-            }
-        }
-        if c.replay_capacity == 0 || c.train_every == 0 || c.dqn_target_update_every == 0 {
-            return Err(self.invalid(
-                "collect.replay_capacity / collect.train_every / collect.dqn_target_update_every",
-                &(c.replay_capacity, c.train_every, c.dqn_target_update_every),
-                "each at least 1",
-            ));
-        }
-        if c.dqn_hidden.is_empty() || c.dqn_hidden.contains(&0) {
-            return Err(self.invalid(
-                "collect.dqn_hidden",
-                &c.dqn_hidden,
-                "a non-empty list of widths >= 1",
-            ));
-        }
-        if !c.dqn_lr.is_finite() || c.dqn_lr <= 0.0 {
-            return Err(self.invalid("collect.dqn_lr", &c.dqn_lr, "a finite rate > 0"));
-        }
-        if !c.dqn_grad_clip_norm.is_finite() || c.dqn_grad_clip_norm < 0.0 {
-            return Err(self.invalid(
-                "collect.dqn_grad_clip_norm",
-                &c.dqn_grad_clip_norm,
-                "a finite norm >= 0 (0 = no clipping)",
-            ));
-        }
-        if c.dqn_n_step == 0 || c.dqn_n_step > self.world.horizon as usize {
-            return Err(self.invalid(
+    /// The online agent's return looks at most one episode ahead.
+    fn check_n_step(&self) -> Result<(), Broken> {
+        let (n, horizon) = (self.collect.dqn_n_step, self.world.horizon);
+        match (1..=horizon as usize).contains(&n) {
+            true => Ok(()),
+            false => Err(Broken::new(
                 "collect.dqn_n_step",
-                &c.dqn_n_step,
-                &format!(
-                    "a step count in [1, world.horizon = {}]",
-                    self.world.horizon
-                ),
-            ));
+                &n,
+                format!("a step count in [1, world.horizon = {horizon}]"),
+            )),
         }
-        if !(0.0..=1.0).contains(&c.dqn_lr_final_fraction) {
-            return Err(self.invalid(
-                "collect.dqn_lr_final_fraction",
-                &c.dqn_lr_final_fraction,
-                "a fraction in [0, 1] (1 = a constant rate)",
-            ));
-        }
-        Ok(())
     }
 
-    /// The `[learner]` section.
-    fn validate_learner(&self) -> Result<(), ConfigError> {
-        let l = &self.learner;
-        if l.hidden.is_empty() || l.hidden.contains(&0) {
-            return Err(self.invalid(
-                "learner.hidden",
-                &l.hidden,
-                "a non-empty list of widths >= 1",
-            ));
-        }
-        if !(0.0..=1.0).contains(&l.gamma) {
-            return Err(self.invalid("learner.gamma", &l.gamma, "a discount in [0, 1]"));
-        }
-        if !l.value_guard.is_finite() || l.value_guard < 0.0 {
-            return Err(self.invalid(
-                "learner.value_guard",
-                &l.value_guard,
-                "a finite margin >= 0 (0 = no guard)",
-            ));
-        }
-        if !l.reward_scale.is_finite() || l.reward_scale <= 0.0 {
-            return Err(self.invalid(
-                "learner.reward_scale",
-                &l.reward_scale,
-                "a finite number > 0",
-            ));
-        }
-        if !l.alpha.is_finite() || l.alpha < 0.0 {
-            return Err(self.invalid("learner.alpha", &l.alpha, "a finite number >= 0"));
-        }
-        if l.batch == 0 {
-            return Err(self.invalid("learner.batch", &l.batch, "at least 1"));
-        }
-        if !l.lr.is_finite() || l.lr <= 0.0 {
-            return Err(self.invalid("learner.lr", &l.lr, "a learning rate > 0"));
-        }
-        if l.target_update_every == 0 {
-            return Err(self.invalid(
-                "learner.target_update_every",
-                &l.target_update_every,
-                "at least 1",
-            ));
-        }
-        Ok(())
-    }
-
-    /// The `[meta]` section.
-    fn validate_meta(&self) -> Result<(), ConfigError> {
-        let m = &self.meta;
-        if m.shots == 0 || m.query_shots == 0 {
-            return Err(self.invalid(
-                "meta.shots / meta.query_shots",
-                &(m.shots, m.query_shots),
-                "both at least 1",
-            ));
-        }
-        if !(m.support_fraction > 0.0 && m.support_fraction < 1.0) {
-            return Err(self.invalid(
-                "meta.support_fraction",
-                &m.support_fraction,
-                "a share strictly between 0 and 1",
-            ));
-        }
-        if m.inner_steps == 0 {
-            return Err(self.invalid("meta.inner_steps", &m.inner_steps, "at least 1"));
-        }
-        if !(0.0..1.0).contains(&m.w0_average_decay) {
-            return Err(self.invalid(
-                "meta.w0_average_decay",
-                &m.w0_average_decay,
-                "a decay in [0, 1): 0 = no averaging",
-            ));
-        }
-        if !(0.0..=1.0).contains(&m.eta_outer_final_fraction) {
-            return Err(self.invalid(
-                "meta.eta_outer_final_fraction",
-                &m.eta_outer_final_fraction,
-                "a fraction in [0, 1] (1 = a constant step size)",
-            ));
-        }
-        if m.eval_adaptations == 0 {
-            return Err(self.invalid(
-                "meta.eval_adaptations",
-                &m.eval_adaptations,
-                "at least 1 adaptation per evaluation",
-            ));
-        }
-        if m.checkpoint_every == 0 || m.target_update_every == 0 {
-            return Err(self.invalid(
-                "meta.checkpoint_every / meta.target_update_every",
-                &(m.checkpoint_every, m.target_update_every),
-                "both at least 1 meta-epoch",
-            ));
-        }
-        if !m.alpha.is_finite() || m.alpha < 0.0 {
-            return Err(self.invalid("meta.alpha", &m.alpha, "a finite number >= 0"));
-        }
-        for (key, value) in [
-            ("meta.eta_inner", m.eta_inner),
-            ("meta.eta_outer", m.eta_outer),
-        ] {
-            if !value.is_finite() || value <= 0.0 {
-                return Err(self.invalid(key, &value, "a learning rate > 0"));
-            }
-        }
-        Ok(())
-    }
-
-    /// The `[run]` section.
-    fn validate_run(&self) -> Result<(), ConfigError> {
-        let r = &self.run;
-        if r.seeds.is_empty() {
-            return Err(self.invalid("run.seeds", &r.seeds, "at least one seed"));
-        }
-        if r.control_buffer == 0 {
-            return Err(self.invalid("run.control_buffer", &r.control_buffer, "at least 1"));
-        }
-        let cuda_index = r.device.strip_prefix("cuda:").map(str::parse::<usize>);
-        if !(r.device == "cpu" || r.device == "cuda" || matches!(cuda_index, Some(Ok(_)))) {
-            return Err(self.invalid("run.device", &r.device, "cpu, cuda or cuda:N"));
-        }
-        if !r.hang_timeout_seconds.is_finite() || r.hang_timeout_seconds < 0.0 {
-            return Err(self.invalid(
-                "run.hang_timeout_seconds",
-                &r.hang_timeout_seconds,
-                "seconds >= 0 (0 = never)",
-            ));
-        }
-        if r.batch_size == 0 || r.subscriber_buffer == 0 || r.max_publishers == 0 {
-            return Err(self.invalid(
-                "run.batch_size / run.subscriber_buffer / run.max_publishers",
-                &(r.batch_size, r.subscriber_buffer, r.max_publishers),
-                "all at least 1",
-            ));
-        }
-        if r.domain.len() > MAX_DOMAIN_LEN
-            || !r
-                .domain
-                .chars()
-                .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
-        {
-            return Err(self.invalid(
-                "run.domain",
-                &r.domain,
-                &format!("at most {MAX_DOMAIN_LEN} letters, digits, '-' or '_' (empty = default)"),
-            ));
-        }
-        Ok(())
-    }
-
-    /// The `[tunnel]` section.
-    fn validate_tunnel(&self) -> Result<(), ConfigError> {
-        let listen = &self.tunnel.listen;
-        if !listen.is_empty()
-            && !listen
-                .split_once('/')
-                .is_some_and(|(p, a)| !p.is_empty() && !a.is_empty())
-        {
-            return Err(self.invalid(
-                "tunnel.listen",
-                listen,
-                "a Zenoh endpoint PROTOCOL/ADDRESS such as tcp/0.0.0.0:7447, or empty",
-            ));
-        }
-        let t = &self.tunnel;
-        if !t.wait_for_hosts.is_empty() && t.listen.is_empty() {
-            return Err(self.invalid(
-                "tunnel.wait_for_hosts",
-                &t.wait_for_hosts,
-                "no hosts while tunnel.listen is empty (no tunnel to wait through)",
-            ));
-        }
-        if !t.wait_seconds.is_finite() || t.wait_seconds <= 0.0 {
-            return Err(self.invalid("tunnel.wait_seconds", &t.wait_seconds, "seconds > 0"));
-        }
-        self.validate_tunnel_security()
-    }
-
-    /// The `[reproduce]` keys on their own ([`Config::validate_reproduce`] checks them against
-    /// the tasks).
-    fn validate_reproduce_keys(&self) -> Result<(), ConfigError> {
-        let p = &self.reproduce;
-        if p.seeds == 0
-            || (p.seeds as u64 - 1)
-                .checked_add(self.collect.seed)
-                .is_none_or(|s| s > i64::MAX as u64)
-        {
-            return Err(self.invalid(
+    /// Seed s of a reproduction collects with `collect.seed + s`, which TOML must hold.
+    fn check_reproduce_seeds(&self) -> Result<(), Broken> {
+        let seeds = self.reproduce.seeds;
+        let last = (seeds as u64)
+            .checked_sub(1)
+            .map(|s| s.checked_add(self.collect.seed));
+        match last {
+            Some(Some(last)) if last <= i64::MAX as u64 => Ok(()),
+            _ => Err(Broken::new(
                 "reproduce.seeds",
-                &p.seeds,
-                &format!(
+                &seeds,
+                format!(
                     "at least 1, with collect.seed + seeds - 1 at most {}",
                     i64::MAX
                 ),
-            ));
+            )),
         }
-        for (key, value) in [
-            ("reproduce.meta_tasks", p.meta_tasks),
-            ("reproduce.main_shots", p.main_shots),
-            ("reproduce.convergence_epochs", p.convergence_epochs),
-            ("reproduce.tasks_epochs", p.tasks_epochs),
-            ("reproduce.aoi_power_epoch", p.aoi_power_epoch),
-            ("reproduce.resilience_epochs", p.resilience_epochs),
-            (
-                "reproduce.resilience_eval_episodes",
-                p.resilience_eval_episodes,
-            ),
-        ] {
-            if value == 0 {
-                return Err(self.invalid(key, &value, "at least 1"));
-            }
+    }
+
+    /// The planner's search fits its memory bound.
+    fn check_planner_memory(&self) -> Result<(), Broken> {
+        let (p, w) = (&self.planner, &self.world);
+        let need = p.memory_bytes(w);
+        if need <= (p.max_memory_mib as u128) << 20 {
+            return Ok(());
         }
-        if p.task_counts.is_empty()
-            || p.task_counts.contains(&0)
-            || p.task_counts.windows(2).any(|w| w[0] >= w[1])
-        {
-            return Err(self.invalid(
-                "reproduce.task_counts",
-                &p.task_counts,
-                "a non-empty, strictly increasing list of task counts >= 1",
-            ));
-        }
-        if p.shots.is_empty() || p.shots.contains(&0) || p.shots.windows(2).any(|w| w[0] >= w[1]) {
-            return Err(self.invalid(
-                "reproduce.shots",
-                &p.shots,
-                "a non-empty, strictly increasing list of shot counts >= 1",
-            ));
-        }
-        if p.unseen_task.is_empty() {
-            return Err(self.invalid("reproduce.unseen_task", &p.unseen_task, "a task name"));
-        }
-        Ok(())
+        let expected = format!(
+            "a search that fits planner.max_memory_mib = {} MiB; with world.horizon = {} and \
+             world.devices = {} it needs {} MiB",
+            p.max_memory_mib,
+            w.horizon,
+            w.devices,
+            need >> 20
+        );
+        Err(Broken::new("planner.beam_width", &p.beam_width, expected))
     }
 
     /// Checks the `[reproduce]` keys that refer to `[[tasks]]` and `[collect]`: run by
     /// `uavmeta reproduce` only, so that other commands take configs without such tasks.
     pub fn validate_reproduce(&self) -> Result<(), ConfigError> {
+        self.check_reproduce()
+            .map_err(|broken| broken.at(&self.origin))
+    }
+
+    /// What [`Config::validate_reproduce`] checks.
+    fn check_reproduce(&self) -> Result<(), Broken> {
         let p = &self.reproduce;
         let meta_train = self.tasks_with_role(TaskRole::MetaTrain).count();
+        let of_meta_train = format!("{meta_train} tasks with role = \"meta-train\"");
         if p.meta_tasks > meta_train {
-            return Err(self.invalid(
-                "reproduce.meta_tasks",
-                &p.meta_tasks,
-                &format!("at most the {meta_train} tasks with role = \"meta-train\""),
-            ));
+            let expected = format!("at most the {of_meta_train}");
+            return Err(Broken::new("reproduce.meta_tasks", &p.meta_tasks, expected));
         }
         if p.task_counts.iter().any(|&n| n > meta_train) {
-            return Err(self.invalid(
+            let expected = format!("counts of at most the {of_meta_train}");
+            return Err(Broken::new(
                 "reproduce.task_counts",
                 &p.task_counts,
-                &format!("counts of at most the {meta_train} tasks with role = \"meta-train\""),
+                expected,
             ));
         }
-        match self.tasks.iter().find(|t| t.name == p.unseen_task) {
-            Some(t) if t.role == TaskRole::MetaTest => {}
-            _ => {
-                return Err(self.invalid(
-                    "reproduce.unseen_task",
-                    &p.unseen_task,
-                    "the name of a task with role = \"meta-test\"",
-                ))
-            }
+        let unseen = |t: &TaskConfig| t.name == p.unseen_task && t.role == TaskRole::MetaTest;
+        if !self.tasks.iter().any(unseen) {
+            let expected = "the name of a task with role = \"meta-test\"";
+            return Err(Broken::new(
+                "reproduce.unseen_task",
+                &p.unseen_task,
+                expected,
+            ));
         }
-        let most = p
-            .shots
-            .iter()
-            .copied()
-            .chain([p.main_shots])
-            .max()
-            .unwrap_or(0);
-        if most > self.collect.transitions {
-            return Err(self.invalid(
+        let most = p.shots.iter().copied().chain([p.main_shots]).max();
+        let transitions = self.collect.transitions;
+        if most.is_some_and(|most| most > transitions) {
+            return Err(Broken::new(
                 "reproduce.shots / reproduce.main_shots",
                 &(&p.shots, p.main_shots),
-                &format!(
-                    "at most collect.transitions = {}, the size of each task's dataset",
-                    self.collect.transitions
+                format!(
+                    "at most collect.transitions = {transitions}, the size of each task's dataset"
                 ),
             ));
         }
@@ -1592,63 +1345,34 @@ pub const MAX_SUBSCRIBER_BUFFER: usize = 4_096;
 pub const MAX_POWER_TABLE: u64 = 1 << 24;
 
 impl Config {
-    /// The resource caps above.
-    fn validate_limits(&self) -> Result<(), ConfigError> {
-        let r = &self.run;
-        let actors = self.tasks.len() * self.collect.actors_per_task;
-        let cells = u64::from(self.world.grid_cells).pow(2);
-        let table = cells * self.world.devices as u64;
+    /// The resource caps above that span sections (each section caps its own fields).
+    fn check_limits(&self) -> Result<(), Broken> {
         let tasks = self.tasks.len();
-        let checks: [(bool, &str, &dyn fmt::Debug, String); 6] = [
-            (
-                tasks > MAX_TASKS,
+        if tasks > MAX_TASKS {
+            return Err(Broken::new(
                 "tasks",
                 &tasks,
                 format!("at most {MAX_TASKS} tasks"),
-            ),
-            (
-                actors > MAX_ACTORS,
-                "collect.actors_per_task",
-                &self.collect.actors_per_task,
-                format!(
-                    "at most {MAX_ACTORS} actors in all, {} tasks x actors_per_task",
-                    self.tasks.len()
-                ),
-            ),
-            (
-                r.batch_size > MAX_BATCH_SIZE,
-                "run.batch_size",
-                &r.batch_size,
-                format!("at most {MAX_BATCH_SIZE}"),
-            ),
-            (
-                r.subscriber_buffer > MAX_SUBSCRIBER_BUFFER,
-                "run.subscriber_buffer",
-                &r.subscriber_buffer,
-                format!("at most {MAX_SUBSCRIBER_BUFFER}"),
-            ),
-            (
-                r.control_buffer > MAX_SUBSCRIBER_BUFFER,
-                "run.control_buffer",
-                &r.control_buffer,
-                format!("at most {MAX_SUBSCRIBER_BUFFER}"),
-            ),
-            (
-                table > MAX_POWER_TABLE,
-                "world.grid_cells",
-                &self.world.grid_cells,
-                format!(
-                    "grid_cells^2 x devices at most {MAX_POWER_TABLE} power-table entries (256 MiB \
-                     in every process); {cells} cells x {} devices is {table}",
-                    self.world.devices
-                ),
-            ),
-        ];
-        let failed = checks.into_iter().find(|(failed, ..)| *failed);
-        match failed {
-            Some((_, key, value, expected)) => Err(self.invalid(key, value, &expected)),
-            None => Ok(()),
+            ));
         }
+        let per_task = self.collect.actors_per_task;
+        if tasks * per_task > MAX_ACTORS {
+            let expected =
+                format!("at most {MAX_ACTORS} actors in all, {tasks} tasks x actors_per_task");
+            return Err(Broken::new("collect.actors_per_task", &per_task, expected));
+        }
+        let w = &self.world;
+        let cells = u64::from(w.grid_cells).pow(2);
+        let table = cells * w.devices as u64;
+        if table > MAX_POWER_TABLE {
+            let expected = format!(
+                "grid_cells^2 x devices at most {MAX_POWER_TABLE} power-table entries (256 MiB in \
+                 every process); {cells} cells x {} devices is {table}",
+                w.devices
+            );
+            return Err(Broken::new("world.grid_cells", &w.grid_cells, expected));
+        }
+        Ok(())
     }
 }
 
@@ -1668,43 +1392,60 @@ pub fn is_loopback_endpoint(endpoint: &str) -> bool {
 }
 
 // The tunnel's security (issue #31): secure by default.
-impl Config {
+impl TunnelConfig {
+    /// Hosts to wait for need a tunnel to come through.
+    fn check_hosts(&self) -> Result<(), Broken> {
+        match self.wait_for_hosts.is_empty() || !self.listen.is_empty() {
+            true => Ok(()),
+            false => Err(Broken::new(
+                "tunnel.wait_for_hosts",
+                &self.wait_for_hosts,
+                "no hosts while tunnel.listen is empty (no tunnel to wait through)",
+            )),
+        }
+    }
+
     /// A `tls/` endpoint needs the CA, certificate and key; any other beyond loopback is refused,
     /// since it would let whoever reaches it join the run, unauthenticated and in clear.
-    fn validate_tunnel_security(&self) -> Result<(), ConfigError> {
-        let t = &self.tunnel;
-        if t.listen.is_empty() {
+    fn check_security(&self) -> Result<(), Broken> {
+        if self.listen.is_empty() {
             return Ok(());
         }
-        if t.listen.starts_with("tls/") {
-            let files = [
-                ("tunnel.ca", &t.ca),
-                ("tunnel.certificate", &t.certificate),
-                ("tunnel.private_key", &t.private_key),
-            ];
-            return match files
-                .into_iter()
-                .find(|(_, path)| path.as_os_str().is_empty())
-            {
-                Some((key, path)) => Err(self.invalid(
-                    key,
-                    path,
-                    "a PEM file for the tls/ endpoint of tunnel.listen (`uavmeta tunnel certs` \
-                     makes the run's CA and host certificates)",
-                )),
-                None => Ok(()),
-            };
+        if self.listen.starts_with("tls/") {
+            return self.check_tls_files();
         }
-        if is_loopback_endpoint(&t.listen) {
-            return Ok(());
+        match is_loopback_endpoint(&self.listen) {
+            true => Ok(()),
+            false => Err(Broken::new(
+                "tunnel.listen",
+                &self.listen,
+                "a loopback address, or a tls/ endpoint such as tls/0.0.0.0:7447 with tunnel.ca, \
+                 tunnel.certificate and tunnel.private_key set: any other would let every host \
+                 that reaches it join the run, unauthenticated and unencrypted. Make the files \
+                 with `uavmeta tunnel certs --dir DIR --host NAME --address ADDRESS` \
+                 (docs/REMOTE.md)",
+            )),
         }
-        Err(self.invalid(
-            "tunnel.listen",
-            &t.listen,
-            "a loopback address, or a tls/ endpoint such as tls/0.0.0.0:7447 with tunnel.ca, \
-             tunnel.certificate and tunnel.private_key set: any other would let every host that \
-             reaches it join the run, unauthenticated and unencrypted. Make the files with \
-             `uavmeta tunnel certs --dir DIR --host NAME --address ADDRESS` (docs/REMOTE.md)",
-        ))
+    }
+
+    /// A `tls/` endpoint's CA, certificate and key are all named.
+    fn check_tls_files(&self) -> Result<(), Broken> {
+        let files = [
+            ("tunnel.ca", &self.ca),
+            ("tunnel.certificate", &self.certificate),
+            ("tunnel.private_key", &self.private_key),
+        ];
+        match files
+            .into_iter()
+            .find(|(_, path)| path.as_os_str().is_empty())
+        {
+            None => Ok(()),
+            Some((key, path)) => Err(Broken::new(
+                key,
+                path,
+                "a PEM file for the tls/ endpoint of tunnel.listen (`uavmeta tunnel certs` makes \
+                 the run's CA and host certificates)",
+            )),
+        }
     }
 }
