@@ -86,88 +86,47 @@ use uavmeta_learner::cql::{conservative_rows, eq8};
 use uavmeta_learner::dqn::TdConfig;
 use uavmeta_learner::optim::FusedAdam;
 use uavmeta_learner::qnet::QNetwork;
-use uavmeta_proto::config::{Config, Loss};
+use uavmeta_proto::config::{Config, Loss, MetaConfig};
 use uavmeta_proto::transport;
 
 use crate::MetaError;
 
-/// The settings of Algorithm 4, gathered from `[meta]` and `[learner]`.
+/// The settings of Algorithm 4: the `[meta]` section itself, and the TD options of `[learner]`
+/// its losses share with offline training.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MamlConfig {
-    /// CQL-MAML (eq. 8) or DQN-MAML (eq. 7).
-    pub inner_loss: Loss,
+    /// `[meta]`: the loss (CQL-MAML or DQN-MAML), alpha, shots, steps and step sizes.
+    pub meta: MetaConfig,
     /// Discount and TD options shared with offline training (`[learner]`), Huber also with
     /// `meta.huber`.
     pub td: TdConfig,
-    /// CQL's conservative weight alpha.
-    pub alpha: f64,
-    /// Tasks per meta-epoch; 0 = every task.
-    pub tasks_per_meta_epoch: usize,
-    /// k: support shots per task and meta-epoch.
-    pub shots: usize,
-    /// Query shots per task and meta-epoch.
-    pub query_shots: usize,
-    /// SGD steps of eq. 14.
-    pub inner_steps: usize,
-    pub eta_inner: f64,
-    pub eta_outer: f64,
-    /// Eq. 16's step size at the last of `meta_epochs` meta-epochs, as a fraction of
-    /// `eta_outer`; it falls linearly from `eta_outer` in the first. 1 = constant.
-    pub eta_outer_final_fraction: f64,
-    /// Meta-epochs E_meta the step size's schedule spans.
-    pub meta_epochs: usize,
-    /// Treat the inner gradients as constants (first-order MAML).
-    pub first_order: bool,
-    /// Meta-SGD: learn eq. 14's step size per weight.
-    pub learn_inner_lr: bool,
-    /// Meta-epochs between refreshes of the target network from `w0`.
-    pub target_update_every: usize,
-    /// Outer steps per meta-epoch; 0 = one pass over the largest support set.
-    pub outer_steps_per_meta_epoch: usize,
-    /// Decay of the moving average of w0 that is published as the init; 0 = the last iterate.
-    pub w0_average_decay: f64,
 }
 
 impl MamlConfig {
     pub fn from_config(config: &Config) -> Self {
-        let m = &config.meta;
         Self {
-            inner_loss: m.inner_loss,
+            meta: config.meta.clone(),
             td: TdConfig {
-                huber: config.learner.huber || m.huber,
+                huber: config.learner.huber || config.meta.huber,
                 ..TdConfig::from(&config.learner)
             },
-            alpha: m.alpha,
-            tasks_per_meta_epoch: m.tasks_per_meta_epoch,
-            shots: m.shots,
-            query_shots: m.query_shots,
-            inner_steps: m.inner_steps,
-            eta_inner: m.eta_inner,
-            eta_outer: m.eta_outer,
-            eta_outer_final_fraction: m.eta_outer_final_fraction,
-            meta_epochs: m.meta_epochs,
-            first_order: m.first_order,
-            learn_inner_lr: m.learn_inner_lr,
-            target_update_every: m.target_update_every,
-            outer_steps_per_meta_epoch: m.outer_steps_per_meta_epoch,
-            w0_average_decay: m.w0_average_decay,
         }
     }
 
     /// Eq. 16's step size in meta-epoch `epoch` (0-based): linear from `eta_outer` to
     /// `eta_outer * eta_outer_final_fraction` at the last of `meta_epochs`.
     pub fn eta_outer_at(&self, epoch: usize) -> f64 {
-        let last = self.meta_epochs.saturating_sub(1).max(1);
+        let last = self.meta.meta_epochs.saturating_sub(1).max(1);
         let progress = (epoch as f64 / last as f64).min(1.0);
-        self.eta_outer * (1.0 - (1.0 - self.eta_outer_final_fraction) * progress)
+        self.meta.eta_outer * (1.0 - (1.0 - self.meta.eta_outer_final_fraction) * progress)
     }
 
     /// Outer steps of one meta-epoch over `tasks`.
     pub fn outer_steps(&self, tasks: &[MetaTask]) -> usize {
-        match self.outer_steps_per_meta_epoch {
+        match self.meta.outer_steps_per_meta_epoch {
             0 => tasks
                 .iter()
-                .map(|t| t.support.len().div_ceil(self.shots))
+                .map(|t| t.support.len().div_ceil(self.meta.shots))
                 .max()
                 .unwrap_or(1),
             n => n,
@@ -199,11 +158,11 @@ impl MamlConfig {
             |s| QNetwork::forward_with(target, s), // Qhat(s', .) [T, B, A]
             |s| QNetwork::forward_with(params, s),
         ));
-        match self.inner_loss {
+        match self.meta.inner_loss {
             // eq. 7: mean (r + gamma max_a' Qhat(s', a') - Q(s, a))^2
             Loss::Dqn => td,
             // eq. 8: 0.5 * eq. 7 + alpha * mean(logsumexp_a Q(s, a) - Q(s, a_data))
-            Loss::Cql => eq8(&td, &mean(conservative_rows(&q, batch)), self.alpha),
+            Loss::Cql => eq8(&td, &mean(conservative_rows(&q, batch)), self.meta.alpha),
         }
     }
 
@@ -235,7 +194,7 @@ impl MamlConfig {
         target: &[Tensor],
         support: &StackedShots,
     ) -> Vec<Tensor> {
-        let second_order = !self.first_order;
+        let second_order = !self.meta.first_order;
         let tasks = support.tasks();
         let mut w: Vec<Tensor> = w0
             .iter()
@@ -245,7 +204,7 @@ impl MamlConfig {
                 p.unsqueeze(0).expand(stacked, false)
             })
             .collect();
-        for _ in 0..self.inner_steps {
+        for _ in 0..self.meta.inner_steps {
             let loss = self.task_losses(&w, target, support).sum(None);
             // torch.autograd.grad(loss, w, retain_graph=create_graph=second_order)
             let grads = Tensor::run_backward(&[&loss], &w, second_order, second_order);
@@ -253,7 +212,7 @@ impl MamlConfig {
                 StepSize::Shared => w
                     .iter()
                     .zip(&grads)
-                    .map(|(w, g)| w - g * self.eta_inner)
+                    .map(|(w, g)| w - g * self.meta.eta_inner)
                     .collect(),
                 // [..] step sizes broadcast over the task dimension of [T, ..] weights.
                 StepSize::PerWeight(lr) => w
@@ -475,19 +434,19 @@ impl Maml {
     /// Meta-trains `w0` (its current weights are the starting point); task and shot sampling
     /// draw from `seed` alone.
     pub fn new(w0: QNetwork, config: MamlConfig, seed: u64) -> Result<Self, MetaError> {
-        let inner_lr = config.learn_inner_lr.then(|| {
+        let inner_lr = config.meta.learn_inner_lr.then(|| {
             w0.parameters()
                 .iter()
                 .map(|p| {
-                    p.full_like(config.eta_inner)
+                    p.full_like(config.meta.eta_inner)
                         .detach()
                         .set_requires_grad(true)
                 })
                 .collect()
         });
-        let optimizer = FusedAdam::new(meta_parameters(&w0, &inner_lr), config.eta_outer);
+        let optimizer = FusedAdam::new(meta_parameters(&w0, &inner_lr), config.meta.eta_outer);
         let target = w0.duplicate();
-        let average = (config.w0_average_decay > 0.0).then(|| w0.duplicate());
+        let average = (config.meta.w0_average_decay > 0.0).then(|| w0.duplicate());
         Ok(Self {
             config,
             w0,
@@ -574,7 +533,7 @@ impl Maml {
             let saved = take(format!("target.{i}"), p)?;
             tch::no_grad(|| t.copy_(&saved));
         }
-        let average = match config.w0_average_decay > 0.0 {
+        let average = match config.meta.w0_average_decay > 0.0 {
             true => {
                 let average = w0.duplicate();
                 for (i, (p, mut dst)) in params.iter().zip(w0.parameters()).enumerate() {
@@ -585,7 +544,7 @@ impl Maml {
             }
             false => None,
         };
-        let inner_lr = match config.learn_inner_lr {
+        let inner_lr = match config.meta.learn_inner_lr {
             true => Some(
                 (params.iter().enumerate())
                     .map(|(i, p)| Ok(take(format!("inner_lr.{i}"), p)?.set_requires_grad(true)))
@@ -602,7 +561,7 @@ impl Maml {
                 ))
             })
             .collect::<Result<Vec<_>, CheckpointError>>()?;
-        let mut optimizer = FusedAdam::new(meta_params, config.eta_outer);
+        let mut optimizer = FusedAdam::new(meta_params, config.meta.eta_outer);
         optimizer.restore(moments, progress.adam_steps);
         let mut rng = ChaCha8Rng::from_seed(progress.rng_seed);
         rng.set_stream(progress.rng_stream);
@@ -632,7 +591,7 @@ impl Maml {
     /// Polyak averaging: init <- decay * init + (1 - decay) * w0.
     fn update_average(&self) {
         let Some(average) = &self.average else { return };
-        let decay = self.config.w0_average_decay;
+        let decay = self.config.meta.w0_average_decay;
         tch::no_grad(|| {
             for (mut a, w) in average.parameters().into_iter().zip(self.w0.parameters()) {
                 let _ = a.g_mul_scalar_(decay).g_add_(&(w * (1.0 - decay)));
@@ -652,13 +611,14 @@ impl Maml {
         }
         if self
             .epochs_done
-            .is_multiple_of(self.config.target_update_every)
+            .is_multiple_of(self.config.meta.target_update_every)
         {
             self.target.copy_from(&self.w0); // Qhat <- w0, constant until the next refresh
         }
         self.optimizer
             .set_lr(self.config.eta_outer_at(self.epochs_done));
         let steps = self.config.outer_steps(tasks);
+        let (k, query_k) = (self.config.meta.shots, self.config.meta.query_shots);
         let mut passes: Vec<SupportPass> = tasks
             .iter()
             .map(|t| SupportPass::new(t.support.len(), &mut self.rng))
@@ -673,8 +633,8 @@ impl Maml {
             let shots: Vec<TaskShots> = picked
                 .iter()
                 .map(|&i| TaskShots {
-                    support: passes[i].take(&tasks[i].support, self.config.shots, &mut self.rng),
-                    query: sample_rows(&tasks[i].query, self.config.query_shots, &mut self.rng),
+                    support: passes[i].take(&tasks[i].support, k, &mut self.rng),
+                    query: sample_rows(&tasks[i].query, query_k, &mut self.rng),
                 })
                 .collect();
             // Eqs. 14-15, with the meta-gradient accumulated into w0's (and the step sizes')
@@ -713,7 +673,7 @@ impl Maml {
     /// The task indices of one outer step, ascending: all of them when `tasks_per_meta_epoch`
     /// is 0.
     fn sample_tasks(&mut self, tasks: usize) -> Vec<usize> {
-        let count = match self.config.tasks_per_meta_epoch {
+        let count = match self.config.meta.tasks_per_meta_epoch {
             0 => tasks,
             n => n.min(tasks),
         };
@@ -757,10 +717,8 @@ impl Maml {
 
     /// Eq. 14 with first-order gradients: the same fast weights, without keeping graphs.
     fn adapt_detached(&self, w0: &[Tensor], target: &[Tensor], support: &Batch) -> Vec<Tensor> {
-        let first_order = MamlConfig {
-            first_order: true,
-            ..self.config.clone()
-        };
+        let mut first_order = self.config.clone();
+        first_order.meta.first_order = true;
         first_order
             .adapt(w0, self.step_size(), target, support)
             .into_iter()

@@ -27,8 +27,8 @@ pub fn pretrain<E>(
     let union = Batch::concat(tasks.iter().flat_map(|t| [&t.support, &t.query]));
     let maml = MamlConfig::from_config(config);
     let mut budget = config.clone();
-    budget.learner.batch = tasks.len() * (maml.shots + maml.query_shots);
-    budget.learner.alpha = maml.alpha;
+    budget.learner.batch = tasks.len() * (maml.meta.shots + maml.meta.query_shots);
+    budget.learner.alpha = maml.meta.alpha;
     let w = &config.world;
     let mut q = QNetworkConfig::for_world(w, &config.learner.hidden).init(seed);
     let mut trainer = OfflineTrainer::new(&q, union.len(), Loss::Cql, &budget, seed);

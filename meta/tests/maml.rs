@@ -10,7 +10,7 @@ use uavmeta_learner::checkpoint;
 use uavmeta_learner::dqn::TdConfig;
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_meta::maml::{Maml, MamlConfig, MetaTask, StepSize, TaskShots};
-use uavmeta_proto::config::{Config, Loss};
+use uavmeta_proto::config::{Config, Loss, MetaConfig};
 
 const OBS: usize = 3;
 const ACTIONS: usize = 5;
@@ -23,23 +23,26 @@ fn single_threaded() {
 
 fn config(inner_loss: Loss, inner_steps: usize, first_order: bool) -> MamlConfig {
     MamlConfig {
-        inner_loss,
+        meta: MetaConfig {
+            inner_loss,
+            alpha: 1.0,
+            tasks_per_meta_epoch: 0,
+            shots: 8,
+            query_shots: 8,
+            inner_steps,
+            // Large enough that the second-order term is far above finite-difference noise.
+            eta_inner: 0.3,
+            eta_outer: 1e-2,
+            eta_outer_final_fraction: 1.0,
+            meta_epochs: 1,
+            first_order,
+            learn_inner_lr: false,
+            target_update_every: 1,
+            outer_steps_per_meta_epoch: 1,
+            w0_average_decay: 0.0,
+            ..MetaConfig::default()
+        },
         td: TdConfig::eq7(0.9),
-        alpha: 1.0,
-        tasks_per_meta_epoch: 0,
-        shots: 8,
-        query_shots: 8,
-        inner_steps,
-        // Large enough that the second-order term is far above finite-difference noise.
-        eta_inner: 0.3,
-        eta_outer: 1e-2,
-        eta_outer_final_fraction: 1.0,
-        meta_epochs: 1,
-        first_order,
-        learn_inner_lr: false,
-        target_update_every: 1,
-        outer_steps_per_meta_epoch: 1,
-        w0_average_decay: 0.0,
     }
 }
 
@@ -228,7 +231,7 @@ fn meta_sgd_gradients_of_w0_and_step_sizes_match_finite_differences() {
     }
     // Step sizes all equal to eta_inner are MAML's shared step.
     let c = config(Loss::Cql, 2, false);
-    let shared: Vec<Tensor> = w0.iter().map(|w| w.full_like(c.eta_inner)).collect();
+    let shared: Vec<Tensor> = w0.iter().map(|w| w.full_like(c.meta.eta_inner)).collect();
     let maml = meta_loss(&c, &w0, StepSize::Shared, &target, &tasks);
     let meta_sgd = meta_loss(&c, &w0, StepSize::PerWeight(&shared), &target, &tasks);
     assert!((maml - meta_sgd).abs() < 1e-12, "{maml} != {meta_sgd}");
@@ -345,7 +348,7 @@ fn one_step_second_order_term_is_the_inner_hessian_times_the_query_gradient() {
     let expected: Vec<f64> = plus
         .iter()
         .zip(&minus)
-        .map(|(p, m)| -first.eta_inner * (p - m) / (2.0 * eps))
+        .map(|(p, m)| -first.meta.eta_inner * (p - m) / (2.0 * eps))
         .collect();
     let difference: Vec<f64> = so.iter().zip(&fo).map(|(s, f)| s - f).collect();
     let error = relative_error(&difference, &expected);
@@ -378,10 +381,10 @@ fn meta_training_lowers_the_meta_loss_on_held_out_query_data() {
     let held_out = shots(4, 128, Kind::Float, &mut ChaCha8Rng::seed_from_u64(11));
     for first_order in [false, true] {
         let mut c = config(Loss::Cql, 1, first_order);
-        c.eta_inner = 0.05;
-        c.eta_outer = 3e-3;
+        c.meta.eta_inner = 0.05;
+        c.meta.eta_outer = 3e-3;
         // Qhat stays the initial w0, so before and after are the same objective.
-        c.target_update_every = 1000;
+        c.meta.target_update_every = 1000;
         let mut maml = Maml::new(QNetworkConfig::new(OBS, ACTIONS, &[32, 32]).init(12), c, 13)
             .expect("optimiser");
         let before = maml.meta_loss(&held_out);
@@ -461,14 +464,14 @@ fn resumed_ends_where_uninterrupted_ends(learn_inner_lr: bool, average: f64) {
         })
         .collect();
     let mut c = config(Loss::Cql, 2, false);
-    c.eta_inner = 0.05;
-    c.eta_outer = 3e-3;
+    c.meta.eta_inner = 0.05;
+    c.meta.eta_outer = 3e-3;
     // The target network (refreshed at epochs 0, 4, 8) and the task sampling (2 of 3 tasks) both
     // carry state across the interruption after epoch 6, besides Adam's moments.
-    c.target_update_every = 4;
-    c.tasks_per_meta_epoch = 2;
-    c.learn_inner_lr = learn_inner_lr;
-    c.w0_average_decay = average;
+    c.meta.target_update_every = 4;
+    c.meta.tasks_per_meta_epoch = 2;
+    c.meta.learn_inner_lr = learn_inner_lr;
+    c.meta.w0_average_decay = average;
     let hidden = [16];
     let network = || QNetworkConfig::new(OBS, ACTIONS, &hidden).init(21);
     let (seed, epochs, interrupted_at) = (22, 10, 6);
@@ -557,10 +560,8 @@ fn averaged_init_is_the_moving_average_of_the_iterates() {
     let network = || QNetworkConfig::new(OBS, ACTIONS, &[8]).init(31);
     let plain = config(Loss::Cql, 1, false);
     let d = 0.5;
-    let averaged = MamlConfig {
-        w0_average_decay: d,
-        ..plain.clone()
-    };
+    let mut averaged = plain.clone();
+    averaged.meta.w0_average_decay = d;
     let mut last = Maml::new(network(), plain, 32).expect("maml");
     let w_0 = weights(&last);
     last.meta_epoch(&tasks).expect("tasks");

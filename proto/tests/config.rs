@@ -392,3 +392,89 @@ fn learning_rate_schedules_and_n_step_are_checked() {
         ],
     );
 }
+
+#[test]
+fn not_a_number_and_infinity_break_the_finite_rules() {
+    error_of(
+        "[learner]\nalpha = nan\n",
+        &[],
+        &["learner.alpha", "NaN", "a finite number >= 0"],
+    );
+    error_of(
+        "[meta]\neta_outer = inf\n",
+        &[],
+        &["meta.eta_outer", "inf", "a learning rate > 0"],
+    );
+    error_of(
+        "",
+        &["world.noise_dbm=-inf"],
+        &["world.noise_dbm", "-inf", "a finite number of dB"],
+    );
+    // Ranges without "finite" in their words still refuse NaN: it is inside no range.
+    error_of(
+        "[collect]\neps_end = nan\n",
+        &[],
+        &["collect.eps_end", "NaN", "a probability in [0, 1]"],
+    );
+    error_of(
+        "[meta]\nsupport_fraction = nan\n",
+        &[],
+        &["meta.support_fraction", "NaN", "strictly between 0 and 1"],
+    );
+    error_of(
+        "[planner]\nh_power_weights = [0.5, nan]\n",
+        &[],
+        &[
+            "planner.h_power_weights",
+            "[0.5, NaN]",
+            "finite weights >= 0",
+        ],
+    );
+}
+
+#[test]
+fn a_value_outside_its_set_is_refused() {
+    error_of(
+        "[run]\ndevice = \"tpu\"\n",
+        &[],
+        &["run.device", "\"tpu\"", "cpu, cuda or cuda:N"],
+    );
+    error_of(
+        "[run]\ndevice = \"cuda:x\"\n",
+        &[],
+        &["run.device", "\"cuda:x\"", "cpu, cuda or cuda:N"],
+    );
+    let (_, result) = load("[run]\ndevice = \"cuda:1\"\n", &[]);
+    result.expect("cuda:N is in the set");
+}
+
+#[test]
+fn rules_on_entries_name_the_entry() {
+    error_of(
+        "[[tasks]]\nname = \"a\"\nlambda = 1.0\nrole = \"meta-test\"\n\
+         rain = { x0 = 0, y0 = 0, x1 = 1, y1 = 1 }\nrain_moves_every = 0\n",
+        &[],
+        &["tasks[0].rain_moves_every", "= 0", "at least 1 step"],
+    );
+    let mut config = load("", &[]).1.expect("defaults");
+    config.run.seeds = vec![3, u64::MAX];
+    let message = config
+        .validate()
+        .expect_err("seed above i64::MAX")
+        .to_string();
+    assert!(
+        message.contains("run.seeds[1]") && message.contains(&i64::MAX.to_string()),
+        "{message}"
+    );
+}
+
+#[test]
+fn the_first_broken_rule_is_reported_in_section_order() {
+    // [learner] comes before [meta] in a config, whatever the order of the file.
+    let message = error_of(
+        "[meta]\nalpha = -1.0\n\n[learner]\nalpha = -2.0\nbatch = 0\n",
+        &[],
+        &["learner.alpha", "-2"],
+    );
+    assert!(!message.contains("meta.alpha"), "{message}");
+}

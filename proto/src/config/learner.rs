@@ -1,0 +1,107 @@
+//! `[learner]`: SPEC section 5's Q-network and the DQN / CQL settings every method shares. Read by
+//! `uavmeta_learner` (offline training and fine-tuning) and by the evaluators (`eval_episodes`,
+//! `eval_seed`).
+
+use std::fmt;
+
+use garde::Validate;
+use serde::{Deserialize, Serialize};
+use smart_default::SmartDefault;
+
+use super::rules::{at_least, finite, positive, toml_seed, widths, within};
+
+/// SPEC section 5: the Q-network and the DQN / CQL training settings shared by every method.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, SmartDefault, Validate)]
+#[serde(deny_unknown_fields, default)]
+#[garde(allow_unvalidated)]
+pub struct LearnerConfig {
+    /// Hidden layer widths of the Q-network MLP.
+    #[default(vec![256, 256])]
+    #[garde(custom(widths()))]
+    pub hidden: Vec<usize>,
+    /// Discount factor gamma.
+    #[default(0.99)]
+    #[garde(custom(within(0.0..=1.0, "a discount in [0, 1]")))]
+    pub gamma: f64,
+    /// Rewards are multiplied by this before any loss sees them. A step costs around 100 (the
+    /// AoI sum alone is K times the mean AoI), so unscaled Q-values reach -10^4 and Adam at
+    /// lr = 1e-3 needs tens of thousands of steps just to move the output that far; 0.01 is the
+    /// paper's own plotting scale (reward / 100). Reported Q-values are divided back.
+    #[default(0.01)]
+    #[garde(custom(positive("a finite number > 0")))]
+    pub reward_scale: f64,
+    /// CQL conservative weight alpha (eq. 8).
+    #[default(1.0)]
+    #[garde(custom(finite(0.0.., "a finite number >= 0")))]
+    pub alpha: f64,
+    /// Minibatch size.
+    #[default(64)]
+    #[garde(custom(at_least(1)))]
+    pub batch: usize,
+    /// Adam learning rate of offline training and fine-tuning (eta_outer, so every method
+    /// shares the meta-learner's optimiser settings).
+    #[default(1e-3)]
+    #[garde(custom(positive("a learning rate > 0")))]
+    pub lr: f64,
+    /// Training epochs E.
+    #[default(100)]
+    pub epochs: usize,
+    /// Gradient steps per epoch; 0 means one pass over the dataset, ceil(N / batch).
+    #[default(0)]
+    pub steps_per_epoch: usize,
+    /// Gradient steps between hard target-network updates.
+    #[default(100)]
+    #[garde(custom(at_least(1)))]
+    pub target_update_every: usize,
+    /// Double DQN targets (d3rlpy's choice); off to match eq. 7.
+    #[default(false)]
+    pub double_dqn: bool,
+    /// Huber instead of squared TD error (d3rlpy's choice); off to match eq. 7.
+    #[default(false)]
+    pub huber: bool,
+    /// Guard against late collapse, from the offline data alone: training stops, keeping the
+    /// previous epoch's network, once the mean Q of the data's own actions falls below
+    /// `V_data - value_guard * |V_data|`, `V_data` = the shots' mean reward / (1 - gamma) (see
+    /// `learner/src/train.rs`). 0 = no guard.
+    #[default(0.5)]
+    #[garde(custom(finite(0.0.., "a finite margin >= 0 (0 = no guard)")))]
+    pub value_guard: f64,
+    /// Monte-Carlo episodes of each evaluation of a greedy policy.
+    #[default(20)]
+    pub eval_episodes: usize,
+    /// Seed of the evaluation episodes, the same for every method and epoch.
+    #[default(12345)]
+    #[garde(custom(toml_seed()))]
+    pub eval_seed: u64,
+}
+
+/// A Q-learning loss: MAML's inner loss (`meta.inner_loss`), offline training's (`uavmeta train
+/// --algo`) and each fine-tuned method's.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Loss {
+    /// Paper eq. 8.
+    Cql,
+    /// Paper eq. 7 on a fixed dataset: the baseline that overestimates.
+    Dqn,
+}
+
+impl fmt::Display for Loss {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Loss::Cql => "cql",
+            Loss::Dqn => "dqn",
+        })
+    }
+}
+
+impl std::str::FromStr for Loss {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "cql" => Ok(Loss::Cql),
+            "dqn" => Ok(Loss::Dqn),
+            _ => Err(format!("`{s}`: expected `cql` or `dqn`")),
+        }
+    }
+}

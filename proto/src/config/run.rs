@@ -1,0 +1,104 @@
+//! `[run]`: where a run writes, its seeds, metrics endpoints, iceoryx2 capacities and libtorch
+//! device. Read by `proto::transport` and `proto::process`, the launcher (`uavmeta_meta::launch`)
+//! and every process it starts.
+
+use std::path::PathBuf;
+
+use garde::Validate;
+use serde::{Deserialize, Serialize};
+use smart_default::SmartDefault;
+
+use super::rules::{at_least, at_most, finite, non_empty, satisfies, toml_seed};
+
+/// Largest `run.batch_size`: an actor's shared memory grows with batch x subscriber buffer.
+pub const MAX_BATCH_SIZE: usize = 16_384;
+/// Largest `run.subscriber_buffer` (and `run.control_buffer`).
+pub const MAX_SUBSCRIBER_BUFFER: usize = 4_096;
+
+/// Longest `run.domain`: the iceoryx2 prefix of every shared-memory name grows with it.
+pub const MAX_DOMAIN_LEN: usize = 32;
+
+/// Where a run writes, its seeds, its metrics endpoints and its iceoryx2 capacities.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, SmartDefault, Validate)]
+#[serde(deny_unknown_fields, default)]
+#[garde(allow_unvalidated)]
+pub struct RunConfig {
+    /// Run directory: datasets, checkpoints, CSV files, port files.
+    #[default("runs/default")]
+    pub dir: PathBuf,
+    /// Seeds of repeated runs; the first is the seed of a single run.
+    #[default(vec![0])]
+    #[garde(custom(non_empty("at least one seed")), inner(custom(toml_seed())))]
+    pub seeds: Vec<u64>,
+    /// Address every /metrics endpoint binds.
+    #[default("127.0.0.1")]
+    pub metrics_host: String,
+    /// Port of the launcher's /metrics; children get 0 (an ephemeral port written to the run dir).
+    #[default(0)]
+    pub metrics_port: u16,
+    /// Transitions per zero-copy batch.
+    #[default(64)]
+    #[garde(custom(at_least(1)), custom(at_most(MAX_BATCH_SIZE)))]
+    pub batch_size: usize,
+    /// Batches a subscriber buffers before publishers wait.
+    #[default(64)]
+    #[garde(custom(at_least(1)), custom(at_most(MAX_SUBSCRIBER_BUFFER)))]
+    pub subscriber_buffer: usize,
+    /// Publishers (actors) a transition service admits.
+    #[default(64)]
+    #[garde(custom(at_least(1)))]
+    pub max_publishers: usize,
+    /// A rollout actor keeps a copy of every batch until the store acknowledges it appended, and
+    /// sends what is unacknowledged again to a store that replaced a killed one, so a store crash
+    /// loses nothing. `false` keeps a copy only until the store is proven connected: cheaper for
+    /// the actor (docs/BENCHMARKS.md, Transport), but a killed store's unwritten batches are then
+    /// lost (counted as missing). A replay sample (`dqn-online`) is always sent again from the
+    /// acknowledged number, since it needs no copy.
+    #[default(true)]
+    pub keep_until_stored: bool,
+    /// Restarts of a crashed or hung child before the launcher gives up.
+    #[default(5)]
+    pub max_restarts: u32,
+    /// A launched child whose heartbeat (`transport::heartbeat`) has not moved for this many
+    /// seconds is taken for hung (stopped, deadlocked, livelocked), killed and restarted like a
+    /// crashed one; 0 = never. Every process beats at least every few seconds on this machine
+    /// under load, so the default leaves a wide margin.
+    #[default(60.0)]
+    #[garde(custom(finite(0.0.., "seconds >= 0 (0 = never)")))]
+    pub hang_timeout_seconds: f64,
+    /// Announcements (dataset ready, checkpoint ready, shutdown) a control subscriber buffers;
+    /// also the history a process joining late receives.
+    #[default(256)]
+    #[garde(custom(at_least(1)), custom(at_most(MAX_SUBSCRIBER_BUFFER)))]
+    pub control_buffer: usize,
+    /// The iceoryx2 domain of this host's processes of the run: their shared memory is named
+    /// `iox2_<domain>_...` and iceoryx2's files live in `/tmp/iceoryx2/<domain>/`, so processes of
+    /// two domains cannot see each other even on one machine; empty = iceoryx2's default domain.
+    /// Only a tunnel (`uavmeta tunnel`) connects domains. A remote host's copy of the config
+    /// names its own (`uavmeta tunnel join --domain`).
+    #[garde(custom(satisfies(
+        is_domain,
+        format!("at most {MAX_DOMAIN_LEN} letters, digits, '-' or '_' (empty = default)")
+    )))]
+    pub domain: String,
+    /// The libtorch device populations of learners are made on: `cpu`, `cuda` or `cuda:N`.
+    /// Asking for CUDA where libtorch sees no GPU is an error when the population is made. The
+    /// CUDA path is device placement only and untested here (no GPU on the project's machines).
+    #[default("cpu")]
+    #[garde(custom(satisfies(is_torch_device, "cpu, cuda or cuda:N")))]
+    pub device: String,
+}
+
+/// A `run.domain`: at most [`MAX_DOMAIN_LEN`] letters, digits, '-' or '_'.
+fn is_domain(domain: &str) -> bool {
+    domain.len() <= MAX_DOMAIN_LEN
+        && domain
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+}
+
+/// A libtorch device: `cpu`, `cuda` or `cuda:N`.
+fn is_torch_device(device: &str) -> bool {
+    let index = device.strip_prefix("cuda:").map(str::parse::<usize>);
+    device == "cpu" || device == "cuda" || matches!(index, Some(Ok(_)))
+}

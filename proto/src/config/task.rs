@@ -1,0 +1,133 @@
+//! `[[tasks]]`: SPEC sections 2-3's tasks, each the world with its lambda and optional rain. Read
+//! by `uavmeta_world` (a world is built for one task) and by every stage that names tasks.
+
+use std::str::FromStr;
+
+use garde::Validate;
+use serde::{Deserialize, Serialize};
+
+use super::rules::{finite, within, Broken};
+
+/// A rectangle of cells, both corners inclusive.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RainZone {
+    pub x0: u32,
+    pub y0: u32,
+    pub x1: u32,
+    pub y1: u32,
+}
+
+impl RainZone {
+    pub fn contains(&self, x: u32, y: u32) -> bool {
+        (self.x0..=self.x1).contains(&x) && (self.y0..=self.y1).contains(&y)
+    }
+}
+
+impl FromStr for RainZone {
+    type Err = String;
+
+    /// Parses `x0,y0,x1,y1`, the form of the `--rain` flag.
+    fn from_str(s: &str) -> Result<Self, String> {
+        let parts: Vec<u32> = s
+            .split(',')
+            .map(|p| p.trim().parse::<u32>())
+            .collect::<Result<_, _>>()
+            .map_err(|_| format!("`{s}`: expected four cell indices x0,y0,x1,y1"))?;
+        match parts[..] {
+            [x0, y0, x1, y1] => Ok(Self { x0, y0, x1, y1 }),
+            _ => Err(format!("`{s}`: expected four cell indices x0,y0,x1,y1")),
+        }
+    }
+}
+
+/// Whether a task is used for meta-training or held out for meta-testing.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum TaskRole {
+    MetaTrain,
+    MetaTest,
+}
+
+/// SPEC sections 2-3: one task is the world with its lambda and optional rain.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Validate)]
+#[serde(deny_unknown_fields)]
+#[garde(allow_unvalidated)]
+pub struct TaskConfig {
+    pub name: String,
+    /// The AoI-power trade-off.
+    #[garde(custom(finite(0.0.., "a finite number >= 0")))]
+    pub lambda: f64,
+    pub role: TaskRole,
+    #[serde(default)]
+    pub rain: Option<RainZone>,
+    /// Relocate the rain zone uniformly at random every this many steps.
+    #[serde(default)]
+    #[garde(inner(custom(within(1.., "at least 1 step"))))]
+    pub rain_moves_every: Option<u32>,
+}
+
+impl TaskConfig {
+    /// As [`TaskConfig::one_off`], its rain zone moving every `every` steps
+    /// (`--rain-moves-every N`); the name says so.
+    pub fn one_off_moving(lambda: f64, rain: RainZone, every: u32) -> Self {
+        let task = Self::one_off(lambda, Some(rain));
+        Self {
+            name: format!("{}-moves-{every}", task.name),
+            rain_moves_every: Some(every),
+            ..task
+        }
+    }
+
+    /// A task given on the command line (`--lambda X [--rain x0,y0,x1,y1]`) instead of by name.
+    pub fn one_off(lambda: f64, rain: Option<RainZone>) -> Self {
+        let name = match rain {
+            None => format!("lambda-{lambda}"),
+            Some(r) => format!("lambda-{lambda}-rain-{}-{}-{}-{}", r.x0, r.y0, r.x1, r.y1),
+        };
+        Self {
+            name,
+            lambda,
+            role: TaskRole::MetaTest,
+            rain,
+            rain_moves_every: None,
+        }
+    }
+}
+
+/// The paper's setting (SPEC section 2): meta-train on eight lambdas, meta-test on lambda = 300.
+pub(super) fn default_tasks() -> Vec<TaskConfig> {
+    let mut tasks: Vec<TaskConfig> = [0.0, 100.0, 200.0, 400.0, 500.0, 600.0, 800.0, 1000.0]
+        .into_iter()
+        .map(|lambda| TaskConfig {
+            name: format!("lambda-{lambda}"),
+            lambda,
+            role: TaskRole::MetaTrain,
+            rain: None,
+            rain_moves_every: None,
+        })
+        .collect();
+    tasks.push(TaskConfig::one_off(300.0, None));
+    tasks
+}
+
+impl TaskConfig {
+    /// The rain zone, task `index`'s, is inside a grid of `grid_cells` a side, and only a task
+    /// with rain moves it.
+    pub(super) fn check_rain(&self, index: usize, grid_cells: u32) -> Result<(), Broken> {
+        let n = grid_cells;
+        let outside = |r: &RainZone| r.x0 > r.x1 || r.y0 > r.y1 || r.x1 >= n || r.y1 >= n;
+        if let Some(r) = self.rain.filter(outside) {
+            let expected = format!("a rectangle inside the grid: x0 <= x1 < {n}, y0 <= y1 < {n}");
+            return Err(Broken::new(format!("tasks[{index}].rain"), &r, expected));
+        }
+        match (self.rain_moves_every, self.rain) {
+            (Some(_), None) => Err(Broken::new(
+                format!("tasks[{index}].rain_moves_every"),
+                &self.rain_moves_every,
+                "a `rain` zone to move",
+            )),
+            _ => Ok(()),
+        }
+    }
+}

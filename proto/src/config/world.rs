@@ -1,0 +1,220 @@
+//! `[world]`: SPEC section 1's grid, devices, UAV, channel and rain model. Read by `uavmeta_world`
+//! (the environment, its heuristics and planner), and for the sizes of observations and actions by
+//! every crate that holds a network or a dataset.
+
+use garde::Validate;
+use serde::{Deserialize, Serialize};
+use smart_default::SmartDefault;
+
+use super::rules::{at_least, at_most, finite, is_weight, satisfies, toml_seed, within, Broken};
+
+/// The largest number of devices a world may have: the zero-copy transition slot of
+/// `proto::transport` stores observations in fixed-size arrays of `2 + MAX_DEVICES` entries.
+pub const MAX_DEVICES: usize = 64;
+
+/// SPEC section 1's moves by name, in action-index order: action `a = move * K + device`.
+/// Exports and `uavmeta dataset inspect` name actions with them; `actors::world::Move` is the
+/// world's own enum in the same order.
+pub const MOVES: [&str; 5] = ["north", "south", "east", "west", "hover"];
+
+/// The largest grid side: the world precomputes a power table of grid_cells^2 x K entries.
+pub const MAX_GRID_CELLS: u32 = 1024;
+
+/// SPEC section 1: the grid, the devices, the UAV, the channel and the rain model.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, SmartDefault, Validate)]
+#[serde(deny_unknown_fields, default)]
+#[garde(allow_unvalidated)]
+pub struct WorldConfig {
+    /// Cells per side, L.
+    #[default(10)]
+    #[garde(custom(within(
+        1..=MAX_GRID_CELLS,
+        format!("between 1 and {MAX_GRID_CELLS} cells per side")
+    )))]
+    pub grid_cells: u32,
+    /// Side of a cell in metres, r.
+    #[default(100.0)]
+    #[garde(custom(finite(0.0.., "a finite number >= 0")))]
+    pub cell_m: f64,
+    /// Number of IoT devices, K.
+    #[default(10)]
+    #[garde(custom(at_least(1)), custom(at_most(MAX_DEVICES)))]
+    pub devices: usize,
+    /// Explicit device cells `[[x, y], ...]`; when absent, `layout_seed` draws distinct cells.
+    pub device_cells: Option<Vec<[u32; 2]>>,
+    /// Seed of the device layout when `device_cells` is absent.
+    #[default(0)]
+    #[garde(custom(toml_seed()))]
+    pub layout_seed: u64,
+    /// Importance weight delta_k: one number for every device, or one per device.
+    #[default(Delta::Uniform(1.0))]
+    #[garde(custom(satisfies(Delta::is_weights, "finite weights >= 0")))]
+    pub delta: Delta,
+    /// UAV height h in metres.
+    #[default(100.0)]
+    #[garde(custom(finite(0.0.., "a finite number >= 0")))]
+    pub height_m: f64,
+    /// Episode length T in steps; the end of an episode is a time limit, not a terminal state.
+    #[default(100)]
+    #[garde(custom(within(1.., "at least 1 step")))]
+    pub horizon: u32,
+    /// AoI cap A_max.
+    #[default(100)]
+    #[garde(custom(within(1..=u32::from(u16::MAX), "between 1 and 65535")))]
+    pub aoi_max: u32,
+    /// Fixed start cell of the UAV; uniform at random each episode when absent.
+    pub start_cell: Option<[u32; 2]>,
+    /// Channel gain at 1 m, g0, in dB.
+    #[default(-30.0)]
+    #[garde(custom(finite(.., "a finite number of dB")))]
+    pub g0_db: f64,
+    /// Bandwidth B in Hz.
+    #[default(1e6)]
+    #[garde(custom(finite(0.0.., "a finite number >= 0")))]
+    pub bandwidth_hz: f64,
+    /// Bits per update M.
+    #[default(5e6)]
+    #[garde(custom(finite(0.0.., "a finite number >= 0")))]
+    pub bits: f64,
+    /// Noise power sigma^2 in dBm.
+    #[default(-100.0)]
+    #[garde(custom(finite(.., "a finite number of dB")))]
+    pub noise_dbm: f64,
+    /// Which powers enter the reward: the scheduled device's only, or all K devices'.
+    #[default(PowerTerm::Scheduled)]
+    pub power_term: PowerTerm,
+    /// Rain rate R in mm/h.
+    #[default(12.5)]
+    #[garde(custom(finite(0.0.., "a finite number >= 0")))]
+    pub rain_mm_per_h: f64,
+    /// ITU-R P.838 coefficient phi (k).
+    #[default(0.2051)]
+    #[garde(custom(finite(0.0.., "a finite number >= 0")))]
+    pub rain_phi: f64,
+    /// ITU-R P.838 exponent varphi (alpha).
+    #[default(0.9679)]
+    #[garde(custom(finite(0.0.., "a finite number >= 0")))]
+    pub rain_varphi: f64,
+}
+
+impl WorldConfig {
+    /// Length of an observation, 2 + K.
+    pub fn observation_len(&self) -> usize {
+        2 + self.devices
+    }
+
+    /// Number of discrete actions, 5 moves x K devices.
+    pub fn action_count(&self) -> usize {
+        MOVES.len() * self.devices
+    }
+
+    /// Divisors that normalise a raw observation for the networks: x/(L-1), y/(L-1), A/aoi_max.
+    pub fn observation_scale(&self) -> Vec<f32> {
+        let span = (self.grid_cells.max(2) - 1) as f32;
+        let mut scale = vec![span, span];
+        scale.resize(self.observation_len(), self.aoi_max as f32);
+        scale
+    }
+
+    /// delta_k for every device.
+    pub fn delta_per_device(&self) -> Vec<f64> {
+        match &self.delta {
+            Delta::Uniform(d) => vec![*d; self.devices],
+            Delta::PerDevice(d) => d.clone(),
+        }
+    }
+
+    /// Rain-specific attenuation gamma_R = phi * R^varphi in dB/km.
+    pub fn rain_attenuation_db_per_km(&self) -> f64 {
+        self.rain_phi * self.rain_mm_per_h.powf(self.rain_varphi)
+    }
+
+    /// Whether cell `c` is inside the grid.
+    fn inside(&self, c: [u32; 2]) -> bool {
+        c[0] < self.grid_cells && c[1] < self.grid_cells
+    }
+
+    /// The devices fit the grid, one to a cell and each with its weight; the start is inside.
+    pub(super) fn check_layout(&self) -> Result<(), Broken> {
+        let cells = self.grid_cells as usize * self.grid_cells as usize;
+        if self.devices > cells {
+            let expected = format!("between 1 and the number of cells, grid_cells^2 = {cells}");
+            return Err(Broken::new("world.devices", &self.devices, expected));
+        }
+        if let Some(device_cells) = &self.device_cells {
+            self.check_device_cells(device_cells)?;
+        }
+        if let Delta::PerDevice(d) = &self.delta {
+            if d.len() != self.devices {
+                let expected = format!("one weight or {} weights", self.devices);
+                return Err(Broken::new("world.delta", d, expected));
+            }
+        }
+        match self.start_cell {
+            Some(c) if !self.inside(c) => Err(Broken::new(
+                "world.start_cell",
+                &c,
+                "a cell inside the grid",
+            )),
+            _ => Ok(()),
+        }
+    }
+
+    /// One distinct cell inside the grid per device.
+    fn check_device_cells(&self, cells: &[[u32; 2]]) -> Result<(), Broken> {
+        if cells.len() != self.devices {
+            let expected = format!(
+                "one cell per device: {} cells (world.devices)",
+                self.devices
+            );
+            return Err(Broken::new("world.device_cells", &cells, expected));
+        }
+        for (i, c) in cells.iter().enumerate() {
+            let key = format!("world.device_cells[{i}]");
+            if !self.inside(*c) {
+                let expected = format!(
+                    "a cell inside the grid, each index below grid_cells = {}",
+                    self.grid_cells
+                );
+                return Err(Broken::new(key, c, expected));
+            }
+            if cells[..i].contains(c) {
+                return Err(Broken::new(key, c, "a cell no other device occupies"));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// delta: a number for every device, or a list with one per device.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum Delta {
+    Uniform(f64),
+    PerDevice(Vec<f64>),
+}
+
+impl Delta {
+    /// The weights as written: one, or one per device.
+    pub fn weights(&self) -> &[f64] {
+        match self {
+            Delta::Uniform(d) => std::slice::from_ref(d),
+            Delta::PerDevice(d) => d,
+        }
+    }
+
+    /// Whether every weight is finite and at least 0.
+    fn is_weights(&self) -> bool {
+        self.weights().iter().all(is_weight)
+    }
+}
+
+/// Which transmit powers the reward charges.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PowerTerm {
+    /// Only the scheduled device transmits, so the sum over devices is its one power.
+    Scheduled,
+    /// The literal reading: the sum over all K devices of the power each would need.
+    AllDevices,
+}
