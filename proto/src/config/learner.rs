@@ -30,7 +30,8 @@ pub struct LearnerConfig {
     #[default(0.01)]
     #[garde(custom(positive("a finite number > 0")))]
     pub reward_scale: f64,
-    /// CQL conservative weight alpha (eq. 8).
+    /// CQL conservative weight alpha (eq. 8) of offline training and fine-tuning on a task's shots;
+    /// MAML's losses and CQL-pretrain take `meta.alpha`.
     #[default(1.0)]
     #[garde(custom(finite(0.0.., "a finite number >= 0")))]
     pub alpha: f64,
