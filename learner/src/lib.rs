@@ -12,7 +12,8 @@
 //! - [`cql`]: the CQL loss, paper eq. 8.
 //! - [`train`]: offline training with either loss, evaluated each epoch through the
 //!   [`train::EvaluatePolicy`] hook; per-epoch table on stderr and `train.csv`.
-//! - [`progress`]: the CSV log and the progress bar of a training loop (offline and meta).
+//! - [`progress`]: the CSV log and the progress bar of a training loop (offline and meta), and
+//!   [`progress::OnStep`], the hook a caller hears every training step through.
 //! - [`numerics`]: the environment that pins libtorch's kernels (MKL's branch, ATen's vector
 //!   width), so results are the same bits on another CPU.
 //! - [`checkpoint`]: safetensors weights + JSON metadata + the run's config, written atomically

@@ -35,6 +35,7 @@ use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
+use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_proto::config::{Config, Loss, TaskConfig, TaskRole};
@@ -131,6 +132,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
         seed,
         progress: false,
         resume: true,
+        on_step: beat(),
     };
     let Some(trained) = meta_train_with(&options, &mut hook)? else {
         return Ok(Outcome::Stopped);
@@ -149,6 +151,12 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
         metrics: &metrics,
     };
     meta_test.run_all(&test_tasks, &datasets, &stop)
+}
+
+/// The hook of every training step: a heartbeat, since an epoch over a large dataset outlasts
+/// the launcher's hang timeout.
+fn beat() -> OnStep {
+    OnStep::new(transport::heartbeat)
 }
 
 /// Announces the online DQN agents that made the meta-test datasets: the runs' reference line.
@@ -198,7 +206,9 @@ impl MetaTest<'_> {
                     tracing::info!("pretraining CQL on the union of the meta-train shots");
                     let (_, tasks) = load_tasks(config, datasets, seed)?;
                     // Stop requests are honoured between the pretraining's meta-epochs.
-                    match pretrain::pretrain(config, &tasks, seed, |_| stop().map(|stop| !stop))? {
+                    match pretrain::pretrain(config, &tasks, seed, beat(), |_| {
+                        stop().map(|stop| !stop)
+                    })? {
                         Some(q) => {
                             let epochs = config.meta.meta_epochs;
                             save_init(
@@ -307,6 +317,7 @@ impl MetaTest<'_> {
             seed: self.seed,
             out_dir: None,
             progress: false,
+            on_step: beat(),
         };
         let dataset = self.run.dataset(task);
         let shots = config.collect.transitions;
