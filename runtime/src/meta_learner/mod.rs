@@ -14,8 +14,9 @@
 //! 3. Meta-tests: per meta-test task, fine-tunes w0 on `collect.transitions` shots with the loss
 //!    its checkpoint names (CQL-MAML or, with `meta.inner_loss = "dqn"`, DQN-MAML) and, as
 //!    baselines, the same loss from a random init (CQL or DQN) and, for CQL, from a network
-//!    pretrained on the union of the meta-train tasks' shots (CQL-pretrain, `crate::pretrain`),
-//!    each for `learner.epochs` epochs, checkpointing and announcing every epoch.
+//!    pretrained on the union of the meta-train tasks' shots (CQL-pretrain,
+//!    `uavmeta_meta::pretrain`), each for `learner.epochs` epochs, checkpointing and announcing
+//!    every epoch.
 //!
 //! The two inits of the run are also saved where a user looks for them, to fine-tune on another
 //! task afterwards: `inits/w0` (the final meta-learned init) and `inits/cql-pretrain`.
@@ -25,6 +26,8 @@
 //! meta-training from its latest w0 checkpoint exactly as an uninterrupted run continues. It skips
 //! every meta-test whose last epoch is on disk; a meta-test cut short is run again from its start
 //! (the fine-tuning is seeded, so to the same result), its checkpoints overwritten atomically.
+//!
+//! [`Maml::save_state`]: uavmeta_meta::maml::Maml::save_state
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -47,10 +50,12 @@ use uavmeta_proto::transport::{
     self, CheckpointReady, DatasetReady, RunDir, TransportError, SCHEMA_VERSION,
 };
 
-use crate::fine_tune::{fine_tune, meta_test_with, FineTune, MetaTestOptions};
-use crate::meta_train::{load_tasks, meta_train_with, MetaRow, MetaTrainHook, MetaTrainOptions};
-use crate::{pretrain, MetaError};
 use uavmeta_learner::batch::load_shots;
+use uavmeta_meta::fine_tune::{fine_tune, meta_test_with, FineTune, MetaTestOptions};
+use uavmeta_meta::meta_train::{
+    load_tasks, meta_train_with, MetaRow, MetaTrainHook, MetaTrainOptions,
+};
+use uavmeta_meta::{pretrain, MetaError};
 
 mod metrics;
 

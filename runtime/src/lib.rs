@@ -1,0 +1,7 @@
+//! The processes of a run.
+//!
+//! - [`meta_learner`]: the meta-learner process; [`launch`]: `uavmeta launch`, the supervisor
+//!   of a run's processes. Each is a folder with its loop and its metrics.
+
+pub mod launch;
+pub mod meta_learner;
