@@ -41,11 +41,11 @@ use uavmeta_actors::actor::{ActorOptions, Rollout};
 use uavmeta_actors::policy::heuristics::PolicySpec;
 use uavmeta_actors::rollout::{episode_seed, run_episode, Policy};
 use uavmeta_actors::world::World;
-use uavmeta_learner::store;
 use uavmeta_proto::config::{Config, RunConfig};
 use uavmeta_proto::transport::{
     self, RunDir, ServiceNames, StoreAck, TransitionPublisher, TransitionSlot, SCHEMA_VERSION,
 };
+use uavmeta_runtime::store;
 
 const BIN: &str = env!("CARGO_BIN_EXE_uavmeta");
 

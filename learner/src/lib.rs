@@ -18,8 +18,6 @@
 //!   width), so results are the same bits on another CPU.
 //! - [`checkpoint`]: safetensors weights + JSON metadata + the run's config, written atomically
 //!   and checked (sizes, length, CRC32) on load.
-//! - [`store`]: the dataset store process, appending each task's transitions to its dataset file;
-//!   its folder holds its loop and its metrics.
 //!
 //! It consumes transitions from `uavmeta-proto`'s dataset files and the `[learner]` config
 //! section. Evaluating a policy needs the world, which lives in `uavmeta-actors`; the actors crate
@@ -62,5 +60,4 @@ pub mod optim;
 pub mod population;
 pub mod progress;
 pub mod qnet;
-pub mod store;
 pub mod train;

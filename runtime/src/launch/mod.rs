@@ -46,7 +46,6 @@ use indicatif::MultiProgress;
 use uavmeta_actors::actor::ActorOptions;
 use uavmeta_actors::evaluator;
 use uavmeta_actors::policy::heuristics::PolicySpec;
-use uavmeta_learner::store;
 use uavmeta_proto::config::{Config, TaskRole};
 use uavmeta_proto::metrics::{wait_for_port, MetricsError, MetricsServer};
 use uavmeta_proto::transport::{
@@ -54,7 +53,7 @@ use uavmeta_proto::transport::{
     TransportError, SCHEMA_VERSION,
 };
 
-use crate::meta_learner;
+use crate::{meta_learner, store};
 
 mod display;
 mod metrics;
