@@ -37,7 +37,6 @@ use iceoryx2::node::Node;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::prelude::ipc;
 
-use uavmeta_actors::actor::{ActorOptions, Rollout};
 use uavmeta_actors::policy::heuristics::PolicySpec;
 use uavmeta_actors::rollout::{episode_seed, run_episode, Policy};
 use uavmeta_actors::world::World;
@@ -45,6 +44,7 @@ use uavmeta_proto::config::{Config, RunConfig};
 use uavmeta_proto::transport::{
     self, RunDir, ServiceNames, StoreAck, TransitionPublisher, TransitionSlot, SCHEMA_VERSION,
 };
+use uavmeta_runtime::actor::{ActorOptions, Rollout};
 use uavmeta_runtime::store;
 
 const BIN: &str = env!("CARGO_BIN_EXE_uavmeta");

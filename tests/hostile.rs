@@ -5,12 +5,12 @@
 
 use std::path::{Path, PathBuf};
 
-use uavmeta_actors::actor::ActorOptions;
 use uavmeta_actors::world::World;
 use uavmeta_proto::config::{Config, RunConfig};
 use uavmeta_proto::dataset::{DatasetHeader, DatasetWriter, Transition};
 use uavmeta_proto::metrics::{self, store as names, Sample};
 use uavmeta_proto::transport::{self, RunDir, ServiceNames, TransitionPublisher, TransitionSlot};
+use uavmeta_runtime::actor::ActorOptions;
 
 mod support;
 use support::{config_args, run_dir, wait_until, within, Proc};

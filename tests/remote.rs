@@ -9,10 +9,10 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use uavmeta_actors::actor::ActorOptions;
 use uavmeta_proto::config::RunConfig;
 use uavmeta_proto::metrics;
 use uavmeta_proto::transport::{self, RunDir};
+use uavmeta_runtime::actor::ActorOptions;
 
 mod support;
 use support::{dataset_seqs, run_dir, wait_until, within, Proc};

@@ -40,7 +40,7 @@
 //! (killed, restarted), `join` drops its link, so remote actors see their store's subscriber go
 //! and hold their batches; when the token is back it shakes hands again and builds a new link,
 //! whose new subscriber the actors take for a new store: they send everything the store has not
-//! acknowledged again (`uavmeta_actors::actor`), and the store drops what it already has.
+//! acknowledged again (`uavmeta_runtime::actor`), and the store drops what it already has.
 //!
 //! **Known costs** of relaying whole services: the tunnel carries a service both ways, so the
 //! learner host's own actors' batches travel to every remote host too (and are dropped there),

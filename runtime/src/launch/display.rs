@@ -16,12 +16,12 @@ use std::thread::JoinHandle;
 use std::time::Duration;
 
 use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
-use uavmeta_actors::actor::Phase;
 use uavmeta_proto::config::{Config, TaskRole};
 use uavmeta_proto::method::Method;
 use uavmeta_proto::metrics::{self, Metric, Sample};
 use uavmeta_proto::transport::RunDir;
 
+use crate::actor::Phase;
 use crate::{meta_learner, store};
 
 /// How often the rows are refreshed.

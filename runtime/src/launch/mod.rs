@@ -43,8 +43,6 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use indicatif::MultiProgress;
-use uavmeta_actors::actor::ActorOptions;
-use uavmeta_actors::evaluator;
 use uavmeta_actors::policy::heuristics::PolicySpec;
 use uavmeta_proto::config::{Config, TaskRole};
 use uavmeta_proto::metrics::{wait_for_port, MetricsError, MetricsServer};
@@ -53,7 +51,8 @@ use uavmeta_proto::transport::{
     TransportError, SCHEMA_VERSION,
 };
 
-use crate::{meta_learner, store};
+use crate::actor::ActorOptions;
+use crate::{evaluator, meta_learner, store};
 
 mod display;
 mod metrics;

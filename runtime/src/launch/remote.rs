@@ -4,12 +4,11 @@
 use std::time::{Duration, Instant};
 
 use iceoryx2::prelude::*;
-use uavmeta_actors::actor;
 use uavmeta_proto::config::Config;
 use uavmeta_proto::metrics::{parse, scrape, store::TRANSITIONS_STORED, sum};
 use uavmeta_proto::transport::{self, RemoteHost, RunDir};
 
-use crate::store;
+use crate::{actor, store};
 
 use super::supervise::TICK;
 use super::targets::write_targets;

@@ -77,7 +77,7 @@ const DROP_LOG_EVERY: Duration = Duration::from_secs(5);
 
 /// How far ahead of the next number the store expects of an actor a batch may start, in
 /// transitions: an actor keeps at most `2 * run.subscriber_buffer + 2` batches unacknowledged
-/// (`uavmeta_actors::actor`), so a real actor's gap (batches lost with a killed store, or dropped
+/// (`crate::actor`), so a real actor's gap (batches lost with a killed store, or dropped
 /// by a tunnel) stays within that many; four times it leaves room for all of them.
 pub fn sequence_window(run: &RunConfig) -> u64 {
     4 * (2 * run.subscriber_buffer as u64 + 2) * run.batch_size as u64

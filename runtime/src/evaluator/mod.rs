@@ -3,8 +3,8 @@
 //!
 //! For each `CheckpointReady` it loads the checkpoint, runs the greedy policy for
 //! `learner.eval_episodes` Monte-Carlo episodes seeded `learner.eval_seed` (the same episodes for
-//! every method and epoch, [`crate::policy::q_policy::Evaluator`]), sets the per-task, per-method gauges
-//! and appends one row to the run's `evaluations.csv` for plots.
+//! every method and epoch, [`Evaluator`]), sets the per-task, per-method gauges and appends one
+//! row to the run's `evaluations.csv` for plots.
 //!
 //! **Restart.** An evaluator (re)started mid-run or after the meta-learner has exited first queues
 //! every complete checkpoint already in the run directory, in the order the meta-learner announces
@@ -27,7 +27,7 @@ use uavmeta_proto::process::Process;
 use uavmeta_proto::stats::PolicyMetrics;
 use uavmeta_proto::transport::{self, CheckpointReady, RunDir, TransportError, SCHEMA_VERSION};
 
-use crate::policy::q_policy::Evaluator;
+use uavmeta_actors::policy::q_policy::Evaluator;
 
 mod metrics;
 

@@ -34,11 +34,11 @@ use uavmeta_proto::transport::{
     self, RunDir, TransitionPublisher, TransitionSlot, TransportError, SCHEMA_VERSION,
 };
 
-use crate::collect::{online_dqn_dataset, CollectError};
-use crate::policy::heuristics::{PolicyError, PolicySpec};
-use crate::rollout::{episode_seed, EpisodeTally, Policy};
-use crate::world::World;
 use delivery::{write_sample, Sender, Sent};
+use uavmeta_actors::collect::{online_dqn_dataset, CollectError};
+use uavmeta_actors::policy::heuristics::{PolicyError, PolicySpec};
+use uavmeta_actors::rollout::{episode_seed, EpisodeTally, Policy};
+use uavmeta_actors::world::World;
 
 mod delivery;
 mod metrics;
