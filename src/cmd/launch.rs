@@ -8,8 +8,8 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use indicatif::MultiProgress;
 use uavmeta_proto::config::Config;
-use uavmeta_proto::transport::RunDir;
 use uavmeta_runtime::launch::Reuse;
+use uavmeta_runtime::run_dir::RunDir;
 
 use super::common::ConfigArgs;
 

@@ -3,11 +3,12 @@
 
 use prometheus::{Counter, Gauge, Histogram, IntCounter, IntGauge, IntGaugeVec, Registry};
 
-use uavmeta_proto::metrics::{self, actor::*};
+use uavmeta_actors::policy::dqn_online::OnlineDqn;
+use uavmeta_proto::metrics::actor::*;
 use uavmeta_proto::stats::EpisodeMetrics;
 
 use super::Phase;
-use uavmeta_actors::policy::dqn_online::OnlineDqn;
+use crate::metrics::{self, Register};
 
 pub struct ActorMetrics {
     pub registry: Registry,

@@ -18,16 +18,19 @@ use std::io::{BufRead, BufReader, Write};
 use std::path::Path;
 use std::time::{Duration, Instant};
 
+use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
 use uavmeta_proto::method::Method;
-use uavmeta_proto::metrics::MetricsError;
-use uavmeta_proto::process::Process;
+use uavmeta_proto::payload::{CheckpointReady, SCHEMA_VERSION};
 use uavmeta_proto::stats::PolicyMetrics;
-use uavmeta_proto::transport::{self, CheckpointReady, RunDir, TransportError, SCHEMA_VERSION};
 
-use uavmeta_actors::policy::q_policy::Evaluator;
+use crate::liveness;
+use crate::metrics::MetricsError;
+use crate::process::Process;
+use crate::run_dir::RunDir;
+use crate::transport::{self, TransportError};
 
 mod metrics;
 
@@ -176,7 +179,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
     }
     let mut stopping = false;
     let mut evaluated = 0u64;
-    while transport::keep_running(
+    while liveness::keep_running(
         &process.node,
         if queue.is_empty() {
             POLL

@@ -7,10 +7,10 @@ use std::path::PathBuf;
 use uavmeta_actors::policy::heuristics::{reference_metrics, PolicySpec, REFERENCES};
 use uavmeta_proto::config::{Config, TaskRole};
 use uavmeta_proto::method::Method;
-use uavmeta_proto::transport::RunDir;
 
 use super::LaunchError;
 use crate::evaluator::{self, EvaluationRow};
+use crate::run_dir::RunDir;
 
 /// What a finished launch reports.
 #[derive(Debug, Clone)]

@@ -37,25 +37,26 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use uavmeta_actors::policy::q_policy::Evaluator;
+use uavmeta_learner::batch::load_shots;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::EvaluatePolicy;
-use uavmeta_proto::config::{Config, Loss, TaskConfig, TaskRole};
-use uavmeta_proto::method::Method;
-use uavmeta_proto::metrics::MetricsError;
-use uavmeta_proto::process::Process;
-use uavmeta_proto::stats::PolicyMetrics;
-use uavmeta_proto::transport::{
-    self, CheckpointReady, DatasetReady, RunDir, TransportError, SCHEMA_VERSION,
-};
-
-use uavmeta_learner::batch::load_shots;
 use uavmeta_meta::fine_tune::{fine_tune, meta_test_with, FineTune, MetaTestOptions};
 use uavmeta_meta::meta_train::{
     load_tasks, meta_train_with, MetaRow, MetaTrainHook, MetaTrainOptions,
 };
 use uavmeta_meta::{pretrain, MetaError};
+use uavmeta_proto::config::{Config, Loss, TaskConfig, TaskRole};
+use uavmeta_proto::method::Method;
+use uavmeta_proto::payload::{CheckpointReady, DatasetReady, SCHEMA_VERSION};
+use uavmeta_proto::stats::PolicyMetrics;
+
+use crate::liveness;
+use crate::metrics::MetricsError;
+use crate::process::Process;
+use crate::run_dir::RunDir;
+use crate::transport::{self, TransportError};
 
 mod metrics;
 
@@ -161,7 +162,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
 /// The hook of every training step: a heartbeat, since an epoch over a large dataset outlasts
 /// the launcher's hang timeout.
 fn beat() -> OnStep {
-    OnStep::new(transport::heartbeat)
+    OnStep::new(liveness::heartbeat)
 }
 
 /// Announces the online DQN agents that made the meta-test datasets: the runs' reference line.
@@ -262,7 +263,7 @@ fn wait_for_datasets(
     let mut waiting: Vec<bool> = vec![true; config.tasks.len()];
     tracing::info!(tasks = waiting.len(), "waiting for the datasets");
     while waiting.iter().any(|w| *w) {
-        if stop()? || !transport::keep_running(node, POLL) {
+        if stop()? || !liveness::keep_running(node, POLL) {
             return Ok(false);
         }
         while let Some(m) = ready
@@ -451,7 +452,7 @@ struct Announcing<'a> {
 
 impl EvaluatePolicy for Announcing<'_> {
     fn evaluate(&mut self, q: &QNetwork) -> PolicyMetrics {
-        transport::heartbeat();
+        liveness::heartbeat();
         self.epoch += 1;
         self.metrics.fine_tune_epochs.inc();
         if self.error.is_none() {
