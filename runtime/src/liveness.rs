@@ -49,8 +49,9 @@ const HEARTBEAT_EVERY: Duration = Duration::from_millis(500);
 /// Tells the launcher that this process's loop is making progress, by moving the modification
 /// time of the file named in [`HEARTBEAT_FILE_ENV`]. A stopped, deadlocked or livelocked process
 /// stops moving it, and the launcher kills and restarts it. Every loop that polls its node beats
-/// through [`keep_running`]; long computations call this between their steps. A process started by
-/// hand has no such file, and beats go nowhere.
+/// through [`keep_running`]; a long computation calls this between its steps (training, through
+/// the `uavmeta_learner::progress::OnStep` the meta-learner passes it). A process started by hand
+/// has no such file, and beats go nowhere.
 pub fn heartbeat() {
     struct Beat {
         file: std::fs::File,
