@@ -37,15 +37,16 @@ use iceoryx2::node::Node;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::prelude::ipc;
 
-use uavmeta_actors::actor::{ActorOptions, Rollout};
 use uavmeta_actors::policy::heuristics::PolicySpec;
 use uavmeta_actors::rollout::{episode_seed, run_episode, Policy};
 use uavmeta_actors::world::World;
-use uavmeta_learner::store;
 use uavmeta_proto::config::{Config, RunConfig};
-use uavmeta_proto::transport::{
-    self, RunDir, ServiceNames, StoreAck, TransitionPublisher, TransitionSlot, SCHEMA_VERSION,
-};
+use uavmeta_proto::payload::{ServiceNames, StoreAck, TransitionSlot, SCHEMA_VERSION};
+use uavmeta_runtime::actor::{ActorOptions, Rollout};
+use uavmeta_runtime::domain;
+use uavmeta_runtime::run_dir::RunDir;
+use uavmeta_runtime::store;
+use uavmeta_runtime::transport::{self, TransitionPublisher};
 
 const BIN: &str = env!("CARGO_BIN_EXE_uavmeta");
 
@@ -220,7 +221,7 @@ impl BenchRun {
     }
 
     fn service(&self, node: &Node<ipc::Service>) -> transport::TransitionService {
-        let names = ServiceNames::new(&self.run);
+        let names = ServiceNames::new(self.run.id());
         transport::transition_service(node, &names, "bench", &self.config.run).expect("service")
     }
 }
@@ -237,7 +238,7 @@ fn send_floor(batch: usize, step: Duration) -> Duration {
     std::thread::scope(|scope| {
         scope.spawn(|| {
             let node =
-                transport::node("transport-bench-floor-store", &bench.config.run).expect("node");
+                domain::node("transport-bench-floor-store", &bench.config.run).expect("node");
             let service = bench.service(&node);
             let subscriber =
                 transport::transition_subscriber(&service, &bench.config.run).expect("subscriber");
@@ -251,7 +252,7 @@ fn send_floor(batch: usize, step: Duration) -> Duration {
         while !subscribed.load(Ordering::Acquire) {
             std::thread::yield_now();
         }
-        let node = transport::node("transport-bench-floor-actor", &bench.config.run).expect("node");
+        let node = domain::node("transport-bench-floor-actor", &bench.config.run).expect("node");
         let service = bench.service(&node);
         let publisher =
             TransitionPublisher::new(&service, &bench.run, &bench.config, 0, 0).expect("publisher");
@@ -332,11 +333,11 @@ fn measure(
 ) -> Figures {
     let (run, config) = (&bench.run, &bench.config);
     let batch = config.run.batch_size;
-    let node = transport::node("transport-bench", &config.run).expect("node");
+    let node = domain::node("transport-bench", &config.run).expect("node");
     let service = bench.service(&node);
     let subscriber = transport::transition_subscriber(&service, &config.run).expect("subscriber");
     // Acknowledged like the store does, after every batch, so actors keep what they would.
-    let names = ServiceNames::new(run);
+    let names = ServiceNames::new(run.id());
     let acks = transport::ack_publisher(
         &transport::ack_service(&node, &names, "bench", &config.run).expect("ack service"),
     )
@@ -578,7 +579,7 @@ impl Drop for SecondHost {
                 domain: domain.clone(),
                 ..RunConfig::default()
             };
-            transport::remove_domain(&run).expect("remove the domain's files");
+            domain::remove_domain(&run).expect("remove the domain's files");
         }
     }
 }

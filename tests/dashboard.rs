@@ -25,7 +25,7 @@ use support::{child_pid, launch, missing_tool, run_dir, wait_until, within, Proc
 const DASHBOARD: &str = include_str!("../docs/grafana/uavmeta.json");
 
 /// The scrape interval of a run's prometheus.yml.
-const SCRAPE: Duration = Duration::from_secs(uavmeta_meta::launch::SCRAPE_INTERVAL_SECONDS);
+const SCRAPE: Duration = Duration::from_secs(uavmeta_runtime::launch::SCRAPE_INTERVAL_SECONDS);
 
 /// A Prometheus server on a free port, its data in `dir`, killed when dropped.
 struct Prometheus {

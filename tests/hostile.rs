@@ -5,12 +5,16 @@
 
 use std::path::{Path, PathBuf};
 
-use uavmeta_actors::actor::ActorOptions;
 use uavmeta_actors::world::World;
 use uavmeta_proto::config::{Config, RunConfig};
 use uavmeta_proto::dataset::{DatasetHeader, DatasetWriter, Transition};
-use uavmeta_proto::metrics::{self, store as names, Sample};
-use uavmeta_proto::transport::{self, RunDir, ServiceNames, TransitionPublisher, TransitionSlot};
+use uavmeta_proto::metrics::store as names;
+use uavmeta_proto::payload::{self, ServiceNames, TransitionSlot};
+use uavmeta_runtime::actor::ActorOptions;
+use uavmeta_runtime::domain;
+use uavmeta_runtime::metrics::{parse, sum, Sample};
+use uavmeta_runtime::run_dir::RunDir;
+use uavmeta_runtime::transport::{self, TransitionPublisher};
 
 mod support;
 use support::{config_args, run_dir, wait_until, within, Proc};
@@ -61,7 +65,7 @@ impl Drop for Run {
             domain: self.domain.clone(),
             ..RunConfig::default()
         };
-        if let Err(error) = transport::remove_domain(&run) {
+        if let Err(error) = domain::remove_domain(&run) {
             eprintln!("{error}");
         }
     }
@@ -70,14 +74,15 @@ impl Drop for Run {
 fn scrape(run: &Path, process: &str) -> Vec<Sample> {
     let port = std::fs::read_to_string(run.join("ports").join(format!("{process}.port")))
         .expect("port file");
-    let text = metrics::scrape("127.0.0.1", port.trim().parse().expect("port")).expect("scrape");
-    metrics::parse(&text).expect("metrics")
+    let text = uavmeta_runtime::metrics::scrape("127.0.0.1", port.trim().parse().expect("port"))
+        .expect("scrape");
+    parse(&text).expect("metrics")
 }
 
 fn rejected(run: &Path, actor: u32, reason: &str) -> f64 {
     let actor = actor.to_string();
     let labels = [("actor", actor.as_str()), ("reason", reason)];
-    metrics::sum(&scrape(run, "store"), names::TRANSITIONS_REJECTED, &labels)
+    sum(&scrape(run, "store"), names::TRANSITIONS_REJECTED, &labels)
 }
 
 /// `count` real steps of task `task`'s world from episode `episode`'s start, as an actor writes
@@ -154,8 +159,8 @@ fn a_hostile_publisher_leaves_the_store_running_the_dataset_clean_and_the_drops_
     }
     .actor_id();
 
-    let node = transport::node("hostile-publisher", &config.run).expect("node");
-    let names_of_run = ServiceNames::new(&run_dir);
+    let node = domain::node("hostile-publisher", &config.run).expect("node");
+    let names_of_run = ServiceNames::new(run_dir.id());
     let service = transport::transition_service(&node, &names_of_run, &task_name, &config.run)
         .expect("service");
     let hostile = 4242;
@@ -208,7 +213,7 @@ fn a_hostile_publisher_leaves_the_store_running_the_dataset_clean_and_the_drops_
         within(60),
         || {
             let samples = scrape(&path, "store");
-            metrics::sum(
+            sum(
                 &samples,
                 names::DATASET_TRANSITIONS,
                 &[("task", task_name.as_str())],
@@ -355,12 +360,12 @@ fn a_forged_shutdown_ends_the_launch_with_an_error_instead_of_a_wait_for_ever() 
     });
     let run_dir = RunDir::open(&path).expect("run");
     let config = Config::load(&run_dir.config_file(), &[]).expect("config");
-    let node = transport::node("forger", &config.run).expect("node");
-    let service = transport::shutdown_service(&node, &ServiceNames::new(&run_dir), &config)
+    let node = domain::node("forger", &config.run).expect("node");
+    let service = transport::shutdown_service(&node, &ServiceNames::new(run_dir.id()), &config)
         .expect("shutdown service");
     let publisher = transport::control_publisher(&service).expect("publisher");
-    let shutdown = transport::Shutdown {
-        schema_version: transport::SCHEMA_VERSION,
+    let shutdown = payload::Shutdown {
+        schema_version: payload::SCHEMA_VERSION,
         reserved: 0,
     };
     transport::announce(&publisher, shutdown).expect("announce");
@@ -389,7 +394,7 @@ fn an_actor_replaying_an_action_file_publishes_its_share_and_stops() {
     Proc::spawn("actor", &args.map(String::from)).succeeds(within(120));
     wait_until("300 stored", within(60), || {
         let samples = scrape(&path, "store");
-        metrics::sum(
+        sum(
             &samples,
             names::DATASET_TRANSITIONS,
             &[("task", "lambda-0")],

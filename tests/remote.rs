@@ -9,10 +9,12 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use uavmeta_actors::actor::ActorOptions;
 use uavmeta_proto::config::RunConfig;
 use uavmeta_proto::metrics;
-use uavmeta_proto::transport::{self, RunDir};
+use uavmeta_runtime::actor::ActorOptions;
+use uavmeta_runtime::metrics::{parse, scrape, sum, Sample};
+use uavmeta_runtime::run_dir::RunDir;
+use uavmeta_runtime::{domain, transport};
 
 mod support;
 use support::{dataset_seqs, run_dir, wait_until, within, Proc};
@@ -184,7 +186,7 @@ impl Drop for Hosts {
                 domain: domain.clone(),
                 ..RunConfig::default()
             };
-            if let Err(error) = transport::remove_domain(&run) {
+            if let Err(error) = domain::remove_domain(&run) {
                 eprintln!("{error}");
             }
         }
@@ -264,10 +266,10 @@ fn iceoryx_files(pid: i32) -> Vec<String> {
     paths
 }
 
-fn final_metrics(run: &Path, process: &str) -> Vec<metrics::Sample> {
+fn final_metrics(run: &Path, process: &str) -> Vec<Sample> {
     let path = run.join("metrics").join(format!("{process}.prom"));
     let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    metrics::parse(&text).expect("metrics")
+    parse(&text).expect("metrics")
 }
 
 #[test]
@@ -328,7 +330,7 @@ fn a_launch_with_two_local_and_two_remote_actors_stores_the_remote_transitions()
             300_000,
             "{task}"
         );
-        let counted = metrics::sum(
+        let counted = sum(
             &store,
             metrics::store::DATASET_TRANSITIONS,
             &[("task", task)],
@@ -368,10 +370,10 @@ fn start_tunnel(hosts: &Hosts, name: &str) -> Proc {
 fn stored(run: &RunDir) -> f64 {
     std::fs::read_to_string(run.port_file("store"))
         .ok()
-        .and_then(|port| metrics::scrape("127.0.0.1", port.trim().parse().ok()?).ok())
-        .and_then(|text| metrics::parse(&text).ok())
+        .and_then(|port| scrape("127.0.0.1", port.trim().parse().ok()?).ok())
+        .and_then(|text| parse(&text).ok())
         .map_or(0.0, |samples| {
-            metrics::sum(&samples, metrics::store::TRANSITIONS_STORED, &[])
+            sum(&samples, metrics::store::TRANSITIONS_STORED, &[])
         })
 }
 
@@ -411,12 +413,12 @@ fn a_killed_and_restarted_tunnel_loses_nothing_unaccounted_and_the_remote_actor_
 
     let seqs = &dataset_seqs(run)[task][&actor_id];
     let missing_in_file = seqs.last().map_or(0, |last| last + 1) - seqs.len() as u64;
-    let counted = metrics::sum(
+    let counted = sum(
         &final_metrics(run, "store"),
         metrics::store::TRANSITIONS_MISSING,
         &[("task", task)],
     );
-    let published = metrics::sum(
+    let published = sum(
         &final_metrics(&hosts.dir_b(), &format!("actor-{task}-{actor_id:08x}")),
         metrics::actor::TRANSITIONS_PUBLISHED,
         &[],
@@ -605,7 +607,7 @@ fn forge<T: std::fmt::Debug + iceoryx2::prelude::ZeroCopySend + Copy + 'static>(
 #[test]
 fn a_remote_hosts_forged_shutdown_and_dataset_ready_reach_nothing_on_the_learners_host() {
     use uavmeta_proto::config::Config;
-    use uavmeta_proto::transport::{DatasetReady, ServiceNames, Shutdown, SCHEMA_VERSION};
+    use uavmeta_proto::payload::{DatasetReady, ServiceNames, Shutdown, SCHEMA_VERSION};
     let hosts = Hosts::new("forge");
     let (mut store, mut tunnel) = start_host_a(&hosts, &["collect.transitions=10000000".into()]);
     let mut join = hosts.join(hosts.run_a.id());
@@ -613,8 +615,8 @@ fn a_remote_hosts_forged_shutdown_and_dataset_ready_reach_nothing_on_the_learner
     wait_until("host B's run directory", within(60), || config_b.exists());
     join.logs("bridging the run's services", within(60));
     let config = Config::load(&config_b, &[]).expect("B's config");
-    let names = ServiceNames::new(&RunDir::open(&hosts.dir_b()).expect("B's run"));
-    let node = transport::node("forger", &config.run).expect("a node in B's domain");
+    let names = ServiceNames::new(RunDir::open(&hosts.dir_b()).expect("B's run").id());
+    let node = domain::node("forger", &config.run).expect("a node in B's domain");
     let shutdown = Shutdown {
         schema_version: SCHEMA_VERSION,
         reserved: 0,
@@ -645,8 +647,8 @@ fn a_remote_hosts_forged_shutdown_and_dataset_ready_reach_nothing_on_the_learner
     );
     // A's own services keep what was announced in their history: nothing.
     let config_a = Config::load(&hosts.run_a.config_file(), &[]).expect("A's config");
-    let node_a = transport::node("witness", &config_a.run).expect("a node in A's domain");
-    let names_a = ServiceNames::new(&hosts.run_a);
+    let node_a = domain::node("witness", &config_a.run).expect("a node in A's domain");
+    let names_a = ServiceNames::new(hosts.run_a.id());
     let heard = |service: String| -> usize {
         let service =
             transport::control_service::<Shutdown>(&node_a, service, &config_a).expect("service");

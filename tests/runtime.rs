@@ -11,7 +11,8 @@ use std::time::{Duration, Instant};
 
 use uavmeta_proto::config::Loss;
 use uavmeta_proto::method::Method;
-use uavmeta_proto::metrics::{self, Metric, Sample};
+use uavmeta_proto::metrics::{self, Metric};
+use uavmeta_runtime::metrics::{parse, sum, Sample};
 
 mod support;
 use support::{
@@ -28,7 +29,7 @@ fn snapshot(run: &Path, process: &str) -> Vec<Sample> {
     let path = run.join("metrics").join(format!("{process}.prom"));
     let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
     promtool_check(&text, &path.display().to_string());
-    metrics::parse(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+    parse(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
 }
 
 /// `promtool check metrics` on `text`, when promtool is installed (Debian: `prometheus`); under
@@ -81,9 +82,10 @@ fn scrape(run: &Path, process: &str) -> Vec<Sample> {
         );
         std::thread::sleep(Duration::from_millis(50));
     };
-    let text = metrics::scrape("127.0.0.1", port).unwrap_or_else(|e| panic!("{process}: {e}"));
+    let text = uavmeta_runtime::metrics::scrape("127.0.0.1", port)
+        .unwrap_or_else(|e| panic!("{process}: {e}"));
     promtool_check(&text, process);
-    metrics::parse(&text).unwrap_or_else(|e| panic!("{process}: {e}"))
+    parse(&text).unwrap_or_else(|e| panic!("{process}: {e}"))
 }
 
 /// Transitions missing from a file: below each actor's highest stored number, not stored.
@@ -97,7 +99,7 @@ fn missing_in_files(seqs: &BTreeMap<u32, Vec<u64>>) -> u64 {
 fn actors_total(run: &Path, metric: Metric) -> f64 {
     actor_names(run)
         .iter()
-        .map(|a| metrics::sum(&snapshot(run, a), metric, &[]))
+        .map(|a| sum(&snapshot(run, a), metric, &[]))
         .sum()
 }
 
@@ -107,7 +109,7 @@ fn actor_names(run: &Path) -> Vec<String> {
 }
 
 /// The actors named by the files of extension `extension` in `dir`. Files being written
-/// atomically (`transport::write_atomic`'s `<name>.tmp.<pid>`) have another extension, so a name
+/// atomically (`run_dir::write_atomic`'s `<name>.tmp.<pid>`) have another extension, so a name
 /// is only taken once its file is complete.
 fn actor_files(dir: &Path, extension: &str) -> Vec<String> {
     std::fs::read_dir(dir)
@@ -144,9 +146,9 @@ fn a_small_launch_completes_and_accounts_for_every_transition() {
     let store = snapshot(&run, "store");
     let published = actors_total(&run, metrics::actor::TRANSITIONS_PUBLISHED);
     let resent = actors_total(&run, metrics::actor::TRANSITIONS_RESENT);
-    let stored = metrics::sum(&store, metrics::store::TRANSITIONS_STORED, &[]);
-    let dropped = metrics::sum(&store, metrics::store::TRANSITIONS_DROPPED, &[]);
-    let missing = metrics::sum(&store, metrics::store::TRANSITIONS_MISSING, &[]);
+    let stored = sum(&store, metrics::store::TRANSITIONS_STORED, &[]);
+    let dropped = sum(&store, metrics::store::TRANSITIONS_DROPPED, &[]);
+    let missing = sum(&store, metrics::store::TRANSITIONS_MISSING, &[]);
     assert!(published >= 3.0 * 300.0, "published {published}");
     assert_eq!(
         published + resent,
@@ -155,7 +157,7 @@ fn a_small_launch_completes_and_accounts_for_every_transition() {
     );
     assert_eq!(missing, 0.0);
     assert_eq!(
-        metrics::sum(
+        sum(
             &store,
             metrics::store::TRANSITIONS_DROPPED,
             &[("reason", metrics::store::FOREIGN)]
@@ -176,9 +178,7 @@ fn a_small_launch_completes_and_accounts_for_every_transition() {
         snapshot(&run, process);
     }
     let evaluator = snapshot(&run, "evaluator");
-    assert!(
-        metrics::sum(&evaluator, metrics::evaluator::CHECKPOINTS_EVALUATED, &[]) >= 2.0 + 2.0 * 2.0
-    );
+    assert!(sum(&evaluator, metrics::evaluator::CHECKPOINTS_EVALUATED, &[]) >= 2.0 + 2.0 * 2.0);
     assert!(run.join("prometheus.yml").exists());
 }
 
@@ -258,7 +258,7 @@ fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
     let first = actor("1", Some("400")).wait(within(60));
     assert!(first.status.success(), "{}", stderr(&first));
     wait_until("400 stored", within(30), || {
-        metrics::sum(
+        sum(
             &scrape(&run, "store"),
             metrics::store::DATASET_TRANSITIONS,
             &[("task", "lambda-100")],
@@ -279,11 +279,11 @@ fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
         || {
             let live = scrape(&run, &live_actor);
             live.iter().any(|s| s.name == metrics::actor::STEPS.name)
-                && metrics::sum(&live, metrics::actor::STEPS, &[]) > 0.0
+                && sum(&live, metrics::actor::STEPS, &[]) > 0.0
         },
     );
     wait_until("the second actor's data", within(30), || {
-        metrics::sum(
+        sum(
             &scrape(&run, "store"),
             metrics::store::DATASET_TRANSITIONS,
             &[("task", "lambda-100")],
@@ -307,7 +307,7 @@ fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
         &["evaluator".to_string(), "--run".into(), run_arg.clone()],
     );
     assert_eq!(
-        metrics::sum(
+        sum(
             &scrape(&run, "meta-learner"),
             metrics::meta_learner::META_EPOCH,
             &[]
@@ -315,7 +315,7 @@ fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
         0.0
     );
     assert_eq!(
-        metrics::sum(
+        sum(
             &scrape(&run, "evaluator"),
             metrics::evaluator::CHECKPOINTS_EVALUATED,
             &[]
@@ -345,8 +345,8 @@ fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
     assert_eq!(
         actors_total(&run, metrics::actor::TRANSITIONS_PUBLISHED)
             + actors_total(&run, metrics::actor::TRANSITIONS_RESENT),
-        metrics::sum(&store, metrics::store::TRANSITIONS_STORED, &[])
-            + metrics::sum(&store, metrics::store::TRANSITIONS_DROPPED, &[])
+        sum(&store, metrics::store::TRANSITIONS_STORED, &[])
+            + sum(&store, metrics::store::TRANSITIONS_DROPPED, &[])
     );
 }
 
@@ -393,7 +393,7 @@ fn a_replay_sample_lost_with_a_killed_store_is_sent_again_to_its_successor() {
     );
     wait_until("the sample sent", within(120), || {
         actor_names_live(&run).first().is_some_and(|name| {
-            metrics::sum(
+            sum(
                 &scrape(&run, name),
                 metrics::actor::TRANSITIONS_PUBLISHED,
                 &[],
@@ -424,7 +424,7 @@ fn a_replay_sample_lost_with_a_killed_store_is_sent_again_to_its_successor() {
     assert!(second.status.success(), "{}", stderr(&second));
     let store = snapshot(&run, "store");
     assert_eq!(
-        metrics::sum(
+        sum(
             &store,
             metrics::store::TRANSITIONS_MISSING,
             &[("task", "lambda-0")]
@@ -433,7 +433,7 @@ fn a_replay_sample_lost_with_a_killed_store_is_sent_again_to_its_successor() {
     );
     let actor_metrics = snapshot(&run, &actor_names(&run)[0]);
     assert!(
-        metrics::sum(&actor_metrics, metrics::actor::STORE_CHANGES, &[]) >= 1.0,
+        sum(&actor_metrics, metrics::actor::STORE_CHANGES, &[]) >= 1.0,
         "the resend is counted"
     );
 }
@@ -465,7 +465,7 @@ fn a_rollout_held_by_a_killed_store_is_sent_again_to_its_successor() {
     let live = |metric: Metric| {
         actor_names_live(&run)
             .first()
-            .map_or(0.0, |name| metrics::sum(&scrape(&run, name), metric, &[]))
+            .map_or(0.0, |name| sum(&scrape(&run, name), metric, &[]))
     };
     wait_until("the rollout sent", within(120), || {
         live(metrics::actor::TRANSITIONS_PUBLISHED) == sent as f64
@@ -498,10 +498,7 @@ fn a_rollout_held_by_a_killed_store_is_sent_again_to_its_successor() {
     let second = second.wait(within(30));
     assert!(second.status.success(), "{}", stderr(&second));
     let store = snapshot(&run, "store");
-    assert_eq!(
-        metrics::sum(&store, metrics::store::TRANSITIONS_MISSING, &[]),
-        0.0
-    );
+    assert_eq!(sum(&store, metrics::store::TRANSITIONS_MISSING, &[]), 0.0);
     let actor_metrics = snapshot(&run, &actor_names(&run)[0]);
     for (metric, expected) in [
         (metrics::actor::TRANSITIONS_PUBLISHED, sent as f64),
@@ -510,13 +507,13 @@ fn a_rollout_held_by_a_killed_store_is_sent_again_to_its_successor() {
         (metrics::actor::TRANSITIONS_UNACKNOWLEDGED, 0.0),
     ] {
         assert_eq!(
-            metrics::sum(&actor_metrics, metric, &[]),
+            sum(&actor_metrics, metric, &[]),
             expected,
             "{}",
             metric.name
         );
     }
-    assert!(metrics::sum(&actor_metrics, metrics::actor::STORE_CHANGES, &[]) >= 1.0);
+    assert!(sum(&actor_metrics, metrics::actor::STORE_CHANGES, &[]) >= 1.0);
 }
 
 /// Meta-training long enough (one outer step per meta-epoch, a checkpoint every 100) for a test to
@@ -544,7 +541,7 @@ fn killed_actor_store_and_meta_learner_are_restarted_and_nothing_is_lost_unaccou
     let mut held = 0.0;
     wait_until("collection under way", within(60), || {
         held = match run.join("ports/store.port").exists() {
-            true => metrics::sum(
+            true => sum(
                 &scrape(&run, "store"),
                 metrics::store::DATASET_TRANSITIONS,
                 &[],
@@ -580,7 +577,7 @@ fn killed_actor_store_and_meta_learner_are_restarted_and_nothing_is_lost_unaccou
     let launcher_metrics = snapshot(&run, "launcher");
     for process in ["store", "meta-learner"] {
         assert!(
-            metrics::sum(
+            sum(
                 &launcher_metrics,
                 metrics::launcher::CHILD_RESTARTS,
                 &[("process", process)]
@@ -610,7 +607,7 @@ fn assert_every_transition_accounted(run: &Path, per_task: usize) {
             per_task,
             "{task}"
         );
-        let counted = metrics::sum(
+        let counted = sum(
             &store,
             metrics::store::TRANSITIONS_MISSING,
             &[("task", task)],
@@ -660,7 +657,7 @@ fn stopped_actor_store_and_meta_learner_are_taken_for_hung_and_restarted() {
     };
     wait_until("collection under way", within(60), || {
         run.join("ports/store.port").exists()
-            && metrics::sum(
+            && sum(
                 &scrape(&run, "store"),
                 metrics::store::DATASET_TRANSITIONS,
                 &[],
@@ -678,7 +675,7 @@ fn stopped_actor_store_and_meta_learner_are_taken_for_hung_and_restarted() {
     let launcher_metrics = snapshot(&run, "launcher");
     for process in ["store", "meta-learner"] {
         assert_eq!(
-            metrics::sum(
+            sum(
                 &launcher_metrics,
                 metrics::launcher::CHILD_RESTARTS,
                 &[("process", process)]
@@ -729,7 +726,7 @@ fn chaos(seed: u64, kills: usize) {
     };
     wait_until("collection under way", within(60), || {
         run.join("ports/store.port").exists()
-            && metrics::sum(
+            && sum(
                 &scrape(&run, "store"),
                 metrics::store::DATASET_TRANSITIONS,
                 &[],
@@ -776,7 +773,7 @@ fn chaos(seed: u64, kills: usize) {
         stderr(&out)
     );
     assert_eq!(killed.len(), kills);
-    let restarts = metrics::sum(
+    let restarts = sum(
         &snapshot(&run, "launcher"),
         metrics::launcher::CHILD_RESTARTS,
         &[],
@@ -906,7 +903,7 @@ fn two_runs_side_by_side_keep_their_data_apart() {
     for run in &runs {
         let store = snapshot(run, "store");
         assert_eq!(
-            metrics::sum(
+            sum(
                 &store,
                 metrics::store::TRANSITIONS_DROPPED,
                 &[("reason", metrics::store::FOREIGN)]

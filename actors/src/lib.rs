@@ -1,5 +1,5 @@
-//! The UAV side of uavmeta: the world, the policies that act in it, and the processes that run
-//! them.
+//! The UAV side of uavmeta: the world and the policies that act in it. The actor and evaluator
+//! processes that run them in a run are `uavmeta-runtime`'s.
 //!
 //! - [`world`], [`rollout`]: re-exported from `uavmeta_world`, the libtorch-free crate that owns
 //!   the environment, rollouts and evaluation.
@@ -11,10 +11,6 @@
 //!   - [`policy::q_policy`]: a `uavmeta_learner` Q-network's greedy policy, and the evaluator
 //!     that scores it for `uavmeta_learner::train`.
 //! - [`collect`]: one task's offline dataset (SPEC section 4) from a behaviour policy.
-//! - [`actor`]: the actor process, behaviour policies publishing transitions to the store over
-//!   iceoryx2; its folder holds its loop, its delivery and its metrics.
-//! - [`evaluator`]: the evaluator process, greedy Q-policies of announced checkpoints scored in
-//!   the true world; its folder holds its loop and its metrics.
 //!
 //! ```
 //! use uavmeta_actors::policy::heuristics::StalestPolicy;
@@ -27,9 +23,7 @@
 //! assert!(metrics.aoi.mean >= 1.0);
 //! ```
 
-pub mod actor;
 pub mod collect;
-pub mod evaluator;
 pub mod policy;
 
 pub use uavmeta_world::{rollout, world};

@@ -15,6 +15,7 @@ use uavmeta_actors::policy::heuristics::{GreedyPolicy, PolicySpec, RandomPolicy,
 use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_actors::rollout::{evaluate, Policy};
 use uavmeta_learner::batch::Batch;
+use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{train, EpochRow, EvaluatePolicy, TrainOptions};
 use uavmeta_proto::config::{Config, Loss};
@@ -272,6 +273,7 @@ fn train_offline(
         seed: 2,
         out_dir: None,
         progress: false,
+        on_step: OnStep::default(),
     };
     let rows = train(
         &mut q,

@@ -14,8 +14,9 @@ use std::time::{Duration, Instant};
 
 use uavmeta_actors::world::World;
 use uavmeta_proto::config::Config;
-use uavmeta_proto::metrics::{self, store::DATASET_TRANSITIONS};
-use uavmeta_proto::transport::TransitionSlot;
+use uavmeta_proto::metrics::store::DATASET_TRANSITIONS;
+use uavmeta_proto::payload::TransitionSlot;
+use uavmeta_runtime::metrics::{parse, scrape, sum};
 use uavmeta_world::validate::{Claimed, Validator};
 
 use super::{cpu_time, process_cpu, BenchRun, BIN, RAW_REPEATS};
@@ -72,8 +73,8 @@ fn store_cpu_per_transition(bench: &BenchRun) -> f64 {
         .expect("run the actor");
     assert!(status.success(), "the bench actor failed");
     wait_for(|| {
-        let samples = metrics::parse(&metrics::scrape("127.0.0.1", port).ok()?).ok()?;
-        (metrics::sum(&samples, DATASET_TRANSITIONS, &[]) >= TRANSITIONS as f64).then_some(())
+        let samples = parse(&scrape("127.0.0.1", port).ok()?).ok()?;
+        (sum(&samples, DATASET_TRANSITIONS, &[]) >= TRANSITIONS as f64).then_some(())
     });
     let cpu = process_cpu(store.id()) - before;
     // SAFETY: a signal to the store this bench started.

@@ -16,6 +16,7 @@ use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Through
 use tch::nn::OptimizerConfig;
 use tch::{nn, Kind, Reduction, Tensor};
 use uavmeta_learner::batch::Batch;
+use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{train, EvaluatePolicy, TrainOptions};
 use uavmeta_proto::config::{Config, Loss};
@@ -77,6 +78,7 @@ fn bench(c: &mut Criterion) {
                     seed: 0,
                     out_dir: None,
                     progress: false,
+                    on_step: OnStep::default(),
                 };
                 let start = Instant::now();
                 train(&mut q, &data, &opts, &mut NoEvaluation).expect("no outputs to fail");

@@ -12,13 +12,12 @@
 //! - [`cql`]: the CQL loss, paper eq. 8.
 //! - [`train`]: offline training with either loss, evaluated each epoch through the
 //!   [`train::EvaluatePolicy`] hook; per-epoch table on stderr and `train.csv`.
-//! - [`progress`]: the CSV log and the progress bar of a training loop (offline and meta).
+//! - [`progress`]: the CSV log and the progress bar of a training loop (offline and meta), and
+//!   [`progress::OnStep`], the hook a caller hears every training step through.
 //! - [`numerics`]: the environment that pins libtorch's kernels (MKL's branch, ATen's vector
 //!   width), so results are the same bits on another CPU.
 //! - [`checkpoint`]: safetensors weights + JSON metadata + the run's config, written atomically
 //!   and checked (sizes, length, CRC32) on load.
-//! - [`store`]: the dataset store process, appending each task's transitions to its dataset file;
-//!   its folder holds its loop and its metrics.
 //!
 //! It consumes transitions from `uavmeta-proto`'s dataset files and the `[learner]` config
 //! section. Evaluating a policy needs the world, which lives in `uavmeta-actors`; the actors crate
@@ -61,5 +60,4 @@ pub mod optim;
 pub mod population;
 pub mod progress;
 pub mod qnet;
-pub mod store;
 pub mod train;

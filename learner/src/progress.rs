@@ -1,9 +1,11 @@
 //! What a training loop reports as it goes, for offline training and meta-training alike: a CSV
-//! log of one row per epoch, and a progress bar on the terminal.
+//! log of one row per epoch, a progress bar on the terminal, and [`OnStep`], the hook its caller
+//! hears every step through.
 
 use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
@@ -77,4 +79,25 @@ pub fn progress_bar(enabled: bool, len: u64, template: &str) -> ProgressBar {
     }
     ProgressBar::new(len)
         .with_style(ProgressStyle::with_template(template).expect("the template is valid"))
+}
+
+/// What a long computation calls at every step (a gradient step of offline training, an outer
+/// step of MAML), so that its caller hears it is making progress: a process of a run beats its
+/// heartbeat there, so that its supervisor does not take an epoch over a large dataset for a hang.
+/// The default calls nothing. It sees no figures and changes none.
+#[derive(Clone, Default)]
+pub struct OnStep(Option<Arc<dyn Fn() + Send + Sync>>);
+
+impl OnStep {
+    /// A hook that calls `f` at every step.
+    pub fn new(f: impl Fn() + Send + Sync + 'static) -> Self {
+        Self(Some(Arc::new(f)))
+    }
+
+    /// One step done.
+    pub fn step(&self) {
+        if let Some(f) = &self.0 {
+            f();
+        }
+    }
 }

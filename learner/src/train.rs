@@ -18,14 +18,13 @@ use rand_chacha::ChaCha8Rng;
 use tch::Tensor;
 use uavmeta_proto::config::{Config, LearnerConfig, Loss};
 use uavmeta_proto::stats::PolicyMetrics;
-use uavmeta_proto::transport;
 
 use crate::batch::Batch;
 use crate::checkpoint::{self, CheckpointError};
 use crate::cql::{conservative_term, CqlLoss};
 use crate::dqn::{q_taken, TdConfig};
 use crate::optim::FusedAdam;
-use crate::progress::{progress_bar, CsvError, CsvLog};
+use crate::progress::{progress_bar, CsvError, CsvLog, OnStep};
 use crate::qnet::QNetwork;
 
 /// Measures the greedy policy of a Q-network on the true environment.
@@ -59,6 +58,8 @@ pub struct TrainOptions<'a> {
     /// Draw a progress bar on stderr (when it is a terminal) and print the per-epoch table there;
     /// off for runs inside a larger job (`uavmeta reproduce` fine-tunes hundreds of them).
     pub progress: bool,
+    /// Called at every gradient step.
+    pub on_step: OnStep,
 }
 
 /// One epoch's figures.
@@ -161,6 +162,7 @@ pub struct OfflineTrainer {
     target: QNetwork,
     order: MinibatchOrder,
     steps: usize,
+    on_step: OnStep,
 }
 
 impl OfflineTrainer {
@@ -176,13 +178,18 @@ impl OfflineTrainer {
             target: q.duplicate(),
             order: MinibatchOrder::new(rows, cfg.batch.min(rows), seed),
             steps: 0,
+            on_step: OnStep::default(),
         }
+    }
+
+    /// The trainer with `on_step` called at every gradient step.
+    pub fn with_on_step(self, on_step: OnStep) -> Self {
+        Self { on_step, ..self }
     }
 
     /// ALGO: one Adam step on eq. 8 (CQL) or eq. 7 (DQN) over the next minibatch of `data`.
     pub fn step(&mut self, q: &mut QNetwork, data: &Batch) -> StepFigures {
-        // An epoch over a large dataset outlasts a launcher's hang timeout: beat per step.
-        transport::heartbeat();
+        self.on_step.step();
         let mb = data.select(&self.order.next_indices());
         // Q_w(s, .) with its graph; Qhat(s', .) from the frozen target network.
         let q_all = q.forward(&mb.obs); // [b, A]
@@ -251,7 +258,8 @@ pub fn train(
 ) -> Result<Vec<EpochRow>, TrainError> {
     let cfg = &opts.config.learner;
     let steps_per_epoch = steps_per_epoch(cfg, data.len());
-    let mut trainer = OfflineTrainer::new(q, data.len(), opts.algorithm, opts.config, opts.seed);
+    let mut trainer = OfflineTrainer::new(q, data.len(), opts.algorithm, opts.config, opts.seed)
+        .with_on_step(opts.on_step.clone());
 
     let mut csv = match opts.out_dir {
         Some(dir) => Some(CsvLog::create(&dir.join("train.csv"), CSV_HEADER)?),

@@ -6,6 +6,7 @@ use rand_chacha::ChaCha8Rng;
 use tch::Tensor;
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint;
+use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{train, EvaluatePolicy, TrainOptions};
 use uavmeta_proto::config::{Config, Loss};
@@ -87,6 +88,7 @@ fn cql_learns_the_bandit_and_writes_its_outputs() {
             seed: 4,
             out_dir: out,
             progress: false,
+            on_step: OnStep::default(),
         };
         train(&mut q, &data, &opts, &mut Exact).unwrap()
     };

@@ -12,6 +12,7 @@ use std::path::Path;
 use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::batch::{load_shots, Batch};
 use uavmeta_learner::checkpoint;
+use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::QNetwork;
 use uavmeta_learner::train::{train, EpochRow, EvaluatePolicy, TrainOptions};
 use uavmeta_proto::config::{Config, Loss, TaskConfig};
@@ -31,6 +32,8 @@ pub struct FineTune<'a> {
     /// Where `train.csv` and the `final` checkpoint go.
     pub out_dir: Option<&'a Path>,
     pub progress: bool,
+    /// Called at every gradient step.
+    pub on_step: OnStep,
 }
 
 /// One meta-test run.
@@ -74,6 +77,7 @@ pub fn fine_tune(
         seed: run.seed,
         out_dir: run.out_dir,
         progress: run.progress,
+        on_step: run.on_step.clone(),
     };
     Ok(train(q, shots, &train_opts, evaluator)?)
 }

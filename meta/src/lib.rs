@@ -1,6 +1,6 @@
-//! MAML over CQL or DQN inner loops: the paper's contribution, the meta-learner process that runs
-//! it and the launcher that supervises a run. The experiments that measure it are
-//! `uavmeta-reproduce`.
+//! MAML over CQL or DQN inner loops: the paper's contribution, as a library. The experiments
+//! that measure it are `uavmeta-reproduce`; the meta-learner process that runs it in a run and the
+//! launcher are `uavmeta-runtime`'s.
 //!
 //! - [`maml`]: Algorithm 4 (eqs. 14-16) on [`uavmeta_learner::qnet::QNetwork`] fast weights, with
 //!   the CQL loss (CQL-MAML) or the DQN loss (DQN-MAML), second or first order; its module doc
@@ -11,12 +11,11 @@
 //!   the multi-task baseline that shows what MAML adds.
 //! - [`fine_tune`]: meta-test, fine-tuning a `w0` checkpoint on N shots of an unseen task, through the
 //!   learner's offline training so every method shares its settings and CSV columns.
-//! - [`meta_learner`]: the meta-learner process of a run; [`launch`]: `uavmeta launch`, the
-//!   supervisor of a run's processes. Each is a folder with its loop and its metrics.
 //!
 //! It consumes datasets (`uavmeta_proto::dataset`), the Q-network, losses, training loop and
 //! checkpoints of `uavmeta-learner`, and the world and greedy-policy evaluator of
-//! `uavmeta-actors`; its results go to CSV files and checkpoints in an output directory.
+//! `uavmeta-actors`; its results go to CSV files and checkpoints in an output directory. A caller
+//! hears every training step through [`uavmeta_learner::progress::OnStep`].
 //!
 //! ```
 //! use tch::Tensor;
@@ -45,9 +44,7 @@
 //! ```
 
 pub mod fine_tune;
-pub mod launch;
 pub mod maml;
-pub mod meta_learner;
 pub mod meta_train;
 pub mod pretrain;
 

@@ -85,9 +85,9 @@ use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_learner::cql::{conservative_rows, eq8};
 use uavmeta_learner::dqn::TdConfig;
 use uavmeta_learner::optim::FusedAdam;
+use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::QNetwork;
 use uavmeta_proto::config::{Config, Loss, MetaConfig};
-use uavmeta_proto::transport;
 
 use crate::MetaError;
 
@@ -409,6 +409,8 @@ pub struct Maml {
     optimizer: FusedAdam,
     rng: ChaCha8Rng,
     epochs_done: usize,
+    /// Called at every outer step.
+    on_step: OnStep,
 }
 
 /// What eq. 16 updates: `w0`'s parameters, then Meta-SGD's step sizes if learned.
@@ -456,6 +458,7 @@ impl Maml {
             optimizer,
             rng: ChaCha8Rng::seed_from_u64(seed),
             epochs_done: 0,
+            on_step: OnStep::default(),
         })
     }
 
@@ -575,11 +578,17 @@ impl Maml {
             optimizer,
             rng,
             epochs_done: progress.epochs_done,
+            on_step: OnStep::default(),
         })
     }
 
     pub fn config(&self) -> &MamlConfig {
         &self.config
+    }
+
+    /// The meta-learner with `on_step` called at every outer step.
+    pub fn with_on_step(self, on_step: OnStep) -> Self {
+        Self { on_step, ..self }
     }
 
     /// The meta-learned initial weights: the moving average of the iterates when
@@ -626,8 +635,7 @@ impl Maml {
         let mut loss_sums = vec![(0.0, 0usize); tasks.len()];
         let mut meta_loss = 0.0;
         for _ in 0..steps {
-            // A pass over large support sets outlasts a launcher's hang timeout: beat per step.
-            transport::heartbeat();
+            self.on_step.step();
             let picked = self.sample_tasks(tasks.len());
             // The next k support shots and fresh query shots of each sampled task.
             let shots: Vec<TaskShots> = picked

@@ -27,7 +27,7 @@ use rand_chacha::ChaCha8Rng;
 use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint;
-use uavmeta_learner::progress::{progress_bar, CsvLog};
+use uavmeta_learner::progress::{progress_bar, CsvLog, OnStep};
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_proto::config::{Config, MetaConfig, TaskConfig, TaskRole};
@@ -50,6 +50,8 @@ pub struct MetaTrainOptions<'a> {
     pub progress: bool,
     /// Continue from the latest complete checkpoint the hook names, if there is one.
     pub resume: bool,
+    /// Called at every outer step of MAML.
+    pub on_step: OnStep,
 }
 
 /// One meta-epoch's figures.
@@ -185,7 +187,8 @@ pub fn meta_train_with<H: MetaTrainHook>(
     let out = opts.out_dir;
     create_dir(out)?;
     write_file(&out.join("config.toml"), &config.to_toml_string())?;
-    let (mut maml, start) = start_or_resume(opts, hook)?;
+    let (maml, start) = start_or_resume(opts, hook)?;
+    let mut maml = maml.with_on_step(opts.on_step.clone());
     let mut csv = open_csv(&out.join("meta_train.csv"), &tasks, start)?;
     let mut evaluators: Vec<Evaluator> = tasks
         .iter()

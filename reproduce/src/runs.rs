@@ -18,6 +18,7 @@ use uavmeta_actors::policy::heuristics::PolicySpec;
 use uavmeta_actors::policy::q_policy::{Evaluator, QPolicy};
 use uavmeta_actors::rollout::{record_trajectory, Trajectory};
 use uavmeta_learner::checkpoint::{self, CheckpointPaths};
+use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::{EpochRow, EvaluatePolicy};
 use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
@@ -411,6 +412,7 @@ pub fn fine_tune_run(
             seed,
             out_dir: None,
             progress: false,
+            on_step: OnStep::default(),
         },
         &mut Evaluator::from_config(&run_config, task),
     )?;
@@ -460,8 +462,10 @@ fn ensure_w0(
     if key.kind == Init::Pretrain {
         if !saved_config_matches(&CheckpointPaths::new(&w0).config, &meta) {
             let (_, tasks) = load_tasks(&meta, datasets, seed)?;
-            let q = pretrain::pretrain(&meta, &tasks, seed, |_| Ok::<_, ReproduceError>(true))?
-                .expect("a pretraining never told to stop finishes");
+            let q = pretrain::pretrain(&meta, &tasks, seed, OnStep::default(), |_| {
+                Ok::<_, ReproduceError>(true)
+            })?
+            .expect("a pretraining never told to stop finishes");
             checkpoint::save(
                 &w0,
                 &q,
@@ -494,6 +498,7 @@ fn ensure_w0(
         seed,
         progress: false,
         resume: false,
+        on_step: OnStep::default(),
     })?;
     let curve = MetaCurve {
         meta_loss: result.rows.iter().map(|r| r.epoch.meta_loss).collect(),

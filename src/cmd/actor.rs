@@ -1,10 +1,10 @@
 //! `uavmeta actor --run R --task T [--policy P] [--seed S] [--transitions N]`: one actor of a run
-//! (see `uavmeta_actors::actor`).
+//! (see `uavmeta_runtime::actor`).
 
 use anyhow::{Context, Result};
 use clap::Args;
-use uavmeta_actors::actor::{self, ActorOptions};
 use uavmeta_actors::policy::heuristics::PolicySpec;
+use uavmeta_runtime::actor::{self, ActorOptions};
 
 use super::launch::RunArgs;
 

@@ -10,8 +10,8 @@ use clap::{Args, Subcommand};
 use uavmeta_dashboard::grafana::Dashboard;
 use uavmeta_dashboard::prometheus::Prometheus;
 use uavmeta_dashboard::render::{self, Options, Outcome, Report};
-use uavmeta_meta::launch::SCRAPE_INTERVAL_SECONDS;
-use uavmeta_proto::transport::RunDir;
+use uavmeta_runtime::launch::SCRAPE_INTERVAL_SECONDS;
+use uavmeta_runtime::run_dir::RunDir;
 
 #[derive(Subcommand)]
 pub enum DashboardCommand {

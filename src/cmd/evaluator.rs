@@ -1,5 +1,5 @@
 //! `uavmeta evaluator --run R`: scores every checkpoint the run announces (see
-//! `uavmeta_actors::evaluator`).
+//! `uavmeta_runtime::evaluator`).
 
 use anyhow::Result;
 use clap::Args;
@@ -14,6 +14,6 @@ pub struct EvaluatorArgs {
 
 pub fn run(args: EvaluatorArgs) -> Result<()> {
     let (run, config) = args.run.open()?;
-    uavmeta_actors::evaluator::run(&run, &config)?;
+    uavmeta_runtime::evaluator::run(&run, &config)?;
     Ok(())
 }

@@ -1,4 +1,4 @@
-//! `uavmeta launch --config F`: a whole run, supervised (see `uavmeta_meta::launch`); and the
+//! `uavmeta launch --config F`: a whole run, supervised (see `uavmeta_runtime::launch`); and the
 //! `--run DIR` flags every process of a run shares.
 
 use std::io::IsTerminal;
@@ -7,9 +7,9 @@ use std::path::PathBuf;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use indicatif::MultiProgress;
-use uavmeta_meta::launch::Reuse;
 use uavmeta_proto::config::Config;
-use uavmeta_proto::transport::RunDir;
+use uavmeta_runtime::launch::Reuse;
+use uavmeta_runtime::run_dir::RunDir;
 
 use super::common::ConfigArgs;
 
@@ -66,17 +66,20 @@ pub fn run(args: LaunchArgs, terminal: MultiProgress) -> Result<()> {
         (_, true) => Reuse::Fresh,
         _ => Reuse::IfSame,
     };
-    let report = uavmeta_meta::launch::launch_seeds(exe, &config, reuse, terminal)?;
+    let report = uavmeta_runtime::launch::launch_seeds(exe, &config, reuse, terminal)?;
     if report.seeds.len() > 1 {
         for (seed, r) in &report.seeds {
             println!("seed {seed}:");
-            print!("{}", uavmeta_meta::launch::results_table(r));
+            print!("{}", uavmeta_runtime::launch::results_table(r));
         }
         println!(
             "\nover seeds {:?} (learned rows: mean ± 95% interval over the seeds):",
             config.run.seeds
         );
     }
-    print!("{}", uavmeta_meta::launch::results_table(&report.aggregate));
+    print!(
+        "{}",
+        uavmeta_runtime::launch::results_table(&report.aggregate)
+    );
     Ok(())
 }

@@ -4,6 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use clap::Args;
+use uavmeta_learner::progress::OnStep;
 use uavmeta_meta::fine_tune::{meta_test, FineTune, MetaTestOptions};
 use uavmeta_meta::meta_train::{meta_train, MetaTrainOptions};
 
@@ -65,6 +66,7 @@ pub fn run_train(args: MetaTrainArgs) -> Result<()> {
         seed,
         progress: true,
         resume: args.resume,
+        on_step: OnStep::default(),
     })?;
     if let Some(last) = result.rows.last() {
         println!(
@@ -101,6 +103,7 @@ pub fn run_test(args: MetaTestArgs) -> Result<()> {
             seed,
             out_dir: Some(&args.out),
             progress: true,
+            on_step: OnStep::default(),
         },
         init: &args.init,
         dataset: &args.dataset,

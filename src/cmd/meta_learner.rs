@@ -1,5 +1,5 @@
 //! `uavmeta meta-learner --run R`: MAML over the run's datasets, then meta-test (see
-//! `uavmeta_meta::meta_learner`).
+//! `uavmeta_runtime::meta_learner`).
 
 use anyhow::Result;
 use clap::Args;
@@ -14,6 +14,6 @@ pub struct MetaLearnerArgs {
 
 pub fn run(args: MetaLearnerArgs) -> Result<()> {
     let (run, config) = args.run.open()?;
-    uavmeta_meta::meta_learner::run(&run, &config)?;
+    uavmeta_runtime::meta_learner::run(&run, &config)?;
     Ok(())
 }

@@ -1,4 +1,4 @@
-//! `uavmeta store --run R`: the dataset store of a run (see `uavmeta_learner::store`).
+//! `uavmeta store --run R`: the dataset store of a run (see `uavmeta_runtime::store`).
 
 use anyhow::Result;
 use clap::Args;
@@ -13,6 +13,6 @@ pub struct StoreArgs {
 
 pub fn run(args: StoreArgs) -> Result<()> {
     let (run, config) = args.run.open()?;
-    uavmeta_learner::store::run(&run, &config)?;
+    uavmeta_runtime::store::run(&run, &config)?;
     Ok(())
 }

@@ -8,6 +8,7 @@ use clap::Args;
 use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::batch::load_shots;
 use uavmeta_learner::checkpoint;
+use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::{train, TrainOptions};
 use uavmeta_proto::config::Loss;
@@ -66,6 +67,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
         seed,
         out_dir: Some(&args.out),
         progress: true,
+        on_step: OnStep::default(),
     };
     let rows = train(
         &mut q,

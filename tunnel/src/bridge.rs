@@ -14,8 +14,10 @@ use iceoryx2_integrations_zenoh_link_carrier::ZenohCarrier;
 use iceoryx2_link::Link;
 use iceoryx2_link_tunnel::Tunnel;
 use uavmeta_proto::config::{Config, TaskConfig};
-use uavmeta_proto::transport::{self, AckService, ControlService, Crossing, RunDir, ServiceNames};
-use uavmeta_proto::transport::{DatasetReady, Shutdown, StoreAck, TransitionService};
+use uavmeta_proto::payload::{Crossing, DatasetReady, ServiceNames, Shutdown, StoreAck};
+use uavmeta_runtime::domain;
+use uavmeta_runtime::run_dir::RunDir;
+use uavmeta_runtime::transport::{self, AckService, ControlService, TransitionService};
 use zenoh::Session;
 
 use crate::{TunnelError, DISCOVER_EVERY};
@@ -44,7 +46,7 @@ impl RunServices {
         run: &RunDir,
         config: &Config,
     ) -> Result<Self, TunnelError> {
-        let names = ServiceNames::new(run);
+        let names = ServiceNames::new(run.id());
         let tasks = &config.tasks;
         let crossing = |service: String| names.to_remote(&service);
         let acks = |t: &TaskConfig| -> Result<_, TunnelError> {
@@ -203,7 +205,7 @@ impl Bridge {
         services: &RunServices,
     ) -> Result<Self, TunnelError> {
         let link_error = |action| move |e: String| TunnelError::Link { action, message: e };
-        let mut iceoryx = transport::iceoryx_config(&config.run)?;
+        let mut iceoryx = domain::iceoryx_config(&config.run)?;
         // The link publishes what arrives from the other side into the local service, whose
         // subscribers include its own (drained only between rounds): waiting on a full one, as
         // uavmeta's actors do, deadlocks the link while frames keep arriving (seen in

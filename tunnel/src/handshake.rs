@@ -5,7 +5,8 @@ use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 use uavmeta_proto::config::{Config, TunnelConfig};
-use uavmeta_proto::transport::{RunDir, SCHEMA_VERSION};
+use uavmeta_proto::payload::SCHEMA_VERSION;
+use uavmeta_runtime::run_dir::RunDir;
 use zenoh::query::Query;
 use zenoh::{Session, Wait};
 

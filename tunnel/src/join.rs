@@ -6,9 +6,9 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use uavmeta_proto::config::{Config, TunnelConfig};
-use uavmeta_proto::transport::{
-    self, write_atomic, RemoteHost, RemoteProcess, RunDir, SCHEMA_VERSION,
-};
+use uavmeta_proto::payload::SCHEMA_VERSION;
+use uavmeta_runtime::run_dir::{write_atomic, RemoteHost, RemoteProcess, RunDir};
+use uavmeta_runtime::{domain, liveness, transport};
 use zenoh::sample::SampleKind;
 use zenoh::{Session, Wait};
 
@@ -73,9 +73,9 @@ pub fn join(options: &JoinOptions) -> Result<(), TunnelError> {
     };
     let (session, info) = reach(options, &hello)?;
     let (run, config) = make_run_dir(options, &info)?;
-    let node = transport::node(&format!("{}-{PROCESS}-services", run.id()), &config.run)?;
+    let node = domain::node(&format!("{}-{PROCESS}-services", run.id()), &config.run)?;
     // A killed predecessor's subscribers would block the actors on full buffers.
-    transport::cleanup_dead_nodes(&node);
+    domain::cleanup_dead_nodes(&node);
     let services = RunServices::open(&node, &run, &config)?;
     let shutdown = transport::control_subscriber(services.shutdown(), &config)?;
     let forwarders = Forwarders::new(&services, &config, Side::Remote)?;
@@ -85,7 +85,7 @@ pub fn join(options: &JoinOptions) -> Result<(), TunnelError> {
     let mut bridge = None;
     let mut last_announce: Option<Instant> = None;
     let mut shutdown_at = None;
-    while transport::keep_running(&node, POLL) {
+    while liveness::keep_running(&node, POLL) {
         bridge = follow(
             bridge, &present, options, &hello, &session, &config, &services,
         )?;

@@ -8,7 +8,7 @@
 //!
 //! Both sides run an [`iceoryx2_link::Link`] over the [`iceoryx2_link_tunnel::Tunnel`] with the
 //! Zenoh carrier, restricted to the services a remote actor uses, each only its way
-//! (`ServiceNames::tunnel_routes`, declared once in `uavmeta_proto::transport`): transitions cross
+//! (`ServiceNames::tunnel_routes`, declared once in `uavmeta_proto::payload`): transitions cross
 //! under their own name; acknowledgements, dataset announcements and the shutdown cross only as
 //! `to-remote/` copies that the learner host's tunnel fills and a remote host's tunnel empties
 //! into its own services, so nothing a remote host publishes reaches a learner-host process but
@@ -40,7 +40,7 @@
 //! (killed, restarted), `join` drops its link, so remote actors see their store's subscriber go
 //! and hold their batches; when the token is back it shakes hands again and builds a new link,
 //! whose new subscriber the actors take for a new store: they send everything the store has not
-//! acknowledged again (`uavmeta_actors::actor`), and the store drops what it already has.
+//! acknowledged again (`uavmeta_runtime::actor`), and the store drops what it already has.
 //!
 //! **Known costs** of relaying whole services: the tunnel carries a service both ways, so the
 //! learner host's own actors' batches travel to every remote host too (and are dropped there),
@@ -56,7 +56,7 @@
 use std::time::Duration;
 
 use uavmeta_proto::config::ConfigError;
-use uavmeta_proto::transport::TransportError;
+use uavmeta_runtime::transport::TransportError;
 
 mod bridge;
 pub mod certs;

@@ -3,7 +3,8 @@
 use std::time::Instant;
 
 use uavmeta_proto::config::Config;
-use uavmeta_proto::transport::{self, write_atomic, RemoteHost, RunDir};
+use uavmeta_runtime::run_dir::{write_atomic, RemoteHost, RemoteProcess, RunDir};
+use uavmeta_runtime::{domain, liveness, transport};
 use zenoh::sample::Sample;
 use zenoh::Wait;
 
@@ -19,9 +20,9 @@ pub const PROCESS: &str = "tunnel";
 /// after the run's shutdown.
 pub fn serve(run: &RunDir, config: &Config) -> Result<(), TunnelError> {
     let endpoint = &config.tunnel.listen;
-    let node = transport::node(&format!("{}-{PROCESS}-services", run.id()), &config.run)?;
+    let node = domain::node(&format!("{}-{PROCESS}-services", run.id()), &config.run)?;
     // A killed predecessor's subscribers would block the actors on full buffers.
-    transport::cleanup_dead_nodes(&node);
+    domain::cleanup_dead_nodes(&node);
     let services = RunServices::open(&node, run, config)?;
     let shutdown = transport::control_subscriber(services.shutdown(), config)?;
     let forwarders = Forwarders::new(&services, config, Side::Learner)?;
@@ -75,7 +76,7 @@ pub fn serve(run: &RunDir, config: &Config) -> Result<(), TunnelError> {
         .map_err(zenoh_error)?;
     tracing::info!(run = run.id(), %endpoint, "serving the run to remote actor hosts");
     let mut shutdown_at = None;
-    while transport::keep_running(&node, POLL) {
+    while liveness::keep_running(&node, POLL) {
         forwarders.pump();
         bridge.relay();
         if shutdown_at.is_none() && transport::shutdown_requested(&shutdown)? {
@@ -148,7 +149,7 @@ fn plain_name(name: &str) -> bool {
 }
 
 fn well_formed(host: &str, announced: &RemoteHost) -> bool {
-    let address = |p: &uavmeta_proto::transport::RemoteProcess| {
+    let address = |p: &RemoteProcess| {
         let (address, port) = p.metrics.rsplit_once(':')?;
         port.parse::<u16>().ok().map(|_| address.to_string())
     };

@@ -10,12 +10,11 @@
 //!   the measure of what is achievable.
 //! - [`heuristics`]: random, stalest-first, greedy, epsilon-mixed and replayed policies, and the
 //!   `PolicySpec` parser behind `--policy` and `collect.policy`.
-//! - [`validate`] (feature `ipc`): whether a transition is one the world makes ([`validate::Validator`]), which
+//! - [`validate`]: whether a transition is one the world makes ([`validate::Validator`]), which
 //!   the store checks before it appends a batch and `uavmeta dataset inspect` checks in a file.
 
 pub mod heuristics;
 pub mod planner;
 pub mod rollout;
-#[cfg(feature = "ipc")]
 pub mod validate;
 pub mod world;

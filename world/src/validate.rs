@@ -20,7 +20,7 @@ use std::fmt;
 use uavmeta_proto::config::{TaskConfig, WorldConfig};
 use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::metrics::store::{ACTION, AOI, NEXT_STATE, NON_FINITE, POSITION, REWARD, STEP};
-use uavmeta_proto::transport::TransitionSlot;
+use uavmeta_proto::payload::TransitionSlot;
 
 use crate::world::World;
 

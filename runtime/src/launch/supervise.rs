@@ -11,7 +11,7 @@ pub(super) const STORE_START: Duration = Duration::from_secs(30);
 pub(super) const GRACE: Duration = Duration::from_secs(20);
 pub(super) const BACKOFF_FIRST: Duration = Duration::from_millis(500);
 /// How long a failed child's restart waits, past its backoff, for the sweep of its iceoryx2
-/// resources (`transport::Cleaner`, on a thread of its own); then it restarts regardless.
+/// resources (`domain::Cleaner`, on a thread of its own); then it restarts regardless.
 pub(super) const CLEANUP_WAIT: Duration = Duration::from_secs(15);
 pub(super) const BACKOFF_MAX: Duration = Duration::from_secs(10);
 
@@ -62,7 +62,7 @@ pub(super) fn supervise(
     let mut shutdown_at = Instant::now();
     let mut last_targets = String::new();
     loop {
-        if !transport::keep_running(node, TICK) {
+        if !liveness::keep_running(node, TICK) {
             return Err(LaunchError::Interrupted);
         }
         supervisor.poll(children)?;
@@ -262,7 +262,7 @@ pub(super) struct Supervisor<'a> {
     pub(super) hang_timeout: Duration,
     pub(super) metrics: &'a metrics::LauncherMetrics,
     /// Sweeps dead children's iceoryx2 resources off the supervision loop.
-    pub(super) cleaner: transport::Cleaner,
+    pub(super) cleaner: domain::Cleaner,
 }
 
 impl Supervisor<'_> {
@@ -294,7 +294,7 @@ impl Supervisor<'_> {
         let parent = std::process::id() as libc::pid_t;
         let mut command = Command::new(&self.exe);
         command
-            .env(transport::HEARTBEAT_FILE_ENV, &heartbeat)
+            .env(liveness::HEARTBEAT_FILE_ENV, &heartbeat)
             .args(&child.args)
             .stdin(Stdio::null())
             .stdout(log)

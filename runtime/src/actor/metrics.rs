@@ -3,11 +3,12 @@
 
 use prometheus::{Counter, Gauge, Histogram, IntCounter, IntGauge, IntGaugeVec, Registry};
 
-use uavmeta_proto::metrics::{self, actor::*};
+use uavmeta_actors::policy::dqn_online::OnlineDqn;
+use uavmeta_proto::metrics::actor::*;
 use uavmeta_proto::stats::EpisodeMetrics;
 
 use super::Phase;
-use crate::policy::dqn_online::OnlineDqn;
+use crate::metrics::{self, Register};
 
 pub struct ActorMetrics {
     pub registry: Registry,
@@ -102,7 +103,7 @@ impl ActorMetrics {
 
 #[cfg(test)]
 mod tests {
-    use crate::policy::dqn_online::RECENT_EPISODES;
+    use uavmeta_actors::policy::dqn_online::RECENT_EPISODES;
 
     #[test]
     fn the_recent_return_help_names_the_agents_window() {

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant, SystemTime};
 
 use uavmeta_proto::config::RunConfig;
-use uavmeta_proto::transport;
+use uavmeta_runtime::{domain, run_dir};
 
 /// A domain of this test's own, removed when dropped.
 struct Domain(RunConfig);
@@ -32,7 +32,7 @@ impl Domain {
 
 impl Drop for Domain {
     fn drop(&mut self) {
-        let _ = transport::remove_domain(&self.0);
+        let _ = domain::remove_domain(&self.0);
     }
 }
 
@@ -41,7 +41,7 @@ fn a_young_unfinished_segment_is_waited_for_until_it_is_old_enough_to_remove() {
     let domain = Domain::new("unfinishedold");
     let segment = domain.zero_sized_segment("killed", Duration::from_secs(8));
     let start = Instant::now();
-    let node = transport::node("starting", &domain.0).expect("a node despite the leftover");
+    let node = domain::node("starting", &domain.0).expect("a node despite the leftover");
     assert!(!segment.exists(), "the leftover segment is still there");
     assert!(
         start.elapsed() >= Duration::from_secs(1),
@@ -66,7 +66,7 @@ fn a_segment_sized_while_waited_for_is_a_finished_creation_and_kept() {
                 .expect("size the segment");
         })
     };
-    let node = transport::node("starting", &domain.0).expect("a node");
+    let node = domain::node("starting", &domain.0).expect("a node");
     sizing.join().expect("the sizing thread");
     assert!(segment.exists(), "a segment being created was removed");
     assert_eq!(std::fs::metadata(&segment).expect("stat").len(), 4096);
@@ -104,10 +104,10 @@ fn a_segment_truncated_again_and_again_is_given_up_on_and_the_cleaner_never_bloc
     let segment = domain.zero_sized_segment("hostile", Duration::ZERO);
     let (stop, truncating) = truncate_again_and_again(segment.clone());
     // Node creation sweeps: it gives up on the segment instead of waiting for it to age.
-    let node = transport::node("starting", &domain.0).expect("a node despite the truncation");
+    let node = domain::node("starting", &domain.0).expect("a node despite the truncation");
     assert!(segment.exists(), "a young segment was removed");
     // The cleaner's sweeps run on its thread: a request returns at once, and each sweep ends.
-    let cleaner = transport::Cleaner::start("truncated", &domain.0);
+    let cleaner = domain::Cleaner::start("truncated", &domain.0);
     let first = cleaner.request();
     assert!(
         !cleaner.finished(first + 1),
@@ -134,7 +134,7 @@ fn a_failed_atomic_write_leaves_no_temporary_file() {
     let target = dir.path().join("targets.json");
     std::fs::create_dir(&target).expect("dir");
     std::fs::write(target.join("x"), b"x").expect("file");
-    let error = transport::write_atomic(&target, b"{}").expect_err("cannot replace a directory");
+    let error = run_dir::write_atomic(&target, b"{}").expect_err("cannot replace a directory");
     assert!(error.to_string().contains("targets.json"), "{error}");
     let left: Vec<_> = std::fs::read_dir(dir.path())
         .expect("list")
@@ -152,9 +152,9 @@ fn a_failed_atomic_write_leaves_no_temporary_file() {
 /// found by creating the service once (and dropping it, which removes the file again).
 fn service_file(domain: &Domain, service: &str) -> PathBuf {
     use iceoryx2::prelude::*;
-    let config = transport::iceoryx_config(&domain.0).expect("the domain's config");
+    let config = domain::iceoryx_config(&domain.0).expect("the domain's config");
     let dir = PathBuf::from(config.global.service_dir().to_string());
-    let node = transport::node("probe", &domain.0).expect("a node");
+    let node = domain::node("probe", &domain.0).expect("a node");
     let name: ServiceName = service.try_into().expect("a service name");
     let created = node
         .service_builder(&name)
@@ -205,7 +205,7 @@ fn a_service_left_half_created_by_a_killed_process_opens_again() {
             .map(drop)
     };
     // The leftover is as the killed store's was: the service cannot be opened.
-    let config = transport::iceoryx_config(&domain.0).expect("the domain's config");
+    let config = domain::iceoryx_config(&domain.0).expect("the domain's config");
     let plain = NodeBuilder::new()
         .config(&config)
         .create::<ipc::Service>()
@@ -217,7 +217,7 @@ fn a_service_left_half_created_by_a_killed_process_opens_again() {
     );
     drop(plain);
 
-    let node = transport::node("restarted", &domain.0).expect("a node");
+    let node = domain::node("restarted", &domain.0).expect("a node");
     assert!(!file.exists(), "the leftover is still there");
     open(&node).expect("the service opens again");
 }

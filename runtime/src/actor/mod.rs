@@ -23,21 +23,22 @@ use std::time::{Duration, Instant};
 use iceoryx2::node::Node;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
+use uavmeta_actors::collect::{online_dqn_dataset, CollectError};
+use uavmeta_actors::policy::heuristics::{PolicyError, PolicySpec};
+use uavmeta_actors::rollout::{episode_seed, EpisodeTally, Policy};
+use uavmeta_actors::world::World;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_proto::config::{Config, ConfigError, TaskConfig};
 use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::method::Method;
-use uavmeta_proto::metrics::MetricsError;
-use uavmeta_proto::process::Process;
+use uavmeta_proto::payload::{DatasetReady, Shutdown, TransitionSlot, SCHEMA_VERSION};
 use uavmeta_proto::stats::EpisodeMetrics;
-use uavmeta_proto::transport::{
-    self, RunDir, TransitionPublisher, TransitionSlot, TransportError, SCHEMA_VERSION,
-};
 
-use crate::collect::{online_dqn_dataset, CollectError};
-use crate::policy::heuristics::{PolicyError, PolicySpec};
-use crate::rollout::{episode_seed, EpisodeTally, Policy};
-use crate::world::World;
+use crate::liveness;
+use crate::metrics::MetricsError;
+use crate::process::Process;
+use crate::run_dir::RunDir;
+use crate::transport::{self, TransitionPublisher, TransportError};
 use delivery::{write_sample, Sender, Sent};
 
 mod delivery;
@@ -334,7 +335,7 @@ impl<'a, 's> Feed<'a, 's> {
                     return Ok(());
                 }
                 // Everything sampled is sent; stay until the store announces the dataset.
-                transport::keep_running(&control.process.node, POLL);
+                liveness::keep_running(&control.process.node, POLL);
                 continue;
             }
             let start = Instant::now();
@@ -422,7 +423,7 @@ fn start_source(
                 online_dqn_dataset(config, task, task_id, actor, options.seed, |n, agent| {
                     metrics.steps.inc_by(n as u64);
                     dqn.observe(agent);
-                    transport::keep_running(node, Duration::ZERO)
+                    liveness::keep_running(node, Duration::ZERO)
                 });
             match trained {
                 Ok((sample, agent)) => {
@@ -465,7 +466,7 @@ fn start_source(
 /// complete, or a shutdown.
 struct Control<'p> {
     process: &'p Process,
-    ready: Subscriber<ipc::Service, transport::DatasetReady, ()>,
+    ready: Subscriber<ipc::Service, DatasetReady, ()>,
     task: u32,
 }
 
@@ -473,15 +474,15 @@ impl Control<'_> {
     /// Waits up to `cycle` for a signal, then reads the announcements; true if the actor should
     /// stop.
     fn stop_requested(&self, cycle: Duration) -> Result<bool, ActorError> {
-        Ok(!transport::keep_running(&self.process.node, cycle)
+        Ok(!liveness::keep_running(&self.process.node, cycle)
             || announced(&self.ready, &self.process.shutdown, self.task)?)
     }
 }
 
 /// True once the task's dataset is announced complete or a shutdown is announced.
 fn announced(
-    ready: &Subscriber<ipc::Service, transport::DatasetReady, ()>,
-    shutdown: &Subscriber<ipc::Service, transport::Shutdown, ()>,
+    ready: &Subscriber<ipc::Service, DatasetReady, ()>,
+    shutdown: &Subscriber<ipc::Service, Shutdown, ()>,
     task: u32,
 ) -> Result<bool, ActorError> {
     let mut done = false;

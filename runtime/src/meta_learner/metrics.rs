@@ -2,7 +2,9 @@
 //! `uavmeta_proto::metrics::meta_learner`.
 
 use prometheus::{Gauge, Histogram, IntCounter, IntGauge, Registry};
-use uavmeta_proto::metrics::{self, meta_learner::*};
+use uavmeta_proto::metrics::meta_learner::*;
+
+use crate::metrics::{self, Register};
 
 pub struct MetaLearnerMetrics {
     pub registry: Registry,

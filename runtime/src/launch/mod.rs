@@ -15,7 +15,7 @@
 //! 0.5 s, 1 s, 2 s, ... (at most 10 s), up to `run.max_restarts` times; the dead process's iceoryx2
 //! resources are removed first, so survivors never wait on its buffers. A child that stops making
 //! progress (SIGSTOP, a deadlock, a livelocked libtorch) is treated the same: each child beats
-//! (`transport::heartbeat`, the modification time of `heartbeats/<name>`, named in its
+//! (`liveness::heartbeat`, the modification time of `heartbeats/<name>`, named in its
 //! environment), and one silent for `run.hang_timeout_seconds` is killed (SIGKILL to its process
 //! group), counted in `uavmeta_launcher_child_hangs_total` (`uavmeta_proto::metrics::launcher::CHILD_HANGS`) and restarted. A child that exits
 //! successfully is done: actors end when their task's dataset is complete, the meta-learner when
@@ -43,18 +43,17 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use indicatif::MultiProgress;
-use uavmeta_actors::actor::ActorOptions;
-use uavmeta_actors::evaluator;
 use uavmeta_actors::policy::heuristics::PolicySpec;
-use uavmeta_learner::store;
 use uavmeta_proto::config::{Config, TaskRole};
-use uavmeta_proto::metrics::{wait_for_port, MetricsError, MetricsServer};
-use uavmeta_proto::transport::{
-    self, write_atomic, CheckpointReady, DatasetReady, RunDir, ServiceNames, Shutdown,
-    TransportError, SCHEMA_VERSION,
+use uavmeta_proto::payload::{
+    CheckpointReady, DatasetReady, ServiceNames, Shutdown, SCHEMA_VERSION,
 };
 
-use crate::meta_learner;
+use crate::actor::ActorOptions;
+use crate::metrics::{wait_for_port, MetricsError, MetricsServer};
+use crate::run_dir::{write_atomic, RunDir};
+use crate::transport::{self, TransportError};
+use crate::{domain, evaluator, liveness, meta_learner, store};
 
 mod display;
 mod metrics;
@@ -172,9 +171,9 @@ pub fn launch(
     write_atomic(&run.config_file(), config.to_toml_string().as_bytes())?;
     write_prometheus_yml(&run)?;
     write_atomic(&run.grafana_dashboard(), DASHBOARD.as_bytes())?;
-    let node = transport::node(&format!("{}-{PROCESS}", run.id()), &config.run)?;
-    transport::cleanup_dead_nodes(&node);
-    let names = ServiceNames::new(&run);
+    let node = domain::node(&format!("{}-{PROCESS}", run.id()), &config.run)?;
+    domain::cleanup_dead_nodes(&node);
+    let names = ServiceNames::new(run.id());
     let launcher_metrics = metrics::LauncherMetrics::new();
     let _server = MetricsServer::start(
         launcher_metrics.registry.clone(),
@@ -200,7 +199,7 @@ pub fn launch(
         max_restarts: config.run.max_restarts,
         hang_timeout: Duration::from_secs_f64(config.run.hang_timeout_seconds),
         metrics: &launcher_metrics,
-        cleaner: transport::Cleaner::start(&format!("{}-{PROCESS}", run.id()), &config.run),
+        cleaner: domain::Cleaner::start(&format!("{}-{PROCESS}", run.id()), &config.run),
     };
 
     start_children(&supervisor, &mut children, config, &node)?;

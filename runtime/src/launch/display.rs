@@ -16,14 +16,14 @@ use std::thread::JoinHandle;
 use std::time::Duration;
 
 use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
-use uavmeta_actors::actor::Phase;
-use uavmeta_learner::store;
 use uavmeta_proto::config::{Config, TaskRole};
 use uavmeta_proto::method::Method;
-use uavmeta_proto::metrics::{self, Metric, Sample};
-use uavmeta_proto::transport::RunDir;
+use uavmeta_proto::metrics::{self, Metric};
 
-use crate::meta_learner;
+use crate::actor::Phase;
+use crate::metrics::{parse, scrape, sum, Sample};
+use crate::run_dir::RunDir;
+use crate::{meta_learner, store};
 
 /// How often the rows are refreshed.
 const REFRESH: Duration = Duration::from_millis(500);
@@ -167,7 +167,7 @@ impl View {
         if let Some(store) = self.scrape(store::PROCESS) {
             for (task, stored) in self.tasks.iter().zip(&mut self.stored) {
                 let ready = [("task", task.as_str())];
-                *stored |= metrics::sum(&store, metrics::store::DATASET_READY, &ready) > 0.0;
+                *stored |= sum(&store, metrics::store::DATASET_READY, &ready) > 0.0;
             }
         }
         for row in &self.actors {
@@ -192,15 +192,15 @@ impl View {
     /// A live process's samples, through the port it published; `None` while it has none.
     fn scrape(&self, process: &str) -> Option<Vec<Sample>> {
         let port = std::fs::read_to_string(self.run.port_file(process)).ok()?;
-        let text = metrics::scrape(&self.host, port.trim().parse().ok()?).ok()?;
-        metrics::parse(&text).ok()
+        let text = scrape(&self.host, port.trim().parse().ok()?).ok()?;
+        parse(&text).ok()
     }
 
     fn show_actor(&self, bar: &ProgressBar, samples: &[Sample]) {
-        let value = |metric: Metric| metrics::sum(samples, metric, &[]);
+        let value = |metric: Metric| sum(samples, metric, &[]);
         let phase = Phase::ALL
             .into_iter()
-            .find(|p| metrics::sum(samples, metrics::actor::PHASE, &[("phase", p.name())]) > 0.0);
+            .find(|p| sum(samples, metrics::actor::PHASE, &[("phase", p.name())]) > 0.0);
         let Some(phase) = phase else { return };
         if phase == Phase::Training {
             let steps = value(metrics::actor::STEPS) as u64;
@@ -232,7 +232,7 @@ impl View {
     }
 
     fn show_meta_learner(&self, samples: &[Sample]) {
-        let value = |metric: Metric| metrics::sum(samples, metric, &[]);
+        let value = |metric: Metric| sum(samples, metric, &[]);
         let fine_tuned = value(metrics::meta_learner::FINE_TUNE_EPOCHS) as u64;
         let epoch = value(metrics::meta_learner::META_EPOCH) as u64;
         let (length, position, message) = if fine_tuned > 0 {

@@ -3,9 +3,11 @@
 use std::time::Duration;
 
 use prometheus::{GaugeVec, Histogram, IntCounter, Registry};
-use uavmeta_proto::metrics::{self, evaluator::*};
+use uavmeta_proto::metrics::evaluator::*;
 
 use super::EvaluationRow;
+
+use crate::metrics::{self, Register};
 
 pub struct EvaluatorMetrics {
     pub registry: Registry,

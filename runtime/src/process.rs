@@ -5,7 +5,8 @@
 //! ```no_run
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
 //! use std::time::Duration;
-//! use uavmeta_proto::{config::Config, metrics, process::Process, transport::RunDir};
+//! use uavmeta_proto::config::Config;
+//! use uavmeta_runtime::{metrics, process::Process, run_dir::RunDir};
 //!
 //! let (run, config) = (RunDir::create("runs/example".as_ref())?, Config::default());
 //! let process = Process::start(&run, &config, "example")?;
@@ -24,9 +25,13 @@ use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use prometheus::Registry;
 
-use crate::config::Config;
+use uavmeta_proto::config::Config;
+use uavmeta_proto::payload::{ServiceNames, Shutdown};
+
 use crate::metrics::{MetricsError, MetricsServer};
-use crate::transport::{self, RunDir, ServiceNames, Shutdown, TransportError};
+use crate::run_dir::RunDir;
+use crate::transport::{self, TransportError};
+use crate::{domain, liveness};
 
 /// A running process of a run.
 pub struct Process {
@@ -43,8 +48,8 @@ impl Process {
     /// Starts process `name` of `run`: its node (`<run id>-<name>`, which also installs the
     /// SIGINT/SIGTERM handler), the run's service names and the shutdown subscription.
     pub fn start(run: &RunDir, config: &Config, name: &str) -> Result<Self, TransportError> {
-        let node = transport::node(&format!("{}-{name}", run.id()), &config.run)?;
-        let names = ServiceNames::new(run);
+        let node = domain::node(&format!("{}-{name}", run.id()), &config.run)?;
+        let names = ServiceNames::new(run.id());
         let shutdown = transport::control_subscriber(
             &transport::shutdown_service(&node, &names, config)?,
             config,
@@ -72,7 +77,7 @@ impl Process {
     /// Waits up to `cycle` for SIGINT/SIGTERM, then reads the shutdown announcements: true if
     /// the process should stop.
     pub fn stop_requested(&self, cycle: Duration) -> Result<bool, TransportError> {
-        Ok(!transport::keep_running(&self.node, cycle)
+        Ok(!liveness::keep_running(&self.node, cycle)
             || transport::shutdown_requested(&self.shutdown)?)
     }
 }

@@ -14,8 +14,9 @@
 //! 3. Meta-tests: per meta-test task, fine-tunes w0 on `collect.transitions` shots with the loss
 //!    its checkpoint names (CQL-MAML or, with `meta.inner_loss = "dqn"`, DQN-MAML) and, as
 //!    baselines, the same loss from a random init (CQL or DQN) and, for CQL, from a network
-//!    pretrained on the union of the meta-train tasks' shots (CQL-pretrain, `crate::pretrain`),
-//!    each for `learner.epochs` epochs, checkpointing and announcing every epoch.
+//!    pretrained on the union of the meta-train tasks' shots (CQL-pretrain,
+//!    `uavmeta_meta::pretrain`), each for `learner.epochs` epochs, checkpointing and announcing
+//!    every epoch.
 //!
 //! The two inits of the run are also saved where a user looks for them, to fine-tune on another
 //! task afterwards: `inits/w0` (the final meta-learned init) and `inits/cql-pretrain`.
@@ -25,6 +26,8 @@
 //! meta-training from its latest w0 checkpoint exactly as an uninterrupted run continues. It skips
 //! every meta-test whose last epoch is on disk; a meta-test cut short is run again from its start
 //! (the fine-tuning is seeded, so to the same result), its checkpoints overwritten atomically.
+//!
+//! [`Maml::save_state`]: uavmeta_meta::maml::Maml::save_state
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -34,22 +37,26 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use uavmeta_actors::policy::q_policy::Evaluator;
+use uavmeta_learner::batch::load_shots;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
+use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::EvaluatePolicy;
+use uavmeta_meta::fine_tune::{fine_tune, meta_test_with, FineTune, MetaTestOptions};
+use uavmeta_meta::meta_train::{
+    load_tasks, meta_train_with, MetaRow, MetaTrainHook, MetaTrainOptions,
+};
+use uavmeta_meta::{pretrain, MetaError};
 use uavmeta_proto::config::{Config, Loss, TaskConfig, TaskRole};
 use uavmeta_proto::method::Method;
-use uavmeta_proto::metrics::MetricsError;
-use uavmeta_proto::process::Process;
+use uavmeta_proto::payload::{CheckpointReady, DatasetReady, SCHEMA_VERSION};
 use uavmeta_proto::stats::PolicyMetrics;
-use uavmeta_proto::transport::{
-    self, CheckpointReady, DatasetReady, RunDir, TransportError, SCHEMA_VERSION,
-};
 
-use crate::fine_tune::{fine_tune, meta_test_with, FineTune, MetaTestOptions};
-use crate::meta_train::{load_tasks, meta_train_with, MetaRow, MetaTrainHook, MetaTrainOptions};
-use crate::{pretrain, MetaError};
-use uavmeta_learner::batch::load_shots;
+use crate::liveness;
+use crate::metrics::MetricsError;
+use crate::process::Process;
+use crate::run_dir::RunDir;
+use crate::transport::{self, TransportError};
 
 mod metrics;
 
@@ -131,6 +138,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
         seed,
         progress: false,
         resume: true,
+        on_step: beat(),
     };
     let Some(trained) = meta_train_with(&options, &mut hook)? else {
         return Ok(Outcome::Stopped);
@@ -149,6 +157,12 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
         metrics: &metrics,
     };
     meta_test.run_all(&test_tasks, &datasets, &stop)
+}
+
+/// The hook of every training step: a heartbeat, since an epoch over a large dataset outlasts
+/// the launcher's hang timeout.
+fn beat() -> OnStep {
+    OnStep::new(liveness::heartbeat)
 }
 
 /// Announces the online DQN agents that made the meta-test datasets: the runs' reference line.
@@ -198,7 +212,9 @@ impl MetaTest<'_> {
                     tracing::info!("pretraining CQL on the union of the meta-train shots");
                     let (_, tasks) = load_tasks(config, datasets, seed)?;
                     // Stop requests are honoured between the pretraining's meta-epochs.
-                    match pretrain::pretrain(config, &tasks, seed, |_| stop().map(|stop| !stop))? {
+                    match pretrain::pretrain(config, &tasks, seed, beat(), |_| {
+                        stop().map(|stop| !stop)
+                    })? {
                         Some(q) => {
                             let epochs = config.meta.meta_epochs;
                             save_init(
@@ -247,7 +263,7 @@ fn wait_for_datasets(
     let mut waiting: Vec<bool> = vec![true; config.tasks.len()];
     tracing::info!(tasks = waiting.len(), "waiting for the datasets");
     while waiting.iter().any(|w| *w) {
-        if stop()? || !transport::keep_running(node, POLL) {
+        if stop()? || !liveness::keep_running(node, POLL) {
             return Ok(false);
         }
         while let Some(m) = ready
@@ -307,6 +323,7 @@ impl MetaTest<'_> {
             seed: self.seed,
             out_dir: None,
             progress: false,
+            on_step: beat(),
         };
         let dataset = self.run.dataset(task);
         let shots = config.collect.transitions;
@@ -435,7 +452,7 @@ struct Announcing<'a> {
 
 impl EvaluatePolicy for Announcing<'_> {
     fn evaluate(&mut self, q: &QNetwork) -> PolicyMetrics {
-        transport::heartbeat();
+        liveness::heartbeat();
         self.epoch += 1;
         self.metrics.fine_tune_epochs.inc();
         if self.error.is_none() {

@@ -4,11 +4,12 @@
 use std::time::{Duration, Instant};
 
 use iceoryx2::prelude::*;
-use uavmeta_actors::actor;
-use uavmeta_learner::store;
 use uavmeta_proto::config::Config;
-use uavmeta_proto::metrics::{parse, scrape, store::TRANSITIONS_STORED, sum};
-use uavmeta_proto::transport::{self, RemoteHost, RunDir};
+use uavmeta_proto::metrics::store::TRANSITIONS_STORED;
+
+use crate::metrics::{parse, scrape, sum};
+use crate::run_dir::{RemoteHost, RunDir};
+use crate::{actor, liveness, store};
 
 use super::supervise::TICK;
 use super::targets::write_targets;
@@ -53,7 +54,7 @@ pub(super) fn wait_for_remote_hosts(
             tracing::info!(hosts = ?wanted, "remote actor hosts are publishing");
             return Ok(());
         }
-        if !transport::keep_running(node, TICK) {
+        if !liveness::keep_running(node, TICK) {
             return Err(LaunchError::Interrupted);
         }
         if Instant::now() >= deadline {

@@ -16,12 +16,12 @@ use std::time::{Duration, Instant};
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use uavmeta_proto::dataset::Transition;
-use uavmeta_proto::transport::{
-    self, LoanedBatch, StoreAck, SubscriberSet, TransitionPublisher, TransitionSlot,
-};
+use uavmeta_proto::payload::{StoreAck, TransitionSlot};
 
 use super::metrics::ActorMetrics;
 use super::{ActorError, Control, POLL};
+use crate::liveness;
+use crate::transport::{self, LoanedBatch, SubscriberSet, TransitionPublisher};
 
 /// How long an actor whose outbox is full waits between looks for the store's acknowledgements.
 /// About the store's own idle wait: an acknowledgement takes a few hundred microseconds to come
@@ -320,7 +320,7 @@ impl<'a, 's> Port<'a, 's> {
             }
             let delivery = match batch.send() {
                 Ok(delivery) => delivery,
-                Err(_) if transport::termination_requested() => return Ok(Outcome::Stopped),
+                Err(_) if liveness::termination_requested() => return Ok(Outcome::Stopped),
                 Err(error) => return Err(error.into()),
             };
             self.waited += delivery.backpressure;
@@ -476,7 +476,7 @@ pub(super) fn write_sample(slots: &mut [TransitionSlot], sample: &[Transition], 
 
 #[cfg(test)]
 mod tests {
-    use uavmeta_proto::transport::OBS_CAPACITY;
+    use uavmeta_proto::payload::OBS_CAPACITY;
 
     use super::*;
 

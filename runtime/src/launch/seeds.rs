@@ -10,11 +10,11 @@
 use std::path::{Path, PathBuf};
 
 use indicatif::MultiProgress;
-use uavmeta_actors::evaluator::EvaluationRow;
 use uavmeta_proto::config::Config;
 use uavmeta_proto::stats::Estimate;
 
 use super::{launch, LaunchError, LaunchReport, Reuse};
+use crate::evaluator::EvaluationRow;
 
 /// Apart by this much, the actor seeds of two run seeds never meet (a task has far fewer actors).
 const ACTOR_SEED_STRIDE: u64 = 1 << 32;

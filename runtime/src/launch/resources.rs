@@ -4,9 +4,9 @@
 //! `MemAvailable`), and the number of processes.
 
 use uavmeta_proto::config::Config;
-use uavmeta_proto::transport;
 
 use super::LaunchError;
+use crate::transport;
 
 /// Resident memory of a uavmeta process besides its world's power tables (the binary, libtorch's
 /// libraries, iceoryx2, the metrics endpoint): a store of the default world, ready, holds 122 MB

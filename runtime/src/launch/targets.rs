@@ -1,10 +1,9 @@
 //! The run's Prometheus configuration: `prometheus.yml`, and the targets file rewritten as
 //! processes (here and on remote hosts) come and go.
 
-use uavmeta_proto::transport::{write_atomic, RunDir};
-
 use super::remote::remote_hosts;
 use super::{LaunchError, Supervised, PROCESS, SCRAPE_INTERVAL_SECONDS};
+use crate::run_dir::{write_atomic, RunDir};
 
 pub(super) fn write_prometheus_yml(run: &RunDir) -> Result<(), LaunchError> {
     // honor_labels: the launcher's restart and hang counters name the child in their `process`

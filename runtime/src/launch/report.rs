@@ -4,13 +4,13 @@
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 
-use uavmeta_actors::evaluator::{self, EvaluationRow};
 use uavmeta_actors::policy::heuristics::{reference_metrics, PolicySpec, REFERENCES};
 use uavmeta_proto::config::{Config, TaskRole};
 use uavmeta_proto::method::Method;
-use uavmeta_proto::transport::RunDir;
 
 use super::LaunchError;
+use crate::evaluator::{self, EvaluationRow};
+use crate::run_dir::RunDir;
 
 /// What a finished launch reports.
 #[derive(Debug, Clone)]

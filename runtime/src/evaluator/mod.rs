@@ -3,8 +3,8 @@
 //!
 //! For each `CheckpointReady` it loads the checkpoint, runs the greedy policy for
 //! `learner.eval_episodes` Monte-Carlo episodes seeded `learner.eval_seed` (the same episodes for
-//! every method and epoch, [`crate::policy::q_policy::Evaluator`]), sets the per-task, per-method gauges
-//! and appends one row to the run's `evaluations.csv` for plots.
+//! every method and epoch, [`Evaluator`]), sets the per-task, per-method gauges and appends one
+//! row to the run's `evaluations.csv` for plots.
 //!
 //! **Restart.** An evaluator (re)started mid-run or after the meta-learner has exited first queues
 //! every complete checkpoint already in the run directory, in the order the meta-learner announces
@@ -18,16 +18,19 @@ use std::io::{BufRead, BufReader, Write};
 use std::path::Path;
 use std::time::{Duration, Instant};
 
+use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
 use uavmeta_proto::method::Method;
-use uavmeta_proto::metrics::MetricsError;
-use uavmeta_proto::process::Process;
+use uavmeta_proto::payload::{CheckpointReady, SCHEMA_VERSION};
 use uavmeta_proto::stats::PolicyMetrics;
-use uavmeta_proto::transport::{self, CheckpointReady, RunDir, TransportError, SCHEMA_VERSION};
 
-use crate::policy::q_policy::Evaluator;
+use crate::liveness;
+use crate::metrics::MetricsError;
+use crate::process::Process;
+use crate::run_dir::RunDir;
+use crate::transport::{self, TransportError};
 
 mod metrics;
 
@@ -176,7 +179,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
     }
     let mut stopping = false;
     let mut evaluated = 0u64;
-    while transport::keep_running(
+    while liveness::keep_running(
         &process.node,
         if queue.is_empty() {
             POLL

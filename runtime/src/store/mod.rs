@@ -41,18 +41,18 @@ use uavmeta_proto::config::{Config, ConfigError, RunConfig};
 use uavmeta_proto::dataset::{
     DatasetError, DatasetHeader, DatasetReader, DatasetWriter, Transition,
 };
-use uavmeta_proto::transport::{
-    self, BatchHeader, DatasetReady, RunDir, StoreAck, TransitionSlot, TransportError,
-    SCHEMA_VERSION,
-};
-
 use uavmeta_proto::metrics::store::{
     DROPPED_REASONS, DUPLICATE, FOREIGN, INVALID, OTHER_ACTORS, REJECTION_ACTORS, SEQUENCE_WINDOW,
     SURPLUS,
 };
-use uavmeta_proto::metrics::MetricsError;
-use uavmeta_proto::process::Process;
+use uavmeta_proto::payload::{BatchHeader, DatasetReady, StoreAck, TransitionSlot, SCHEMA_VERSION};
 use uavmeta_world::validate::{Claimed, Rejection, Validator};
+
+use crate::metrics::MetricsError;
+use crate::process::Process;
+use crate::run_dir::RunDir;
+use crate::transport::{self, TransportError};
+use crate::{domain, liveness};
 
 mod metrics;
 
@@ -77,7 +77,7 @@ const DROP_LOG_EVERY: Duration = Duration::from_secs(5);
 
 /// How far ahead of the next number the store expects of an actor a batch may start, in
 /// transitions: an actor keeps at most `2 * run.subscriber_buffer + 2` batches unacknowledged
-/// (`uavmeta_actors::actor`), so a real actor's gap (batches lost with a killed store, or dropped
+/// (`crate::actor`), so a real actor's gap (batches lost with a killed store, or dropped
 /// by a tunnel) stays within that many; four times it leaves room for all of them.
 pub fn sequence_window(run: &RunConfig) -> u64 {
     4 * (2 * run.subscriber_buffer as u64 + 2) * run.batch_size as u64
@@ -145,7 +145,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
     let node = &process.node;
     // A predecessor killed mid-run left its ports in every service; without this sweep the actors
     // stay blocked on its full buffer.
-    let cleaned = transport::cleanup_dead_nodes(node);
+    let cleaned = domain::cleanup_dead_nodes(node);
     if cleaned > 0 {
         tracing::info!(cleaned, "removed iceoryx2 resources of dead processes");
     }
@@ -155,11 +155,11 @@ pub fn run(run: &RunDir, config: &Config) -> Result<StoreSummary, StoreError> {
     let _server = process.serve_metrics(run, config, store.metrics.registry.clone())?;
     tracing::info!(run = run.id(), tasks = store.tasks.len(), "store ready");
 
-    let cleaner = transport::Cleaner::start(&format!("{}-{PROCESS}", run.id()), &config.run);
+    let cleaner = domain::Cleaner::start(&format!("{}-{PROCESS}", run.id()), &config.run);
     let mut idle = false;
     let mut last_cleanup = Instant::now();
     let mut last_ack_refresh = Instant::now();
-    while transport::keep_running(node, if idle { IDLE_WAIT } else { Duration::ZERO }) {
+    while liveness::keep_running(node, if idle { IDLE_WAIT } else { Duration::ZERO }) {
         transport::serve_history(&store.ready)?;
         if transport::shutdown_requested(&process.shutdown)? {
             tracing::info!("shutdown announced");

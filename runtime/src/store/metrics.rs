@@ -1,7 +1,9 @@
 //! The store's metrics, built from the names declared in `uavmeta_proto::metrics::store`.
 
 use prometheus::{Histogram, IntCounterVec, IntGaugeVec, Registry};
-use uavmeta_proto::metrics::{self, store::*};
+use uavmeta_proto::metrics::store::*;
+
+use crate::metrics::{self, Register};
 
 pub struct StoreMetrics {
     pub registry: Registry,

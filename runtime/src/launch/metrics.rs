@@ -1,7 +1,9 @@
 //! The launcher's metrics, built from the names declared in `uavmeta_proto::metrics::launcher`.
 
 use prometheus::{IntCounter, IntCounterVec, IntGauge, Registry};
-use uavmeta_proto::metrics::{self, launcher::*};
+use uavmeta_proto::metrics::launcher::*;
+
+use crate::metrics::{self, Register};
 
 pub struct LauncherMetrics {
     pub registry: Registry,
