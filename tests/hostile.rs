@@ -167,7 +167,8 @@ fn a_hostile_publisher_leaves_the_store_running_the_dataset_clean_and_the_drops_
     let publisher = TransitionPublisher::new(&service, &run_dir, &config, task as u32, hostile)
         .expect("publisher");
     let good = real_steps(&config, task, 16);
-    let cases: [(&str, fn(&mut Transition)); 5] = [
+    type Corrupt = fn(&mut Transition);
+    let cases: [(&str, Corrupt); 5] = [
         (names::NON_FINITE, |t| t.reward = f32::NAN),
         (names::ACTION, |t| t.action = 9999),
         (names::POSITION, |t| t.obs[0] = 65535),

@@ -335,7 +335,8 @@ mod tests {
     #[test]
     fn each_kind_of_bad_transition_is_named() {
         let config = rainy(None);
-        let cases: [(&str, Box<dyn Fn(&mut Transition)>); 9] = [
+        type Corrupt = Box<dyn Fn(&mut Transition)>;
+        let cases: [(&str, Corrupt); 9] = [
             (NON_FINITE, Box::new(|t| t.reward = f32::NAN)),
             (NON_FINITE, Box::new(|t| t.reward = f32::INFINITY)),
             (ACTION, Box::new(|t| t.action = 9999)),

@@ -257,8 +257,7 @@ fn the_portfolio_keeps_the_cheapest_of_its_searches() {
 fn planner_keys_are_checked() {
     let bad = |text: &str| {
         Config::from_toml_str(text, "planner.toml", &[])
-            .err()
-            .expect("refused")
+            .expect_err("refused")
             .to_string()
     };
     let zero = bad("[planner]\nbeam_width = 0\n");
