@@ -285,10 +285,11 @@ pub struct RemoteProcess {
 pub const REMOTE_RUN_FILE: &str = "remote-run";
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    fn test_run(name: &str) -> (tempfile::TempDir, RunDir) {
+    /// A run directory in a fresh temporary directory (kept while the `TempDir` lives).
+    pub(crate) fn test_run(name: &str) -> (tempfile::TempDir, RunDir) {
         let dir = tempfile::Builder::new()
             .prefix(name)
             .tempdir()

@@ -670,15 +670,7 @@ impl LoanedBatch<'_, '_> {
 mod tests {
     use super::*;
     use crate::domain::node;
-
-    fn test_run(name: &str) -> (tempfile::TempDir, RunDir) {
-        let dir = tempfile::Builder::new()
-            .prefix(name)
-            .tempdir()
-            .expect("temp dir");
-        let run = RunDir::create(dir.path()).expect("run dir");
-        (dir, run)
-    }
+    use crate::run_dir::tests::test_run;
 
     #[test]
     fn another_schema_version_is_refused_with_both_versions() {
