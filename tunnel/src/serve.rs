@@ -51,13 +51,12 @@ pub fn serve(run: &RunDir, config: &Config) -> Result<(), TunnelError> {
         action: "create",
         source,
     })?;
-    let announcements = std::sync::Mutex::new(Announcements::default());
+    let announcements = std::sync::Arc::new(std::sync::Mutex::new(Announcements::default()));
+    let heard = announcements.clone();
+    let record_dir = hosts_dir.clone();
     let _hosts = session
         .declare_subscriber(hosts_key(run.id(), "*"))
-        .callback(move |sample| {
-            let mut seen = announcements.lock().unwrap_or_else(|e| e.into_inner());
-            seen.record(&hosts_dir, &sample)
-        })
+        .callback(move |sample| lock(&heard).record(&record_dir, &sample))
         .wait()
         .map_err(zenoh_error)?;
     let mut bridge = Bridge::new(
@@ -79,6 +78,7 @@ pub fn serve(run: &RunDir, config: &Config) -> Result<(), TunnelError> {
     while liveness::keep_running(&node, POLL) {
         forwarders.pump();
         bridge.relay();
+        lock(&announcements).flush(&hosts_dir);
         if shutdown_at.is_none() && transport::shutdown_requested(&shutdown)? {
             shutdown_at = Some(Instant::now());
         }
@@ -98,10 +98,19 @@ const MAX_PROCESSES: usize = 256;
 const RECORD_EVERY: std::time::Duration = std::time::Duration::from_secs(1);
 
 /// What remote hosts announced lately, so that each is recorded at most every [`RECORD_EVERY`]
-/// and at most [`MAX_HOSTS`] are.
+/// and at most [`MAX_HOSTS`] are. An announcement that arrives sooner is not dropped but kept as
+/// the host's pending one and recorded once its window opens ([`Announcements::flush`]): a host
+/// whose actors start, send and exit within a second announces them only inside that second.
 #[derive(Default)]
 struct Announcements {
     last: std::collections::HashMap<String, Instant>,
+    pending: std::collections::HashMap<String, Vec<u8>>,
+}
+
+fn lock(
+    announcements: &std::sync::Mutex<Announcements>,
+) -> std::sync::MutexGuard<'_, Announcements> {
+    announcements.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 impl Announcements {
@@ -115,27 +124,36 @@ impl Announcements {
         if !known && self.last.len() >= MAX_HOSTS {
             return;
         }
-        if self
-            .last
-            .get(host)
-            .is_some_and(|at| at.elapsed() < RECORD_EVERY)
-        {
-            return;
-        }
-        let announced: Option<RemoteHost> =
-            serde_json::from_slice(&sample.payload().to_bytes()).ok();
+        let payload = sample.payload().to_bytes();
+        let announced: Option<RemoteHost> = serde_json::from_slice(&payload).ok();
         match announced.filter(|a| well_formed(host, a)) {
             Some(_) => {
-                self.last.insert(host.to_string(), Instant::now());
-                let path = dir.join(format!("{host}.json"));
-                if let Err(error) = write_atomic(&path, &sample.payload().to_bytes()) {
-                    tracing::warn!(%error, "cannot record a remote host's announcement");
-                }
+                self.pending.insert(host.to_string(), payload.to_vec());
+                self.flush(dir);
             }
             None if !known => {
                 tracing::warn!(host = %host.escape_debug(), "ignored a malformed remote host announcement")
             }
             None => {}
+        }
+    }
+}
+
+impl Announcements {
+    /// Records each host's pending announcement whose host was last recorded at least
+    /// [`RECORD_EVERY`] ago.
+    fn flush(&mut self, dir: &std::path::Path) {
+        let due: Vec<String> = (self.pending.keys())
+            .filter(|host| (self.last.get(*host)).is_none_or(|at| at.elapsed() >= RECORD_EVERY))
+            .cloned()
+            .collect();
+        for host in due {
+            let payload = self.pending.remove(&host).expect("a pending host");
+            self.last.insert(host.clone(), Instant::now());
+            let path = dir.join(format!("{host}.json"));
+            if let Err(error) = write_atomic(&path, &payload) {
+                tracing::warn!(%error, "cannot record a remote host's announcement");
+            }
         }
     }
 }

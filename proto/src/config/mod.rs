@@ -312,7 +312,7 @@ fn apply_override(
 
 // Resource limits (issue #31): what one config may ask of a machine, whatever the machine. The
 // launcher also checks a config against the machine it runs on before starting anything
-// (`uavmeta_meta::launch::resources`); these caps keep every estimate far from overflow and a
+// (`uavmeta_runtime::launch::resources`); these caps keep every estimate far from overflow and a
 // typo (a batch of 10 000 000) from reaching any process. A cap on one field is a rule of its
 // section (`run.batch_size`, `world.devices`, ...); the caps here span sections.
 

@@ -1,6 +1,6 @@
 //! `[run]`: where a run writes, its seeds, metrics endpoints, iceoryx2 capacities and libtorch
-//! device. Read by `proto::transport` and `proto::process`, the launcher (`uavmeta_meta::launch`)
-//! and every process it starts.
+//! device. Read by `uavmeta_runtime`: its transport, its start-up, the launcher
+//! (`uavmeta_runtime::launch`) and every process it starts.
 
 use std::path::PathBuf;
 
@@ -59,7 +59,7 @@ pub struct RunConfig {
     /// Restarts of a crashed or hung child before the launcher gives up.
     #[default(5)]
     pub max_restarts: u32,
-    /// A launched child whose heartbeat (`transport::heartbeat`) has not moved for this many
+    /// A launched child whose heartbeat (`uavmeta_runtime::liveness::heartbeat`) has not moved for this many
     /// seconds is taken for hung (stopped, deadlocked, livelocked), killed and restarted like a
     /// crashed one; 0 = never. Every process beats at least every few seconds on this machine
     /// under load, so the default leaves a wide margin.

@@ -1,5 +1,5 @@
 //! `[tunnel]`: remote actor hosts reaching the run through iceoryx2's tunnel over Zenoh. Read by
-//! `uavmeta_tunnel` and by the launcher, which waits for the hosts (`uavmeta_meta::launch`).
+//! `uavmeta_tunnel` and by the launcher, which waits for the hosts (`uavmeta_runtime::launch`).
 
 use std::path::PathBuf;
 
