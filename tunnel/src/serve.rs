@@ -5,7 +5,6 @@ use std::time::Instant;
 use uavmeta_proto::config::Config;
 use uavmeta_runtime::run_dir::{write_atomic, RemoteHost, RemoteProcess, RunDir};
 use uavmeta_runtime::{domain, liveness, transport};
-use zenoh::sample::Sample;
 use zenoh::Wait;
 
 use crate::bridge::{Bridge, Forwarders, RunServices, Side};
@@ -56,7 +55,10 @@ pub fn serve(run: &RunDir, config: &Config) -> Result<(), TunnelError> {
     let record_dir = hosts_dir.clone();
     let _hosts = session
         .declare_subscriber(hosts_key(run.id(), "*"))
-        .callback(move |sample| lock(&heard).record(&record_dir, &sample))
+        .callback(move |sample| {
+            let key = sample.key_expr().as_str();
+            lock(&heard).record(&record_dir, key, &sample.payload().to_bytes())
+        })
         .wait()
         .map_err(zenoh_error)?;
     let mut bridge = Bridge::new(
@@ -117,15 +119,13 @@ impl Announcements {
     /// Writes what a remote host announced where the launcher reads it, if it is well-formed:
     /// a plain host name, processes of plain names, all at one `ADDRESS:PORT` address of the
     /// host's (a remote host names where its own processes answer, never a list of anyone's).
-    fn record(&mut self, dir: &std::path::Path, sample: &Sample) {
-        let key = sample.key_expr().as_str();
+    fn record(&mut self, dir: &std::path::Path, key: &str, payload: &[u8]) {
         let host = key.rsplit('/').next().unwrap_or(key);
         let known = self.last.contains_key(host);
         if !known && self.last.len() >= MAX_HOSTS {
             return;
         }
-        let payload = sample.payload().to_bytes();
-        let announced: Option<RemoteHost> = serde_json::from_slice(&payload).ok();
+        let announced: Option<RemoteHost> = serde_json::from_slice(payload).ok();
         match announced.filter(|a| well_formed(host, a)) {
             Some(_) => {
                 self.pending.insert(host.to_string(), payload.to_vec());
@@ -185,4 +185,56 @@ fn well_formed(host: &str, announced: &RemoteHost) -> bool {
         && names.iter().all(|n| plain_name(n))
         && addresses.len() <= 1
         && !addresses.contains(&None)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn announcement(port: u16) -> Vec<u8> {
+        let host = RemoteHost {
+            host: "b".into(),
+            processes: vec![RemoteProcess {
+                name: "actor-lambda-0".into(),
+                metrics: format!("10.0.0.2:{port}"),
+            }],
+        };
+        serde_json::to_vec(&host).expect("serialises")
+    }
+
+    #[test]
+    fn an_announcement_inside_the_rate_limit_is_recorded_when_the_window_opens_not_dropped() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let file = dir.path().join("b.json");
+        let mut seen = Announcements::default();
+        seen.record(dir.path(), "run/hosts/b", &announcement(9001));
+        assert_eq!(
+            std::fs::read(&file).expect("first recorded"),
+            announcement(9001)
+        );
+        seen.record(dir.path(), "run/hosts/b", &announcement(9002));
+        // Wait on the condition: flushing until the newer announcement is written.
+        let deadline = Instant::now() + std::time::Duration::from_secs(60);
+        while std::fs::read(&file).expect("recorded") != announcement(9002) {
+            assert!(
+                Instant::now() < deadline,
+                "the pending announcement was never recorded"
+            );
+            std::thread::sleep(std::time::Duration::from_millis(50));
+            seen.flush(dir.path());
+        }
+    }
+
+    #[test]
+    fn a_malformed_announcement_two_addresses_or_another_hosts_name_is_not_recorded() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let mut seen = Announcements::default();
+        seen.record(dir.path(), "run/hosts/b", b"{not json");
+        let two_addresses = br#"{"host":"b","processes":[{"name":"a","metrics":"10.0.0.2:1"},{"name":"c","metrics":"10.0.0.9:2"}]}"#;
+        seen.record(dir.path(), "run/hosts/b", two_addresses);
+        seen.record(dir.path(), "run/hosts/c", &announcement(9001));
+        seen.flush(dir.path());
+        let written: Vec<_> = std::fs::read_dir(dir.path()).expect("dir").collect();
+        assert!(written.is_empty(), "recorded: {written:?}");
+    }
 }
