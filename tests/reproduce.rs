@@ -105,14 +105,17 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path();
     let out_arg = out.to_str().unwrap();
-    // The agents train three to a population (`collect.population`), so the grouped path of the
-    // dataset stage is the one exercised.
+    // The agents train three to a population (`collect.population`) and the fine-tuning runs
+    // four (`learner.population`), so the grouped paths of the dataset and fine-tuning stages
+    // are the ones exercised.
     succeed(&uavmeta(&[
         "--experiment",
         "all",
         "--quick",
         "--set",
         "collect.population=3",
+        "--set",
+        "learner.population=4",
         "--out",
         out_arg,
     ]));
@@ -253,6 +256,62 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     ]));
     assert_eq!(stamps([&dataset, &w0]), before);
     assert_eq!(read(&meta.join("fig4a_meta_loss.csv")), loss);
+
+    // Fine-tuned one at a time, every curve ends where its population member did, within the
+    // seeds' spread (float rounding is all that differs).
+    let together = curve_returns(&out.join("convergence/curves.csv"));
+    succeed(&uavmeta(&[
+        "--experiment",
+        "convergence",
+        "--quick",
+        "--set",
+        "collect.population=3",
+        "--out",
+        out_arg,
+    ]));
+    let alone = curve_returns(&out.join("convergence/curves.csv"));
+    assert_eq!(alone.len(), together.len());
+    for ((method, seed, epoch), ret) in &alone {
+        let spread = seed_spread(&alone, method, *epoch);
+        let other = together[&(method.clone(), *seed, *epoch)];
+        assert!(
+            (ret - other).abs() <= spread.max(1e-9 * ret.abs()),
+            "{method} seed {seed} epoch {epoch}: {ret} alone, {other} in a population (seeds' spread {spread})"
+        );
+    }
+}
+
+/// `(method, seed, epoch) -> return` of a convergence `curves.csv`.
+fn curve_returns(path: &Path) -> std::collections::HashMap<(String, u64, usize), f64> {
+    read(path)
+        .lines()
+        .skip(1)
+        .map(|line| {
+            let cells: Vec<&str> = line.split(',').collect();
+            let key = (
+                cells[0].to_string(),
+                cells[1].parse().unwrap(),
+                cells[2].parse().unwrap(),
+            );
+            (key, cells[3].parse().unwrap())
+        })
+        .collect()
+}
+
+/// Max minus min over seeds of `method`'s return at `epoch`.
+fn seed_spread(
+    returns: &std::collections::HashMap<(String, u64, usize), f64>,
+    method: &str,
+    epoch: usize,
+) -> f64 {
+    let values: Vec<f64> = returns
+        .iter()
+        .filter(|((m, _, e), _)| m == method && *e == epoch)
+        .map(|(_, r)| *r)
+        .collect();
+    let max = values.iter().copied().fold(f64::MIN, f64::max);
+    let min = values.iter().copied().fold(f64::MAX, f64::min);
+    max - min
 }
 
 #[test]
@@ -291,9 +350,11 @@ fn unknown_experiments_and_bad_sections_are_refused_by_name() {
             "{stderr}"
         );
     }
-    let stderr = refused("collect.population=0");
-    assert!(
-        stderr.contains("collect.population") && stderr.contains("at least 1"),
-        "{stderr}"
-    );
+    for key in ["collect.population", "learner.population"] {
+        let stderr = refused(&format!("{key}=0"));
+        assert!(
+            stderr.contains(key) && stderr.contains("at least 1"),
+            "{stderr}"
+        );
+    }
 }

@@ -186,7 +186,13 @@ fn a_small_launch_completes_and_accounts_for_every_transition() {
 fn a_launch_over_two_seeds_runs_each_in_its_own_directory_and_reports_their_mean() {
     let dir = run_dir("e2e-seeds-");
     let run = dir.path().join("run");
-    let out = launch(dir.path(), &run, &["run.seeds=[0, 1]"]).wait(within(480));
+    // Each seed's CQL-MAML, CQL and CQL-pretrain fine-tune as one population of three.
+    let out = launch(
+        dir.path(),
+        &run,
+        &["run.seeds=[0, 1]", "learner.population=3"],
+    )
+    .wait(within(480));
     assert!(out.status.success(), "launch failed:\n{}", stderr(&out));
     let table = out.stdout.clone();
     let datasets: Vec<Vec<u8>> = [0, 1]
@@ -847,7 +853,14 @@ fn an_evaluator_restarted_after_the_meta_learner_exited_catches_up_from_the_run_
 fn a_launch_with_the_dqn_inner_loss_fine_tunes_and_reports_dqn_maml() {
     let dir = run_dir("e2e-dqn-maml-");
     let run = dir.path().join("run");
-    let out = launch(dir.path(), &run, &["meta.inner_loss=\"dqn\""]).wait(within(240));
+    // DQN-MAML and DQN fine-tune as one population of two (`learner.population`): each still
+    // checkpoints and announces its own epochs.
+    let out = launch(
+        dir.path(),
+        &run,
+        &["meta.inner_loss=\"dqn\"", "learner.population=2"],
+    )
+    .wait(within(240));
     assert!(out.status.success(), "launch failed:\n{}", stderr(&out));
     let csv = std::fs::read_to_string(run.join("evaluations.csv")).expect("evaluations.csv");
     let methods: BTreeMap<&str, usize> =

@@ -12,6 +12,7 @@
 //! - [`cql`]: the CQL loss, paper eq. 8.
 //! - [`train`]: offline training with either loss, evaluated each epoch through the
 //!   [`train::EvaluatePolicy`] hook; per-epoch table on stderr and `train.csv`.
+//! - [`train_population`]: N such runs of one shape trained in lockstep as one population.
 //! - [`progress`]: the CSV log and the progress bar of a training loop (offline and meta), and
 //!   [`progress::OnStep`], the hook a caller hears every training step through.
 //! - [`numerics`]: the environment that pins libtorch's kernels (MKL's branch, ATen's vector
@@ -61,3 +62,4 @@ pub mod population;
 pub mod progress;
 pub mod qnet;
 pub mod train;
+pub mod train_population;

@@ -72,8 +72,26 @@ impl QPopulation {
     /// # Panics
     /// If `seeds` is empty: a population has at least one member.
     pub fn init(config: &QNetworkConfig, seeds: &[u64], device: Device) -> Self {
-        assert!(!seeds.is_empty(), "a population needs at least one member");
         let networks: Vec<QNetwork> = seeds.iter().map(|&s| config.init(s)).collect();
+        Self::from_networks(&networks, device)
+    }
+
+    /// One member per network, member i a copy of `networks[i]` (a checkpoint to fine-tune, say),
+    /// on `device`.
+    ///
+    /// # Panics
+    /// If `networks` is empty or its networks differ in architecture: the caller groups members
+    /// by shape.
+    pub fn from_networks(networks: &[QNetwork], device: Device) -> Self {
+        assert!(
+            !networks.is_empty(),
+            "a population needs at least one member"
+        );
+        let config = networks[0].config().clone();
+        assert!(
+            networks.iter().all(|q| *q.config() == config),
+            "a population's members share one architecture"
+        );
         let vs = nn::VarStore::new(device);
         let root = vs.root();
         let layers = networks[0].parameters().len() / 2;
@@ -95,8 +113,8 @@ impl QPopulation {
         Self {
             vs,
             params,
-            config: config.clone(),
-            members: seeds.len(),
+            config,
+            members: networks.len(),
         }
     }
 

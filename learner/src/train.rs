@@ -44,6 +44,14 @@ pub enum TrainError {
     Csv(#[from] CsvError),
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
+    #[error("a population of learners needs at least one member")]
+    EmptyPopulation,
+    #[error("population member {member}: {got}; expected {expected}: a population's members share one shape (group them by it)")]
+    PopulationShape {
+        member: usize,
+        got: String,
+        expected: String,
+    },
 }
 
 /// One run's settings beyond the config's `[learner]` section.
@@ -82,7 +90,7 @@ pub struct EpochRow {
     pub seconds: f64,
 }
 
-const CSV_HEADER: &str = "epoch,steps,td_loss,conservative_loss,mean_q,return,return_ci95,aoi,aoi_ci95,power_mw,power_mw_ci95,outages,outages_ci95,episodes,seconds";
+pub(crate) const CSV_HEADER: &str = "epoch,steps,td_loss,conservative_loss,mean_q,return,return_ci95,aoi,aoi_ci95,power_mw,power_mw_ci95,outages,outages_ci95,episodes,seconds";
 
 impl EpochRow {
     fn csv(&self) -> String {
@@ -277,9 +285,10 @@ pub fn train(
     let started = Instant::now();
     let mut rows: Vec<EpochRow> = Vec::with_capacity(cfg.epochs);
     let guard = ValueGuard::new(cfg, q, data);
-    let mut kept = guard.as_ref().map(|_| q.duplicate());
+    let mut last_good = guard.as_ref().map(|_| q.duplicate());
+    let mut stopped = false;
     for epoch in 1..=cfg.epochs {
-        if let (Some(last), None) = (rows.last(), &kept) {
+        if let (true, Some(last)) = (stopped, rows.last()) {
             // Stopped by the value guard: the kept network stays as it is.
             let row = EpochRow {
                 epoch,
@@ -292,9 +301,9 @@ pub fn train(
             continue;
         }
         let means = trainer.epoch(q, data, steps_per_epoch, &bar);
-        if let (Some(guard), Some(last_good)) = (&guard, kept.as_mut()) {
+        if let (Some(guard), Some(last_good)) = (&guard, last_good.as_mut()) {
             if guard.restore_if_tripped(q, last_good, data) {
-                kept = None;
+                stopped = true;
                 tracing::info!(
                     epoch,
                     v_data = guard.v_data / cfg.reward_scale,
@@ -328,7 +337,7 @@ pub fn train(
 }
 
 /// Shows and logs one epoch's row.
-fn finish_epoch(
+pub(crate) fn finish_epoch(
     row: &EpochRow,
     progress: bool,
     bar: &ProgressBar,
@@ -352,15 +361,15 @@ fn finish_epoch(
 /// `value_guard * |V_data|`, Q is drifting beyond any value the data supports (the late collapse
 /// of a long CQL run), so training stops and the previous epoch's network is kept. A stop shows
 /// in `train.csv` as `steps` no longer growing.
-struct ValueGuard {
-    v_data: f64,
+pub(crate) struct ValueGuard {
+    pub(crate) v_data: f64,
     /// +1 when Q has to rise to reach `V_data`, -1 when it has to fall.
     direction: f64,
     margin: f64,
 }
 
 impl ValueGuard {
-    fn new(cfg: &LearnerConfig, q: &QNetwork, data: &Batch) -> Option<Self> {
+    pub(crate) fn new(cfg: &LearnerConfig, q: &QNetwork, data: &Batch) -> Option<Self> {
         if cfg.value_guard == 0.0 || cfg.gamma >= 1.0 {
             return None;
         }
@@ -377,7 +386,7 @@ impl ValueGuard {
         tch::no_grad(|| q_taken(&q.forward(&data.obs), data).mean(None)).double_value(&[])
     }
 
-    fn tripped(&self, q: &QNetwork, data: &Batch) -> bool {
+    pub(crate) fn tripped(&self, q: &QNetwork, data: &Batch) -> bool {
         self.direction * (Self::mean_q(q, data) - self.v_data) > self.margin
     }
 
@@ -405,7 +414,7 @@ pub fn steps_per_epoch(cfg: &LearnerConfig, rows: usize) -> usize {
 
 /// Minibatch indices: consecutive slices of a seeded permutation of the N rows, reshuffled each
 /// time it runs out, so every row is seen once per pass whatever the steps per epoch.
-struct MinibatchOrder {
+pub(crate) struct MinibatchOrder {
     perm: Vec<i64>,
     pos: usize,
     batch: usize,
@@ -413,7 +422,7 @@ struct MinibatchOrder {
 }
 
 impl MinibatchOrder {
-    fn new(n: usize, batch: usize, seed: u64) -> Self {
+    pub(crate) fn new(n: usize, batch: usize, seed: u64) -> Self {
         let mut order = Self {
             perm: (0..n as i64).collect(),
             pos: n,
@@ -432,7 +441,7 @@ impl MinibatchOrder {
     }
 
     /// [batch] i64 row indices.
-    fn next_indices(&mut self) -> Tensor {
+    pub(crate) fn next_indices(&mut self) -> Tensor {
         let index = Tensor::from_slice(&self.perm[self.pos..self.pos + self.batch]);
         self.pos += self.batch;
         self.reshuffle_if_spent();

@@ -8,7 +8,8 @@ use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
-use uavmeta_learner::train::{train, EvaluatePolicy, TrainOptions};
+use uavmeta_learner::train::{train, EpochRow, EvaluatePolicy, TrainOptions};
+use uavmeta_learner::train_population::{train_population, Member, PopulationOptions};
 use uavmeta_proto::config::{Config, Loss};
 use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
@@ -22,7 +23,11 @@ fn best_action(x: u16) -> u16 {
 }
 
 fn dataset(n: usize) -> Vec<Transition> {
-    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    dataset_seeded(n, 1)
+}
+
+fn dataset_seeded(n: usize, seed: u64) -> Vec<Transition> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
     (0..n)
         .map(|i| {
             let obs = vec![rng.random_range(0..10), rng.random_range(0..10), 1];
@@ -121,5 +126,222 @@ fn cql_learns_the_bandit_and_writes_its_outputs() {
     assert_eq!(
         again.iter().map(|r| r.td_loss).collect::<Vec<_>>(),
         rows.iter().map(|r| r.td_loss).collect::<Vec<_>>()
+    );
+}
+
+/// `train` alone: the network it ends with and its rows.
+fn alone(
+    cfg: &Config,
+    algorithm: Loss,
+    init: u64,
+    data: &Batch,
+    seed: u64,
+) -> (QNetwork, Vec<EpochRow>) {
+    let mut q = QNetworkConfig::new(3, 5, &cfg.learner.hidden).init(init);
+    let opts = TrainOptions {
+        algorithm,
+        config: cfg,
+        seed,
+        out_dir: None,
+        progress: false,
+        on_step: OnStep::default(),
+    };
+    let rows = train(&mut q, data, &opts, &mut Exact).unwrap();
+    (q, rows)
+}
+
+/// `train_population` over members `(init seed, data, minibatch seed)`.
+fn together(
+    cfg: &Config,
+    algorithm: Loss,
+    members: &[(u64, &Batch, u64)],
+) -> Vec<(QNetwork, Vec<EpochRow>)> {
+    let mut evaluators: Vec<Exact> = members.iter().map(|_| Exact).collect();
+    let members = members
+        .iter()
+        .zip(&mut evaluators)
+        .map(|(&(init, data, seed), evaluator)| Member {
+            init: QNetworkConfig::new(3, 5, &cfg.learner.hidden).init(init),
+            data,
+            seed,
+            evaluator,
+            out_dir: None,
+        })
+        .collect();
+    let opts = PopulationOptions {
+        algorithm,
+        config: cfg,
+        device: tch::Device::Cpu,
+        on_step: OnStep::default(),
+    };
+    train_population(members, &opts)
+        .unwrap()
+        .into_iter()
+        .map(|t| (t.q, t.rows))
+        .collect()
+}
+
+/// A row without its wall-clock seconds.
+fn figures(rows: &[EpochRow]) -> Vec<(usize, usize, f64, f64, f64, f64)> {
+    rows.iter()
+        .map(|r| {
+            (
+                r.epoch,
+                r.steps,
+                r.td_loss,
+                r.conservative_loss,
+                r.mean_q,
+                r.policy.ret.mean,
+            )
+        })
+        .collect()
+}
+
+fn max_difference(a: &QNetwork, b: &QNetwork) -> f64 {
+    a.parameters()
+        .iter()
+        .zip(b.parameters())
+        .map(|(x, y)| f64::try_from((x - y).abs().max()).unwrap())
+        .fold(0.0, f64::max)
+}
+
+#[test]
+fn a_population_of_one_is_train_bit_for_bit() {
+    tch::set_num_threads(1);
+    let mut cfg = config();
+    cfg.learner.epochs = 8;
+    let data = Batch::new(&dataset(400), &cfg.world, cfg.learner.reward_scale).unwrap();
+    for (algorithm, extra) in [(Loss::Cql, false), (Loss::Dqn, true)] {
+        cfg.learner.double_dqn = extra;
+        cfg.learner.huber = extra;
+        let (q, rows) = alone(&cfg, algorithm, 3, &data, 5);
+        let one = together(&cfg, algorithm, &[(3, &data, 5)]);
+        assert_eq!(figures(&one[0].1), figures(&rows), "{algorithm}");
+        assert_eq!(max_difference(&one[0].0, &q), 0.0, "{algorithm}");
+    }
+}
+
+#[test]
+fn each_member_of_a_population_follows_its_own_separate_run() {
+    tch::set_num_threads(1);
+    let mut cfg = config();
+    cfg.learner.epochs = 6;
+    cfg.learner.double_dqn = true;
+    // Other data (its own draw), another init and another minibatch order per member.
+    let data: Vec<Batch> = (1..=3)
+        .map(|s| {
+            Batch::new(
+                &dataset_seeded(400, s),
+                &cfg.world,
+                cfg.learner.reward_scale,
+            )
+            .unwrap()
+        })
+        .collect();
+    let members = [(0, &data[0], 10), (1, &data[1], 11), (2, &data[2], 12)];
+    for algorithm in [Loss::Cql, Loss::Dqn] {
+        let pop = together(&cfg, algorithm, &members);
+        for (i, &(init, d, seed)) in members.iter().enumerate() {
+            let (q, rows) = alone(&cfg, algorithm, init, d, seed);
+            let gap = max_difference(&pop[i].0, &q);
+            eprintln!("{algorithm} member {i}: largest weight difference {gap:e}");
+            assert!(
+                gap < 1e-4,
+                "{algorithm} member {i} drifted {gap} from its separate run"
+            );
+            for (a, b) in figures(&pop[i].1).iter().zip(figures(&rows)) {
+                assert_eq!((a.0, a.1), (b.0, b.1));
+                assert!(
+                    (a.2 - b.2).abs() < 1e-4 * b.2.abs().max(1.0),
+                    "{algorithm} member {i}: {a:?} vs {b:?}"
+                );
+            }
+        }
+        // Without the others, member 1 is the same run: nothing passes between members.
+        let pair = together(&cfg, algorithm, &members[1..2]);
+        assert!(max_difference(&pair[0].0, &pop[1].0) < 1e-4);
+    }
+}
+
+#[test]
+fn a_member_stopped_by_the_value_guard_keeps_its_network_as_train_does() {
+    tch::set_num_threads(1);
+    let mut cfg = config();
+    cfg.learner.epochs = 12;
+    cfg.learner.gamma = 0.5;
+    cfg.learner.value_guard = 0.01;
+    let data: Vec<Batch> = (1..=2)
+        .map(|s| {
+            Batch::new(
+                &dataset_seeded(400, s),
+                &cfg.world,
+                cfg.learner.reward_scale,
+            )
+            .unwrap()
+        })
+        .collect();
+    let members = [(0, &data[0], 10), (1, &data[1], 11)];
+    let pop = together(&cfg, Loss::Cql, &members);
+    let mut stopped = 0;
+    for (i, &(init, d, seed)) in members.iter().enumerate() {
+        let (q, rows) = alone(&cfg, Loss::Cql, init, d, seed);
+        // The guard stops the run: its step count stops growing before the last epoch.
+        stopped += usize::from(rows[11].steps < 12 * 13);
+        assert_eq!(
+            pop[i].1.iter().map(|r| r.steps).collect::<Vec<_>>(),
+            rows.iter().map(|r| r.steps).collect::<Vec<_>>(),
+            "member {i} stopped at another epoch than its separate run"
+        );
+        assert!(max_difference(&pop[i].0, &q) < 1e-4, "member {i}");
+    }
+    assert!(
+        stopped > 0,
+        "the guard never stopped a run: the test sees nothing"
+    );
+}
+
+#[test]
+fn without_the_value_guard_every_epoch_trains() {
+    tch::set_num_threads(1);
+    let mut cfg = config();
+    cfg.learner.epochs = 4;
+    cfg.learner.value_guard = 0.0;
+    let data = Batch::new(&dataset(400), &cfg.world, cfg.learner.reward_scale).unwrap();
+    let (_, rows) = alone(&cfg, Loss::Cql, 0, &data, 1);
+    assert_eq!(
+        rows.iter().map(|r| r.steps).collect::<Vec<_>>(),
+        vec![13, 26, 39, 52]
+    );
+}
+
+#[test]
+fn members_of_other_shapes_are_refused_by_number() {
+    let cfg = config();
+    let big = Batch::new(&dataset(400), &cfg.world, cfg.learner.reward_scale).unwrap();
+    let small = Batch::new(&dataset(100), &cfg.world, cfg.learner.reward_scale).unwrap();
+    let mut evaluators = [Exact, Exact];
+    let members = [(0u64, &big), (1, &small)]
+        .into_iter()
+        .zip(&mut evaluators)
+        .map(|((init, data), evaluator)| Member {
+            init: QNetworkConfig::new(3, 5, &cfg.learner.hidden).init(init),
+            data,
+            seed: 0,
+            evaluator,
+            out_dir: None,
+        })
+        .collect();
+    let opts = PopulationOptions {
+        algorithm: Loss::Cql,
+        config: &cfg,
+        device: tch::Device::Cpu,
+        on_step: OnStep::default(),
+    };
+    let error = train_population(members, &opts).err().unwrap().to_string();
+    assert!(
+        error.contains("population member 1")
+            && error.contains("4 steps per epoch")
+            && error.contains("13 steps"),
+        "{error}"
     );
 }

@@ -15,6 +15,7 @@ use uavmeta_learner::checkpoint;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::QNetwork;
 use uavmeta_learner::train::{train, EpochRow, EvaluatePolicy, TrainOptions};
+use uavmeta_learner::train_population::{train_population, Member, PopulationOptions, Trained};
 use uavmeta_proto::config::{Config, Loss, TaskConfig};
 use uavmeta_proto::method::Method;
 
@@ -80,6 +81,26 @@ pub fn fine_tune(
         on_step: run.on_step.clone(),
     };
     Ok(train(q, shots, &train_opts, evaluator)?)
+}
+
+/// [`fine_tune`] of several runs of one shape (loss, shots, epochs) as one population on
+/// `device` (`learner.population` of them at a time, issue #33): each member is the run
+/// `fine_tune` would make of its init, up to float rounding (bit for bit when alone).
+pub fn fine_tune_population(
+    members: Vec<Member>,
+    algorithm: Loss,
+    run: &FineTune,
+    device: tch::Device,
+) -> Result<Vec<Trained>, MetaError> {
+    let mut config = run.config.clone();
+    config.learner.epochs = run.epochs;
+    let opts = PopulationOptions {
+        algorithm,
+        config: &config,
+        device,
+        on_step: run.on_step.clone(),
+    };
+    Ok(train_population(members, &opts)?)
 }
 
 /// Loads `w0` from `opts.init` and fine-tunes it, scored on the task's true environment; returns

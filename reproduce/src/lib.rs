@@ -466,19 +466,16 @@ fn run_seeds(opts: &ReproduceOptions, plan: &Plan) -> Result<Vec<SeedResult>, Re
             done(&need.users);
             Ok((need.key, init))
         })?;
-        let runs = for_each_seed(&seeds, &plan.runs, |seed, run| {
-            let w0 = run.need.key.init().map(|key| {
-                let seed_inits = &inits[seed as usize];
-                let (_, (w0, _)) = seed_inits
+        let w0 = |seed: u64, run: &runs::RunNeed| {
+            run.need.key.init().map(|key| {
+                let (_, (w0, _)) = inits[seed as usize]
                     .iter()
                     .find(|(k, _)| *k == key)
                     .expect("Plan::run adds the init of every meta-trained run");
                 w0.as_path()
-            });
-            let result = runs::fine_tune_run(config, out, seed, run, w0)?;
-            done(&run.need.users);
-            Ok((run.need.key.clone(), result))
-        })?;
+            })
+        };
+        let runs = fine_tune_runs(config, out, &seeds, plan, w0, &done)?;
         Ok(seeds
             .iter()
             .zip(references)
@@ -532,12 +529,7 @@ fn collect_datasets(
     plan: &Plan,
     done: &(impl Fn(&[Experiment]) + Sync),
 ) -> Result<(), ReproduceError> {
-    let device = uavmeta_learner::population::device(&config.run.device).map_err(|error| {
-        ReproduceError::Device {
-            origin: config.origin.clone(),
-            error,
-        }
-    })?;
+    let device = run_device(config)?;
     let mut missing = Vec::new();
     for &seed in seeds {
         for need in &plan.datasets {
@@ -561,6 +553,78 @@ fn collect_datasets(
             }
             Ok(())
         })
+}
+
+/// Every seed's fine-tuning runs of the plan, from the inits `w0` gives, grouped by seed in plan
+/// order. With `learner.population` above 1, runs of one shape (over every seed) train as
+/// populations of up to that many on `run.device`, one population per worker at a time.
+fn fine_tune_runs<'a>(
+    config: &Config,
+    out: &Path,
+    seeds: &[u64],
+    plan: &Plan,
+    w0: impl Fn(u64, &runs::RunNeed) -> Option<&'a Path> + Sync,
+    done: &(impl Fn(&[Experiment]) + Sync),
+) -> Result<Vec<Vec<(runs::RunKey, runs::RunResult)>>, ReproduceError> {
+    let size = config.learner.population;
+    if size == 1 {
+        return for_each_seed(seeds, &plan.runs, |seed, run| {
+            let result = runs::fine_tune_run(config, out, seed, run, w0(seed, run))?;
+            done(&run.need.users);
+            Ok((run.need.key.clone(), result))
+        });
+    }
+    let device = run_device(config)?;
+    // (index in seed-major order, seed, run), grouped by shape, then cut into populations.
+    let mut pairs: Vec<(usize, u64, &runs::RunNeed)> = seeds
+        .iter()
+        .flat_map(|&seed| plan.runs.iter().map(move |run| (seed, run)))
+        .enumerate()
+        .map(|(i, (seed, run))| (i, seed, run))
+        .collect();
+    pairs.sort_by_key(|&(i, _, run)| (run.shape(), i));
+    let populations: Vec<&[(usize, u64, &runs::RunNeed)]> = pairs
+        .chunk_by(|a, b| a.2.shape() == b.2.shape())
+        .flat_map(|group| group.chunks(size))
+        .collect();
+    let trained = populations
+        .into_par_iter()
+        .with_max_len(1)
+        .map(|members| {
+            let jobs: Vec<_> = members
+                .iter()
+                .map(|&(_, seed, run)| (seed, run, w0(seed, run)))
+                .collect();
+            let results = runs::fine_tune_runs(config, out, &jobs, device)?;
+            for &(_, _, run) in members {
+                done(&run.need.users);
+            }
+            Ok(members
+                .iter()
+                .map(|&(i, _, run)| (i, run))
+                .zip(results)
+                .collect::<Vec<_>>())
+        })
+        .collect::<Result<Vec<_>, ReproduceError>>()?;
+    let mut by_index: Vec<_> = trained.into_iter().flatten().collect();
+    by_index.sort_by_key(|((i, _), _)| *i);
+    let mut results = by_index
+        .into_iter()
+        .map(|((_, run), result)| (run.need.key.clone(), result));
+    Ok(seeds
+        .iter()
+        .map(|_| results.by_ref().take(plan.runs.len()).collect())
+        .collect())
+}
+
+/// `run.device` as libtorch's, or the config's error.
+fn run_device(config: &Config) -> Result<tch::Device, ReproduceError> {
+    uavmeta_learner::population::device(&config.run.device).map_err(|error| {
+        ReproduceError::Device {
+            origin: config.origin.clone(),
+            error,
+        }
+    })
 }
 
 /// `work(seed, item)` for every seed and item, on the current pool, one pair per task; the

@@ -21,13 +21,16 @@ use uavmeta_learner::checkpoint::{self, CheckpointPaths};
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::{EpochRow, EvaluatePolicy};
-use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
+use uavmeta_proto::config::{Config, LearnerConfig, Loss, TaskConfig, TaskRole};
 use uavmeta_proto::dataset::DatasetReader;
 use uavmeta_proto::stats::PolicyMetrics;
 
 use super::Experiment;
 use uavmeta_learner::batch::load_shots;
-use uavmeta_meta::fine_tune::{fine_tune, FineTune};
+use uavmeta_learner::batch::Batch;
+use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::train_population::Member;
+use uavmeta_meta::fine_tune::{fine_tune, fine_tune_population, FineTune};
 use uavmeta_meta::meta_train::{
     dataset_path, load_tasks, meta_train, Evaluation, MetaTrainOptions,
 };
@@ -84,6 +87,23 @@ pub struct RunNeed {
     pub epochs: usize,
     /// Record the final greedy policy's path (figure 9c).
     pub trajectory: bool,
+}
+
+impl RunNeed {
+    /// The loss that fine-tunes it.
+    pub fn loss(&self) -> Loss {
+        self.need
+            .key
+            .method
+            .loss()
+            .expect("every run of the plan is a fine-tuned method")
+    }
+
+    /// What runs must share to train as one population: loss, shots (so steps per epoch and
+    /// minibatch size) and epochs.
+    pub fn shape(&self) -> (Loss, usize, usize) {
+        (self.loss(), self.need.key.shots, self.epochs)
+    }
 }
 
 /// Everything every seed computes for the selected experiments, each item once.
@@ -246,6 +266,8 @@ fn collection_config(config: &Config, seed: u64) -> Config {
         ..Config::default()
     };
     c.collect.seed = config.collect.seed + seed;
+    // How many fine-tunings train together changes no dataset and no init.
+    c.learner.population = LearnerConfig::default().population;
     c
 }
 
@@ -389,45 +411,127 @@ pub fn fine_tune_run(
     run: &RunNeed,
     w0: Option<&Path>,
 ) -> Result<RunResult, ReproduceError> {
-    let key = &run.need.key;
-    let task = config.task(&key.task).map_err(MetaError::from)?;
-    let dataset = dataset_path(&datasets_dir(out, seed), &task.name);
-    let shots = load_shots(config, task, &dataset, key.shots, seed).map_err(MetaError::from)?;
-    let mut q = match w0 {
-        Some(w0) => checkpoint::load(w0, config).map_err(MetaError::from)?.0,
-        None => QNetworkConfig::for_world(&config.world, &config.learner.hidden).init(seed),
-    };
-    let mut run_config = config.clone();
-    run_config.learner.eval_episodes = key.eval_episodes;
+    let (start, mut q) = FineTuneStart::new(config, out, seed, run, w0)?;
     let rows = fine_tune(
         &mut q,
-        &shots,
-        key.method
-            .loss()
-            .expect("every run of the plan is a fine-tuned method"),
-        &FineTune {
-            config: &run_config,
+        &start.shots,
+        run.loss(),
+        &start.settings(run),
+        &mut Evaluator::from_config(&start.eval_config, start.task),
+    )?;
+    Ok(start.finish(config, run, &q, rows))
+}
+
+/// Fine-tuning runs of one [`RunNeed::shape`] (each seed `seed`, from `w0`, as in
+/// [`fine_tune_run`]) trained as one population on `device`; results in their order.
+pub fn fine_tune_runs(
+    config: &Config,
+    out: &Path,
+    runs: &[(u64, &RunNeed, Option<&Path>)],
+    device: tch::Device,
+) -> Result<Vec<RunResult>, ReproduceError> {
+    let starts = runs
+        .iter()
+        .map(|&(seed, run, w0)| FineTuneStart::new(config, out, seed, run, w0))
+        .collect::<Result<Vec<_>, _>>()?;
+    let (starts, inits): (Vec<_>, Vec<_>) = starts.into_iter().unzip();
+    let mut evaluators: Vec<Evaluator> = starts
+        .iter()
+        .map(|start| Evaluator::from_config(&start.eval_config, start.task))
+        .collect();
+    let members = starts
+        .iter()
+        .zip(inits)
+        .zip(&mut evaluators)
+        .map(|((start, init), evaluator)| Member {
+            init,
+            data: &start.shots,
+            seed: start.seed,
+            evaluator,
+            out_dir: None,
+        })
+        .collect();
+    let (_, first, _) = runs[0];
+    tracing::debug!(members = runs.len(), shape = ?first.shape(), "fine-tuning one population");
+    let trained = fine_tune_population(members, first.loss(), &starts[0].settings(first), device)?;
+    Ok(starts
+        .into_iter()
+        .zip(trained)
+        .zip(runs)
+        .map(|((start, t), &(_, run, _))| start.finish(config, run, &t.q, t.rows))
+        .collect())
+}
+
+/// What one fine-tuning run starts from besides its init: its task, its seed's shots and the
+/// config that evaluates it.
+struct FineTuneStart<'a> {
+    task: &'a TaskConfig,
+    seed: u64,
+    shots: Batch,
+    eval_config: Config,
+}
+
+impl<'a> FineTuneStart<'a> {
+    fn new(
+        config: &'a Config,
+        out: &Path,
+        seed: u64,
+        run: &RunNeed,
+        w0: Option<&Path>,
+    ) -> Result<(Self, QNetwork), ReproduceError> {
+        let key = &run.need.key;
+        let task = config.task(&key.task).map_err(MetaError::from)?;
+        let dataset = dataset_path(&datasets_dir(out, seed), &task.name);
+        let shots = load_shots(config, task, &dataset, key.shots, seed).map_err(MetaError::from)?;
+        let q = match w0 {
+            Some(w0) => checkpoint::load(w0, config).map_err(MetaError::from)?.0,
+            None => QNetworkConfig::for_world(&config.world, &config.learner.hidden).init(seed),
+        };
+        let mut eval_config = config.clone();
+        eval_config.learner.eval_episodes = key.eval_episodes;
+        let start = Self {
             task,
-            epochs: run.epochs,
             seed,
+            shots,
+            eval_config,
+        };
+        Ok((start, q))
+    }
+
+    fn settings(&self, run: &RunNeed) -> FineTune<'_> {
+        FineTune {
+            config: &self.eval_config,
+            task: self.task,
+            epochs: run.epochs,
+            seed: self.seed,
             out_dir: None,
             progress: false,
             on_step: OnStep::default(),
-        },
-        &mut Evaluator::from_config(&run_config, task),
-    )?;
-    let trajectory = run.trajectory.then(|| {
-        record_trajectory(
-            &config.world,
-            task,
-            &mut QPolicy::new(&q),
-            config.learner.eval_seed,
-        )
-    });
-    if let Some(last) = rows.last() {
-        tracing::info!(seed, task = %task.name, method = key.method.name(), shots = key.shots, meta_tasks = key.meta_tasks, epochs = run.epochs, ret = %last.policy.ret, "fine-tuned");
+        }
     }
-    Ok(RunResult { rows, trajectory })
+
+    /// The run's result from its rows: its trajectory when the plan asks for one.
+    fn finish(
+        self,
+        config: &Config,
+        run: &RunNeed,
+        q: &QNetwork,
+        rows: Vec<EpochRow>,
+    ) -> RunResult {
+        let key = &run.need.key;
+        let trajectory = run.trajectory.then(|| {
+            record_trajectory(
+                &config.world,
+                self.task,
+                &mut QPolicy::new(q),
+                config.learner.eval_seed,
+            )
+        });
+        if let Some(last) = rows.last() {
+            tracing::info!(seed = self.seed, task = %self.task.name, method = key.method.name(), shots = key.shots, meta_tasks = key.meta_tasks, epochs = run.epochs, ret = %last.policy.ret, "fine-tuned");
+        }
+        RunResult { rows, trajectory }
+    }
 }
 
 /// Whether the dataset at `path` is complete and was collected with `collection`'s world, tasks,

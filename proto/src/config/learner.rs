@@ -67,6 +67,15 @@ pub struct LearnerConfig {
     #[default(0.5)]
     #[garde(custom(finite(0.0.., "a finite margin >= 0 (0 = no guard)")))]
     pub value_guard: f64,
+    /// Where a command fine-tunes several runs of one shape (the fine-tuning runs of
+    /// `uavmeta reproduce`'s figures, the methods the launch's meta-learner fine-tunes on a task),
+    /// up to this many train as one population: stacked networks updated as one computation
+    /// (`learner::train_population`). A population of one is the single run bit for bit; larger
+    /// ones give each member its separate run up to float rounding. 1 is the fastest on CPU
+    /// (docs/BENCHMARKS.md, "Populations"); stacking is for accelerators (`run.device`).
+    #[default(1)]
+    #[garde(custom(at_least(1)))]
+    pub population: usize,
     /// Monte-Carlo episodes of each evaluation of a greedy policy.
     #[default(20)]
     pub eval_episodes: usize,
@@ -78,7 +87,7 @@ pub struct LearnerConfig {
 
 /// A Q-learning loss: MAML's inner loss (`meta.inner_loss`), offline training's (`uavmeta train
 /// --algo`) and each fine-tuned method's.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Loss {
     /// Paper eq. 8.

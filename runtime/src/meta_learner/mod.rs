@@ -37,12 +37,14 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use uavmeta_actors::policy::q_policy::Evaluator;
-use uavmeta_learner::batch::load_shots;
+use uavmeta_learner::batch::{load_shots, Batch};
 use uavmeta_learner::checkpoint::{self, CheckpointError};
+use uavmeta_learner::population;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
-use uavmeta_learner::train::EvaluatePolicy;
-use uavmeta_meta::fine_tune::{fine_tune, meta_test_with, FineTune, MetaTestOptions};
+use uavmeta_learner::train::{EpochRow, EvaluatePolicy};
+use uavmeta_learner::train_population::Member;
+use uavmeta_meta::fine_tune::{fine_tune, fine_tune_algorithm, fine_tune_population, FineTune};
 use uavmeta_meta::meta_train::{
     load_tasks, meta_train_with, MetaRow, MetaTrainHook, MetaTrainOptions,
 };
@@ -75,6 +77,11 @@ pub enum MetaProcessError {
     Meta(#[from] MetaError),
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
+    #[error("{origin}: {error}")]
+    Device {
+        origin: String,
+        error: population::DeviceError,
+    },
 }
 
 /// How a meta-learner run ended.
@@ -190,50 +197,68 @@ fn announce_online_agents(
 
 impl MetaTest<'_> {
     /// Fine-tunes every method of every meta-test task that has not finished, pretraining CQL on
-    /// the meta-train shots (from `datasets`) first if a method needs it.
+    /// the meta-train shots (from `datasets`) first if a method needs it. One at a time in task
+    /// then method order, or, with `learner.population` above 1, in populations of that many
+    /// fine-tunings of one loss.
     fn run_all(
         &self,
         test_tasks: &[(u32, TaskConfig)],
         datasets: &Path,
         stop: &impl Fn() -> Result<bool, MetaProcessError>,
     ) -> Result<Outcome, MetaProcessError> {
-        let (run, config, seed) = (self.run, self.config, self.seed);
+        let (run, config) = (self.run, self.config);
         let epochs = config.learner.epochs as u32;
+        let mut pending: Vec<Job> = test_tasks
+            .iter()
+            .flat_map(|(id, task)| {
+                Method::fine_tuned(config.meta.inner_loss)
+                    .iter()
+                    .map(move |&method| (*id, task, method))
+            })
+            .filter(|&(_, task, method)| latest_epoch(run, method, task, epochs) != epochs)
+            .collect();
+        let size = config.learner.population;
+        if size > 1 {
+            pending.sort_by_key(|&(_, _, method)| method.loss()); // stable: task order kept
+        }
         let mut pretrained: Option<QNetwork> = None;
-        for (id, task) in test_tasks {
-            for &method in Method::fine_tuned(config.meta.inner_loss) {
-                if latest_epoch(run, method, task, epochs) == epochs {
-                    continue;
+        for jobs in pending.chunks(size) {
+            if stop()? {
+                return Ok(Outcome::Stopped);
+            }
+            let needs_pretrained = jobs.iter().any(|j| j.2 == Method::CqlPretrain);
+            if needs_pretrained && pretrained.is_none() {
+                match self.pretrain(datasets, stop)? {
+                    Some(q) => pretrained = Some(q),
+                    None => return Ok(Outcome::Stopped),
                 }
-                if stop()? {
-                    return Ok(Outcome::Stopped);
-                }
-                if method == Method::CqlPretrain && pretrained.is_none() {
-                    tracing::info!("pretraining CQL on the union of the meta-train shots");
-                    let (_, tasks) = load_tasks(config, datasets, seed)?;
-                    // Stop requests are honoured between the pretraining's meta-epochs.
-                    match pretrain::pretrain(config, &tasks, seed, beat(), |_| {
-                        stop().map(|stop| !stop)
-                    })? {
-                        Some(q) => {
-                            let epochs = config.meta.meta_epochs;
-                            save_init(
-                                run,
-                                config,
-                                Method::CqlPretrain.name(),
-                                &q,
-                                Method::CqlPretrain.name(),
-                                epochs,
-                            )?;
-                            pretrained = Some(q);
-                        }
-                        None => return Ok(Outcome::Stopped),
-                    }
-                }
-                self.fine_tune(*id, task, method, pretrained.as_ref())?;
+            }
+            match jobs {
+                [(id, task, method)] => self.fine_tune(*id, task, *method, pretrained.as_ref())?,
+                _ => self.fine_tune_population(jobs, pretrained.as_ref())?,
             }
         }
         Ok(Outcome::Finished)
+    }
+
+    /// CQL pretrained on the union of the meta-train shots, saved as `inits/cql-pretrain`;
+    /// `None` if told to stop (requests are honoured between its meta-epochs).
+    fn pretrain(
+        &self,
+        datasets: &Path,
+        stop: &impl Fn() -> Result<bool, MetaProcessError>,
+    ) -> Result<Option<QNetwork>, MetaProcessError> {
+        let (run, config, seed) = (self.run, self.config, self.seed);
+        tracing::info!("pretraining CQL on the union of the meta-train shots");
+        let (_, tasks) = load_tasks(config, datasets, seed)?;
+        let Some(q) =
+            pretrain::pretrain(config, &tasks, seed, beat(), |_| stop().map(|stop| !stop))?
+        else {
+            return Ok(None);
+        };
+        let name = Method::CqlPretrain.name();
+        save_init(run, config, name, &q, name, config.meta.meta_epochs)?;
+        Ok(Some(q))
     }
 }
 
@@ -281,7 +306,7 @@ fn wait_for_datasets(
     Ok(true)
 }
 
-/// Step 3, one fine-tuning at a time, announcing each epoch's checkpoint.
+/// Step 3: the fine-tunings of the meta-test tasks, announcing each epoch's checkpoint.
 struct MetaTest<'a> {
     run: &'a RunDir,
     config: &'a Config,
@@ -292,10 +317,12 @@ struct MetaTest<'a> {
     metrics: &'a metrics::MetaLearnerMetrics,
 }
 
+/// One fine-tuning of step 3: the meta-test task's number, the task, the method.
+type Job<'t> = (u32, &'t TaskConfig, Method);
+
 impl MetaTest<'_> {
-    /// Fine-tunes `method`'s init on the shots of meta-test task `task` (number `task_id`): w0
-    /// through `meta_test_with`, with the loss its checkpoint names; a random init or the
-    /// `pretrained` network through `fine_tune`, on the same shots.
+    /// Fine-tunes `method`'s init on the shots of meta-test task `task` (number `task_id`),
+    /// announcing every epoch's checkpoint.
     fn fine_tune(
         &self,
         task_id: u32,
@@ -303,11 +330,118 @@ impl MetaTest<'_> {
         method: Method,
         pretrained: Option<&QNetwork>,
     ) -> Result<(), MetaProcessError> {
+        let mut hook = self.hook(task_id, task, method);
+        let (mut q, algorithm) = self.init(method, pretrained)?;
+        let shots = self.shots(task)?;
+        let rows = fine_tune(&mut q, &shots, algorithm, &self.settings(task), &mut hook)?;
+        self.finished(&mut hook, task, method, &rows)
+    }
+
+    /// [`MetaTest::fine_tune`] of every job of `jobs` (one loss, one shot count) as one
+    /// population on `run.device`.
+    fn fine_tune_population(
+        &self,
+        jobs: &[Job],
+        pretrained: Option<&QNetwork>,
+    ) -> Result<(), MetaProcessError> {
         let config = self.config;
-        let mut hook = Announcing {
-            inner: Evaluator::from_config(config, task),
-            run: self.run,
+        let device =
+            population::device(&config.run.device).map_err(|error| MetaProcessError::Device {
+                origin: config.origin.clone(),
+                error,
+            })?;
+        let mut hooks: Vec<Announcing> = jobs
+            .iter()
+            .map(|&(id, task, method)| self.hook(id, task, method))
+            .collect();
+        let mut inits = Vec::with_capacity(jobs.len());
+        let mut shots = Vec::with_capacity(jobs.len());
+        for &(_, task, method) in jobs {
+            inits.push(self.init(method, pretrained)?);
+            shots.push(self.shots(task)?);
+        }
+        let algorithm = inits[0].1;
+        let members = inits
+            .into_iter()
+            .zip(&shots)
+            .zip(&mut hooks)
+            .map(|(((init, _), data), hook)| Member {
+                init,
+                data,
+                seed: self.seed,
+                evaluator: hook,
+                out_dir: None,
+            })
+            .collect();
+        let names: Vec<String> = jobs.iter().map(|j| format!("{}/{}", j.1.name, j.2)).collect();
+        tracing::info!(members = ?names, "fine-tuning as one population");
+        let settings = self.settings(jobs[0].1);
+        let trained = fine_tune_population(members, algorithm, &settings, device)?;
+        for ((hook, t), &(_, task, method)) in hooks.iter_mut().zip(&trained).zip(jobs) {
+            self.finished(hook, task, method, &t.rows)?;
+        }
+        Ok(())
+    }
+
+    /// The network `method` fine-tunes and its loss: w0 with the loss its checkpoint names, the
+    /// `pretrained` network, or a random init.
+    fn init(
+        &self,
+        method: Method,
+        pretrained: Option<&QNetwork>,
+    ) -> Result<(QNetwork, Loss), MetaProcessError> {
+        let config = self.config;
+        Ok(match (method, pretrained) {
+            (Method::CqlMaml | Method::DqnMaml, _) => {
+                check_init(self.w0, method)?;
+                let (q, meta) = checkpoint::load(self.w0, config)?;
+                (q, fine_tune_algorithm(self.w0, &meta.algorithm)?)
+            }
+            (Method::CqlPretrain, Some(pretrained)) => (pretrained.duplicate(), Loss::Cql),
+            (method, _) => {
+                let q = QNetworkConfig::for_world(&config.world, &config.learner.hidden)
+                    .init(self.seed.wrapping_add(1));
+                let loss = match method {
+                    Method::Dqn => Loss::Dqn,
+                    _ => Loss::Cql,
+                };
+                (q, loss)
+            }
+        })
+    }
+
+    /// The task's `collect.transitions` shots, drawn with the run's seed.
+    fn shots(&self, task: &TaskConfig) -> Result<Batch, MetaProcessError> {
+        let config = self.config;
+        let dataset = self.run.dataset(task);
+        Ok(load_shots(
             config,
+            task,
+            &dataset,
+            config.collect.transitions,
+            self.seed,
+        )
+        .map_err(MetaError::from)?)
+    }
+
+    fn settings<'t>(&'t self, task: &'t TaskConfig) -> FineTune<'t> {
+        FineTune {
+            config: self.config,
+            task,
+            epochs: self.config.learner.epochs,
+            seed: self.seed,
+            out_dir: None,
+            progress: false,
+            on_step: beat(),
+        }
+    }
+
+    /// The evaluator of a fine-tuning, which checkpoints and announces each epoch.
+    fn hook<'t>(&'t self, task_id: u32, task: &'t TaskConfig, method: Method) -> Announcing<'t> {
+        Announcing {
+            inner: Evaluator::from_config(self.config, task),
+            run: self.run,
+            config: self.config,
             task,
             task_id,
             method,
@@ -315,45 +449,18 @@ impl MetaTest<'_> {
             epoch: 0,
             error: None,
             metrics: self.metrics,
-        };
-        let settings = FineTune {
-            config,
-            task,
-            epochs: config.learner.epochs,
-            seed: self.seed,
-            out_dir: None,
-            progress: false,
-            on_step: beat(),
-        };
-        let dataset = self.run.dataset(task);
-        let shots = config.collect.transitions;
-        let rows = match (method, pretrained) {
-            (Method::CqlMaml | Method::DqnMaml, _) => {
-                check_init(self.w0, method)?;
-                let opts = MetaTestOptions {
-                    fine_tune: settings,
-                    init: self.w0,
-                    dataset: &dataset,
-                    shots,
-                };
-                meta_test_with(&opts, &mut hook)?
-            }
-            (method, pretrained) => {
-                let mut q = match (method, pretrained) {
-                    (Method::CqlPretrain, Some(pretrained)) => pretrained.duplicate(),
-                    _ => QNetworkConfig::for_world(&config.world, &config.learner.hidden)
-                        .init(self.seed.wrapping_add(1)),
-                };
-                let algorithm = match method {
-                    Method::Dqn => Loss::Dqn,
-                    _ => Loss::Cql,
-                };
-                let shots = load_shots(config, task, &dataset, shots, self.seed)
-                    .map_err(MetaError::from)?;
-                fine_tune(&mut q, &shots, algorithm, &settings, &mut hook)?
-            }
-        };
-        if let Some(error) = hook.error {
+        }
+    }
+
+    /// The hook's first failure, else a log line.
+    fn finished(
+        &self,
+        hook: &mut Announcing,
+        task: &TaskConfig,
+        method: Method,
+        rows: &[EpochRow],
+    ) -> Result<(), MetaProcessError> {
+        if let Some(error) = hook.error.take() {
             return Err(error);
         }
         if let Some(last) = rows.last() {
