@@ -55,15 +55,6 @@ fn transitions<'a>(it: impl Iterator<Item = &'a Transition>) -> Vec<Transition> 
     it.cloned().collect()
 }
 
-/// The largest absolute difference between two networks' parameters.
-fn max_difference(a: &QNetwork, b: &QNetwork) -> f64 {
-    a.parameters()
-        .iter()
-        .zip(b.parameters())
-        .map(|(x, y)| f64::try_from((x - y).abs().max()).unwrap())
-        .fold(0.0, f64::max)
-}
-
 fn bit_equal(a: &QNetwork, b: &QNetwork) -> bool {
     a.parameters()
         .iter()
@@ -92,7 +83,7 @@ fn a_population_of_one_is_the_single_agent_bit_for_bit() {
     assert!(
         bit_equal(alone.q_network(), &one.q_network(0)),
         "the kept networks differ by up to {}",
-        max_difference(alone.q_network(), &one.q_network(0))
+        alone.q_network().max_abs_difference(&one.q_network(0))
     );
     assert!(
         bit_equal(alone.state().best().unwrap(), &one.q_network(0)),
@@ -120,13 +111,13 @@ fn each_member_of_a_population_follows_its_own_separate_run() {
             state.episode_returns(),
             "member {i}"
         );
-        let gap = max_difference(alone.q_network(), &together.q_network(i));
+        let gap = alone.q_network().max_abs_difference(&together.q_network(i));
         eprintln!("member {i}: largest weight difference from its separate run {gap:e}");
         assert!(gap < 1e-4, "member {i} drifted {gap} from its separate run");
     }
     // Without the others, member 1 is the same run: nothing passes between members.
     let pair = population(&config, &members[1..2]);
-    let gap = max_difference(&pair.q_network(0), &together.q_network(1));
+    let gap = pair.q_network(0).max_abs_difference(&together.q_network(1));
     assert!(gap < 1e-4, "member 1 depends on its neighbours: {gap}");
     assert!(
         transitions(pair.member(0).replay_buffer().iter())

@@ -171,4 +171,16 @@ impl QNetwork {
     pub fn parameter_count(&self) -> usize {
         self.params.iter().map(Tensor::numel).sum()
     }
+
+    /// The largest absolute difference between a parameter of this network and the same
+    /// parameter of `other` (of the same architecture): 0 when they are equal bit for bit.
+    pub fn max_abs_difference(&self, other: &QNetwork) -> f64 {
+        tch::no_grad(|| {
+            self.params
+                .iter()
+                .zip(&other.params)
+                .map(|(a, b)| (a - b).abs().max().double_value(&[]))
+                .fold(0.0, f64::max)
+        })
+    }
 }

@@ -197,12 +197,18 @@ fn figures(rows: &[EpochRow]) -> Vec<(usize, usize, f64, f64, f64, f64)> {
         .collect()
 }
 
-fn max_difference(a: &QNetwork, b: &QNetwork) -> f64 {
-    a.parameters()
-        .iter()
-        .zip(b.parameters())
-        .map(|(x, y)| f64::try_from((x - y).abs().max()).unwrap())
-        .fold(0.0, f64::max)
+/// Training sets of 400 transitions, one per data seed.
+fn batches(cfg: &Config, seeds: std::ops::RangeInclusive<u64>) -> Vec<Batch> {
+    seeds
+        .map(|s| {
+            Batch::new(
+                &dataset_seeded(400, s),
+                &cfg.world,
+                cfg.learner.reward_scale,
+            )
+            .unwrap()
+        })
+        .collect()
 }
 
 #[test]
@@ -217,7 +223,7 @@ fn a_population_of_one_is_train_bit_for_bit() {
         let (q, rows) = alone(&cfg, algorithm, 3, &data, 5);
         let one = together(&cfg, algorithm, &[(3, &data, 5)]);
         assert_eq!(figures(&one[0].1), figures(&rows), "{algorithm}");
-        assert_eq!(max_difference(&one[0].0, &q), 0.0, "{algorithm}");
+        assert_eq!(one[0].0.max_abs_difference(&q), 0.0, "{algorithm}");
     }
 }
 
@@ -228,22 +234,13 @@ fn each_member_of_a_population_follows_its_own_separate_run() {
     cfg.learner.epochs = 6;
     cfg.learner.double_dqn = true;
     // Other data (its own draw), another init and another minibatch order per member.
-    let data: Vec<Batch> = (1..=3)
-        .map(|s| {
-            Batch::new(
-                &dataset_seeded(400, s),
-                &cfg.world,
-                cfg.learner.reward_scale,
-            )
-            .unwrap()
-        })
-        .collect();
+    let data = batches(&cfg, 1..=3);
     let members = [(0, &data[0], 10), (1, &data[1], 11), (2, &data[2], 12)];
     for algorithm in [Loss::Cql, Loss::Dqn] {
         let pop = together(&cfg, algorithm, &members);
         for (i, &(init, d, seed)) in members.iter().enumerate() {
             let (q, rows) = alone(&cfg, algorithm, init, d, seed);
-            let gap = max_difference(&pop[i].0, &q);
+            let gap = pop[i].0.max_abs_difference(&q);
             eprintln!("{algorithm} member {i}: largest weight difference {gap:e}");
             assert!(
                 gap < 1e-4,
@@ -259,7 +256,7 @@ fn each_member_of_a_population_follows_its_own_separate_run() {
         }
         // Without the others, member 1 is the same run: nothing passes between members.
         let pair = together(&cfg, algorithm, &members[1..2]);
-        assert!(max_difference(&pair[0].0, &pop[1].0) < 1e-4);
+        assert!(pair[0].0.max_abs_difference(&pop[1].0) < 1e-4);
     }
 }
 
@@ -270,16 +267,7 @@ fn a_member_stopped_by_the_value_guard_keeps_its_network_as_train_does() {
     cfg.learner.epochs = 12;
     cfg.learner.gamma = 0.5;
     cfg.learner.value_guard = 0.01;
-    let data: Vec<Batch> = (1..=2)
-        .map(|s| {
-            Batch::new(
-                &dataset_seeded(400, s),
-                &cfg.world,
-                cfg.learner.reward_scale,
-            )
-            .unwrap()
-        })
-        .collect();
+    let data = batches(&cfg, 1..=2);
     let members = [(0, &data[0], 10), (1, &data[1], 11)];
     let pop = together(&cfg, Loss::Cql, &members);
     let mut stopped = 0;
@@ -292,7 +280,7 @@ fn a_member_stopped_by_the_value_guard_keeps_its_network_as_train_does() {
             rows.iter().map(|r| r.steps).collect::<Vec<_>>(),
             "member {i} stopped at another epoch than its separate run"
         );
-        assert!(max_difference(&pop[i].0, &q) < 1e-4, "member {i}");
+        assert!(pop[i].0.max_abs_difference(&q) < 1e-4, "member {i}");
     }
     assert!(
         stopped > 0,

@@ -37,6 +37,15 @@ pub struct FineTune<'a> {
     pub on_step: OnStep,
 }
 
+impl FineTune<'_> {
+    /// The config that trains: `config` with `learner.epochs` = `epochs`.
+    fn training_config(&self) -> Config {
+        let mut config = self.config.clone();
+        config.learner.epochs = self.epochs;
+        config
+    }
+}
+
 /// One meta-test run.
 pub struct MetaTestOptions<'a> {
     pub fine_tune: FineTune<'a>,
@@ -70,8 +79,7 @@ pub fn fine_tune(
     run: &FineTune,
     evaluator: &mut dyn EvaluatePolicy,
 ) -> Result<Vec<EpochRow>, MetaError> {
-    let mut config = run.config.clone();
-    config.learner.epochs = run.epochs;
+    let config = run.training_config();
     let train_opts = TrainOptions {
         algorithm,
         config: &config,
@@ -92,8 +100,7 @@ pub fn fine_tune_population(
     run: &FineTune,
     device: tch::Device,
 ) -> Result<Vec<Trained>, MetaError> {
-    let mut config = run.config.clone();
-    config.learner.epochs = run.epochs;
+    let config = run.training_config();
     let opts = PopulationOptions {
         algorithm,
         config: &config,

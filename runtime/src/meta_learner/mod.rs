@@ -373,7 +373,10 @@ impl MetaTest<'_> {
                 out_dir: None,
             })
             .collect();
-        let names: Vec<String> = jobs.iter().map(|j| format!("{}/{}", j.1.name, j.2)).collect();
+        let names: Vec<String> = jobs
+            .iter()
+            .map(|j| format!("{}/{}", j.1.name, j.2))
+            .collect();
         tracing::info!(members = ?names, "fine-tuning as one population");
         let settings = self.settings(jobs[0].1);
         let trained = fine_tune_population(members, algorithm, &settings, device)?;
