@@ -112,6 +112,11 @@ pub enum LaunchError {
         max: u32,
         log: PathBuf,
     },
+    #[error("{origin}: {error}")]
+    Device {
+        origin: String,
+        error: uavmeta_learner::population::DeviceError,
+    },
     #[error("{origin}: key `collect.policy`: {message}")]
     Policy { origin: String, message: String },
     #[error("stopped by a termination request")]
