@@ -6,7 +6,7 @@ use std::path::Path;
 use std::process::{Command, Output};
 
 use uavmeta_proto::config::{Config, TaskRole};
-use uavmeta_reproduce::quick_config;
+use uavmeta_reproduce::{quick_config, ReproduceConfig};
 
 const CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/configs/reproduce.toml");
 
@@ -121,8 +121,8 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     ]));
 
     // The sizes the files must have, from the same config and quick reduction the binary used.
-    let config = quick_config(&Config::load(Path::new(CONFIG), &[]).unwrap());
-    let r = &config.reproduce;
+    let config = quick_config(&Config::load(Path::new(CONFIG), &[]).unwrap()).unwrap();
+    let r = ReproduceConfig::of(&config).unwrap();
     let seeds = r.seeds;
     let rain = config.tasks.iter().filter(|t| t.rain.is_some()).count();
     let meta_tasks = r.meta_tasks;

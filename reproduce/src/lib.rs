@@ -12,7 +12,8 @@
 //! - [`runs`]: one seed's pipeline and its cache under `OUT/cache/seed-S/` (datasets, online DQN
 //!   agents, meta-trained w0s), and the plan of fine-tuning runs shared between experiments;
 //! - [`figures`]: per experiment, its CSV files, PNG charts ([`uavmeta_plot`]) and `summary.md`;
-//! - [`claims`]: curve statistics and the yes / partly / no rules.
+//! - [`claims`]: curve statistics and the yes / partly / no rules;
+//! - [`ReproduceConfig`]: the `[reproduce]` section, which this crate alone reads and checks.
 //!
 //! Pipeline of [`run`]:
 //! 1. Check `[reproduce]` against the tasks, and build one [`runs::Plan`] for the selected
@@ -29,8 +30,11 @@
 //!    every claim table.
 
 mod claims;
+mod config;
 mod figures;
 mod runs;
+
+pub use config::ReproduceConfig;
 
 use uavmeta_actors::collect::CollectError;
 use uavmeta_meta::MetaError;
@@ -64,7 +68,7 @@ use std::time::{Duration, Instant};
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
 use rayon::prelude::*;
 use uavmeta_actors::policy::heuristics::reference_metrics;
-use uavmeta_proto::config::{Config, Loss, TaskConfig, TaskRole};
+use uavmeta_proto::config::{Config, ConfigError, Loss, TaskConfig, TaskRole};
 use uavmeta_proto::stats::PolicyMetrics;
 
 use claims::Claim;
@@ -171,8 +175,10 @@ pub struct ReproduceReport {
 /// The `--quick` variant of `config`: the same pipeline at a size that runs in well under a
 /// minute (online DQN for 1000 steps, [32, 32] networks, 3 meta-epochs, a handful of fine-tuning epochs, 2 seeds,
 /// 2 evaluation episodes), to check the plumbing, not the claims.
-pub fn quick_config(config: &Config) -> Config {
+/// Fails only on a `[reproduce]` section that breaks its own rules.
+pub fn quick_config(config: &Config) -> Result<Config, ConfigError> {
     let mut quick = config.clone();
+    let mut r: ReproduceConfig = config.reproduce.read(&config.origin)?;
     let c = &mut quick.collect;
     c.dqn_steps = c.dqn_steps.min(1000).max(c.transitions);
     c.replay_capacity = c.replay_capacity.min(1000).max(c.transitions);
@@ -183,7 +189,6 @@ pub fn quick_config(config: &Config) -> Config {
     quick.learner.eval_episodes = quick.learner.eval_episodes.min(2);
     quick.learner.steps_per_epoch = quick.learner.steps_per_epoch.min(10);
     quick.meta.meta_epochs = quick.meta.meta_epochs.min(3);
-    let r = &mut quick.reproduce;
     r.seeds = r.seeds.min(2);
     r.convergence_epochs = r.convergence_epochs.min(5);
     r.tasks_epochs = r.tasks_epochs.min(3);
@@ -195,7 +200,8 @@ pub fn quick_config(config: &Config) -> Config {
     // portfolio costs about half a minute per reference task (docs/BENCHMARKS.md).
     quick.planner.beam_width = quick.planner.beam_width.min(16);
     quick.planner.h_power_weights.truncate(1);
-    quick
+    r.write_into(&mut quick);
+    Ok(quick)
 }
 
 /// The rain tasks of figure 9: meta-test tasks with a rain zone.
@@ -217,18 +223,19 @@ pub struct HeuristicRef {
 pub fn run(opts: &ReproduceOptions) -> Result<ReproduceReport, ReproduceError> {
     let started = Instant::now();
     let config = opts.config;
-    config.validate_reproduce().map_err(MetaError::from)?;
+    let r = &ReproduceConfig::of(config).map_err(MetaError::from)?;
     if opts.experiments.contains(&Experiment::Resilience) && rain_tasks(config).next().is_none() {
         return Err(ReproduceError::NoRainTasks {
             origin: config.origin.clone(),
         });
     }
-    let plan = plan(config, opts.experiments);
+    let plan = plan(config, r, opts.experiments);
     let heuristics = heuristic_refs(config, &plan, opts.jobs)?;
-    let seeds = run_seeds(opts, &plan)?;
+    let seeds = run_seeds(opts, r, &plan)?;
 
     let ctx = figures::Context {
         config,
+        reproduce: r,
         seeds: &seeds,
         heuristics: &heuristics,
     };
@@ -239,14 +246,14 @@ pub fn run(opts: &ReproduceOptions) -> Result<ReproduceReport, ReproduceError> {
         let section = figures::write(&ctx, experiment, &dir)?;
         let text = format!(
             "{}\n{}",
-            header(opts, experiment_title(experiment), started.elapsed()),
+            header(opts, r, experiment_title(experiment), started.elapsed()),
             section.body
         );
         write_file(&dir.join("summary.md"), &text)?;
         sections.push((experiment, section));
     }
     let wall = started.elapsed();
-    let mut summary = header(opts, "Reproduction of the paper's section V", wall);
+    let mut summary = header(opts, r, "Reproduction of the paper's section V", wall);
     let claims: Vec<Claim> = sections
         .iter()
         .flat_map(|(_, s)| s.claims.iter().cloned())
@@ -284,8 +291,7 @@ fn experiment_title(experiment: Experiment) -> &'static str {
 }
 
 /// The header of every summary: how it was made.
-fn header(opts: &ReproduceOptions, title: &str, wall: Duration) -> String {
-    let r = &opts.config.reproduce;
+fn header(opts: &ReproduceOptions, r: &ReproduceConfig, title: &str, wall: Duration) -> String {
     let mut s = format!("# {title}\n\n");
     let _ = writeln!(s, "- command: `{}`", opts.command);
     let _ = writeln!(s, "- commit: {}", opts.commit);
@@ -325,10 +331,10 @@ fn header(opts: &ReproduceOptions, title: &str, wall: Duration) -> String {
 }
 
 /// Every item the selected experiments need from each seed.
-fn plan(config: &Config, experiments: &[Experiment]) -> Plan {
-    let r = &config.reproduce;
+fn plan(config: &Config, r: &ReproduceConfig, experiments: &[Experiment]) -> Plan {
     let mut plan = Plan::default();
-    let unseen = |method, shots, meta_tasks| figures::unseen_key(config, method, shots, meta_tasks);
+    let unseen =
+        |method, shots, meta_tasks| figures::unseen_key(config, r, method, shots, meta_tasks);
     let episodes = config.learner.eval_episodes;
     for &e in experiments {
         match e {
@@ -383,7 +389,7 @@ fn plan(config: &Config, experiments: &[Experiment]) -> Plan {
             Experiment::Resilience => {
                 for (i, task) in rain_tasks(config).enumerate() {
                     for method in Method::CQL_INITS {
-                        let key = figures::rain_key(config, task, method);
+                        let key = figures::rain_key(config, r, task, method);
                         // Figure 9c draws the first rain task's paths.
                         plan.run(config, key, r.resilience_epochs, i == 0, e);
                     }
@@ -412,7 +418,7 @@ fn heuristic_refs(
             .map(|need| {
                 let task = config
                     .task(&need.key.task)
-                    .expect("validate_reproduce and rain_tasks name existing tasks");
+                    .expect("ReproduceConfig::of and rain_tasks name existing tasks");
                 let episodes = need.key.episodes;
                 let policies = reference_metrics(config, task, episodes)
                     .into_iter()
@@ -434,9 +440,13 @@ fn heuristic_refs(
 /// The items go in three stages (datasets, then the inits trained on them, then the fine-tuning
 /// runs from those inits), each stage one pool of (seed, item) pairs. Seed-sized units left one
 /// core idle while the last seed ran alone; items of a stage are at most a minute of work each.
-fn run_seeds(opts: &ReproduceOptions, plan: &Plan) -> Result<Vec<SeedResult>, ReproduceError> {
+fn run_seeds(
+    opts: &ReproduceOptions,
+    r: &ReproduceConfig,
+    plan: &Plan,
+) -> Result<Vec<SeedResult>, ReproduceError> {
     let (config, out) = (opts.config, opts.out_dir);
-    let seeds: Vec<u64> = (0..config.reproduce.seeds as u64).collect();
+    let seeds: Vec<u64> = (0..r.seeds as u64).collect();
     let bars = progress_bars(opts, plan, seeds.len());
     let done = |users: &[Experiment]| {
         for (e, bar) in &bars {
@@ -462,7 +472,7 @@ fn run_seeds(opts: &ReproduceOptions, plan: &Plan) -> Result<Vec<SeedResult>, Re
             Ok((need.key.clone(), metrics))
         })?;
         let inits = for_each_seed(&seeds, &plan.inits, |seed, need| {
-            let init = runs::init(config, out, seed, need.key)?;
+            let init = runs::init(config, out, seed, need.key, r.meta_eval_every)?;
             done(&need.users);
             Ok((need.key, init))
         })?;
@@ -667,7 +677,10 @@ mod tests {
     #[test]
     fn all_experiments_share_one_cql_maml_init_and_its_runs() {
         let mut config = Config::default();
-        config.reproduce.task_counts = vec![2, 8];
+        let r = ReproduceConfig {
+            task_counts: vec![2, 8],
+            ..ReproduceConfig::default()
+        };
         config.tasks.push(TaskConfig::one_off(
             300.0,
             Some(uavmeta_proto::config::RainZone {
@@ -677,7 +690,7 @@ mod tests {
                 y1: 2,
             }),
         ));
-        let plan = plan(&config, &Experiment::ALL);
+        let plan = plan(&config, &r, &Experiment::ALL);
         // CQL-MAML on 2 and 8 tasks, DQN-MAML and CQL-pretrain on 8.
         assert_eq!(plan.inits.len(), 4);
         let main = plan
@@ -707,10 +720,11 @@ mod tests {
 
     #[test]
     fn quick_keeps_datasets_collectable() {
-        let quick = quick_config(&Config::default());
+        let quick = quick_config(&Config::default()).unwrap();
         assert!(quick.collect.dqn_steps >= quick.collect.transitions);
         assert!(quick.collect.replay_capacity >= quick.collect.transitions);
         quick.validate().unwrap();
-        assert_eq!(quick.reproduce.seeds, 2);
+        let r: ReproduceConfig = quick.reproduce.read(&quick.origin).unwrap();
+        assert_eq!((r.seeds, r.meta_eval_every), (2, 1));
     }
 }

@@ -272,16 +272,16 @@ fn collection_config(config: &Config, seed: u64) -> Config {
 }
 
 /// The config of one meta-training: the run's, with its tasks cut to the first `key.tasks`
-/// meta-train tasks, the inner loss of `key`, figure 4's evaluation interval (evaluating does not
-/// change training, so every w0 shares it and one w0 serves every figure) and `[reproduce]` at
-/// its defaults, which meta-training does not read.
-fn meta_config(config: &Config, key: InitKey, seed: u64) -> Config {
+/// meta-train tasks, the inner loss of `key`, figure 4's evaluation interval `eval_every`
+/// (evaluating does not change training, so every w0 shares it and one w0 serves every figure)
+/// and no `[reproduce]`, which meta-training does not read.
+fn meta_config(config: &Config, key: InitKey, seed: u64, eval_every: usize) -> Config {
     let mut c = collection_config(config, seed);
     c.meta = config.meta.clone();
     if let Init::Maml(inner) = key.kind {
         c.meta.inner_loss = inner;
     }
-    c.meta.eval_every = config.reproduce.meta_eval_every;
+    c.meta.eval_every = eval_every;
     c.tasks = meta_train_tasks(config, key.tasks).cloned().collect();
     c
 }
@@ -298,9 +298,19 @@ fn saved_collection_matches(path: &Path, collection: &Config) -> bool {
     })
 }
 
-/// Whether a config saved at `path` has exactly the text `config` would save.
+/// Whether the config saved at `path` has `config`'s values, its origin aside. `[reproduce]` is
+/// left out of the comparison too: no init reads it, and configs saved before the section moved
+/// to this crate wrote it out in full. As in [`saved_collection_matches`], comparing values keeps
+/// the cache when a section gains a key at its default.
 fn saved_config_matches(path: &Path, config: &Config) -> bool {
-    std::fs::read_to_string(path).is_ok_and(|text| text == config.to_toml_string())
+    Config::load(path, &[]).is_ok_and(|saved| {
+        let saved = Config {
+            origin: config.origin.clone(),
+            reproduce: config.reproduce.clone(),
+            ..saved
+        };
+        saved == *config
+    })
 }
 
 /// Where seed `seed` caches its artefacts.
@@ -386,15 +396,17 @@ pub fn reference(
     Ok(metrics)
 }
 
-/// Seed `seed`'s init of `key`, trained unless cached: its checkpoint and meta-train curve.
+/// Seed `seed`'s init of `key`, trained unless cached: its checkpoint and meta-train curve, with
+/// the adapted policies evaluated every `eval_every` meta-epochs (`reproduce.meta_eval_every`).
 pub fn init(
     config: &Config,
     out: &Path,
     seed: u64,
     key: InitKey,
+    eval_every: usize,
 ) -> Result<(PathBuf, MetaCurve), ReproduceError> {
     ensure_w0(
-        config,
+        meta_config(config, key, seed, eval_every),
         key,
         &datasets_dir(out, seed),
         &seed_dir(out, seed),
@@ -554,13 +566,12 @@ fn dataset_cached(collection: &Config, path: &Path) -> bool {
 /// directory holds one made with the same config; returns its checkpoint and meta-train curve
 /// (empty for a pretrained init).
 fn ensure_w0(
-    config: &Config,
+    meta: Config,
     key: InitKey,
     datasets: &Path,
     dir: &Path,
     seed: u64,
 ) -> Result<(PathBuf, MetaCurve), ReproduceError> {
-    let meta = meta_config(config, key, seed);
     let out = dir.join(format!("{}-tasks-{}", key.kind.name(), key.tasks));
     let w0 = out.join("w0");
     if key.kind == Init::Pretrain {
@@ -697,5 +708,37 @@ mod tests {
         assert_eq!(plan.datasets.len(), 9);
         assert_eq!(plan.units(Experiment::AoiPower), 9 + 1 + 2);
         assert_eq!(plan.units(Experiment::Convergence), 9 + 1 + 1);
+    }
+
+    #[test]
+    fn a_cached_init_serves_whatever_its_saved_config_wrote_of_reproduce() {
+        let dir = std::env::temp_dir().join(format!("uavmeta-saved-config-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("w0.toml");
+        let mut run = Config::default();
+        crate::ReproduceConfig::default().write_into(&mut run);
+        let key = InitKey {
+            kind: Init::Maml(Loss::Cql),
+            tasks: 8,
+        };
+        let meta = meta_config(&run, key, 1, 10);
+        assert!(meta.reproduce.is_empty());
+        // Saved before `[reproduce]` moved to this crate: every key written out.
+        let written_out = Config {
+            reproduce: run.reproduce.clone(),
+            ..meta.clone()
+        };
+        std::fs::write(&path, written_out.to_toml_string()).unwrap();
+        assert!(saved_config_matches(&path, &meta));
+        std::fs::write(&path, meta.to_toml_string()).unwrap();
+        assert!(saved_config_matches(&path, &meta));
+        // Any section meta-training reads still decides.
+        let mut other = meta.clone();
+        other.meta.eval_every = 5;
+        assert!(!saved_config_matches(&path, &other));
+        other = meta.clone();
+        other.learner.alpha = 10.0;
+        assert!(!saved_config_matches(&path, &other));
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -7,7 +7,9 @@ use std::process::Command;
 use anyhow::Result;
 use clap::builder::PossibleValuesParser;
 use clap::Args;
-use uavmeta_reproduce::{self as reproduce, quick_config, Experiment, ReproduceOptions};
+use uavmeta_reproduce::{
+    self as reproduce, quick_config, Experiment, ReproduceConfig, ReproduceOptions,
+};
 
 use super::common::ConfigArgs;
 
@@ -46,11 +48,12 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
     }
     .load()?;
     if args.quick {
-        config = quick_config(&config);
+        config = quick_config(&config)?;
     }
     if let Some(seeds) = args.seeds {
-        config.reproduce.seeds = usize::try_from(seeds)?;
-        config.validate()?;
+        let mut r: ReproduceConfig = config.reproduce.read(&config.origin)?;
+        r.seeds = usize::try_from(seeds)?;
+        r.write_into(&mut config);
     }
     let experiments =
         Experiment::select(&args.experiment).expect("clap admits only Experiment::CHOICES");

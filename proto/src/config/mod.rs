@@ -5,7 +5,10 @@
 //! offending value and what was expected.
 //!
 //! Each section is a file of its own with its defaults and rules on its fields, saying which
-//! crate reads it; [`Config`] puts them together, and [`rules`] holds what the sections declare.
+//! crates read it; [`Config`] puts them together, and [`rules`] holds what the sections declare.
+//! A section that only one crate outside the contract reads (`[reproduce]`) is that crate's: the
+//! config keeps it as written ([`OwnedSection`]) and its owner declares and checks it
+//! ([`Section`]).
 
 use std::path::Path;
 
@@ -17,9 +20,9 @@ mod collect;
 mod learner;
 mod meta;
 mod planner;
-mod reproduce;
-mod rules;
+pub mod rules;
 mod run;
+mod section;
 mod task;
 mod tunnel;
 mod world;
@@ -28,8 +31,8 @@ pub use collect::CollectConfig;
 pub use learner::{LearnerConfig, Loss};
 pub use meta::MetaConfig;
 pub use planner::PlannerConfig;
-pub use reproduce::ReproduceConfig;
 pub use run::{RunConfig, MAX_BATCH_SIZE, MAX_DOMAIN_LEN, MAX_SUBSCRIBER_BUFFER};
+pub use section::{OwnedSection, Section};
 pub use task::{RainZone, TaskConfig, TaskRole};
 pub use tunnel::{is_loopback_endpoint, TunnelConfig};
 pub use world::{Delta, PowerTerm, WorldConfig, MAX_DEVICES, MAX_GRID_CELLS, MOVES};
@@ -86,9 +89,11 @@ pub struct Config {
     #[serde(default)]
     #[garde(dive)]
     pub run: RunConfig,
-    #[serde(default)]
-    #[garde(dive)]
-    pub reproduce: ReproduceConfig,
+    /// `[reproduce]`, as written: `uavmeta_reproduce` owns its keys and checks them when a
+    /// reproduction starts.
+    #[serde(default, skip_serializing_if = "OwnedSection::is_empty")]
+    #[garde(skip)]
+    pub reproduce: OwnedSection,
     #[serde(default)]
     #[garde(dive)]
     pub tunnel: TunnelConfig,
@@ -222,7 +227,6 @@ impl Config {
         self.collect.check_n_step(self.world.horizon)?;
         self.tunnel.check_hosts()?;
         self.tunnel.check_security()?;
-        self.reproduce.check_seeds(self.collect.seed)?;
         self.check_limits()?;
         self.planner.check_memory(&self.world)
     }
@@ -237,14 +241,6 @@ impl Config {
             t.check_rain(i, self.world.grid_cells)?;
         }
         Ok(())
-    }
-
-    /// Checks the `[reproduce]` keys that refer to `[[tasks]]` and `[collect]`: run by
-    /// `uavmeta reproduce` only, so that other commands take configs without such tasks.
-    pub fn validate_reproduce(&self) -> Result<(), ConfigError> {
-        self.reproduce
-            .check_against(&self.tasks, self.collect.transitions)
-            .map_err(|broken| broken.at(&self.origin))
     }
 }
 

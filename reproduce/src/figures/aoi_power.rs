@@ -18,10 +18,10 @@ type Measured<'a> = (&'a str, Estimate, Estimate);
 /// Figure 8: AoI and power at epoch `aoi_power_epoch`.
 pub(super) fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let c = ctx.config;
-    let r = &c.reproduce;
+    let r = ctx.reproduce;
     let epoch = r.aoi_power_epoch;
     let at_epoch = |m: Method| -> Vec<PolicyMetrics> {
-        ctx.rows(&unseen_key(c, m, r.main_shots, r.meta_tasks), epoch)
+        ctx.rows(&unseen_key(c, r, m, r.main_shots, r.meta_tasks), epoch)
             .iter()
             .filter_map(|rows| rows.last().map(|row| row.policy))
             .collect()
@@ -140,7 +140,7 @@ fn summary_table(
     paper_scale: f64,
 ) -> String {
     let c = ctx.config;
-    let r = &c.reproduce;
+    let r = ctx.reproduce;
     let mut body = format!(
         "AoI and power of the greedy policies on `{}` after {} fine-tuning epochs on {} shots, {}. \
          Power scales with the noise power: our world uses noise_dbm = {}, the paper's milliwatts \

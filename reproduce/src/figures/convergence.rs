@@ -21,13 +21,13 @@ fn convergence_cells(runs: &[Vec<f64>], floor: f64) -> (usize, String) {
 /// Figure 5: the four methods on the unseen task.
 pub(super) fn convergence(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let c = ctx.config;
-    let r = &c.reproduce;
+    let r = ctx.reproduce;
     let refs = ctx.unseen_refs();
     let mut csv = format!("method,{CURVE_COLUMNS}\n");
     let runs: Vec<(Method, Vec<Vec<f64>>)> = Method::FINE_TUNED
         .into_iter()
         .map(|method| {
-            let key = unseen_key(c, method, r.main_shots, r.meta_tasks);
+            let key = unseen_key(c, r, method, r.main_shots, r.meta_tasks);
             let curves = ctx.curves(&mut csv, method.name(), &key, r.convergence_epochs);
             (method, curves)
         })
@@ -75,7 +75,7 @@ fn curve_stats(runs: &[Vec<f64>]) -> (Estimate, Estimate, Estimate) {
 /// The summary's opening, its table of methods and the reference levels.
 fn summary_table(ctx: &Context, runs: &[(Method, Vec<Vec<f64>>)], refs: &Refs) -> String {
     let c = ctx.config;
-    let r = &c.reproduce;
+    let r = ctx.reproduce;
     let mut body = format!(
         "Fine-tuning on {} shots of the unseen task `{}` for {} epochs, {}. A run *converged* \
          when its {}-epoch moving average stays within 5% of its final return (the mean of its last {} \

@@ -7,7 +7,7 @@ use uavmeta_meta::meta_train::Evaluation;
 /// Figure 4: CQL-MAML's meta-loss, and the tasks' returns per evaluated meta-epoch after
 /// adaptation (4b) and zero-shot (4c).
 pub(super) fn meta_training(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
-    let r = &ctx.config.reproduce;
+    let r = ctx.reproduce;
     let key = InitKey {
         kind: Init::Maml(Loss::Cql),
         tasks: r.meta_tasks,
@@ -156,7 +156,7 @@ fn summary(
     losses: &[Vec<f64>],
     tasks: &[&TaskConfig],
 ) -> String {
-    let r = &ctx.config.reproduce;
+    let r = ctx.reproduce;
     let episodes = ctx.config.learner.eval_episodes;
     let mut body = format!(
         "CQL-MAML meta-trained on the first {} meta-train tasks for {} meta-epochs, {}; every {} \

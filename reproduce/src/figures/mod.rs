@@ -17,7 +17,7 @@ use crate::claims::{
     self, converged_at, final_return, mean_swing, return_at, settle_epoch, Claim, Verdict,
 };
 use crate::runs::{InitKey, MetaCurve, RunKey, SeedResult};
-use crate::{rain_tasks, Experiment, HeuristicRef};
+use crate::{rain_tasks, Experiment, HeuristicRef, ReproduceConfig};
 use uavmeta_meta::write_file;
 use uavmeta_proto::method::{Init, Method};
 
@@ -38,6 +38,7 @@ const EPOCH_100: usize = 100;
 /// What every experiment reads.
 pub struct Context<'a> {
     pub config: &'a Config,
+    pub reproduce: &'a ReproduceConfig,
     /// In seed order.
     pub seeds: &'a [SeedResult],
     pub heuristics: &'a [HeuristicRef],
@@ -51,8 +52,13 @@ pub struct Section {
 
 /// The run of `method` on the unseen task with `shots` shots (from the w0 of the first
 /// `meta_tasks` meta-train tasks when meta-trained).
-pub fn unseen_key(config: &Config, method: Method, shots: usize, meta_tasks: usize) -> RunKey {
-    let r = &config.reproduce;
+pub fn unseen_key(
+    config: &Config,
+    r: &ReproduceConfig,
+    method: Method,
+    shots: usize,
+    meta_tasks: usize,
+) -> RunKey {
     RunKey {
         task: r.unseen_task.clone(),
         method,
@@ -67,12 +73,11 @@ pub fn unseen_key(config: &Config, method: Method, shots: usize, meta_tasks: usi
 }
 
 /// The run of `method` on a rain task (figure 9).
-pub fn rain_key(config: &Config, task: &TaskConfig, method: Method) -> RunKey {
-    let r = &config.reproduce;
+pub fn rain_key(config: &Config, r: &ReproduceConfig, task: &TaskConfig, method: Method) -> RunKey {
     RunKey {
         task: task.name.clone(),
         eval_episodes: r.resilience_eval_episodes,
-        ..unseen_key(config, method, r.main_shots, r.meta_tasks)
+        ..unseen_key(config, r, method, r.main_shots, r.meta_tasks)
     }
 }
 
@@ -135,8 +140,8 @@ impl Context<'_> {
         let episodes = self.config.learner.eval_episodes;
         Refs::new(
             self.config,
-            &self.online(&self.config.reproduce.unseen_task, episodes),
-            &[self.heuristics(&self.config.reproduce.unseen_task, episodes)],
+            &self.online(&self.reproduce.unseen_task, episodes),
+            &[self.heuristics(&self.reproduce.unseen_task, episodes)],
         )
     }
 

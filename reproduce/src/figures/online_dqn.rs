@@ -15,7 +15,9 @@ pub(super) fn online_dqn(ctx: &Context, dir: &Path) -> Result<Section, Reproduce
     let c = ctx.config;
     let episodes = c.learner.eval_episodes;
     let tasks = c.tasks_with_role(TaskRole::MetaTrain);
-    let tasks: Vec<&TaskConfig> = tasks.chain(c.task(&c.reproduce.unseen_task).ok()).collect();
+    let tasks: Vec<&TaskConfig> = tasks
+        .chain(c.task(&ctx.reproduce.unseen_task).ok())
+        .collect();
     let mut csv = String::from("task,seed,return,aoi,power_mw\n");
     let mut body = format!(
         "The online DQN agent behind each task's dataset, greedy, over {episodes} evaluation \

@@ -28,7 +28,7 @@ type Cells = Vec<(u32, u32)>;
 /// Figure 9: the rain tasks.
 pub(super) fn resilience(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let c = ctx.config;
-    let episodes = c.reproduce.resilience_eval_episodes;
+    let episodes = ctx.reproduce.resilience_eval_episodes;
     let tasks: Vec<&TaskConfig> = rain_tasks(c).collect();
     let online: Vec<PolicyMetrics> = tasks
         .iter()
@@ -77,8 +77,8 @@ fn rain_runs(
     for method in [Method::CqlMaml, Method::Cql, Method::CqlPretrain] {
         let mut runs = Vec::new();
         for (task, h) in tasks.iter().zip(heuristics) {
-            let key = rain_key(c, task, method);
-            let rows = ctx.rows(&key, c.reproduce.resilience_epochs);
+            let key = rain_key(c, ctx.reproduce, task, method);
+            let rows = ctx.rows(&key, ctx.reproduce.resilience_epochs);
             curve_lines(
                 &mut csv,
                 &format!("{},{}", method.name(), task.name),
@@ -157,7 +157,7 @@ fn plot_curves(
         &LineChart {
             title: &format!(
                 "Figure 9b: outages per episode ({} episodes per point)",
-                tasks * seeds * ctx.config.reproduce.resilience_eval_episodes
+                tasks * seeds * ctx.reproduce.resilience_eval_episodes
             ),
             x_label: "epoch",
             y_label: "outages per episode",
@@ -186,7 +186,7 @@ fn trajectories(
     if let Some(seed) = ctx.seeds.first() {
         for method in [Method::CqlMaml, Method::Cql] {
             let trajectory = seed
-                .run(&rain_key(c, first, method))
+                .run(&rain_key(c, ctx.reproduce, first, method))
                 .trajectory
                 .as_ref()
                 .expect("the plan records the first rain task's paths");
@@ -257,7 +257,7 @@ fn summary_table(
     summaries: &[RainSummary],
     refs: &Refs,
 ) -> String {
-    let r = &ctx.config.reproduce;
+    let r = ctx.reproduce;
     let (epochs, episodes) = (r.resilience_epochs, r.resilience_eval_episodes);
     let seeds = ctx.seeds.len();
     let total = tasks.len() * seeds * episodes;

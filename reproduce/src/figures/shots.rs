@@ -16,7 +16,7 @@ struct Finals {
 /// Figure 6: CQL, CQL-pretrain and CQL-MAML at each shot count.
 pub(super) fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let c = ctx.config;
-    let r = &c.reproduce;
+    let r = ctx.reproduce;
     let epochs = r.convergence_epochs;
     let mut csv = format!("method,shots,{CURVE_COLUMNS}\n");
     let mut series = Vec::new();
@@ -24,7 +24,7 @@ pub(super) fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
     for &shots in &r.shots {
         let mut each = Vec::new();
         for method in Method::CQL_INITS {
-            let key = unseen_key(c, method, shots, r.meta_tasks);
+            let key = unseen_key(c, r, method, shots, r.meta_tasks);
             let prefix = format!("{},{shots}", method.name());
             let runs = ctx.curves(&mut csv, &prefix, &key, epochs);
             series.push(return_series(

@@ -1,17 +1,18 @@
-//! `[reproduce]`: the sizes of the paper's section V experiments (SPEC section 6). Read by
-//! `uavmeta_reproduce`.
+//! `[reproduce]`: the sizes of the paper's section V experiments (SPEC section 6). This crate
+//! alone reads the section, so it declares it: the experiment config keeps the table as written
+//! (`uavmeta_proto::config::OwnedSection`) and [`ReproduceConfig::of`] reads and checks it when a
+//! reproduction starts, so that other commands accept a config whose tasks do not fit it.
 
 use garde::Validate;
 use serde::{Deserialize, Serialize};
 use smart_default::SmartDefault;
 
-use super::rules::{at_least, increasing, non_empty, Broken};
-use super::{TaskConfig, TaskRole};
+use uavmeta_proto::config::rules::{at_least, increasing, non_empty, Broken};
+use uavmeta_proto::config::{Config, ConfigError, OwnedSection, Section, TaskConfig, TaskRole};
 
 /// `uavmeta reproduce`: the sizes of the paper's section V experiments (SPEC section 6). Keys that
-/// name tasks or counts of tasks are checked against `[[tasks]]` by
-/// [`Config::validate_reproduce`], when a reproduction starts, so that other commands accept a
-/// config whose tasks do not fit them.
+/// name tasks or count them, and the seeds, are checked against the other sections by
+/// [`ReproduceConfig::of`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, SmartDefault, Validate)]
 #[serde(deny_unknown_fields, default)]
 #[garde(allow_unvalidated)]
@@ -66,9 +67,29 @@ pub struct ReproduceConfig {
     pub meta_eval_every: usize,
 }
 
+impl Section for ReproduceConfig {
+    const KEY: &'static str = "reproduce";
+}
+
 impl ReproduceConfig {
+    /// `config`'s `[reproduce]`, each key it leaves out at its default, checked alone and against
+    /// `[[tasks]]` and `[collect]`: an error names the config's file, the key, the value and what
+    /// was expected.
+    pub fn of(config: &Config) -> Result<Self, ConfigError> {
+        let r: Self = config.reproduce.read(&config.origin)?;
+        r.check_seeds(config.collect.seed)
+            .and_then(|()| r.check_against(&config.tasks, config.collect.transitions))
+            .map_err(|broken| broken.at(&config.origin))?;
+        Ok(r)
+    }
+
+    /// Writes these settings, every key, into `config`'s `[reproduce]`.
+    pub fn write_into(&self, config: &mut Config) {
+        config.reproduce = OwnedSection::of(self);
+    }
+
     /// At least one seed, and seed s's `collect_seed + s` (its collection's seed) fits TOML's i64.
-    pub(super) fn check_seeds(&self, collect_seed: u64) -> Result<(), Broken> {
+    fn check_seeds(&self, collect_seed: u64) -> Result<(), Broken> {
         let last = (self.seeds as u64)
             .checked_sub(1)
             .map(|s| s.checked_add(collect_seed));
@@ -87,11 +108,7 @@ impl ReproduceConfig {
 
     /// The keys that name tasks or count them fit `tasks`, and the shots fit datasets of
     /// `transitions` each.
-    pub(super) fn check_against(
-        &self,
-        tasks: &[TaskConfig],
-        transitions: usize,
-    ) -> Result<(), Broken> {
+    fn check_against(&self, tasks: &[TaskConfig], transitions: usize) -> Result<(), Broken> {
         let meta_train = tasks
             .iter()
             .filter(|t| t.role == TaskRole::MetaTrain)
