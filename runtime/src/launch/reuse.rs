@@ -4,7 +4,8 @@
 //!
 //! Every key counts except [`OPERATIONAL`] ones (where the run writes, its ports, its iceoryx2
 //! capacities and supervision, the tunnel), which change how a run is carried out and never what
-//! its datasets, checkpoints and results hold.
+//! its datasets, checkpoints and results hold, and `[reproduce]`, which only `uavmeta reproduce`
+//! reads.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -27,7 +28,7 @@ pub enum Reuse {
 }
 
 /// Keys (and sections, ending in `.`) whose values do not reach a run's artefacts.
-const OPERATIONAL: [&str; 12] = [
+const OPERATIONAL: [&str; 13] = [
     "run.dir",
     "run.metrics_host",
     "run.metrics_port",
@@ -40,6 +41,9 @@ const OPERATIONAL: [&str; 12] = [
     "run.control_buffer",
     "run.domain",
     "tunnel.",
+    // A launch never reads it; runs saved before it became the reproduce crate's section wrote
+    // it out in full, and a config now saves it only when its file has it.
+    "reproduce.",
 ];
 
 /// The run directory's config file, whether `dir` holds a run.
@@ -166,6 +170,10 @@ mod tests {
         new.run.batch_size = 1024;
         new.tunnel.listen = "tcp/127.0.0.1:7447".into();
         assert!(differing_keys(&old, &new).is_empty());
+        // A run saved with `[reproduce]` written out is the same run as one without it.
+        let with_reproduce = "[reproduce]\nseeds = 5\nmeta_tasks = 8\n";
+        let saved = Config::from_toml_str(with_reproduce, "old.toml", &[]).expect("valid");
+        assert!(differing_keys(&saved, &old).is_empty());
         new.collect.policy = "random".into();
         new.tasks[1].lambda = 7.0;
         let keys = differing_keys(&old, &new);
