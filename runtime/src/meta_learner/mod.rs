@@ -355,19 +355,27 @@ impl MetaTest<'_> {
             .map(|&(id, task, method)| self.hook(id, task, method))
             .collect();
         let mut inits = Vec::with_capacity(jobs.len());
-        let mut shots = Vec::with_capacity(jobs.len());
+        // One load per task: the methods of a task fine-tune on the same shots.
+        let mut shots: Vec<(&str, Batch)> = Vec::new();
         for &(_, task, method) in jobs {
             inits.push(self.init(method, pretrained)?);
-            shots.push(self.shots(task)?);
+            if !shots.iter().any(|(name, _)| *name == task.name) {
+                shots.push((&task.name, self.shots(task)?));
+            }
         }
+        let shots_of = |task: &TaskConfig| {
+            let (_, batch) = (shots.iter().find(|(name, _)| *name == task.name))
+                .expect("every job's task was loaded above");
+            batch
+        };
         let algorithm = inits[0].1;
         let members = inits
             .into_iter()
-            .zip(&shots)
+            .zip(jobs)
             .zip(&mut hooks)
-            .map(|(((init, _), data), hook)| Member {
+            .map(|(((init, _), &(_, task, _)), hook)| Member {
                 init,
-                data,
+                data: shots_of(task),
                 seed: self.seed,
                 evaluator: hook,
                 out_dir: None,
