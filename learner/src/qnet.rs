@@ -143,6 +143,19 @@ impl QNetwork {
         });
     }
 
+    /// Polyak averaging: self <- decay * self + (1 - decay) * other.
+    pub fn average_toward(&mut self, other: &QNetwork, decay: f64) {
+        assert_eq!(
+            self.config, other.config,
+            "average_toward between Q-networks of different architectures"
+        );
+        tch::no_grad(|| {
+            for (dst, src) in self.params.iter_mut().zip(&other.params) {
+                let _ = dst.g_mul_scalar_(decay).g_add_(&(src * (1.0 - decay)));
+            }
+        });
+    }
+
     /// A new network with the same architecture and a copy of this one's parameter values.
     pub fn duplicate(&self) -> QNetwork {
         let mut copy = self.config.init(0);

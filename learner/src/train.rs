@@ -286,6 +286,7 @@ pub fn train(
     let mut rows: Vec<EpochRow> = Vec::with_capacity(cfg.epochs);
     let guard = ValueGuard::new(cfg, q, data);
     let mut last_good = guard.as_ref().map(|_| q.duplicate());
+    let mut average = Average::new(cfg, q);
     let mut stopped = false;
     for epoch in 1..=cfg.epochs {
         if let (true, Some(last)) = (stopped, rows.last()) {
@@ -311,19 +312,23 @@ pub fn train(
                 );
             }
         }
+        if !stopped {
+            average.update(q);
+        }
         let row = EpochRow {
             epoch,
             steps: trainer.steps(),
             td_loss: means.td_loss,
             conservative_loss: means.conservative_loss,
             mean_q: means.max_q / cfg.reward_scale,
-            policy: evaluator.evaluate(q),
+            policy: evaluator.evaluate(average.published(q)),
             seconds: started.elapsed().as_secs_f64(),
         };
         finish_epoch(&row, opts.progress, &bar, csv.as_mut())?;
         rows.push(row);
     }
     bar.finish_and_clear();
+    average.publish_into(q);
     if let Some(dir) = opts.out_dir {
         checkpoint::save(
             &dir.join("final"),
@@ -400,6 +405,52 @@ impl ValueGuard {
             last_good.copy_from(q);
         }
         tripped
+    }
+}
+
+/// The network a run publishes (`learner.average_decay`): the trained Q itself, or its
+/// exponential moving average over the epochs, bias-corrected as Adam's moments are, so the init
+/// has no weight in it: after t epochs, sum_k decay^(t-k) Q_k / sum_k decay^(t-k), k = 1..t.
+pub(crate) struct Average {
+    decay: f64,
+    average: Option<QNetwork>,
+    /// Epochs averaged so far.
+    epochs: i32,
+}
+
+impl Average {
+    /// No epoch averaged yet; `q` (the init) only gives the average its shape.
+    pub(crate) fn new(cfg: &LearnerConfig, q: &QNetwork) -> Self {
+        Self {
+            decay: cfg.average_decay,
+            average: (cfg.average_decay > 0.0).then(|| q.duplicate()),
+            epochs: 0,
+        }
+    }
+
+    /// After an epoch the value guard let through: Q joins the average with the weight
+    /// (1 - decay) / (1 - decay^t) (1 at the first epoch, so the init drops out).
+    pub(crate) fn update(&mut self, q: &QNetwork) {
+        if let Some(average) = &mut self.average {
+            self.epochs += 1;
+            let weight = (1.0 - self.decay) / (1.0 - self.decay.powi(self.epochs));
+            average.average_toward(q, 1.0 - weight);
+        }
+    }
+
+    /// The network to evaluate and keep: the average when averaging, else `q`.
+    pub(crate) fn published<'a>(&'a self, q: &'a QNetwork) -> &'a QNetwork {
+        match (&self.average, self.epochs) {
+            (Some(average), 1..) => average,
+            _ => q,
+        }
+    }
+
+    /// At the end: `q` becomes the published network.
+    pub(crate) fn publish_into(&self, q: &mut QNetwork) {
+        if let (Some(average), 1..) = (&self.average, self.epochs) {
+            q.copy_from(average);
+        }
     }
 }
 

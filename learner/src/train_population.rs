@@ -29,7 +29,7 @@ use crate::population::QPopulation;
 use crate::progress::{CsvLog, OnStep};
 use crate::qnet::QNetwork;
 use crate::train::{
-    finish_epoch, steps_per_epoch, EpochRow, EvaluatePolicy, MinibatchOrder, StepFigures,
+    finish_epoch, steps_per_epoch, Average, EpochRow, EvaluatePolicy, MinibatchOrder, StepFigures,
     TrainError, ValueGuard, CSV_HEADER,
 };
 
@@ -236,6 +236,8 @@ struct MemberRun<'a> {
     current: QNetwork,
     guard: Option<ValueGuard>,
     stopped: bool,
+    /// What it publishes: `current`, or its average over epochs (`learner.average_decay`).
+    average: Average,
     evaluator: &'a mut dyn EvaluatePolicy,
     out_dir: Option<&'a Path>,
     csv: Option<CsvLog>,
@@ -249,6 +251,7 @@ impl<'a> MemberRun<'a> {
         Ok(Self {
             order: MinibatchOrder::new(rows, cfg.batch.min(rows), m.seed),
             guard: ValueGuard::new(cfg, &m.init, m.data),
+            average: Average::new(cfg, &m.init),
             csv: match m.out_dir {
                 Some(dir) => Some(CsvLog::create(&dir.join("train.csv"), CSV_HEADER)?),
                 None => None,
@@ -287,7 +290,10 @@ impl<'a> MemberRun<'a> {
                         self.stopped = true;
                         tracing::info!(epoch, member, "the value guard stopped training");
                     }
-                    _ => self.current = trained,
+                    _ => {
+                        self.current = trained;
+                        self.average.update(&self.current);
+                    }
                 }
                 EpochRow {
                     epoch,
@@ -295,7 +301,9 @@ impl<'a> MemberRun<'a> {
                     td_loss: means.td_loss,
                     conservative_loss: means.conservative_loss,
                     mean_q: means.max_q / trainer.reward_scale,
-                    policy: self.evaluator.evaluate(&self.current),
+                    policy: self
+                        .evaluator
+                        .evaluate(self.average.published(&self.current)),
                     seconds,
                 }
             }
@@ -310,7 +318,8 @@ impl<'a> MemberRun<'a> {
         Ok(())
     }
 
-    fn finish(self, opts: &PopulationOptions) -> Result<Trained, TrainError> {
+    fn finish(mut self, opts: &PopulationOptions) -> Result<Trained, TrainError> {
+        self.average.publish_into(&mut self.current);
         if let Some(dir) = self.out_dir {
             checkpoint::save(
                 &dir.join("final"),

@@ -220,11 +220,91 @@ fn a_population_of_one_is_train_bit_for_bit() {
     for (algorithm, extra) in [(Loss::Cql, false), (Loss::Dqn, true)] {
         cfg.learner.double_dqn = extra;
         cfg.learner.huber = extra;
-        let (q, rows) = alone(&cfg, algorithm, 3, &data, 5);
-        let one = together(&cfg, algorithm, &[(3, &data, 5)]);
-        assert_eq!(figures(&one[0].1), figures(&rows), "{algorithm}");
-        assert_eq!(one[0].0.max_abs_difference(&q), 0.0, "{algorithm}");
+        for decay in [0.0, 0.9] {
+            cfg.learner.average_decay = decay;
+            let (q, rows) = alone(&cfg, algorithm, 3, &data, 5);
+            let one = together(&cfg, algorithm, &[(3, &data, 5)]);
+            assert_eq!(figures(&one[0].1), figures(&rows), "{algorithm} {decay}");
+            assert_eq!(one[0].0.max_abs_difference(&q), 0.0, "{algorithm} {decay}");
+        }
     }
+}
+
+/// Keeps a copy of every network it is asked to score.
+struct Recorder(Vec<QNetwork>);
+
+impl EvaluatePolicy for Recorder {
+    fn evaluate(&mut self, q: &QNetwork) -> PolicyMetrics {
+        self.0.push(q.duplicate());
+        Exact.evaluate(q)
+    }
+}
+
+/// `learner.average_decay` = d publishes, after epoch t, sum_k d^(t-k) Q_k / sum_k d^(t-k) over
+/// the networks Q_1..Q_t the same run trains without averaging (the gradient steps do not see
+/// the average), with no weight on the init; the returned network is the last average.
+#[test]
+fn averaging_publishes_the_bias_corrected_average_of_the_epochs_networks() {
+    tch::set_num_threads(1);
+    let mut cfg = config();
+    cfg.learner.epochs = 5;
+    let data = Batch::new(&dataset(400), &cfg.world, cfg.learner.reward_scale).unwrap();
+    let run = |cfg: &Config| {
+        let mut q = QNetworkConfig::new(3, 5, &cfg.learner.hidden).init(2);
+        let opts = TrainOptions {
+            algorithm: Loss::Cql,
+            config: cfg,
+            seed: 6,
+            out_dir: None,
+            progress: false,
+            on_step: OnStep::default(),
+        };
+        let mut recorder = Recorder(Vec::new());
+        train(&mut q, &data, &opts, &mut recorder).unwrap();
+        (q, recorder.0)
+    };
+    let (last, raw) = run(&cfg);
+    let d = 0.8;
+    cfg.learner.average_decay = d;
+    let (published_last, published) = run(&cfg);
+    assert_eq!(published.len(), 5);
+    for t in 1..=5 {
+        let weights: Vec<f64> = (1..=t).map(|k| d.powi((t - k) as i32)).collect();
+        let total: f64 = weights.iter().sum();
+        let expected: Vec<Tensor> = (0..raw[0].parameters().len())
+            .map(|p| {
+                (0..t)
+                    .map(|k| {
+                        raw[k].parameters()[p].to_kind(tch::Kind::Double) * (weights[k] / total)
+                    })
+                    .reduce(|a, b| a + b)
+                    .unwrap()
+            })
+            .collect();
+        let gap = published[t - 1]
+            .parameters()
+            .iter()
+            .zip(&expected)
+            .map(|(a, b)| {
+                (a.to_kind(tch::Kind::Double) - b)
+                    .abs()
+                    .max()
+                    .double_value(&[])
+            })
+            .fold(0.0, f64::max);
+        assert!(
+            gap < 1e-5,
+            "epoch {t}: the published network is {gap} from the average"
+        );
+    }
+    // The first epoch's average is that epoch's network itself: the init has no weight.
+    assert_eq!(published[0].max_abs_difference(&raw[0]), 0.0);
+    assert!(
+        published[4].max_abs_difference(&raw[4]) > 1e-4,
+        "the average is not the last network"
+    );
+    assert_eq!(published_last.max_abs_difference(&published[4]), 0.0);
+    assert_eq!(last.max_abs_difference(&raw[4]), 0.0);
 }
 
 #[test]

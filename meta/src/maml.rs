@@ -598,14 +598,10 @@ impl Maml {
     }
 
     /// Polyak averaging: init <- decay * init + (1 - decay) * w0.
-    fn update_average(&self) {
-        let Some(average) = &self.average else { return };
-        let decay = self.config.meta.w0_average_decay;
-        tch::no_grad(|| {
-            for (mut a, w) in average.parameters().into_iter().zip(self.w0.parameters()) {
-                let _ = a.g_mul_scalar_(decay).g_add_(&(w * (1.0 - decay)));
-            }
-        });
+    fn update_average(&mut self) {
+        if let Some(average) = &mut self.average {
+            average.average_toward(&self.w0, self.config.meta.w0_average_decay);
+        }
     }
 
     /// Meta-epochs run so far.

@@ -122,6 +122,11 @@ fn wrong_type() {
 fn bad_set_overrides() {
     error_of(
         "",
+        &["learner.average_decay=1"],
+        &["learner.average_decay", "1", "a decay in [0, 1)"],
+    );
+    error_of(
+        "",
         &["world.devices"],
         &["--set world.devices", "KEY=VALUE"],
     );

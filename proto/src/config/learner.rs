@@ -67,6 +67,16 @@ pub struct LearnerConfig {
     #[default(0.5)]
     #[garde(custom(finite(0.0.., "a finite margin >= 0 (0 = no guard)")))]
     pub value_guard: f64,
+    /// Averaging of the trained network's weights over epochs: the published network is the
+    /// exponential moving average of the networks after each epoch (that the value guard let
+    /// through), over about the last 1 / (1 - decay) epochs, bias-corrected so the init has no
+    /// weight (`learner/src/train.rs`, `Average`). Evaluations, the returned network and the
+    /// `final` checkpoint are the average; the gradient steps keep training Q itself. 0 = off
+    /// (SPEC): the last epoch's network, whose return moves by up to several percent between
+    /// epochs on 500 shots (docs/EXPERIMENTS.md, B3).
+    #[default(0.0)]
+    #[garde(custom(within(0.0..1.0, "a decay in [0, 1): 0 = no averaging")))]
+    pub average_decay: f64,
     /// Where a command fine-tunes several runs of one shape (the fine-tuning runs of
     /// `uavmeta reproduce`'s figures, the methods the launch's meta-learner fine-tunes on a task),
     /// up to this many train as one population: stacked networks updated as one computation
