@@ -238,6 +238,20 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
         assert_eq!(cells[5].is_empty(), cells[4] == "yes", "{}", rows[0]);
     }
 
+    // Figure 4's init is evaluated every `meta_eval_every` (1 in quick mode) meta-epochs; the
+    // inits no figure draws a curve of only after their last.
+    let evaluated = |init: &str| -> Vec<bool> {
+        read(&out.join(format!("cache/seed-0/{init}/meta_train.csv")))
+            .lines()
+            .skip(1)
+            .map(|line| !line.split(',').rev().nth(1).unwrap().is_empty())
+            .collect()
+    };
+    assert_eq!(evaluated("cql-maml-tasks-8"), vec![true; 3]);
+    for init in ["cql-maml-tasks-2", "dqn-maml-tasks-8"] {
+        assert_eq!(evaluated(init), vec![false, false, true], "{init}");
+    }
+
     // A second run reuses the seeds' datasets and w0s: same files, same figures.
     let dataset = out.join("cache/seed-0/datasets/lambda-0.uavds");
     let w0 = out.join("cache/seed-0/cql-maml-tasks-8/w0.safetensors");

@@ -62,7 +62,7 @@ pub struct ReproduceConfig {
     #[garde(custom(at_least(1)))]
     pub resilience_eval_episodes: usize,
     /// Figure 4: meta-epochs between evaluations of the adapted policies; 0 evaluates only after
-    /// the last.
+    /// the last. The inits no figure draws a curve of are evaluated only after the last.
     #[default(10)]
     pub meta_eval_every: usize,
 }

@@ -472,7 +472,14 @@ fn run_seeds(
             Ok((need.key.clone(), metrics))
         })?;
         let inits = for_each_seed(&seeds, &plan.inits, |seed, need| {
-            let init = runs::init(config, out, seed, need.key, r.meta_eval_every)?;
+            // Only figure 4 draws a meta-training curve; every other init is evaluated once, at
+            // its last meta-epoch. Evaluating never changes w0 (meta_train.rs), and the other
+            // inits' evaluations were a quarter of meta-training's time.
+            let eval_every = match need.users.contains(&Experiment::MetaTraining) {
+                true => r.meta_eval_every,
+                false => 0,
+            };
+            let init = runs::init(config, out, seed, need.key, eval_every)?;
             done(&need.users);
             Ok((need.key, init))
         })?;
