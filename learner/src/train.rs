@@ -286,7 +286,7 @@ pub fn train(
     let mut rows: Vec<EpochRow> = Vec::with_capacity(cfg.epochs);
     let guard = ValueGuard::new(cfg, q, data);
     let mut last_good = guard.as_ref().map(|_| q.duplicate());
-    let mut average = Average::new(cfg, q);
+    let mut average = Average::new(cfg);
     let mut stopped = false;
     for epoch in 1..=cfg.epochs {
         if let (true, Some(last)) = (stopped, rows.last()) {
@@ -413,42 +413,43 @@ impl ValueGuard {
 /// has no weight in it: after t epochs, sum_k decay^(t-k) Q_k / sum_k decay^(t-k), k = 1..t.
 pub(crate) struct Average {
     decay: f64,
+    /// The average, made at the first epoch averaged; `None` before it and when not averaging.
     average: Option<QNetwork>,
     /// Epochs averaged so far.
     epochs: i32,
 }
 
 impl Average {
-    /// No epoch averaged yet; `q` (the init) only gives the average its shape.
-    pub(crate) fn new(cfg: &LearnerConfig, q: &QNetwork) -> Self {
+    pub(crate) fn new(cfg: &LearnerConfig) -> Self {
         Self {
             decay: cfg.average_decay,
-            average: (cfg.average_decay > 0.0).then(|| q.duplicate()),
+            average: None,
             epochs: 0,
         }
     }
 
     /// After an epoch the value guard let through: Q joins the average with the weight
-    /// (1 - decay) / (1 - decay^t) (1 at the first epoch, so the init drops out).
+    /// (1 - decay) / (1 - decay^t) (1 at the first epoch, so the init has no weight).
     pub(crate) fn update(&mut self, q: &QNetwork) {
-        if let Some(average) = &mut self.average {
-            self.epochs += 1;
-            let weight = (1.0 - self.decay) / (1.0 - self.decay.powi(self.epochs));
-            average.average_toward(q, 1.0 - weight);
+        if self.decay == 0.0 {
+            return;
+        }
+        self.epochs += 1;
+        let weight = (1.0 - self.decay) / (1.0 - self.decay.powi(self.epochs));
+        match &mut self.average {
+            Some(average) => average.average_toward(q, 1.0 - weight),
+            None => self.average = Some(q.duplicate()),
         }
     }
 
-    /// The network to evaluate and keep: the average when averaging, else `q`.
+    /// The network to evaluate and keep: the average once there is one, else `q`.
     pub(crate) fn published<'a>(&'a self, q: &'a QNetwork) -> &'a QNetwork {
-        match (&self.average, self.epochs) {
-            (Some(average), 1..) => average,
-            _ => q,
-        }
+        self.average.as_ref().unwrap_or(q)
     }
 
     /// At the end: `q` becomes the published network.
     pub(crate) fn publish_into(&self, q: &mut QNetwork) {
-        if let (Some(average), 1..) = (&self.average, self.epochs) {
+        if let Some(average) = &self.average {
             q.copy_from(average);
         }
     }

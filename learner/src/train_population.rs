@@ -251,7 +251,7 @@ impl<'a> MemberRun<'a> {
         Ok(Self {
             order: MinibatchOrder::new(rows, cfg.batch.min(rows), m.seed),
             guard: ValueGuard::new(cfg, &m.init, m.data),
-            average: Average::new(cfg, &m.init),
+            average: Average::new(cfg),
             csv: match m.out_dir {
                 Some(dir) => Some(CsvLog::create(&dir.join("train.csv"), CSV_HEADER)?),
                 None => None,

@@ -137,6 +137,18 @@ fn alone(
     data: &Batch,
     seed: u64,
 ) -> (QNetwork, Vec<EpochRow>) {
+    alone_scored(cfg, algorithm, init, data, seed, &mut Exact)
+}
+
+/// [`alone`] scored by `evaluator`.
+fn alone_scored(
+    cfg: &Config,
+    algorithm: Loss,
+    init: u64,
+    data: &Batch,
+    seed: u64,
+    evaluator: &mut dyn EvaluatePolicy,
+) -> (QNetwork, Vec<EpochRow>) {
     let mut q = QNetworkConfig::new(3, 5, &cfg.learner.hidden).init(init);
     let opts = TrainOptions {
         algorithm,
@@ -146,7 +158,7 @@ fn alone(
         progress: false,
         on_step: OnStep::default(),
     };
-    let rows = train(&mut q, data, &opts, &mut Exact).unwrap();
+    let rows = train(&mut q, data, &opts, evaluator).unwrap();
     (q, rows)
 }
 
@@ -250,17 +262,8 @@ fn averaging_publishes_the_bias_corrected_average_of_the_epochs_networks() {
     cfg.learner.epochs = 5;
     let data = Batch::new(&dataset(400), &cfg.world, cfg.learner.reward_scale).unwrap();
     let run = |cfg: &Config| {
-        let mut q = QNetworkConfig::new(3, 5, &cfg.learner.hidden).init(2);
-        let opts = TrainOptions {
-            algorithm: Loss::Cql,
-            config: cfg,
-            seed: 6,
-            out_dir: None,
-            progress: false,
-            on_step: OnStep::default(),
-        };
         let mut recorder = Recorder(Vec::new());
-        train(&mut q, &data, &opts, &mut recorder).unwrap();
+        let (q, _) = alone_scored(cfg, Loss::Cql, 2, &data, 6, &mut recorder);
         (q, recorder.0)
     };
     let (last, raw) = run(&cfg);
