@@ -4,7 +4,14 @@
 //! The evaluator runs the same episodes as [`crate::rollout::evaluate`] with a [`QPolicy`] (every
 //! start cell of a deterministic world, Monte-Carlo episodes where the rain moves), but steps all
 //! of them in lockstep (every episode lasts the horizon) so that each step is one forward pass
-//! over an `[episodes, D]` batch rather than `episodes` passes over one row.
+//! over an `[episodes, D]` batch rather than `episodes` passes over one row. Where the world is
+//! deterministic its state is the observation, so an episode that comes to a state some episode
+//! stood in before (another start cell's path, or its own lap) takes that episode's steps from
+//! there on (`Paths`): the batch holds one row per state not seen yet, and a trained policy,
+//! whose paths join its lap within a few steps, needs a small part of the rows (SPEC section 5's
+//! exact evaluation, unchanged: each start cell keeps its own return, AoI, power and outages).
+
+use std::collections::HashMap;
 
 use tch::Tensor;
 use uavmeta_learner::qnet::QNetwork;
@@ -13,7 +20,7 @@ use uavmeta_proto::config::{Config, TaskConfig, WorldConfig};
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 
 use crate::rollout::{evaluation_worlds, EpisodeTally, Policy};
-use crate::world::World;
+use crate::world::{Step, World};
 
 /// `argmax_a Q(s, a)` on the normalised observation.
 pub struct QPolicy<'a> {
@@ -38,6 +45,9 @@ impl Policy for QPolicy<'_> {
         self.q.greedy(&obs).int64_value(&[0]) as usize
     }
 }
+
+/// Each episode of an evaluation: its start cell `(x, y)` and its metrics.
+pub type StartEpisodes = Vec<((u16, u16), EpisodeMetrics)>;
 
 /// Evaluation of greedy Q-policies on one task, always over the same episodes
 /// ([`crate::rollout::evaluation_worlds`]).
@@ -73,10 +83,17 @@ impl Evaluator {
 impl Evaluator {
     /// Each evaluation episode of `q`'s greedy policy: its start cell `(x, y)` and its metrics, in
     /// the order of [`evaluation_worlds`].
-    pub fn episodes(&self, q: &QNetwork) -> Vec<((u16, u16), EpisodeMetrics)> {
+    pub fn episodes(&self, q: &QNetwork) -> StartEpisodes {
+        self.run(q).0
+    }
+
+    /// [`Evaluator::episodes`], and how many observations went through `q` (at most episodes x
+    /// horizon: episodes that meet in one state of a deterministic world share their remaining
+    /// steps, so the batch shrinks as the greedy policy's paths join).
+    fn run(&self, q: &QNetwork) -> (StartEpisodes, usize) {
         let mut worlds = evaluation_worlds(&self.world, &self.task, self.episodes, self.seed);
         if worlds.is_empty() {
-            return Vec::new();
+            return (Vec::new(), 0);
         }
         worlds.iter_mut().for_each(World::reset);
         let starts: Vec<(u16, u16)> = worlds
@@ -84,23 +101,122 @@ impl Evaluator {
             .map(|w| (w.observation()[0], w.observation()[1]))
             .collect();
         let (e, d) = (worlds.len(), q.obs_len());
+        let horizon = self.world.horizon as usize;
+        let mut paths = Paths::new(e, horizon, worlds[0].is_deterministic());
         let mut obs = vec![0f32; e * d];
         let mut actions = vec![0i64; e];
-        let mut tallies = vec![EpisodeTally::default(); e];
-        for _ in 0..self.world.horizon {
-            for (world, row) in worlds.iter().zip(obs.chunks_exact_mut(d)) {
-                world.write_normalised(row);
+        let mut rows = 0;
+        for t in 0..horizon {
+            paths.join(&worlds, t);
+            let live = paths.live().to_vec();
+            rows += live.len();
+            for (&w, row) in live.iter().zip(obs.chunks_exact_mut(d)) {
+                worlds[w].write_normalised(row);
             }
-            let batch = Tensor::from_slice(&obs).view([e as i64, d as i64]); // [E, D]
-            q.greedy(&batch).copy_data(&mut actions, e); // [E]
-            for ((world, &action), tally) in worlds.iter_mut().zip(&actions).zip(&mut tallies) {
-                tally.add(&world.step(action as usize));
+            let n = live.len();
+            if n > 0 {
+                let batch = Tensor::from_slice(&obs[..n * d]).view([n as i64, d as i64]); // [n, D]
+                q.greedy(&batch).copy_data(&mut actions, n); // [n]
+            }
+            for (&w, &action) in live.iter().zip(&actions) {
+                paths.record(w, t, worlds[w].step(action as usize));
+            }
+            paths.fill_followers(t);
+        }
+        let tallies = (0..e).map(|w| {
+            let mut tally = EpisodeTally::default();
+            (0..horizon).for_each(|t| tally.add(paths.step(w, t)));
+            tally.finish()
+        });
+        let episodes = starts.into_iter().zip(tallies).collect();
+        (episodes, rows)
+    }
+}
+
+/// The episodes of one lockstep evaluation and the step each took at each t. On a deterministic
+/// world the state is the observation, and the policy and the step depend on nothing else (not on
+/// t: the horizon only ends the episode), so once an episode stands in a state that some episode
+/// stood in at t0 (itself, on a lap, or another one, at the same step or earlier) its steps from
+/// now on are that episode's from t0 on: it *follows* it, lag t - t0, and needs no forward pass.
+struct Paths {
+    horizon: usize,
+    deterministic: bool,
+    /// The step of episode w at t, at `[w * horizon + t]`, once known.
+    steps: Vec<Option<Step>>,
+    /// `None` while episode w is stepped itself, then (episode, lag) it follows.
+    follows: Vec<Option<(usize, usize)>>,
+    /// Where each state was first stood in: (episode, t).
+    seen: HashMap<Box<[u16]>, (usize, usize)>,
+    live: Vec<usize>,
+}
+
+impl Paths {
+    fn new(episodes: usize, horizon: usize, deterministic: bool) -> Self {
+        Self {
+            horizon,
+            deterministic,
+            steps: vec![None; episodes * horizon],
+            follows: vec![None; episodes],
+            seen: HashMap::new(),
+            live: (0..episodes).collect(),
+        }
+    }
+
+    /// Before step t: every live episode whose state was stood in before (or just now, by an
+    /// episode earlier in the list) starts following where it was first.
+    fn join(&mut self, worlds: &[World], t: usize) {
+        if !self.deterministic {
+            return;
+        }
+        let (seen, follows) = (&mut self.seen, &mut self.follows);
+        self.live
+            .retain(|&w| match seen.get(worlds[w].observation()) {
+                Some(&(first, t0)) => {
+                    follows[w] = Some((first, t - t0));
+                    false
+                }
+                None => {
+                    seen.insert(worlds[w].observation().into(), (w, t));
+                    true
+                }
+            });
+    }
+
+    /// The episodes stepped by the policy at this step.
+    fn live(&self) -> &[usize] {
+        &self.live
+    }
+
+    fn record(&mut self, w: usize, t: usize, step: Step) {
+        self.steps[w * self.horizon + t] = Some(step);
+    }
+
+    /// Step t of every following episode, from the episode it follows.
+    fn fill_followers(&mut self, t: usize) {
+        for w in 0..self.follows.len() {
+            if self.follows[w].is_some() {
+                let step = *self.resolve(w, t);
+                self.record(w, t, step);
             }
         }
-        starts
-            .into_iter()
-            .zip(tallies.into_iter().map(EpisodeTally::finish))
-            .collect()
+    }
+
+    /// Step t of episode w, through whom it follows: a lag of 0 leads to an episode that was live
+    /// when w joined it (and was followed only later, if at all), a lag above 0 back in time.
+    fn resolve(&self, mut w: usize, mut t: usize) -> &Step {
+        loop {
+            if let Some(step) = &self.steps[w * self.horizon + t] {
+                return step;
+            }
+            let (first, lag) = self.follows[w].expect("an unrecorded step is a following one");
+            (w, t) = (first, t - lag);
+        }
+    }
+
+    fn step(&self, w: usize, t: usize) -> &Step {
+        self.steps[w * self.horizon + t]
+            .as_ref()
+            .expect("every episode's every step is recorded")
     }
 }
 
@@ -116,7 +232,8 @@ mod tests {
     use uavmeta_proto::config::{Config, RainZone};
 
     use super::*;
-    use crate::rollout::evaluate;
+    use crate::rollout::{evaluate, run_episode};
+    use crate::world::Move;
     use uavmeta_learner::qnet::QNetworkConfig;
 
     fn assert_metrics_close(batched: &PolicyMetrics, single: &PolicyMetrics) {
@@ -174,5 +291,55 @@ mod tests {
                 assert_eq!(single.outages.mean > 0.0, task.rain.is_some());
             }
         }
+    }
+
+    /// Episodes that meet share their steps and keep their own returns. The network's greedy
+    /// action is "fly west, serve the stalest device" (Q(west, k) = A_k / aoi_max, every other
+    /// action -1): the AoI is the same in every episode at every step and settles into a round
+    /// robin of period K, and every start cell of a grid row reaches the west edge within L - 1
+    /// steps. So the episodes of a row meet there (lag 0), and each row's path then laps (it
+    /// follows itself, lag K): after the first 2K or so steps no episode needs a forward pass.
+    #[test]
+    fn episodes_that_meet_share_their_steps() {
+        tch::set_num_threads(1);
+        let config = Config::default();
+        let task = TaskConfig::one_off(300.0, None);
+        let (obs_len, actions) = (config.world.observation_len(), config.world.action_count());
+        let k = config.world.devices;
+        let q = QNetworkConfig::new(obs_len, actions, &config.learner.hidden).init(3);
+        let params = q.parameters();
+        let west = Move::West.index() * k;
+        tch::no_grad(|| {
+            for p in &params {
+                let _ = p.shallow_clone().zero_();
+            }
+            for i in 0..k as i64 {
+                // Hidden units i of both layers carry A_i / aoi_max (input 2 + i) through the ReLUs.
+                let _ = params[0].get(i).get(2 + i).fill_(1.0);
+                let _ = params[2].get(i).get(i).fill_(1.0);
+                let _ = params[4].get(west as i64 + i).get(i).fill_(1.0);
+            }
+            let _ = params[5].shallow_clone().fill_(-1.0);
+            let _ = params[5].narrow(0, west as i64, k as i64).fill_(0.0);
+        });
+        let evaluator = Evaluator::new(&config.world, &task, 1, 0);
+        let (batched, rows) = evaluator.run(&q);
+        let worlds = evaluation_worlds(&config.world, &task, 1, 0);
+        let single: Vec<EpisodeMetrics> = worlds
+            .into_iter()
+            .map(|mut world| run_episode(&mut world, &mut QPolicy::new(&q)))
+            .collect();
+        assert_eq!(batched.len(), single.len());
+        for ((_, b), s) in batched.iter().zip(&single) {
+            assert_eq!(b, s);
+        }
+        // Start cells further east stay apart for longer, so returns differ within a grid row.
+        assert_ne!(single[0].ret, single[9].ret);
+        let (episodes, horizon) = (single.len(), config.world.horizon as usize);
+        assert!(
+            rows <= episodes * 3 * k && rows < episodes * horizon / 3,
+            "{rows} rows of {}",
+            episodes * horizon
+        );
     }
 }
