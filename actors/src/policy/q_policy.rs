@@ -121,7 +121,6 @@ impl Evaluator {
             for (&w, &action) in live.iter().zip(&actions) {
                 paths.record(w, t, worlds[w].step(action as usize));
             }
-            paths.fill_followers(t);
         }
         let tallies = (0..e).map(|w| {
             let mut tally = EpisodeTally::default();
@@ -141,7 +140,7 @@ impl Evaluator {
 struct Paths {
     horizon: usize,
     deterministic: bool,
-    /// The step of episode w at t, at `[w * horizon + t]`, once known.
+    /// The step of episode w at t, at `[w * horizon + t]`, for the steps it was live.
     steps: Vec<Option<Step>>,
     /// `None` while episode w is stepped itself, then (episode, lag) it follows.
     follows: Vec<Option<(usize, usize)>>,
@@ -191,19 +190,10 @@ impl Paths {
         self.steps[w * self.horizon + t] = Some(step);
     }
 
-    /// Step t of every following episode, from the episode it follows.
-    fn fill_followers(&mut self, t: usize) {
-        for w in 0..self.follows.len() {
-            if self.follows[w].is_some() {
-                let step = *self.resolve(w, t);
-                self.record(w, t, step);
-            }
-        }
-    }
-
-    /// Step t of episode w, through whom it follows: a lag of 0 leads to an episode that was live
-    /// when w joined it (and was followed only later, if at all), a lag above 0 back in time.
-    fn resolve(&self, mut w: usize, mut t: usize) -> &Step {
+    /// Step t of episode w: its own if it was live then, else the step of whom it follows. A lag
+    /// of 0 leads to an episode that was live when w joined it (and was followed only later, if
+    /// at all), a lag above 0 back in time, so the walk ends at a recorded step.
+    fn step(&self, mut w: usize, mut t: usize) -> &Step {
         loop {
             if let Some(step) = &self.steps[w * self.horizon + t] {
                 return step;
@@ -211,12 +201,6 @@ impl Paths {
             let (first, lag) = self.follows[w].expect("an unrecorded step is a following one");
             (w, t) = (first, t - lag);
         }
-    }
-
-    fn step(&self, w: usize, t: usize) -> &Step {
-        self.steps[w * self.horizon + t]
-            .as_ref()
-            .expect("every episode's every step is recorded")
     }
 }
 
@@ -232,7 +216,7 @@ mod tests {
     use uavmeta_proto::config::{Config, RainZone};
 
     use super::*;
-    use crate::rollout::{evaluate, run_episode};
+    use crate::rollout::{evaluate, evaluate_episodes};
     use crate::world::Move;
     use uavmeta_learner::qnet::QNetworkConfig;
 
@@ -324,11 +308,7 @@ mod tests {
         });
         let evaluator = Evaluator::new(&config.world, &task, 1, 0);
         let (batched, rows) = evaluator.run(&q);
-        let worlds = evaluation_worlds(&config.world, &task, 1, 0);
-        let single: Vec<EpisodeMetrics> = worlds
-            .into_iter()
-            .map(|mut world| run_episode(&mut world, &mut QPolicy::new(&q)))
-            .collect();
+        let single = evaluate_episodes(&config.world, &task, &mut QPolicy::new(&q), 1, 0);
         assert_eq!(batched.len(), single.len());
         for ((_, b), s) in batched.iter().zip(&single) {
             assert_eq!(b, s);
