@@ -105,15 +105,17 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path();
     let out_arg = out.to_str().unwrap();
-    // The agents train three to a population (`collect.population`) and the fine-tuning runs
-    // four (`learner.population`), so the grouped paths of the dataset and fine-tuning stages
-    // are the ones exercised.
+    // The agents train three to a population (`collect.population`), both seeds'
+    // meta-trainings of an init one (`meta.population`) and the fine-tuning runs four
+    // (`learner.population`), so the grouped paths of every stage are the ones exercised.
     succeed(&uavmeta(&[
         "--experiment",
         "all",
         "--quick",
         "--set",
         "collect.population=3",
+        "--set",
+        "meta.population=2",
         "--set",
         "learner.population=4",
         "--out",
@@ -364,7 +366,11 @@ fn unknown_experiments_and_bad_sections_are_refused_by_name() {
             "{stderr}"
         );
     }
-    for key in ["collect.population", "learner.population"] {
+    for key in [
+        "collect.population",
+        "meta.population",
+        "learner.population",
+    ] {
         let stderr = refused(&format!("{key}=0"));
         assert!(
             stderr.contains(key) && stderr.contains("at least 1"),

@@ -162,6 +162,24 @@ impl QPopulation {
         });
     }
 
+    /// Polyak averaging of every member toward `other`'s same member, as
+    /// [`QNetwork::average_toward`]: self <- decay * self + (1 - decay) * other.
+    ///
+    /// # Panics
+    /// If the two populations differ in architecture or size.
+    pub fn average_toward(&mut self, other: &QPopulation, decay: f64) {
+        assert_eq!(
+            (&self.config, self.members),
+            (&other.config, other.members),
+            "average_toward between populations of different shapes"
+        );
+        tch::no_grad(|| {
+            for (dst, src) in self.params.iter_mut().zip(&other.params) {
+                let _ = dst.g_mul_scalar_(decay).g_add_(&(src * (1.0 - decay)));
+            }
+        });
+    }
+
     /// A new population of the same shape with a copy of this one's parameter values.
     pub fn duplicate(&self) -> QPopulation {
         let device = self.vs.device();

@@ -5,6 +5,8 @@
 //! - [`maml`]: Algorithm 4 (eqs. 14-16) on [`uavmeta_learner::qnet::QNetwork`] fast weights, with
 //!   the CQL loss (CQL-MAML) or the DQN loss (DQN-MAML), second or first order; its module doc
 //!   says how the target network is handled and why.
+//! - [`maml_population`]: N meta-learners of one shape (several seeds of one init) in lockstep,
+//!   each member its separate [`maml::Maml`] up to float rounding.
 //! - [`meta_train`]: meta-training from one dataset file per meta-train task
 //!   (`<task-name>.uavds`), with a per-meta-epoch CSV, adapted-policy returns and `w0` checkpoints.
 //! - [`pretrain`]: CQL-pretrain, one CQL network on the union of the meta-train tasks' shots,
@@ -45,6 +47,7 @@
 
 pub mod fine_tune;
 pub mod maml;
+pub mod maml_population;
 pub mod meta_train;
 pub mod pretrain;
 
@@ -62,6 +65,12 @@ use uavmeta_proto::dataset::DatasetError;
 pub enum MetaError {
     #[error("meta-training needs at least one task")]
     NoTasks,
+    #[error("meta-training population member {member}: {got}; expected {expected}: a population's members share one shape (group them by it)")]
+    PopulationShape {
+        member: usize,
+        got: String,
+        expected: String,
+    },
     #[error("{origin}: no task has role = \"meta-train\"; meta-training needs at least one")]
     NoMetaTrainTasks { origin: String },
     // The source is not in the message: `{:#}` prints the cause chain after it.

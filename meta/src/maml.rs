@@ -194,9 +194,8 @@ impl MamlConfig {
         target: &[Tensor],
         support: &StackedShots,
     ) -> Vec<Tensor> {
-        let second_order = !self.meta.first_order;
         let tasks = support.tasks();
-        let mut w: Vec<Tensor> = w0
+        let w = w0
             .iter()
             .map(|p| {
                 let mut stacked = vec![tasks];
@@ -204,6 +203,18 @@ impl MamlConfig {
                 p.unsqueeze(0).expand(stacked, false)
             })
             .collect();
+        self.adapt_slots(w, step, target, support)
+    }
+
+    /// Eq. 14's steps from `w`, already one network per task of `support` ([T, ..]).
+    fn adapt_slots(
+        &self,
+        mut w: Vec<Tensor>,
+        step: StepSize,
+        target: &[Tensor],
+        support: &StackedShots,
+    ) -> Vec<Tensor> {
+        let second_order = !self.meta.first_order;
         for _ in 0..self.meta.inner_steps {
             let loss = self.task_losses(&w, target, support).sum(None);
             // torch.autograd.grad(loss, w, retain_graph=create_graph=second_order)
@@ -244,6 +255,64 @@ impl MamlConfig {
         query_losses.sum(None).backward();
         Vec::<f64>::try_from(query_losses.detach().to_kind(Kind::Double))
             .expect("a [T] loss tensor")
+    }
+
+    /// [`backward_meta_loss`](Self::backward_meta_loss) for a population of meta-learners:
+    /// member m's `w0` is `w0[m]` (stacked leaves, [N, ..], as are Meta-SGD's step sizes and the
+    /// target networks) and its tasks are `tasks[m]`, the same number for every member. The N x T
+    /// (member, task) pairs go through one stacked computation; member m's leaves receive the
+    /// gradient of its own meta-loss only, as no pair reads another member's weights. Returns
+    /// each member's query losses.
+    ///
+    /// A population of one runs the single meta-learner's computation on views of its leaves,
+    /// so it is that meta-learner bit for bit.
+    pub fn backward_meta_loss_population(
+        &self,
+        w0: &[Tensor],
+        step: StepSize,
+        target: &[Tensor],
+        tasks: &[Vec<TaskShots>],
+    ) -> Vec<Vec<f64>> {
+        let single = |ts: &[Tensor]| ts.iter().map(|t| t.squeeze_dim(0)).collect::<Vec<_>>();
+        if tasks.len() == 1 {
+            let lr = match step {
+                StepSize::PerWeight(lr) => Some(single(lr)),
+                StepSize::Shared => None,
+            };
+            let step = lr.as_deref().map_or(StepSize::Shared, StepSize::PerWeight);
+            return vec![self.backward_meta_loss(&single(w0), step, &single(target), &tasks[0])];
+        }
+        let (members, per_member) = (tasks.len() as i64, tasks[0].len() as i64);
+        // [N, ..] -> [N * T, ..]: member m's tensor at slots m*T .. (m+1)*T.
+        let slots = |ts: &[Tensor]| -> Vec<Tensor> {
+            ts.iter()
+                .map(|t| {
+                    let mut shape = vec![members, per_member];
+                    shape.extend(&t.size()[1..]);
+                    let mut flat = vec![members * per_member];
+                    flat.extend(&t.size()[1..]);
+                    t.unsqueeze(1).expand(shape, false).reshape(flat)
+                })
+                .collect()
+        };
+        let lr = match step {
+            StepSize::PerWeight(lr) => Some(slots(lr)),
+            StepSize::Shared => None,
+        };
+        let step = lr.as_deref().map_or(StepSize::Shared, StepSize::PerWeight);
+        let target = slots(target);
+        let pairs = |pick: fn(&TaskShots) -> &Batch| {
+            StackedShots::stack(&tasks.iter().flatten().map(pick).collect::<Vec<_>>())
+        };
+        let w = self.adapt_slots(slots(w0), step, &target, &pairs(|t| &t.support)); // eq. 14
+        let query_losses = self.task_losses(&w, &target, &pairs(|t| &t.query)); // eq. 15's terms
+        query_losses.sum(None).backward();
+        let losses = Vec::<f64>::try_from(query_losses.detach().to_kind(Kind::Double))
+            .expect("an [N * T] loss tensor");
+        losses
+            .chunks(per_member as usize)
+            .map(<[f64]>::to_vec)
+            .collect()
     }
 }
 
@@ -381,6 +450,76 @@ fn sample_rows(batch: &Batch, amount: usize, rng: &mut ChaCha8Rng) -> Batch {
     batch.select(&Tensor::from_slice(&rows))
 }
 
+/// One meta-learner's draws through one meta-epoch (every one from its own `rng`, in this
+/// order: the support passes, then at each outer step the tasks and their shots) and the losses
+/// they gave.
+pub(crate) struct EpochDraws {
+    passes: Vec<SupportPass>,
+    loss_sums: Vec<(f64, usize)>,
+    meta_loss: f64,
+    steps: usize,
+}
+
+impl EpochDraws {
+    pub(crate) fn new(tasks: &[MetaTask], rng: &mut ChaCha8Rng) -> Self {
+        Self {
+            passes: (tasks.iter())
+                .map(|t| SupportPass::new(t.support.len(), rng))
+                .collect(),
+            loss_sums: vec![(0.0, 0); tasks.len()],
+            meta_loss: 0.0,
+            steps: 0,
+        }
+    }
+
+    /// The next outer step's task indices (ascending; all of them when `tasks_per_meta_epoch`
+    /// is 0), each with the next k support shots of its pass and fresh query shots.
+    pub(crate) fn next(
+        &mut self,
+        meta: &MetaConfig,
+        tasks: &[MetaTask],
+        rng: &mut ChaCha8Rng,
+    ) -> (Vec<usize>, Vec<TaskShots>) {
+        let count = match meta.tasks_per_meta_epoch {
+            0 => tasks.len(),
+            n => n.min(tasks.len()),
+        };
+        let mut picked = index::sample(rng, tasks.len(), count).into_vec();
+        picked.sort_unstable();
+        let shots = picked
+            .iter()
+            .map(|&i| TaskShots {
+                support: self.passes[i].take(&tasks[i].support, meta.shots, rng),
+                query: sample_rows(&tasks[i].query, meta.query_shots, rng),
+            })
+            .collect();
+        (picked, shots)
+    }
+
+    /// The query losses of the tasks `picked` at one outer step.
+    pub(crate) fn record(&mut self, picked: Vec<usize>, losses: Vec<f64>) {
+        self.meta_loss += losses.iter().sum::<f64>();
+        self.steps += 1;
+        for (i, loss) in picked.into_iter().zip(losses) {
+            self.loss_sums[i].0 += loss;
+            self.loss_sums[i].1 += 1;
+        }
+    }
+
+    /// The meta-epoch's figures, as meta-epoch `epoch` (counting from 1).
+    pub(crate) fn finish(self, epoch: usize) -> MetaEpoch {
+        MetaEpoch {
+            epoch,
+            outer_steps: self.steps,
+            meta_loss: self.meta_loss / self.steps as f64,
+            task_losses: (self.loss_sums.into_iter().enumerate())
+                .filter(|(_, (_, n))| *n > 0)
+                .map(|(i, (sum, n))| (i, sum / n as f64))
+                .collect(),
+        }
+    }
+}
+
 /// What one meta-epoch did.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MetaEpoch {
@@ -398,23 +537,23 @@ pub struct MetaEpoch {
 /// The meta-learner: `w0`, Meta-SGD's step sizes, the target network and the outer Adam
 /// optimiser.
 pub struct Maml {
-    config: MamlConfig,
+    pub(crate) config: MamlConfig,
     /// The iterate eq. 16 updates.
-    w0: QNetwork,
+    pub(crate) w0: QNetwork,
     /// The moving average of `w0` published as the init, when `w0_average_decay` > 0.
-    average: Option<QNetwork>,
+    pub(crate) average: Option<QNetwork>,
     /// Meta-SGD's per-weight step sizes (leaves that require grad), when `learn_inner_lr`.
-    inner_lr: Option<Vec<Tensor>>,
-    target: QNetwork,
-    optimizer: FusedAdam,
-    rng: ChaCha8Rng,
-    epochs_done: usize,
+    pub(crate) inner_lr: Option<Vec<Tensor>>,
+    pub(crate) target: QNetwork,
+    pub(crate) optimizer: FusedAdam,
+    pub(crate) rng: ChaCha8Rng,
+    pub(crate) epochs_done: usize,
     /// Called at every outer step.
-    on_step: OnStep,
+    pub(crate) on_step: OnStep,
 }
 
 /// What eq. 16 updates: `w0`'s parameters, then Meta-SGD's step sizes if learned.
-fn meta_parameters(w0: &QNetwork, inner_lr: &Option<Vec<Tensor>>) -> Vec<Tensor> {
+pub(crate) fn meta_parameters(w0: &QNetwork, inner_lr: &Option<Vec<Tensor>>) -> Vec<Tensor> {
     let mut params = w0.parameters();
     params.extend(inner_lr.iter().flatten().map(Tensor::shallow_clone));
     params
@@ -623,24 +762,10 @@ impl Maml {
         self.optimizer
             .set_lr(self.config.eta_outer_at(self.epochs_done));
         let steps = self.config.outer_steps(tasks);
-        let (k, query_k) = (self.config.meta.shots, self.config.meta.query_shots);
-        let mut passes: Vec<SupportPass> = tasks
-            .iter()
-            .map(|t| SupportPass::new(t.support.len(), &mut self.rng))
-            .collect();
-        let mut loss_sums = vec![(0.0, 0usize); tasks.len()];
-        let mut meta_loss = 0.0;
+        let mut draws = EpochDraws::new(tasks, &mut self.rng);
         for _ in 0..steps {
             self.on_step.step();
-            let picked = self.sample_tasks(tasks.len());
-            // The next k support shots and fresh query shots of each sampled task.
-            let shots: Vec<TaskShots> = picked
-                .iter()
-                .map(|&i| TaskShots {
-                    support: passes[i].take(&tasks[i].support, k, &mut self.rng),
-                    query: sample_rows(&tasks[i].query, query_k, &mut self.rng),
-                })
-                .collect();
+            let (picked, shots) = draws.next(&self.config.meta, tasks, &mut self.rng);
             // Eqs. 14-15, with the meta-gradient accumulated into w0's (and the step sizes')
             // gradients.
             self.optimizer.zero_grad();
@@ -654,36 +779,10 @@ impl Maml {
             // Eq. 16: Adam(eta_outer) on w0 (and the step sizes).
             self.optimizer.step();
             self.update_average();
-            meta_loss += losses.iter().sum::<f64>();
-            for (i, loss) in picked.into_iter().zip(losses) {
-                loss_sums[i].0 += loss;
-                loss_sums[i].1 += 1;
-            }
+            draws.record(picked, losses);
         }
         self.epochs_done += 1;
-        Ok(MetaEpoch {
-            epoch: self.epochs_done,
-            outer_steps: steps,
-            meta_loss: meta_loss / steps as f64,
-            task_losses: loss_sums
-                .into_iter()
-                .enumerate()
-                .filter(|(_, (_, n))| *n > 0)
-                .map(|(i, (sum, n))| (i, sum / n as f64))
-                .collect(),
-        })
-    }
-
-    /// The task indices of one outer step, ascending: all of them when `tasks_per_meta_epoch`
-    /// is 0.
-    fn sample_tasks(&mut self, tasks: usize) -> Vec<usize> {
-        let count = match self.config.meta.tasks_per_meta_epoch {
-            0 => tasks,
-            n => n.min(tasks),
-        };
-        let mut picked = index::sample(&mut self.rng, tasks, count).into_vec();
-        picked.sort_unstable();
-        picked
+        Ok(draws.finish(self.epochs_done))
     }
 
     /// `L_meta` (eq. 15) of `w0` on the given shots, without changing anything: the adaptation

@@ -16,6 +16,9 @@
 //!   started again with `resume` continues from its latest checkpoint exactly as an
 //!   uninterrupted run does.
 //!
+//! [`meta_train_population`] runs several such runs (one init's seeds) as one
+//! [`MamlPopulation`], each run's directory getting what `meta_train` would write there.
+//!
 //! The meta-learner process runs the same loop through [`meta_train_with`], with a hook that
 //! puts the checkpoints into its run directory and announces them.
 
@@ -24,17 +27,19 @@ use std::time::Instant;
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
+use tch::Device;
 use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::progress::{progress_bar, CsvLog, OnStep};
-use uavmeta_learner::qnet::QNetworkConfig;
+use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_proto::config::{Config, MetaConfig, TaskConfig, TaskRole};
 use uavmeta_proto::dataset::{self, DatasetReader};
 use uavmeta_proto::method::Method;
 
 use crate::maml::{Maml, MamlConfig, MetaEpoch, MetaTask};
+use crate::maml_population::MamlPopulation;
 use crate::{create_dir, write_file, MetaError};
 
 /// One meta-training run.
@@ -181,21 +186,11 @@ pub fn meta_train_with<H: MetaTrainHook>(
     opts: &MetaTrainOptions,
     hook: &mut H,
 ) -> Result<Option<MetaTrainResult>, H::Error> {
-    let config = opts.config;
-    let meta = &config.meta;
-    let (tasks, meta_tasks) = load_tasks(config, opts.datasets, opts.seed)?;
-    let out = opts.out_dir;
-    create_dir(out)?;
-    write_file(&out.join("config.toml"), &config.to_toml_string())?;
+    let meta = &opts.config.meta;
+    let mut log = RunLog::open(opts)?;
     let (maml, start) = start_or_resume(opts, hook)?;
     let mut maml = maml.with_on_step(opts.on_step.clone());
-    let mut csv = open_csv(&out.join("meta_train.csv"), &tasks, start)?;
-    let mut evaluators: Vec<Evaluator> = tasks
-        .iter()
-        .map(|t| Evaluator::from_config(config, t))
-        .collect();
-    let algorithm = Method::maml(meta.inner_loss).name();
-
+    log.open_csv(start)?;
     let bar = progress_bar(
         opts.progress,
         meta.meta_epochs as u64,
@@ -205,37 +200,11 @@ pub fn meta_train_with<H: MetaTrainHook>(
     let started = Instant::now();
     let mut rows = Vec::with_capacity(meta.meta_epochs - start);
     for e in start + 1..=meta.meta_epochs {
-        let epoch = maml.meta_epoch(&meta_tasks)?;
-        let evaluate = e == meta.meta_epochs || (meta.eval_every > 0 && e % meta.eval_every == 0);
-        let evaluation =
-            evaluate.then(|| evaluation(&maml, meta, &meta_tasks, &mut evaluators, opts.seed, e));
-        let row = MetaRow {
-            epoch,
-            evaluation,
-            seconds: started.elapsed().as_secs_f64(),
-        };
-        csv.line(&csv_line(&row, tasks.len()))
-            .map_err(MetaError::from)?;
-        bar.set_message(format!("meta-loss {:.4}", row.epoch.meta_loss));
-        if let Some(evaluation) = &row.evaluation {
-            let mean = |returns: &[f64]| returns.iter().sum::<f64>() / returns.len() as f64;
-            bar.suspend(|| {
-                tracing::info!(
-                    meta_epoch = e,
-                    meta_loss = row.epoch.meta_loss,
-                    mean_adapted = mean(&evaluation.adapted),
-                    mean_zero_shot = mean(&evaluation.zero_shot),
-                    "greedy returns"
-                )
-            });
-        }
-        bar.inc(1);
+        let epoch = maml.meta_epoch(&log.meta_tasks)?;
         let checkpoint = is_checkpoint_epoch(meta, e).then(|| hook.checkpoint_path(e));
-        if let Some(path) = &checkpoint {
-            // The state first: the checkpoint's metadata, written last, marks both complete.
-            maml.save_state(path).map_err(MetaError::from)?;
-            checkpoint::save(path, maml.w0(), algorithm, e, config).map_err(MetaError::from)?;
-        }
+        let row = bar.suspend(|| log.after_epoch(&maml, epoch, checkpoint.as_deref(), started))?;
+        bar.set_message(format!("meta-loss {:.4}", row.epoch.meta_loss));
+        bar.inc(1);
         let keep_going = hook.after_epoch(&row, checkpoint.as_deref())?;
         rows.push(row);
         if !keep_going {
@@ -244,7 +213,188 @@ pub fn meta_train_with<H: MetaTrainHook>(
     }
     bar.finish_and_clear();
     let w0 = hook.checkpoint_path(meta.meta_epochs);
-    Ok(Some(MetaTrainResult { tasks, rows, w0 }))
+    Ok(Some(MetaTrainResult {
+        tasks: log.tasks,
+        rows,
+        w0,
+    }))
+}
+
+/// Meta-trains the runs `runs` (configs alike but for the seed; each run its own datasets, output
+/// directory and seed) as one [`MamlPopulation`] on `device`, with the CLI's checkpoint files:
+/// each run's directory ends with what [`meta_train`] writes there, up to float rounding (bit for
+/// bit for a population of one). A population always starts from its members' inits
+/// (`resume` is not read) and calls the first run's `on_step` at every lockstep outer step.
+pub fn meta_train_population(
+    runs: &[MetaTrainOptions],
+    device: Device,
+) -> Result<Vec<MetaTrainResult>, MetaError> {
+    let first = runs.first().ok_or(MetaError::NoTasks)?;
+    let (config, meta) = (first.config, &first.config.meta);
+    let settings = MamlConfig::from_config(config);
+    for (member, run) in runs.iter().enumerate() {
+        let c = run.config;
+        if (MamlConfig::from_config(c), &c.learner.hidden, &c.world)
+            != (settings.clone(), &config.learner.hidden, &config.world)
+        {
+            return Err(MetaError::PopulationShape {
+                member,
+                got: format!(
+                    "{}: other [meta], [learner] TD options, hidden or [world]",
+                    c.origin
+                ),
+                expected: format!("those of member 0 ({})", config.origin),
+            });
+        }
+    }
+    let mut logs = runs
+        .iter()
+        .map(|run| {
+            let mut log = RunLog::open(run)?;
+            log.open_csv(0)?;
+            Ok(log)
+        })
+        .collect::<Result<Vec<_>, MetaError>>()?;
+    let w0s: Vec<QNetwork> = (runs.iter())
+        .map(|run| QNetworkConfig::for_world(&run.config.world, &run.config.learner.hidden))
+        .zip(runs)
+        .map(|(net, run)| net.init(run.seed))
+        .collect();
+    let seeds: Vec<u64> = runs.iter().map(|run| run.seed).collect();
+    let mut population =
+        MamlPopulation::new(&w0s, settings, &seeds, device).with_on_step(first.on_step.clone());
+    let bar = progress_bar(
+        first.progress,
+        meta.meta_epochs as u64,
+        "{bar:40} {pos}/{len} meta-epochs of a population {eta}",
+    );
+    let started = Instant::now();
+    let mut rows: Vec<Vec<MetaRow>> = runs.iter().map(|_| Vec::new()).collect();
+    for e in 1..=meta.meta_epochs {
+        let tasks: Vec<&[MetaTask]> = logs.iter().map(|log| log.meta_tasks.as_slice()).collect();
+        let epochs = population.meta_epoch(&tasks)?;
+        let unstack = is_checkpoint_epoch(meta, e) || is_evaluation_epoch(meta, e);
+        for (m, (epoch, log)) in epochs.into_iter().zip(&mut logs).enumerate() {
+            // Only evaluated and checkpointed meta-epochs need the member as a Maml of its own.
+            let (maml, checkpoint) = match unstack {
+                true => (Some(population.member(m)), is_checkpoint_epoch(meta, e)),
+                false => (None, false),
+            };
+            let files = CheckpointFiles {
+                out_dir: runs[m].out_dir,
+                meta_epochs: meta.meta_epochs,
+            };
+            let path = checkpoint.then(|| files.checkpoint_path(e));
+            let row = match &maml {
+                Some(maml) => log.after_epoch(maml, epoch, path.as_deref(), started)?,
+                None => log.log_row(epoch, None, started)?,
+            };
+            rows[m].push(row);
+        }
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    Ok(logs
+        .into_iter()
+        .zip(rows)
+        .zip(runs)
+        .map(|((log, rows), run)| MetaTrainResult {
+            tasks: log.tasks,
+            rows,
+            w0: run.out_dir.join("w0"),
+        })
+        .collect())
+}
+
+/// One run's tasks, the evaluators of their environments and its `meta_train.csv`.
+struct RunLog<'a> {
+    opts: &'a MetaTrainOptions<'a>,
+    tasks: Vec<TaskConfig>,
+    meta_tasks: Vec<MetaTask>,
+    evaluators: Vec<Evaluator>,
+    csv: Option<CsvLog>,
+}
+
+impl<'a> RunLog<'a> {
+    /// Reads the run's tasks, and creates its output directory with its `config.toml`.
+    fn open(opts: &'a MetaTrainOptions<'a>) -> Result<Self, MetaError> {
+        let config = opts.config;
+        let (tasks, meta_tasks) = load_tasks(config, opts.datasets, opts.seed)?;
+        create_dir(opts.out_dir)?;
+        write_file(&opts.out_dir.join("config.toml"), &config.to_toml_string())?;
+        let evaluators = (tasks.iter())
+            .map(|t| Evaluator::from_config(config, t))
+            .collect();
+        Ok(Self {
+            opts,
+            tasks,
+            meta_tasks,
+            evaluators,
+            csv: None,
+        })
+    }
+
+    /// Opens `meta_train.csv`, keeping the rows of meta-epochs `1..=kept`.
+    fn open_csv(&mut self, kept: usize) -> Result<(), MetaError> {
+        let path = self.opts.out_dir.join("meta_train.csv");
+        self.csv = Some(open_csv(&path, &self.tasks, kept)?);
+        Ok(())
+    }
+
+    /// What follows meta-epoch `epoch` of `maml`: every task's evaluation when one is due, the
+    /// CSV line, and w0's checkpoint at `checkpoint` (its training state first: the
+    /// checkpoint's metadata, written last, marks both complete).
+    fn after_epoch(
+        &mut self,
+        maml: &Maml,
+        epoch: MetaEpoch,
+        checkpoint: Option<&Path>,
+        started: Instant,
+    ) -> Result<MetaRow, MetaError> {
+        let (config, e) = (self.opts.config, epoch.epoch);
+        let evaluation = is_evaluation_epoch(&config.meta, e).then(|| {
+            let (meta, seed) = (&config.meta, self.opts.seed);
+            evaluation(maml, meta, &self.meta_tasks, &mut self.evaluators, seed, e)
+        });
+        if let Some(evaluation) = &evaluation {
+            let mean = |returns: &[f64]| returns.iter().sum::<f64>() / returns.len() as f64;
+            tracing::info!(
+                seed = self.opts.seed,
+                meta_epoch = e,
+                meta_loss = epoch.meta_loss,
+                mean_adapted = mean(&evaluation.adapted),
+                mean_zero_shot = mean(&evaluation.zero_shot),
+                "greedy returns"
+            );
+        }
+        let row = self.log_row(epoch, evaluation, started)?;
+        if let Some(path) = checkpoint {
+            let algorithm = Method::maml(config.meta.inner_loss).name();
+            maml.save_state(path)?;
+            checkpoint::save(path, maml.w0(), algorithm, e, config)?;
+        }
+        Ok(row)
+    }
+
+    /// The row of meta-epoch `epoch`, written to the CSV.
+    fn log_row(
+        &mut self,
+        epoch: MetaEpoch,
+        evaluation: Option<Evaluation>,
+        started: Instant,
+    ) -> Result<MetaRow, MetaError> {
+        let row = MetaRow {
+            epoch,
+            evaluation,
+            seconds: started.elapsed().as_secs_f64(),
+        };
+        let csv = self
+            .csv
+            .as_mut()
+            .expect("open_csv runs before the first meta-epoch");
+        csv.line(&csv_line(&row, self.tasks.len()))?;
+        Ok(row)
+    }
 }
 
 /// Every task's greedy returns after meta-epoch `epoch`, adapted and zero-shot.
@@ -288,6 +438,12 @@ fn adapted_return(
         })
         .sum();
     total / adaptations as f64
+}
+
+/// Whether every task is evaluated after meta-epoch `epoch`: every `meta.eval_every` and after the
+/// last.
+fn is_evaluation_epoch(meta: &MetaConfig, epoch: usize) -> bool {
+    epoch == meta.meta_epochs || (meta.eval_every > 0 && epoch.is_multiple_of(meta.eval_every))
 }
 
 /// Whether w0 is checkpointed after meta-epoch `epoch`.

@@ -20,8 +20,9 @@
 //!    experiments: every dataset, reference agent, w0 and fine-tuning run they need, each once
 //!    (CQL-MAML on the first `meta_tasks` tasks is meta-trained once per seed and serves figures
 //!    4, 5, 6, 8 and 9).
-//! 2. The heuristics' reference lines (random, stalest, greedy), which depend on no seed.
-//! 3. Seeds 0..N-1 on a pool of `jobs` threads, each item through the same code paths as the
+//! 2. The reference lines (random, stalest, greedy, the planner), which depend on no seed, and
+//!    beside them on the same pool of `jobs` threads:
+//! 3. Seeds 0..N-1, each item through the same code paths as the
 //!    runtime: `collect` with the online DQN behaviour policy (`collect.seed + s`), its agent as
 //!    the online reference, `meta_train`, and `fine_tune`'s `fine_tune` with the greedy policy
 //!    evaluated after every epoch. Results are kept in seed order, so they do not depend on
@@ -230,8 +231,15 @@ pub fn run(opts: &ReproduceOptions) -> Result<ReproduceReport, ReproduceError> {
         });
     }
     let plan = plan(config, r, opts.experiments);
-    let heuristics = heuristic_refs(config, &plan, opts.jobs)?;
-    let seeds = run_seeds(opts, r, &plan)?;
+    // The reference rows need no seed's work and the seeds none of theirs: on one pool, each
+    // fills the cores the other's stage leaves idle at its end.
+    let (heuristics, seeds) = worker_pool(opts.jobs)?.install(|| {
+        rayon::join(
+            || heuristic_refs(config, &plan),
+            || run_seeds(opts, r, &plan),
+        )
+    });
+    let seeds = seeds?;
 
     let ctx = figures::Context {
         config,
@@ -402,40 +410,45 @@ fn plan(config: &Config, r: &ReproduceConfig, experiments: &[Experiment]) -> Pla
 }
 
 /// The reference policies (random, the heuristics, the planner) on every reference task of the
-/// plan: seed-free, so computed once, the tasks spread over `jobs` threads (the planner's four
+/// plan: seed-free, so computed once, the tasks spread over the current pool (the planner's four
 /// searches take about half a minute per task).
-fn heuristic_refs(
-    config: &Config,
-    plan: &Plan,
-    jobs: usize,
-) -> Result<Vec<HeuristicRef>, ReproduceError> {
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(jobs.max(1))
-        .build()?;
-    Ok(pool.install(|| {
-        plan.references
-            .par_iter()
-            .map(|need| {
-                let task = config
-                    .task(&need.key.task)
-                    .expect("ReproduceConfig::of and rain_tasks name existing tasks");
-                let episodes = need.key.episodes;
-                let policies = reference_metrics(config, task, episodes)
-                    .into_iter()
-                    .map(|(spec, metrics)| (spec.name(), metrics))
-                    .collect();
-                HeuristicRef {
-                    task: task.name.clone(),
-                    episodes,
-                    policies,
-                }
-            })
-            .collect()
-    }))
+fn heuristic_refs(config: &Config, plan: &Plan) -> Vec<HeuristicRef> {
+    plan.references
+        .par_iter()
+        .with_max_len(1)
+        .map(|need| {
+            let task = config
+                .task(&need.key.task)
+                .expect("ReproduceConfig::of and rain_tasks name existing tasks");
+            let episodes = need.key.episodes;
+            let policies = reference_metrics(config, task, episodes)
+                .into_iter()
+                .map(|(spec, metrics)| (spec.name(), metrics))
+                .collect();
+            HeuristicRef {
+                task: task.name.clone(),
+                episodes,
+                policies,
+            }
+        })
+        .collect()
 }
 
-/// Every item of the plan for every seed, on a pool of `opts.jobs` threads; results in seed
-/// order, so they do not depend on `jobs`.
+/// The pool every stage of a reproduction runs on: `jobs` worker threads.
+///
+/// libtorch's OpenMP thread count is a per-thread setting: a new thread starts with one per
+/// core, and two workers spin-waiting on each other's cores ran no faster than one
+/// (docs/BENCHMARKS.md, "Threads"). Each worker takes the count main set.
+fn worker_pool(jobs: usize) -> Result<rayon::ThreadPool, ReproduceError> {
+    let torch_threads = tch::get_num_threads();
+    Ok(rayon::ThreadPoolBuilder::new()
+        .num_threads(jobs.max(1))
+        .start_handler(move |_| tch::set_num_threads(torch_threads))
+        .build()?)
+}
+
+/// Every item of the plan for every seed, on the current pool; results in seed order, so they do
+/// not depend on `jobs`.
 ///
 /// The items go in three stages (datasets, then the inits trained on them, then the fine-tuning
 /// runs from those inits), each stage one pool of (seed, item) pairs. Seed-sized units left one
@@ -445,7 +458,6 @@ fn run_seeds(
     r: &ReproduceConfig,
     plan: &Plan,
 ) -> Result<Vec<SeedResult>, ReproduceError> {
-    let (config, out) = (opts.config, opts.out_dir);
     let seeds: Vec<u64> = (0..r.seeds as u64).collect();
     let bars = progress_bars(opts, plan, seeds.len());
     let done = |users: &[Experiment]| {
@@ -456,60 +468,51 @@ fn run_seeds(
         }
     };
 
-    // libtorch's OpenMP thread count is a per-thread setting: a new thread starts with one per
-    // core, and two workers spin-waiting on each other's cores ran no faster than one
-    // (docs/BENCHMARKS.md, "Threads"). Each worker takes the count main set.
-    let torch_threads = tch::get_num_threads();
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(opts.jobs.max(1))
-        .start_handler(move |_| tch::set_num_threads(torch_threads))
-        .build()?;
-    let results = pool.install(|| -> Result<Vec<SeedResult>, ReproduceError> {
-        collect_datasets(config, out, &seeds, plan, &done)?;
-        let references = for_each_seed(&seeds, &plan.references, |seed, need| {
-            let metrics = runs::reference(config, out, seed, &need.key)?;
-            done(&need.users);
-            Ok((need.key.clone(), metrics))
-        })?;
-        let inits = for_each_seed(&seeds, &plan.inits, |seed, need| {
-            // Only figure 4 draws a meta-training curve; every other init is evaluated once, at
-            // its last meta-epoch. Evaluating never changes w0 (meta_train.rs), and the other
-            // inits' evaluations were a quarter of meta-training's time.
-            let eval_every = match need.users.contains(&Experiment::MetaTraining) {
-                true => r.meta_eval_every,
-                false => 0,
-            };
-            let init = runs::init(config, out, seed, need.key, eval_every)?;
-            done(&need.users);
-            Ok((need.key, init))
-        })?;
-        let w0 = |seed: u64, run: &runs::RunNeed| {
-            run.need.key.init().map(|key| {
-                let (_, (w0, _)) = inits[seed as usize]
-                    .iter()
-                    .find(|(k, _)| *k == key)
-                    .expect("Plan::run adds the init of every meta-trained run");
-                w0.as_path()
-            })
-        };
-        let runs = fine_tune_runs(config, out, &seeds, plan, w0, &done)?;
-        Ok(seeds
-            .iter()
-            .zip(references)
-            .zip(inits)
-            .zip(runs)
-            .map(|(((&seed, references), inits), runs)| SeedResult {
-                seed,
-                inits: inits.into_iter().map(|(k, (_, c))| (k, c)).collect(),
-                references,
-                runs,
-            })
-            .collect())
-    });
+    let results = stages(opts, r, plan, &seeds, &done);
     for (_, bar) in &bars {
         bar.finish_and_clear();
     }
     results
+}
+
+/// The three stages of [`run_seeds`]: datasets and their agents' reference rows, inits, runs.
+fn stages(
+    opts: &ReproduceOptions,
+    r: &ReproduceConfig,
+    plan: &Plan,
+    seeds: &[u64],
+    done: &(impl Fn(&[Experiment]) + Sync),
+) -> Result<Vec<SeedResult>, ReproduceError> {
+    let (config, out) = (opts.config, opts.out_dir);
+    collect_datasets(config, out, seeds, plan, done)?;
+    let references = for_each_seed(seeds, &plan.references, |seed, need| {
+        let metrics = runs::reference(config, out, seed, &need.key)?;
+        done(&need.users);
+        Ok((need.key.clone(), metrics))
+    })?;
+    let inits = inits(config, out, seeds, plan, r, done)?;
+    let w0 = |seed: u64, run: &runs::RunNeed| {
+        run.need.key.init().map(|key| {
+            let (_, (w0, _)) = inits[seed as usize]
+                .iter()
+                .find(|(k, _)| *k == key)
+                .expect("Plan::run adds the init of every meta-trained run");
+            w0.as_path()
+        })
+    };
+    let runs = fine_tune_runs(config, out, seeds, plan, w0, done)?;
+    Ok(seeds
+        .iter()
+        .zip(references)
+        .zip(inits)
+        .zip(runs)
+        .map(|(((&seed, references), inits), runs)| SeedResult {
+            seed,
+            inits: inits.into_iter().map(|(k, (_, c))| (k, c)).collect(),
+            references,
+            runs,
+        })
+        .collect())
 }
 
 /// One progress bar per experiment, counting the items of the plan it uses over every seed.
@@ -570,6 +573,75 @@ fn collect_datasets(
             }
             Ok(())
         })
+}
+
+/// A trained init: its checkpoint and meta-train curve.
+type Trained = (PathBuf, runs::MetaCurve);
+
+/// Every seed's inits of the plan, grouped by seed in plan order. With `meta.population` above
+/// 1, the seeds of one meta-trained init meta-train as populations of up to that many on
+/// `run.device`, one population per worker at a time.
+fn inits(
+    config: &Config,
+    out: &Path,
+    seeds: &[u64],
+    plan: &Plan,
+    r: &ReproduceConfig,
+    done: &(impl Fn(&[Experiment]) + Sync),
+) -> Result<Vec<Vec<(runs::InitKey, Trained)>>, ReproduceError> {
+    // Only figure 4 draws a meta-training curve; every other init is evaluated once, at its last
+    // meta-epoch. Evaluating never changes w0 (meta_train.rs), and the other inits' evaluations
+    // were a quarter of meta-training's time.
+    let eval_every =
+        |need: &runs::Need<runs::InitKey>| match need.users.contains(&Experiment::MetaTraining) {
+            true => r.meta_eval_every,
+            false => 0,
+        };
+    let size = config.meta.population;
+    if size == 1 {
+        return for_each_seed(seeds, &plan.inits, |seed, need| {
+            let init = runs::init(config, out, seed, need.key, eval_every(need))?;
+            done(&need.users);
+            Ok((need.key, init))
+        });
+    }
+    let device = run_device(config)?;
+    // (init, seeds) units: a pretrained init per seed, a meta-trained one per population.
+    let units: Vec<(usize, &[u64])> = (plan.inits.iter().enumerate())
+        .flat_map(|(n, need)| {
+            let chunk = match need.key.kind {
+                Init::Pretrain => 1,
+                Init::Maml(_) => size,
+            };
+            seeds.chunks(chunk).map(move |group| (n, group))
+        })
+        .collect();
+    let trained = units
+        .into_par_iter()
+        .with_max_len(1)
+        .map(|(n, group)| {
+            let need = &plan.inits[n];
+            let results = match need.key.kind {
+                Init::Pretrain => vec![runs::init(config, out, group[0], need.key, 0)?],
+                Init::Maml(_) => {
+                    runs::maml_inits(config, out, group, need.key, eval_every(need), device)?
+                }
+            };
+            for _ in group {
+                done(&need.users);
+            }
+            Ok((group.iter().map(move |&seed| (seed, n)))
+                .zip(results)
+                .collect::<Vec<_>>())
+        })
+        .collect::<Result<Vec<_>, ReproduceError>>()?;
+    let mut by_seed: Vec<_> = trained.into_iter().flatten().collect();
+    by_seed.sort_by_key(|((seed, n), _)| (*seed, *n));
+    let mut results = (by_seed.into_iter()).map(|((_, n), init)| (plan.inits[n].key, init));
+    Ok(seeds
+        .iter()
+        .map(|_| results.by_ref().take(plan.inits.len()).collect())
+        .collect())
 }
 
 /// Every seed's fine-tuning runs of the plan, from the inits `w0` gives, grouped by seed in plan

@@ -21,7 +21,7 @@ use uavmeta_learner::checkpoint::{self, CheckpointPaths};
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::{EpochRow, EvaluatePolicy};
-use uavmeta_proto::config::{Config, LearnerConfig, Loss, TaskConfig, TaskRole};
+use uavmeta_proto::config::{Config, LearnerConfig, Loss, MetaConfig, TaskConfig, TaskRole};
 use uavmeta_proto::dataset::DatasetReader;
 use uavmeta_proto::stats::PolicyMetrics;
 
@@ -32,7 +32,8 @@ use uavmeta_learner::qnet::QNetwork;
 use uavmeta_learner::train_population::Member;
 use uavmeta_meta::fine_tune::{fine_tune, fine_tune_population, FineTune};
 use uavmeta_meta::meta_train::{
-    dataset_path, load_tasks, meta_train, Evaluation, MetaTrainOptions,
+    dataset_path, load_tasks, meta_train, meta_train_population, Evaluation, MetaRow,
+    MetaTrainOptions,
 };
 use uavmeta_meta::{create_dir, pretrain, MetaError};
 use uavmeta_proto::method::{Init, Method};
@@ -210,6 +211,18 @@ pub struct MetaCurve {
     pub evaluations: Vec<(usize, Evaluation)>,
 }
 
+impl MetaCurve {
+    /// The curve of a meta-training's rows.
+    pub fn of(rows: &[MetaRow]) -> Self {
+        Self {
+            meta_loss: rows.iter().map(|r| r.epoch.meta_loss).collect(),
+            evaluations: (rows.iter())
+                .filter_map(|r| r.evaluation.clone().map(|ev| (r.epoch.epoch, ev)))
+                .collect(),
+        }
+    }
+}
+
 /// A finished fine-tuning run.
 #[derive(Debug, Clone)]
 pub struct RunResult {
@@ -283,6 +296,8 @@ fn meta_config(config: &Config, key: InitKey, seed: u64, eval_every: usize) -> C
     }
     c.meta.eval_every = eval_every;
     c.tasks = meta_train_tasks(config, key.tasks).cloned().collect();
+    // How many meta-train together changes no w0 beyond float rounding: not part of its cache key.
+    c.meta.population = MetaConfig::default().population;
     c
 }
 
@@ -572,7 +587,7 @@ fn ensure_w0(
     dir: &Path,
     seed: u64,
 ) -> Result<(PathBuf, MetaCurve), ReproduceError> {
-    let out = dir.join(format!("{}-tasks-{}", key.kind.name(), key.tasks));
+    let out = init_dir(dir, key);
     let w0 = out.join("w0");
     if key.kind == Init::Pretrain {
         if !saved_config_matches(&CheckpointPaths::new(&w0).config, &meta) {
@@ -592,19 +607,8 @@ fn ensure_w0(
         }
         return Ok((w0, MetaCurve::default()));
     }
-    if saved_config_matches(&CheckpointPaths::new(&w0).config, &meta) {
-        let csv = out.join("meta_train.csv");
-        match std::fs::read_to_string(&csv)
-            .ok()
-            .and_then(|text| parse_meta_csv(&text, key.tasks))
-        {
-            Some(curve) if curve.meta_loss.len() == meta.meta.meta_epochs => {
-                return Ok((w0, curve))
-            }
-            _ => {
-                tracing::warn!(csv = %csv.display(), "unreadable or incomplete; meta-training again")
-            }
-        }
+    if let Some(cached) = cached_w0(&meta, key, &out) {
+        return Ok(cached);
     }
     let result = meta_train(&MetaTrainOptions {
         config: &meta,
@@ -615,13 +619,83 @@ fn ensure_w0(
         resume: false,
         on_step: OnStep::default(),
     })?;
-    let curve = MetaCurve {
-        meta_loss: result.rows.iter().map(|r| r.epoch.meta_loss).collect(),
-        evaluations: (result.rows.iter())
-            .filter_map(|r| r.evaluation.clone().map(|ev| (r.epoch.epoch, ev)))
-            .collect(),
-    };
-    Ok((result.w0, curve))
+    Ok((result.w0, MetaCurve::of(&result.rows)))
+}
+
+/// The directory of `key`'s init in a seed's directory.
+fn init_dir(seed_dir: &Path, key: InitKey) -> PathBuf {
+    seed_dir.join(format!("{}-tasks-{}", key.kind.name(), key.tasks))
+}
+
+/// The meta-trained w0 in `out` and its curve, if `out` holds one made with `meta` and its whole
+/// `meta_train.csv`.
+fn cached_w0(meta: &Config, key: InitKey, out: &Path) -> Option<(PathBuf, MetaCurve)> {
+    let w0 = out.join("w0");
+    if !saved_config_matches(&CheckpointPaths::new(&w0).config, meta) {
+        return None;
+    }
+    let csv = out.join("meta_train.csv");
+    match std::fs::read_to_string(&csv)
+        .ok()
+        .and_then(|text| parse_meta_csv(&text, key.tasks))
+    {
+        Some(curve) if curve.meta_loss.len() == meta.meta.meta_epochs => Some((w0, curve)),
+        _ => {
+            tracing::warn!(csv = %csv.display(), "unreadable or incomplete; meta-training again");
+            None
+        }
+    }
+}
+
+/// The meta-trained inits of `key` for seeds `seeds` (as [`init`] makes each), the ones not
+/// cached meta-trained as one population on `device` (`meta.population`); results in seed order.
+pub fn maml_inits(
+    config: &Config,
+    out: &Path,
+    seeds: &[u64],
+    key: InitKey,
+    eval_every: usize,
+    device: tch::Device,
+) -> Result<Vec<(PathBuf, MetaCurve)>, ReproduceError> {
+    let metas: Vec<Config> = (seeds.iter())
+        .map(|&seed| meta_config(config, key, seed, eval_every))
+        .collect();
+    let dirs: Vec<PathBuf> = (seeds.iter())
+        .map(|&seed| init_dir(&seed_dir(out, seed), key))
+        .collect();
+    let datasets: Vec<PathBuf> = (seeds.iter())
+        .map(|&seed| datasets_dir(out, seed))
+        .collect();
+    let cached: Vec<Option<(PathBuf, MetaCurve)>> = (metas.iter().zip(&dirs))
+        .map(|(meta, dir)| cached_w0(meta, key, dir))
+        .collect();
+    let missing: Vec<usize> = (0..seeds.len()).filter(|&i| cached[i].is_none()).collect();
+    let runs: Vec<MetaTrainOptions> = (missing.iter())
+        .map(|&i| MetaTrainOptions {
+            config: &metas[i],
+            datasets: &datasets[i],
+            out_dir: &dirs[i],
+            seed: seeds[i],
+            progress: false,
+            resume: false,
+            on_step: OnStep::default(),
+        })
+        .collect();
+    tracing::debug!(?key, members = runs.len(), "meta-training one population");
+    let mut trained = match runs.is_empty() {
+        true => Vec::new(),
+        false => meta_train_population(&runs, device)?,
+    }
+    .into_iter();
+    Ok(cached
+        .into_iter()
+        .map(|cached| {
+            cached.unwrap_or_else(|| {
+                let result = trained.next().expect("one result per missing init");
+                (result.w0, MetaCurve::of(&result.rows))
+            })
+        })
+        .collect())
 }
 
 /// Reads back `meta_train.csv` of `tasks` tasks (columns: meta_epoch, meta_loss, one loss, then

@@ -102,4 +102,13 @@ pub struct MetaConfig {
     #[default(1)]
     #[garde(custom(within(1.., "at least 1 adaptation per evaluation")))]
     pub eval_adaptations: usize,
+    /// Where a command meta-trains several inits of one shape (`uavmeta reproduce`'s seeds of
+    /// one init), up to this many run as one population: stacked networks, every outer step one
+    /// computation for all of them (`meta::maml_population`). A population of one is the single
+    /// meta-training bit for bit; larger ones give each member its separate run up to float
+    /// rounding. 1 is the fastest on CPU (docs/BENCHMARKS.md, "Populations"); stacking is for
+    /// accelerators (`run.device`).
+    #[default(1)]
+    #[garde(custom(at_least(1)))]
+    pub population: usize,
 }
