@@ -144,17 +144,22 @@ impl QPopulation {
         self.params.iter().map(Tensor::shallow_clone).collect()
     }
 
+    /// Panics naming `operation` unless `other` has this population's architecture and size.
+    fn assert_same_shape(&self, other: &QPopulation, operation: &str) {
+        assert_eq!(
+            (&self.config, self.members),
+            (&other.config, other.members),
+            "{operation} between populations of different shapes"
+        );
+    }
+
     /// Overwrites every member's parameters with `other`'s: the hard target-network update.
     ///
     /// # Panics
     /// If the two populations differ in architecture or size; a target population is always
     /// built from its online population.
     pub fn copy_from(&mut self, other: &QPopulation) {
-        assert_eq!(
-            (&self.config, self.members),
-            (&other.config, other.members),
-            "copy_from between populations of different shapes"
-        );
+        self.assert_same_shape(other, "copy_from");
         tch::no_grad(|| {
             for (dst, src) in self.params.iter_mut().zip(&other.params) {
                 dst.copy_(src);
@@ -168,11 +173,7 @@ impl QPopulation {
     /// # Panics
     /// If the two populations differ in architecture or size.
     pub fn average_toward(&mut self, other: &QPopulation, decay: f64) {
-        assert_eq!(
-            (&self.config, self.members),
-            (&other.config, other.members),
-            "average_toward between populations of different shapes"
-        );
+        self.assert_same_shape(other, "average_toward");
         tch::no_grad(|| {
             for (dst, src) in self.params.iter_mut().zip(&other.params) {
                 let _ = dst.g_mul_scalar_(decay).g_add_(&(src * (1.0 - decay)));

@@ -553,10 +553,24 @@ pub struct Maml {
 }
 
 /// What eq. 16 updates: `w0`'s parameters, then Meta-SGD's step sizes if learned.
-pub(crate) fn meta_parameters(w0: &QNetwork, inner_lr: &Option<Vec<Tensor>>) -> Vec<Tensor> {
-    let mut params = w0.parameters();
+pub(crate) fn meta_parameters(weights: Vec<Tensor>, inner_lr: &Option<Vec<Tensor>>) -> Vec<Tensor> {
+    let mut params = weights;
     params.extend(inner_lr.iter().flatten().map(Tensor::shallow_clone));
     params
+}
+
+/// Meta-SGD's starting step sizes, `meta.eta_inner` in a leaf of each weight's shape, when
+/// `meta.learn_inner_lr`.
+pub(crate) fn initial_inner_lr(weights: &[Tensor], config: &MamlConfig) -> Option<Vec<Tensor>> {
+    config.meta.learn_inner_lr.then(|| {
+        (weights.iter())
+            .map(|p| {
+                p.full_like(config.meta.eta_inner)
+                    .detach()
+                    .set_requires_grad(true)
+            })
+            .collect()
+    })
 }
 
 /// What [`Maml::save_state`] stores besides tensors: the counters and the sampling stream's
@@ -575,17 +589,11 @@ impl Maml {
     /// Meta-trains `w0` (its current weights are the starting point); task and shot sampling
     /// draw from `seed` alone.
     pub fn new(w0: QNetwork, config: MamlConfig, seed: u64) -> Result<Self, MetaError> {
-        let inner_lr = config.meta.learn_inner_lr.then(|| {
-            w0.parameters()
-                .iter()
-                .map(|p| {
-                    p.full_like(config.meta.eta_inner)
-                        .detach()
-                        .set_requires_grad(true)
-                })
-                .collect()
-        });
-        let optimizer = FusedAdam::new(meta_parameters(&w0, &inner_lr), config.meta.eta_outer);
+        let inner_lr = initial_inner_lr(&w0.parameters(), &config);
+        let optimizer = FusedAdam::new(
+            meta_parameters(w0.parameters(), &inner_lr),
+            config.meta.eta_outer,
+        );
         let target = w0.duplicate();
         let average = (config.meta.w0_average_decay > 0.0).then(|| w0.duplicate());
         Ok(Self {
@@ -694,7 +702,7 @@ impl Maml {
             ),
             false => None,
         };
-        let meta_params = meta_parameters(&w0, &inner_lr);
+        let meta_params = meta_parameters(w0.parameters(), &inner_lr);
         let moments = (meta_params.iter().enumerate())
             .map(|(i, p)| {
                 Ok((

@@ -22,7 +22,7 @@ use uavmeta_learner::population::QPopulation;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::QNetwork;
 
-use crate::maml::{meta_parameters, EpochDraws, Maml, MamlConfig, MetaEpoch, MetaTask, StepSize};
+use crate::maml::{initial_inner_lr, meta_parameters, EpochDraws, Maml, MamlConfig, MetaEpoch, MetaTask, StepSize};
 use crate::MetaError;
 
 /// N meta-learners' `w0`, step sizes, target networks and outer Adam, stacked.
@@ -53,18 +53,11 @@ impl MamlPopulation {
     pub fn new(w0s: &[QNetwork], config: MamlConfig, seeds: &[u64], device: Device) -> Self {
         assert_eq!(w0s.len(), seeds.len(), "one seed per member");
         let w0 = QPopulation::from_networks(w0s, device);
-        let inner_lr: Option<Vec<Tensor>> = config.meta.learn_inner_lr.then(|| {
-            (w0.parameters().iter())
-                .map(|p| {
-                    p.full_like(config.meta.eta_inner)
-                        .detach()
-                        .set_requires_grad(true)
-                })
-                .collect()
-        });
-        let mut params = w0.parameters();
-        params.extend(inner_lr.iter().flatten().map(Tensor::shallow_clone));
-        let optimizer = FusedAdam::new(params, config.meta.eta_outer);
+        let inner_lr = initial_inner_lr(&w0.parameters(), &config);
+        let optimizer = FusedAdam::new(
+            meta_parameters(w0.parameters(), &inner_lr),
+            config.meta.eta_outer,
+        );
         let target = w0.duplicate();
         let average = (config.meta.w0_average_decay > 0.0).then(|| w0.duplicate());
         Self {
@@ -189,7 +182,7 @@ impl MamlPopulation {
                 .collect()
         });
         let mut optimizer = FusedAdam::new(
-            meta_parameters(&w0, &inner_lr),
+            meta_parameters(w0.parameters(), &inner_lr),
             self.config.eta_outer_at(self.epochs_done),
         );
         let moments = (self.optimizer.moments())
