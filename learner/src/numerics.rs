@@ -10,14 +10,15 @@
 //!
 //! | mode | MKL | ATen | same bits on |
 //! | --- | --- | --- | --- |
-//! | `avx2` (default) | `MKL_CBWR=AVX2,STRICT` | `ATEN_CPU_CAPABILITY=avx2` | every Intel CPU with AVX2, with or without AVX-512; every AMD CPU of one MKL dispatch |
+//! | `avx2` (default) | `MKL_CBWR=AVX2,STRICT` | `ATEN_CPU_CAPABILITY=avx2` | every Intel CPU with AVX2, with or without AVX-512; every AMD CPU of one MKL dispatch; not Intel and AMD |
 //! | `compatible` | `MKL_CBWR=COMPATIBLE,STRICT` | `ATEN_CPU_CAPABILITY=avx2` | every x86-64 CPU with AVX2, Intel or AMD |
 //! | `native` | as the CPU dispatches | as the CPU dispatches | this machine only |
 //!
 //! MKL honours its named branches (AVX2, AVX512) only on Intel CPUs; on others it runs its
 //! automatic dispatch in reproducible (STRICT) mode, and only COMPATIBLE (SSE2 code) is the same
-//! code on both vendors. COMPATIBLE makes training about 1.9x slower, AVX2 costs nothing
-//! measurable (docs/BENCHMARKS.md, "Pinned numerics"), hence the default. `ONEDNN_MAX_CPU_ISA`
+//! code on both vendors: an Intel Xeon and an AMD EPYC ran the same reproduction to other
+//! learned numbers under AVX2. COMPATIBLE makes training 1.7-1.9x slower on both, AVX2 costs
+//! nothing measurable (docs/BENCHMARKS.md, "Pinned numerics"), hence the default. `ONEDNN_MAX_CPU_ISA`
 //! is capped at AVX2 likewise for the oneDNN kernels libtorch may use. A variable the
 //! environment already sets is left as it is.
 
@@ -70,4 +71,28 @@ pub fn pin() -> Result<(), UnknownMode> {
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::MODES;
+
+    /// `.cargo/config.toml` gives the processes cargo runs (tests, benches) the default mode's
+    /// settings; they must be this table's, or the tests would check other numerics than the
+    /// binary's.
+    #[test]
+    fn cargo_runs_processes_with_the_default_mode() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../.cargo/config.toml");
+        let text = std::fs::read_to_string(path).expect("read .cargo/config.toml");
+        let config: toml::Table = text.parse().expect(".cargo/config.toml is TOML");
+        let env = config["env"].as_table().expect("[env]");
+        let (_, default) = MODES.iter().find(|(mode, _)| *mode == "avx2").expect("avx2");
+        for (name, value) in default.iter() {
+            assert_eq!(
+                env.get(*name).and_then(|v| v.as_str()),
+                Some(*value),
+                ".cargo/config.toml [env] {name}"
+            );
+        }
+    }
 }
