@@ -86,7 +86,10 @@ mod tests {
         let text = std::fs::read_to_string(path).expect("read .cargo/config.toml");
         let config: toml::Table = text.parse().expect(".cargo/config.toml is TOML");
         let env = config["env"].as_table().expect("[env]");
-        let (_, default) = MODES.iter().find(|(mode, _)| *mode == "avx2").expect("avx2");
+        let (_, default) = MODES
+            .iter()
+            .find(|(mode, _)| *mode == "avx2")
+            .expect("avx2");
         for (name, value) in default.iter() {
             assert_eq!(
                 env.get(*name).and_then(|v| v.as_str()),

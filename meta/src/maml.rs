@@ -559,10 +559,13 @@ pub(crate) fn meta_parameters(weights: Vec<Tensor>, inner_lr: &Option<Vec<Tensor
     params
 }
 
-/// Meta-SGD's starting step sizes, `meta.eta_inner` in a leaf of each weight's shape, when
-/// `meta.learn_inner_lr`.
-pub(crate) fn initial_inner_lr(weights: &[Tensor], config: &MamlConfig) -> Option<Vec<Tensor>> {
-    config.meta.learn_inner_lr.then(|| {
+/// Meta-SGD's starting step sizes (`meta.eta_inner` in a leaf of each weight's shape, when
+/// `meta.learn_inner_lr`) and the outer Adam over `weights` and them (eq. 16).
+pub(crate) fn outer_optimizer(
+    weights: Vec<Tensor>,
+    config: &MamlConfig,
+) -> (Option<Vec<Tensor>>, FusedAdam) {
+    let inner_lr: Option<Vec<Tensor>> = config.meta.learn_inner_lr.then(|| {
         (weights.iter())
             .map(|p| {
                 p.full_like(config.meta.eta_inner)
@@ -570,7 +573,9 @@ pub(crate) fn initial_inner_lr(weights: &[Tensor], config: &MamlConfig) -> Optio
                     .set_requires_grad(true)
             })
             .collect()
-    })
+    });
+    let optimizer = FusedAdam::new(meta_parameters(weights, &inner_lr), config.meta.eta_outer);
+    (inner_lr, optimizer)
 }
 
 /// What [`Maml::save_state`] stores besides tensors: the counters and the sampling stream's
@@ -589,11 +594,7 @@ impl Maml {
     /// Meta-trains `w0` (its current weights are the starting point); task and shot sampling
     /// draw from `seed` alone.
     pub fn new(w0: QNetwork, config: MamlConfig, seed: u64) -> Result<Self, MetaError> {
-        let inner_lr = initial_inner_lr(&w0.parameters(), &config);
-        let optimizer = FusedAdam::new(
-            meta_parameters(w0.parameters(), &inner_lr),
-            config.meta.eta_outer,
-        );
+        let (inner_lr, optimizer) = outer_optimizer(w0.parameters(), &config);
         let target = w0.duplicate();
         let average = (config.meta.w0_average_decay > 0.0).then(|| w0.duplicate());
         Ok(Self {

@@ -22,7 +22,9 @@ use uavmeta_learner::population::QPopulation;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::QNetwork;
 
-use crate::maml::{initial_inner_lr, meta_parameters, EpochDraws, Maml, MamlConfig, MetaEpoch, MetaTask, StepSize};
+use crate::maml::{
+    meta_parameters, outer_optimizer, EpochDraws, Maml, MamlConfig, MetaEpoch, MetaTask, StepSize,
+};
 use crate::MetaError;
 
 /// N meta-learners' `w0`, step sizes, target networks and outer Adam, stacked.
@@ -53,11 +55,7 @@ impl MamlPopulation {
     pub fn new(w0s: &[QNetwork], config: MamlConfig, seeds: &[u64], device: Device) -> Self {
         assert_eq!(w0s.len(), seeds.len(), "one seed per member");
         let w0 = QPopulation::from_networks(w0s, device);
-        let inner_lr = initial_inner_lr(&w0.parameters(), &config);
-        let optimizer = FusedAdam::new(
-            meta_parameters(w0.parameters(), &inner_lr),
-            config.meta.eta_outer,
-        );
+        let (inner_lr, optimizer) = outer_optimizer(w0.parameters(), &config);
         let target = w0.duplicate();
         let average = (config.meta.w0_average_decay > 0.0).then(|| w0.duplicate());
         Self {
