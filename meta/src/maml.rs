@@ -250,11 +250,30 @@ impl MamlConfig {
     ) -> Vec<f64> {
         let support: Vec<&Batch> = tasks.iter().map(|t| &t.support).collect();
         let query: Vec<&Batch> = tasks.iter().map(|t| &t.query).collect();
+        let query = StackedShots::stack(&query);
         let w = self.adapt_stacked(w0, step, target, &StackedShots::stack(&support)); // eq. 14
-        let query_losses = self.task_losses(&w, target, &StackedShots::stack(&query)); // eq. 15's terms
-        query_losses.sum(None).backward();
+        let query_losses = self.task_losses(&w, target, &query); // eq. 15's terms
+        self.with_w0_loss(query_losses.sum(None), w0, target, &query)
+            .backward();
         Vec::<f64>::try_from(query_losses.detach().to_kind(Kind::Double))
             .expect("a [T] loss tensor")
+    }
+
+    /// `L_meta` plus `w0_loss_weight * sum_i L(w0; query shots of tau_i)`: the step-0 term of a
+    /// multi-step meta-loss, which asks w0's own policy to fit every task's data. `w0` is one
+    /// network for all tasks or one per task, as [`task_losses`](Self::task_losses) takes it.
+    fn with_w0_loss(
+        &self,
+        meta_loss: Tensor,
+        w0: &[Tensor],
+        target: &[Tensor],
+        query: &StackedShots,
+    ) -> Tensor {
+        let beta = self.meta.w0_loss_weight;
+        if beta == 0.0 {
+            return meta_loss;
+        }
+        meta_loss + self.task_losses(w0, target, query).sum(None) * beta
     }
 
     /// [`backward_meta_loss`](Self::backward_meta_loss) for a population of meta-learners:
@@ -304,9 +323,16 @@ impl MamlConfig {
         let pairs = |pick: fn(&TaskShots) -> &Batch| {
             StackedShots::stack(&tasks.iter().flatten().map(pick).collect::<Vec<_>>())
         };
-        let w = self.adapt_slots(slots(w0), step, &target, &pairs(|t| &t.support)); // eq. 14
-        let query_losses = self.task_losses(&w, &target, &pairs(|t| &t.query)); // eq. 15's terms
-        query_losses.sum(None).backward();
+        let (w0, query) = (slots(w0), pairs(|t| &t.query));
+        let w = self.adapt_slots(
+            w0.iter().map(Tensor::shallow_clone).collect(),
+            step,
+            &target,
+            &pairs(|t| &t.support),
+        ); // eq. 14
+        let query_losses = self.task_losses(&w, &target, &query); // eq. 15's terms
+        self.with_w0_loss(query_losses.sum(None), &w0, &target, &query)
+            .backward();
         let losses = Vec::<f64>::try_from(query_losses.detach().to_kind(Kind::Double))
             .expect("an [N * T] loss tensor");
         losses

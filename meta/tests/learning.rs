@@ -1,7 +1,7 @@
 //! Meta-training learns, measured in the true world: a `w0` meta-trained on five lambdas scores
 //! far better zero-shot on the unseen lambda = 300 than the random init it started from, and
-//! than the uniform random policy; and, averaged over the meta-iterates, it holds still (within
-//! 4%) over the last 30 meta-epochs.
+//! than the uniform random policy; and, with the default config's averaging and w0 loss, it
+//! holds still (within 2%) over the last 30 meta-epochs.
 //!
 //! The meta-train datasets come from a cheap behaviour policy (the stalest heuristic with 10%
 //! random actions) rather than online DQN agents, so that the test takes seconds; what is
@@ -110,19 +110,19 @@ fn a_meta_trained_w0_beats_a_random_init_zero_shot_on_an_unseen_lambda() {
     );
 }
 
-/// With configs/default.toml's averaging of the meta-iterates (`meta.w0_average_decay`), w0's
-/// zero-shot return on the unseen lambda = 300, evaluated exactly over the 100 start cells after
-/// each of the last 30 meta-epochs, varies by less than 4% of its (max - min over mean). Measured
-/// here: 2.5% averaged, 7.4% for the last iterate (decay 1e-12), so the test fails without the
-/// averaging. Issue #30 asks 2% of the full run on every seed, which is not reached yet
-/// (docs/EXPERIMENTS.md, C7).
+/// With configs/default.toml's averaging of the meta-iterates (`meta.w0_average_decay`) and w0's
+/// own loss in the meta-loss (`meta.w0_loss_weight`), w0's zero-shot return on the unseen
+/// lambda = 300, evaluated exactly over the 100 start cells after each of the last 30
+/// meta-epochs, varies by less than issue #30's 2% (max - min over mean). Measured here on an
+/// Intel Xeon: 1.5% with both; 2.5% with the averaging alone and 7.4% with neither, so the test
+/// fails without either (docs/EXPERIMENTS.md, C7 and C10).
 #[test]
-fn w0_zero_shot_varies_by_under_4_percent_over_the_last_30_meta_epochs() {
+fn w0_zero_shot_varies_by_under_2_percent_over_the_last_30_meta_epochs() {
     tch::set_num_threads(1);
     let config = Config::load(DEFAULT_CONFIG.as_ref(), &[]).unwrap();
     assert!(
-        config.meta.w0_average_decay > 0.0,
-        "the default config averages w0"
+        config.meta.w0_average_decay > 0.0 && config.meta.w0_loss_weight > 0.0,
+        "the default config averages w0 and adds its own loss to the meta-loss"
     );
     let tasks = meta_tasks(&config);
     let w = &config.world;
@@ -151,7 +151,7 @@ fn w0_zero_shot_varies_by_under_4_percent_over_the_last_30_meta_epochs() {
         100.0 * swing
     );
     assert!(
-        swing < 0.04,
+        swing < 0.02,
         "w0 swings by {:.2}% over the last 30 meta-epochs ({lo:.1} to {hi:.1})",
         100.0 * swing
     );

@@ -237,6 +237,37 @@ fn meta_sgd_gradients_of_w0_and_step_sizes_match_finite_differences() {
     assert!((maml - meta_sgd).abs() < 1e-12, "{maml} != {meta_sgd}");
 }
 
+/// `meta.w0_loss_weight` = beta adds `beta * sum_i L(w0; query_i)` to eq. 15: the gradient is
+/// that sum's derivative, checked by central differences, and beta = 0 is eq. 15 to the bit.
+#[test]
+fn the_w0_loss_term_adds_its_own_gradient_to_eq15s() {
+    single_threaded();
+    let mut rng = ChaCha8Rng::seed_from_u64(40);
+    let tasks = shots(3, 16, Kind::Double, &mut rng);
+    let (w0, target) = (leaves(41), leaves(42));
+    let plain = config(Loss::Cql, 2, false);
+    let mut with_term = plain.clone();
+    with_term.meta.w0_loss_weight = 0.7;
+    let analytic = meta_gradient(&with_term, &w0, &target, &tasks);
+    let numeric = central_differences(&w0, |moved| {
+        let w0_loss: f64 = tasks
+            .iter()
+            .map(|t| plain.task_loss(moved, &target, &t.query).double_value(&[]))
+            .sum();
+        meta_loss(&plain, moved, StepSize::Shared, &target, &tasks) + 0.7 * w0_loss
+    });
+    let error = relative_error(&analytic, &numeric);
+    assert!(error < 1e-3, "relative error {error:e}");
+    // The term moves the gradient: it is not eq. 15's alone.
+    let eq15 = meta_gradient(&plain, &w0, &target, &tasks);
+    assert!(
+        relative_error(&analytic, &eq15) > 1e-2,
+        "the w0 term changed nothing"
+    );
+    with_term.meta.w0_loss_weight = 0.0;
+    assert_eq!(meta_gradient(&with_term, &w0, &target, &tasks), eq15);
+}
+
 #[test]
 fn tasks_stacked_with_padding_give_each_task_its_own_meta_gradient() {
     single_threaded();

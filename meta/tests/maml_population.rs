@@ -131,8 +131,10 @@ fn each_member_follows_its_own_meta_training_up_to_rounding() {
     let seeds = [11u64, 12, 13];
     let data: Vec<Vec<MetaTask>> = seeds.iter().map(|&s| tasks(100 + s)).collect();
     let sets: Vec<&[MetaTask]> = data.iter().map(Vec::as_slice).collect();
-    for learn_inner_lr in [false, true] {
-        let c = config(learn_inner_lr, 0.9);
+    // The last case adds w0's own loss to eq. 15 (`meta.w0_loss_weight`), on the members' slots.
+    for (learn_inner_lr, beta) in [(false, 0.0), (true, 0.0), (false, 0.5)] {
+        let mut c = config(learn_inner_lr, 0.9);
+        c.meta.w0_loss_weight = beta;
         let inits: Vec<QNetwork> = seeds.iter().map(|&s| network(s)).collect();
         let mut population = MamlPopulation::new(&inits, c.clone(), &seeds, Device::Cpu);
         let mut rows = vec![Vec::new(); seeds.len()];
@@ -159,7 +161,7 @@ fn each_member_follows_its_own_meta_training_up_to_rounding() {
                 .fold(0.0f64, |x, (a, b)| x.max((a - b).abs()));
             assert!(
                 off <= 1e-4 * largest,
-                "member {m} (learn_inner_lr {learn_inner_lr}): {off} from its run alone"
+                "member {m} (learn_inner_lr {learn_inner_lr}, beta {beta}): {off} from its run alone"
             );
             for (alone, together) in alone_rows.iter().zip(&rows[m]) {
                 let tasks = |r: &uavmeta_meta::maml::MetaEpoch| {

@@ -96,6 +96,14 @@ pub struct MetaConfig {
     #[default(0.0)]
     #[garde(custom(within(0.0..1.0, "a decay in [0, 1): 0 = no averaging")))]
     pub w0_average_decay: f64,
+    /// beta: the meta-loss adds `beta * L(w0; query shots)` per task to eq. 15's
+    /// `L(w_i; query shots)`, the loss of w0 before any inner step (the step-0 term of MAML++'s
+    /// multi-step loss, Antoniou et al. 2019). Eq. 15 alone never asks w0's own greedy policy to
+    /// be good, and its zero-shot return wanders by 10-15% over the meta-epochs
+    /// (docs/EXPERIMENTS.md, C8-C10). 0 = eq. 15 as written.
+    #[default(0.0)]
+    #[garde(custom(finite(0.0.., "a finite number >= 0 (0 = eq. 15 as written)")))]
+    pub w0_loss_weight: f64,
     /// Independent adaptations (each on fresh `shots` support shots) per task and evaluation;
     /// the reported return is their mean, so that a figure-4 point measures the adapted return
     /// rather than sampling one adaptation of it.
