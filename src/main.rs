@@ -62,6 +62,33 @@ enum Command {
     Tunnel(cmd::tunnel::TunnelCommand),
 }
 
+impl Command {
+    /// A command that does one job and exits, as against a process that serves a run until it
+    /// is told to stop (`launch`, its children, the tunnel).
+    fn ends_by_itself(&self) -> bool {
+        !matches!(
+            self,
+            Command::Launch(_)
+                | Command::Actor(_)
+                | Command::Store(_)
+                | Command::MetaLearner(_)
+                | Command::Evaluator(_)
+                | Command::Tunnel(_)
+        )
+    }
+}
+
+/// `uavmeta eval ... | head -1` ends quietly, as any Unix tool does, when the reader closes the
+/// pipe: SIGPIPE's default action ends the process. Rust ignores SIGPIPE, which turns a closed
+/// pipe into a panic in `println!`. Processes that serve a run keep ignoring it: a closed pipe
+/// must not take a supervisor down and orphan its children.
+fn end_quietly_on_a_closed_pipe() {
+    // SAFETY: setting a signal's disposition to its default; no handler runs Rust code.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
 /// stderr for log lines, through the rows a command draws on the terminal (`uavmeta launch`'s
 /// display): the rows are erased, the line written, the rows drawn again below it. A line written
 /// straight between the rows would shift them, leaving rows drawn twice.
@@ -94,6 +121,9 @@ fn main() -> ExitCode {
         .with_ansi(std::io::stderr().is_terminal())
         .init();
     let cli = Cli::parse();
+    if cli.command.ends_by_itself() {
+        end_quietly_on_a_closed_pipe();
+    }
     tch::set_num_threads(cli.torch_threads.max(1));
     let result = match cli.command {
         Command::Env(c) => cmd::env::run(c),

@@ -172,3 +172,29 @@ fn exact_evaluation_covers_every_start_cell_unless_the_rain_moves() {
     let outages = |v: &serde_json::Value| v["mean"]["outages"]["mean"].as_f64().expect("outages");
     assert!(outages(&moving) != outages(&fixed), "{moving}");
 }
+
+/// `uavmeta env rollout ... | head -1`: a reader that has gone ends the command quietly, by
+/// SIGPIPE as for any Unix tool, not with a panic. The pipe's read end is closed before the
+/// command starts, so its first line already meets the closed pipe.
+#[test]
+fn a_closed_pipe_ends_the_command_quietly() {
+    use std::os::unix::process::ExitStatusExt;
+    let config = config_file();
+    let (reader, writer) = std::io::pipe().expect("pipe");
+    drop(reader);
+    let output = Command::new(env!("CARGO_BIN_EXE_uavmeta"))
+        .args(["env", "rollout", "--config"])
+        .arg(config.path())
+        .args(["--task", "wet", "--seed", "3", "--episodes", "4"])
+        .stdout(writer)
+        .output()
+        .expect("run uavmeta");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert_eq!(
+        output.status.signal(),
+        Some(libc::SIGPIPE),
+        "{:?}: {stderr}",
+        output.status
+    );
+}
