@@ -1,6 +1,6 @@
 //! Pinned numerics (learner/src/numerics.rs): a dataset and a checkpoint made with the same
-//! config and seed are the same bytes whichever instruction sets MKL and ATen may use, and the
-//! binary's pin reaches MKL before its first call.
+//! config and seed are the same bytes whichever instruction sets MKL and ATen may use and whichever
+//! vendor MKL believes made the CPU, and the binary's pin reaches MKL before its first call.
 
 use std::path::Path;
 use std::process::{Command, Output};
@@ -35,6 +35,7 @@ fn uavmeta(dir: &Path, env: &[(&str, &str)], subcommand: &str, args: &[&str]) ->
         "MKL_ENABLE_INSTRUCTIONS",
         "ONEDNN_MAX_CPU_ISA",
         "MKL_VERBOSE",
+        "LD_PRELOAD",
     ] {
         command.env_remove(name);
     }
@@ -113,6 +114,65 @@ fn the_pin_reaches_mkl() {
     assert!(modes[0].ends_with(",STRICT"), "avx2: {}", modes[0]);
     assert_eq!(modes[1], "CNR:COMPATIBLE,STRICT");
     assert_eq!(modes[2], "CNR:OFF");
+}
+
+/// A shared library that answers MKL's vendor question "no", as MKL's own check does on an AMD
+/// CPU, and says on stderr that it was loaded; built with the C compiler the build already needs.
+fn not_intel_library(dir: &Path) -> std::path::PathBuf {
+    let source = dir.join("not_intel.c");
+    let library = dir.join("not_intel.so");
+    std::fs::write(
+        &source,
+        "#include <stdio.h>\n\
+         int mkl_serv_intel_cpu_true(void) { return 0; }\n\
+         __attribute__((constructor)) static void loaded(void) { fputs(\"not_intel.so loaded\\n\", stderr); }\n",
+    )
+    .expect("write not_intel.c");
+    let compiler = std::env::var("CC").unwrap_or_else(|_| "cc".into());
+    let status = Command::new(&compiler)
+        .args(["-shared", "-fPIC", "-o"])
+        .arg(&library)
+        .arg(&source)
+        .status()
+        .unwrap_or_else(|e| panic!("run {compiler}: {e}"));
+    assert!(status.success(), "{compiler} could not build not_intel.so");
+    library
+}
+
+/// The default pin holds on any vendor's CPU: with MKL told it is not on an Intel CPU (what made
+/// an AMD EPYC run MKL's own dispatch instead of the AVX2 branch, and other learned numbers), MKL
+/// still runs the AVX2 branch and the dataset and checkpoint are the same bytes. Fails when the
+/// executable does not answer MKL's question itself (learner/src/numerics.rs, build/rpath.rs).
+#[test]
+fn the_pinned_branch_does_not_depend_on_the_cpu_vendor() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let library = not_intel_library(dir.path());
+    let preload = library.to_str().expect("utf-8 temp path");
+    let out = uavmeta(
+        dir.path(),
+        &[("LD_PRELOAD", preload), ("MKL_VERBOSE", "1")],
+        "collect",
+        &["--out", "d.uavds"],
+    );
+    let log =
+        String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    assert!(
+        log.contains("not_intel.so loaded"),
+        "the library was not preloaded:\n{log}"
+    );
+    let mut cnr: Vec<&str> = log
+        .split_whitespace()
+        .filter(|w| w.starts_with("CNR:"))
+        .collect();
+    cnr.sort_unstable();
+    cnr.dedup();
+    assert!(!cnr.is_empty(), "MKL logged no call:\n{log}");
+    assert_eq!(cnr, ["CNR:AVX2,STRICT"], "the branches MKL ran");
+
+    let intel = dataset_and_checkpoint(&[]);
+    let not_intel = dataset_and_checkpoint(&[("LD_PRELOAD", preload)]);
+    assert!(intel.0 == not_intel.0, "the datasets differ");
+    assert!(intel.1 == not_intel.1, "the checkpoints differ");
 }
 
 /// An unknown mode is refused, naming the variable, the value and the modes there are.

@@ -10,17 +10,23 @@
 //!
 //! | mode | MKL | ATen | same bits on |
 //! | --- | --- | --- | --- |
-//! | `avx2` (default) | `MKL_CBWR=AVX2,STRICT` | `ATEN_CPU_CAPABILITY=avx2` | every Intel CPU with AVX2, with or without AVX-512; every AMD CPU of one MKL dispatch; not Intel and AMD |
-//! | `compatible` | `MKL_CBWR=COMPATIBLE,STRICT` | `ATEN_CPU_CAPABILITY=avx2` | every x86-64 CPU with AVX2, Intel or AMD |
+//! | `avx2` (default) | `MKL_CBWR=AVX2,STRICT` | `ATEN_CPU_CAPABILITY=avx2` | every x86-64 CPU with AVX2, Intel or AMD, with or without AVX-512 |
+//! | `compatible` | `MKL_CBWR=COMPATIBLE,STRICT` | `ATEN_CPU_CAPABILITY=avx2` | the same, with SSE2 code in MKL (1.7-1.9x slower) |
 //! | `native` | as the CPU dispatches | as the CPU dispatches | this machine only |
 //!
-//! MKL honours its named branches (AVX2, AVX512) only on Intel CPUs; on others it runs its
-//! automatic dispatch in reproducible (STRICT) mode, and only COMPATIBLE (SSE2 code) is the same
-//! code on both vendors: an Intel Xeon and an AMD EPYC ran the same reproduction to other
-//! learned numbers under AVX2. COMPATIBLE makes training 1.7-1.9x slower on both, AVX2 costs
-//! nothing measurable (docs/BENCHMARKS.md, "Pinned numerics"), hence the default. `ONEDNN_MAX_CPU_ISA`
-//! is capped at AVX2 likewise for the oneDNN kernels libtorch may use. A variable the
-//! environment already sets is left as it is.
+//! MKL honours a named branch (AVX2, AVX512) only where it believes it runs on an Intel CPU;
+//! elsewhere it keeps its own dispatch in reproducible (STRICT) mode, and an Intel Xeon and an AMD
+//! EPYC ran the same reproduction to other learned numbers under AVX2. It asks one function,
+//! `mkl_serv_intel_cpu_true`, which libtorch calls through its PLT, so the definition the
+//! executable exports is the one that answers ([`mkl_serv_intel_cpu_true`], exported by
+//! build/rpath.rs): where `MKL_CBWR` names a branch it answers yes on every CPU, and the branch is
+//! the same code on every vendor. AVX2 costs nothing measurable, COMPATIBLE 1.7-1.9x
+//! (docs/BENCHMARKS.md, "Pinned numerics"), hence the default. `ONEDNN_MAX_CPU_ISA` is capped at
+//! AVX2 likewise for the oneDNN kernels libtorch may use. A variable the environment already sets
+//! is left as it is.
+
+use std::ffi::c_int;
+use std::sync::OnceLock;
 
 /// The variable that chooses the mode: `avx2` (also when unset), `compatible` or `native`.
 pub const MODE_VARIABLE: &str = "UAVMETA_NUMERICS";
@@ -73,9 +79,61 @@ pub fn pin() -> Result<(), UnknownMode> {
     Ok(())
 }
 
+/// MKL's question "is this an Intel CPU?", answered for it. MKL (statically inside libtorch)
+/// runs the branch `MKL_CBWR` names only where this says yes; MKL's own definition says yes only
+/// where CPUID's vendor is `GenuineIntel`, so on an AMD CPU `MKL_CBWR=AVX2,STRICT` fell back to
+/// MKL's automatic dispatch and summed in another order. This definition, exported by the
+/// executable, comes before libtorch's in the dynamic linker's search: it says yes on every CPU
+/// where `MKL_CBWR` names a branch (the pinned modes), and gives MKL's own answer otherwise
+/// (`native`, or `MKL_CBWR=AUTO`). MKL calls it once and keeps the answer.
+#[cfg(target_arch = "x86_64")]
+#[no_mangle]
+pub extern "C" fn mkl_serv_intel_cpu_true() -> c_int {
+    static ANSWER: OnceLock<c_int> = OnceLock::new();
+    *ANSWER.get_or_init(|| {
+        let cbwr = std::env::var("MKL_CBWR").ok();
+        c_int::from(names_a_branch(cbwr.as_deref()) || vendor_is_intel())
+    })
+}
+
+/// Whether an `MKL_CBWR` value asks for one fixed branch (`AVX2,STRICT`, `COMPATIBLE`, ...)
+/// rather than MKL's own choice (unset, `AUTO`, `OFF`).
+fn names_a_branch(cbwr: Option<&str>) -> bool {
+    let branch = cbwr
+        .and_then(|value| value.split(',').next())
+        .map(str::trim);
+    branch.is_some_and(|b| {
+        !b.is_empty() && !["AUTO", "OFF"].iter().any(|m| b.eq_ignore_ascii_case(m))
+    })
+}
+
+/// MKL's own test: CPUID leaf 0 names the vendor `GenuineIntel`.
+#[cfg(target_arch = "x86_64")]
+fn vendor_is_intel() -> bool {
+    #[allow(unused_unsafe)] // unsafe before Rust 1.87, safe after
+    let leaf = unsafe { std::arch::x86_64::__cpuid(0) };
+    [leaf.ebx, leaf.edx, leaf.ecx] == [0x756e_6547, 0x4965_6e69, 0x6c65_746e]
+}
+
 #[cfg(test)]
 mod tests {
-    use super::MODES;
+    use super::{names_a_branch, MODES};
+
+    #[test]
+    fn a_named_branch_is_one_mkl_must_honour_on_every_cpu() {
+        for named in ["AVX2,STRICT", "AVX2", "COMPATIBLE,STRICT", "avx512"] {
+            assert!(names_a_branch(Some(named)), "{named}");
+        }
+        for own in [
+            None,
+            Some(""),
+            Some("AUTO"),
+            Some("auto,STRICT"),
+            Some("OFF"),
+        ] {
+            assert!(!names_a_branch(own), "{own:?}");
+        }
+    }
 
     /// `.cargo/config.toml` gives the processes cargo runs (tests, benches) the default mode's
     /// settings; they must be this table's, or the tests would check other numerics than the
