@@ -10,7 +10,7 @@
 //!
 //! | mode | MKL | ATen | same bits on |
 //! | --- | --- | --- | --- |
-//! | `avx2` (default) | `MKL_CBWR=AVX2,STRICT` | `ATEN_CPU_CAPABILITY=avx2` | every x86-64 CPU with AVX2, Intel or AMD, with or without AVX-512 |
+//! | `avx2` (default) | `MKL_CBWR=AVX2,STRICT` | `ATEN_CPU_CAPABILITY=avx2` | every Intel CPU with AVX2, with or without AVX-512 (measured); AMD CPUs too, by the same MKL code (not yet run on one) |
 //! | `compatible` | `MKL_CBWR=COMPATIBLE,STRICT` | `ATEN_CPU_CAPABILITY=avx2` | the same, with SSE2 code in MKL (1.7-1.9x slower) |
 //! | `native` | as the CPU dispatches | as the CPU dispatches | this machine only |
 //!
@@ -85,7 +85,7 @@ pub fn pin() -> Result<(), UnknownMode> {
 /// MKL's automatic dispatch and summed in another order. This definition, exported by the
 /// executable, comes before libtorch's in the dynamic linker's search: it says yes on every CPU
 /// where `MKL_CBWR` names a branch (the pinned modes), and gives MKL's own answer otherwise
-/// (`native`, or `MKL_CBWR=AUTO`). MKL calls it once and keeps the answer.
+/// (`native`, or `MKL_CBWR=AUTO`). The answer is worked out once per process.
 #[cfg(target_arch = "x86_64")]
 #[no_mangle]
 pub extern "C" fn mkl_serv_intel_cpu_true() -> c_int {
@@ -110,7 +110,7 @@ fn names_a_branch(cbwr: Option<&str>) -> bool {
 /// MKL's own test: CPUID leaf 0 names the vendor `GenuineIntel`.
 #[cfg(target_arch = "x86_64")]
 fn vendor_is_intel() -> bool {
-    #[allow(unused_unsafe)] // unsafe before Rust 1.87, safe after
+    #[allow(unused_unsafe)] // an unsafe fn in older Rust releases, safe in newer ones
     let leaf = unsafe { std::arch::x86_64::__cpuid(0) };
     [leaf.ebx, leaf.edx, leaf.ecx] == [0x756e_6547, 0x4965_6e69, 0x6c65_746e]
 }
