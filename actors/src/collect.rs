@@ -283,10 +283,7 @@ pub fn collect(
             check_replay_window(config)?;
             None
         }
-        spec => Some(
-            spec.build(config, seed, Some(wanted))
-                .map_err(policy_error)?,
-        ),
+        spec => Some(crate::policy::build(spec, config, seed, Some(wanted)).map_err(policy_error)?),
     };
 
     let config_file = config_path(out);

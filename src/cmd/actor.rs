@@ -15,8 +15,8 @@ pub struct ActorArgs {
     /// The task to act in, named in the run's config.
     #[arg(long)]
     pub task: String,
-    /// Behaviour policy: dqn-online, random, stalest, greedy, eps:P or actions:FILE; default
-    /// `collect.policy`.
+    /// Behaviour policy: dqn-online, random, stalest, greedy, eps:P, q:P:CHECKPOINT or
+    /// actions:FILE; default `collect.policy`.
     #[arg(long)]
     pub policy: Option<String>,
     /// Seed of the episodes and the policy; default `collect.seed`. Actors of one task with

@@ -16,8 +16,8 @@ pub struct CollectArgs {
     config: ConfigArgs,
     #[command(flatten)]
     task: TaskArgs,
-    /// Behaviour policy: dqn-online | random | stalest | greedy | eps:P | actions:FILE
-    /// [default: collect.policy].
+    /// Behaviour policy: dqn-online | random | stalest | greedy | eps:P | q:P:CHECKPOINT |
+    /// actions:FILE [default: collect.policy].
     #[arg(long, value_parser = |s: &str| s.parse::<PolicySpec>().map_err(|e| e.to_string()))]
     policy: Option<PolicySpec>,
     /// Transitions to write [default: collect.transitions].

@@ -23,7 +23,8 @@ pub struct RolloutArgs {
     config: ConfigArgs,
     #[command(flatten)]
     task: TaskArgs,
-    /// random | stalest | greedy | planner | eps:P | actions:FILE (one action index per line,
+    /// random | stalest | greedy | planner | eps:P | q:P:CHECKPOINT (a saved Q-network's greedy
+    /// policy, uniform random with probability P) | actions:FILE (one action index per line,
     /// replayed across episodes).
     #[arg(long, default_value = "stalest", value_parser = clap::value_parser!(PolicySpecArg))]
     policy: PolicySpecArg,
@@ -91,7 +92,7 @@ fn run_rollout(args: RolloutArgs) -> Result<()> {
     let task = args.task.resolve(&mut config)?;
     let spec = &args.policy.0;
     let steps = args.episodes * config.world.horizon as usize;
-    let mut policy = spec.build(&config, args.seed, Some(steps))?;
+    let mut policy = uavmeta_actors::policy::build(spec, &config, args.seed, Some(steps))?;
 
     let stdout = io::stdout();
     let mut out = io::BufWriter::new(stdout.lock());

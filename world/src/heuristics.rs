@@ -4,7 +4,7 @@
 //! - [`RandomPolicy`]: uniform over the 5K actions.
 //! - [`StalestPolicy`]: serve the device with the largest delta_k A_k, fly towards it.
 //! - [`GreedyPolicy`]: serve the device that makes this step cheapest, fly towards the stalest.
-//! - [`EpsilonPolicy`]: stalest, with a uniform random action with probability P.
+//! - [`EpsilonPolicy`]: stalest (or another policy), with a uniform random action with probability P.
 //! - [`ReplayPolicy`]: a fixed list of action indices read from a file.
 //!
 //! `PolicySpec` also names the planner reference (`crate::planner`), which is no heuristic but is
@@ -98,17 +98,23 @@ impl Policy for GreedyPolicy {
     }
 }
 
-/// Stalest with probability 1 - epsilon, uniform random with probability epsilon.
-#[derive(Debug, Clone)]
+/// Another policy with probability 1 - epsilon, uniform random with probability epsilon: `eps:P`
+/// around stalest, and `q:P:FILE` around a Q-network's greedy policy.
 pub struct EpsilonPolicy {
     epsilon: f64,
     coin: ChaCha8Rng,
     random: RandomPolicy,
+    inner: Box<dyn Policy>,
 }
 
 impl EpsilonPolicy {
-    /// `epsilon` in [0, 1].
+    /// Stalest with probability 1 - `epsilon` (in [0, 1]), uniform random with probability `epsilon`.
     pub fn new(epsilon: f64, seed: u64) -> Self {
+        Self::around(Box::new(StalestPolicy), epsilon, seed)
+    }
+
+    /// `inner` with probability 1 - `epsilon` (in [0, 1]), uniform random with probability `epsilon`.
+    pub fn around(inner: Box<dyn Policy>, epsilon: f64, seed: u64) -> Self {
         let mut coin = ChaCha8Rng::seed_from_u64(seed);
         // A stream of its own, so the coin flips do not shift the random actions.
         coin.set_stream(1);
@@ -116,6 +122,7 @@ impl EpsilonPolicy {
             epsilon,
             coin,
             random: RandomPolicy::new(seed),
+            inner,
         }
     }
 }
@@ -125,7 +132,7 @@ impl Policy for EpsilonPolicy {
         if self.coin.random_bool(self.epsilon) {
             self.random.act(world)
         } else {
-            StalestPolicy.act(world)
+            self.inner.act(world)
         }
     }
 }
@@ -201,6 +208,14 @@ pub enum PolicySpec {
     Epsilon(f64),
     /// `actions:FILE`
     Actions(PathBuf),
+    /// `q:P:FILE`: the greedy policy of the Q-network checkpoint FILE (a learner's or an online
+    /// agent's), with a uniform random action with probability P, as D4RL's "expert" and "medium"
+    /// datasets are rollouts of one trained policy. Loading a network is the actors crate's job
+    /// (`uavmeta_actors::policy::build`).
+    Checkpoint {
+        epsilon: f64,
+        path: PathBuf,
+    },
     /// `planner`: the planner reference (`crate::planner`), with the config's `[planner]`.
     Planner,
     /// `dqn-online`: an online DQN agent (`uavmeta_actors::policy::dqn_online`), which learns in the task's world
@@ -209,7 +224,7 @@ pub enum PolicySpec {
 }
 
 const SPEC_FORMS: &str =
-    "random, stalest, greedy, planner, dqn-online, eps:P (0 <= P <= 1) or actions:FILE";
+    "random, stalest, greedy, planner, dqn-online, eps:P (0 <= P <= 1), q:P:CHECKPOINT or actions:FILE";
 
 impl FromStr for PolicySpec {
     type Err = PolicyError;
@@ -234,6 +249,23 @@ impl FromStr for PolicySpec {
                     "`{p}` is not a probability: expected eps:P with 0 <= P <= 1"
                 ))),
             },
+            Some(("q", rest)) => {
+                let Some((p, path)) = rest.split_once(':').filter(|(_, path)| !path.is_empty())
+                else {
+                    return Err(bad(
+                        "expected q:P:CHECKPOINT, e.g. q:0.05:runs/default/seed-0/datasets/lambda-300.uavds.agent/online-dqn".into(),
+                    ));
+                };
+                match p.trim().parse::<f64>() {
+                    Ok(epsilon) if (0.0..=1.0).contains(&epsilon) => Ok(Self::Checkpoint {
+                        epsilon,
+                        path: PathBuf::from(path),
+                    }),
+                    _ => Err(bad(format!(
+                        "`{p}` is not a probability: expected q:P:CHECKPOINT with 0 <= P <= 1"
+                    ))),
+                }
+            }
             Some(("actions", "")) => Err(bad("expected a file after `actions:`".into())),
             Some(("actions", file)) => Ok(Self::Actions(PathBuf::from(file))),
             Some(_) => Err(bad(format!("expected {SPEC_FORMS}"))),
@@ -250,6 +282,7 @@ impl fmt::Display for PolicySpec {
             Self::Planner => write!(f, "planner"),
             Self::Epsilon(p) => write!(f, "eps:{p}"),
             Self::Actions(path) => write!(f, "actions:{}", path.display()),
+            Self::Checkpoint { epsilon, path } => write!(f, "q:{epsilon}:{}", path.display()),
             Self::DqnOnline => write!(f, "dqn-online"),
         }
     }
@@ -267,6 +300,7 @@ impl PolicySpec {
             Self::DqnOnline => "dqn-online",
             Self::Epsilon(_) => "eps",
             Self::Actions(_) => "actions",
+            Self::Checkpoint { .. } => "q",
         }
     }
 
@@ -296,6 +330,12 @@ impl PolicySpec {
                 return Err(PolicyError::Spec {
                     spec: self.to_string(),
                     expected: "a fixed policy; dqn-online must first be trained in the task's world (`uavmeta collect --policy dqn-online`)".into(),
+                })
+            }
+            Self::Checkpoint { .. } => {
+                return Err(PolicyError::Spec {
+                    spec: self.to_string(),
+                    expected: "a policy without a network; a checkpoint's policy is built by `uavmeta_actors::policy::build`".into(),
                 })
             }
         })

@@ -11,6 +11,7 @@
 //! whose paths join its lap within a few steps, needs a small part of the rows (SPEC section 5's
 //! exact evaluation, unchanged: each start cell keeps its own return, AoI, power and outages).
 
+use std::borrow::Borrow;
 use std::collections::HashMap;
 
 use tch::Tensor;
@@ -22,27 +23,25 @@ use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 use crate::rollout::{evaluation_worlds, EpisodeTally, Policy};
 use crate::world::{Step, World};
 
-/// `argmax_a Q(s, a)` on the normalised observation.
-pub struct QPolicy<'a> {
-    q: &'a QNetwork,
+/// `argmax_a Q(s, a)` on the normalised observation, of a network borrowed (`&QNetwork`) or owned.
+pub struct QPolicy<Q: Borrow<QNetwork>> {
+    q: Q,
     /// The normalised observation, reused every step.
     obs: Vec<f32>,
 }
 
-impl<'a> QPolicy<'a> {
-    pub fn new(q: &'a QNetwork) -> Self {
-        Self {
-            q,
-            obs: vec![0.0; q.obs_len()],
-        }
+impl<Q: Borrow<QNetwork>> QPolicy<Q> {
+    pub fn new(q: Q) -> Self {
+        let obs = vec![0.0; q.borrow().obs_len()];
+        Self { q, obs }
     }
 }
 
-impl Policy for QPolicy<'_> {
+impl<Q: Borrow<QNetwork>> Policy for QPolicy<Q> {
     fn act(&mut self, world: &World) -> usize {
         world.write_normalised(&mut self.obs);
         let obs = Tensor::from_slice(&self.obs).view([1, self.obs.len() as i64]); // [1, D]
-        self.q.greedy(&obs).int64_value(&[0]) as usize
+        self.q.borrow().greedy(&obs).int64_value(&[0]) as usize
     }
 }
 

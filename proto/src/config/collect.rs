@@ -13,8 +13,9 @@ use super::rules::{at_least, finite, positive, toml_seed, widths, within, Broken
 #[serde(deny_unknown_fields, default)]
 #[garde(allow_unvalidated)]
 pub struct CollectConfig {
-    /// Behaviour policy: `dqn-online`, `random`, `stalest`, `greedy` or `eps:P` (stalest with
-    /// probability 1-P, uniform random with probability P).
+    /// Behaviour policy: `dqn-online`, `random`, `stalest`, `greedy`, `eps:P` (stalest with
+    /// probability 1-P, uniform random with probability P), `q:P:CHECKPOINT` (a saved Q-network's
+    /// greedy policy, uniform random with probability P) or `actions:FILE`.
     #[default("dqn-online")]
     pub policy: String,
     /// Transitions kept per task (the paper's datasets hold 500).

@@ -450,12 +450,12 @@ fn start_source(
             let limit = usize::try_from(transition_limit(options, config))
                 .ok()
                 .filter(|&n| n != usize::MAX);
-            let policy =
-                spec.build(config, options.seed, limit)
-                    .map_err(|error| ActorError::Policy {
-                        spec: spec.to_string(),
-                        error,
-                    })?;
+            let policy = uavmeta_actors::policy::build(spec, config, options.seed, limit).map_err(
+                |error| ActorError::Policy {
+                    spec: spec.to_string(),
+                    error,
+                },
+            )?;
             Source::Rollout(Box::new(Rollout::new(config, task, policy, options.seed)))
         }
     };
