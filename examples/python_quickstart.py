@@ -1,8 +1,10 @@
 """The uavmeta world from Python, in the order a newcomer meets it: one env, a heuristic, the
-batched vector env, a picture, and (with --dataset FILE) a collected dataset.
+batched vector env, a picture, (with --dataset FILE) a collected dataset and (with --checkpoint
+PATH) a Q-network the command line trained.
 
     pip install ./python          # or: make python (into the test virtualenv)
-    python examples/python_quickstart.py [--dataset data/lambda-300.uavds] [--png world.png]
+    python examples/python_quickstart.py [--dataset data/lambda-300.uavds] [--png world.png] \
+        [--checkpoint runs/default/seed-0/inits/w0]
 """
 
 import argparse
@@ -18,15 +20,19 @@ def one_env():
     env = gymnasium.make("uavmeta/UAV-v0", lam=300.0, rain=(3, 3, 5, 5))
     obs, info = env.reset(seed=0)  # the episode `uavmeta env rollout --seed 0` runs first
     print("observation [x, y, A_1..A_K]:", obs.astype(int).tolist())
-    policy = uavmeta.policies.stalest(env)  # serve the stalest device, fly towards it
+    episode(env, "stalest", uavmeta.policies.stalest(env))  # serve the stalest, fly towards it
+    return env
+
+
+def episode(env, name, policy, seed=0):
+    obs, info = env.reset(seed=seed)
     ret, outages, truncated = 0.0, 0, False
     while not truncated:
         obs, reward, terminated, truncated, info = env.step(policy(obs))
         ret += reward
         outages += info["outage"]
-    print(f"stalest: return {ret:.1f}, last step AoI {info['aoi']:.2f}, "
+    print(f"{name}: return {ret:.1f}, last step AoI {info['aoi']:.2f}, "
           f"{info['power_mw']:.3f} mW, {outages} outages")
-    return env
 
 
 def vector_env():
@@ -44,6 +50,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--dataset", help="a .uavds file from `uavmeta collect`")
     parser.add_argument("--png", help="save the last frame here (needs Pillow)")
+    parser.add_argument("--checkpoint", help="a Q-network `uavmeta` saved, without extension")
     args = parser.parse_args()
     env = one_env()
     vector_env()
@@ -54,6 +61,10 @@ def main():
 
         Image.fromarray(frame).save(args.png)
         print("wrote", args.png)
+    if args.checkpoint:
+        # The config the network was trained with, so that its world is the env's.
+        env = uavmeta.UavEnv.from_config(f"{args.checkpoint}.toml", lam=300.0)
+        episode(env, args.checkpoint, uavmeta.policies.checkpoint(env, args.checkpoint))
     if args.dataset:
         data = uavmeta.load_dataset(args.dataset)
         print(f"{args.dataset}: {len(data)} transitions of task {data.task_name} "

@@ -1,6 +1,6 @@
 //! The Python package (python/, `import uavmeta`) tested by its real consumers: pytest runs
 //! python/tests in the virtualenv where `make python` installs the package beside gymnasium,
-//! numpy and stable-baselines3 (tests/interop-requirements.txt), with this build's `uavmeta`
+//! numpy, safetensors and stable-baselines3 (tests/interop-requirements.txt), with this build's `uavmeta`
 //! binary for the comparisons with `uavmeta env rollout --trace` and `uavmeta collect`.
 //! Without the package or its consumers the test is skipped with the reason, except under
 //! `CI=true`, where it fails.
@@ -14,7 +14,7 @@ const REPO: &str = env!("CARGO_MANIFEST_DIR");
 #[test]
 fn the_python_package_passes_its_pytest_suite() {
     let python = support::venv_python();
-    let consumers = "uavmeta, gymnasium, numpy, pytest, stable_baselines3";
+    let consumers = "uavmeta, gymnasium, numpy, safetensors, pytest, stable_baselines3";
     if !support::python_imports(&python, consumers, "make python") {
         return;
     }

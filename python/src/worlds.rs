@@ -361,6 +361,12 @@ impl Worlds {
         self.config.world.aoi_max
     }
 
+    /// The world's hash, as a checkpoint or dataset header records it: equal hashes, equal worlds.
+    #[getter]
+    fn world_hash(&self) -> u64 {
+        self.config.world_hash()
+    }
+
     #[getter]
     fn normalised(&self) -> bool {
         self.normalised

@@ -8,8 +8,8 @@ as the ``uavmeta`` command line, without libtorch:
 - :class:`VectorEnv`, N worlds stepped in one call in Rust (Gymnasium's ``VectorEnv`` API,
   next-step autoreset), also reachable as ``gymnasium.make_vec("uavmeta/UAV-v0", n,
   vectorization_mode="vector_entry_point")``;
-- :mod:`uavmeta.policies`, the heuristics (random, stalest, greedy) as batched functions of
-  observations;
+- :mod:`uavmeta.policies`, the heuristics (random, stalest, greedy), the planner and any saved
+  Q-network (``checkpoint``) as batched functions of observations;
 - :func:`load_dataset`, a ``.uavds`` file as numpy arrays with its task's metadata;
 - :mod:`uavmeta.render`, RGB pictures of the world and of a trajectory.
 
