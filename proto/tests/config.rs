@@ -447,3 +447,26 @@ fn the_first_broken_rule_is_reported_in_section_order() {
     );
     assert!(!message.contains("meta.alpha"), "{message}");
 }
+
+#[test]
+fn learner_shots_cannot_exceed_the_dataset() {
+    error_of(
+        "[collect]\ntransitions = 500\n[learner]\nshots = 600\n",
+        &[],
+        &["learner.shots", "600", "at most collect.transitions = 500"],
+    );
+}
+
+#[test]
+fn a_launch_fine_tunes_on_learner_shots_or_the_whole_dataset() {
+    let (_, all) = load("", &[]);
+    let all = all.expect("the defaults load");
+    assert_eq!(all.learner.shots, 0);
+    assert_eq!(all.fine_tune_shots(), all.collect.transitions);
+    let (_, few) = load("", &["collect.transitions=2000", "learner.shots=500"]);
+    assert_eq!(
+        few.expect("shots within the dataset load")
+            .fine_tune_shots(),
+        500
+    );
+}

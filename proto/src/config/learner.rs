@@ -44,6 +44,13 @@ pub struct LearnerConfig {
     #[default(1e-3)]
     #[garde(custom(positive("a learning rate > 0")))]
     pub lr: f64,
+    /// Shots N of a launch's fine-tuning runs (the meta-learner's meta-tests and their
+    /// baselines), drawn from the task's dataset with the run's seed; 0 = the whole dataset,
+    /// `collect.transitions`. A larger `collect.transitions` with `shots = 500` gives the
+    /// meta-train tasks more data while the unseen task keeps the paper's 500 shots
+    /// (docs/EXPERIMENTS.md, C15). The one-shot commands take `--shots` instead.
+    #[default(0)]
+    pub shots: usize,
     /// Training epochs E.
     #[default(100)]
     pub epochs: usize,

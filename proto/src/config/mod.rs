@@ -228,7 +228,29 @@ impl Config {
         self.tunnel.check_hosts()?;
         self.tunnel.check_security()?;
         self.check_limits()?;
+        self.check_shots()?;
         self.planner.check_memory(&self.world)
+    }
+
+    /// Shots N of a launch's fine-tuning runs: `learner.shots`, or the whole dataset when it is 0.
+    pub fn fine_tune_shots(&self) -> usize {
+        match self.learner.shots {
+            0 => self.collect.transitions,
+            n => n,
+        }
+    }
+
+    /// A launch's fine-tuning draws its shots from a dataset of `collect.transitions`.
+    fn check_shots(&self) -> Result<(), Broken> {
+        let (shots, transitions) = (self.learner.shots, self.collect.transitions);
+        if shots > transitions {
+            let expected = format!(
+                "at most collect.transitions = {transitions} (the size of each task's dataset), \
+                 or 0 for all of it"
+            );
+            return Err(Broken::new("learner.shots", &shots, expected));
+        }
+        Ok(())
     }
 
     /// Every task has a name of its own, and a rain zone inside the grid.

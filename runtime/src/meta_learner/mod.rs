@@ -11,7 +11,7 @@
 //!    (`uavmeta_learner::checkpoint`: write, fsync, rename) and announces it once per meta-test
 //!    task, whose evaluator then scores it zero-shot. `meta-train/meta_train.csv` in the run
 //!    directory holds the per-meta-epoch figures, as `uavmeta meta-train` writes them.
-//! 3. Meta-tests: per meta-test task, fine-tunes w0 on `collect.transitions` shots with the loss
+//! 3. Meta-tests: per meta-test task, fine-tunes w0 on `learner.shots` shots with the loss
 //!    its checkpoint names (CQL-MAML or, with `meta.inner_loss = "dqn"`, DQN-MAML) and, as
 //!    baselines, the same loss from a random init (CQL or DQN) and, for CQL, from a network
 //!    pretrained on the union of the meta-train tasks' shots (CQL-pretrain,
@@ -421,18 +421,14 @@ impl MetaTest<'_> {
         })
     }
 
-    /// The task's `collect.transitions` shots, drawn with the run's seed.
+    /// The task's `learner.shots` shots (all of its dataset by default), drawn with the run's seed.
     fn shots(&self, task: &TaskConfig) -> Result<Batch, MetaProcessError> {
         let config = self.config;
         let dataset = self.run.dataset(task);
-        Ok(load_shots(
-            config,
-            task,
-            &dataset,
-            config.collect.transitions,
-            self.seed,
+        Ok(
+            load_shots(config, task, &dataset, config.fine_tune_shots(), self.seed)
+                .map_err(MetaError::from)?,
         )
-        .map_err(MetaError::from)?)
     }
 
     fn settings<'t>(&'t self, task: &'t TaskConfig) -> FineTune<'t> {
