@@ -30,6 +30,7 @@ fn _uavmeta(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<policies::Heuristic>()?;
     m.add_function(wrap_pyfunction!(dataset::load_dataset, m)?)?;
     m.add_function(wrap_pyfunction!(worlds::episode_seed, m)?)?;
+    m.add_function(wrap_pyfunction!(policies::checkpoint_spec, m)?)?;
     m.add("DatasetError", m.py().get_type::<dataset::DatasetError>())?;
     m.add("ACTION_MOVES", uavmeta_proto::config::MOVES.to_vec())?;
     Ok(())

@@ -12,7 +12,7 @@
 use numpy::{IntoPyArray, PyArray1, PyReadonlyArray2};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
-use uavmeta_world::heuristics::{GreedyPolicy, RandomPolicy, StalestPolicy};
+use uavmeta_world::heuristics::{GreedyPolicy, PolicySpec, RandomPolicy, StalestPolicy};
 use uavmeta_world::planner::PlannerPolicy;
 use uavmeta_world::rollout::Policy;
 use uavmeta_world::world::World;
@@ -158,5 +158,18 @@ impl Heuristic {
             )));
         }
         Ok(rounded as u16)
+    }
+}
+
+/// `(epsilon, path)` of a `q:P:CHECKPOINT` policy spec, parsed as the command line's `--policy`
+/// parses it (`uavmeta_world::heuristics::PolicySpec`); any other spec is a `ValueError`.
+#[pyfunction]
+pub fn checkpoint_spec(spec: &str) -> PyResult<(f64, String)> {
+    match spec.parse::<PolicySpec>() {
+        Ok(PolicySpec::Checkpoint { epsilon, path }) => Ok((epsilon, path.display().to_string())),
+        Ok(other) => Err(PyValueError::new_err(format!(
+            "policy `{spec}` is `{other}`, not a saved Q-network's q:P:CHECKPOINT"
+        ))),
+        Err(e) => Err(PyValueError::new_err(e.to_string())),
     }
 }

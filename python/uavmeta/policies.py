@@ -29,6 +29,7 @@ import zlib
 import numpy as np
 
 from ._uavmeta import Heuristic as _Heuristic
+from ._uavmeta import checkpoint_spec as _checkpoint_spec
 
 NAMES = ("random", "stalest", "greedy", "planner")
 
@@ -74,13 +75,10 @@ def make(name, env, seed=0):
     """The policy called ``name`` for ``env``: one of :data:`NAMES`, or ``q:EPSILON:PATH`` as the
     command line's ``--policy`` writes a saved Q-network's (:func:`checkpoint`)."""
     if isinstance(name, str) and name.startswith("q:"):
-        epsilon, sep, path = name[2:].partition(":")
         try:
-            epsilon = float(epsilon)
-        except ValueError:
-            epsilon = None
-        if not sep or not path or epsilon is None:
-            raise ValueError(f"policy = {name!r}: expected q:EPSILON:PATH, EPSILON in [0, 1]")
+            epsilon, path = _checkpoint_spec(name)
+        except ValueError as e:
+            raise ValueError(f"{e} (the command line's q:EPSILON:PATH)") from None
         return checkpoint(env, path, epsilon, seed)
     if name not in NAMES:
         raise ValueError(
