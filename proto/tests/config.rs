@@ -449,12 +449,25 @@ fn the_first_broken_rule_is_reported_in_section_order() {
 }
 
 #[test]
-fn learner_shots_cannot_exceed_the_dataset() {
-    error_of(
-        "[collect]\ntransitions = 500\n[learner]\nshots = 600\n",
-        &[],
-        &["learner.shots", "600", "at most collect.transitions = 500"],
-    );
+fn a_launch_refuses_more_shots_than_the_dataset_and_other_commands_do_not_care() {
+    let (path, config) = load("[collect]\ntransitions = 500\n[learner]\nshots = 600\n", &[]);
+    let config = config.expect("a collect or a train of 500 transitions has no use for the shots");
+    let message = config
+        .validate_launch()
+        .expect_err("a launch cannot fine-tune on 600 of 500 transitions")
+        .to_string();
+    for part in [
+        path.display().to_string().as_str(),
+        "learner.shots",
+        "600",
+        "at most collect.transitions = 500",
+    ] {
+        assert!(message.contains(part), "`{part}` missing from: {message}");
+    }
+    let (_, fits) = load("[collect]\ntransitions = 600\n[learner]\nshots = 600\n", &[]);
+    fits.expect("loads")
+        .validate_launch()
+        .expect("600 shots of 600 transitions");
 }
 
 #[test]

@@ -48,7 +48,8 @@ pub struct LearnerConfig {
     /// baselines), drawn from the task's dataset with the run's seed; 0 = the whole dataset,
     /// `collect.transitions`. A larger `collect.transitions` with `shots = 500` gives the
     /// meta-train tasks more data while the unseen task keeps the paper's 500 shots
-    /// (docs/EXPERIMENTS.md, C15). The one-shot commands take `--shots` instead.
+    /// (docs/EXPERIMENTS.md, C15). A launch refuses more than `collect.transitions`
+    /// ([`super::Config::validate_launch`]); the one-shot commands take `--shots` instead.
     #[default(0)]
     pub shots: usize,
     /// Training epochs E.

@@ -228,8 +228,14 @@ impl Config {
         self.tunnel.check_hosts()?;
         self.tunnel.check_security()?;
         self.check_limits()?;
-        self.check_shots()?;
         self.planner.check_memory(&self.world)
+    }
+
+    /// What a launch needs beyond [`Config::validate`]: its fine-tuning shots fit in each task's
+    /// dataset. Only a launch reads `learner.shots`, so a `collect` or `train` of fewer
+    /// transitions than the default's shots is not refused for it.
+    pub fn validate_launch(&self) -> Result<(), ConfigError> {
+        self.check_shots().map_err(|broken| broken.at(&self.origin))
     }
 
     /// Shots N of a launch's fine-tuning runs: `learner.shots`, or the whole dataset when it is 0.

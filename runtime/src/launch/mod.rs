@@ -119,6 +119,8 @@ pub enum LaunchError {
     },
     #[error("{origin}: key `collect.policy`: {message}")]
     Policy { origin: String, message: String },
+    #[error(transparent)]
+    Config(#[from] uavmeta_proto::config::ConfigError),
     #[error("stopped by a termination request")]
     Interrupted,
     #[error("the store exited ({status}) before it was ready: {cause} (its log: {})", log.display())]
@@ -170,6 +172,7 @@ pub fn launch(
     reuse: Reuse,
     terminal: Option<&MultiProgress>,
 ) -> Result<LaunchReport, LaunchError> {
+    config.validate_launch()?;
     resources::check_here(config)?;
     reuse::prepare(config, reuse)?;
     let run = RunDir::create(&config.run.dir)?;
