@@ -450,7 +450,10 @@ fn the_first_broken_rule_is_reported_in_section_order() {
 
 #[test]
 fn a_launch_refuses_more_shots_than_the_dataset_and_other_commands_do_not_care() {
-    let (path, config) = load("[collect]\ntransitions = 500\n[learner]\nshots = 600\n", &[]);
+    let (path, config) = load(
+        "[collect]\ntransitions = 500\n[learner]\nshots = 600\n",
+        &[],
+    );
     let config = config.expect("a collect or a train of 500 transitions has no use for the shots");
     let message = config
         .validate_launch()
@@ -464,7 +467,10 @@ fn a_launch_refuses_more_shots_than_the_dataset_and_other_commands_do_not_care()
     ] {
         assert!(message.contains(part), "`{part}` missing from: {message}");
     }
-    let (_, fits) = load("[collect]\ntransitions = 600\n[learner]\nshots = 600\n", &[]);
+    let (_, fits) = load(
+        "[collect]\ntransitions = 600\n[learner]\nshots = 600\n",
+        &[],
+    );
     fits.expect("loads")
         .validate_launch()
         .expect("600 shots of 600 transitions");
