@@ -44,6 +44,15 @@ fn meta_task(config: &Config, name: &str, seed: u64) -> MetaTask {
     }
 }
 
+/// configs/default.toml with 500 transitions per task, the size these tests were measured at:
+/// with the default's 2 000 of this data w0 swings by 2.55% over the last 30 meta-epochs, issue
+/// #30's point 4 unmet at that size (docs/EXPERIMENTS.md C14, C16), and each test takes 2-4x as
+/// long.
+fn default_config() -> Config {
+    let sets = ["collect.transitions=500".to_string()];
+    Config::load(DEFAULT_CONFIG.as_ref(), &sets).unwrap()
+}
+
 /// Five of the default config's meta-train tasks.
 fn meta_tasks(config: &Config) -> Vec<MetaTask> {
     [
@@ -62,7 +71,7 @@ fn meta_tasks(config: &Config) -> Vec<MetaTask> {
 #[test]
 fn a_meta_trained_w0_beats_a_random_init_zero_shot_on_an_unseen_lambda() {
     tch::set_num_threads(1);
-    let config = Config::load(DEFAULT_CONFIG.as_ref(), &[]).unwrap();
+    let config = default_config();
     let tasks = meta_tasks(&config);
     let w = &config.world;
     let init = QNetworkConfig::for_world(w, &config.learner.hidden).init(5);
@@ -119,10 +128,7 @@ fn a_meta_trained_w0_beats_a_random_init_zero_shot_on_an_unseen_lambda() {
 #[test]
 fn w0_zero_shot_varies_by_under_2_percent_over_the_last_30_meta_epochs() {
     tch::set_num_threads(1);
-    // 500 transitions per task, the size it was measured at: with the default's 2 000 of this
-    // data w0 swings by 2.55%, issue #30's point 4 unmet at that size (docs/EXPERIMENTS.md C14, C16).
-    let sets = ["collect.transitions=500".to_string()];
-    let config = Config::load(DEFAULT_CONFIG.as_ref(), &sets).unwrap();
+    let config = default_config();
     assert!(
         config.meta.w0_average_decay > 0.0 && config.meta.w0_loss_weight > 0.0,
         "the default config averages w0 and adds its own loss to the meta-loss"
