@@ -232,10 +232,18 @@ impl Config {
     }
 
     /// What a launch needs beyond [`Config::validate`]: its fine-tuning shots fit in each task's
-    /// dataset. Only a launch reads `learner.shots`, so a `collect` or `train` of fewer
-    /// transitions than the default's shots is not refused for it.
+    /// dataset of `collect.transitions`. Only a launch reads `learner.shots`, so a `collect` or
+    /// `train` of fewer transitions than the default's shots is not refused for it.
     pub fn validate_launch(&self) -> Result<(), ConfigError> {
-        self.check_shots().map_err(|broken| broken.at(&self.origin))
+        let (shots, transitions) = (self.learner.shots, self.collect.transitions);
+        if shots <= transitions {
+            return Ok(());
+        }
+        let expected = format!(
+            "at most collect.transitions = {transitions} (the size of each task's dataset), \
+             or 0 for all of it"
+        );
+        Err(Broken::new("learner.shots", &shots, expected).at(&self.origin))
     }
 
     /// Shots N of a launch's fine-tuning runs: `learner.shots`, or the whole dataset when it is 0.
@@ -244,19 +252,6 @@ impl Config {
             0 => self.collect.transitions,
             n => n,
         }
-    }
-
-    /// A launch's fine-tuning draws its shots from a dataset of `collect.transitions`.
-    fn check_shots(&self) -> Result<(), Broken> {
-        let (shots, transitions) = (self.learner.shots, self.collect.transitions);
-        if shots > transitions {
-            let expected = format!(
-                "at most collect.transitions = {transitions} (the size of each task's dataset), \
-                 or 0 for all of it"
-            );
-            return Err(Broken::new("learner.shots", &shots, expected));
-        }
-        Ok(())
     }
 
     /// Every task has a name of its own, and a rain zone inside the grid.
