@@ -45,9 +45,9 @@ fn meta_task(config: &Config, name: &str, seed: u64) -> MetaTask {
 }
 
 /// configs/default.toml with 500 transitions per task, the size these tests were measured at:
-/// with the default's 2 000 of this data w0 swings by 2.55% over the last 30 meta-epochs, issue
-/// #30's point 4 unmet at that size (docs/EXPERIMENTS.md C14, C16), and the two tests take 126 s
-/// instead of 50 s.
+/// with the default's 2 000 of this data (and `meta.alpha = 1`, the default then) w0 swung by
+/// 2.55% over the last 30 meta-epochs (docs/EXPERIMENTS.md C14, C16), and the two tests took
+/// 126 s instead of 50 s.
 fn default_config() -> Config {
     let sets = ["collect.transitions=500".to_string()];
     Config::load(DEFAULT_CONFIG.as_ref(), &sets).unwrap()
