@@ -49,7 +49,10 @@ fn trained_agent() -> &'static TrainedAgent {
         // Half of configs/default.toml's 120 000 steps, and a quarter of its 2 000 transitions
         // (the fine-tuning's 500 shots), to keep the suite quick: these tests check that the
         // learners learn, not how close to the planner they come.
-        let overrides = ["collect.dqn_steps=60000".into(), "collect.transitions=500".into()];
+        let overrides = [
+            "collect.dqn_steps=60000".into(),
+            "collect.transitions=500".into(),
+        ];
         let config = Config::load(DEFAULT_CONFIG.as_ref(), &overrides).unwrap();
         let task = config.task("lambda-300").unwrap().clone();
         let (dataset, agent) = online_dqn_dataset(&config, &task, 0, 0, 1, |_, _| true).unwrap();
