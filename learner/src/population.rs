@@ -2,7 +2,7 @@
 //!
 //! Each parameter of [`QNetwork`] gains a leading member dimension (`layer{i}.weight` is
 //! `[N, fan_out, fan_in]`), so a forward pass is one batched matrix product per layer for all
-//! members ([`QNetwork::forward_with`] on stacked parameters) and one Adam step updates every
+//! members (feature-major, so each weight gradient lands in its own layout) and one Adam step updates every
 //! member. Members never mix:
 //!
 //! - the loss is the sum over members of each member's own mean loss, so the gradient that
@@ -130,7 +130,7 @@ impl QPopulation {
             let single: Vec<Tensor> = self.params.iter().map(|p| p.squeeze_dim(0)).collect();
             return QNetwork::forward_with(&single, &obs.squeeze_dim(0)).unsqueeze(0);
         }
-        QNetwork::forward_with(&self.params, obs)
+        stacked_forward(&self.params, obs)
     }
 
     /// Each member's greedy actions on its own rows: `obs` [N, B, obs_len] -> [N, B] i64,
@@ -268,6 +268,25 @@ impl QPopulation {
     pub fn member_parameter_count(&self) -> usize {
         self.params.iter().map(Tensor::numel).sum::<usize>() / self.members
     }
+}
+
+/// The members' forward pass, feature-major: the activations are `[N, features, B]` and each
+/// layer is `h <- W h + b` with `W` as stored, `[N, fan_out, fan_in]`. Autograd then gives each
+/// weight's gradient (`dh h_prev^T`) in the weight's own layout. The row-major form
+/// (`x W^T + b`, [`QNetwork::forward_with`]'s, which MAML uses) gives it transposed, and libtorch
+/// copies every weight gradient into the parameter's layout at every step: a quarter of an N = 8
+/// step on an Intel Xeon (docs/BENCHMARKS.md, "Populations"). `obs` [N, B, obs_len] -> [N, B,
+/// actions] (a transposed view).
+fn stacked_forward(params: &[Tensor], obs: &Tensor) -> Tensor {
+    let layers = params.len() / 2;
+    let mut h = obs.transpose(1, 2);
+    for (i, wb) in params.chunks_exact(2).enumerate() {
+        h = wb[1].unsqueeze(2).baddbmm(&wb[0], &h, 1, 1);
+        if i + 1 < layers {
+            h = h.relu();
+        }
+    }
+    h.transpose(1, 2)
 }
 
 #[cfg(test)]
