@@ -2,8 +2,8 @@
 //!
 //! Each parameter of [`QNetwork`] gains a leading member dimension (`layer{i}.weight` is
 //! `[N, fan_out, fan_in]`), so a forward pass is one batched matrix product per layer for all
-//! members (feature-major, so each weight gradient lands in its own layout) and one Adam step updates every
-//! member. Members never mix:
+//! members (feature-major, so that each weight gradient lands in its own layout) and one Adam
+//! step updates every member. Members never mix:
 //!
 //! - the loss is the sum over members of each member's own mean loss, so the gradient that
 //!   reaches member i's weights is exactly the gradient of its own loss;
