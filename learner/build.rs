@@ -23,6 +23,8 @@ fn main() {
         .flag("-std=c++17")
         .flag("-D_GLIBCXX_USE_CXX11_ABI=1")
         .flag("-DGLOG_USE_GLOG_EXPORT")
+        // As torch-sys (Cargo.toml): no `-g` for C++ that no one steps through.
+        .debug(false)
         .file("csrc/fused_adam.cpp")
         .compile("uavmeta_fused_adam");
 }
