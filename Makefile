@@ -19,13 +19,13 @@ run: build
 # binaries, the slowest first; about a fifth less wall time than `cargo test` on 2 cores,
 # docs/TESTING.md). Without nextest, `cargo test` runs the same tests one binary after another.
 test: libtorch test-tools interop python
-	@if command -v cargo-nextest >/dev/null; then \
-	  echo "cargo test --doc --workspace --release && cargo nextest run --workspace --release"; \
-	  cargo test --doc --workspace --release && cargo nextest run --workspace --release; \
-	else \
-	  echo "cargo-nextest is not installed (cargo install cargo-nextest --locked): running cargo test"; \
-	  cargo test --workspace --release; \
-	fi
+ifneq ($(shell command -v cargo-nextest),)
+	cargo test --doc --workspace --release
+	cargo nextest run --workspace --release
+else
+	@echo "cargo-nextest is not installed (cargo install cargo-nextest --locked): running cargo test"
+	cargo test --workspace --release
+endif
 
 build: libtorch
 	cargo build --release

@@ -292,7 +292,8 @@ fn train_offline(
     (q, rows)
 }
 
-/// CQL on the stalest dataset, trained once and shared by the two tests that need it.
+/// CQL on the stalest dataset, shared by the two tests that need it when they run in one process
+/// (`cargo test`); under cargo-nextest each test trains it itself, a few seconds each.
 struct CqlRun {
     policy: PolicyMetrics,
     mean_q: f64,
