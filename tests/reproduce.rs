@@ -81,8 +81,9 @@ fn check_png(path: &Path) {
 }
 
 /// The claims of SPEC section 6, one table row each, and the behaviour agents' bar.
-const CLAIMS: [&str; 16] = [
+const CLAIMS: [&str; 17] = [
     "the behaviour agent is trained",
+    "every seed within 2% of the planner reference",
     "DQN and DQN-MAML trained offline fail to converge",
     "CQL from a random init needs more than 100 epochs",
     "CQL-MAML converges in fewer than 40 epochs",
@@ -180,7 +181,7 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     check_csv(
         &out.join("online-dqn/online_dqn.csv"),
         "task,seed,return,aoi,power_mw",
-        (meta_train.count() + 1) * seeds,
+        (meta_train.count() + 1 + rain) * seeds,
     );
     check_csv(
         &out.join("resilience/fig9c_trajectories.csv"),
@@ -221,6 +222,18 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
         "{behaviour}"
     );
     check_header("online-dqn", &behaviour);
+    // Every agent's task, the rain tasks included, has a row with the planner and the gap to it.
+    assert!(
+        behaviour.contains("| planner | gap (mean, worst) |"),
+        "{behaviour}"
+    );
+    for task in config.tasks.iter() {
+        let row = behaviour
+            .lines()
+            .find(|l| l.starts_with(&format!("| {} |", task.name)))
+            .unwrap_or_else(|| panic!("no row for {} in {behaviour}", task.name));
+        assert!(row.matches('%').count() == 2, "{row}");
+    }
     let summary = read(&out.join("summary.md"));
     for claim in CLAIMS {
         let rows: Vec<&str> = summary

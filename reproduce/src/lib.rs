@@ -212,6 +212,18 @@ pub fn rain_tasks(config: &Config) -> impl Iterator<Item = &TaskConfig> {
         .filter(|t| t.rain.is_some())
 }
 
+/// Every task an online agent makes data for, with the episodes its references are keyed by: the
+/// meta-train tasks and the unseen task (`learner.eval_episodes`), then the rain tasks
+/// (`reproduce.resilience_eval_episodes`, as figure 9 evaluates them).
+pub fn agent_tasks<'c>(config: &'c Config, r: &ReproduceConfig) -> Vec<(&'c TaskConfig, usize)> {
+    config
+        .tasks_with_role(TaskRole::MetaTrain)
+        .chain(config.task(&r.unseen_task).ok())
+        .map(|t| (t, config.learner.eval_episodes))
+        .chain(rain_tasks(config).map(|t| (t, r.resilience_eval_episodes)))
+        .collect()
+}
+
 /// The heuristics' figures on a task over a number of episodes.
 #[derive(Debug, Clone)]
 pub struct HeuristicRef {
@@ -389,8 +401,7 @@ fn plan(config: &Config, r: &ReproduceConfig, experiments: &[Experiment]) -> Pla
                 plan.reference(&r.unseen_task, episodes, e);
             }
             Experiment::OnlineDqn => {
-                let tasks = config.tasks_with_role(TaskRole::MetaTrain);
-                for task in tasks.chain(config.task(&r.unseen_task).ok()) {
+                for (task, episodes) in agent_tasks(config, r) {
                     plan.reference(&task.name, episodes, e);
                 }
             }

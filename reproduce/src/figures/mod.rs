@@ -10,14 +10,14 @@ use std::path::Path;
 use uavmeta_actors::world::World;
 use uavmeta_learner::train::EpochRow;
 use uavmeta_plot::{self as plot, Band, Bar, LineChart, Reference, Series, TrajectoryChart};
-use uavmeta_proto::config::{Config, Loss, RainZone, TaskConfig, TaskRole};
+use uavmeta_proto::config::{Config, Loss, RainZone, TaskConfig};
 use uavmeta_proto::stats::{Estimate, PolicyMetrics};
 
 use crate::claims::{
     self, converged_at, final_return, mean_swing, return_at, settle_epoch, Claim, Verdict,
 };
 use crate::runs::{InitKey, MetaCurve, RunKey, SeedResult};
-use crate::{rain_tasks, Experiment, HeuristicRef, ReproduceConfig};
+use crate::{agent_tasks, rain_tasks, Experiment, HeuristicRef, ReproduceConfig};
 use uavmeta_meta::write_file;
 use uavmeta_proto::method::{Init, Method};
 
