@@ -67,6 +67,13 @@ fn student_t_975(dof: usize) -> f64 {
     }
 }
 
+/// How far `ret` lies from `reference`, in percent of the reference's size: returns are costs
+/// (negative), so a return 3% below the planner's reads -3.0. Every table that sets a method
+/// beside the planner reference uses this one reading.
+pub fn percent_from(ret: f64, reference: f64) -> f64 {
+    100.0 * (ret - reference) / reference.abs()
+}
+
 /// A policy's Monte-Carlo figures over a set of episodes.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 pub struct PolicyMetrics {

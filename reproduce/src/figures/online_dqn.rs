@@ -7,7 +7,7 @@ use super::*;
 const MATCHES_OPTIMUM: f64 = 0.01;
 
 /// How far below the planner reference an agent may end and still count as near it (issue #30's
-/// bar for the behaviour agents): a return no lower than 1.02 times the planner's.
+/// bar for the behaviour agents), as a fraction of the planner's return.
 const NEAR_PLANNER: f64 = 0.02;
 
 /// The behaviour agents: each task's online DQN agent over seeds beside the heuristics and the
@@ -70,8 +70,9 @@ pub(super) fn online_dqn(ctx: &Context, dir: &Path) -> Result<Section, Reproduce
                 task.name, mean.mean
             ));
         }
-        let gap = |x: f64| (planner - x) / planner.abs() * 100.0;
-        let is_near = worst >= planner - NEAR_PLANNER * planner.abs();
+        // The gap is how far below the planner: the negated reading of the launch's table.
+        let gap = |x: f64| -uavmeta_proto::stats::percent_from(x, planner);
+        let is_near = gap(worst) <= 100.0 * NEAR_PLANNER;
         near += is_near as usize;
         if !is_near {
             far.push(format!("{} ({:.1}%)", task.name, gap(worst)));

@@ -7,6 +7,7 @@ use std::path::PathBuf;
 use uavmeta_actors::policy::heuristics::{reference_metrics, PolicySpec, REFERENCES};
 use uavmeta_proto::config::{Config, TaskRole};
 use uavmeta_proto::method::Method;
+use uavmeta_proto::stats;
 
 use super::LaunchError;
 use crate::evaluator::{self, EvaluationRow};
@@ -125,7 +126,7 @@ pub fn results_table(report: &LaunchReport) -> String {
                 // Returns are costs: a row 3% below the planner reads -3.0%.
                 planner.map_or("-".to_string(), |p| format!(
                     "{:+.1}%",
-                    100.0 * (r.ret - p) / p.abs()
+                    stats::percent_from(r.ret, p)
                 )),
                 format!("{:.2} ± {:.2}", r.aoi, r.aoi_ci95),
                 format!("{:.3} ± {:.3}", r.power_watts * 1e3, r.power_ci95 * 1e3),
