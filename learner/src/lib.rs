@@ -10,6 +10,8 @@
 //! - [`dqn`]: the DQN loss, paper eq. 7, and the one TD-target computation every learner uses
 //!   ([`dqn::TdConfig::td_errors`]; double DQN and Huber as options, off by default).
 //! - [`cql`]: the CQL loss, paper eq. 8.
+//! - [`fqe`]: fitted Q evaluation, a greedy policy's value from the offline data alone, and the
+//!   fine-tuning's selection by it (`learner.select_every`).
 //! - [`train`]: offline training with either loss, evaluated each epoch through the
 //!   [`train::EvaluatePolicy`] hook; per-epoch table on stderr and `train.csv`.
 //! - [`train_population`]: N such runs of one shape trained in lockstep as one population.
@@ -56,6 +58,7 @@ pub mod batch;
 pub mod checkpoint;
 pub mod cql;
 pub mod dqn;
+pub mod fqe;
 pub mod numerics;
 pub mod optim;
 pub mod population;

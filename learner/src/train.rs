@@ -23,6 +23,7 @@ use crate::batch::Batch;
 use crate::checkpoint::{self, CheckpointError};
 use crate::cql::{conservative_term, CqlLoss};
 use crate::dqn::{q_taken, TdConfig};
+use crate::fqe::Selection;
 use crate::optim::FusedAdam;
 use crate::progress::{progress_bar, CsvError, CsvLog, OnStep};
 use crate::qnet::QNetwork;
@@ -287,6 +288,9 @@ pub fn train(
     let guard = ValueGuard::new(cfg, q, data);
     let mut last_good = guard.as_ref().map(|_| q.duplicate());
     let mut average = Average::new(cfg);
+    let mut selection = Selection::new(cfg, q, data, opts.seed, opts.out_dir, || {
+        evaluator.evaluate(q).ret.mean
+    })?;
     let mut stopped = false;
     for epoch in 1..=cfg.epochs {
         if let (true, Some(last)) = (stopped, rows.last()) {
@@ -315,13 +319,25 @@ pub fn train(
         if !stopped {
             average.update(q);
         }
+        if let Some(selection) = &mut selection {
+            let candidate = average.published(q);
+            selection.after_epoch(epoch, candidate, data, cfg, || {
+                evaluator.evaluate(candidate).ret.mean
+            })?;
+        }
+        // What the run would publish if it ended here: the selection's choice, else the
+        // (averaged) network.
+        let published = match &selection {
+            Some(selection) => selection.published(),
+            None => average.published(q),
+        };
         let row = EpochRow {
             epoch,
             steps: trainer.steps(),
             td_loss: means.td_loss,
             conservative_loss: means.conservative_loss,
             mean_q: means.max_q / cfg.reward_scale,
-            policy: evaluator.evaluate(average.published(q)),
+            policy: evaluator.evaluate(published),
             seconds: started.elapsed().as_secs_f64(),
         };
         finish_epoch(&row, opts.progress, &bar, csv.as_mut())?;
@@ -329,6 +345,10 @@ pub fn train(
     }
     bar.finish_and_clear();
     average.publish_into(q);
+    if let Some(selection) = selection {
+        let epoch = selection.publish_into(q);
+        tracing::info!(epoch, "fitted Q evaluation kept the network of this epoch");
+    }
     if let Some(dir) = opts.out_dir {
         checkpoint::save(
             &dir.join("final"),

@@ -489,3 +489,25 @@ fn a_launch_fine_tunes_on_learner_shots_or_the_whole_dataset() {
         500
     );
 }
+
+#[test]
+fn the_fqe_selection_keys_are_checked() {
+    error_of(
+        "[learner]\nselect_every = 10\npopulation = 4\n",
+        &[],
+        &["learner.select_every", "10", "learner.population = 4"],
+    );
+    error_of("", &["learner.fqe_steps=0"], &["learner.fqe_steps", "0"]);
+    error_of(
+        "",
+        &["learner.fqe_target_update_every=0"],
+        &["learner.fqe_target_update_every", "0"],
+    );
+    error_of("", &["learner.fqe_alpha=-1"], &["learner.fqe_alpha", "-1"]);
+    error_of("", &["learner.fqe_lr=0"], &["learner.fqe_lr", "0"]);
+    let (_, ok) = load("[learner]\nselect_every = 10\n", &[]);
+    assert_eq!(
+        ok.expect("a single run may select").learner.select_every,
+        10
+    );
+}

@@ -48,7 +48,8 @@ pub struct MetaTestArgs {
     /// Fine-tuning epochs [default: learner.epochs].
     #[arg(long)]
     epochs: Option<usize>,
-    /// Output directory: train.csv and the final checkpoint.
+    /// Output directory: train.csv, the final checkpoint, and select.csv when
+    /// `learner.select_every` is set.
     #[arg(long)]
     out: PathBuf,
     /// Seed of the shot draw and the minibatch order [default: run.seeds[0]].

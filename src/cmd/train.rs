@@ -36,7 +36,8 @@ pub struct TrainArgs {
     /// `random` (a network seeded by --seed) or a checkpoint to start from.
     #[arg(long, default_value = "random")]
     init: String,
-    /// Output directory: train.csv and the `final` checkpoint.
+    /// Output directory: train.csv, the `final` checkpoint, and select.csv when
+    /// `learner.select_every` is set.
     #[arg(long)]
     out: PathBuf,
     /// Seed of the random init, the shot draw and the minibatch order [default: run.seeds[0]].

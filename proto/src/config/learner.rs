@@ -8,7 +8,7 @@ use garde::Validate;
 use serde::{Deserialize, Serialize};
 use smart_default::SmartDefault;
 
-use super::rules::{at_least, finite, positive, toml_seed, widths, within};
+use super::rules::{at_least, finite, positive, toml_seed, widths, within, Broken};
 
 /// SPEC section 5: the Q-network and the DQN / CQL training settings shared by every method.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, SmartDefault, Validate)]
@@ -85,6 +85,37 @@ pub struct LearnerConfig {
     #[default(0.0)]
     #[garde(custom(within(0.0..1.0, "a decay in [0, 1): 0 = no averaging")))]
     pub average_decay: f64,
+    /// Offline selection of the published network by fitted Q evaluation on the shots
+    /// (`learner/src/fqe.rs`): at the start and every this many epochs the network a run would
+    /// publish is scored by FQE, and from then on the run publishes the best-scoring one so far,
+    /// the init included (its rows' returns and its `final` checkpoint are that network's). The
+    /// scores go to `select.csv` beside the measured return of each candidate. 0 = off (SPEC):
+    /// on 500 shots FQE does not rank this world's policies (Kendall tau 0.04 among fine-tuned
+    /// epochs): it catches a drift of 20% and more, and costs as much elsewhere
+    /// (docs/EXPERIMENTS.md, D4).
+    #[default(0)]
+    pub select_every: usize,
+    /// Gradient steps of each FQE estimate (`learner.select_every`). More is not better on 500
+    /// shots: at 10 000 the fit diverges (docs/EXPERIMENTS.md, D4).
+    #[default(3000)]
+    #[garde(custom(at_least(1)))]
+    pub fqe_steps: usize,
+    /// Gradient steps between FQE's hard target updates: a backup every this many steps, so
+    /// `fqe_steps / fqe_target_update_every` backups reach that many steps into the future.
+    #[default(10)]
+    #[garde(custom(at_least(1)))]
+    pub fqe_target_update_every: usize,
+    /// Adam learning rate of FQE's fit, its own so that a run's rate does not change its judge.
+    #[default(1e-3)]
+    #[garde(custom(positive("a learning rate > 0")))]
+    pub fqe_lr: f64,
+    /// Conservative weight of FQE's own fit (eq. 8's term on `F`): pushes `F` down on actions the
+    /// shots never took, so a policy that leaves the data is not valued by extrapolation. Plain
+    /// FQE (0) valued inits that leave the data far above what they return and chose worse than
+    /// the last epoch on 12 of 20 runs; with 1, 9 better and 6 worse (docs/EXPERIMENTS.md, D4).
+    #[default(1.0)]
+    #[garde(custom(finite(0.0.., "a finite number >= 0")))]
+    pub fqe_alpha: f64,
     /// Where a command fine-tunes several runs of one shape (the fine-tuning runs of
     /// `uavmeta reproduce`'s figures, the methods the launch's meta-learner fine-tunes on a task),
     /// up to this many train as one population: stacked networks updated as one computation
@@ -112,6 +143,24 @@ pub enum Loss {
     Cql,
     /// Paper eq. 7 on a fixed dataset: the baseline that overestimates.
     Dqn,
+}
+
+impl LearnerConfig {
+    /// The selection by FQE runs in single runs only: a population's lockstep does not select.
+    pub(super) fn check_selection(&self) -> Result<(), Broken> {
+        if self.select_every == 0 || self.population == 1 {
+            return Ok(());
+        }
+        Err(Broken::new(
+            "learner.select_every",
+            &self.select_every,
+            format!(
+                "0 while learner.population = {} (the selection runs in single runs only: set \
+                 learner.population = 1 to select)",
+                self.population
+            ),
+        ))
+    }
 }
 
 impl fmt::Display for Loss {
