@@ -172,6 +172,8 @@ pub struct OfflineTrainer {
     order: MinibatchOrder,
     steps: usize,
     on_step: OnStep,
+    /// `learner.init_penalty` and the init's weights, when the run is held near its init.
+    anchor: Option<(f64, Vec<Tensor>)>,
 }
 
 impl OfflineTrainer {
@@ -188,7 +190,19 @@ impl OfflineTrainer {
             order: MinibatchOrder::new(rows, cfg.batch.min(rows), seed),
             steps: 0,
             on_step: OnStep::default(),
+            anchor: None,
         }
+    }
+
+    /// The trainer with `beta / 2 * ||w - w_init||^2` added to its loss, `w_init` = `q`'s
+    /// weights now (`learner.init_penalty`; L2-SP, Li, Grandvalet & Davoine 2018): where the
+    /// shots are silent, the fine-tuned network stays near its init. 0 adds nothing.
+    pub fn with_init_penalty(self, q: &QNetwork, beta: f64) -> Self {
+        let anchor = (beta > 0.0).then(|| {
+            let init = q.parameters().iter().map(|p| p.detach().copy()).collect();
+            (beta, init)
+        });
+        Self { anchor, ..self }
     }
 
     /// The trainer with `on_step` called at every gradient step.
@@ -215,6 +229,10 @@ impl OfflineTrainer {
                 td_loss.shallow_clone(),
                 tch::no_grad(|| conservative_term(&q_all, &mb)),
             ),
+        };
+        let loss = match &self.anchor {
+            Some((beta, init)) => loss + init_distance(q, init) * (beta / 2.0),
+            None => loss,
         };
         self.opt.backward_step(&loss);
         self.steps += 1;
@@ -258,6 +276,16 @@ impl OfflineTrainer {
     }
 }
 
+/// `||w - w_init||^2` summed over every parameter, with `q`'s graph.
+fn init_distance(q: &QNetwork, init: &[Tensor]) -> Tensor {
+    q.parameters()
+        .iter()
+        .zip(init)
+        .map(|(w, w_init)| (w - w_init).square().sum(None))
+        .reduce(|a, b| a + b)
+        .expect("a network has parameters")
+}
+
 /// Trains `q` in place on `data` (every transition of the N shots) and returns one row per epoch.
 pub fn train(
     q: &mut QNetwork,
@@ -268,7 +296,8 @@ pub fn train(
     let cfg = &opts.config.learner;
     let steps_per_epoch = steps_per_epoch(cfg, data.len());
     let mut trainer = OfflineTrainer::new(q, data.len(), opts.algorithm, opts.config, opts.seed)
-        .with_on_step(opts.on_step.clone());
+        .with_on_step(opts.on_step.clone())
+        .with_init_penalty(q, cfg.init_penalty);
 
     let mut csv = match opts.out_dir {
         Some(dir) => Some(CsvLog::create(&dir.join("train.csv"), CSV_HEADER)?),

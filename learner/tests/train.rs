@@ -498,3 +498,24 @@ fn the_fqe_selection_keeps_the_best_scored_network_and_catches_a_drift() {
     );
     assert_eq!(Exact.evaluate(&kept).ret.mean, 1.0, "{scored:?}");
 }
+
+/// The largest distance of any weight of `q` from the same weight of `init`.
+fn distance(q: &QNetwork, init: &QNetwork) -> f64 {
+    q.max_abs_difference(init)
+}
+
+#[test]
+fn the_init_penalty_holds_a_run_near_its_init() {
+    tch::set_num_threads(1);
+    let mut cfg = config();
+    let data = Batch::new(&dataset(400), &cfg.world, cfg.learner.reward_scale).unwrap();
+    let init = QNetworkConfig::new(3, 5, &cfg.learner.hidden).init(0);
+    let (free, _) = alone(&cfg, Loss::Cql, 0, &data, 4);
+    cfg.learner.init_penalty = 10.0;
+    let (held, _) = alone(&cfg, Loss::Cql, 0, &data, 4);
+    let (d_free, d_held) = (distance(&free, &init), distance(&held, &init));
+    assert!(
+        d_held < 0.25 * d_free,
+        "held {d_held} against free {d_free}: the penalty did not hold the run"
+    );
+}

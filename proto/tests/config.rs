@@ -491,7 +491,7 @@ fn a_launch_fine_tunes_on_learner_shots_or_the_whole_dataset() {
 }
 
 #[test]
-fn the_fqe_selection_keys_are_checked() {
+fn the_fqe_selection_and_init_penalty_keys_are_checked() {
     error_of(
         "[learner]\nselect_every = 10\npopulation = 4\n",
         &[],
@@ -505,6 +505,16 @@ fn the_fqe_selection_keys_are_checked() {
     );
     error_of("", &["learner.fqe_alpha=-1"], &["learner.fqe_alpha", "-1"]);
     error_of("", &["learner.fqe_lr=0"], &["learner.fqe_lr", "0"]);
+    error_of(
+        "[learner]\ninit_penalty = 0.5\npopulation = 2\n",
+        &[],
+        &["learner.init_penalty", "0.5", "learner.population = 2"],
+    );
+    error_of(
+        "",
+        &["learner.init_penalty=-1"],
+        &["learner.init_penalty", "-1"],
+    );
     let (_, ok) = load("[learner]\nselect_every = 10\n", &[]);
     assert_eq!(
         ok.expect("a single run may select").learner.select_every,

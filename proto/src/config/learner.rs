@@ -85,6 +85,14 @@ pub struct LearnerConfig {
     #[default(0.0)]
     #[garde(custom(within(0.0..1.0, "a decay in [0, 1): 0 = no averaging")))]
     pub average_decay: f64,
+    /// L2-SP (Li, Grandvalet & Davoine 2018): `init_penalty / 2 * ||w - w_init||^2` added to the
+    /// loss of every offline training and fine-tuning run (`uavmeta train`, meta-test, a
+    /// launch's fine-tunings; not multi-task pretraining), `w_init` the run's init, so where the
+    /// shots are silent the network stays near it. 0 = off (SPEC): 0.03 fixed CQL-pretrain's late
+    /// drift on lambda-300 and nothing on held-out tasks (docs/EXPERIMENTS.md, D5).
+    #[default(0.0)]
+    #[garde(custom(finite(0.0.., "a finite number >= 0 (0 = off)")))]
+    pub init_penalty: f64,
     /// Offline selection of the published network by fitted Q evaluation on the shots
     /// (`learner/src/fqe.rs`): at the start and every this many epochs the network a run would
     /// publish is scored by FQE, and from then on the run publishes the best-scoring one so far,
@@ -146,20 +154,31 @@ pub enum Loss {
 }
 
 impl LearnerConfig {
-    /// The selection by FQE runs in single runs only: a population's lockstep does not select.
-    pub(super) fn check_selection(&self) -> Result<(), Broken> {
-        if self.select_every == 0 || self.population == 1 {
+    /// The selection by FQE and the init penalty run in single runs only: a population's
+    /// lockstep has neither.
+    pub(super) fn check_single_run_keys(&self) -> Result<(), Broken> {
+        if self.population == 1 {
             return Ok(());
         }
-        Err(Broken::new(
-            "learner.select_every",
-            &self.select_every,
-            format!(
-                "0 while learner.population = {} (the selection runs in single runs only: set \
-                 learner.population = 1 to select)",
-                self.population
-            ),
-        ))
+        let expected = format!(
+            "0 while learner.population = {} (single runs only: set learner.population = 1)",
+            self.population
+        );
+        if self.select_every != 0 {
+            return Err(Broken::new(
+                "learner.select_every",
+                &self.select_every,
+                expected,
+            ));
+        }
+        if self.init_penalty != 0.0 {
+            return Err(Broken::new(
+                "learner.init_penalty",
+                &self.init_penalty,
+                expected,
+            ));
+        }
+        Ok(())
     }
 }
 

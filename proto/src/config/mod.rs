@@ -225,7 +225,7 @@ impl Config {
         self.world.check_layout()?;
         self.check_tasks()?;
         self.collect.check_n_step(self.world.horizon)?;
-        self.learner.check_selection()?;
+        self.learner.check_single_run_keys()?;
         self.tunnel.check_hosts()?;
         self.tunnel.check_security()?;
         self.check_limits()?;
