@@ -191,18 +191,11 @@ mod tests {
         }
     }
 
-    /// A policy network that prefers `action` everywhere (its output bias alone decides).
-    fn prefers(action: i64) -> QNetwork {
-        let q = QNetworkConfig::new(1, 2, &[8]).init(3);
-        let mut params = q.parameters();
-        tch::no_grad(|| {
-            for p in &mut params {
-                let _ = p.zero_();
-            }
-            let bias = params.last_mut().unwrap();
-            let _ = bias.get(action).fill_(1.0);
-        });
-        q
+    /// A policy network that prefers `action` everywhere.
+    fn prefers(action: usize) -> QNetwork {
+        let mut bias = [0.0f32; 2];
+        bias[action] = 1.0;
+        QNetworkConfig::new(1, 2, &[8]).constant(&bias)
     }
 
     #[test]

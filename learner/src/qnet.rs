@@ -197,3 +197,21 @@ impl QNetwork {
         })
     }
 }
+
+#[cfg(test)]
+impl QNetworkConfig {
+    /// A network of this architecture whose Q-values are `bias` in every state: zero weights, the
+    /// output bias `bias` (one value per action).
+    pub(crate) fn constant(&self, bias: &[f32]) -> QNetwork {
+        let q = self.init(0);
+        let mut params = q.parameters();
+        tch::no_grad(|| {
+            for p in &mut params {
+                let _ = p.zero_();
+            }
+            let last = params.last_mut().expect("a network has layers");
+            last.copy_(&Tensor::from_slice(bias));
+        });
+        q
+    }
+}

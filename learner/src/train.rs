@@ -555,17 +555,9 @@ mod tests {
     use super::*;
     use crate::qnet::QNetworkConfig;
 
-    /// A network whose every Q-value is `value`: zero weights, output bias `value`.
-    fn constant_q(value: f64) -> QNetwork {
-        let q = QNetworkConfig::new(2, 3, &[4]).init(0);
-        let mut params = q.parameters();
-        tch::no_grad(|| {
-            for p in &mut params {
-                let _ = p.zero_();
-            }
-            let _ = params.last_mut().unwrap().fill_(value);
-        });
-        q
+    /// A network whose every Q-value is `value`.
+    fn constant_q(value: f32) -> QNetwork {
+        QNetworkConfig::new(2, 3, &[4]).constant(&[value; 3])
     }
 
     #[test]

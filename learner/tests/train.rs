@@ -149,12 +149,26 @@ fn alone_scored(
     seed: u64,
     evaluator: &mut dyn EvaluatePolicy,
 ) -> (QNetwork, Vec<EpochRow>) {
-    let mut q = QNetworkConfig::new(3, 5, &cfg.learner.hidden).init(init);
+    let init = QNetworkConfig::new(3, 5, &cfg.learner.hidden).init(init);
+    trained(cfg, algorithm, init, data, seed, None, evaluator)
+}
+
+/// `train` of `q` on `data`, writing into `out_dir` if given: the network it ends with and its
+/// rows.
+fn trained(
+    cfg: &Config,
+    algorithm: Loss,
+    mut q: QNetwork,
+    data: &Batch,
+    seed: u64,
+    out_dir: Option<&std::path::Path>,
+    evaluator: &mut dyn EvaluatePolicy,
+) -> (QNetwork, Vec<EpochRow>) {
     let opts = TrainOptions {
         algorithm,
         config: cfg,
         seed,
-        out_dir: None,
+        out_dir,
         progress: false,
         on_step: OnStep::default(),
     };
@@ -435,7 +449,7 @@ fn selection_rows(dir: &std::path::Path) -> Vec<(usize, f64, f64, bool)> {
         .collect()
 }
 
-/// A run with `learner.select_every = 5` from `init`, writing into `dir`.
+/// A run from `init` writing into `dir`.
 fn selected_run(
     cfg: &Config,
     algorithm: Loss,
@@ -443,17 +457,15 @@ fn selected_run(
     data: &Batch,
     dir: &std::path::Path,
 ) -> (QNetwork, Vec<EpochRow>) {
-    let mut q = init.duplicate();
-    let opts = TrainOptions {
+    trained(
+        cfg,
         algorithm,
-        config: cfg,
-        seed: 2,
-        out_dir: Some(dir),
-        progress: false,
-        on_step: OnStep::default(),
-    };
-    let rows = train(&mut q, data, &opts, &mut Exact).unwrap();
-    (q, rows)
+        init.duplicate(),
+        data,
+        2,
+        Some(dir),
+        &mut Exact,
+    )
 }
 
 #[test]
