@@ -120,7 +120,8 @@ pub struct LearnerConfig {
     /// Conservative weight of FQE's own fit (eq. 8's term on `F`): pushes `F` down on actions the
     /// shots never took, so a policy that leaves the data is not valued by extrapolation. Plain
     /// FQE (0) valued inits that leave the data far above what they return and chose worse than
-    /// the last epoch on 12 of 20 runs; with 1, 9 better and 6 worse (docs/EXPERIMENTS.md, D4).
+    /// the last epoch on 12 of 20 runs (4 of 6 with these backups); with 1, 9 better and 6 worse
+    /// (docs/EXPERIMENTS.md, D4).
     #[default(1.0)]
     #[garde(custom(finite(0.0.., "a finite number >= 0")))]
     pub fqe_alpha: f64,
