@@ -147,6 +147,12 @@ impl Batch {
         })
     }
 
+    /// The data's value scale, `V_data = mean(r) / (1 - gamma)` (scaled rewards): the value of
+    /// the behaviour policy's average step, were it repeated forever. `gamma` < 1.
+    pub fn value_scale(&self, gamma: f64) -> f64 {
+        self.rewards.mean(None).double_value(&[]) / (1.0 - gamma)
+    }
+
     /// Number of transitions, B.
     pub fn len(&self) -> usize {
         self.actions.size()[0] as usize

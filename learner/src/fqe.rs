@@ -32,7 +32,7 @@ use crate::dqn::td_errors;
 use crate::optim::FusedAdam;
 use crate::progress::{CsvError, CsvLog};
 use crate::qnet::QNetwork;
-use crate::train::MinibatchOrder;
+use crate::train::{EvaluatePolicy, MinibatchOrder};
 
 /// The FQE estimate of `policy`'s greedy policy on `data`: `mean_s F(s, pi(s))` in reward units
 /// (divided back by `learner.reward_scale`), after `learner.fqe_steps` Adam(`learner.fqe_lr`)
@@ -72,7 +72,7 @@ pub fn fqe_value(policy: &QNetwork, data: &Batch, cfg: &LearnerConfig, seed: u64
 /// at a finite level).
 fn start_network(policy: &QNetwork, data: &Batch, cfg: &LearnerConfig, seed: u64) -> QNetwork {
     let f = policy.config().init(seed);
-    let v_data = data.rewards.mean(None).double_value(&[]) / (1.0 - cfg.gamma.min(0.999));
+    let v_data = data.value_scale(cfg.gamma.min(0.999));
     let mut params = f.parameters();
     tch::no_grad(|| {
         let _ = params
@@ -94,18 +94,19 @@ pub(crate) struct Selection {
     csv: Option<CsvLog>,
 }
 
-pub(crate) const SELECT_CSV_HEADER: &str = "epoch,fqe_value,return,kept";
+const SELECT_CSV_HEADER: &str = "epoch,fqe_value,return,kept";
 
 impl Selection {
     /// The selection of a run (`None` when `learner.select_every` is 0), with the init scored
-    /// as epoch 0; `init_return` is its measured return, logged beside the score, never used.
+    /// as epoch 0; `evaluator` measures each candidate for `select.csv` only
+    /// ([`EvaluatePolicy::measure`]), never for the choice.
     pub(crate) fn new(
         cfg: &LearnerConfig,
         init: &QNetwork,
         data: &Batch,
         seed: u64,
         out_dir: Option<&Path>,
-        init_return: impl FnOnce() -> f64,
+        evaluator: &mut dyn EvaluatePolicy,
     ) -> Result<Option<Self>, CsvError> {
         if cfg.select_every == 0 {
             return Ok(None);
@@ -120,22 +121,21 @@ impl Selection {
             best: None,
             csv,
         };
-        selection.score(0, init, data, cfg, init_return())?;
+        selection.score(0, init, data, cfg, evaluator)?;
         Ok(Some(selection))
     }
 
-    /// After `epoch`: scores `published` if the epoch is a multiple of `select_every`;
-    /// `measure` gives its return, logged beside the score, never used for the choice.
+    /// After `epoch`: scores `published` if the epoch is a multiple of `select_every`.
     pub(crate) fn after_epoch(
         &mut self,
         epoch: usize,
         published: &QNetwork,
         data: &Batch,
         cfg: &LearnerConfig,
-        measure: impl FnOnce() -> f64,
+        evaluator: &mut dyn EvaluatePolicy,
     ) -> Result<(), CsvError> {
         if epoch.is_multiple_of(self.every) {
-            self.score(epoch, published, data, cfg, measure())?;
+            self.score(epoch, published, data, cfg, evaluator)?;
         }
         Ok(())
     }
@@ -151,7 +151,7 @@ impl Selection {
         q: &QNetwork,
         data: &Batch,
         cfg: &LearnerConfig,
-        measured: f64,
+        evaluator: &mut dyn EvaluatePolicy,
     ) -> Result<(), CsvError> {
         let value = fqe_value(q, data, cfg, self.seed);
         let kept = self.best.as_ref().is_none_or(|(best, _, _)| value > *best);
@@ -159,6 +159,10 @@ impl Selection {
             self.best = Some((value, epoch, q.duplicate()));
         }
         if let Some(csv) = &mut self.csv {
+            // The measured return, where the evaluator can give one without effects.
+            let measured = evaluator
+                .measure(q)
+                .map_or(String::new(), |m| m.ret.mean.to_string());
             csv.line(&format!("{epoch},{value},{measured},{}", u8::from(kept)))?;
         }
         Ok(())

@@ -29,8 +29,18 @@ use crate::progress::{progress_bar, CsvError, CsvLog, OnStep};
 use crate::qnet::QNetwork;
 
 /// Measures the greedy policy of a Q-network on the true environment.
+///
+/// `train` calls [`EvaluatePolicy::evaluate`] once per epoch with the network the run publishes
+/// after it, so an evaluator may count epochs or checkpoint what it is given (the launch's does).
 pub trait EvaluatePolicy {
     fn evaluate(&mut self, q: &QNetwork) -> PolicyMetrics;
+
+    /// Scores a network that is not an epoch's published one (the selection's candidates,
+    /// `select.csv`) with no other effect: not an epoch, nothing saved or announced. `None`
+    /// where that is not possible; the default.
+    fn measure(&mut self, _q: &QNetwork) -> Option<PolicyMetrics> {
+        None
+    }
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -317,9 +327,7 @@ pub fn train(
     let guard = ValueGuard::new(cfg, q, data);
     let mut last_good = guard.as_ref().map(|_| q.duplicate());
     let mut average = Average::new(cfg);
-    let mut selection = Selection::new(cfg, q, data, opts.seed, opts.out_dir, || {
-        evaluator.evaluate(q).ret.mean
-    })?;
+    let mut selection = Selection::new(cfg, q, data, opts.seed, opts.out_dir, evaluator)?;
     let mut stopped = false;
     for epoch in 1..=cfg.epochs {
         if let (true, Some(last)) = (stopped, rows.last()) {
@@ -349,10 +357,7 @@ pub fn train(
             average.update(q);
         }
         if let Some(selection) = &mut selection {
-            let candidate = average.published(q);
-            selection.after_epoch(epoch, candidate, data, cfg, || {
-                evaluator.evaluate(candidate).ret.mean
-            })?;
+            selection.after_epoch(epoch, average.published(q), data, cfg, evaluator)?;
         }
         // What the run would publish if it ended here: the selection's choice, else the
         // (averaged) network.
@@ -373,10 +378,12 @@ pub fn train(
         rows.push(row);
     }
     bar.finish_and_clear();
-    average.publish_into(q);
-    if let Some(selection) = selection {
-        let epoch = selection.publish_into(q);
-        tracing::info!(epoch, "fitted Q evaluation kept the network of this epoch");
+    match selection {
+        Some(selection) => {
+            let epoch = selection.publish_into(q);
+            tracing::info!(epoch, "fitted Q evaluation kept the network of this epoch");
+        }
+        None => average.publish_into(q),
     }
     if let Some(dir) = opts.out_dir {
         checkpoint::save(
@@ -427,7 +434,7 @@ impl ValueGuard {
         if cfg.value_guard == 0.0 || cfg.gamma >= 1.0 {
             return None;
         }
-        let v_data = data.rewards.mean(None).double_value(&[]) / (1.0 - cfg.gamma);
+        let v_data = data.value_scale(cfg.gamma);
         Some(Self {
             v_data,
             direction: (v_data - Self::mean_q(q, data)).signum(),

@@ -71,6 +71,10 @@ impl EvaluatePolicy for Exact {
             .collect();
         PolicyMetrics::from_episodes(&episodes)
     }
+
+    fn measure(&mut self, q: &QNetwork) -> Option<PolicyMetrics> {
+        Some(self.evaluate(q))
+    }
 }
 
 fn config() -> Config {
@@ -264,6 +268,11 @@ impl EvaluatePolicy for Recorder {
         self.0.push(q.duplicate());
         Exact.evaluate(q)
     }
+
+    /// Scores without recording: a measurement is not an epoch.
+    fn measure(&mut self, q: &QNetwork) -> Option<PolicyMetrics> {
+        Some(Exact.evaluate(q))
+    }
 }
 
 /// `learner.average_decay` = d publishes, after epoch t, sum_k d^(t-k) Q_k / sum_k d^(t-k) over
@@ -449,23 +458,26 @@ fn selection_rows(dir: &std::path::Path) -> Vec<(usize, f64, f64, bool)> {
         .collect()
 }
 
-/// A run from `init` writing into `dir`.
+/// A run from `init` writing into `dir`; also the networks `train` gave its evaluator as
+/// epochs' published ones.
 fn selected_run(
     cfg: &Config,
     algorithm: Loss,
     init: &QNetwork,
     data: &Batch,
     dir: &std::path::Path,
-) -> (QNetwork, Vec<EpochRow>) {
-    trained(
+) -> (QNetwork, Vec<EpochRow>, Vec<QNetwork>) {
+    let mut recorder = Recorder(Vec::new());
+    let (q, rows) = trained(
         cfg,
         algorithm,
         init.duplicate(),
         data,
         2,
         Some(dir),
-        &mut Exact,
-    )
+        &mut recorder,
+    );
+    (q, rows, recorder.0)
 }
 
 #[test]
@@ -480,7 +492,10 @@ fn the_fqe_selection_keeps_the_best_scored_network_and_catches_a_drift() {
     // regresses the reward of the policy's own action), so the run keeps a trained one.
     let random = QNetworkConfig::new(3, 5, &cfg.learner.hidden).init(0);
     let dir = tempfile::tempdir().unwrap();
-    let (learned, rows) = selected_run(&cfg, Loss::Cql, &random, &data, dir.path());
+    let (learned, rows, evaluated) = selected_run(&cfg, Loss::Cql, &random, &data, dir.path());
+    // One evaluation an epoch, of what the run publishes: the candidates' scoring is not seen
+    // by the evaluator as epochs (the launch's counts them and announces a checkpoint each).
+    assert_eq!(evaluated.len(), cfg.learner.epochs);
     let scored = selection_rows(dir.path());
     assert_eq!(
         scored.iter().map(|r| r.0).collect::<Vec<_>>(),
@@ -501,7 +516,7 @@ fn the_fqe_selection_keeps_the_best_scored_network_and_catches_a_drift() {
     cfg.learner.lr = 3.0;
     cfg.learner.value_guard = 0.0;
     let dir = tempfile::tempdir().unwrap();
-    let (kept, _) = selected_run(&cfg, Loss::Dqn, &learned, &data, dir.path());
+    let (kept, _, _) = selected_run(&cfg, Loss::Dqn, &learned, &data, dir.path());
     let scored = selection_rows(dir.path());
     let wrecked = scored.last().unwrap().2;
     assert!(

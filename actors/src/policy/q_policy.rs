@@ -208,6 +208,11 @@ impl EvaluatePolicy for Evaluator {
         let episodes: Vec<EpisodeMetrics> = self.episodes(q).into_iter().map(|(_, m)| m).collect();
         PolicyMetrics::from_episodes(&episodes)
     }
+
+    /// The same scoring: it has no effect beyond its result.
+    fn measure(&mut self, q: &QNetwork) -> Option<PolicyMetrics> {
+        Some(self.evaluate(q))
+    }
 }
 
 #[cfg(test)]

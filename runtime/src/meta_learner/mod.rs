@@ -595,4 +595,9 @@ impl EvaluatePolicy for Announcing<'_> {
         }
         self.inner.evaluate(q)
     }
+
+    /// The inner evaluator's score alone: no epoch counted, no checkpoint announced.
+    fn measure(&mut self, q: &QNetwork) -> Option<PolicyMetrics> {
+        self.inner.measure(q)
+    }
 }
