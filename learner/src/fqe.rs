@@ -83,8 +83,8 @@ fn start_network(policy: &QNetwork, data: &Batch, cfg: &LearnerConfig, seed: u64
     f
 }
 
-/// The fine-tuning's selection (`learner.select_every`): the init and every `select_every`-th
-/// epoch's published network scored by [`fqe_value`] on the run's shots, the best kept (the
+/// The fine-tuning's selection (`learner.select_every`): the init, every `select_every`-th and
+/// the last epoch's published network scored by [`fqe_value`] on the run's shots, the best kept (the
 /// earliest of equal scores: two networks with the same greedy actions score the same).
 pub(crate) struct Selection {
     every: usize,
@@ -125,7 +125,8 @@ impl Selection {
         Ok(Some(selection))
     }
 
-    /// After `epoch`: scores `published` if the epoch is a multiple of `select_every`.
+    /// After `epoch`: scores `published` if the epoch is a multiple of `select_every` or the
+    /// run's last (so the trained network is always a candidate, whatever `select_every`).
     pub(crate) fn after_epoch(
         &mut self,
         epoch: usize,
@@ -134,7 +135,7 @@ impl Selection {
         cfg: &LearnerConfig,
         evaluator: &mut dyn EvaluatePolicy,
     ) -> Result<(), CsvError> {
-        if epoch.is_multiple_of(self.every) {
+        if epoch.is_multiple_of(self.every) || epoch == cfg.epochs {
             self.score(epoch, published, data, cfg, evaluator)?;
         }
         Ok(())

@@ -524,6 +524,13 @@ fn the_fqe_selection_keeps_the_best_scored_network_and_catches_a_drift() {
         "the rate did not wreck the policy: {scored:?}"
     );
     assert_eq!(Exact.evaluate(&kept).ret.mean, 1.0, "{scored:?}");
+
+    // A period longer than the run still scores its last epoch beside the init.
+    cfg.learner.select_every = 1000;
+    let dir = tempfile::tempdir().unwrap();
+    selected_run(&cfg, Loss::Dqn, &learned, &data, dir.path());
+    let epochs: Vec<usize> = selection_rows(dir.path()).iter().map(|r| r.0).collect();
+    assert_eq!(epochs, [0, cfg.learner.epochs]);
 }
 
 /// The largest distance of any weight of `q` from the same weight of `init`.

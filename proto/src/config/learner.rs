@@ -94,8 +94,8 @@ pub struct LearnerConfig {
     #[garde(custom(finite(0.0.., "a finite number >= 0 (0 = off)")))]
     pub init_penalty: f64,
     /// Offline selection of the published network by fitted Q evaluation on the shots
-    /// (`learner/src/fqe.rs`): at the start and every this many epochs the network a run would
-    /// publish is scored by FQE, and from then on the run publishes the best-scoring one so far,
+    /// (`learner/src/fqe.rs`): at the start, every this many epochs and at the last epoch the
+    /// network a run would publish is scored by FQE, and from then on the run publishes the best-scoring one so far,
     /// the init included (its rows' returns and its `final` checkpoint are that network's). The
     /// scores go to `select.csv` beside the measured return of each candidate. 0 = off (SPEC):
     /// on 500 shots FQE does not rank this world's policies (Kendall tau 0.04 among fine-tuned
