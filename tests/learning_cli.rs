@@ -277,6 +277,64 @@ fn train_writes_a_row_per_epoch_and_a_checkpoint_that_eval_scores() {
 }
 
 #[test]
+fn train_init_seed_draws_the_random_init_apart_from_the_shots() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let d = dir.path();
+    collect(
+        d,
+        SMALL,
+        "lambda-300",
+        "dqn-online",
+        1,
+        "data/lambda-300.uavds",
+    );
+    let train = |out: &str, seeds: &[&str]| {
+        let mut args = vec![
+            "--task",
+            "lambda-300",
+            "--algo",
+            "cql",
+            "--dataset",
+            "data/lambda-300.uavds",
+            "--shots",
+            "50",
+            "--epochs",
+            "1",
+            "--out",
+            out,
+        ];
+        args.extend_from_slice(seeds);
+        uavmeta(d, "train", SMALL, &args)
+    };
+    let weights = |out: &str| read(d, &format!("{out}/final.safetensors"));
+    for (out, seeds) in [
+        ("runs/s5", &["--seed", "5"][..]),
+        ("runs/s5-i5", &["--seed", "5", "--init-seed", "5"]),
+        ("runs/s5-i6", &["--seed", "5", "--init-seed", "6"]),
+        ("runs/s6", &["--seed", "6"]),
+    ] {
+        stdout(&train(out, seeds));
+    }
+    assert_eq!(
+        weights("runs/s5"),
+        weights("runs/s5-i5"),
+        "--init-seed defaults to --seed"
+    );
+    // Another init on the same shots and order: unlike both the run it varies and the run whose
+    // init it takes.
+    assert_ne!(weights("runs/s5-i6"), weights("runs/s5"));
+    assert_ne!(weights("runs/s5-i6"), weights("runs/s6"));
+
+    let stderr = failure(&train(
+        "runs/refused",
+        &["--init", "runs/s5/final", "--init-seed", "3"],
+    ));
+    assert!(stderr.contains("--init-seed"), "{stderr}");
+    assert!(stderr.contains("`runs/s5/final`"), "{stderr}");
+    assert!(!d.join("runs/refused").exists(), "{stderr}");
+}
+
+#[test]
 fn meta_train_writes_w0_that_meta_test_fine_tunes() {
     let dir = tempfile::tempdir().expect("temp dir");
     let d = dir.path();

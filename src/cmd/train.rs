@@ -43,6 +43,10 @@ pub struct TrainArgs {
     /// Seed of the random init, the shot draw and the minibatch order [default: run.seeds[0]].
     #[arg(long)]
     seed: Option<u64>,
+    /// Seed of the random init alone [default: --seed]: to vary the init with the shots and the
+    /// order fixed. A launch's CQL row is `--seed S --init-seed S+1`, S its run seed.
+    #[arg(long)]
+    init_seed: Option<u64>,
 }
 
 pub fn run(args: TrainArgs) -> Result<()> {
@@ -54,12 +58,17 @@ pub fn run(args: TrainArgs) -> Result<()> {
     }
     let seed = args.seed.unwrap_or(config.run.seeds[0]);
     let shots = usize::try_from(args.shots).context("--shots does not fit in memory")?;
-    let data = load_shots(&config, &task, &args.dataset, shots, seed)?;
-    let mut q = if args.init == "random" {
-        QNetworkConfig::for_world(&config.world, &config.learner.hidden).init(seed)
-    } else {
-        checkpoint::load(args.init.as_ref(), &config)?.0
+    let mut q = match (args.init.as_str(), args.init_seed) {
+        ("random", init_seed) => QNetworkConfig::for_world(&config.world, &config.learner.hidden)
+            .init(init_seed.unwrap_or(seed)),
+        (init, Some(_)) => {
+            anyhow::bail!(
+                "--init-seed seeds a random init, but --init is `{init}`: drop one of the two"
+            )
+        }
+        (init, None) => checkpoint::load(init.as_ref(), &config)?.0,
     };
+    let data = load_shots(&config, &task, &args.dataset, shots, seed)?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("{}: cannot create the directory", args.out.display()))?;
     let opts = TrainOptions {

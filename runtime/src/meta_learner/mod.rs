@@ -410,6 +410,8 @@ impl MetaTest<'_> {
             }
             (Method::CqlPretrain, Some(pretrained)) => (pretrained.duplicate(), Loss::Cql),
             (method, _) => {
+                // The init's seed is the run's + 1, the shots' the run's: `uavmeta train --seed S
+                // --init-seed S+1` is this run (kept so that earlier tables stay reproducible).
                 let q = QNetworkConfig::for_world(&config.world, &config.learner.hidden)
                     .init(self.seed.wrapping_add(1));
                 let loss = match method {
