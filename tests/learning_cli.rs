@@ -89,6 +89,41 @@ fn collect(
     ))
 }
 
+/// `lambda-300`'s dataset from an online agent (seed 1), the data the train tests learn from.
+fn agent_data(dir: &Path) -> &'static str {
+    let data = "data/lambda-300.uavds";
+    collect(dir, SMALL, "lambda-300", "dqn-online", 1, data);
+    data
+}
+
+/// `uavmeta train --algo cql` on `lambda-300`: SHOTS shots of DATASET for EPOCHS epochs into
+/// OUT, then EXTRA.
+fn train_cql(
+    dir: &Path,
+    dataset: &str,
+    shots: &str,
+    epochs: &str,
+    out: &str,
+    extra: &[&str],
+) -> Output {
+    let mut args = vec![
+        "--task",
+        "lambda-300",
+        "--algo",
+        "cql",
+        "--dataset",
+        dataset,
+        "--shots",
+        shots,
+        "--epochs",
+        epochs,
+        "--out",
+        out,
+    ];
+    args.extend_from_slice(extra);
+    uavmeta(dir, "train", SMALL, &args)
+}
+
 fn read(dir: &Path, file: &str) -> Vec<u8> {
     let path: PathBuf = dir.join(file);
     std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
@@ -177,33 +212,8 @@ fn collect_is_reproducible_from_its_seed_and_from_its_saved_config() {
 fn train_writes_a_row_per_epoch_and_a_checkpoint_that_eval_scores() {
     let dir = tempfile::tempdir().expect("temp dir");
     let d = dir.path();
-    collect(
-        d,
-        SMALL,
-        "lambda-300",
-        "dqn-online",
-        1,
-        "data/lambda-300.uavds",
-    );
-    let text = stdout(&uavmeta(
-        d,
-        "train",
-        SMALL,
-        &[
-            "--task",
-            "lambda-300",
-            "--algo",
-            "cql",
-            "--dataset",
-            "data/lambda-300.uavds",
-            "--shots",
-            "100",
-            "--epochs",
-            "3",
-            "--out",
-            "runs/cql",
-        ],
-    ));
+    let data = agent_data(d);
+    let text = stdout(&train_cql(d, data, "100", "3", "runs/cql", &[]));
     assert!(
         text.contains("cql on 100 shots of `lambda-300`, epoch 3: return "),
         "{text}"
@@ -280,32 +290,8 @@ fn train_writes_a_row_per_epoch_and_a_checkpoint_that_eval_scores() {
 fn train_init_seed_draws_the_random_init_apart_from_the_shots() {
     let dir = tempfile::tempdir().expect("temp dir");
     let d = dir.path();
-    collect(
-        d,
-        SMALL,
-        "lambda-300",
-        "dqn-online",
-        1,
-        "data/lambda-300.uavds",
-    );
-    let train = |out: &str, seeds: &[&str]| {
-        let mut args = vec![
-            "--task",
-            "lambda-300",
-            "--algo",
-            "cql",
-            "--dataset",
-            "data/lambda-300.uavds",
-            "--shots",
-            "50",
-            "--epochs",
-            "1",
-            "--out",
-            out,
-        ];
-        args.extend_from_slice(seeds);
-        uavmeta(d, "train", SMALL, &args)
-    };
+    let data = agent_data(d);
+    let train = |out: &str, seeds: &[&str]| train_cql(d, data, "50", "1", out, seeds);
     let weights = |out: &str| read(d, &format!("{out}/final.safetensors"));
     for (out, seeds) in [
         ("runs/s5", &["--seed", "5"][..]),
@@ -494,24 +480,13 @@ fn meta_train_writes_w0_that_meta_test_fine_tunes() {
     assert!(d.join("runs/test/final.safetensors").is_file());
 
     // meta-test starts only from a meta-trained w0.
-    stdout(&uavmeta(
+    stdout(&train_cql(
         d,
-        "train",
-        SMALL,
-        &[
-            "--task",
-            "lambda-300",
-            "--algo",
-            "cql",
-            "--dataset",
-            "data/lambda-300.uavds",
-            "--shots",
-            "64",
-            "--epochs",
-            "1",
-            "--out",
-            "runs/cql",
-        ],
+        "data/lambda-300.uavds",
+        "64",
+        "1",
+        "runs/cql",
+        &[],
     ));
     let stderr = failure(&uavmeta(
         d,
@@ -556,25 +531,7 @@ fn a_damaged_dataset_is_refused_naming_the_file_and_the_offset() {
     let good = read(d, "good.uavds");
     let train = |dataset: &str| {
         let out = format!("runs/{dataset}");
-        let output = uavmeta(
-            d,
-            "train",
-            SMALL,
-            &[
-                "--task",
-                "lambda-300",
-                "--algo",
-                "cql",
-                "--dataset",
-                dataset,
-                "--shots",
-                "10",
-                "--epochs",
-                "1",
-                "--out",
-                &out,
-            ],
-        );
+        let output = train_cql(d, dataset, "10", "1", &out, &[]);
         let stderr = failure(&output);
         assert!(
             !d.join(&out).exists(),
