@@ -128,7 +128,7 @@ fn actor_files(dir: &Path, extension: &str) -> Vec<String> {
 }
 
 #[test]
-fn a_small_launch_completes_and_accounts_for_every_transition() {
+fn a_small_launch_accounts_for_every_transition_and_its_rows_rerun_from_the_cli() {
     let dir = run_dir("e2e-launch-");
     let run = dir.path().join("run");
     let out = launch(dir.path(), &run, &[]).wait(within(240));
@@ -180,6 +180,58 @@ fn a_small_launch_completes_and_accounts_for_every_transition() {
     let evaluator = snapshot(&run, "evaluator");
     assert!(sum(&evaluator, metrics::evaluator::CHECKPOINTS_EVALUATED, &[]) >= 2.0 + 2.0 * 2.0);
     assert!(run.join("prometheus.yml").exists());
+    assert_rows_rerun_from_the_cli(dir.path(), &run);
+}
+
+/// The launch's `cql` and `cql-maml` rows (seed 0, 300 shots: the whole dataset, 2 epochs) re-run
+/// by hand as docs/TOUR.md says, `uavmeta train --init random --seed 0 --init-seed 1` and
+/// `uavmeta meta-test --init RUN/inits/w0 --seed 0`, end on the launch's checkpoints byte for byte.
+fn assert_rows_rerun_from_the_cli(dir: &Path, run: &Path) {
+    let config = run.join("config.toml").display().to_string();
+    let dataset = run.join("datasets/lambda-300.uavds").display().to_string();
+    let w0 = run.join("inits/w0").display().to_string();
+    let cql = [
+        "train",
+        "--algo",
+        "cql",
+        "--init",
+        "random",
+        "--init-seed",
+        "1",
+    ];
+    let cql_maml = ["meta-test", "--init", &w0];
+    for (method, command) in [("cql", &cql[..]), ("cql-maml", &cql_maml[..])] {
+        let out = dir.join(format!("cli-{method}"));
+        let rerun = Command::new(BIN)
+            .args(command)
+            .args([
+                "--config",
+                &config,
+                "--task",
+                "lambda-300",
+                "--dataset",
+                &dataset,
+            ])
+            .args(["--shots", "300", "--seed", "0", "--out"])
+            .arg(&out)
+            .output()
+            .expect("run uavmeta");
+        assert!(
+            rerun.status.success(),
+            "{method}: the CLI re-run failed: {}",
+            String::from_utf8_lossy(&rerun.stderr)
+        );
+        let by_hand = std::fs::read(out.join("final.safetensors")).expect("the re-run's weights");
+        let launched = run.join(format!(
+            "checkpoints/{method}/lambda-300/epoch-00002.safetensors"
+        ));
+        let launched =
+            std::fs::read(&launched).unwrap_or_else(|e| panic!("{}: {e}", launched.display()));
+        assert!(
+            by_hand == launched,
+            "{method}: the CLI re-run is not the launch's checkpoint"
+        );
+    }
 }
 
 #[test]
