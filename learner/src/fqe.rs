@@ -84,8 +84,8 @@ fn start_network(policy: &QNetwork, data: &Batch, cfg: &LearnerConfig, seed: u64
 }
 
 /// The fine-tuning's selection (`learner.select_every`): the init, every `select_every`-th and
-/// the last epoch's published network scored by [`fqe_value`] on the run's shots, the best kept (the
-/// earliest of equal scores: two networks with the same greedy actions score the same).
+/// the last epoch's published network scored by [`fqe_value`] on the run's shots, the best kept
+/// (the earliest of equal scores: two networks with the same greedy actions score the same).
 pub(crate) struct Selection {
     every: usize,
     seed: u64,

@@ -95,12 +95,12 @@ pub struct LearnerConfig {
     pub init_penalty: f64,
     /// Offline selection of the published network by fitted Q evaluation on the shots
     /// (`learner/src/fqe.rs`): at the start, every this many epochs and at the last epoch the
-    /// network a run would publish is scored by FQE, and from then on the run publishes the best-scoring one so far,
-    /// the init included (its rows' returns and its `final` checkpoint are that network's). The
-    /// scores go to `select.csv` beside the measured return of each candidate. 0 = off (SPEC):
-    /// on 500 shots FQE does not rank this world's policies (Kendall tau 0.04 among fine-tuned
-    /// epochs): it catches a drift of 20% and more, and costs as much elsewhere
-    /// (docs/EXPERIMENTS.md, D4).
+    /// network a run would publish is scored by FQE, and from then on the run publishes the
+    /// best-scoring one so far, the init included (its rows' returns and its `final` checkpoint
+    /// are that network's). The scores go to `select.csv` beside the measured return of each
+    /// candidate. 0 = off (SPEC): on 500 shots FQE does not rank this world's policies (Kendall
+    /// tau 0.04 among fine-tuned epochs): it catches a drift of 20% and more, and costs as much
+    /// elsewhere (docs/EXPERIMENTS.md, D4).
     #[default(0)]
     pub select_every: usize,
     /// Gradient steps of each FQE estimate (`learner.select_every`). More is not better on 500
