@@ -37,9 +37,9 @@ use iceoryx2::node::Node;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::prelude::ipc;
 
-use uavmeta_actors::policy::heuristics::PolicySpec;
-use uavmeta_actors::rollout::{episode_seed, run_episode, Policy};
-use uavmeta_actors::world::World;
+use uavmeta_world::heuristics::PolicySpec;
+use uavmeta_world::rollout::{episode_seed, run_episode, Policy};
+use uavmeta_world::world::World;
 use uavmeta_proto::config::{Config, RunConfig};
 use uavmeta_proto::payload::{ServiceNames, StoreAck, TransitionSlot, SCHEMA_VERSION};
 use uavmeta_runtime::actor::{ActorOptions, Rollout};
@@ -733,9 +733,9 @@ fn main() {
     }
 }
 
-/// One actor on the receiver's host against one across the tunnel, at batch 64 and 1024: `TUNNEL_ROUNDS` rounds in which
-/// every case takes its turn, so a spell of interference hits them alike; best and median rate,
-/// median of each run's latency percentiles.
+/// One actor on the receiver's host against one across the tunnel, at batch 64 and 1024:
+/// `TUNNEL_ROUNDS` rounds in which every case takes its turn, so a spell of interference hits them
+/// alike; best and median rate, median of each run's latency percentiles.
 fn tunnel_section() {
     let batches = [64, 1024];
     let routes = [false, true];

@@ -51,11 +51,11 @@ section "A. Online DQN on lambda-300 (configs/default.toml, 15 000 steps), greed
     change "return, mean ± 95% CI" "worst seed"
 declare -A DQN=(
     [default]=""
-    [target-500]="--set collect.dqn_target_update_every=500"
-    [eps-end-0.05]="--set collect.eps_end=0.05"
-    [lr-1e-3]="--set collect.dqn_lr=0.001"
-    [no-stabilisers]="--set collect.dqn_double=false --set collect.dqn_huber=false --set collect.dqn_grad_clip_norm=0 --set collect.dqn_target_update_every=100"
-    [old-defaults]="--set collect.dqn_double=false --set collect.dqn_huber=false --set collect.dqn_grad_clip_norm=0 --set collect.dqn_target_update_every=100 --set collect.dqn_lr=0.001 --set collect.dqn_hidden=[64,64]"
+    [target-500]="--set collect.dqn.target_update_every=500"
+    [eps-end-0.05]="--set collect.dqn.eps_end=0.05"
+    [lr-1e-3]="--set collect.dqn.lr=0.001"
+    [no-stabilisers]="--set collect.dqn.double_dqn=false --set collect.dqn.huber=false --set collect.dqn.grad_clip_norm=0 --set collect.dqn.target_update_every=100"
+    [old-defaults]="--set collect.dqn.double_dqn=false --set collect.dqn.huber=false --set collect.dqn.grad_clip_norm=0 --set collect.dqn.target_update_every=100 --set collect.dqn.lr=0.001 --set collect.dqn.hidden=[64,64]"
 )
 collect_one() {
     local dir=$OUT/dqn-$1
@@ -77,10 +77,10 @@ section "A2. Online DQN on the AoI-dominated tasks (configs/reproduce.toml), gre
     task change "return, mean ± 95% CI" "worst seed"
 declare -A LOW=(
     [default]=""
-    [eps-end-0.05]="--set collect.eps_end=0.05"
-    [target-500]="--set collect.dqn_target_update_every=500"
-    [target-500-eps-end-0.05]="--set collect.dqn_target_update_every=500 --set collect.eps_end=0.05"
-    [target-500-steps-20k]="--set collect.dqn_target_update_every=500 --set collect.eps_end=0.05 --set collect.dqn_steps=20000 --set collect.eps_decay_steps=8000"
+    [eps-end-0.05]="--set collect.dqn.eps_end=0.05"
+    [target-500]="--set collect.dqn.target_update_every=500"
+    [target-500-eps-end-0.05]="--set collect.dqn.target_update_every=500 --set collect.dqn.eps_end=0.05"
+    [target-500-steps-20k]="--set collect.dqn.target_update_every=500 --set collect.dqn.eps_end=0.05 --set collect.dqn.steps=20000 --set collect.dqn.eps_decay_steps=8000"
 )
 collect_low() {
     local dir=$OUT/dqn-$1-$2

@@ -14,10 +14,10 @@ const SMALL: &[&str] = &[
     "learner.hidden=[16,16]",
     "learner.eval_episodes=2",
     "collect.transitions=120",
-    "collect.dqn_steps=300",
-    "collect.replay_capacity=300",
-    "collect.learning_starts=100",
-    "collect.eps_decay_steps=200",
+    "collect.dqn.steps=300",
+    "collect.dqn.replay_capacity=300",
+    "collect.dqn.learning_starts=100",
+    "collect.dqn.eps_decay_steps=200",
 ];
 
 /// The default config meta-trains on eight tasks; these keep `lambda-0` and `lambda-100` by
@@ -332,7 +332,7 @@ fn meta_train_writes_w0_that_meta_test_fine_tunes() {
         .into_iter()
         .chain([
             "meta.meta_epochs=4",
-            "meta.shots=16",
+            "meta.support_shots=16",
             "meta.query_shots=16",
             "meta.eval_every=2",
             "meta.checkpoint_every=2",

@@ -12,10 +12,10 @@ const SMALL: &[&str] = &[
     "world.horizon=30",
     "learner.hidden=[64,64]",
     "collect.transitions=200",
-    "collect.dqn_steps=800",
-    "collect.replay_capacity=800",
-    "collect.learning_starts=200",
-    "collect.eps_decay_steps=400",
+    "collect.dqn.steps=800",
+    "collect.dqn.replay_capacity=800",
+    "collect.dqn.learning_starts=200",
+    "collect.dqn.eps_decay_steps=400",
 ];
 
 /// `uavmeta SUBCOMMAND` in `dir` with the environment `env` added.

@@ -31,17 +31,17 @@ const SMALL_WORLD: &[&str] = &[
     "world.horizon=20",
     "world.cell_m=200",
     "world.layout_seed=3",
-    "collect.dqn_steps=8000",
+    "collect.dqn.steps=8000",
     // As in the default, the buffer the shots come from holds only steps taken with epsilon
     // at its floor (from step 3 500 here).
-    "collect.replay_capacity=4000",
+    "collect.dqn.replay_capacity=4000",
     // The default's datasets are an eighth of its agents' 16 000-transition buffers; an eighth
     // of these is 500, the paper's shots, so the launch fine-tunes on the whole dataset here.
     // (At the default's own 2 000 it passes too, in 335 s instead of 154 s: too long for CI.)
     "collect.transitions=500",
-    "collect.eps_decay_steps=3000",
-    "collect.learning_starts=500",
-    "collect.dqn_target_update_every=500",
+    "collect.dqn.eps_decay_steps=3000",
+    "collect.dqn.learning_starts=500",
+    "collect.dqn.target_update_every=500",
 ];
 
 /// Meta-train tasks kept: the ends and the middle of the default's range.

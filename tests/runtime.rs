@@ -9,8 +9,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use uavmeta_proto::config::Loss;
-use uavmeta_proto::method::Method;
+
+use uavmeta_proto::method::{Algo, Method};
 use uavmeta_proto::metrics::{self, Metric};
 use uavmeta_runtime::metrics::{parse, sum, Sample};
 
@@ -238,13 +238,7 @@ fn assert_rows_rerun_from_the_cli(dir: &Path, run: &Path) {
 fn a_launch_over_two_seeds_runs_each_in_its_own_directory_and_reports_their_mean() {
     let dir = run_dir("e2e-seeds-");
     let run = dir.path().join("run");
-    // Each seed's CQL-MAML, CQL and CQL-pretrain fine-tune as one population of three.
-    let out = launch(
-        dir.path(),
-        &run,
-        &["run.seeds=[0, 1]", "learner.population=3"],
-    )
-    .wait(within(480));
+    let out = launch(dir.path(), &run, &["run.seeds=[0, 1]"]).wait(within(480));
     assert!(out.status.success(), "launch failed:\n{}", stderr(&out));
     let table = out.stdout.clone();
     let datasets: Vec<Vec<u8>> = [0, 1]
@@ -431,9 +425,9 @@ fn a_replay_sample_lost_with_a_killed_store_is_sent_again_to_its_successor() {
         &run,
         &[
             "collect.policy=dqn-online",
-            "collect.dqn_steps=600",
-            "collect.learning_starts=100",
-            "collect.eps_decay_steps=300",
+            "collect.dqn.steps=600",
+            "collect.dqn.learning_starts=100",
+            "collect.dqn.eps_decay_steps=300",
             "collect.transitions=300",
         ],
     );
@@ -872,7 +866,7 @@ fn an_evaluator_restarted_after_the_meta_learner_exited_catches_up_from_the_run_
     // Two w0 checkpoints, and two epochs of each fine-tuned method.
     assert_eq!(
         lines.len(),
-        1 + 2 + Method::fine_tuned(Loss::Cql).len() * 2,
+        1 + 2 + Method::fine_tuned(Algo::CQL, &Algo::baselines()).len() * 2,
         "{complete}"
     );
 
@@ -917,14 +911,7 @@ fn an_evaluator_restarted_after_the_meta_learner_exited_catches_up_from_the_run_
 fn a_launch_with_the_dqn_inner_loss_fine_tunes_and_reports_dqn_maml() {
     let dir = run_dir("e2e-dqn-maml-");
     let run = dir.path().join("run");
-    // DQN-MAML and DQN fine-tune as one population of two (`learner.population`): each still
-    // checkpoints and announces its own epochs.
-    let out = launch(
-        dir.path(),
-        &run,
-        &["meta.inner_loss=\"dqn\"", "learner.population=2"],
-    )
-    .wait(within(240));
+    let out = launch(dir.path(), &run, &["meta.inner_loss=\"dqn\""]).wait(within(240));
     assert!(out.status.success(), "launch failed:\n{}", stderr(&out));
     let csv = std::fs::read_to_string(run.join("evaluations.csv")).expect("evaluations.csv");
     let methods: BTreeMap<&str, usize> =
@@ -933,8 +920,20 @@ fn a_launch_with_the_dqn_inner_loss_fine_tunes_and_reports_dqn_maml() {
                 .or_default() += 1;
             n
         });
-    // Two w0 checkpoints, then two epochs each of DQN-MAML and its random-init baseline.
-    let expected = BTreeMap::from([("maml-init", 2), ("dqn-maml", 2), ("dqn", 2)]);
+    // Two w0 checkpoints, then two epochs each of DQN-MAML, its random-init and pretrained
+    // baselines, and each of `learner.baselines` from w0 and from a random init.
+    let mut expected = BTreeMap::from([
+        ("maml-init".to_string(), 2),
+        ("dqn-maml".to_string(), 2),
+        ("dqn".to_string(), 2),
+        ("dqn-pretrain".to_string(), 2),
+    ]);
+    for algo in Algo::baselines() {
+        expected.insert(format!("{algo}-w0"), 2);
+        expected.insert(algo.to_string(), 2);
+    }
+    let methods: BTreeMap<String, usize> =
+        methods.into_iter().map(|(m, n)| (m.to_string(), n)).collect();
     assert_eq!(methods, expected, "{csv}");
     let w0 = run.join("checkpoints/maml-init/epoch-00004");
     let meta = uavmeta_learner::checkpoint::read_meta(&w0).expect("the final w0 checkpoint");

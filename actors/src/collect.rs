@@ -1,4 +1,4 @@
-//! Collecting one task's offline dataset (SPEC section 4) with a behaviour policy.
+//! Collecting one task's offline dataset (docs/MODEL.md section 4) with a behaviour policy.
 //!
 //! [`Collector`] rolls a policy out in the task's world and turns every step into a
 //! `uavmeta_proto::dataset::Transition`; [`collect()`] drives it for `uavmeta collect`, writes the
@@ -7,7 +7,7 @@
 //!
 //! With `dqn-online`, the paper's behaviour policy, the dataset is instead sampled uniformly
 //! without replacement from the replay buffer of an online DQN agent trained for
-//! `collect.dqn_steps` steps, and written in the buffer's (time) order; the agent itself is saved
+//! `collect.dqn.steps` steps, and written in the buffer's (time) order; the agent itself is saved
 //! beside the file as a checkpoint ([`agent_path`]), the task's online reference.
 //!
 //! The i-th episode of a collector seeded S runs in the world of `episode_seed(S, i)`, as in
@@ -25,11 +25,10 @@ use uavmeta_proto::dataset::{
 };
 use uavmeta_proto::method::Method;
 
-use crate::policy::dqn_online::{AgentState, OnlineDqn};
-use crate::policy::dqn_population::{DqnPopulation, MemberSpec};
-use crate::policy::heuristics::{PolicyError, PolicySpec};
-use crate::rollout::{episode_seed, Policy};
-use crate::world::World;
+use crate::policy::dqn_online::OnlineDqn;
+use uavmeta_world::heuristics::{PolicyError, PolicySpec};
+use uavmeta_world::rollout::{episode_seed, Policy};
+use uavmeta_world::world::World;
 
 /// Why a dataset could not be collected.
 #[derive(Debug, thiserror::Error)]
@@ -51,8 +50,8 @@ pub enum CollectError {
     Agent(#[from] CheckpointError),
     #[error(
         "{origin}: collect.transitions = {wanted}, but the online DQN agent's replay buffer will hold only \
-         {available} transitions to sample from (the smallest of collect.dqn_steps, collect.replay_capacity and a \
-         non-zero collect.sample_newest): raise them to at least {wanted}"
+         {available} transitions to sample from (the smaller of collect.dqn.steps and collect.dqn.replay_capacity): \
+         raise both to at least {wanted}"
     )]
     ReplayTooSmall {
         origin: String,
@@ -152,10 +151,9 @@ pub struct CollectSummary {
 const DQN_PROGRESS_STEPS: usize = 500;
 
 /// The paper's dataset of one task: an online DQN agent (actor `actor`, seeded `seed`) trains for
-/// `collect.dqn_steps` steps, reporting each block of training steps (and the agent, for its
+/// `collect.dqn.steps` steps, reporting each block of training steps (and the agent, for its
 /// exploration rate and returns) to `progress`, and
-/// `collect.transitions` transitions are sampled from its replay buffer (the newest
-/// `collect.sample_newest` of it, when that is not 0), in time order. Also
+/// `collect.transitions` transitions are sampled from its final replay buffer, in time order. Also
 /// returns the trained agent, the task's online reference. Training stops early with
 /// [`CollectError::Interrupted`] when `progress` returns false.
 pub fn online_dqn_dataset(
@@ -167,7 +165,7 @@ pub fn online_dqn_dataset(
     mut progress: impl FnMut(usize, &OnlineDqn) -> bool,
 ) -> Result<(Vec<Transition>, OnlineDqn), CollectError> {
     let mut agent = OnlineDqn::new(config, task, task_id, actor, seed);
-    let mut left = config.collect.dqn_steps;
+    let mut left = config.collect.dqn.steps;
     while left > 0 {
         let n = left.min(DQN_PROGRESS_STEPS);
         agent.train_steps(n)?;
@@ -178,61 +176,31 @@ pub fn online_dqn_dataset(
         }
         left -= n;
     }
-    let sampled = replay_sample(config, agent.state(), seed)?;
+    let sampled = replay_sample(config, &agent, seed)?;
     Ok((sampled, agent))
 }
 
-/// The datasets of several online agents trained as one population ([`DqnPopulation`]), one per
-/// member spec, under `config` (every member's seed is its spec's), with their networks on
-/// `device`: each member's sample and policy network, in spec order. With one member this is
-/// [`online_dqn_dataset`] bit for bit. `progress` gets each block of training steps.
-pub fn online_dqn_datasets(
-    config: &Config,
-    members: &[MemberSpec],
-    device: tch::Device,
-    mut progress: impl FnMut(usize),
-) -> Result<Vec<(Vec<Transition>, QNetwork)>, CollectError> {
-    let mut population = DqnPopulation::new(config, members, device);
-    let mut left = config.collect.dqn_steps;
-    while left > 0 {
-        let n = left.min(DQN_PROGRESS_STEPS);
-        population.train_steps(n)?;
-        progress(n);
-        left -= n;
-    }
-    (members.iter().enumerate())
-        .map(|(i, m)| {
-            let sampled = replay_sample(config, population.member(i), m.seed)?;
-            Ok((sampled, population.q_network(i)))
-        })
-        .collect()
-}
-
 /// Logs which snapshot an agent kept, and samples its dataset: `collect.transitions` transitions
-/// drawn from its final replay buffer (the newest `collect.sample_newest` of it, when that is not
-/// 0), in time order.
+/// drawn from its final replay buffer, in time order.
 fn replay_sample(
     config: &Config,
-    agent: &AgentState,
+    agent: &OnlineDqn,
     seed: u64,
 ) -> Result<Vec<Transition>, CollectError> {
     if let (Some((step, ret)), Some(&(_, last))) =
         (agent.selected(), agent.selection_evaluations().last())
     {
+        let (task, actor) = agent.task_and_actor();
         tracing::info!(
-            task = agent.task(),
-            actor = agent.actor(),
+            task,
+            actor,
             step,
             ret,
             last,
             "online DQN: kept the best snapshot"
         );
     }
-    let buffer: Vec<Transition> = agent
-        .replay_buffer()
-        .newest(config.collect.sample_newest)
-        .cloned()
-        .collect();
+    let buffer: Vec<Transition> = agent.replay_buffer().iter().cloned().collect();
     // A seed no collection episode uses, so the draw is independent of the agent's own.
     let mut sampled = sample_shots(
         &buffer,
@@ -312,7 +280,7 @@ pub fn collect(
 /// Refuses a config whose online agent's replay buffer holds fewer transitions than its dataset
 /// is to sample.
 fn check_replay_window(config: &Config) -> Result<(), CollectError> {
-    let (wanted, available) = (config.collect.transitions, config.collect.sampled_window());
+    let (wanted, available) = (config.collect.transitions, config.collect.dqn.sampled_window());
     if available < wanted {
         return Err(CollectError::ReplayTooSmall {
             origin: config.origin.clone(),
@@ -332,7 +300,7 @@ fn write_replay_sample(
     writer: &mut DatasetWriter,
     progress: &ProgressBar,
 ) -> Result<u64, CollectError> {
-    progress.set_length(config.collect.dqn_steps as u64);
+    progress.set_length(config.collect.dqn.steps as u64);
     let task_id = writer.header().task;
     let (sampled, agent) =
         online_dqn_dataset(config, task, task_id, 0, config.collect.seed, |n, _| {
@@ -355,65 +323,7 @@ fn write_sample(
     for chunk in sampled.chunks(config.run.batch_size) {
         writer.append(chunk)?;
     }
-    checkpoint::save(&agent_path(out), q, Method::OnlineDqn.name(), 1, config)?;
-    Ok(())
-}
-
-/// One dataset of [`collect_population`]: collected with `config` (its `collect.seed` the
-/// member's seed) on task `task` into `out`.
-pub struct PopulationJob<'a> {
-    pub config: &'a Config,
-    pub task: &'a str,
-    pub out: &'a Path,
-}
-
-/// [`collect()`] with `dqn-online` for several datasets at once, their agents trained as one
-/// population on `device` ([`online_dqn_datasets`]). The jobs' configs may differ only in
-/// `collect.seed`; each dataset and agent is written as `collect` writes it, with its own
-/// config. With one job the files are `collect`'s bit for bit. `progress` counts training steps
-/// (of the population, not of each member).
-pub fn collect_population(
-    jobs: &[PopulationJob],
-    device: tch::Device,
-    progress: &ProgressBar,
-) -> Result<(), CollectError> {
-    let Some(first) = jobs.first() else {
-        return Ok(());
-    };
-    let shared = first.config;
-    check_replay_window(shared)?;
-    let mut writers = Vec::with_capacity(jobs.len());
-    let mut members = Vec::with_capacity(jobs.len());
-    for job in jobs {
-        let mut same = job.config.clone();
-        same.collect.seed = shared.collect.seed;
-        assert!(
-            same == *shared,
-            "a population's configs differ beyond collect.seed"
-        );
-        let task = job.config.task(job.task)?;
-        let header = DatasetHeader::for_task(job.config, job.task)?;
-        members.push(MemberSpec {
-            task: task.clone(),
-            task_id: header.task,
-            actor: 0,
-            seed: job.config.collect.seed,
-        });
-        let config_file = config_path(job.out);
-        std::fs::write(&config_file, job.config.to_toml_string()).map_err(|source| {
-            CollectError::WriteConfig {
-                path: config_file.clone(),
-                source,
-            }
-        })?;
-        writers.push(DatasetWriter::create(job.out, header)?);
-    }
-    progress.set_length(shared.collect.dqn_steps as u64);
-    let results = online_dqn_datasets(shared, &members, device, |n| progress.inc(n as u64))?;
-    for ((job, mut writer), (sampled, q)) in jobs.iter().zip(writers).zip(results) {
-        write_sample(job.config, job.out, &mut writer, &sampled, &q)?;
-        writer.sync()?;
-    }
+    checkpoint::save(&agent_path(out), q, &Method::OnlineDqn.name(), 1, config)?;
     Ok(())
 }
 
@@ -449,7 +359,7 @@ mod tests {
     use uavmeta_proto::dataset::DatasetReader;
 
     use super::*;
-    use crate::policy::heuristics::RandomPolicy;
+    use uavmeta_world::heuristics::RandomPolicy;
 
     fn small_config(policy: &str) -> Config {
         let text = format!("[world]\ndevices = 4\nhorizon = 7\n[collect]\npolicy = \"{policy}\"\ntransitions = 30\nseed = 5\n[run]\nbatch_size = 8");
@@ -518,7 +428,7 @@ mod tests {
     fn a_replay_buffer_smaller_than_the_dataset_is_refused_before_writing() {
         let dir = tempfile::tempdir().unwrap();
         let mut config = small_config("dqn-online");
-        config.collect.dqn_steps = 20;
+        config.collect.dqn.steps = 20;
         let out = dir.path().join("d.uavds");
         let error = collect(&config, "lambda-300", &out, &ProgressBar::hidden()).unwrap_err();
         assert!(
@@ -539,9 +449,9 @@ mod tests {
     fn dqn_online_datasets_are_distinct_replay_transitions_in_time_order() {
         let dir = tempfile::tempdir().unwrap();
         let mut config = small_config("dqn-online");
-        config.collect.dqn_steps = 60;
-        config.collect.replay_capacity = 50;
-        config.collect.learning_starts = 10;
+        config.collect.dqn.steps = 60;
+        config.collect.dqn.replay_capacity = 50;
+        config.collect.dqn.learning_starts = 10;
         config.learner.hidden = vec![8];
         config.learner.batch = 8;
         let (a, b) = (dir.path().join("a.uavds"), dir.path().join("b.uavds"));

@@ -5,11 +5,11 @@ use std::path::{Path, PathBuf};
 
 use indicatif::ProgressBar;
 use uavmeta_actors::collect::collect;
-use uavmeta_actors::policy::heuristics::{PolicySpec, RandomPolicy};
+use uavmeta_world::heuristics::{PolicySpec, RandomPolicy};
 use uavmeta_actors::policy::q_policy::QPolicy;
 use uavmeta_actors::policy::{self};
-use uavmeta_actors::rollout::Policy;
-use uavmeta_actors::world::World;
+use uavmeta_world::rollout::Policy;
+use uavmeta_world::world::World;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_proto::config::{Config, TaskConfig};

@@ -11,14 +11,15 @@ use std::sync::OnceLock;
 
 use uavmeta_actors::collect::{online_dqn_dataset, Collector};
 use uavmeta_actors::policy::dqn_online::OnlineDqn;
-use uavmeta_actors::policy::heuristics::{GreedyPolicy, PolicySpec, RandomPolicy, StalestPolicy};
+use uavmeta_world::heuristics::{GreedyPolicy, PolicySpec, RandomPolicy, StalestPolicy};
 use uavmeta_actors::policy::q_policy::Evaluator;
-use uavmeta_actors::rollout::{evaluate, Policy};
+use uavmeta_world::rollout::{evaluate, Policy};
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{train, EpochRow, EvaluatePolicy, TrainOptions};
-use uavmeta_proto::config::{Config, Loss};
+use uavmeta_proto::config::Config;
+use uavmeta_proto::method::Algo;
 use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::stats::PolicyMetrics;
 
@@ -48,13 +49,13 @@ fn trained_agent() -> TrainedAgent {
     // (the fine-tuning's 500 shots), to keep the suite quick: these tests check that the
     // learners learn, not how close to the planner they come.
     let overrides = [
-        "collect.dqn_steps=60000".into(),
+        "collect.dqn.steps=60000".into(),
         "collect.transitions=500".into(),
     ];
     let config = Config::load(DEFAULT_CONFIG.as_ref(), &overrides).unwrap();
     let task = config.task("lambda-300").unwrap().clone();
     let (dataset, agent) = online_dqn_dataset(&config, &task, 0, 0, 1, |_, _| true).unwrap();
-    assert_eq!(agent.steps(), config.collect.dqn_steps);
+    assert_eq!(agent.steps(), config.collect.dqn.steps);
     assert_eq!(dataset.len(), config.collect.transitions);
     let policy =
         Evaluator::new(&config.world, &task, EVAL_EPISODES, EVAL_SEED).evaluate(agent.q_network());
@@ -112,7 +113,7 @@ fn online_dqn_reaches_the_heuristics_on_the_default_config(agent: &TrainedAgent)
 /// world/tests/planner.rs checks the default search against one 256 times wider there), online
 /// DQN comes within 8% of it on the mean of three seeds and within 15% on each, evaluated exactly
 /// over the 16 start cells, where the greedy heuristic is 62% short. It keeps its best snapshot
-/// as configs/default.toml does (`collect.dqn_select_every`). (Before selection, eight seeds at
+/// as configs/default.toml does (`collect.dqn.select_every`). (Before selection, eight seeds at
 /// this budget ended 1.6-12.4% short, 4.9% on average.)
 #[test]
 fn online_dqn_comes_within_8_percent_of_the_planner_on_a_small_world() {
@@ -159,29 +160,29 @@ fn online_dqn_comes_within_8_percent_of_the_planner_on_a_small_world() {
 /// steps) with an 8 000-step online agent, and `extra` settings.
 fn small_world(extra: &[&str]) -> Config {
     let agent = [
-        "collect.dqn_steps=8000",
-        "collect.replay_capacity=8000",
-        "collect.eps_decay_steps=3000",
-        "collect.learning_starts=500",
-        "collect.dqn_target_update_every=500",
+        "collect.dqn.steps=8000",
+        "collect.dqn.replay_capacity=8000",
+        "collect.dqn.eps_decay_steps=3000",
+        "collect.dqn.learning_starts=500",
+        "collect.dqn.target_update_every=500",
     ];
     support::small_world(&[&agent[..], extra].concat())
 }
 
-/// Snapshot selection (`collect.dqn_select_every`) keeps the best of the greedy policies it
+/// Snapshot selection (`collect.dqn.select_every`) keeps the best of the greedy policies it
 /// evaluates and touches nothing else: with and without it the same seed fills the same replay
 /// buffer, and the kept policy is the best of the candidates (every 1 000 steps once epsilon is
 /// at its floor, and the last), each scored here exactly over the 16 start cells.
 #[test]
 fn snapshot_selection_keeps_the_best_candidate_and_leaves_training_alone() {
     single_threaded();
-    let off = small_world(&["collect.dqn_select_every=0", "collect.dqn_steps=6000"]);
-    let on = small_world(&["collect.dqn_select_every=1000", "collect.dqn_steps=6000"]);
+    let off = small_world(&["collect.dqn.select_every=0", "collect.dqn.steps=6000"]);
+    let on = small_world(&["collect.dqn.select_every=1000", "collect.dqn.steps=6000"]);
     let task = uavmeta_proto::config::TaskConfig::one_off(300.0, None);
     let exact = Evaluator::new(&off.world, &task, 1, 0);
     let mut plain = OnlineDqn::new(&off, &task, 0, 0, 5);
     let mut candidates = vec![];
-    while plain.steps() < off.collect.dqn_steps {
+    while plain.steps() < off.collect.dqn.steps {
         plain.train_steps(1000).unwrap();
         if plain.steps() >= 3500 {
             candidates.push((
@@ -221,13 +222,13 @@ fn snapshot_selection_keeps_the_best_candidate_and_leaves_training_alone() {
 fn cql_on_500_shots_of_the_agents_replay_comes_within_10_percent_of_the_agent(
     agent: &TrainedAgent,
 ) {
-    // SPEC's 100 one-pass epochs of 8 steps, as `make run` trains: on the shots of the 60 000-step
-    // agents CQL has converged by then (make run's three seeds end 1.7-3.1% below their agents).
-    // The 250 epochs this test took with the 15 000-step agents' shots end 10.5% below here:
-    // CQL declines after it has converged (docs/EXPERIMENTS.md, D).
+    // The default 100 one-pass epochs of 8 steps, as `make run` trains: on the shots of the 60
+    // 000-step agents CQL has converged by then (make run's three seeds end 1.7-3.1% below their
+    // agents). The 250 epochs this test took with the 15 000-step agents' shots end 10.5% below
+    // here: CQL declines after it has converged (docs/EXPERIMENTS.md, D).
     let config =
         Config::load(DEFAULT_CONFIG.as_ref(), &["learner.eval_episodes=5".into()]).unwrap();
-    let (q, _) = train_offline(&config, &agent.dataset, Loss::Cql);
+    let (q, _) = train_offline(&config, &agent.dataset, Algo::CQL);
     let task = config.task("lambda-300").unwrap();
     let cql = Evaluator::new(&config.world, task, EVAL_EPISODES, EVAL_SEED).evaluate(&q);
     eprintln!(
@@ -269,7 +270,7 @@ fn stalest_dataset(config: &Config, transitions: usize) -> Vec<Transition> {
 fn train_offline(
     config: &Config,
     data: &[Transition],
-    algorithm: Loss,
+    algorithm: Algo,
 ) -> (QNetwork, Vec<EpochRow>) {
     let task = config.task("lambda-300").unwrap();
     let batch = Batch::new(data, &config.world, config.learner.reward_scale).unwrap();
@@ -304,7 +305,7 @@ fn cql_on_stalest() -> &'static CqlRun {
     RUN.get_or_init(|| {
         let config = offline_config();
         let task = config.task("lambda-300").unwrap();
-        let (q, rows) = train_offline(&config, &stalest_dataset(&config, 2000), Loss::Cql);
+        let (q, rows) = train_offline(&config, &stalest_dataset(&config, 2000), Algo::CQL);
         let policy = Evaluator::new(&config.world, task, EVAL_EPISODES, EVAL_SEED).evaluate(&q);
         CqlRun {
             policy,
@@ -348,7 +349,7 @@ fn offline_dqn_overestimates_and_cql_does_not() {
     single_threaded();
     let config = offline_config();
     let task = config.task("lambda-300").unwrap();
-    let (dqn_q, dqn_rows) = train_offline(&config, &stalest_dataset(&config, 2000), Loss::Dqn);
+    let (dqn_q, dqn_rows) = train_offline(&config, &stalest_dataset(&config, 2000), Algo::DQN);
     let dqn_ret = Evaluator::new(&config.world, task, EVAL_EPISODES, EVAL_SEED)
         .evaluate(&dqn_q)
         .ret

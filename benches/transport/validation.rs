@@ -12,7 +12,7 @@
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use uavmeta_actors::world::World;
+use uavmeta_world::world::World;
 use uavmeta_proto::config::Config;
 use uavmeta_proto::metrics::store::DATASET_TRANSITIONS;
 use uavmeta_proto::payload::TransitionSlot;

@@ -8,7 +8,8 @@
 //! `qlearning_dataset` skips timeout rows. So both see exactly the exported transitions with
 //! their true next observations, however short the runs. `next_observations` spells those out
 //! per row for loaders that read (s, a, r, s') directly; a timeout row repeats its own
-//! observation there. `terminals` are all 0: the world has no terminal state (SPEC section 1).
+//! observation there. `terminals` are all 0: the world has no terminal state (docs/MODEL.md section
+//! 1).
 //!
 //! | array               | dtype   | shape       | holds                                         |
 //! | ------------------- | ------- | ----------- | --------------------------------------------- |

@@ -19,7 +19,8 @@ use uavmeta_learner::batch::Batch;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{train, EvaluatePolicy, TrainOptions};
-use uavmeta_proto::config::{Config, Loss};
+use uavmeta_proto::config::Config;
+use uavmeta_proto::method::Algo;
 use uavmeta_proto::stats::PolicyMetrics;
 
 const OBS: i64 = 12;
@@ -73,7 +74,7 @@ fn bench(c: &mut Criterion) {
                 let mut q =
                     QNetworkConfig::new(OBS as usize, ACTIONS as usize, &[256, 256]).init(0);
                 let opts = TrainOptions {
-                    algorithm: Loss::Cql,
+                    algorithm: Algo::CQL,
                     config: &cfg,
                     seed: 0,
                     out_dir: None,

@@ -3,7 +3,7 @@
 //! A training set is turned into one [`Batch`] once; minibatches are row selections of it
 //! ([`Batch::select`]), so sampling costs one `index_select` per column instead of re-encoding
 //! transitions every step. There is no `done` column: an episode ends by a time limit, which is
-//! never terminal, so every transition bootstraps (SPEC section 5).
+//! never terminal, so every transition bootstraps (docs/MODEL.md section 5).
 
 use std::borrow::Borrow;
 use std::path::{Path, PathBuf};
@@ -169,21 +169,6 @@ impl Batch {
         let parts: Vec<&Batch> = parts.into_iter().collect();
         let column = |pick: fn(&Batch) -> &Tensor| {
             Tensor::cat(&parts.iter().map(|b| pick(b)).collect::<Vec<_>>(), 0)
-        };
-        Batch {
-            obs: column(|b| &b.obs),
-            actions: column(|b| &b.actions),
-            rewards: column(|b| &b.rewards),
-            next_obs: column(|b| &b.next_obs),
-        }
-    }
-
-    /// Equal-sized batches stacked along a new leading dimension: member i of a population
-    /// sees `parts[i]` (obs [N, B, D], actions [N, B], ..), on `device`. `parts` must not be
-    /// empty.
-    pub fn stack(parts: &[Batch], device: tch::Device) -> Batch {
-        let column = |pick: fn(&Batch) -> &Tensor| {
-            Tensor::stack(&parts.iter().map(pick).collect::<Vec<_>>(), 0).to_device(device)
         };
         Batch {
             obs: column(|b| &b.obs),

@@ -258,8 +258,9 @@ fn read_json<T: DeserializeOwned>(
 }
 
 /// Loads checkpoint `path` into a new network sized by `config` (`world.devices`, and
-/// `learner.hidden`, or `collect.dqn_hidden` for an online DQN agent's). Sizes that differ from the checkpoint's, a truncated or corrupt weights
-/// file, or unreadable metadata are errors naming the file.
+/// `learner.hidden`, or `collect.dqn.hidden` for an online DQN agent's). Sizes that differ from the
+/// checkpoint's, a truncated or corrupt weights file, or unreadable metadata are errors naming the
+/// file.
 pub fn load(path: &Path, config: &Config) -> Result<(QNetwork, CheckpointMeta), CheckpointError> {
     let paths = CheckpointPaths::new(path);
     let meta = read_meta(path)?;
@@ -294,7 +295,7 @@ pub fn load(path: &Path, config: &Config) -> Result<(QNetwork, CheckpointMeta), 
     }
     // The online DQN agent has a network of its own; every offline learner shares `learner`'s.
     let (hidden, hidden_key) = if meta.algorithm == Method::OnlineDqn.name() {
-        (&config.collect.dqn_hidden, "collect.dqn_hidden")
+        (&config.collect.dqn.hidden, "collect.dqn.hidden")
     } else {
         (&config.learner.hidden, "learner.hidden")
     };

@@ -1,4 +1,4 @@
-//! The CQL loss, paper eq. 8 (CQL(H) for discrete actions):
+//! Conservative Q-learning, paper eq. 8 (CQL(H) for discrete actions):
 //!
 //! ```text
 //! L_CQL(w) = 0.5 * L_DQN(w) + alpha * mean_batch [ log sum_a exp Q_w(s, a) - Q_w(s, a_data) ]
@@ -11,29 +11,21 @@
 
 use tch::Tensor;
 
+use crate::algorithm::{OfflineAlgorithm, Terms};
 use crate::batch::Batch;
-use crate::dqn::{dqn_loss, q_taken};
+use crate::dqn::q_taken;
 
-/// The terms of eq. 8, each a scalar; `total` carries the graph for `backward`.
-pub struct CqlLoss {
-    /// `0.5 * td + alpha * conservative`.
-    pub total: Tensor,
-    /// The DQN loss of eq. 7.
-    pub td: Tensor,
-    /// `mean_batch [logsumexp_a Q(s, a) - Q(s, a_data)]`, before the factor alpha.
-    pub conservative: Tensor,
-}
+/// CQL, eq. 8.
+pub struct Cql;
 
-impl CqlLoss {
-    /// Eq. 8 from a TD loss already formed (eq. 7, or its double-DQN / Huber variants).
-    pub fn from_td(q: &Tensor, td: Tensor, batch: &Batch, alpha: f64) -> CqlLoss {
-        let conservative = conservative_term(q, batch);
-        let total = eq8(&td, &conservative, alpha);
-        CqlLoss {
-            total,
-            td,
-            conservative,
-        }
+impl OfflineAlgorithm for Cql {
+    fn name(&self) -> &'static str {
+        "cql"
+    }
+
+    fn loss(&self, t: &Terms) -> Tensor {
+        let conservative = (t.mean)(conservative_rows(t.q, t.batch));
+        eq8(t.td, &conservative, t.alpha)
     }
 }
 
@@ -53,15 +45,22 @@ pub fn conservative_rows(q: &Tensor, batch: &Batch) -> Tensor {
     q.logsumexp([-1i64], false) - q_taken(q, batch)
 }
 
-/// Paper eq. 8: `0.5 * L_DQN + alpha * mean(logsumexp_a Q(s, a) - Q(s, a_data))`.
-///
-/// `q` is `Q_w(s, .)` [B, A] (with its graph), `next_q_target` is `Qhat(s', .)` [B, A].
+/// Paper eq. 8 on one minibatch, a scalar with its graph: `q` is `Q_w(s, .)` [B, A],
+/// `next_q_target` is `Qhat(s', .)` [B, A] (eq. 7's plain max and squared error).
 pub fn cql_loss(
     q: &Tensor,
     next_q_target: &Tensor,
     batch: &Batch,
     gamma: f64,
     alpha: f64,
-) -> CqlLoss {
-    CqlLoss::from_td(q, dqn_loss(q, next_q_target, batch, gamma), batch, alpha)
+) -> Tensor {
+    let td = crate::dqn::dqn_loss(q, next_q_target, batch, gamma);
+    let mean = |rows: Tensor| rows.mean(None);
+    Cql.loss(&Terms {
+        q,
+        batch,
+        td: &td,
+        mean: &mean,
+        alpha,
+    })
 }

@@ -5,8 +5,8 @@
 //! ```
 //!
 //! `Qhat` is the target network, held fixed (no gradient flows through the target). The end of an
-//! episode is a time limit, not a terminal state (SPEC sections 1 and 5), so every transition
-//! bootstraps: there is no `(1 - done)` factor.
+//! episode is a time limit, not a terminal state (docs/MODEL.md sections 1 and 5), so every
+//! transition bootstraps: there is no `(1 - done)` factor.
 //!
 //! Two of d3rlpy's choices are options, both off by default so that the default is eq. 7 itself:
 //! double DQN (the target network evaluates the online network's argmax) and a Huber TD loss.
@@ -14,7 +14,21 @@
 use tch::{Reduction, Tensor};
 use uavmeta_proto::config::LearnerConfig;
 
+use crate::algorithm::{OfflineAlgorithm, Terms};
 use crate::batch::Batch;
+
+/// DQN on a fixed dataset, eq. 7 itself: the offline baseline that overestimates.
+pub struct Dqn;
+
+impl OfflineAlgorithm for Dqn {
+    fn name(&self) -> &'static str {
+        "dqn"
+    }
+
+    fn loss(&self, t: &Terms) -> Tensor {
+        t.td.shallow_clone()
+    }
+}
 
 /// Where eq. 7's bootstrap value `V(s')` comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -27,7 +41,7 @@ pub enum Bootstrap {
 }
 
 impl Bootstrap {
-    /// [`Bootstrap::Double`] when `double` is set (a config's `double_dqn` or `dqn_double`).
+    /// [`Bootstrap::Double`] when `double` is set (`learner.double_dqn`, `collect.dqn.double_dqn`).
     pub fn double_if(double: bool) -> Self {
         if double {
             Self::Double
@@ -88,21 +102,6 @@ impl TdConfig {
             next_value(self.bootstrap, &next_q_target, || online(&batch.next_obs))
         })
     }
-
-    /// [`TdConfig::td_errors`] with each transition's own bootstrap discount, `discounts` [B]:
-    /// `y_i = r_i + d_i * V(s'_i)`. For n-step returns, where `r_i` already sums the n discounted
-    /// rewards and `d_i = gamma^n_i` (`n_i` shorter at an episode's end).
-    pub fn td_errors_discounted(
-        &self,
-        q: &Tensor,
-        batch: &Batch,
-        discounts: &Tensor,
-        target: impl FnOnce(&Tensor) -> Tensor,
-        online: impl FnOnce(&Tensor) -> Tensor,
-    ) -> Tensor {
-        let next_v = self.next_values(batch, target, online);
-        td_term(q, &(next_v * discounts), batch, self.huber)
-    }
 }
 
 impl From<&LearnerConfig> for TdConfig {
@@ -144,13 +143,8 @@ pub fn q_taken(q: &Tensor, batch: &Batch) -> Tensor {
 /// [`next_value`]): `(y - Q(s, a))^2`, or its Huber form. `q` = `Q_w(s, .)` [B, A] carries the
 /// graph; the result is [B], whose mean is the loss.
 pub fn td_errors(q: &Tensor, next_v: &Tensor, batch: &Batch, gamma: f64, huber: bool) -> Tensor {
-    td_term(q, &(next_v * gamma), batch, huber)
-}
-
-/// `(y - Q(s, a))^2` (or its Huber form) with `y = r + discounted_next_v`, [B].
-fn td_term(q: &Tensor, discounted_next_v: &Tensor, batch: &Batch, huber: bool) -> Tensor {
     // y = r + gamma * V(s'), a constant of the optimisation (eq. 7's target term).
-    let target = (&batch.rewards + discounted_next_v).detach();
+    let target = (&batch.rewards + next_v * gamma).detach();
     let q_sa = q_taken(q, batch); // [B]
     if huber {
         q_sa.huber_loss(&target, Reduction::None, 1.0)

@@ -1,20 +1,18 @@
-//! Q-network, DQN and CQL: everything that learns from transitions, and nothing about the world.
+//! The Q-network and the offline algorithms: everything that learns from transitions, and nothing
+//! about the world.
 //!
-//! - [`qnet`]: [`qnet::QNetwork`], the MLP of SPEC section 5, built by
+//! - [`algorithm`]: [`algorithm::OfflineAlgorithm`], the loss an offline algorithm minimises,
+//!   and [`algorithm::ALGORITHMS`], where each is registered; one file each:
+//!   - [`cql`]: conservative Q-learning, paper eq. 8;
+//!   - [`dqn`]: DQN, paper eq. 7, and the one TD-target computation every learner uses
+//!     ([`dqn::TdConfig::td_errors`]; double DQN and Huber as options, off by default).
+//! - [`qnet`]: [`qnet::QNetwork`], the MLP of docs/MODEL.md section 5, built by
 //!   [`qnet::QNetworkConfig::init`] with a seeded, global-state-free initialisation, and a
 //!   functional forward pass on explicit (fast) weights for MAML.
-//! - [`population`]: [`population::QPopulation`], N networks of one shape with stacked
-//!   parameters, trained in lockstep as one computation.
 //! - [`optim`]: [`optim::FusedAdam`], libtorch's one-pass Adam kernel, which tch does not wrap.
 //! - [`batch`]: [`batch::Batch`], `proto::dataset` transitions as normalised tensors.
-//! - [`dqn`]: the DQN loss, paper eq. 7, and the one TD-target computation every learner uses
-//!   ([`dqn::TdConfig::td_errors`]; double DQN and Huber as options, off by default).
-//! - [`cql`]: the CQL loss, paper eq. 8.
-//! - [`fqe`]: fitted Q evaluation, a greedy policy's value from the offline data alone, and the
-//!   fine-tuning's selection by it (`learner.select_every`).
-//! - [`train`]: offline training with either loss, evaluated each epoch through the
+//! - [`train`]: offline training with any registered algorithm, evaluated each epoch through the
 //!   [`train::EvaluatePolicy`] hook; per-epoch table on stderr and `train.csv`.
-//! - [`train_population`]: N such runs of one shape trained in lockstep as one population.
 //! - [`progress`]: the CSV log and the progress bar of a training loop (offline and meta), and
 //!   [`progress::OnStep`], the hook a caller hears every training step through.
 //! - [`numerics`]: the environment that pins libtorch's kernels (MKL's branch, ATen's vector
@@ -23,14 +21,16 @@
 //!   and checked (sizes, length, CRC32) on load.
 //!
 //! It consumes transitions from `uavmeta-proto`'s dataset files and the `[learner]` config
-//! section. Evaluating a policy needs the world, which lives in `uavmeta-actors`; the actors crate
+//! section. Evaluating a policy needs the world (`uavmeta-world`); `uavmeta-actors`
 //! implements the evaluation hook and the online DQN agent on top of these types.
 //!
 //! One CQL gradient step by hand (offline training, [`train::train`], loops this):
 //!
 //! ```
 //! use tch::nn::OptimizerConfig;
-//! use uavmeta_learner::{batch::Batch, cql::cql_loss, qnet::{QNetwork, QNetworkConfig}};
+//! use uavmeta_learner::batch::Batch;
+//! use uavmeta_learner::cql::{conservative_term, cql_loss};
+//! use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 //! use uavmeta_proto::{config::WorldConfig, dataset::Transition};
 //!
 //! // K = 2 devices: observations [x, y, A_1, A_2], 2 + K = 4 inputs, 5K = 10 actions.
@@ -45,24 +45,23 @@
 //! let mut adam = tch::nn::Adam::default().build(&q.vs, 1e-3).unwrap();
 //!
 //! let next_q_target = tch::no_grad(|| target.forward(&batch.next_obs)); // [1, 10]
-//! let loss = cql_loss(&q.forward(&batch.obs), &next_q_target, &batch, 0.99, 1.0); // eq. 8
-//! adam.backward_step(&loss.total);
+//! let q_all = q.forward(&batch.obs); // Q_w(s, .) [1, 10]
+//! let loss = cql_loss(&q_all, &next_q_target, &batch, 0.99, 1.0); // eq. 8
 //! // The conservative term is never negative: logsumexp over actions bounds every Q(s, a).
-//! assert!(loss.conservative.double_value(&[]) >= 0.0);
+//! assert!(conservative_term(&q_all, &batch).double_value(&[]) >= 0.0);
+//! adam.backward_step(&loss);
 //! // MAML's fast weights run through the same network function.
 //! let same = QNetwork::forward_with(&q.parameters(), &batch.obs);
 //! assert!(same.equal(&q.forward(&batch.obs)));
 //! ```
 
+pub mod algorithm;
 pub mod batch;
 pub mod checkpoint;
 pub mod cql;
 pub mod dqn;
-pub mod fqe;
 pub mod numerics;
 pub mod optim;
-pub mod population;
 pub mod progress;
 pub mod qnet;
 pub mod train;
-pub mod train_population;

@@ -4,9 +4,7 @@
 //! The update is the textbook one (Kingma & Ba, PyTorch's defaults: beta = (0.9, 0.999),
 //! eps = 1e-8, no weight decay), but each parameter's memory is read and written once per step
 //! rather than in seven passes with temporaries. For a [256, 256] network that is 3x faster
-//! than tch's `nn::Adam`; for a population of 80 stacked networks, whose moments no longer fit
-//! in cache, 8x (docs/BENCHMARKS.md, "Populations"). It works on every device libtorch has the
-//! kernel for (CPU and CUDA).
+//! than tch's `nn::Adam` (docs/BENCHMARKS.md, "Learner").
 
 use std::ffi::{c_char, CStr};
 

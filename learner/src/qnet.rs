@@ -1,5 +1,5 @@
-//! The Q-network of SPEC section 5: an MLP from the normalised observation (2 + K values) through
-//! ReLU hidden layers to one Q-value per action (5K).
+//! The Q-network of docs/MODEL.md section 5: an MLP from the normalised observation (2 + K values)
+//! through ReLU hidden layers to one Q-value per action (5K).
 //!
 //! The parameters live in a `VarStore` (for Adam and safetensors checkpoints) and are also kept in
 //! layer order, so that the same forward pass runs on an explicit parameter list: MAML's fast
@@ -28,7 +28,7 @@ impl QNetworkConfig {
     }
 
     /// A network for `world`'s observations and actions with hidden layers of widths `hidden`
-    /// (`learner.hidden`, or `collect.dqn_hidden` for the online DQN agent).
+    /// (`learner.hidden`, or `collect.dqn.hidden` for the online DQN agent).
     pub fn for_world(world: &WorldConfig, hidden: &[usize]) -> Self {
         Self::new(world.observation_len(), world.action_count(), hidden)
     }

@@ -4,9 +4,10 @@
 //! gradient steps (0 = one pass, ceil(N / batch)), each on a minibatch drawn from the N shots by a
 //! seeded shuffle, and a hard target-network update every `learner.target_update_every` gradient
 //! steps. A guard that reads only the offline data (`learner.value_guard`, [`ValueGuard`]) stops
-//! training once Q drifts past the value scale the data supports. After every epoch the greedy policy is evaluated through [`EvaluatePolicy`] (the world
-//! lives in `uavmeta-actors`, which implements it) and one row is written: to a table on stderr,
-//! to `train.csv` in the output directory, and to the returned list.
+//! training once Q drifts past the value scale the data supports. After every epoch the greedy
+//! policy is evaluated through [`EvaluatePolicy`] (the world lives in `uavmeta-actors`, which
+//! implements it) and one row is written: to a table on stderr, to `train.csv` in the output
+//! directory, and to the returned list.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -16,14 +17,15 @@ use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use tch::Tensor;
-use uavmeta_proto::config::{Config, LearnerConfig, Loss};
+use uavmeta_proto::config::{Config, LearnerConfig};
+use uavmeta_proto::method::Algo;
 use uavmeta_proto::stats::PolicyMetrics;
 
 use crate::batch::Batch;
 use crate::checkpoint::{self, CheckpointError};
-use crate::cql::{conservative_term, CqlLoss};
+use crate::algorithm::{self, OfflineAlgorithm, Terms};
+use crate::cql::conservative_term;
 use crate::dqn::{q_taken, TdConfig};
-use crate::fqe::Selection;
 use crate::optim::FusedAdam;
 use crate::progress::{progress_bar, CsvError, CsvLog, OnStep};
 use crate::qnet::QNetwork;
@@ -34,13 +36,6 @@ use crate::qnet::QNetwork;
 /// after it, so an evaluator may count epochs or checkpoint what it is given (the launch's does).
 pub trait EvaluatePolicy {
     fn evaluate(&mut self, q: &QNetwork) -> PolicyMetrics;
-
-    /// Scores a network that is not an epoch's published one (the selection's candidates,
-    /// `select.csv`) with no other effect: not an epoch, nothing saved or announced. `None`
-    /// where that is not possible; the default.
-    fn measure(&mut self, _q: &QNetwork) -> Option<PolicyMetrics> {
-        None
-    }
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -55,19 +50,11 @@ pub enum TrainError {
     Csv(#[from] CsvError),
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
-    #[error("a population of learners needs at least one member")]
-    EmptyPopulation,
-    #[error("population member {member}: {got}; expected {expected}: a population's members share one shape (group them by it)")]
-    PopulationShape {
-        member: usize,
-        got: String,
-        expected: String,
-    },
 }
 
 /// One run's settings beyond the config's `[learner]` section.
 pub struct TrainOptions<'a> {
-    pub algorithm: Loss,
+    pub algorithm: Algo,
     /// The run's config: `[learner]` drives training, the whole is saved beside checkpoints.
     pub config: &'a Config,
     /// Seed of the minibatch order.
@@ -101,7 +88,7 @@ pub struct EpochRow {
     pub seconds: f64,
 }
 
-pub(crate) const CSV_HEADER: &str = "epoch,steps,td_loss,conservative_loss,mean_q,return,return_ci95,aoi,aoi_ci95,power_mw,power_mw_ci95,outages,outages_ci95,episodes,seconds";
+const CSV_HEADER: &str = "epoch,steps,td_loss,conservative_loss,mean_q,return,return_ci95,aoi,aoi_ci95,power_mw,power_mw_ci95,outages,outages_ci95,episodes,seconds";
 
 impl EpochRow {
     fn csv(&self) -> String {
@@ -173,7 +160,7 @@ pub struct StepFigures {
 /// the data, a hard target update every `learner.target_update_every` steps. [`train`] drives
 /// it epoch by epoch; multi-task pretraining drives it on the union of tasks' shots.
 pub struct OfflineTrainer {
-    algorithm: Loss,
+    algorithm: &'static dyn OfflineAlgorithm,
     alpha: f64,
     td: TdConfig,
     target_update_every: usize,
@@ -182,16 +169,14 @@ pub struct OfflineTrainer {
     order: MinibatchOrder,
     steps: usize,
     on_step: OnStep,
-    /// `learner.init_penalty` and the init's weights, when the run is held near its init.
-    anchor: Option<(f64, Vec<Tensor>)>,
 }
 
 impl OfflineTrainer {
     /// A trainer of `q` on `rows` transitions with `config`'s `[learner]` settings.
-    pub fn new(q: &QNetwork, rows: usize, algorithm: Loss, config: &Config, seed: u64) -> Self {
+    pub fn new(q: &QNetwork, rows: usize, algorithm: Algo, config: &Config, seed: u64) -> Self {
         let cfg = &config.learner;
         Self {
-            algorithm,
+            algorithm: algorithm::of(algorithm),
             alpha: cfg.alpha,
             td: TdConfig::from(cfg),
             target_update_every: cfg.target_update_every,
@@ -200,19 +185,7 @@ impl OfflineTrainer {
             order: MinibatchOrder::new(rows, cfg.batch.min(rows), seed),
             steps: 0,
             on_step: OnStep::default(),
-            anchor: None,
         }
-    }
-
-    /// The trainer with `beta / 2 * ||w - w_init||^2` added to its loss, `w_init` = `q`'s
-    /// weights now (`learner.init_penalty`; L2-SP, Li, Grandvalet & Davoine 2018): where the
-    /// shots are silent, the fine-tuned network stays near its init. 0 adds nothing.
-    pub fn with_init_penalty(self, q: &QNetwork, beta: f64) -> Self {
-        let anchor = (beta > 0.0).then(|| {
-            let init = q.parameters().iter().map(|p| p.detach().copy()).collect();
-            (beta, init)
-        });
-        Self { anchor, ..self }
     }
 
     /// The trainer with `on_step` called at every gradient step.
@@ -220,7 +193,7 @@ impl OfflineTrainer {
         Self { on_step, ..self }
     }
 
-    /// ALGO: one Adam step on eq. 8 (CQL) or eq. 7 (DQN) over the next minibatch of `data`.
+    /// ALGO: one Adam step on the algorithm's loss over the next minibatch of `data`.
     pub fn step(&mut self, q: &mut QNetwork, data: &Batch) -> StepFigures {
         self.on_step.step();
         let mb = data.select(&self.order.next_indices());
@@ -230,21 +203,18 @@ impl OfflineTrainer {
             .td
             .td_errors(&q_all, &mb, |s| self.target.forward(s), |s| q.forward(s))
             .mean(None); // eq. 7
-        let (loss, conservative) = match self.algorithm {
-            Loss::Cql => {
-                let l = CqlLoss::from_td(&q_all, td_loss.shallow_clone(), &mb, self.alpha); // eq. 8
-                (l.total, l.conservative)
-            }
-            Loss::Dqn => (
-                td_loss.shallow_clone(),
-                tch::no_grad(|| conservative_term(&q_all, &mb)),
-            ),
-        };
-        let loss = match &self.anchor {
-            Some((beta, init)) => loss + init_distance(q, init) * (beta / 2.0),
-            None => loss,
-        };
+        let mean = |rows: Tensor| rows.mean(None);
+        let loss = self.algorithm.loss(&Terms {
+            q: &q_all,
+            batch: &mb,
+            td: &td_loss,
+            mean: &mean,
+            alpha: self.alpha,
+        });
         self.opt.backward_step(&loss);
+        // Eq. 8's term, before alpha, for every algorithm: how far unseen actions drift above
+        // the data's.
+        let conservative = tch::no_grad(|| conservative_term(&q_all, &mb));
         self.steps += 1;
         if self.steps.is_multiple_of(self.target_update_every) {
             self.target.copy_from(q);
@@ -286,16 +256,6 @@ impl OfflineTrainer {
     }
 }
 
-/// `||w - w_init||^2` summed over every parameter, with `q`'s graph.
-fn init_distance(q: &QNetwork, init: &[Tensor]) -> Tensor {
-    q.parameters()
-        .iter()
-        .zip(init)
-        .map(|(w, w_init)| (w - w_init).square().sum(None))
-        .reduce(|a, b| a + b)
-        .expect("a network has parameters")
-}
-
 /// Trains `q` in place on `data` (every transition of the N shots) and returns one row per epoch.
 pub fn train(
     q: &mut QNetwork,
@@ -306,8 +266,7 @@ pub fn train(
     let cfg = &opts.config.learner;
     let steps_per_epoch = steps_per_epoch(cfg, data.len());
     let mut trainer = OfflineTrainer::new(q, data.len(), opts.algorithm, opts.config, opts.seed)
-        .with_on_step(opts.on_step.clone())
-        .with_init_penalty(q, cfg.init_penalty);
+        .with_on_step(opts.on_step.clone());
 
     let mut csv = match opts.out_dir {
         Some(dir) => Some(CsvLog::create(&dir.join("train.csv"), CSV_HEADER)?),
@@ -324,10 +283,10 @@ pub fn train(
 
     let started = Instant::now();
     let mut rows: Vec<EpochRow> = Vec::with_capacity(cfg.epochs);
-    let guard = ValueGuard::new(cfg, q, data);
+    let guard = ValueGuard::new(cfg, q, data)
+        .filter(|_| algorithm::of(opts.algorithm).learns_values());
     let mut last_good = guard.as_ref().map(|_| q.duplicate());
     let mut average = Average::new(cfg);
-    let mut selection = Selection::new(cfg, q, data, opts.seed, opts.out_dir, evaluator)?;
     let mut stopped = false;
     for epoch in 1..=cfg.epochs {
         if let (true, Some(last)) = (stopped, rows.last()) {
@@ -356,15 +315,7 @@ pub fn train(
         if !stopped {
             average.update(q);
         }
-        if let Some(selection) = &mut selection {
-            selection.after_epoch(epoch, average.published(q), data, cfg, evaluator)?;
-        }
-        // What the run would publish if it ended here: the selection's choice, else the
-        // (averaged) network.
-        let published = match &selection {
-            Some(selection) => selection.published(),
-            None => average.published(q),
-        };
+        let published = average.published(q);
         let row = EpochRow {
             epoch,
             steps: trainer.steps(),
@@ -378,13 +329,7 @@ pub fn train(
         rows.push(row);
     }
     bar.finish_and_clear();
-    match selection {
-        Some(selection) => {
-            let epoch = selection.publish_into(q);
-            tracing::info!(epoch, "fitted Q evaluation kept the network of this epoch");
-        }
-        None => average.publish_into(q),
-    }
+    average.publish_into(q);
     if let Some(dir) = opts.out_dir {
         checkpoint::save(
             &dir.join("final"),
@@ -398,7 +343,7 @@ pub fn train(
 }
 
 /// Shows and logs one epoch's row.
-pub(crate) fn finish_epoch(
+fn finish_epoch(
     row: &EpochRow,
     progress: bool,
     bar: &ProgressBar,
@@ -422,15 +367,15 @@ pub(crate) fn finish_epoch(
 /// `value_guard * |V_data|`, Q is drifting beyond any value the data supports (the late collapse
 /// of a long CQL run), so training stops and the previous epoch's network is kept. A stop shows
 /// in `train.csv` as `steps` no longer growing.
-pub(crate) struct ValueGuard {
-    pub(crate) v_data: f64,
+struct ValueGuard {
+    v_data: f64,
     /// +1 when Q has to rise to reach `V_data`, -1 when it has to fall.
     direction: f64,
     margin: f64,
 }
 
 impl ValueGuard {
-    pub(crate) fn new(cfg: &LearnerConfig, q: &QNetwork, data: &Batch) -> Option<Self> {
+    fn new(cfg: &LearnerConfig, q: &QNetwork, data: &Batch) -> Option<Self> {
         if cfg.value_guard == 0.0 || cfg.gamma >= 1.0 {
             return None;
         }
@@ -447,7 +392,7 @@ impl ValueGuard {
         tch::no_grad(|| q_taken(&q.forward(&data.obs), data).mean(None)).double_value(&[])
     }
 
-    pub(crate) fn tripped(&self, q: &QNetwork, data: &Batch) -> bool {
+    fn tripped(&self, q: &QNetwork, data: &Batch) -> bool {
         self.direction * (Self::mean_q(q, data) - self.v_data) > self.margin
     }
 
@@ -467,7 +412,7 @@ impl ValueGuard {
 /// The network a run publishes (`learner.average_decay`): the trained Q itself, or its
 /// exponential moving average over the epochs, bias-corrected as Adam's moments are, so the init
 /// has no weight in it: after t epochs, sum_k decay^(t-k) Q_k / sum_k decay^(t-k), k = 1..t.
-pub(crate) struct Average {
+struct Average {
     decay: f64,
     /// The average, made at the first epoch averaged; `None` before it and when not averaging.
     average: Option<QNetwork>,
@@ -476,7 +421,7 @@ pub(crate) struct Average {
 }
 
 impl Average {
-    pub(crate) fn new(cfg: &LearnerConfig) -> Self {
+    fn new(cfg: &LearnerConfig) -> Self {
         Self {
             decay: cfg.average_decay,
             average: None,
@@ -486,7 +431,7 @@ impl Average {
 
     /// After an epoch the value guard let through: Q joins the average with the weight
     /// (1 - decay) / (1 - decay^t) (1 at the first epoch, so the init has no weight).
-    pub(crate) fn update(&mut self, q: &QNetwork) {
+    fn update(&mut self, q: &QNetwork) {
         if self.decay == 0.0 {
             return;
         }
@@ -499,12 +444,12 @@ impl Average {
     }
 
     /// The network to evaluate and keep: the average once there is one, else `q`.
-    pub(crate) fn published<'a>(&'a self, q: &'a QNetwork) -> &'a QNetwork {
+    fn published<'a>(&'a self, q: &'a QNetwork) -> &'a QNetwork {
         self.average.as_ref().unwrap_or(q)
     }
 
     /// At the end: `q` becomes the published network.
-    pub(crate) fn publish_into(&self, q: &mut QNetwork) {
+    fn publish_into(&self, q: &mut QNetwork) {
         if let Some(average) = &self.average {
             q.copy_from(average);
         }
@@ -522,7 +467,7 @@ pub fn steps_per_epoch(cfg: &LearnerConfig, rows: usize) -> usize {
 
 /// Minibatch indices: consecutive slices of a seeded permutation of the N rows, reshuffled each
 /// time it runs out, so every row is seen once per pass whatever the steps per epoch.
-pub(crate) struct MinibatchOrder {
+struct MinibatchOrder {
     perm: Vec<i64>,
     pos: usize,
     batch: usize,
@@ -530,7 +475,7 @@ pub(crate) struct MinibatchOrder {
 }
 
 impl MinibatchOrder {
-    pub(crate) fn new(n: usize, batch: usize, seed: u64) -> Self {
+    fn new(n: usize, batch: usize, seed: u64) -> Self {
         let mut order = Self {
             perm: (0..n as i64).collect(),
             pos: n,
@@ -549,7 +494,7 @@ impl MinibatchOrder {
     }
 
     /// [batch] i64 row indices.
-    pub(crate) fn next_indices(&mut self) -> Tensor {
+    fn next_indices(&mut self) -> Tensor {
         let index = Tensor::from_slice(&self.perm[self.pos..self.pos + self.batch]);
         self.pos += self.batch;
         self.reshuffle_if_spent();

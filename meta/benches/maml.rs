@@ -52,7 +52,8 @@ fn vm_hwm_kib() -> u64 {
         .expect("a VmHWM line in /proc/self/status")
 }
 
-/// One setting, in this process (`threads` = 0 keeps libtorch's default): prints `seconds_per_meta_epoch peak_kib_before peak_kib_after`.
+/// One setting, in this process (`threads` = 0 keeps libtorch's default): prints
+/// `seconds_per_meta_epoch peak_kib_before peak_kib_after`.
 fn child(inner_steps: usize, first_order: bool, threads: i32) {
     if threads > 0 {
         tch::set_num_threads(threads);
@@ -60,8 +61,8 @@ fn child(inner_steps: usize, first_order: bool, threads: i32) {
     let mut config = Config::default();
     config.meta.inner_steps = inner_steps;
     config.meta.first_order = first_order;
-    // One outer step per timed call (Algorithm 4's meta-epoch); SPEC's meta-epoch, a pass over
-    // these 250 support shots per task, is four of them.
+    // One outer step per timed call (Algorithm 4's meta-epoch); docs/MODEL.md's meta-epoch, a pass
+    // over these 250 support shots per task, is four of them.
     config.meta.outer_steps_per_meta_epoch = 1;
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let tasks: Vec<MetaTask> = (0..TASKS)

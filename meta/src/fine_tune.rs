@@ -1,11 +1,12 @@
-//! Meta-test (`uavmeta meta-test`), SPEC section 5: from a meta-learned `w0` checkpoint, fine-tune
-//! on N shots of an unseen task for E epochs, evaluating the greedy policy after every epoch.
+//! Meta-test (`uavmeta meta-test`), docs/MODEL.md section 5: from a meta-learned `w0` checkpoint,
+//! fine-tune on N shots of an unseen task for E epochs, evaluating the greedy policy after every
+//! epoch.
 //!
 //! Fine-tuning is the learner's offline training ([`uavmeta_learner::train::train`]) started from
 //! `w0` instead of a random init, so it has the same optimiser settings, target-network schedule
 //! and `train.csv` columns as `uavmeta train`, which is what makes the methods comparable. The
-//! loss follows the checkpoint: a `cql-maml` init is fine-tuned with CQL (eq. 8), a `dqn-maml`
-//! init with DQN (eq. 7).
+//! algorithm follows the checkpoint: a `cql-maml` init is fine-tuned with CQL (eq. 8), a
+//! `dqn-maml` init with DQN (eq. 7).
 
 use std::path::Path;
 
@@ -15,9 +16,8 @@ use uavmeta_learner::checkpoint;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::QNetwork;
 use uavmeta_learner::train::{train, EpochRow, EvaluatePolicy, TrainOptions};
-use uavmeta_learner::train_population::{train_population, Member, PopulationOptions, Trained};
-use uavmeta_proto::config::{Config, Loss, TaskConfig};
-use uavmeta_proto::method::Method;
+use uavmeta_proto::config::{Config, TaskConfig};
+use uavmeta_proto::method::{Algo, Method, Start};
 
 use crate::MetaError;
 
@@ -56,13 +56,12 @@ pub struct MetaTestOptions<'a> {
     pub shots: usize,
 }
 
-/// The loss that fine-tunes an init written by meta-train or by multi-task pretraining: that of
-/// the method its checkpoint names.
-pub fn fine_tune_algorithm(init: &Path, algorithm: &str) -> Result<Loss, MetaError> {
-    Method::ALL
-        .into_iter()
-        .find(|m| m.init().is_some() && m.name() == algorithm)
-        .and_then(Method::loss)
+/// The algorithm that fine-tunes an init written by meta-train or by multi-task pretraining:
+/// that of the method its checkpoint names (`cql-maml`, `cql-pretrain`, ..).
+pub fn fine_tune_algorithm(init: &Path, algorithm: &str) -> Result<Algo, MetaError> {
+    Method::from_name(algorithm)
+        .filter(|m| matches!(m.start(), Some(Start::Maml | Start::Pretrain)))
+        .and_then(Method::algo)
         .ok_or_else(|| MetaError::NotMetaTrained {
             path: init.to_path_buf(),
             algorithm: algorithm.to_string(),
@@ -75,7 +74,7 @@ pub fn fine_tune_algorithm(init: &Path, algorithm: &str) -> Result<Loss, MetaErr
 pub fn fine_tune(
     q: &mut QNetwork,
     shots: &Batch,
-    algorithm: Loss,
+    algorithm: Algo,
     run: &FineTune,
     evaluator: &mut dyn EvaluatePolicy,
 ) -> Result<Vec<EpochRow>, MetaError> {
@@ -89,25 +88,6 @@ pub fn fine_tune(
         on_step: run.on_step.clone(),
     };
     Ok(train(q, shots, &train_opts, evaluator)?)
-}
-
-/// [`fine_tune`] of several runs of one shape (loss, shots, epochs) as one population on
-/// `device` (`learner.population` of them at a time, issue #33): each member is the run
-/// `fine_tune` would make of its init, up to float rounding (bit for bit when alone).
-pub fn fine_tune_population(
-    members: Vec<Member>,
-    algorithm: Loss,
-    run: &FineTune,
-    device: tch::Device,
-) -> Result<Vec<Trained>, MetaError> {
-    let config = run.training_config();
-    let opts = PopulationOptions {
-        algorithm,
-        config: &config,
-        device,
-        on_step: run.on_step.clone(),
-    };
-    Ok(train_population(members, &opts)?)
 }
 
 /// Loads `w0` from `opts.init` and fine-tunes it, scored on the task's true environment; returns

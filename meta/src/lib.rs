@@ -5,19 +5,17 @@
 //! - [`maml`]: Algorithm 4 (eqs. 14-16) on [`uavmeta_learner::qnet::QNetwork`] fast weights, with
 //!   the CQL loss (CQL-MAML) or the DQN loss (DQN-MAML), second or first order; its module doc
 //!   says how the target network is handled and why.
-//! - [`maml_population`]: N meta-learners of one shape (several seeds of one init) in lockstep,
-//!   each member its separate [`maml::Maml`] up to float rounding.
 //! - [`meta_train`]: meta-training from one dataset file per meta-train task
 //!   (`<task-name>.uavds`), with a per-meta-epoch CSV, adapted-policy returns and `w0` checkpoints.
 //! - [`pretrain`]: CQL-pretrain, one CQL network on the union of the meta-train tasks' shots,
 //!   the multi-task baseline that shows what MAML adds.
-//! - [`fine_tune`]: meta-test, fine-tuning a `w0` checkpoint on N shots of an unseen task, through the
-//!   learner's offline training so every method shares its settings and CSV columns.
+//! - [`fine_tune`]: meta-test, fine-tuning a `w0` checkpoint on N shots of an unseen task, through
+//!   the learner's offline training so every method shares its settings and CSV columns.
 //!
 //! It consumes datasets (`uavmeta_proto::dataset`), the Q-network, losses, training loop and
-//! checkpoints of `uavmeta-learner`, and the world and greedy-policy evaluator of
-//! `uavmeta-actors`; its results go to CSV files and checkpoints in an output directory. A caller
-//! hears every training step through [`uavmeta_learner::progress::OnStep`].
+//! checkpoints of `uavmeta-learner`, the world of `uavmeta-world` and the greedy-policy evaluator
+//! of `uavmeta-actors`; its results go to CSV files and checkpoints in an output directory. A
+//! caller hears every training step through [`uavmeta_learner::progress::OnStep`].
 //!
 //! ```
 //! use tch::Tensor;
@@ -34,7 +32,7 @@
 //!     next_obs: Tensor::from_slice(&[0.2f32, 0.2, 0.1, 0.5, 0.4, 0.6]).view([2, 3]),
 //! };
 //! let tasks = vec![MetaTask { name: "a".into(), support: rows(1.0), query: rows(0.5) }];
-//! // CQL-MAML with the SPEC defaults: one second-order inner step, eta_inner = 1e-2.
+//! // CQL-MAML with the defaults: one second-order inner step, eta_inner = 1e-2.
 //! let settings = MamlConfig::from_config(&Config::default());
 //! let mut maml = Maml::new(QNetworkConfig::new(3, 5, &[8]).init(1), settings, 0).unwrap();
 //! let epoch = maml.meta_epoch(&tasks).unwrap();
@@ -47,7 +45,6 @@
 
 pub mod fine_tune;
 pub mod maml;
-pub mod maml_population;
 pub mod meta_train;
 pub mod pretrain;
 
@@ -65,12 +62,6 @@ use uavmeta_proto::dataset::DatasetError;
 pub enum MetaError {
     #[error("meta-training needs at least one task")]
     NoTasks,
-    #[error("meta-training population member {member}: {got}; expected {expected}: a population's members share one shape (group them by it)")]
-    PopulationShape {
-        member: usize,
-        got: String,
-        expected: String,
-    },
     #[error("{origin}: no task has role = \"meta-train\"; meta-training needs at least one")]
     NoMetaTrainTasks { origin: String },
     // The source is not in the message: `{:#}` prints the cause chain after it.

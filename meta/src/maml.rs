@@ -6,7 +6,7 @@
 //!     repeat outer_steps times                   (meta.outer_steps_per_meta_epoch, 0 = one pass)
 //!         sample tasks tau_1..tau_T                              (meta.tasks_per_meta_epoch, 0 = all)
 //!         for each task tau_i:
-//!             the next k shots of its shuffled support set       (meta.shots)
+//!             the next k shots of its shuffled support set       (meta.support_shots)
 //!             w_i = w0;  repeat inner_steps:  w_i <- w_i - eta_inner * grad L(w_i; shots)  (eq. 14)
 //!                                 (Meta-SGD: eta_inner is a learned vector, one step per weight)
 //!         L_meta = sum_i L(w_i; query shots of tau_i)                                       (eq. 15)
@@ -15,10 +15,10 @@
 //!
 //! Algorithm 4 writes one outer update per meta-epoch. Read literally, the paper's 150
 //! meta-epochs are 150 Adam steps, which leave `w0` next to its random init (Q-values two orders
-//! of magnitude short of the returns' scale); SPEC section 5 reads a meta-epoch as an epoch is
-//! read everywhere else, one pass over the data: with 250 support shots per task and k = 64, four
-//! outer steps, after which every support shot has been adapted to once. `outer_steps = 1` is the
-//! literal reading.
+//! of magnitude short of the returns' scale); docs/MODEL.md section 5 reads a meta-epoch as an
+//! epoch is read everywhere else, one pass over the data: with 250 support shots per task and k =
+//! 64, four outer steps, after which every support shot has been adapted to once. `outer_steps = 1`
+//! is the literal reading.
 //!
 //! With `meta.learn_inner_lr` (Meta-SGD, Li et al. 2017) eq. 14's step size is learned too: one
 //! per weight, initialised to `eta_inner`, updated by the same outer Adam as `w0`. One shared
@@ -44,12 +44,12 @@
 //! same `Qhat` serves the inner loss (eq. 14) and the query loss (eq. 15) of every task of the
 //! meta-epoch. Three reasons:
 //!
-//! 1. The inner loop rehearses meta-test. Fine-tuning (SPEC section 5) starts with its target
-//!    network equal to the initial weights `w0` and keeps it for `learner.target_update_every`
-//!    gradient steps, far more than MAML's 1-5 inner steps. With `Qhat = w0` held constant through
-//!    the inner steps, `w_i` is exactly what the first steps of fine-tuning would produce, so `w0`
-//!    is trained for the adaptation it will actually get. Using the fast weights as their own
-//!    target would rehearse a fine-tuning that does not exist.
+//! 1. The inner loop rehearses meta-test. Fine-tuning (docs/MODEL.md section 5) starts with its
+//!    target network equal to the initial weights `w0` and keeps it for
+//!    `learner.target_update_every` gradient steps, far more than MAML's 1-5 inner steps. With
+//!    `Qhat = w0` held constant through the inner steps, `w_i` is exactly what the first steps of
+//!    fine-tuning would produce, so `w0` is trained for the adaptation it will actually get. Using
+//!    the fast weights as their own target would rehearse a fine-tuning that does not exist.
 //! 2. Eq. 16 stays a true gradient step. Between refreshes, the regression targets
 //!    `r + gamma * max_a' Qhat(s', a')` are constants, so the meta-loss is an ordinary function of
 //!    `w0` and the meta-gradient computed here is its exact derivative (`meta/tests/maml.rs`
@@ -82,12 +82,12 @@ use serde::{Deserialize, Serialize};
 use tch::{Kind, Tensor};
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
-use uavmeta_learner::cql::{conservative_rows, eq8};
+use uavmeta_learner::algorithm::{self, Terms};
 use uavmeta_learner::dqn::TdConfig;
 use uavmeta_learner::optim::FusedAdam;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::QNetwork;
-use uavmeta_proto::config::{Config, Loss, MetaConfig};
+use uavmeta_proto::config::{Config, MetaConfig};
 
 use crate::MetaError;
 
@@ -113,28 +113,21 @@ impl MamlConfig {
         }
     }
 
-    /// Eq. 16's step size in meta-epoch `epoch` (0-based): linear from `eta_outer` to
-    /// `eta_outer * eta_outer_final_fraction` at the last of `meta_epochs`.
-    pub fn eta_outer_at(&self, epoch: usize) -> f64 {
-        let last = self.meta.meta_epochs.saturating_sub(1).max(1);
-        let progress = (epoch as f64 / last as f64).min(1.0);
-        self.meta.eta_outer * (1.0 - (1.0 - self.meta.eta_outer_final_fraction) * progress)
-    }
-
     /// Outer steps of one meta-epoch over `tasks`.
     pub fn outer_steps(&self, tasks: &[MetaTask]) -> usize {
         match self.meta.outer_steps_per_meta_epoch {
             0 => tasks
                 .iter()
-                .map(|t| t.support.len().div_ceil(self.meta.shots))
+                .map(|t| t.support.len().div_ceil(self.meta.support_shots))
                 .max()
                 .unwrap_or(1),
             n => n,
         }
     }
 
-    /// `L(w; batch)`: eq. 8 (CQL) or eq. 7 (DQN) for the network with weights `params`,
-    /// bootstrapping from the target network `target`, which no gradient reaches. Scalar.
+    /// `L(w; batch)`: the loss of `meta.inner_loss` (eq. 8 for CQL-MAML) for the network with
+    /// weights `params`, bootstrapping from the target network `target`, which no gradient reaches.
+    /// Scalar.
     pub fn task_loss(&self, params: &[Tensor], target: &[Tensor], batch: &Batch) -> Tensor {
         self.task_losses(params, target, &StackedShots::stack(&[batch]))
             .squeeze_dim(0)
@@ -149,8 +142,9 @@ impl MamlConfig {
         shots: &StackedShots,
     ) -> Tensor {
         let batch = &shots.batch;
-        let q = QNetwork::forward_with(params, &batch.obs); // Q_w(s, .) [T, B, A], graph back to params
-                                                            // Each task's mean over its own rows; padding rows weigh 0.
+        // Q_w(s, .) [T, B, A], its graph back to params.
+        let q = QNetwork::forward_with(params, &batch.obs);
+        // Each task's mean over its own rows; padding rows weigh 0.
         let mean = |rows: Tensor| (rows * &shots.weight).sum_dim_intlist(-1, false, None::<Kind>);
         let td = mean(self.td.td_errors(
             &q,
@@ -158,12 +152,13 @@ impl MamlConfig {
             |s| QNetwork::forward_with(target, s), // Qhat(s', .) [T, B, A]
             |s| QNetwork::forward_with(params, s),
         ));
-        match self.meta.inner_loss {
-            // eq. 7: mean (r + gamma max_a' Qhat(s', a') - Q(s, a))^2
-            Loss::Dqn => td,
-            // eq. 8: 0.5 * eq. 7 + alpha * mean(logsumexp_a Q(s, a) - Q(s, a_data))
-            Loss::Cql => eq8(&td, &mean(conservative_rows(&q, batch)), self.meta.alpha),
-        }
+        algorithm::of(self.meta.inner_loss).loss(&Terms {
+            q: &q,
+            batch,
+            td: &td,
+            mean: &mean,
+            alpha: self.meta.alpha,
+        })
     }
 
     /// Eq. 14, `inner_steps` times: `w <- w - eta_inner * grad_w L(w; support)` from `w0`.
@@ -195,7 +190,7 @@ impl MamlConfig {
         support: &StackedShots,
     ) -> Vec<Tensor> {
         let tasks = support.tasks();
-        let w = w0
+        let mut w: Vec<Tensor> = w0
             .iter()
             .map(|p| {
                 let mut stacked = vec![tasks];
@@ -203,17 +198,6 @@ impl MamlConfig {
                 p.unsqueeze(0).expand(stacked, false)
             })
             .collect();
-        self.adapt_slots(w, step, target, support)
-    }
-
-    /// Eq. 14's steps from `w`, already one network per task of `support` ([T, ..]).
-    fn adapt_slots(
-        &self,
-        mut w: Vec<Tensor>,
-        step: StepSize,
-        target: &[Tensor],
-        support: &StackedShots,
-    ) -> Vec<Tensor> {
         let second_order = !self.meta.first_order;
         for _ in 0..self.meta.inner_steps {
             let loss = self.task_losses(&w, target, support).sum(None);
@@ -239,8 +223,9 @@ impl MamlConfig {
 
     /// Eq. 15 and its gradient: adapts to each task's support shots, evaluates `L(w_i; query)`,
     /// and accumulates `d L_meta / d w0` into the `.grad` of `w0` (which must be leaves that
-    /// require grad), and Meta-SGD's `d L_meta / d lr` into the step sizes'. All tasks go through one stacked computation (batched matrix products
-    /// instead of one small product per task). Returns each task's query loss.
+    /// require grad), and Meta-SGD's `d L_meta / d lr` into the step sizes'. All tasks go through
+    /// one stacked computation (batched matrix products instead of one small product per task).
+    /// Returns each task's query loss.
     pub fn backward_meta_loss(
         &self,
         w0: &[Tensor],
@@ -274,71 +259,6 @@ impl MamlConfig {
             return meta_loss;
         }
         meta_loss + self.task_losses(w0, target, query).sum(None) * beta
-    }
-
-    /// [`backward_meta_loss`](Self::backward_meta_loss) for a population of meta-learners:
-    /// member m's `w0` is `w0[m]` (stacked leaves, [N, ..], as are Meta-SGD's step sizes and the
-    /// target networks) and its tasks are `tasks[m]`, the same number for every member. The N x T
-    /// (member, task) pairs go through one stacked computation; member m's leaves receive the
-    /// gradient of its own meta-loss only, as no pair reads another member's weights. Returns
-    /// each member's query losses.
-    ///
-    /// A population of one runs the single meta-learner's computation on views of its leaves,
-    /// so it is that meta-learner bit for bit.
-    pub fn backward_meta_loss_population(
-        &self,
-        w0: &[Tensor],
-        step: StepSize,
-        target: &[Tensor],
-        tasks: &[Vec<TaskShots>],
-    ) -> Vec<Vec<f64>> {
-        let single = |ts: &[Tensor]| ts.iter().map(|t| t.squeeze_dim(0)).collect::<Vec<_>>();
-        if tasks.len() == 1 {
-            let lr = match step {
-                StepSize::PerWeight(lr) => Some(single(lr)),
-                StepSize::Shared => None,
-            };
-            let step = lr.as_deref().map_or(StepSize::Shared, StepSize::PerWeight);
-            return vec![self.backward_meta_loss(&single(w0), step, &single(target), &tasks[0])];
-        }
-        let (members, per_member) = (tasks.len() as i64, tasks[0].len() as i64);
-        // [N, ..] -> [N * T, ..]: member m's tensor at slots m*T .. (m+1)*T.
-        let slots = |ts: &[Tensor]| -> Vec<Tensor> {
-            ts.iter()
-                .map(|t| {
-                    let mut shape = vec![members, per_member];
-                    shape.extend(&t.size()[1..]);
-                    let mut flat = vec![members * per_member];
-                    flat.extend(&t.size()[1..]);
-                    t.unsqueeze(1).expand(shape, false).reshape(flat)
-                })
-                .collect()
-        };
-        let lr = match step {
-            StepSize::PerWeight(lr) => Some(slots(lr)),
-            StepSize::Shared => None,
-        };
-        let step = lr.as_deref().map_or(StepSize::Shared, StepSize::PerWeight);
-        let target = slots(target);
-        let pairs = |pick: fn(&TaskShots) -> &Batch| {
-            StackedShots::stack(&tasks.iter().flatten().map(pick).collect::<Vec<_>>())
-        };
-        let (w0, query) = (slots(w0), pairs(|t| &t.query));
-        let w = self.adapt_slots(
-            w0.iter().map(Tensor::shallow_clone).collect(),
-            step,
-            &target,
-            &pairs(|t| &t.support),
-        ); // eq. 14
-        let query_losses = self.task_losses(&w, &target, &query); // eq. 15's terms
-        self.with_w0_loss(query_losses.sum(None), &w0, &target, &query)
-            .backward();
-        let losses = Vec::<f64>::try_from(query_losses.detach().to_kind(Kind::Double))
-            .expect("an [N * T] loss tensor");
-        losses
-            .chunks(per_member as usize)
-            .map(<[f64]>::to_vec)
-            .collect()
     }
 }
 
@@ -479,7 +399,7 @@ fn sample_rows(batch: &Batch, amount: usize, rng: &mut ChaCha8Rng) -> Batch {
 /// One meta-learner's draws through one meta-epoch (every one from its own `rng`, in this
 /// order: the support passes, then at each outer step the tasks and their shots) and the losses
 /// they gave.
-pub(crate) struct EpochDraws {
+struct EpochDraws {
     passes: Vec<SupportPass>,
     loss_sums: Vec<(f64, usize)>,
     meta_loss: f64,
@@ -487,7 +407,7 @@ pub(crate) struct EpochDraws {
 }
 
 impl EpochDraws {
-    pub(crate) fn new(tasks: &[MetaTask], rng: &mut ChaCha8Rng) -> Self {
+    fn new(tasks: &[MetaTask], rng: &mut ChaCha8Rng) -> Self {
         Self {
             passes: (tasks.iter())
                 .map(|t| SupportPass::new(t.support.len(), rng))
@@ -500,7 +420,7 @@ impl EpochDraws {
 
     /// The next outer step's task indices (ascending; all of them when `tasks_per_meta_epoch`
     /// is 0), each with the next k support shots of its pass and fresh query shots.
-    pub(crate) fn next(
+    fn next(
         &mut self,
         meta: &MetaConfig,
         tasks: &[MetaTask],
@@ -515,7 +435,7 @@ impl EpochDraws {
         let shots = picked
             .iter()
             .map(|&i| TaskShots {
-                support: self.passes[i].take(&tasks[i].support, meta.shots, rng),
+                support: self.passes[i].take(&tasks[i].support, meta.support_shots, rng),
                 query: sample_rows(&tasks[i].query, meta.query_shots, rng),
             })
             .collect();
@@ -523,7 +443,7 @@ impl EpochDraws {
     }
 
     /// The query losses of the tasks `picked` at one outer step.
-    pub(crate) fn record(&mut self, picked: Vec<usize>, losses: Vec<f64>) {
+    fn record(&mut self, picked: Vec<usize>, losses: Vec<f64>) {
         self.meta_loss += losses.iter().sum::<f64>();
         self.steps += 1;
         for (i, loss) in picked.into_iter().zip(losses) {
@@ -533,7 +453,7 @@ impl EpochDraws {
     }
 
     /// The meta-epoch's figures, as meta-epoch `epoch` (counting from 1).
-    pub(crate) fn finish(self, epoch: usize) -> MetaEpoch {
+    fn finish(self, epoch: usize) -> MetaEpoch {
         MetaEpoch {
             epoch,
             outer_steps: self.steps,
@@ -563,23 +483,23 @@ pub struct MetaEpoch {
 /// The meta-learner: `w0`, Meta-SGD's step sizes, the target network and the outer Adam
 /// optimiser.
 pub struct Maml {
-    pub(crate) config: MamlConfig,
+    config: MamlConfig,
     /// The iterate eq. 16 updates.
-    pub(crate) w0: QNetwork,
-    /// The moving average of `w0` published as the init, when `w0_average_decay` > 0.
-    pub(crate) average: Option<QNetwork>,
+    w0: QNetwork,
+    /// The moving average of `w0` published as the init, when `average_decay` > 0.
+    average: Option<QNetwork>,
     /// Meta-SGD's per-weight step sizes (leaves that require grad), when `learn_inner_lr`.
-    pub(crate) inner_lr: Option<Vec<Tensor>>,
-    pub(crate) target: QNetwork,
-    pub(crate) optimizer: FusedAdam,
-    pub(crate) rng: ChaCha8Rng,
-    pub(crate) epochs_done: usize,
+    inner_lr: Option<Vec<Tensor>>,
+    target: QNetwork,
+    optimizer: FusedAdam,
+    rng: ChaCha8Rng,
+    epochs_done: usize,
     /// Called at every outer step.
-    pub(crate) on_step: OnStep,
+    on_step: OnStep,
 }
 
 /// What eq. 16 updates: `w0`'s parameters, then Meta-SGD's step sizes if learned.
-pub(crate) fn meta_parameters(weights: Vec<Tensor>, inner_lr: &Option<Vec<Tensor>>) -> Vec<Tensor> {
+fn meta_parameters(weights: Vec<Tensor>, inner_lr: &Option<Vec<Tensor>>) -> Vec<Tensor> {
     let mut params = weights;
     params.extend(inner_lr.iter().flatten().map(Tensor::shallow_clone));
     params
@@ -587,7 +507,7 @@ pub(crate) fn meta_parameters(weights: Vec<Tensor>, inner_lr: &Option<Vec<Tensor
 
 /// Meta-SGD's starting step sizes (`meta.eta_inner` in a leaf of each weight's shape, when
 /// `meta.learn_inner_lr`) and the outer Adam over `weights` and them (eq. 16).
-pub(crate) fn outer_optimizer(
+fn outer_optimizer(
     weights: Vec<Tensor>,
     config: &MamlConfig,
 ) -> (Option<Vec<Tensor>>, FusedAdam) {
@@ -622,7 +542,7 @@ impl Maml {
     pub fn new(w0: QNetwork, config: MamlConfig, seed: u64) -> Result<Self, MetaError> {
         let (inner_lr, optimizer) = outer_optimizer(w0.parameters(), &config);
         let target = w0.duplicate();
-        let average = (config.meta.w0_average_decay > 0.0).then(|| w0.duplicate());
+        let average = (config.meta.average_decay > 0.0).then(|| w0.duplicate());
         Ok(Self {
             config,
             w0,
@@ -710,7 +630,7 @@ impl Maml {
             let saved = take(format!("target.{i}"), p)?;
             tch::no_grad(|| t.copy_(&saved));
         }
-        let average = match config.meta.w0_average_decay > 0.0 {
+        let average = match config.meta.average_decay > 0.0 {
             true => {
                 let average = w0.duplicate();
                 for (i, (p, mut dst)) in params.iter().zip(w0.parameters()).enumerate() {
@@ -766,7 +686,7 @@ impl Maml {
     }
 
     /// The meta-learned initial weights: the moving average of the iterates when
-    /// `w0_average_decay` > 0, else the last iterate.
+    /// `average_decay` > 0, else the last iterate.
     pub fn w0(&self) -> &QNetwork {
         self.average.as_ref().unwrap_or(&self.w0)
     }
@@ -774,7 +694,7 @@ impl Maml {
     /// Polyak averaging: init <- decay * init + (1 - decay) * w0.
     fn update_average(&mut self) {
         if let Some(average) = &mut self.average {
-            average.average_toward(&self.w0, self.config.meta.w0_average_decay);
+            average.average_toward(&self.w0, self.config.meta.average_decay);
         }
     }
 
@@ -794,8 +714,6 @@ impl Maml {
         {
             self.target.copy_from(&self.w0); // Qhat <- w0, constant until the next refresh
         }
-        self.optimizer
-            .set_lr(self.config.eta_outer_at(self.epochs_done));
         let steps = self.config.outer_steps(tasks);
         let mut draws = EpochDraws::new(tasks, &mut self.rng);
         for _ in 0..steps {

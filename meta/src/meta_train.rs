@@ -16,9 +16,6 @@
 //!   started again with `resume` continues from its latest checkpoint exactly as an
 //!   uninterrupted run does.
 //!
-//! [`meta_train_population`] runs several such runs (one init's seeds) as one
-//! [`MamlPopulation`], each run's directory getting what `meta_train` would write there.
-//!
 //! The meta-learner process runs the same loop through [`meta_train_with`], with a hook that
 //! puts the checkpoints into its run directory and announces them.
 
@@ -27,19 +24,17 @@ use std::time::Instant;
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use tch::Device;
 use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::progress::{progress_bar, CsvLog, OnStep};
-use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
+use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_proto::config::{Config, MetaConfig, TaskConfig, TaskRole};
 use uavmeta_proto::dataset::{self, DatasetReader};
 use uavmeta_proto::method::Method;
 
 use crate::maml::{Maml, MamlConfig, MetaEpoch, MetaTask};
-use crate::maml_population::MamlPopulation;
 use crate::{create_dir, write_file, MetaError};
 
 /// One meta-training run.
@@ -220,92 +215,6 @@ pub fn meta_train_with<H: MetaTrainHook>(
     }))
 }
 
-/// Meta-trains the runs `runs` (configs alike but for the seed; each run its own datasets, output
-/// directory and seed) as one [`MamlPopulation`] on `device`, with the CLI's checkpoint files:
-/// each run's directory ends with what [`meta_train`] writes there, up to float rounding (bit for
-/// bit for a population of one). A population always starts from its members' inits
-/// (`resume` is not read) and calls the first run's `on_step` at every lockstep outer step.
-pub fn meta_train_population(
-    runs: &[MetaTrainOptions],
-    device: Device,
-) -> Result<Vec<MetaTrainResult>, MetaError> {
-    let first = runs.first().ok_or(MetaError::NoTasks)?;
-    let (config, meta) = (first.config, &first.config.meta);
-    let settings = MamlConfig::from_config(config);
-    for (member, run) in runs.iter().enumerate() {
-        let c = run.config;
-        if (MamlConfig::from_config(c), &c.learner.hidden, &c.world)
-            != (settings.clone(), &config.learner.hidden, &config.world)
-        {
-            return Err(MetaError::PopulationShape {
-                member,
-                got: format!(
-                    "{}: other [meta], [learner] TD options, hidden or [world]",
-                    c.origin
-                ),
-                expected: format!("those of member 0 ({})", config.origin),
-            });
-        }
-    }
-    let mut logs = runs
-        .iter()
-        .map(|run| {
-            let mut log = RunLog::open(run)?;
-            log.open_csv(0)?;
-            Ok(log)
-        })
-        .collect::<Result<Vec<_>, MetaError>>()?;
-    let w0s: Vec<QNetwork> = (runs.iter())
-        .map(|run| QNetworkConfig::for_world(&run.config.world, &run.config.learner.hidden))
-        .zip(runs)
-        .map(|(net, run)| net.init(run.seed))
-        .collect();
-    let seeds: Vec<u64> = runs.iter().map(|run| run.seed).collect();
-    let mut population =
-        MamlPopulation::new(&w0s, settings, &seeds, device).with_on_step(first.on_step.clone());
-    let bar = progress_bar(
-        first.progress,
-        meta.meta_epochs as u64,
-        "{bar:40} {pos}/{len} meta-epochs of a population {eta}",
-    );
-    let started = Instant::now();
-    let mut rows: Vec<Vec<MetaRow>> = runs.iter().map(|_| Vec::new()).collect();
-    for e in 1..=meta.meta_epochs {
-        let tasks: Vec<&[MetaTask]> = logs.iter().map(|log| log.meta_tasks.as_slice()).collect();
-        let epochs = population.meta_epoch(&tasks)?;
-        let unstack = is_checkpoint_epoch(meta, e) || is_evaluation_epoch(meta, e);
-        for (m, (epoch, log)) in epochs.into_iter().zip(&mut logs).enumerate() {
-            // Only evaluated and checkpointed meta-epochs need the member as a Maml of its own.
-            let (maml, checkpoint) = match unstack {
-                true => (Some(population.member(m)), is_checkpoint_epoch(meta, e)),
-                false => (None, false),
-            };
-            let files = CheckpointFiles {
-                out_dir: runs[m].out_dir,
-                meta_epochs: meta.meta_epochs,
-            };
-            let path = checkpoint.then(|| files.checkpoint_path(e));
-            let row = match &maml {
-                Some(maml) => log.after_epoch(maml, epoch, path.as_deref(), started)?,
-                None => log.log_row(epoch, None, started)?,
-            };
-            rows[m].push(row);
-        }
-        bar.inc(1);
-    }
-    bar.finish_and_clear();
-    Ok(logs
-        .into_iter()
-        .zip(rows)
-        .zip(runs)
-        .map(|((log, rows), run)| MetaTrainResult {
-            tasks: log.tasks,
-            rows,
-            w0: run.out_dir.join("w0"),
-        })
-        .collect())
-}
-
 /// One run's tasks, the evaluators of their environments and its `meta_train.csv`.
 struct RunLog<'a> {
     opts: &'a MetaTrainOptions<'a>,
@@ -371,7 +280,7 @@ impl<'a> RunLog<'a> {
         if let Some(path) = checkpoint {
             let algorithm = Method::maml(config.meta.inner_loss).name();
             maml.save_state(path)?;
-            checkpoint::save(path, maml.w0(), algorithm, e, config)?;
+            checkpoint::save(path, maml.w0(), &algorithm, e, config)?;
         }
         Ok(row)
     }
@@ -433,7 +342,7 @@ fn adapted_return(
     let total: f64 = (0..adaptations as u64)
         .map(|a| {
             let mut rng = ChaCha8Rng::seed_from_u64(stream ^ (a << 48));
-            let shots = task.sample(meta.shots, meta.query_shots, &mut rng);
+            let shots = task.sample(meta.support_shots, meta.query_shots, &mut rng);
             evaluator.evaluate(&maml.adapted(&shots.support)).ret.mean
         })
         .sum();

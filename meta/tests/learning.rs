@@ -5,13 +5,13 @@
 //!
 //! The meta-train datasets come from a cheap behaviour policy (the stalest heuristic with 10%
 //! random actions) rather than online DQN agents, so that the test takes seconds; what is
-//! checked is MAML's part: the pass-per-meta-epoch budget of SPEC section 5 moves `w0` from
-//! random to a policy of the data's quality.
+//! checked is MAML's part: the pass-per-meta-epoch budget of docs/MODEL.md section 5 moves `w0`
+//! from random to a policy of the data's quality.
 
 use uavmeta_actors::collect::Collector;
-use uavmeta_actors::policy::heuristics::{EpsilonPolicy, RandomPolicy};
+use uavmeta_world::heuristics::{EpsilonPolicy, RandomPolicy};
 use uavmeta_actors::policy::q_policy::Evaluator;
-use uavmeta_actors::rollout::evaluate;
+use uavmeta_world::rollout::evaluate;
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::EvaluatePolicy;
@@ -119,7 +119,7 @@ fn a_meta_trained_w0_beats_a_random_init_zero_shot_on_an_unseen_lambda() {
     );
 }
 
-/// With configs/default.toml's averaging of the meta-iterates (`meta.w0_average_decay`) and w0's
+/// With configs/default.toml's averaging of the meta-iterates (`meta.average_decay`) and w0's
 /// own loss in the meta-loss (`meta.w0_loss_weight`), w0's zero-shot return on the unseen
 /// lambda = 300, evaluated exactly over the 100 start cells after each of the last 30
 /// meta-epochs, varies by less than issue #30's 2% (max - min over mean). Measured here on an
@@ -130,7 +130,7 @@ fn w0_zero_shot_varies_by_under_2_percent_over_the_last_30_meta_epochs() {
     tch::set_num_threads(1);
     let config = default_config();
     assert!(
-        config.meta.w0_average_decay > 0.0 && config.meta.w0_loss_weight > 0.0,
+        config.meta.average_decay > 0.0 && config.meta.w0_loss_weight > 0.0,
         "the default config averages w0 and adds its own loss to the meta-loss"
     );
     let tasks = meta_tasks(&config);

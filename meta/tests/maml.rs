@@ -10,7 +10,8 @@ use uavmeta_learner::checkpoint;
 use uavmeta_learner::dqn::TdConfig;
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_meta::maml::{Maml, MamlConfig, MetaTask, StepSize, TaskShots};
-use uavmeta_proto::config::{Config, Loss, MetaConfig};
+use uavmeta_proto::config::{Config, MetaConfig};
+use uavmeta_proto::method::Algo;
 
 const OBS: usize = 3;
 const ACTIONS: usize = 5;
@@ -21,25 +22,24 @@ fn single_threaded() {
     tch::set_num_threads(1);
 }
 
-fn config(inner_loss: Loss, inner_steps: usize, first_order: bool) -> MamlConfig {
+fn config(inner_loss: Algo, inner_steps: usize, first_order: bool) -> MamlConfig {
     MamlConfig {
         meta: MetaConfig {
             inner_loss,
             alpha: 1.0,
             tasks_per_meta_epoch: 0,
-            shots: 8,
+            support_shots: 8,
             query_shots: 8,
             inner_steps,
             // Large enough that the second-order term is far above finite-difference noise.
             eta_inner: 0.3,
             eta_outer: 1e-2,
-            eta_outer_final_fraction: 1.0,
             meta_epochs: 1,
             first_order,
             learn_inner_lr: false,
             target_update_every: 1,
             outer_steps_per_meta_epoch: 1,
-            w0_average_decay: 0.0,
+            average_decay: 0.0,
             ..MetaConfig::default()
         },
         td: TdConfig::eq7(0.9),
@@ -181,7 +181,7 @@ fn second_order_meta_gradient_matches_finite_differences() {
     let tasks = shots(3, 16, Kind::Double, &mut rng);
     let w0 = leaves(2);
     let target = leaves(3);
-    for inner_loss in [Loss::Cql, Loss::Dqn] {
+    for inner_loss in [Algo::CQL, Algo::DQN] {
         for inner_steps in [1, 3] {
             let c = config(inner_loss, inner_steps, false);
             let analytic = meta_gradient(&c, &w0, &target, &tasks);
@@ -205,7 +205,7 @@ fn meta_sgd_gradients_of_w0_and_step_sizes_match_finite_differences() {
     let target = leaves(32);
     // A different step size for every weight, 0.1 to about 0.5.
     let lr: Vec<Tensor> = leaves(33).iter().map(|w| w.abs() * 0.5 + 0.1).collect();
-    for inner_loss in [Loss::Cql, Loss::Dqn] {
+    for inner_loss in [Algo::CQL, Algo::DQN] {
         let c = config(inner_loss, 2, false);
         let (w0_leaves, lr_leaves) = (fresh_leaves(&w0), fresh_leaves(&lr));
         c.backward_meta_loss(&w0_leaves, StepSize::PerWeight(&lr_leaves), &target, &tasks);
@@ -230,7 +230,7 @@ fn meta_sgd_gradients_of_w0_and_step_sizes_match_finite_differences() {
         }
     }
     // Step sizes all equal to eta_inner are MAML's shared step.
-    let c = config(Loss::Cql, 2, false);
+    let c = config(Algo::CQL, 2, false);
     let shared: Vec<Tensor> = w0.iter().map(|w| w.full_like(c.meta.eta_inner)).collect();
     let maml = meta_loss(&c, &w0, StepSize::Shared, &target, &tasks);
     let meta_sgd = meta_loss(&c, &w0, StepSize::PerWeight(&shared), &target, &tasks);
@@ -245,7 +245,7 @@ fn the_w0_loss_term_adds_its_own_gradient_to_eq15s() {
     let mut rng = ChaCha8Rng::seed_from_u64(40);
     let tasks = shots(3, 16, Kind::Double, &mut rng);
     let (w0, target) = (leaves(41), leaves(42));
-    let plain = config(Loss::Cql, 2, false);
+    let plain = config(Algo::CQL, 2, false);
     let mut with_term = plain.clone();
     with_term.meta.w0_loss_weight = 0.7;
     let analytic = meta_gradient(&with_term, &w0, &target, &tasks);
@@ -284,7 +284,7 @@ fn tasks_stacked_with_padding_give_each_task_its_own_meta_gradient() {
         .collect();
     let w0 = leaves(11);
     let target = leaves(12);
-    for inner_loss in [Loss::Cql, Loss::Dqn] {
+    for inner_loss in [Algo::CQL, Algo::DQN] {
         for first_order in [false, true] {
             let c = config(inner_loss, 2, first_order);
             let stacked = meta_gradient(&c, &w0, &target, &tasks);
@@ -311,7 +311,7 @@ fn first_order_gradient_is_the_query_gradient_at_the_adapted_weights() {
     let w0 = leaves(5);
     let target = leaves(6);
     for inner_steps in [1, 3] {
-        let first = config(Loss::Cql, inner_steps, true);
+        let first = config(Algo::CQL, inner_steps, true);
         // sum_i grad_w L(w; query_i) evaluated at w = w_i, with w_i taken as a constant point.
         let mut expected = vec![0.0; flatten(&w0).len()];
         for task in &tasks {
@@ -334,7 +334,7 @@ fn first_order_gradient_is_the_query_gradient_at_the_adapted_weights() {
         );
 
         // It is not the true meta-gradient: that one carries the curvature of the inner loss.
-        let second = meta_gradient(&config(Loss::Cql, inner_steps, false), &w0, &target, &tasks);
+        let second = meta_gradient(&config(Algo::CQL, inner_steps, false), &w0, &target, &tasks);
         let gap = relative_error(&fo, &second);
         println!("{inner_steps} inner steps: first vs second order relative difference {gap:.3e}");
         assert!(
@@ -354,9 +354,9 @@ fn one_step_second_order_term_is_the_inner_hessian_times_the_query_gradient() {
     let tasks = shots(1, 16, Kind::Double, &mut rng);
     let w0 = leaves(8);
     let target = leaves(9);
-    let first = config(Loss::Cql, 1, true);
+    let first = config(Algo::CQL, 1, true);
     let fo = meta_gradient(&first, &w0, &target, &tasks);
-    let so = meta_gradient(&config(Loss::Cql, 1, false), &w0, &target, &tasks);
+    let so = meta_gradient(&config(Algo::CQL, 1, false), &w0, &target, &tasks);
     let support_gradient = |w: &[Tensor]| {
         let loss = first.task_loss(w, &target, &tasks[0].support);
         Tensor::run_backward(&[&loss], w, false, false)
@@ -411,7 +411,7 @@ fn meta_training_lowers_the_meta_loss_on_held_out_query_data() {
     // Fresh transitions of the same tasks that meta-training never sees.
     let held_out = shots(4, 128, Kind::Float, &mut ChaCha8Rng::seed_from_u64(11));
     for first_order in [false, true] {
-        let mut c = config(Loss::Cql, 1, first_order);
+        let mut c = config(Algo::CQL, 1, first_order);
         c.meta.eta_inner = 0.05;
         c.meta.eta_outer = 3e-3;
         // Qhat stays the initial w0, so before and after are the same objective.
@@ -494,7 +494,7 @@ fn resumed_ends_where_uninterrupted_ends(learn_inner_lr: bool, average: f64) {
             query: batch(64, i as f64, Kind::Float, &mut rng),
         })
         .collect();
-    let mut c = config(Loss::Cql, 2, false);
+    let mut c = config(Algo::CQL, 2, false);
     c.meta.eta_inner = 0.05;
     c.meta.eta_outer = 3e-3;
     // The target network (refreshed at epochs 0, 4, 8) and the task sampling (2 of 3 tasks) both
@@ -502,7 +502,7 @@ fn resumed_ends_where_uninterrupted_ends(learn_inner_lr: bool, average: f64) {
     c.meta.target_update_every = 4;
     c.meta.tasks_per_meta_epoch = 2;
     c.meta.learn_inner_lr = learn_inner_lr;
-    c.meta.w0_average_decay = average;
+    c.meta.average_decay = average;
     let hidden = [16];
     let network = || QNetworkConfig::new(OBS, ACTIONS, &hidden).init(21);
     let (seed, epochs, interrupted_at) = (22, 10, 6);
@@ -551,7 +551,7 @@ fn resumed_ends_where_uninterrupted_ends(learn_inner_lr: bool, average: f64) {
 fn a_corrupt_training_state_is_refused_naming_the_file() {
     let dir = tempfile::tempdir().expect("temp dir");
     let path = dir.path().join("epoch-00001");
-    let c = config(Loss::Cql, 1, true);
+    let c = config(Algo::CQL, 1, true);
     let maml = Maml::new(
         QNetworkConfig::new(OBS, ACTIONS, &[4]).init(1),
         c.clone(),
@@ -574,7 +574,7 @@ fn a_corrupt_training_state_is_refused_naming_the_file() {
     );
 }
 
-/// With `w0_average_decay` = d the published init is the moving average of the iterates, which
+/// With `average_decay` = d the published init is the moving average of the iterates, which
 /// averaging leaves as they are: after two outer steps from w_0, d^2 w_0 + d (1 - d) w_1 +
 /// (1 - d) w_2, with w_1 and w_2 the iterates of the same run without averaging.
 #[test]
@@ -589,10 +589,10 @@ fn averaged_init_is_the_moving_average_of_the_iterates() {
         })
         .collect();
     let network = || QNetworkConfig::new(OBS, ACTIONS, &[8]).init(31);
-    let plain = config(Loss::Cql, 1, false);
+    let plain = config(Algo::CQL, 1, false);
     let d = 0.5;
     let mut averaged = plain.clone();
-    averaged.meta.w0_average_decay = d;
+    averaged.meta.average_decay = d;
     let mut last = Maml::new(network(), plain, 32).expect("maml");
     let w_0 = weights(&last);
     last.meta_epoch(&tasks).expect("tasks");

@@ -1,5 +1,6 @@
-//! The on-disk dataset format: one task's transitions (SPEC section 4) in an append-only file of
-//! checksummed chunks, so a collector or the store can crash mid-write without poisoning the data.
+//! The on-disk dataset format: one task's transitions (docs/MODEL.md section 4) in an append-only
+//! file of checksummed chunks, so a collector or the store can crash mid-write without poisoning
+//! the data.
 //!
 //! A file is a file header followed by any number of chunks. Every integer is little-endian.
 //!
@@ -122,7 +123,7 @@ impl DatasetHeader {
         2 + self.devices as usize
     }
 
-    /// Actions are `move * K + device` over SPEC section 1's five moves, as in
+    /// Actions are `move * K + device` over docs/MODEL.md section 1's five moves, as in
     /// `WorldConfig::action_count`.
     pub fn action_count(&self) -> usize {
         MOVES.len() * self.devices as usize

@@ -1,12 +1,12 @@
 //! The contract between uavmeta's processes: what they read and write, what they send each
 //! other and what they export, and nothing of how they run (that is `uavmeta-runtime`).
 //!
-//! - [`config`]: the experiment configuration (SPEC section 7), read from TOML with every SPEC
+//! - [`config`]: the experiment configuration (docs/MODEL.md section 7), read from TOML with every
 //!   default, `--set` overrides and validation errors that name the file, key and value.
 //! - [`dataset`]: the on-disk dataset format that collectors and the store write and learners read.
 //! - [`method`]: [`method::Method`], which method made a checkpoint or a row: its name, label,
 //!   loss and init.
-//! - [`stats`]: episode metrics (SPEC section 1) and their Monte-Carlo summaries.
+//! - [`stats`]: episode metrics (docs/MODEL.md section 1) and their Monte-Carlo summaries.
 //! - [`payload`]: the zero-copy payload types and iceoryx2 service names shared by the actor,
 //!   store, meta-learner and evaluator processes, with the schema version they must agree on.
 //! - [`metrics`]: every metric name and help text the processes export, so a renamed metric is a

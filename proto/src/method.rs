@@ -1,152 +1,300 @@
-//! Which method made a checkpoint, a table row or a curve: one vocabulary for checkpoints, the
-//! evaluator's metrics, `launch`'s table, `reproduce`'s figures and the CLI. Each method says its
-//! name (files, metrics, CSV), its label (figures), the loss it is fine-tuned with and how its
-//! starting network is trained.
+//! Which algorithm trained a network and from where it started: one vocabulary for configs,
+//! checkpoints, the evaluator's metrics, `launch`'s table, `reproduce`'s figures and the CLI.
+//!
+//! An [`Algo`] is an offline learning algorithm, registered by name in [`ALGORITHMS`] (its loss
+//! is `uavmeta_learner::algorithm`'s of the same name). A [`Method`] is what a table row shows:
+//! an algorithm fine-tuned on an unseen task's shots from a [`Start`] (`cql` from a random init,
+//! `cql-maml` from the meta-learned w0, `cql-pretrain` from multi-task pretraining), or one of
+//! the two references that are not fine-tuned (w0 alone, the online agent).
 
 use std::fmt;
 
-use crate::config::Loss;
+use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
-/// The method that trained a checkpoint; `u32` on the wire.
+/// One registered offline algorithm.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct AlgoInfo {
+    /// In configs, `--algo`, checkpoints, file names and metric labels.
+    pub name: &'static str,
+    /// In figures and tables, as papers write it.
+    pub label: &'static str,
+    /// Whether a launch and the reproduction fine-tune it beside `meta.inner_loss` by default
+    /// (`learner.baselines`).
+    pub baseline: bool,
+}
+
+/// Every offline algorithm, in wire order: one line each. Adding one here and its loss to
+/// `uavmeta_learner::algorithm::ALGORITHMS` (same name, same order) is the whole registration.
+pub const ALGORITHMS: &[AlgoInfo] = &[
+    AlgoInfo { name: "cql", label: "CQL", baseline: false },
+    AlgoInfo { name: "dqn", label: "DQN", baseline: false },
+];
+
+/// An offline algorithm of [`ALGORITHMS`] (its index); written as its name.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub enum Method {
-    /// MAML's meta-initialisation w0 after a meta-epoch (Algorithm 4), not adapted to a task.
-    MetaInit,
-    /// w0 fine-tuned with CQL on the few shots of an unseen task: the paper's method.
-    CqlMaml,
-    /// CQL from a random initialisation on the same shots: the paper's main baseline.
-    Cql,
-    /// CQL pretrained on the union of the meta-train tasks' shots, fine-tuned like CQL-MAML: the
-    /// multi-task baseline that shows what MAML adds.
-    CqlPretrain,
-    /// The online DQN agent that made a task's dataset (one checkpoint, epoch 1): the paper's
-    /// "online" reference line.
-    OnlineDqn,
-    /// A DQN-MAML w0 (`meta.inner_loss = "dqn"`) fine-tuned with offline DQN (eq. 7): the paper's
-    /// ablation without the conservative term.
-    DqnMaml,
-    /// Offline DQN from a random initialisation on the same shots: DQN-MAML's baseline.
-    Dqn,
-}
+pub struct Algo(u8);
 
-impl Method {
-    pub const ALL: [Method; 7] = [
-        Method::MetaInit,
-        Method::CqlMaml,
-        Method::Cql,
-        Method::CqlPretrain,
-        Method::OnlineDqn,
-        Method::DqnMaml,
-        Method::Dqn,
-    ];
+impl Algo {
+    /// Conservative Q-learning, paper eq. 8: the paper's learner.
+    pub const CQL: Algo = Algo(0);
+    /// DQN on a fixed dataset, paper eq. 7: the baseline that overestimates.
+    pub const DQN: Algo = Algo(1);
 
-    /// The five methods fine-tuned on an unseen task's shots, as the paper's figures list them.
-    pub const FINE_TUNED: [Method; 5] = [
-        Method::CqlMaml,
-        Method::CqlPretrain,
-        Method::Cql,
-        Method::Dqn,
-        Method::DqnMaml,
-    ];
-
-    /// The CQL fine-tunings from the three inits every figure that compares inits shows.
-    pub const CQL_INITS: [Method; 3] = [Method::CqlMaml, Method::CqlPretrain, Method::Cql];
-
-    /// A MAML init of this inner loss, fine-tuned with the same loss.
-    pub fn maml(inner_loss: Loss) -> Method {
-        match inner_loss {
-            Loss::Cql => Method::CqlMaml,
-            Loss::Dqn => Method::DqnMaml,
-        }
+    /// Every registered algorithm, in order.
+    pub fn all() -> impl Iterator<Item = Algo> {
+        (0..ALGORITHMS.len()).map(|i| Algo(i as u8))
     }
 
-    /// The methods a meta-learner fine-tunes on each meta-test task, in order: the MAML init,
-    /// the same loss from a random init and, for CQL, the multi-task pretrained init.
-    pub fn fine_tuned(inner_loss: Loss) -> &'static [Method] {
-        match inner_loss {
-            Loss::Cql => &[Method::CqlMaml, Method::Cql, Method::CqlPretrain],
-            Loss::Dqn => &[Method::DqnMaml, Method::Dqn],
-        }
+    /// The algorithms registered as baselines: `learner.baselines`' default.
+    pub fn baselines() -> Vec<Algo> {
+        Algo::all().filter(|a| ALGORITHMS[a.index()].baseline).collect()
     }
 
-    /// The name used in file paths, metric labels and CSV rows.
+    /// Its place in [`ALGORITHMS`].
+    pub fn index(self) -> usize {
+        usize::from(self.0)
+    }
+
     pub fn name(self) -> &'static str {
-        match self {
-            Method::MetaInit => "maml-init",
-            Method::CqlMaml => "cql-maml",
-            Method::Cql => "cql",
-            Method::CqlPretrain => "cql-pretrain",
-            Method::OnlineDqn => "online-dqn",
-            Method::DqnMaml => "dqn-maml",
-            Method::Dqn => "dqn",
-        }
+        ALGORITHMS[self.index()].name
     }
 
-    /// The name in figures and tables, as the paper writes it.
     pub fn label(self) -> &'static str {
-        match self {
-            Method::MetaInit => "maml-init",
-            Method::CqlMaml => "CQL-MAML",
-            Method::Cql => "CQL",
-            Method::CqlPretrain => "CQL-pretrain",
-            Method::OnlineDqn => "online DQN",
-            Method::DqnMaml => "DQN-MAML",
-            Method::Dqn => "DQN",
-        }
-    }
-
-    /// The loss it is fine-tuned with on an unseen task's shots; `None` for the two that are not
-    /// fine-tuned (w0 alone, the online agent).
-    pub fn loss(self) -> Option<Loss> {
-        match self {
-            Method::CqlMaml | Method::Cql | Method::CqlPretrain => Some(Loss::Cql),
-            Method::DqnMaml | Method::Dqn => Some(Loss::Dqn),
-            Method::MetaInit | Method::OnlineDqn => None,
-        }
-    }
-
-    /// How its starting network is trained on the meta-train tasks; `None` for a random one (and
-    /// for the online agent, which trains on its own task).
-    pub fn init(self) -> Option<Init> {
-        match self {
-            Method::CqlMaml | Method::MetaInit => Some(Init::Maml(Loss::Cql)),
-            Method::DqnMaml => Some(Init::Maml(Loss::Dqn)),
-            Method::CqlPretrain => Some(Init::Pretrain),
-            Method::Cql | Method::Dqn | Method::OnlineDqn => None,
-        }
-    }
-
-    /// Its number on the wire.
-    pub fn code(self) -> u32 {
-        self as u32
-    }
-
-    pub fn from_code(code: u32) -> Option<Method> {
-        Self::ALL.into_iter().find(|m| m.code() == code)
+        ALGORITHMS[self.index()].label
     }
 }
 
-impl fmt::Display for Method {
+impl fmt::Display for Algo {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(self.name())
     }
 }
 
-/// How a method's starting network is trained on the meta-train tasks.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Init {
-    /// MAML (Algorithm 4) with this inner loss: w0.
-    Maml(Loss),
-    /// CQL on the union of the meta-train tasks' shots (`uavmeta_meta::pretrain`).
-    Pretrain,
+impl std::str::FromStr for Algo {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        Algo::all().find(|a| a.name() == s).ok_or_else(|| {
+            let names: Vec<String> = Algo::all().map(|a| format!("`{a}`")).collect();
+            format!("`{s}`: expected one of {}", names.join(", "))
+        })
+    }
 }
 
-impl Init {
-    /// The name of the checkpoints it makes: the method fine-tuned from it.
-    pub fn name(self) -> &'static str {
+impl Serialize for Algo {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(self.name())
+    }
+}
+
+impl<'de> Deserialize<'de> for Algo {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let name = String::deserialize(d)?;
+        name.parse().map_err(serde::de::Error::custom)
+    }
+}
+
+/// Where a fine-tuned method's network starts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Start {
+    /// A random init (the run's seed + 1).
+    Random,
+    /// MAML's meta-initialisation w0 (Algorithm 4), meta-trained with the same algorithm
+    /// (`meta.inner_loss`): CQL-MAML, DQN-MAML.
+    Maml,
+    /// One network trained with the same algorithm (`meta.inner_loss`) on the union of the
+    /// meta-train tasks' shots (`uavmeta_meta::pretrain`): the multi-task baseline that shows
+    /// what MAML adds.
+    Pretrain,
+    /// The run's w0, meta-trained with another algorithm (`meta.inner_loss`): a baseline
+    /// fine-tuned from the paper's init.
+    W0,
+}
+
+impl Start {
+    const ALL: [Start; 4] = [Start::Random, Start::Maml, Start::Pretrain, Start::W0];
+
+    /// What its name adds to the algorithm's: `cql`, `cql-maml`, `cql-pretrain`.
+    fn suffix(self) -> &'static str {
         match self {
-            Init::Maml(loss) => Method::maml(loss).name(),
-            Init::Pretrain => Method::CqlPretrain.name(),
+            Start::Random => "",
+            Start::Maml => "-maml",
+            Start::Pretrain => "-pretrain",
+            Start::W0 => "-w0",
         }
+    }
+
+    fn label_suffix(self) -> &'static str {
+        match self {
+            Start::Random => "",
+            Start::Maml => "-MAML",
+            Start::Pretrain => "-pretrain",
+            Start::W0 => " from w0",
+        }
+    }
+}
+
+/// A row of the tables: a network trained some way, or a reference.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Method {
+    /// MAML's meta-initialisation w0 after a meta-epoch (Algorithm 4), not adapted to a task.
+    MetaInit,
+    /// The online DQN agent that made a task's dataset (one checkpoint, epoch 1): the paper's
+    /// "online" reference line.
+    OnlineDqn,
+    /// `algo` fine-tuned on the few shots of an unseen task from `start`.
+    FineTuned { algo: Algo, start: Start },
+}
+
+impl Method {
+    /// CQL-MAML, the paper's method: w0 fine-tuned with CQL.
+    pub const CQL_MAML: Method = Method::tuned(Algo::CQL, Start::Maml);
+    /// CQL from a random initialisation: the paper's main baseline.
+    pub const CQL: Method = Method::tuned(Algo::CQL, Start::Random);
+    /// CQL pretrained on the meta-train tasks' shots, fine-tuned like CQL-MAML.
+    pub const CQL_PRETRAIN: Method = Method::tuned(Algo::CQL, Start::Pretrain);
+    /// DQN-MAML, the paper's ablation without the conservative term.
+    pub const DQN_MAML: Method = Method::tuned(Algo::DQN, Start::Maml);
+    /// Offline DQN from a random initialisation: DQN-MAML's baseline.
+    pub const DQN: Method = Method::tuned(Algo::DQN, Start::Random);
+
+    /// `algo` fine-tuned from `start`.
+    pub const fn tuned(algo: Algo, start: Start) -> Method {
+        Method::FineTuned { algo, start }
+    }
+
+    /// A MAML init meta-trained with `inner_loss`, fine-tuned with the same algorithm.
+    pub fn maml(inner_loss: Algo) -> Method {
+        Method::tuned(inner_loss, Start::Maml)
+    }
+
+    /// The methods a meta-learner fine-tunes on each meta-test task, in order: the inner loss
+    /// from w0, from a random init and from its pretrained init, then each of `baselines`
+    /// (`learner.baselines`; the inner loss is skipped there) from w0 and from a random init.
+    pub fn fine_tuned(inner_loss: Algo, baselines: &[Algo]) -> Vec<Method> {
+        let mut methods = vec![
+            Method::tuned(inner_loss, Start::Maml),
+            Method::tuned(inner_loss, Start::Random),
+            Method::tuned(inner_loss, Start::Pretrain),
+        ];
+        for &algo in baselines.iter().filter(|&&a| a != inner_loss) {
+            methods.push(Method::tuned(algo, Start::W0));
+            methods.push(Method::tuned(algo, Start::Random));
+        }
+        methods
+    }
+
+    /// The name used in file paths, metric labels and CSV rows.
+    pub fn name(self) -> String {
+        match self {
+            Method::MetaInit => "maml-init".into(),
+            Method::OnlineDqn => "online-dqn".into(),
+            Method::FineTuned { algo, start } => format!("{algo}{}", start.suffix()),
+        }
+    }
+
+    /// The name in figures and tables, as the paper writes it.
+    pub fn label(self) -> String {
+        match self {
+            Method::MetaInit => "maml-init".into(),
+            Method::OnlineDqn => "online DQN".into(),
+            Method::FineTuned { algo, start } => {
+                format!("{}{}", algo.label(), start.label_suffix())
+            }
+        }
+    }
+
+    /// The algorithm it is fine-tuned with on an unseen task's shots; `None` for the two that
+    /// are not fine-tuned (w0 alone, the online agent).
+    pub fn algo(self) -> Option<Algo> {
+        match self {
+            Method::FineTuned { algo, .. } => Some(algo),
+            Method::MetaInit | Method::OnlineDqn => None,
+        }
+    }
+
+    /// Where it starts; `None` for the two that are not fine-tuned.
+    pub fn start(self) -> Option<Start> {
+        match self {
+            Method::FineTuned { start, .. } => Some(start),
+            Method::MetaInit | Method::OnlineDqn => None,
+        }
+    }
+
+    /// Its number on the wire: 0 and 1 for the references, then 2 + start x 64 + algorithm.
+    /// (`Start::Maml` and `Start::W0` of one algorithm load the same w0; the name tells which
+    /// algorithm meta-trained it.)
+    pub fn code(self) -> u32 {
+        match self {
+            Method::MetaInit => 0,
+            Method::OnlineDqn => 1,
+            Method::FineTuned { algo, start } => 2 + start as u32 * 64 + algo.index() as u32,
+        }
+    }
+
+    pub fn from_code(code: u32) -> Option<Method> {
+        match code {
+            0 => Some(Method::MetaInit),
+            1 => Some(Method::OnlineDqn),
+            _ => {
+                let (start, algo) = ((code - 2) / 64, (code - 2) % 64);
+                let start = *Start::ALL.get(start as usize)?;
+                let algo = Algo::all().nth(algo as usize)?;
+                Some(Method::tuned(algo, start))
+            }
+        }
+    }
+
+    /// The method a name gives ([`Method::name`]'s inverse).
+    pub fn from_name(name: &str) -> Option<Method> {
+        Method::all().find(|m| m.name() == name)
+    }
+
+    /// The learned rows of a results table, in its order: every algorithm from a random init,
+    /// then from pretraining, from its own MAML w0 and from another's, then w0 alone.
+    pub fn learners() -> impl Iterator<Item = Method> {
+        [Start::Random, Start::Pretrain, Start::Maml, Start::W0]
+            .into_iter()
+            .flat_map(|start| Algo::all().map(move |algo| Method::tuned(algo, start)))
+            .chain([Method::MetaInit])
+    }
+
+    /// Every method: the references, then each algorithm from each start.
+    pub fn all() -> impl Iterator<Item = Method> {
+        let tuned = Algo::all()
+            .flat_map(|algo| Start::ALL.into_iter().map(move |start| Method::tuned(algo, start)));
+        [Method::MetaInit, Method::OnlineDqn].into_iter().chain(tuned)
+    }
+}
+
+impl fmt::Display for Method {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&self.name())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_method_has_its_own_name_and_code_and_both_read_back() {
+        let all: Vec<Method> = Method::all().collect();
+        assert_eq!(all.len(), 2 + 4 * ALGORITHMS.len());
+        for m in &all {
+            assert_eq!(Method::from_code(m.code()), Some(*m), "{m}");
+            assert_eq!(Method::from_name(&m.name()), Some(*m), "{m}");
+            assert_eq!(all.iter().filter(|o| o.name() == m.name()).count(), 1, "{m}");
+        }
+        assert_eq!(Method::from_code(2 + 4 * 64), None);
+        assert_eq!(Method::from_code(2 + ALGORITHMS.len() as u32), None);
+        assert_eq!(Method::CQL_MAML.name(), "cql-maml");
+        assert_eq!(Method::CQL_PRETRAIN.label(), "CQL-pretrain");
+    }
+
+    #[test]
+    fn an_unknown_algorithm_is_refused_with_the_registered_names() {
+        let error = "ppo".parse::<Algo>().unwrap_err();
+        assert!(error.contains("`ppo`") && error.contains("`cql`, `dqn`"), "{error}");
+        assert_eq!("dqn".parse::<Algo>(), Ok(Algo::DQN));
     }
 }

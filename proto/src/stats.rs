@@ -1,5 +1,5 @@
-//! Episode metrics (SPEC section 1) and their Monte-Carlo summaries: what rollouts, training
-//! tables, the evaluator's CSV rows and its Prometheus gauges all report.
+//! Episode metrics (docs/MODEL.md section 1) and their Monte-Carlo summaries: what rollouts,
+//! training tables, the evaluator's CSV rows and its Prometheus gauges all report.
 
 use serde::{Deserialize, Serialize};
 

@@ -1,4 +1,4 @@
-//! Deciding the claims of SPEC section 6 from measured curves: the statistics of a curve
+//! Deciding the claims of docs/MODEL.md section 6 from measured curves: the statistics of a curve
 //! (final return, the epoch it settles, whether it converged), the rules that turn comparisons
 //! into "yes / partly / no", and the markdown table every `summary.md` shows.
 //!
@@ -99,7 +99,7 @@ impl Verdict {
 pub struct Claim {
     /// The figure it belongs to, e.g. "5".
     pub figure: &'static str,
-    /// The paper's statement (SPEC section 6).
+    /// The paper's statement (docs/MODEL.md section 6).
     pub paper: &'static str,
     /// Our figure, mean ± 95% CI over seeds.
     pub measured: String,

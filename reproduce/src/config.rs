@@ -1,7 +1,7 @@
-//! `[reproduce]`: the sizes of the paper's section V experiments (SPEC section 6). This crate
-//! alone reads the section, so it declares it: the experiment config keeps the table as written
-//! (`uavmeta_proto::config::OwnedSection`) and [`ReproduceConfig::of`] reads and checks it when a
-//! reproduction starts, so that other commands accept a config whose tasks do not fit it.
+//! `[reproduce]`: the sizes of the paper's section V experiments (docs/MODEL.md section 6). This
+//! crate alone reads the section, so it declares it: the experiment config keeps the table as
+//! written (`uavmeta_proto::config::OwnedSection`) and [`ReproduceConfig::of`] reads and checks it
+//! when a reproduction starts, so that other commands accept a config whose tasks do not fit it.
 
 use garde::Validate;
 use serde::{Deserialize, Serialize};
@@ -10,8 +10,8 @@ use smart_default::SmartDefault;
 use uavmeta_proto::config::rules::{at_least, increasing, non_empty, Broken};
 use uavmeta_proto::config::{Config, ConfigError, OwnedSection, Section, TaskConfig, TaskRole};
 
-/// `uavmeta reproduce`: the sizes of the paper's section V experiments (SPEC section 6). Keys that
-/// name tasks or count them, and the seeds, are checked against the other sections by
+/// `uavmeta reproduce`: the sizes of the paper's section V experiments (docs/MODEL.md section 6).
+/// Keys that name tasks or count them, and the seeds, are checked against the other sections by
 /// [`ReproduceConfig::of`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, SmartDefault, Validate)]
 #[serde(deny_unknown_fields, default)]

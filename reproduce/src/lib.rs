@@ -1,12 +1,13 @@
 //! `uavmeta reproduce`: the paper's section V experiments (figures 4-9) over several seeds, each
-//! figure beside the claim of SPEC section 6 it supports, decided from the measured numbers.
+//! figure beside the claim of docs/MODEL.md section 6 it supports, decided from the measured
+//! numbers.
 //!
 //! A crate of its own, apart from the MAML crate it measures: the harness links the chart library
 //! and a thread pool, and fails in ways (a figure that cannot be drawn, a config without rain
 //! tasks) that are no part of meta-learning's error type. It consumes everything below it: the
-//! world, behaviour policies and collection of `uavmeta-actors`, offline training and
-//! checkpoints of `uavmeta-learner`, meta-training and meta-testing of `uavmeta-meta`, and
-//! `uavmeta-plot`'s charts; its results are files under an output directory.
+//! world of `uavmeta-world`, behaviour policies and collection of `uavmeta-actors`, offline
+//! training and checkpoints of `uavmeta-learner`, meta-training and meta-testing of `uavmeta-meta`,
+//! and `uavmeta-plot`'s charts; its results are files under an output directory.
 //!
 //! It owns the orchestration; the pieces are:
 //! - [`runs`]: one seed's pipeline and its cache under `OUT/cache/seed-S/` (datasets, online DQN
@@ -55,11 +56,6 @@ pub enum ReproduceError {
     Meta(#[from] MetaError),
     #[error(transparent)]
     Collect(#[from] CollectError),
-    #[error("{origin}: {error}")]
-    Device {
-        origin: String,
-        error: uavmeta_learner::population::DeviceError,
-    },
 }
 
 use std::fmt::Write as _;
@@ -68,14 +64,14 @@ use std::time::{Duration, Instant};
 
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
 use rayon::prelude::*;
-use uavmeta_actors::policy::heuristics::reference_metrics;
-use uavmeta_proto::config::{Config, ConfigError, Loss, TaskConfig, TaskRole};
+use uavmeta_world::heuristics::reference_metrics;
+use uavmeta_proto::config::{Config, ConfigError, TaskConfig, TaskRole};
 use uavmeta_proto::stats::PolicyMetrics;
 
 use claims::Claim;
 use runs::{meta_train_tasks, InitKey, Plan, SeedResult};
 use uavmeta_meta::{create_dir, write_file};
-use uavmeta_proto::method::{Init, Method};
+use uavmeta_proto::method::Method;
 
 /// One of the paper's experiments.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -93,7 +89,7 @@ pub enum Experiment {
     /// Figure 9: the rain tasks.
     Resilience,
     /// Not a figure of the paper: the online DQN agents behind every dataset, against the
-    /// heuristics on each task (SPEC section 5 asks for heuristic level before sampling).
+    /// heuristics on each task (docs/MODEL.md section 5 asks for heuristic level before sampling).
     OnlineDqn,
 }
 
@@ -174,18 +170,18 @@ pub struct ReproduceReport {
 }
 
 /// The `--quick` variant of `config`: the same pipeline at a size that runs in well under a
-/// minute (online DQN for 1000 steps, [32, 32] networks, 3 meta-epochs, a handful of fine-tuning epochs, 2 seeds,
-/// 2 evaluation episodes), to check the plumbing, not the claims.
-/// Fails only on a `[reproduce]` section that breaks its own rules.
+/// minute (online DQN for 1000 steps, [32, 32] networks, 3 meta-epochs, a handful of fine-tuning
+/// epochs, 2 seeds, 2 evaluation episodes), to check the plumbing, not the claims. Fails only on a
+/// `[reproduce]` section that breaks its own rules.
 pub fn quick_config(config: &Config) -> Result<Config, ConfigError> {
     let mut quick = config.clone();
     let mut r: ReproduceConfig = config.reproduce.read(&config.origin)?;
     let c = &mut quick.collect;
-    c.dqn_steps = c.dqn_steps.min(1000).max(c.transitions);
-    c.replay_capacity = c.replay_capacity.min(1000).max(c.transitions);
-    c.learning_starts = c.learning_starts.min(200);
-    c.eps_decay_steps = c.eps_decay_steps.min(500);
-    c.dqn_hidden = vec![32, 32];
+    c.dqn.steps = c.dqn.steps.min(1000).max(c.transitions);
+    c.dqn.replay_capacity = c.dqn.replay_capacity.min(1000).max(c.transitions);
+    c.dqn.learning_starts = c.dqn.learning_starts.min(200);
+    c.dqn.eps_decay_steps = c.dqn.eps_decay_steps.min(500);
+    c.dqn.hidden = vec![32, 32];
     quick.learner.hidden = vec![32, 32];
     quick.learner.eval_episodes = quick.learner.eval_episodes.min(2);
     quick.learner.steps_per_epoch = quick.learner.steps_per_epoch.min(10);
@@ -278,7 +274,7 @@ pub fn run(opts: &ReproduceOptions) -> Result<ReproduceReport, ReproduceError> {
         .iter()
         .flat_map(|(_, s)| s.claims.iter().cloned())
         .collect();
-    let _ = writeln!(summary, "## Every claim (SPEC section 6)\n");
+    let _ = writeln!(summary, "## Every claim (docs/MODEL.md section 6)\n");
     summary.push_str(&claims::table(&claims));
     for (experiment, _) in &sections {
         let _ = write!(
@@ -330,7 +326,7 @@ fn header(opts: &ReproduceOptions, r: &ReproduceConfig, title: &str, wall: Durat
         opts.config.learner.eval_episodes,
         opts.config.collect.transitions,
         opts.config.collect.policy,
-        opts.config.collect.dqn_steps,
+        opts.config.collect.dqn.steps,
     );
     let _ = writeln!(
         s,
@@ -360,7 +356,7 @@ fn plan(config: &Config, r: &ReproduceConfig, experiments: &[Experiment]) -> Pla
         match e {
             Experiment::MetaTraining => {
                 let key = InitKey {
-                    kind: Init::Maml(Loss::Cql),
+                    kind: runs::W0,
                     tasks: r.meta_tasks,
                 };
                 plan.init(config, key, e);
@@ -370,7 +366,7 @@ fn plan(config: &Config, r: &ReproduceConfig, experiments: &[Experiment]) -> Pla
                 }
             }
             Experiment::Convergence => {
-                for method in Method::FINE_TUNED {
+                for method in figures::fine_tuned(config) {
                     let key = unseen(method, r.main_shots, r.meta_tasks);
                     plan.run(config, key, r.convergence_epochs, false, e);
                 }
@@ -378,7 +374,7 @@ fn plan(config: &Config, r: &ReproduceConfig, experiments: &[Experiment]) -> Pla
             }
             Experiment::Shots => {
                 for &shots in &r.shots {
-                    for method in Method::CQL_INITS {
+                    for method in figures::compared(config) {
                         let key = unseen(method, shots, r.meta_tasks);
                         plan.run(config, key, r.convergence_epochs, false, e);
                     }
@@ -386,15 +382,15 @@ fn plan(config: &Config, r: &ReproduceConfig, experiments: &[Experiment]) -> Pla
             }
             Experiment::Tasks => {
                 for &n in &r.task_counts {
-                    let key = unseen(Method::CqlMaml, r.main_shots, n);
+                    let key = unseen(Method::CQL_MAML, r.main_shots, n);
                     plan.run(config, key, r.tasks_epochs, false, e);
                 }
-                let key = unseen(Method::Cql, r.main_shots, 0);
+                let key = unseen(Method::CQL, r.main_shots, 0);
                 plan.run(config, key, r.tasks_epochs, false, e);
                 plan.reference(&r.unseen_task, episodes, e);
             }
             Experiment::AoiPower => {
-                for method in Method::CQL_INITS {
+                for method in figures::CQL_INITS {
                     let key = unseen(method, r.main_shots, r.meta_tasks);
                     plan.run(config, key, r.aoi_power_epoch, false, e);
                 }
@@ -407,7 +403,7 @@ fn plan(config: &Config, r: &ReproduceConfig, experiments: &[Experiment]) -> Pla
             }
             Experiment::Resilience => {
                 for (i, task) in rain_tasks(config).enumerate() {
-                    for method in Method::CQL_INITS {
+                    for method in figures::CQL_INITS {
                         let key = figures::rain_key(config, r, task, method);
                         // Figure 9c draws the first rain task's paths.
                         plan.run(config, key, r.resilience_epochs, i == 0, e);
@@ -550,9 +546,8 @@ fn progress_bars(
         .collect()
 }
 
-/// Every seed's datasets of the plan that are not cached, on the current pool: their online
-/// agents trained in populations of up to `collect.population` members on `run.device` (one
-/// population per worker at a time).
+/// Every seed's datasets of the plan that are not cached, on the current pool, one per worker at
+/// a time.
 fn collect_datasets(
     config: &Config,
     out: &Path,
@@ -560,7 +555,6 @@ fn collect_datasets(
     plan: &Plan,
     done: &(impl Fn(&[Experiment]) + Sync),
 ) -> Result<(), ReproduceError> {
-    let device = run_device(config)?;
     let mut missing = Vec::new();
     for &seed in seeds {
         for need in &plan.datasets {
@@ -574,14 +568,11 @@ fn collect_datasets(
         }
     }
     missing
-        .par_chunks(config.collect.population)
+        .par_iter()
         .with_max_len(1)
-        .try_for_each(|group| {
-            let jobs: Vec<&runs::DatasetJob> = group.iter().map(|(job, _)| job).collect();
-            runs::collect_datasets(&jobs, device)?;
-            for (_, users) in group {
-                done(users);
-            }
+        .try_for_each(|(job, users)| {
+            runs::collect_dataset(job)?;
+            done(users);
             Ok(())
         })
 }
@@ -589,9 +580,7 @@ fn collect_datasets(
 /// A trained init: its checkpoint and meta-train curve.
 type Trained = (PathBuf, runs::MetaCurve);
 
-/// Every seed's inits of the plan, grouped by seed in plan order. With `meta.population` above
-/// 1, the seeds of one meta-trained init meta-train as populations of up to that many on
-/// `run.device`, one population per worker at a time.
+/// Every seed's inits of the plan, grouped by seed in plan order.
 fn inits(
     config: &Config,
     out: &Path,
@@ -608,56 +597,15 @@ fn inits(
             true => r.meta_eval_every,
             false => 0,
         };
-    let size = config.meta.population;
-    if size == 1 {
-        return for_each_seed(seeds, &plan.inits, |seed, need| {
-            let init = runs::init(config, out, seed, need.key, eval_every(need))?;
-            done(&need.users);
-            Ok((need.key, init))
-        });
-    }
-    let device = run_device(config)?;
-    // (init, seeds) units: a pretrained init per seed, a meta-trained one per population.
-    let units: Vec<(usize, &[u64])> = (plan.inits.iter().enumerate())
-        .flat_map(|(n, need)| {
-            let chunk = match need.key.kind {
-                Init::Pretrain => 1,
-                Init::Maml(_) => size,
-            };
-            seeds.chunks(chunk).map(move |group| (n, group))
-        })
-        .collect();
-    let trained = units
-        .into_par_iter()
-        .with_max_len(1)
-        .map(|(n, group)| {
-            let need = &plan.inits[n];
-            let results = match need.key.kind {
-                Init::Pretrain => vec![runs::init(config, out, group[0], need.key, 0)?],
-                Init::Maml(_) => {
-                    runs::maml_inits(config, out, group, need.key, eval_every(need), device)?
-                }
-            };
-            for _ in group {
-                done(&need.users);
-            }
-            Ok((group.iter().map(move |&seed| (seed, n)))
-                .zip(results)
-                .collect::<Vec<_>>())
-        })
-        .collect::<Result<Vec<_>, ReproduceError>>()?;
-    let mut by_seed: Vec<_> = trained.into_iter().flatten().collect();
-    by_seed.sort_by_key(|((seed, n), _)| (*seed, *n));
-    let mut results = (by_seed.into_iter()).map(|((_, n), init)| (plan.inits[n].key, init));
-    Ok(seeds
-        .iter()
-        .map(|_| results.by_ref().take(plan.inits.len()).collect())
-        .collect())
+    for_each_seed(seeds, &plan.inits, |seed, need| {
+        let init = runs::init(config, out, seed, need.key, eval_every(need))?;
+        done(&need.users);
+        Ok((need.key, init))
+    })
 }
 
 /// Every seed's fine-tuning runs of the plan, from the inits `w0` gives, grouped by seed in plan
-/// order. With `learner.population` above 1, runs of one shape (over every seed) train as
-/// populations of up to that many on `run.device`, one population per worker at a time.
+/// order.
 fn fine_tune_runs<'a>(
     config: &Config,
     out: &Path,
@@ -666,64 +614,10 @@ fn fine_tune_runs<'a>(
     w0: impl Fn(u64, &runs::RunNeed) -> Option<&'a Path> + Sync,
     done: &(impl Fn(&[Experiment]) + Sync),
 ) -> Result<Vec<Vec<(runs::RunKey, runs::RunResult)>>, ReproduceError> {
-    let size = config.learner.population;
-    if size == 1 {
-        return for_each_seed(seeds, &plan.runs, |seed, run| {
-            let result = runs::fine_tune_run(config, out, seed, run, w0(seed, run))?;
-            done(&run.need.users);
-            Ok((run.need.key.clone(), result))
-        });
-    }
-    let device = run_device(config)?;
-    // (index in seed-major order, seed, run), grouped by shape, then cut into populations.
-    let mut pairs: Vec<(usize, u64, &runs::RunNeed)> = seeds
-        .iter()
-        .flat_map(|&seed| plan.runs.iter().map(move |run| (seed, run)))
-        .enumerate()
-        .map(|(i, (seed, run))| (i, seed, run))
-        .collect();
-    pairs.sort_by_key(|&(i, _, run)| (run.shape(), i));
-    let populations: Vec<&[(usize, u64, &runs::RunNeed)]> = pairs
-        .chunk_by(|a, b| a.2.shape() == b.2.shape())
-        .flat_map(|group| group.chunks(size))
-        .collect();
-    let trained = populations
-        .into_par_iter()
-        .with_max_len(1)
-        .map(|members| {
-            let jobs: Vec<_> = members
-                .iter()
-                .map(|&(_, seed, run)| (seed, run, w0(seed, run)))
-                .collect();
-            let results = runs::fine_tune_runs(config, out, &jobs, device)?;
-            for &(_, _, run) in members {
-                done(&run.need.users);
-            }
-            Ok(members
-                .iter()
-                .map(|&(i, _, run)| (i, run))
-                .zip(results)
-                .collect::<Vec<_>>())
-        })
-        .collect::<Result<Vec<_>, ReproduceError>>()?;
-    let mut by_index: Vec<_> = trained.into_iter().flatten().collect();
-    by_index.sort_by_key(|((i, _), _)| *i);
-    let mut results = by_index
-        .into_iter()
-        .map(|((_, run), result)| (run.need.key.clone(), result));
-    Ok(seeds
-        .iter()
-        .map(|_| results.by_ref().take(plan.runs.len()).collect())
-        .collect())
-}
-
-/// `run.device` as libtorch's, or the config's error.
-fn run_device(config: &Config) -> Result<tch::Device, ReproduceError> {
-    uavmeta_learner::population::device(&config.run.device).map_err(|error| {
-        ReproduceError::Device {
-            origin: config.origin.clone(),
-            error,
-        }
+    for_each_seed(seeds, &plan.runs, |seed, run| {
+        let result = runs::fine_tune_run(config, out, seed, run, w0(seed, run))?;
+        done(&run.need.users);
+        Ok((run.need.key.clone(), result))
     })
 }
 
@@ -787,7 +681,7 @@ mod tests {
             .runs
             .iter()
             .find(|r| {
-                r.need.key.method == Method::CqlMaml
+                r.need.key.method == Method::CQL_MAML
                     && r.need.key.task == "lambda-300"
                     && r.need.key.shots == 500
                     && r.need.key.meta_tasks == 8
@@ -811,8 +705,8 @@ mod tests {
     #[test]
     fn quick_keeps_datasets_collectable() {
         let quick = quick_config(&Config::default()).unwrap();
-        assert!(quick.collect.dqn_steps >= quick.collect.transitions);
-        assert!(quick.collect.replay_capacity >= quick.collect.transitions);
+        assert!(quick.collect.dqn.steps >= quick.collect.transitions);
+        assert!(quick.collect.dqn.replay_capacity >= quick.collect.transitions);
         quick.validate().unwrap();
         let r: ReproduceConfig = quick.reproduce.read(&quick.origin).unwrap();
         assert_eq!((r.seeds, r.meta_eval_every), (2, 1));

@@ -12,16 +12,16 @@ use std::path::{Path, PathBuf};
 
 use indicatif::ProgressBar;
 use uavmeta_actors::collect::{
-    agent_path, collect, collect_population, config_path, PopulationJob,
+    agent_path, collect, config_path,
 };
-use uavmeta_actors::policy::heuristics::PolicySpec;
+use uavmeta_world::heuristics::PolicySpec;
 use uavmeta_actors::policy::q_policy::{Evaluator, QPolicy};
-use uavmeta_actors::rollout::{record_trajectory, Trajectory};
+use uavmeta_world::rollout::{record_trajectory, Trajectory};
 use uavmeta_learner::checkpoint::{self, CheckpointPaths};
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::{EpochRow, EvaluatePolicy};
-use uavmeta_proto::config::{Config, LearnerConfig, Loss, MetaConfig, TaskConfig, TaskRole};
+use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
 use uavmeta_proto::dataset::DatasetReader;
 use uavmeta_proto::stats::PolicyMetrics;
 
@@ -29,16 +29,54 @@ use super::Experiment;
 use uavmeta_learner::batch::load_shots;
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::qnet::QNetwork;
-use uavmeta_learner::train_population::Member;
-use uavmeta_meta::fine_tune::{fine_tune, fine_tune_population, FineTune};
+use uavmeta_meta::fine_tune::{fine_tune, FineTune};
 use uavmeta_meta::meta_train::{
-    dataset_path, load_tasks, meta_train, meta_train_population, Evaluation, MetaRow,
+    dataset_path, load_tasks, meta_train, Evaluation, MetaRow,
     MetaTrainOptions,
 };
 use uavmeta_meta::{create_dir, pretrain, MetaError};
-use uavmeta_proto::method::{Init, Method};
+use uavmeta_proto::method::{Algo, Method, Start};
 
 use crate::ReproduceError;
+
+/// How a trained init is made.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Init {
+    /// MAML (Algorithm 4) with this inner loss: w0.
+    Maml(Algo),
+    /// This algorithm on the union of the meta-train tasks' shots (`uavmeta_meta::pretrain`).
+    Pretrain(Algo),
+}
+
+/// The reproduction's w0: CQL-MAML's, which the `-w0` baselines start from too.
+pub const W0: Init = Init::Maml(Algo::CQL);
+
+impl Init {
+    /// How `method`'s starting network is trained; `None` for a random one.
+    pub fn of(method: Method) -> Option<Init> {
+        match (method, method.start()) {
+            (Method::MetaInit, _) | (_, Some(Start::W0)) => Some(W0),
+            (Method::FineTuned { algo, .. }, Some(Start::Maml)) => Some(Init::Maml(algo)),
+            (Method::FineTuned { algo, .. }, Some(Start::Pretrain)) => Some(Init::Pretrain(algo)),
+            _ => None,
+        }
+    }
+
+    /// The algorithm it trains with.
+    pub fn algo(self) -> Algo {
+        match self {
+            Init::Maml(algo) | Init::Pretrain(algo) => algo,
+        }
+    }
+
+    /// The name of the checkpoints it makes: the method fine-tuned from it.
+    pub fn name(self) -> String {
+        match self {
+            Init::Maml(algo) => Method::tuned(algo, Start::Maml).name(),
+            Init::Pretrain(algo) => Method::tuned(algo, Start::Pretrain).name(),
+        }
+    }
+}
 
 /// A trained init: how, and on how many meta-train tasks (the first n).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -60,7 +98,7 @@ pub struct RunKey {
 
 impl RunKey {
     pub fn init(&self) -> Option<InitKey> {
-        self.method.init().map(|kind| InitKey {
+        Init::of(self.method).map(|kind| InitKey {
             kind,
             tasks: self.meta_tasks,
         })
@@ -91,20 +129,15 @@ pub struct RunNeed {
 }
 
 impl RunNeed {
-    /// The loss that fine-tunes it.
-    pub fn loss(&self) -> Loss {
+    /// The algorithm that fine-tunes it.
+    pub fn algo(&self) -> Algo {
         self.need
             .key
             .method
-            .loss()
+            .algo()
             .expect("every run of the plan is a fine-tuned method")
     }
 
-    /// What runs must share to train as one population: loss, shots (so steps per epoch and
-    /// minibatch size) and epochs.
-    pub fn shape(&self) -> (Loss, usize, usize) {
-        (self.loss(), self.need.key.shots, self.epochs)
-    }
 }
 
 /// Everything every seed computes for the selected experiments, each item once.
@@ -279,8 +312,6 @@ fn collection_config(config: &Config, seed: u64) -> Config {
         ..Config::default()
     };
     c.collect.seed = config.collect.seed + seed;
-    // How many fine-tunings train together changes no dataset and no init.
-    c.learner.population = LearnerConfig::default().population;
     c
 }
 
@@ -291,13 +322,9 @@ fn collection_config(config: &Config, seed: u64) -> Config {
 fn meta_config(config: &Config, key: InitKey, seed: u64, eval_every: usize) -> Config {
     let mut c = collection_config(config, seed);
     c.meta = config.meta.clone();
-    if let Init::Maml(inner) = key.kind {
-        c.meta.inner_loss = inner;
-    }
+    c.meta.inner_loss = key.kind.algo();
     c.meta.eval_every = eval_every;
     c.tasks = meta_train_tasks(config, key.tasks).cloned().collect();
-    // How many meta-train together changes no w0 beyond float rounding: not part of its cache key.
-    c.meta.population = MetaConfig::default().population;
     c
 }
 
@@ -364,33 +391,9 @@ impl DatasetJob {
     }
 }
 
-/// Collects `jobs` (none of them cached) by the actors' code path: with the online DQN agent,
-/// their agents trained as one population on `device` ([`collect_population`]); with another
-/// behaviour policy, one after another.
-pub fn collect_datasets(jobs: &[&DatasetJob], device: tch::Device) -> Result<(), ReproduceError> {
-    let Some(first) = jobs.first() else {
-        return Ok(());
-    };
-    if first.collection.collect.policy != PolicySpec::DqnOnline.to_string() {
-        for job in jobs {
-            collect(
-                &job.collection,
-                &job.task,
-                &job.path,
-                &ProgressBar::hidden(),
-            )?;
-        }
-        return Ok(());
-    }
-    let population: Vec<PopulationJob> = jobs
-        .iter()
-        .map(|job| PopulationJob {
-            config: &job.collection,
-            task: &job.task,
-            out: &job.path,
-        })
-        .collect();
-    collect_population(&population, device, &ProgressBar::hidden())?;
+/// Collects `job` (not cached) as `uavmeta collect` does.
+pub fn collect_dataset(job: &DatasetJob) -> Result<(), ReproduceError> {
+    collect(&job.collection, &job.task, &job.path, &ProgressBar::hidden())?;
     Ok(())
 }
 
@@ -442,51 +445,11 @@ pub fn fine_tune_run(
     let rows = fine_tune(
         &mut q,
         &start.shots,
-        run.loss(),
+        run.algo(),
         &start.settings(run),
         &mut Evaluator::from_config(&start.eval_config, start.task),
     )?;
     Ok(start.finish(config, run, &q, rows))
-}
-
-/// Fine-tuning runs of one [`RunNeed::shape`] (each seed `seed`, from `w0`, as in
-/// [`fine_tune_run`]) trained as one population on `device`; results in their order.
-pub fn fine_tune_runs(
-    config: &Config,
-    out: &Path,
-    runs: &[(u64, &RunNeed, Option<&Path>)],
-    device: tch::Device,
-) -> Result<Vec<RunResult>, ReproduceError> {
-    let starts = runs
-        .iter()
-        .map(|&(seed, run, w0)| FineTuneStart::new(config, out, seed, run, w0))
-        .collect::<Result<Vec<_>, _>>()?;
-    let (starts, inits): (Vec<_>, Vec<_>) = starts.into_iter().unzip();
-    let mut evaluators: Vec<Evaluator> = starts
-        .iter()
-        .map(|start| Evaluator::from_config(&start.eval_config, start.task))
-        .collect();
-    let members = starts
-        .iter()
-        .zip(inits)
-        .zip(&mut evaluators)
-        .map(|((start, init), evaluator)| Member {
-            init,
-            data: &start.shots,
-            seed: start.seed,
-            evaluator,
-            out_dir: None,
-        })
-        .collect();
-    let (_, first, _) = runs[0];
-    tracing::debug!(members = runs.len(), shape = ?first.shape(), "fine-tuning one population");
-    let trained = fine_tune_population(members, first.loss(), &starts[0].settings(first), device)?;
-    Ok(starts
-        .into_iter()
-        .zip(trained)
-        .zip(runs)
-        .map(|((start, t), &(_, run, _))| start.finish(config, run, &t.q, t.rows))
-        .collect())
 }
 
 /// What one fine-tuning run starts from besides its init: its task, its seed's shots and the
@@ -577,7 +540,7 @@ fn dataset_cached(collection: &Config, path: &Path) -> bool {
             || checkpoint::read_meta(&agent_path(path)).is_ok())
 }
 
-/// Trains the init of `key` into `DIR/<cql-maml|dqn-maml|cql-pretrain>-tasks-N/`, unless that
+/// Trains the init of `key` into `DIR/<cql-maml|dqn-maml|cql-pretrain|..>-tasks-N/`, unless that
 /// directory holds one made with the same config; returns its checkpoint and meta-train curve
 /// (empty for a pretrained init).
 fn ensure_w0(
@@ -589,20 +552,14 @@ fn ensure_w0(
 ) -> Result<(PathBuf, MetaCurve), ReproduceError> {
     let out = init_dir(dir, key);
     let w0 = out.join("w0");
-    if key.kind == Init::Pretrain {
+    if let Init::Pretrain(_) = key.kind {
         if !saved_config_matches(&CheckpointPaths::new(&w0).config, &meta) {
             let (_, tasks) = load_tasks(&meta, datasets, seed)?;
             let q = pretrain::pretrain(&meta, &tasks, seed, OnStep::default(), |_| {
                 Ok::<_, ReproduceError>(true)
             })?
             .expect("a pretraining never told to stop finishes");
-            checkpoint::save(
-                &w0,
-                &q,
-                Method::CqlPretrain.name(),
-                meta.meta.meta_epochs,
-                &meta,
-            )
+            checkpoint::save(&w0, &q, &key.kind.name(), meta.meta.meta_epochs, &meta)
             .map_err(MetaError::from)?;
         }
         return Ok((w0, MetaCurve::default()));
@@ -647,56 +604,6 @@ fn cached_w0(meta: &Config, key: InitKey, out: &Path) -> Option<(PathBuf, MetaCu
     }
 }
 
-/// The meta-trained inits of `key` for seeds `seeds` (as [`init`] makes each), the ones not
-/// cached meta-trained as one population on `device` (`meta.population`); results in seed order.
-pub fn maml_inits(
-    config: &Config,
-    out: &Path,
-    seeds: &[u64],
-    key: InitKey,
-    eval_every: usize,
-    device: tch::Device,
-) -> Result<Vec<(PathBuf, MetaCurve)>, ReproduceError> {
-    let metas: Vec<Config> = (seeds.iter())
-        .map(|&seed| meta_config(config, key, seed, eval_every))
-        .collect();
-    let dirs: Vec<PathBuf> = (seeds.iter())
-        .map(|&seed| init_dir(&seed_dir(out, seed), key))
-        .collect();
-    let datasets: Vec<PathBuf> = (seeds.iter())
-        .map(|&seed| datasets_dir(out, seed))
-        .collect();
-    let cached: Vec<Option<(PathBuf, MetaCurve)>> = (metas.iter().zip(&dirs))
-        .map(|(meta, dir)| cached_w0(meta, key, dir))
-        .collect();
-    let missing: Vec<usize> = (0..seeds.len()).filter(|&i| cached[i].is_none()).collect();
-    let runs: Vec<MetaTrainOptions> = (missing.iter())
-        .map(|&i| MetaTrainOptions {
-            config: &metas[i],
-            datasets: &datasets[i],
-            out_dir: &dirs[i],
-            seed: seeds[i],
-            progress: false,
-            resume: false,
-            on_step: OnStep::default(),
-        })
-        .collect();
-    tracing::debug!(?key, members = runs.len(), "meta-training one population");
-    let mut trained = match runs.is_empty() {
-        true => Vec::new(),
-        false => meta_train_population(&runs, device)?,
-    }
-    .into_iter();
-    Ok(cached
-        .into_iter()
-        .map(|cached| {
-            cached.unwrap_or_else(|| {
-                let result = trained.next().expect("one result per missing init");
-                (result.w0, MetaCurve::of(&result.rows))
-            })
-        })
-        .collect())
-}
 
 /// Reads back `meta_train.csv` of `tasks` tasks (columns: meta_epoch, meta_loss, one loss, then
 /// one adapted and then one zero-shot return per task, seconds; empty returns on meta-epochs that
@@ -752,7 +659,7 @@ mod tests {
         let config = Config::default();
         let key = RunKey {
             task: "lambda-300".into(),
-            method: Method::CqlMaml,
+            method: Method::CQL_MAML,
             shots: 500,
             meta_tasks: 8,
             eval_episodes: 20,
@@ -763,7 +670,7 @@ mod tests {
         plan.run(
             &config,
             RunKey {
-                method: Method::Cql,
+                method: Method::CQL,
                 meta_tasks: 0,
                 ..key
             },
@@ -792,7 +699,7 @@ mod tests {
         let mut run = Config::default();
         crate::ReproduceConfig::default().write_into(&mut run);
         let key = InitKey {
-            kind: Init::Maml(Loss::Cql),
+            kind: W0,
             tasks: 8,
         };
         let meta = meta_config(&run, key, 1, 10);

@@ -3,7 +3,7 @@
 
 use anyhow::{Context, Result};
 use clap::Args;
-use uavmeta_actors::policy::heuristics::PolicySpec;
+use uavmeta_world::heuristics::PolicySpec;
 use uavmeta_runtime::actor::{self, ActorOptions};
 
 use super::launch::RunArgs;

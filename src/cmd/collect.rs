@@ -6,7 +6,7 @@ use anyhow::{Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use uavmeta_actors::collect::collect;
-use uavmeta_actors::policy::heuristics::PolicySpec;
+use uavmeta_world::heuristics::PolicySpec;
 
 use super::common::{ConfigArgs, TaskArgs};
 

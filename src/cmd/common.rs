@@ -9,10 +9,11 @@ use uavmeta_proto::config::{Config, RainZone, TaskConfig};
 /// `--config FILE` and any number of `--set KEY=VALUE`.
 #[derive(Args, Debug, Clone)]
 pub struct ConfigArgs {
-    /// Experiment config (TOML, SPEC section 7).
+    /// Experiment config (TOML, docs/MODEL.md section 7).
     #[arg(long, default_value = "configs/default.toml")]
     pub config: PathBuf,
-    /// Override one key, dotted as in the file: `--set world.devices=20`, `--set tasks.0.lambda=50`.
+    /// Override one key, dotted as in the file: `--set world.devices=20`, `--set
+    /// tasks.0.lambda=50`.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub overrides: Vec<String>,
 }

@@ -5,8 +5,8 @@ use std::io::{self, Write};
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use serde::Serialize;
-use uavmeta_actors::policy::heuristics::PolicySpec;
-use uavmeta_actors::rollout::{episode_worlds, evaluation_worlds, run_worlds, StepRecord};
+use uavmeta_world::heuristics::PolicySpec;
+use uavmeta_world::rollout::{episode_worlds, evaluation_worlds, run_worlds, StepRecord};
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 
 use super::common::{ConfigArgs, TaskArgs};

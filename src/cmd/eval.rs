@@ -5,9 +5,9 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use clap::Args;
-use uavmeta_actors::policy::heuristics::PolicySpec;
+use uavmeta_world::heuristics::PolicySpec;
 use uavmeta_actors::policy::q_policy::Evaluator;
-use uavmeta_actors::rollout::evaluate;
+use uavmeta_world::rollout::evaluate;
 use uavmeta_learner::checkpoint;
 use uavmeta_proto::config::{Config, TaskConfig};
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};

@@ -48,8 +48,7 @@ pub struct MetaTestArgs {
     /// Fine-tuning epochs [default: learner.epochs].
     #[arg(long)]
     epochs: Option<usize>,
-    /// Output directory: train.csv, the final checkpoint, and select.csv when
-    /// `learner.select_every` is set.
+    /// Output directory: train.csv and the final checkpoint.
     #[arg(long)]
     out: PathBuf,
     /// Seed of the shot draw and the minibatch order [default: run.seeds[0]].

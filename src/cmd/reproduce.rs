@@ -15,7 +15,8 @@ use super::common::ConfigArgs;
 
 #[derive(Args)]
 pub struct ReproduceArgs {
-    /// Experiment config (TOML, SPEC section 7); its `[reproduce]` section sizes the experiments.
+    /// Experiment config (TOML, docs/MODEL.md section 7); its `[reproduce]` section sizes the
+    /// experiments.
     #[arg(long, default_value = "configs/reproduce.toml")]
     config: PathBuf,
     /// Override one key, dotted as in the file: `--set reproduce.seeds=3`.

@@ -1,5 +1,5 @@
-//! `uavmeta train`: offline DQN or CQL on N shots of one task's dataset, evaluating the greedy
-//! policy in the task's world after every epoch.
+//! `uavmeta train`: an offline algorithm (CQL, DQN, ..) on N shots of one task's dataset,
+//! evaluating the greedy policy in the task's world after every epoch.
 
 use std::path::PathBuf;
 
@@ -11,7 +11,7 @@ use uavmeta_learner::checkpoint;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::{train, TrainOptions};
-use uavmeta_proto::config::Loss;
+use uavmeta_proto::method::Algo;
 
 use super::common::{ConfigArgs, TaskArgs};
 
@@ -21,9 +21,9 @@ pub struct TrainArgs {
     config: ConfigArgs,
     #[command(flatten)]
     task: TaskArgs,
-    /// The offline loss: cql (eq. 8) or dqn (eq. 7).
-    #[arg(long, value_parser = |s: &str| s.parse::<Loss>())]
-    algo: Loss,
+    /// The offline algorithm: cql (eq. 8), dqn (eq. 7) or any other registered one.
+    #[arg(long, value_parser = |s: &str| s.parse::<Algo>())]
+    algo: Algo,
     /// The task's dataset file.
     #[arg(long)]
     dataset: PathBuf,
@@ -36,8 +36,7 @@ pub struct TrainArgs {
     /// `random` (a network seeded by --seed) or a checkpoint to start from.
     #[arg(long, default_value = "random")]
     init: String,
-    /// Output directory: train.csv, the `final` checkpoint, and select.csv when
-    /// `learner.select_every` is set.
+    /// Output directory: train.csv and the `final` checkpoint.
     #[arg(long)]
     out: PathBuf,
     /// Seed of the random init, the shot draw and the minibatch order [default: run.seeds[0]].

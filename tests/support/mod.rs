@@ -63,10 +63,10 @@ h_power_weights = [0.25]
 /// DQN agent (a small one, for a few thousand steps), then sends a sample of its replay buffer.
 pub const DQN_RUN: &[&str] = &[
     "collect.policy=dqn-online",
-    "collect.dqn_steps=6000",
-    "collect.dqn_hidden=[64, 64]",
-    "collect.learning_starts=500",
-    "collect.eps_decay_steps=3000",
+    "collect.dqn.steps=6000",
+    "collect.dqn.hidden=[64, 64]",
+    "collect.dqn.learning_starts=500",
+    "collect.dqn.eps_decay_steps=3000",
 ];
 
 /// The one place deadlines come from: `seconds` is what a step takes on a quiet machine, with a

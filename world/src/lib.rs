@@ -1,13 +1,13 @@
 //! The world every uavmeta process and user steps, and the fixed policies that act in it; it
 //! links no libtorch, so the Python package and the tools that only simulate can use it.
 //!
-//! - [`world`]: [`world::World`], one task's environment (SPEC sections 1 and 3), built from
-//!   `uavmeta_proto::config`'s `WorldConfig` and `TaskConfig`; a step allocates nothing.
+//! - [`world`]: [`world::World`], one task's environment (docs/MODEL.md sections 1 and 3), built
+//!   from `uavmeta_proto::config`'s `WorldConfig` and `TaskConfig`; a step allocates nothing.
 //! - [`rollout`]: the [`rollout::Policy`] trait, single episodes with their
 //!   `uavmeta_proto::stats::EpisodeMetrics`, and evaluation: exact over every start cell where
 //!   the world is deterministic, Monte-Carlo over fixed episode seeds where the rain moves.
-//! - [`planner`]: the planner reference, a beam search that knows the world (SPEC section 5),
-//!   the measure of what is achievable.
+//! - [`planner`]: the planner reference, a beam search that knows the world (docs/MODEL.md section
+//!   5), the measure of what is achievable.
 //! - [`heuristics`]: random, stalest-first, greedy, epsilon-mixed and replayed policies, and the
 //!   `PolicySpec` parser behind `--policy` and `collect.policy`.
 //! - [`validate`]: whether a transition is one the world makes ([`validate::Validator`]), which

@@ -1,6 +1,6 @@
-//! The planner reference (SPEC section 5, "Planner reference"): a search that knows the world —
-//! its dynamics, its rewards and the rain zone as it will stand at every step — for the best
-//! action sequence from the episode's current state. It is not a learner: it is the measure of
+//! The planner reference (docs/MODEL.md section 5, "Planner reference"): a search that knows the
+//! world — its dynamics, its rewards and the rain zone as it will stand at every step — for the
+//! best action sequence from the episode's current state. It is not a learner: it is the measure of
 //! what is achievable, the row every method's gap is read against.
 //!
 //! **The search.** A beam search over the remaining horizon with duplicate detection. A node is
@@ -189,7 +189,7 @@ fn expand(
         let aoi = &beam.aoi[i * k..(i + 1) * k];
         for device in 0..k {
             let slot = aged.len() / k;
-            // SPEC section 1, steps 1-4 for (cell, device).
+            // docs/MODEL.md section 1, steps 1-4 for (cell, device).
             let (power_mw, outage) = world.transmission_at(cell, device, zone);
             aged.extend(aoi.iter().map(|&a| a.saturating_add(1).min(cap)));
             let vector = &mut aged[slot * k..];

@@ -1,13 +1,13 @@
 //! Running policies in the world: one episode, or an evaluation.
 //!
-//! SPEC section 5, "Evaluation": the world is deterministic given the start cell unless its rain
-//! moves, so the exact expected return of a deterministic policy under a uniform start is the
-//! mean over all L^2 start cells. [`evaluation_worlds`] therefore gives one episode per start
-//! cell on such a world (one in all if the config fixes the start), and Monte-Carlo episodes
-//! only where the rain moves: there the i-th episode of an evaluation with seed S runs in the
-//! world seeded by [`episode_seed`]`(S, i)`, so every method evaluated with the same seed meets
-//! the same start cells and rain moves. [`rollout`] always runs Monte-Carlo episodes, as
-//! `uavmeta env rollout --episodes N --seed S` asks.
+//! docs/MODEL.md section 5, "Evaluation": the world is deterministic given the start cell unless
+//! its rain moves, so the exact expected return of a deterministic policy under a uniform start is
+//! the mean over all L^2 start cells. [`evaluation_worlds`] therefore gives one episode per start
+//! cell on such a world (one in all if the config fixes the start), and Monte-Carlo episodes only
+//! where the rain moves: there the i-th episode of an evaluation with seed S runs in the world
+//! seeded by [`episode_seed`]`(S, i)`, so every method evaluated with the same seed meets the same
+//! start cells and rain moves. [`rollout`] always runs Monte-Carlo episodes, as `uavmeta env
+//! rollout --episodes N --seed S` asks.
 
 use serde::Serialize;
 use uavmeta_proto::config::{TaskConfig, WorldConfig};

@@ -1,12 +1,12 @@
-//! The UAV world of one task: SPEC section 1 (grid, devices, channel, AoI, reward) and section 3
-//! (rain zones and outages).
+//! The UAV world of one task: docs/MODEL.md section 1 (grid, devices, channel, AoI, reward) and
+//! section 3 (rain zones and outages).
 //!
 //! Everything that depends only on the UAV's cell and the scheduled device — the power the device
 //! needs, with and without rain — is computed once in [`World::new`] into per-cell tables, so a
 //! [`World::step`] is two table lookups, one pass over the K AoI counters and a move: it never
 //! allocates.
 //!
-//! Two choices SPEC leaves open are made here:
+//! Two choices the paper leaves open are made here:
 //! - `power_term = "all_devices"` charges the sum over all K devices of the power each would need
 //!   at the UAV's cell; when the UAV is in rain, every one of those powers is rain-attenuated (each
 //!   device would transmit through the same rain), while the outage is still that of the
@@ -98,8 +98,8 @@ pub struct World {
     device_cells: Vec<(u32, u32)>,
     start_cell: Option<(u32, u32)>,
     /// Milliwatts charged when device k is scheduled with the UAV above cell c, at `[c * K + k]`;
-    /// with `power_term = "all_devices"` every k of a cell holds the cell's total. Shared by clones,
-    /// so a batch of worlds of one task keeps one copy in cache.
+    /// with `power_term = "all_devices"` every k of a cell holds the cell's total. Shared by
+    /// clones, so a batch of worlds of one task keeps one copy in cache.
     clear_mw: Arc<[f64]>,
     /// As `clear_mw`, with every power rain-attenuated.
     rain_mw: Arc<[f64]>,
@@ -125,11 +125,12 @@ impl World {
             None => draw_layout(grid, k, world.layout_seed),
         };
 
-        // SPEC section 1, step 1: P = (2^(M/B) - 1) * sigma^2 / g0 * (h^2 + d^2), in watts.
+        // docs/MODEL.md section 1, step 1: P = (2^(M/B) - 1) * sigma^2 / g0 * (h^2 + d^2), in
+        // watts.
         let noise_w = 10f64.powf((world.noise_dbm - 30.0) / 10.0);
         let g0 = 10f64.powf(world.g0_db / 10.0);
         let watts_per_m2 = (2f64.powf(world.bits / world.bandwidth_hz) - 1.0) * noise_w / g0;
-        // SPEC section 3: rain multiplies the power by 10^(gamma_R * d_slant_km / 10).
+        // docs/MODEL.md section 3: rain multiplies the power by 10^(gamma_R * d_slant_km / 10).
         let gamma_r = world.rain_attenuation_db_per_km();
         let h2 = world.height_m * world.height_m;
         let cells = (grid as usize) * (grid as usize);
@@ -335,7 +336,7 @@ impl World {
         self.t = t;
     }
 
-    /// One step of SPEC section 1 with action `a = move * K + device`.
+    /// One step of docs/MODEL.md section 1 with action `a = move * K + device`.
     pub fn step(&mut self, action: usize) -> Step {
         let Some(&(mv, device)) = self.action_parts.get(action) else {
             panic!("action {action} is not below {}", self.action_count());
@@ -367,8 +368,8 @@ impl World {
         }
     }
 
-    /// Steps 3-5 of SPEC section 1 on the raw observation `obs`, the transmission's power and
-    /// outage given: ages the AoI, computes the reward, makes the move. Returns the reward and
+    /// Steps 3-5 of docs/MODEL.md section 1 on the raw observation `obs`, the transmission's power
+    /// and outage given: ages the AoI, computes the reward, makes the move. Returns the reward and
     /// the sum of the AoI after the update.
     fn advance(
         &self,

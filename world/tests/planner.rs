@@ -144,7 +144,7 @@ fn planner_beats_both_heuristics_on_the_default_world() {
         stalest.ret.mean,
         greedy.ret.mean
     );
-    // The bound of SPEC section 5: no better than round robin's AoI with every power from
+    // The bound of docs/MODEL.md section 5: no better than round robin's AoI with every power from
     // straight above.
     let bound = -(5380.0 + 0.31 * task.lambda);
     assert!(

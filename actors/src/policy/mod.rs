@@ -1,16 +1,13 @@
-//! The behaviour policies an actor can run: fixed heuristics, a Q-network's greedy policy, and the
-//! online DQN agent whose replay buffer becomes the paper's datasets.
+//! The behaviour policies an actor can run beyond `uavmeta_world`'s heuristics: a Q-network's
+//! greedy policy, and the online DQN agent whose replay buffer becomes the paper's datasets.
 
 pub mod dqn_online;
-pub mod dqn_population;
 pub mod q_policy;
 
 use uavmeta_learner::checkpoint;
 use uavmeta_proto::config::Config;
 
-pub use uavmeta_world::heuristics;
-
-use heuristics::{EpsilonPolicy, PolicyError, PolicySpec};
+use uavmeta_world::heuristics::{EpsilonPolicy, PolicyError, PolicySpec};
 use q_policy::QPolicy;
 use uavmeta_world::rollout::Policy;
 

@@ -1,14 +1,14 @@
 //! A Q-network acting in the world: its greedy policy, and the evaluator that scores it on the true
-//! environment for `uavmeta_learner::train` (SPEC section 5, "Evaluation").
+//! environment for `uavmeta_learner::train` (docs/MODEL.md section 5, "Evaluation").
 //!
-//! The evaluator runs the same episodes as [`crate::rollout::evaluate`] with a [`QPolicy`] (every
-//! start cell of a deterministic world, Monte-Carlo episodes where the rain moves), but steps all
-//! of them in lockstep (every episode lasts the horizon) so that each step is one forward pass
-//! over an `[episodes, D]` batch rather than `episodes` passes over one row. Where the world is
-//! deterministic its state is the observation, so an episode that comes to a state some episode
+//! The evaluator runs the same episodes as [`uavmeta_world::rollout::evaluate`] with a [`QPolicy`]
+//! (every start cell of a deterministic world, Monte-Carlo episodes where the rain moves), but
+//! steps all of them in lockstep (every episode lasts the horizon) so that each step is one forward
+//! pass over an `[episodes, D]` batch rather than `episodes` passes over one row. Where the world
+//! is deterministic its state is the observation, so an episode that comes to a state some episode
 //! stood in before (another start cell's path, or its own lap) takes that episode's steps from
-//! there on (`Paths`): the batch holds one row per state not seen yet, and a trained policy,
-//! whose paths join its lap within a few steps, needs a small part of the rows (SPEC section 5's
+//! there on (`Paths`): the batch holds one row per state not seen yet, and a trained policy, whose
+//! paths join its lap within a few steps, needs a small part of the rows (docs/MODEL.md section 5's
 //! exact evaluation, unchanged: each start cell keeps its own return, AoI, power and outages).
 
 use std::borrow::Borrow;
@@ -20,8 +20,8 @@ use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_proto::config::{Config, TaskConfig, WorldConfig};
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 
-use crate::rollout::{evaluation_worlds, EpisodeTally, Policy};
-use crate::world::{Step, World};
+use uavmeta_world::rollout::{evaluation_worlds, EpisodeTally, Policy};
+use uavmeta_world::world::{Step, World};
 
 /// `argmax_a Q(s, a)` on the normalised observation, of a network borrowed (`&QNetwork`) or owned.
 pub struct QPolicy<Q: Borrow<QNetwork>> {
@@ -49,7 +49,7 @@ impl<Q: Borrow<QNetwork>> Policy for QPolicy<Q> {
 pub type StartEpisodes = Vec<((u16, u16), EpisodeMetrics)>;
 
 /// Evaluation of greedy Q-policies on one task, always over the same episodes
-/// ([`crate::rollout::evaluation_worlds`]).
+/// ([`uavmeta_world::rollout::evaluation_worlds`]).
 #[derive(Debug, Clone)]
 pub struct Evaluator {
     world: WorldConfig,
@@ -68,7 +68,8 @@ impl Evaluator {
         }
     }
 
-    /// The evaluator a config asks for: `learner.eval_episodes` episodes seeded `learner.eval_seed`.
+    /// The evaluator a config asks for: `learner.eval_episodes` episodes seeded
+    /// `learner.eval_seed`.
     pub fn from_config(config: &Config, task: &TaskConfig) -> Self {
         Self::new(
             &config.world,
@@ -208,11 +209,6 @@ impl EvaluatePolicy for Evaluator {
         let episodes: Vec<EpisodeMetrics> = self.episodes(q).into_iter().map(|(_, m)| m).collect();
         PolicyMetrics::from_episodes(&episodes)
     }
-
-    /// The same scoring: it has no effect beyond its result.
-    fn measure(&mut self, q: &QNetwork) -> Option<PolicyMetrics> {
-        Some(self.evaluate(q))
-    }
 }
 
 #[cfg(test)]
@@ -220,8 +216,8 @@ mod tests {
     use uavmeta_proto::config::{Config, RainZone};
 
     use super::*;
-    use crate::rollout::{evaluate, evaluate_episodes};
-    use crate::world::Move;
+    use uavmeta_world::rollout::{evaluate, evaluate_episodes};
+    use uavmeta_world::world::Move;
     use uavmeta_learner::qnet::QNetworkConfig;
 
     fn assert_metrics_close(batched: &PolicyMetrics, single: &PolicyMetrics) {
@@ -302,7 +298,8 @@ mod tests {
                 let _ = p.shallow_clone().zero_();
             }
             for i in 0..k as i64 {
-                // Hidden units i of both layers carry A_i / aoi_max (input 2 + i) through the ReLUs.
+                // Hidden units i of both layers carry A_i / aoi_max (input 2 + i) through the
+                // ReLUs.
                 let _ = params[0].get(i).get(2 + i).fill_(1.0);
                 let _ = params[2].get(i).get(i).fill_(1.0);
                 let _ = params[4].get(west as i64 + i).get(i).fill_(1.0);

@@ -1,16 +1,16 @@
-//! `[learner]`: SPEC section 5's Q-network and the DQN / CQL settings every method shares. Read by
-//! `uavmeta_learner` (offline training and fine-tuning) and by the evaluators (`eval_episodes`,
-//! `eval_seed`).
-
-use std::fmt;
+//! `[learner]`: docs/MODEL.md section 5's Q-network and the DQN / CQL settings every method shares.
+//! Read by `uavmeta_learner` (offline training and fine-tuning) and by the evaluators
+//! (`eval_episodes`, `eval_seed`).
 
 use garde::Validate;
 use serde::{Deserialize, Serialize};
 use smart_default::SmartDefault;
 
-use super::rules::{at_least, finite, positive, toml_seed, widths, within, Broken};
+use super::rules::{at_least, finite, positive, toml_seed, widths, within};
+use crate::method::Algo;
 
-/// SPEC section 5: the Q-network and the DQN / CQL training settings shared by every method.
+/// docs/MODEL.md section 5: the Q-network and the DQN / CQL training settings shared by every
+/// method.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, SmartDefault, Validate)]
 #[serde(deny_unknown_fields, default)]
 #[garde(allow_unvalidated)]
@@ -35,6 +35,11 @@ pub struct LearnerConfig {
     #[default(1.0)]
     #[garde(custom(finite(0.0.., "a finite number >= 0")))]
     pub alpha: f64,
+    /// Offline algorithms a launch and the reproduction fine-tune on each unseen task beside
+    /// `meta.inner_loss`, each from w0 and from a random init (`<algo>-w0`, `<algo>`); by default
+    /// every algorithm registered as a baseline (`uavmeta_proto::method::ALGORITHMS`).
+    #[default(Algo::baselines())]
+    pub baselines: Vec<Algo>,
     /// Minibatch size.
     #[default(64)]
     #[garde(custom(at_least(1)))]
@@ -80,60 +85,11 @@ pub struct LearnerConfig {
     /// through), over about the last 1 / (1 - decay) epochs, bias-corrected so the init has no
     /// weight (`learner/src/train.rs`, `Average`). Evaluations, the returned network and the
     /// `final` checkpoint are the average; the gradient steps keep training Q itself. 0 = off
-    /// (SPEC): the last epoch's network, whose return moves by up to several percent between
+    /// (the default): the last epoch's network, whose return moves by up to several percent between
     /// epochs on 500 shots (docs/EXPERIMENTS.md, B3).
     #[default(0.0)]
     #[garde(custom(within(0.0..1.0, "a decay in [0, 1): 0 = no averaging")))]
     pub average_decay: f64,
-    /// L2-SP (Li, Grandvalet & Davoine 2018): `init_penalty / 2 * ||w - w_init||^2` added to the
-    /// loss of every offline training and fine-tuning run (`uavmeta train`, meta-test, a
-    /// launch's fine-tunings; not multi-task pretraining), `w_init` the run's init, so where the
-    /// shots are silent the network stays near it. 0 = off (SPEC): 0.03 fixed CQL-pretrain's late
-    /// drift on lambda-300 and nothing on held-out tasks (docs/EXPERIMENTS.md, D5).
-    #[default(0.0)]
-    #[garde(custom(finite(0.0.., "a finite number >= 0 (0 = off)")))]
-    pub init_penalty: f64,
-    /// Offline selection of the published network by fitted Q evaluation on the shots
-    /// (`learner/src/fqe.rs`): at the start, every this many epochs and at the last epoch the
-    /// network a run would publish is scored by FQE, and from then on the run publishes the
-    /// best-scoring one so far, the init included (its rows' returns and its `final` checkpoint
-    /// are that network's). The scores go to `select.csv` beside the measured return of each
-    /// candidate. 0 = off (SPEC): on 500 shots FQE does not rank this world's policies (Kendall
-    /// tau 0.04 among fine-tuned epochs): it catches a drift of 20% and more, and costs as much
-    /// elsewhere (docs/EXPERIMENTS.md, D4).
-    #[default(0)]
-    pub select_every: usize,
-    /// Gradient steps of each FQE estimate (`learner.select_every`). More is not better on 500
-    /// shots: at 10 000 the fit diverges (docs/EXPERIMENTS.md, D4).
-    #[default(3000)]
-    #[garde(custom(at_least(1)))]
-    pub fqe_steps: usize,
-    /// Gradient steps between FQE's hard target updates: a backup every this many steps, so
-    /// `fqe_steps / fqe_target_update_every` backups reach that many steps into the future.
-    #[default(10)]
-    #[garde(custom(at_least(1)))]
-    pub fqe_target_update_every: usize,
-    /// Adam learning rate of FQE's fit, its own so that a run's rate does not change its judge.
-    #[default(1e-3)]
-    #[garde(custom(positive("a learning rate > 0")))]
-    pub fqe_lr: f64,
-    /// Conservative weight of FQE's own fit (eq. 8's term on `F`): pushes `F` down on actions the
-    /// shots never took, so a policy that leaves the data is not valued by extrapolation. Plain
-    /// FQE (0) valued inits that leave the data far above what they return and chose worse than
-    /// the last epoch on 12 of 20 runs (4 of 6 with these backups); with 1, 9 better and 6 worse
-    /// (docs/EXPERIMENTS.md, D4).
-    #[default(1.0)]
-    #[garde(custom(finite(0.0.., "a finite number >= 0")))]
-    pub fqe_alpha: f64,
-    /// Where a command fine-tunes several runs of one shape (the fine-tuning runs of
-    /// `uavmeta reproduce`'s figures, the methods the launch's meta-learner fine-tunes on a task),
-    /// up to this many train as one population: stacked networks updated as one computation
-    /// (`learner::train_population`). A population of one is the single run bit for bit; larger
-    /// ones give each member its separate run up to float rounding. 1 is the fastest on CPU
-    /// (docs/BENCHMARKS.md, "Populations"); stacking is for accelerators (`run.device`).
-    #[default(1)]
-    #[garde(custom(at_least(1)))]
-    pub population: usize,
     /// Monte-Carlo episodes of each evaluation of a greedy policy.
     #[default(20)]
     pub eval_episodes: usize,
@@ -141,64 +97,4 @@ pub struct LearnerConfig {
     #[default(12345)]
     #[garde(custom(toml_seed()))]
     pub eval_seed: u64,
-}
-
-/// A Q-learning loss: MAML's inner loss (`meta.inner_loss`), offline training's (`uavmeta train
-/// --algo`) and each fine-tuned method's.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Loss {
-    /// Paper eq. 8.
-    Cql,
-    /// Paper eq. 7 on a fixed dataset: the baseline that overestimates.
-    Dqn,
-}
-
-impl LearnerConfig {
-    /// The selection by FQE and the init penalty run in single runs only: a population's
-    /// lockstep has neither.
-    pub(super) fn check_single_run_keys(&self) -> Result<(), Broken> {
-        if self.population == 1 {
-            return Ok(());
-        }
-        let expected = format!(
-            "0 while learner.population = {} (single runs only: set learner.population = 1)",
-            self.population
-        );
-        if self.select_every != 0 {
-            return Err(Broken::new(
-                "learner.select_every",
-                &self.select_every,
-                expected,
-            ));
-        }
-        if self.init_penalty != 0.0 {
-            return Err(Broken::new(
-                "learner.init_penalty",
-                &self.init_penalty,
-                expected,
-            ));
-        }
-        Ok(())
-    }
-}
-
-impl fmt::Display for Loss {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(match self {
-            Loss::Cql => "cql",
-            Loss::Dqn => "dqn",
-        })
-    }
-}
-
-impl std::str::FromStr for Loss {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "cql" => Ok(Loss::Cql),
-            "dqn" => Ok(Loss::Dqn),
-            _ => Err(format!("`{s}`: expected `cql` or `dqn`")),
-        }
-    }
 }

@@ -1,4 +1,4 @@
-//! `[meta]`: SPEC section 5's MAML over CQL (Algorithm 4). Read by `uavmeta_meta` (`maml`,
+//! `[meta]`: docs/MODEL.md section 5's MAML over CQL (Algorithm 4). Read by `uavmeta_meta` (`maml`,
 //! `meta_train`, `pretrain`).
 
 use std::ops::Bound::Excluded;
@@ -8,9 +8,9 @@ use serde::{Deserialize, Serialize};
 use smart_default::SmartDefault;
 
 use super::rules::{at_least, finite, positive, within};
-use super::Loss;
+use crate::method::Algo;
 
-/// SPEC section 5: MAML over CQL (Algorithm 4).
+/// docs/MODEL.md section 5: MAML over CQL (Algorithm 4).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, SmartDefault, Validate)]
 #[serde(deny_unknown_fields, default)]
 #[garde(allow_unvalidated)]
@@ -20,7 +20,7 @@ pub struct MetaConfig {
     pub meta_epochs: usize,
     /// Outer (eq. 16) steps per meta-epoch; 0 = one pass over the tasks' support sets, i.e.
     /// ceil(support shots / `shots`) steps, each task's support shots drawn without replacement
-    /// within the pass (SPEC section 5, "Epochs"). 1 = Algorithm 4 read literally.
+    /// within the pass (docs/MODEL.md section 5, "Epochs"). 1 = Algorithm 4 read literally.
     #[default(0)]
     pub outer_steps_per_meta_epoch: usize,
     /// Tasks sampled per meta-epoch; 0 means every meta-train task.
@@ -30,7 +30,7 @@ pub struct MetaConfig {
     /// same k, as in MAML.
     #[default(64)]
     #[garde(custom(at_least(1)))]
-    pub shots: usize,
+    pub support_shots: usize,
     /// Transitions of a task's query set per meta-loss evaluation.
     #[default(64)]
     #[garde(custom(at_least(1)))]
@@ -49,11 +49,6 @@ pub struct MetaConfig {
     #[default(1e-3)]
     #[garde(custom(positive("a learning rate > 0")))]
     pub eta_outer: f64,
-    /// Eq. 16's step size falls linearly over the meta-epochs, from `eta_outer` in the first to
-    /// `eta_outer * eta_outer_final_fraction` in the last; 1 keeps it constant.
-    #[default(1.0)]
-    #[garde(custom(within(0.0..=1.0, "a fraction in [0, 1] (1 = a constant step size)")))]
-    pub eta_outer_final_fraction: f64,
     /// First-order MAML: do not differentiate through the inner steps.
     #[default(false)]
     pub first_order: bool,
@@ -62,12 +57,13 @@ pub struct MetaConfig {
     /// `eta_inner`.
     #[default(false)]
     pub learn_inner_lr: bool,
-    /// CQL-MAML (the paper's method) or DQN-MAML (its baseline).
-    #[default(Loss::Cql)]
-    pub inner_loss: Loss,
+    /// The algorithm of MAML's inner and outer losses and of pretraining: `cql` (CQL-MAML, the
+    /// paper's method), `dqn` (DQN-MAML, its ablation) or any registered one.
+    #[default(Algo::CQL)]
+    pub inner_loss: Algo,
     /// Eq. 8's conservative weight alpha in MAML's losses (eqs. 14-15) and in CQL-pretrain's
     /// multi-task training, the two inits; `learner.alpha` is the weight of the offline training
-    /// and fine-tuning on a task's shots. SPEC's alpha = 1 for both.
+    /// and fine-tuning on a task's shots. The paper's alpha = 1 for both.
     #[default(1.0)]
     #[garde(custom(finite(0.0.., "a finite number >= 0")))]
     pub alpha: f64,
@@ -95,7 +91,7 @@ pub struct MetaConfig {
     /// up to 2.4k between neighbouring meta-epochs (docs/EXPERIMENTS.md, C7).
     #[default(0.0)]
     #[garde(custom(within(0.0..1.0, "a decay in [0, 1): 0 = no averaging")))]
-    pub w0_average_decay: f64,
+    pub average_decay: f64,
     /// beta: the meta-loss adds `beta * L(w0; query shots)` per task to eq. 15's
     /// `L(w_i; query shots)`, the loss of w0 before any inner step (the step-0 term of MAML++'s
     /// multi-step loss, Antoniou et al. 2019). Eq. 15 alone never asks w0's own greedy policy to
@@ -110,13 +106,4 @@ pub struct MetaConfig {
     #[default(1)]
     #[garde(custom(within(1.., "at least 1 adaptation per evaluation")))]
     pub eval_adaptations: usize,
-    /// Where a command meta-trains several inits of one shape (`uavmeta reproduce`'s seeds of
-    /// one init), up to this many run as one population: stacked networks, every outer step one
-    /// computation for all of them (`meta::maml_population`). A population of one is the single
-    /// meta-training bit for bit; larger ones give each member its separate run up to float
-    /// rounding. 1 is the fastest on CPU (docs/BENCHMARKS.md, "Populations"); stacking is for
-    /// accelerators (`run.device`).
-    #[default(1)]
-    #[garde(custom(at_least(1)))]
-    pub population: usize,
 }

@@ -1,4 +1,5 @@
-//! Experiment configuration: SPEC section 7's TOML layout with every default of SPEC sections 1-5.
+//! Experiment configuration: docs/MODEL.md section 7's TOML layout with every default of
+//! docs/MODEL.md sections 1-5.
 //!
 //! A file names only what it changes; [`Config::load`] reads it, applies `--set KEY=VALUE`
 //! overrides, and validates the result. Every error names the file (or the override), the key, the
@@ -19,6 +20,7 @@ use smart_default::SmartDefault;
 mod collect;
 mod learner;
 mod meta;
+mod moved;
 mod planner;
 pub mod rules;
 mod run;
@@ -27,9 +29,10 @@ mod task;
 mod tunnel;
 mod world;
 
-pub use collect::CollectConfig;
-pub use learner::{LearnerConfig, Loss};
+pub use collect::{CollectConfig, OnlineDqnConfig};
+pub use learner::LearnerConfig;
 pub use meta::MetaConfig;
+pub use moved::{Fate, MOVED};
 pub use planner::PlannerConfig;
 pub use run::{RunConfig, MAX_BATCH_SIZE, MAX_DOMAIN_LEN, MAX_SUBSCRIBER_BUFFER};
 pub use section::{OwnedSection, Section};
@@ -56,6 +59,12 @@ pub enum ConfigError {
         key: String,
         value: String,
         expected: String,
+    },
+    #[error("{origin}: key `{key}` {fate}")]
+    Moved {
+        origin: String,
+        key: String,
+        fate: Fate,
     },
     #[error("{origin}: no task named `{name}`; the config defines: {known}")]
     UnknownTask {
@@ -151,6 +160,7 @@ impl Config {
         } else {
             format!("{source} (with --set {})", overrides.join(" --set "))
         };
+        moved::check(&doc, &source_desc)?;
         let mut config: Config = toml::from_str(&doc.to_string()).map_err(|e| {
             let mut message = e.to_string().trim_end().to_string();
             if !overrides.is_empty() {
@@ -224,8 +234,6 @@ impl Config {
         garde::Validate::validate(self).map_err(first_broken)?;
         self.world.check_layout()?;
         self.check_tasks()?;
-        self.collect.check_n_step(self.world.horizon)?;
-        self.learner.check_single_run_keys()?;
         self.tunnel.check_hosts()?;
         self.tunnel.check_security()?;
         self.check_limits()?;

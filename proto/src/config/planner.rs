@@ -1,4 +1,4 @@
-//! `[planner]`: the planner reference's beam search (SPEC section 5). Read by
+//! `[planner]`: the planner reference's beam search (docs/MODEL.md section 5). Read by
 //! `uavmeta_world::planner`.
 
 use garde::Validate;
@@ -8,8 +8,8 @@ use smart_default::SmartDefault;
 use super::rules::{is_weight, list_of, within, Broken};
 use super::WorldConfig;
 
-/// The planner reference (SPEC section 5, `uavmeta_world::planner`): a beam search over the
-/// horizon that knows the world, the row every method's gap to "achievable" is read against.
+/// The planner reference (docs/MODEL.md section 5, `uavmeta_world::planner`): a beam search over
+/// the horizon that knows the world, the row every method's gap to "achievable" is read against.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, SmartDefault, Validate)]
 #[serde(deny_unknown_fields, default)]
 #[garde(allow_unvalidated)]

@@ -1,6 +1,6 @@
-//! `[run]`: where a run writes, its seeds, metrics endpoints, iceoryx2 capacities and libtorch
-//! device. Read by `uavmeta_runtime`: its transport, its start-up, the launcher
-//! (`uavmeta_runtime::launch`) and every process it starts.
+//! `[run]`: where a run writes, its seeds, metrics endpoints and iceoryx2 capacities. Read by
+//! `uavmeta_runtime`: its transport, its start-up, the launcher (`uavmeta_runtime::launch`) and
+//! every process it starts.
 
 use std::path::PathBuf;
 
@@ -59,10 +59,10 @@ pub struct RunConfig {
     /// Restarts of a crashed or hung child before the launcher gives up.
     #[default(5)]
     pub max_restarts: u32,
-    /// A launched child whose heartbeat (`uavmeta_runtime::liveness::heartbeat`) has not moved for this many
-    /// seconds is taken for hung (stopped, deadlocked, livelocked), killed and restarted like a
-    /// crashed one; 0 = never. Every process beats at least every few seconds on this machine
-    /// under load, so the default leaves a wide margin.
+    /// A launched child whose heartbeat (`uavmeta_runtime::liveness::heartbeat`) has not moved for
+    /// this many seconds is taken for hung (stopped, deadlocked, livelocked), killed and restarted
+    /// like a crashed one; 0 = never. Every process beats at least every few seconds on this
+    /// machine under load, so the default leaves a wide margin.
     #[default(60.0)]
     #[garde(custom(finite(0.0.., "seconds >= 0 (0 = never)")))]
     pub hang_timeout_seconds: f64,
@@ -81,12 +81,6 @@ pub struct RunConfig {
         format!("at most {MAX_DOMAIN_LEN} letters, digits, '-' or '_' (empty = default)")
     )))]
     pub domain: String,
-    /// The libtorch device populations of learners are made on: `cpu`, `cuda` or `cuda:N`.
-    /// Asking for CUDA where libtorch sees no GPU is an error when the population is made. The
-    /// CUDA path is device placement only and untested here (no GPU on the project's machines).
-    #[default("cpu")]
-    #[garde(custom(satisfies(is_torch_device, "cpu, cuda or cuda:N")))]
-    pub device: String,
 }
 
 /// A `run.domain`: at most [`MAX_DOMAIN_LEN`] letters, digits, '-' or '_'.
@@ -95,10 +89,4 @@ fn is_domain(domain: &str) -> bool {
         && domain
             .chars()
             .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
-}
-
-/// A libtorch device: `cpu`, `cuda` or `cuda:N`.
-fn is_torch_device(device: &str) -> bool {
-    let index = device.strip_prefix("cuda:").map(str::parse::<usize>);
-    device == "cpu" || device == "cuda" || matches!(index, Some(Ok(_)))
 }

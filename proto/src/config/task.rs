@@ -1,5 +1,6 @@
-//! `[[tasks]]`: SPEC sections 2-3's tasks, each the world with its lambda and optional rain. Read
-//! by `uavmeta_world` (a world is built for one task) and by every stage that names tasks.
+//! `[[tasks]]`: docs/MODEL.md sections 2-3's tasks, each the world with its lambda and optional
+//! rain. Read by `uavmeta_world` (a world is built for one task) and by every stage that names
+//! tasks.
 
 use std::str::FromStr;
 
@@ -49,7 +50,7 @@ pub enum TaskRole {
     MetaTest,
 }
 
-/// SPEC sections 2-3: one task is the world with its lambda and optional rain.
+/// docs/MODEL.md sections 2-3: one task is the world with its lambda and optional rain.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Validate)]
 #[serde(deny_unknown_fields)]
 #[garde(allow_unvalidated)]
@@ -95,7 +96,8 @@ impl TaskConfig {
     }
 }
 
-/// The paper's setting (SPEC section 2): meta-train on eight lambdas, meta-test on lambda = 300.
+/// The paper's setting (docs/MODEL.md section 2): meta-train on eight lambdas, meta-test on lambda
+/// = 300.
 pub(super) fn default_tasks() -> Vec<TaskConfig> {
     let mut tasks: Vec<TaskConfig> = [0.0, 100.0, 200.0, 400.0, 500.0, 600.0, 800.0, 1000.0]
         .into_iter()

@@ -1,6 +1,6 @@
-//! `[world]`: SPEC section 1's grid, devices, UAV, channel and rain model. Read by `uavmeta_world`
-//! (the environment, its heuristics and planner), and for the sizes of observations and actions by
-//! every crate that holds a network or a dataset.
+//! `[world]`: docs/MODEL.md section 1's grid, devices, UAV, channel and rain model. Read by
+//! `uavmeta_world` (the environment, its heuristics and planner), and for the sizes of observations
+//! and actions by every crate that holds a network or a dataset.
 
 use garde::Validate;
 use serde::{Deserialize, Serialize};
@@ -12,7 +12,7 @@ use super::rules::{at_least, at_most, finite, is_weight, satisfies, toml_seed, w
 /// `proto::transport` stores observations in fixed-size arrays of `2 + MAX_DEVICES` entries.
 pub const MAX_DEVICES: usize = 64;
 
-/// SPEC section 1's moves by name, in action-index order: action `a = move * K + device`.
+/// docs/MODEL.md section 1's moves by name, in action-index order: action `a = move * K + device`.
 /// Exports and `uavmeta dataset inspect` name actions with them; `actors::world::Move` is the
 /// world's own enum in the same order.
 pub const MOVES: [&str; 5] = ["north", "south", "east", "west", "hover"];
@@ -20,7 +20,7 @@ pub const MOVES: [&str; 5] = ["north", "south", "east", "west", "hover"];
 /// The largest grid side: the world precomputes a power table of grid_cells^2 x K entries.
 pub const MAX_GRID_CELLS: u32 = 1024;
 
-/// SPEC section 1: the grid, the devices, the UAV, the channel and the rain model.
+/// docs/MODEL.md section 1: the grid, the devices, the UAV, the channel and the rain model.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, SmartDefault, Validate)]
 #[serde(deny_unknown_fields, default)]
 #[garde(allow_unvalidated)]

@@ -9,7 +9,7 @@ const PAPER_FIG8: [(&str, f64, f64); 3] = [
     ("CQL", 28.0, 6.0),
 ];
 
-/// The noise power of the paper's milliwatt figures (SPEC section 1).
+/// The noise power of the paper's milliwatt figures (docs/MODEL.md section 1).
 const PAPER_NOISE_DBM: f64 = -90.0;
 
 /// (name, AoI, power) of a method over seeds.
@@ -27,14 +27,14 @@ pub(super) fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, ReproduceE
             .collect()
     };
     let learned = [
-        ("CQL-MAML", at_epoch(Method::CqlMaml)),
+        ("CQL-MAML", at_epoch(Method::CQL_MAML)),
         (
             "online DQN",
             ctx.online(&r.unseen_task, c.learner.eval_episodes),
         ),
-        ("CQL", at_epoch(Method::Cql)),
+        ("CQL", at_epoch(Method::CQL)),
         // Not in the paper: after its three, with no paper figures beside it.
-        ("CQL-pretrain", at_epoch(Method::CqlPretrain)),
+        ("CQL-pretrain", at_epoch(Method::CQL_PRETRAIN)),
     ];
     let heuristics = &ctx
         .heuristics(&r.unseen_task, c.learner.eval_episodes)
@@ -144,7 +144,7 @@ fn summary_table(
     let mut body = format!(
         "AoI and power of the greedy policies on `{}` after {} fine-tuning epochs on {} shots, {}. \
          Power scales with the noise power: our world uses noise_dbm = {}, the paper's milliwatts \
-         correspond to {PAPER_NOISE_DBM} dBm (SPEC section 1), so its figures are {paper_scale:.3}x ours \
+         correspond to {PAPER_NOISE_DBM} dBm (docs/MODEL.md section 1), so its figures are {paper_scale:.3}x ours \
          for the same policy; the chart and table show them rescaled to our noise floor.\n\n\
          | method | AoI | paper AoI | power (mW) | paper power, rescaled (mW) |\n| --- | --- | --- | --- | --- |\n",
         r.unseen_task,

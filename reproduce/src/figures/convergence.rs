@@ -24,11 +24,11 @@ pub(super) fn convergence(ctx: &Context, dir: &Path) -> Result<Section, Reproduc
     let r = ctx.reproduce;
     let refs = ctx.unseen_refs();
     let mut csv = format!("method,{CURVE_COLUMNS}\n");
-    let runs: Vec<(Method, Vec<Vec<f64>>)> = Method::FINE_TUNED
+    let runs: Vec<(Method, Vec<Vec<f64>>)> = fine_tuned(c)
         .into_iter()
         .map(|method| {
             let key = unseen_key(c, r, method, r.main_shots, r.meta_tasks);
-            let curves = ctx.curves(&mut csv, method.name(), &key, r.convergence_epochs);
+            let curves = ctx.curves(&mut csv, &method.name(), &key, r.convergence_epochs);
             (method, curves)
         })
         .collect();
@@ -51,9 +51,9 @@ pub(super) fn convergence(ctx: &Context, dir: &Path) -> Result<Section, Reproduc
 
     let body = summary_table(ctx, &runs, &refs);
     let runs_of = |m: Method| &runs.iter().find(|(x, _)| *x == m).expect("all methods").1;
-    let (maml, cql) = (runs_of(Method::CqlMaml), runs_of(Method::Cql));
+    let (maml, cql) = (runs_of(Method::CQL_MAML), runs_of(Method::CQL));
     let mut found = vec![
-        dqn_claim(runs_of(Method::Dqn), runs_of(Method::DqnMaml), &refs),
+        dqn_claim(runs_of(Method::DQN), runs_of(Method::DQN_MAML), &refs),
         cql_claim(cql, &refs, r.convergence_epochs),
         maml_claim(maml, &refs),
         online_claim(maml, cql, &refs),
@@ -119,7 +119,7 @@ fn dqn_claim(dqn: &[Vec<f64>], dqn_maml: &[Vec<f64>], refs: &Refs) -> Claim {
         .iter()
         .filter(|r| converged_at(r, refs.random).is_none())
         .count();
-    let measured = [(Method::Dqn, dqn), (Method::DqnMaml, dqn_maml)]
+    let measured = [(Method::DQN, dqn), (Method::DQN_MAML, dqn_maml)]
         .iter()
         .map(|&(m, runs)| {
             let (_, cell) = convergence_cells(runs, refs.random);

@@ -9,7 +9,7 @@ use uavmeta_meta::meta_train::Evaluation;
 pub(super) fn meta_training(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let r = ctx.reproduce;
     let key = InitKey {
-        kind: Init::Maml(Loss::Cql),
+        kind: W0,
         tasks: r.meta_tasks,
     };
     let tasks: Vec<&TaskConfig> = crate::runs::meta_train_tasks(ctx.config, r.meta_tasks).collect();
@@ -161,7 +161,7 @@ fn summary(
     let mut body = format!(
         "CQL-MAML meta-trained on the first {} meta-train tasks for {} meta-epochs, {}; every {} \
          meta-epochs each task's greedy return over {episodes} episodes, after adaptation (eq. 14, \
-         the mean of {} adaptations on fresh support shots) and with none (w0 zero-shot). SPEC \
+         the mean of {} adaptations on fresh support shots) and with none (w0 zero-shot). docs/MODEL.md \
          section 6 states no claim for this figure.\n\n",
         r.meta_tasks,
         ctx.config.meta.meta_epochs,

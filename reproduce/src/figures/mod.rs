@@ -1,25 +1,25 @@
 //! Per experiment: its CSV files (one row per method, seed and epoch, raw returns), its PNG charts
 //! (returns / 100, the paper's scale, mean over seeds with a 95% band) and the markdown body of
-//! its `summary.md`, ending with the claims of SPEC section 6 it tests. One file per figure; this
-//! module holds what they share: the context they read, the reference lines and the chart and
-//! CSV helpers.
+//! its `summary.md`, ending with the claims of docs/MODEL.md section 6 it tests. One file per
+//! figure; this module holds what they share: the context they read, the reference lines and the
+//! chart and CSV helpers.
 
 use std::fmt::Write as _;
 use std::path::Path;
 
-use uavmeta_actors::world::World;
+use uavmeta_world::world::World;
 use uavmeta_learner::train::EpochRow;
 use uavmeta_plot::{self as plot, Band, Bar, LineChart, Reference, Series, TrajectoryChart};
-use uavmeta_proto::config::{Config, Loss, RainZone, TaskConfig};
+use uavmeta_proto::config::{Config, RainZone, TaskConfig};
 use uavmeta_proto::stats::{Estimate, PolicyMetrics};
 
 use crate::claims::{
     self, converged_at, final_return, mean_swing, return_at, settle_epoch, Claim, Verdict,
 };
-use crate::runs::{InitKey, MetaCurve, RunKey, SeedResult};
+use crate::runs::{Init, InitKey, MetaCurve, RunKey, SeedResult, W0};
 use crate::{agent_tasks, rain_tasks, Experiment, HeuristicRef, ReproduceConfig};
 use uavmeta_meta::write_file;
-use uavmeta_proto::method::{Init, Method};
+use uavmeta_proto::method::{Algo, Method, Start};
 
 use crate::ReproduceError;
 
@@ -34,6 +34,36 @@ mod tasks;
 /// The paper reads convergence off at epoch 40 (CQL-MAML) and 100 (CQL); figure 9 at 100 and 200.
 const EPOCH_40: usize = 40;
 const EPOCH_100: usize = 100;
+
+/// The CQL fine-tunings from the three inits: what figures 8 and 9 compare.
+pub const CQL_INITS: [Method; 3] = [Method::CQL_MAML, Method::CQL_PRETRAIN, Method::CQL];
+
+/// [`CQL_INITS`], then each of `learner.baselines` from w0 and from a random init: what figure
+/// 6 (shots) compares.
+pub fn compared(config: &Config) -> Vec<Method> {
+    let mut methods = CQL_INITS.to_vec();
+    add_baselines(config, &mut methods);
+    methods
+}
+
+/// Figure 5's methods: [`CQL_INITS`], the DQN ablation (DQN, DQN-MAML), then the baselines.
+pub fn fine_tuned(config: &Config) -> Vec<Method> {
+    let mut methods = CQL_INITS.to_vec();
+    methods.extend([Method::DQN, Method::DQN_MAML]);
+    add_baselines(config, &mut methods);
+    methods
+}
+
+/// Each of `learner.baselines` from w0 and from a random init, after `methods`.
+fn add_baselines(config: &Config, methods: &mut Vec<Method>) {
+    for &algo in &config.learner.baselines {
+        for method in [Method::tuned(algo, Start::W0), Method::tuned(algo, Start::Random)] {
+            if !methods.contains(&method) && algo != Algo::CQL {
+                methods.push(method);
+            }
+        }
+    }
+}
 
 /// What every experiment reads.
 pub struct Context<'a> {
@@ -63,7 +93,7 @@ pub fn unseen_key(
         task: r.unseen_task.clone(),
         method,
         shots,
-        meta_tasks: if method.init().is_some() {
+        meta_tasks: if Init::of(method).is_some() {
             meta_tasks
         } else {
             0
@@ -189,7 +219,7 @@ impl Refs {
             random: mean_over("random"),
             heuristics: names.into_iter().map(|n| (n, mean_over(n))).collect(),
             exploratory: exploratory_share(config),
-            eps_start: config.collect.eps_start,
+            eps_start: config.collect.dqn.eps_start,
         }
     }
 
@@ -254,14 +284,13 @@ impl Refs {
 
 /// The share of a dataset's transitions that its online DQN agent took before epsilon reached its
 /// final value: the dataset is sampled uniformly from the replay buffer, which holds the last
-/// `min(dqn_steps, replay_capacity)` steps (of which the newest `sample_newest`, when set, are
-/// sampled), and epsilon falls until `learning_starts +
+/// `min(dqn_steps, replay_capacity)` steps, and epsilon falls until `learning_starts +
 /// eps_decay_steps` (`actors/src/policy/dqn_online.rs`).
 fn exploratory_share(config: &Config) -> f64 {
     let c = &config.collect;
-    let held = c.sampled_window().max(1);
-    let first_held = c.dqn_steps.saturating_sub(held);
-    let decaying_until = c.learning_starts + c.eps_decay_steps;
+    let held = c.dqn.sampled_window().max(1);
+    let first_held = c.dqn.steps.saturating_sub(held);
+    let decaying_until = c.dqn.learning_starts + c.dqn.eps_decay_steps;
     decaying_until.saturating_sub(first_held).min(held) as f64 / held as f64
 }
 
@@ -395,24 +424,17 @@ mod tests {
         let mut config = Config::default();
         let c = &mut config.collect;
         (
-            c.dqn_steps,
-            c.replay_capacity,
-            c.learning_starts,
-            c.eps_decay_steps,
+            c.dqn.steps,
+            c.dqn.replay_capacity,
+            c.dqn.learning_starts,
+            c.dqn.eps_decay_steps,
         ) = (10_000, 10_000, 500, 5_000);
         assert!((exploratory_share(&config) - 0.55).abs() < 1e-12);
         // A buffer of the last 500 steps holds none of them.
-        config.collect.replay_capacity = 500;
+        config.collect.dqn.replay_capacity = 500;
         assert_eq!(exploratory_share(&config), 0.0);
         // Still decaying at the end: all of them.
-        config.collect.eps_decay_steps = 20_000;
+        config.collect.dqn.eps_decay_steps = 20_000;
         assert_eq!(exploratory_share(&config), 1.0);
-        // The whole buffer, but shots from its newest 2 000 steps: none of them.
-        (
-            config.collect.replay_capacity,
-            config.collect.eps_decay_steps,
-        ) = (10_000, 5_000);
-        config.collect.sample_newest = 2_000;
-        assert_eq!(exploratory_share(&config), 0.0);
     }
 }

@@ -1,5 +1,5 @@
 //! Not a figure of the paper: the online DQN agents behind every dataset, against the heuristics
-//! on each task (SPEC section 5 asks for heuristic level before sampling).
+//! on each task (docs/MODEL.md section 5 asks for heuristic level before sampling).
 
 use super::*;
 
@@ -11,12 +11,12 @@ const MATCHES_OPTIMUM: f64 = 0.01;
 const NEAR_PLANNER: f64 = 0.02;
 
 /// The behaviour agents: each task's online DQN agent over seeds beside the heuristics and the
-/// planner, and whether it is trained (SPEC section 5): every seed at least the worse of stalest
-/// and greedy, the mean within 5% of the better one or above it. At lambda = 0 without rain the
-/// reward is the AoI alone and serving the stalest sensor (round robin) is the optimum, which an
-/// agent can tie but not pass: there every seed must match it, within [`MATCHES_OPTIMUM`]. A
-/// second claim reads the agents against what is achievable: every seed within [`NEAR_PLANNER`]
-/// of the planner, on every task whose data an agent makes (the rain tasks included).
+/// planner, and whether it is trained (docs/MODEL.md section 5): every seed at least the worse of
+/// stalest and greedy, the mean within 5% of the better one or above it. At lambda = 0 without rain
+/// the reward is the AoI alone and serving the stalest sensor (round robin) is the optimum, which
+/// an agent can tie but not pass: there every seed must match it, within [`MATCHES_OPTIMUM`]. A
+/// second claim reads the agents against what is achievable: every seed within [`NEAR_PLANNER`] of
+/// the planner, on every task whose data an agent makes (the rain tasks included).
 pub(super) fn online_dqn(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let c = ctx.config;
     let mut csv = String::from("task,seed,return,aoi,power_mw\n");
@@ -91,7 +91,7 @@ pub(super) fn online_dqn(ctx: &Context, dir: &Path) -> Result<Section, Reproduce
     let found = vec![
         Claim::new(
             "B",
-            "the behaviour agent is trained: every seed at or above the worse heuristic (at lambda = 0, where serving the stalest sensor is optimal, within 1% of it), the mean within 5% of the better one (SPEC section 5)",
+            "the behaviour agent is trained: every seed at or above the worse heuristic (at lambda = 0, where serving the stalest sensor is optimal, within 1% of it), the mean within 5% of the better one (docs/MODEL.md section 5)",
             format!("{trained} of {} tasks", tasks.len()),
             Verdict::share(trained, tasks.len()),
             || format!("short on {}", short.join(", ")),
@@ -103,9 +103,9 @@ pub(super) fn online_dqn(ctx: &Context, dir: &Path) -> Result<Section, Reproduce
             Verdict::share(near, tasks.len()),
             || {
                 format!(
-                    "worst seed's gap on {}: `collect.dqn_steps` = {} is too few gradient steps (docs/EXPERIMENTS.md, A3, A8)",
+                    "worst seed's gap on {}: `collect.dqn.steps` = {} is too few gradient steps (docs/EXPERIMENTS.md, A3, A8)",
                     far.join(", "),
-                    c.collect.dqn_steps
+                    c.collect.dqn.steps
                 )
             },
         ),

@@ -74,7 +74,7 @@ fn rain_runs(
     let c = ctx.config;
     let mut csv = format!("method,task,{CURVE_COLUMNS}\n");
     let mut per_method = Vec::new();
-    for method in [Method::CqlMaml, Method::Cql, Method::CqlPretrain] {
+    for method in [Method::CQL_MAML, Method::CQL, Method::CQL_PRETRAIN] {
         let mut runs = Vec::new();
         for (task, h) in tasks.iter().zip(heuristics) {
             let key = rain_key(c, ctx.reproduce, task, method);
@@ -184,7 +184,7 @@ fn trajectories(
     let mut paths = Vec::new();
     let mut in_rain = Vec::new();
     if let Some(seed) = ctx.seeds.first() {
-        for method in [Method::CqlMaml, Method::Cql] {
+        for method in [Method::CQL_MAML, Method::CQL] {
             let trajectory = seed
                 .run(&rain_key(c, ctx.reproduce, first, method))
                 .trajectory

@@ -23,7 +23,7 @@ pub(super) fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
     let mut finals_per_size = Vec::new();
     for &shots in &r.shots {
         let mut each = Vec::new();
-        for method in Method::CQL_INITS {
+        for method in compared(c) {
             let key = unseen_key(c, r, method, shots, r.meta_tasks);
             let prefix = format!("{},{shots}", method.name());
             let runs = ctx.curves(&mut csv, &prefix, &key, epochs);

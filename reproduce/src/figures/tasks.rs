@@ -13,12 +13,12 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
     let mut series = Vec::new();
     let mut values = Vec::new();
     for &n in &r.task_counts {
-        let key = unseen_key(c, r, Method::CqlMaml, r.main_shots, n);
+        let key = unseen_key(c, r, Method::CQL_MAML, r.main_shots, n);
         let runs = ctx.curves(&mut csv, &format!("cql-maml,{n}"), &key, epochs);
         series.push(return_series(format!("CQL-MAML {n} tasks"), &runs));
         values.push((n, est(runs.iter().map(|r| return_at(r, at)))));
     }
-    let cql_key = unseen_key(c, r, Method::Cql, r.main_shots, 0);
+    let cql_key = unseen_key(c, r, Method::CQL, r.main_shots, 0);
     let cql_runs = ctx.curves(&mut csv, "cql,0", &cql_key, epochs);
     series.push(return_series("CQL".into(), &cql_runs));
     let cql = est(cql_runs.iter().map(|r| return_at(r, at)));

@@ -24,9 +24,9 @@ use iceoryx2::node::Node;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use uavmeta_actors::collect::{online_dqn_dataset, CollectError};
-use uavmeta_actors::policy::heuristics::{PolicyError, PolicySpec};
-use uavmeta_actors::rollout::{episode_seed, EpisodeTally, Policy};
-use uavmeta_actors::world::World;
+use uavmeta_world::heuristics::{PolicyError, PolicySpec};
+use uavmeta_world::rollout::{episode_seed, EpisodeTally, Policy};
+use uavmeta_world::world::World;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_proto::config::{Config, ConfigError, TaskConfig};
 use uavmeta_proto::dataset::Transition;
@@ -432,7 +432,7 @@ fn start_source(
                     checkpoint::save(
                         &run.checkpoint(Method::OnlineDqn, task, 1),
                         agent.q_network(),
-                        Method::OnlineDqn.name(),
+                        &Method::OnlineDqn.name(),
                         1,
                         config,
                     )?;

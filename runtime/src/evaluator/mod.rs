@@ -56,7 +56,8 @@ pub enum EvaluatorError {
     },
 }
 
-/// One evaluated checkpoint: a row of `evaluations.csv`. Power is in watts (base units).
+/// One evaluated checkpoint: a row of `evaluations.csv`. Power is in milliwatts, as in every
+/// table and CSV; the metrics keep watts (base units).
 #[derive(Debug, Clone, PartialEq)]
 pub struct EvaluationRow {
     pub task: String,
@@ -67,13 +68,13 @@ pub struct EvaluationRow {
     pub ret_ci95: f64,
     pub aoi: f64,
     pub aoi_ci95: f64,
-    pub power_watts: f64,
-    pub power_ci95: f64,
+    pub power_mw: f64,
+    pub power_mw_ci95: f64,
     pub outages: f64,
     pub outages_ci95: f64,
 }
 
-const CSV_HEADER: &str = "task,method,epoch,episodes,return,return_ci95,aoi,aoi_ci95,power_watts,power_watts_ci95,outages,outages_ci95";
+const CSV_HEADER: &str = "task,method,epoch,episodes,return,return_ci95,aoi,aoi_ci95,power_mw,power_mw_ci95,outages,outages_ci95";
 
 impl EvaluationRow {
     /// The row of `method` (a [`Method`]'s name, or a heuristic's) on `task` after `epoch`.
@@ -87,8 +88,8 @@ impl EvaluationRow {
             ret_ci95: m.ret.ci95,
             aoi: m.aoi.mean,
             aoi_ci95: m.aoi.ci95,
-            power_watts: m.power_mw.mean * 1e-3,
-            power_ci95: m.power_mw.ci95 * 1e-3,
+            power_mw: m.power_mw.mean,
+            power_mw_ci95: m.power_mw.ci95,
             outages: m.outages.mean,
             outages_ci95: m.outages.ci95,
         }
@@ -105,8 +106,8 @@ impl EvaluationRow {
             self.ret_ci95,
             self.aoi,
             self.aoi_ci95,
-            self.power_watts,
-            self.power_ci95,
+            self.power_mw,
+            self.power_mw_ci95,
             self.outages,
             self.outages_ci95
         )
@@ -127,8 +128,8 @@ impl EvaluationRow {
             ret_ci95: num(5)?,
             aoi: num(6)?,
             aoi_ci95: num(7)?,
-            power_watts: num(8)?,
-            power_ci95: num(9)?,
+            power_mw: num(8)?,
+            power_mw_ci95: num(9)?,
             outages: num(10)?,
             outages_ci95: num(11)?,
         })
@@ -212,19 +213,19 @@ pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
             );
             continue;
         };
-        if !done.insert((task.name.clone(), method.name().to_string(), next.epoch)) {
+        if !done.insert((task.name.clone(), method.name(), next.epoch)) {
             continue;
         }
         let start = Instant::now();
         let path = run.checkpoint(method, task, next.epoch);
         let (q, _) = checkpoint::load(&path, config)?;
         let result = Evaluator::from_config(config, task).evaluate(&q);
-        let row = EvaluationRow::new(&task.name, method.name(), next.epoch, &result);
+        let row = EvaluationRow::new(&task.name, &method.name(), next.epoch, &result);
         writeln!(csv, "{}", row.to_csv()).map_err(|e| io("append a row", e))?;
         csv.flush().map_err(|e| io("flush", e))?;
         metrics.observe(&row, start.elapsed());
         evaluated += 1;
-        tracing::info!(task = %task.name, %method, epoch = next.epoch, ret = row.ret, aoi = row.aoi, power_watts = row.power_watts, outages = row.outages, "evaluated");
+        tracing::info!(task = %task.name, %method, epoch = next.epoch, ret = row.ret, aoi = row.aoi, power_mw = row.power_mw, outages = row.outages, "evaluated");
     }
     Ok(evaluated)
 }
@@ -284,7 +285,7 @@ fn checkpoints_on_disk(run: &RunDir, config: &Config) -> Vec<CheckpointReady> {
         if complete(Method::OnlineDqn, task, 1) {
             found.push(message(Method::OnlineDqn, id, 1));
         }
-        for &method in Method::fine_tuned(config.meta.inner_loss) {
+        for method in Method::fine_tuned(config.meta.inner_loss, &config.learner.baselines) {
             for epoch in 1..=config.learner.epochs as u32 {
                 if complete(method, task, epoch) {
                     found.push(message(method, id, epoch));
@@ -310,8 +311,8 @@ mod tests {
             ret_ci95: 12.0,
             aoi: 6.25,
             aoi_ci95: 0.5,
-            power_watts: 1.6e-3,
-            power_ci95: 1e-4,
+            power_mw: 1.6,
+            power_mw_ci95: 0.1,
             outages: 0.0,
             outages_ci95: 0.0,
         };

@@ -129,11 +129,11 @@ impl View {
             })
             .collect();
         let test_count = config.tasks_with_role(TaskRole::MetaTest).count();
-        let methods = Method::fine_tuned(config.meta.inner_loss).len();
+        let methods = Method::fine_tuned(config.meta.inner_loss, &config.learner.baselines).len();
         Self {
             run: run.clone(),
             host: config.run.metrics_host.clone(),
-            dqn_steps: config.collect.dqn_steps as u64,
+            dqn_steps: config.collect.dqn.steps as u64,
             transitions: config.collect.transitions as u64,
             meta_epochs: config.meta.meta_epochs as u64,
             fine_tune_epochs: (test_count * methods * config.learner.epochs) as u64,

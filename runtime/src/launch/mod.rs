@@ -17,11 +17,12 @@
 //! progress (SIGSTOP, a deadlock, a livelocked libtorch) is treated the same: each child beats
 //! (`liveness::heartbeat`, the modification time of `heartbeats/<name>`, named in its
 //! environment), and one silent for `run.hang_timeout_seconds` is killed (SIGKILL to its process
-//! group), counted in `uavmeta_launcher_child_hangs_total` (`uavmeta_proto::metrics::launcher::CHILD_HANGS`) and restarted. A child that exits
-//! successfully is done: actors end when their task's dataset is complete, the meta-learner when
-//! it has meta-tested. Then the launcher announces a shutdown, the evaluator finishes the
-//! checkpoints it was told about, the store syncs its files, and the launcher prints a results
-//! table from the evaluator's CSV.
+//! group), counted in `uavmeta_launcher_child_hangs_total`
+//! (`uavmeta_proto::metrics::launcher::CHILD_HANGS`) and restarted. A child that exits successfully
+//! is done: actors end when their task's dataset is complete, the meta-learner when it has
+//! meta-tested. Then the launcher announces a shutdown, the evaluator finishes the checkpoints it
+//! was told about, the store syncs its files, and the launcher prints a results table from the
+//! evaluator's CSV.
 //!
 //! On SIGINT/SIGTERM it stops the children gracefully: actors first (so the store receives
 //! everything they sent), then the meta-learner and the evaluator, then the store; a child still
@@ -43,7 +44,7 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use indicatif::MultiProgress;
-use uavmeta_actors::policy::heuristics::PolicySpec;
+use uavmeta_world::heuristics::PolicySpec;
 use uavmeta_proto::config::{Config, TaskRole};
 use uavmeta_proto::payload::{
     CheckpointReady, DatasetReady, ServiceNames, Shutdown, SCHEMA_VERSION,
@@ -111,11 +112,6 @@ pub enum LaunchError {
         status: String,
         max: u32,
         log: PathBuf,
-    },
-    #[error("{origin}: {error}")]
-    Device {
-        origin: String,
-        error: uavmeta_learner::population::DeviceError,
     },
     #[error("{origin}: key `collect.policy`: {message}")]
     Policy { origin: String, message: String },

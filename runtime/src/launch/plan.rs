@@ -33,7 +33,7 @@ pub(super) struct Supervised {
 /// The children of a run: store, actors, meta-learner, evaluator.
 pub(super) fn plan(run: &RunDir, config: &Config) -> Result<Vec<Supervised>, LaunchError> {
     let policy: PolicySpec = config.collect.policy.parse().map_err(
-        |e: uavmeta_actors::policy::heuristics::PolicyError| LaunchError::Policy {
+        |e: uavmeta_world::heuristics::PolicyError| LaunchError::Policy {
             origin: config.origin.clone(),
             message: e.to_string(),
         },

@@ -4,7 +4,7 @@
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 
-use uavmeta_actors::policy::heuristics::{reference_metrics, PolicySpec, REFERENCES};
+use uavmeta_world::heuristics::{reference_metrics, PolicySpec, REFERENCES};
 use uavmeta_proto::config::{Config, TaskRole};
 use uavmeta_proto::method::Method;
 use uavmeta_proto::stats;
@@ -25,23 +25,13 @@ pub struct LaunchReport {
     pub references: Vec<EvaluationRow>,
 }
 
-/// The learners of the results table, in its order, after the references.
-pub(super) const LEARNERS: [Method; 6] = [
-    Method::Cql,
-    Method::Dqn,
-    Method::CqlPretrain,
-    Method::CqlMaml,
-    Method::DqnMaml,
-    Method::MetaInit,
-];
-
 /// Where a row goes in its task's block: the references (random, the heuristics, the planner,
 /// then the online DQN agent)
 /// first, then the learners; `None` for a method the table does not know.
 pub(super) fn row_rank(method: &str) -> Option<usize> {
     let references = REFERENCES.iter().map(ToString::to_string);
-    let references = references.chain([Method::OnlineDqn.name().to_string()]);
-    let mut order = references.chain(LEARNERS.iter().map(|m| m.name().to_string()));
+    let references = references.chain([Method::OnlineDqn.name()]);
+    let mut order = references.chain(Method::learners().map(Method::name));
     order.position(|name| name == method)
 }
 
@@ -129,7 +119,7 @@ pub fn results_table(report: &LaunchReport) -> String {
                     stats::percent_from(r.ret, p)
                 )),
                 format!("{:.2} ± {:.2}", r.aoi, r.aoi_ci95),
-                format!("{:.3} ± {:.3}", r.power_watts * 1e3, r.power_ci95 * 1e3),
+                format!("{:.3} ± {:.3}", r.power_mw, r.power_mw_ci95),
                 format!("{:.1} ± {:.1}", r.outages, r.outages_ci95),
             ));
         }

@@ -97,14 +97,6 @@ pub fn check(config: &Config, needs: &Needs, available: &Available) -> Result<()
 
 /// Checks the run against this machine, if the machine says what it has.
 pub fn check_here(config: &Config) -> Result<(), LaunchError> {
-    // The meta-learner makes its populations on `run.device`: a GPU this machine lacks is
-    // refused now, not after meta-training.
-    uavmeta_learner::population::device(&config.run.device).map_err(|error| {
-        LaunchError::Device {
-            origin: config.origin.clone(),
-            error,
-        }
-    })?;
     match Available::here() {
         Some(available) => check(config, &Needs::of(config), &available),
         None => {

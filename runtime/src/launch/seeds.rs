@@ -102,7 +102,7 @@ fn mean_row(rows: &[&EvaluationRow]) -> EvaluationRow {
     let over =
         |pick: fn(&EvaluationRow) -> f64| Estimate::from_samples(rows.iter().map(|r| pick(r)));
     let (ret, aoi) = (over(|r| r.ret), over(|r| r.aoi));
-    let (power, outages) = (over(|r| r.power_watts), over(|r| r.outages));
+    let (power, outages) = (over(|r| r.power_mw), over(|r| r.outages));
     EvaluationRow {
         task: rows[0].task.clone(),
         method: rows[0].method.clone(),
@@ -112,8 +112,8 @@ fn mean_row(rows: &[&EvaluationRow]) -> EvaluationRow {
         ret_ci95: ret.ci95,
         aoi: aoi.mean,
         aoi_ci95: aoi.ci95,
-        power_watts: power.mean,
-        power_ci95: power.ci95,
+        power_mw: power.mean,
+        power_mw_ci95: power.ci95,
         outages: outages.mean,
         outages_ci95: outages.ci95,
     }
@@ -133,8 +133,8 @@ mod tests {
             ret_ci95: 1.0,
             aoi: 5.0,
             aoi_ci95: 0.0,
-            power_watts: 4e-4,
-            power_ci95: 0.0,
+            power_mw: 0.4,
+            power_mw_ci95: 0.0,
             outages: 0.0,
             outages_ci95: 0.0,
         }

@@ -39,18 +39,16 @@ use iceoryx2::prelude::*;
 use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::batch::{load_shots, Batch};
 use uavmeta_learner::checkpoint::{self, CheckpointError};
-use uavmeta_learner::population;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{EpochRow, EvaluatePolicy};
-use uavmeta_learner::train_population::Member;
-use uavmeta_meta::fine_tune::{fine_tune, fine_tune_algorithm, fine_tune_population, FineTune};
+use uavmeta_meta::fine_tune::{fine_tune, FineTune};
 use uavmeta_meta::meta_train::{
     load_tasks, meta_train_with, MetaRow, MetaTrainHook, MetaTrainOptions,
 };
 use uavmeta_meta::{pretrain, MetaError};
-use uavmeta_proto::config::{Config, Loss, TaskConfig, TaskRole};
-use uavmeta_proto::method::Method;
+use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
+use uavmeta_proto::method::{Method, Start};
 use uavmeta_proto::payload::{CheckpointReady, DatasetReady, SCHEMA_VERSION};
 use uavmeta_proto::stats::PolicyMetrics;
 
@@ -77,11 +75,6 @@ pub enum MetaProcessError {
     Meta(#[from] MetaError),
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
-    #[error("{origin}: {error}")]
-    Device {
-        origin: String,
-        error: population::DeviceError,
-    },
 }
 
 /// How a meta-learner run ended.
@@ -196,10 +189,9 @@ fn announce_online_agents(
 }
 
 impl MetaTest<'_> {
-    /// Fine-tunes every method of every meta-test task that has not finished, pretraining CQL on
-    /// the meta-train shots (from `datasets`) first if a method needs it. One at a time in task
-    /// then method order, or, with `learner.population` above 1, in populations of that many
-    /// fine-tunings of one loss.
+    /// Fine-tunes every method of every meta-test task that has not finished, one at a time in
+    /// task then method order, pretraining CQL on the meta-train shots (from `datasets`) first if
+    /// a method needs it.
     fn run_all(
         &self,
         test_tasks: &[(u32, TaskConfig)],
@@ -208,35 +200,27 @@ impl MetaTest<'_> {
     ) -> Result<Outcome, MetaProcessError> {
         let (run, config) = (self.run, self.config);
         let epochs = config.learner.epochs as u32;
-        let mut pending: Vec<Job> = test_tasks
+        let pending: Vec<Job> = test_tasks
             .iter()
             .flat_map(|(id, task)| {
-                Method::fine_tuned(config.meta.inner_loss)
-                    .iter()
-                    .map(move |&method| (*id, task, method))
+                Method::fine_tuned(config.meta.inner_loss, &config.learner.baselines)
+                    .into_iter()
+                    .map(move |method| (*id, task, method))
             })
             .filter(|&(_, task, method)| latest_epoch(run, method, task, epochs) != epochs)
             .collect();
-        let size = config.learner.population;
-        if size > 1 {
-            pending.sort_by_key(|&(_, _, method)| method.loss()); // stable: task order kept
-        }
         let mut pretrained: Option<QNetwork> = None;
-        for jobs in pending.chunks(size) {
+        for (id, task, method) in pending {
             if stop()? {
                 return Ok(Outcome::Stopped);
             }
-            let needs_pretrained = jobs.iter().any(|j| j.2 == Method::CqlPretrain);
-            if needs_pretrained && pretrained.is_none() {
+            if method.start() == Some(Start::Pretrain) && pretrained.is_none() {
                 match self.pretrain(datasets, stop)? {
                     Some(q) => pretrained = Some(q),
                     None => return Ok(Outcome::Stopped),
                 }
             }
-            match jobs {
-                [(id, task, method)] => self.fine_tune(*id, task, *method, pretrained.as_ref())?,
-                _ => self.fine_tune_population(jobs, pretrained.as_ref())?,
-            }
+            self.fine_tune(id, task, method, pretrained.as_ref())?;
         }
         Ok(Outcome::Finished)
     }
@@ -256,8 +240,8 @@ impl MetaTest<'_> {
         else {
             return Ok(None);
         };
-        let name = Method::CqlPretrain.name();
-        save_init(run, config, name, &q, name, config.meta.meta_epochs)?;
+        let name = Method::tuned(config.meta.inner_loss, Start::Pretrain).name();
+        save_init(run, config, &name, &q, &name, config.meta.meta_epochs)?;
         Ok(Some(q))
     }
 }
@@ -331,95 +315,30 @@ impl MetaTest<'_> {
         pretrained: Option<&QNetwork>,
     ) -> Result<(), MetaProcessError> {
         let mut hook = self.hook(task_id, task, method);
-        let (mut q, algorithm) = self.init(method, pretrained)?;
+        let mut q = self.init(method, pretrained)?;
+        let algorithm = method.algo().expect("a fine-tuned method has an algorithm");
         let shots = self.shots(task)?;
         let rows = fine_tune(&mut q, &shots, algorithm, &self.settings(task), &mut hook)?;
         self.finished(&mut hook, task, method, &rows)
     }
 
-    /// [`MetaTest::fine_tune`] of every job of `jobs` (one loss, one shot count) as one
-    /// population on `run.device`.
-    fn fine_tune_population(
-        &self,
-        jobs: &[Job],
-        pretrained: Option<&QNetwork>,
-    ) -> Result<(), MetaProcessError> {
-        let config = self.config;
-        let device =
-            population::device(&config.run.device).map_err(|error| MetaProcessError::Device {
-                origin: config.origin.clone(),
-                error,
-            })?;
-        let mut hooks: Vec<Announcing> = jobs
-            .iter()
-            .map(|&(id, task, method)| self.hook(id, task, method))
-            .collect();
-        let mut inits = Vec::with_capacity(jobs.len());
-        // One load per task: the methods of a task fine-tune on the same shots.
-        let mut shots: Vec<(&str, Batch)> = Vec::new();
-        for &(_, task, method) in jobs {
-            inits.push(self.init(method, pretrained)?);
-            if !shots.iter().any(|(name, _)| *name == task.name) {
-                shots.push((&task.name, self.shots(task)?));
-            }
-        }
-        let shots_of = |task: &TaskConfig| {
-            let (_, batch) = (shots.iter().find(|(name, _)| *name == task.name))
-                .expect("every job's task was loaded above");
-            batch
-        };
-        let algorithm = inits[0].1;
-        let members = inits
-            .into_iter()
-            .zip(jobs)
-            .zip(&mut hooks)
-            .map(|(((init, _), &(_, task, _)), hook)| Member {
-                init,
-                data: shots_of(task),
-                seed: self.seed,
-                evaluator: hook,
-                out_dir: None,
-            })
-            .collect();
-        let names: Vec<String> = jobs
-            .iter()
-            .map(|j| format!("{}/{}", j.1.name, j.2))
-            .collect();
-        tracing::info!(members = ?names, "fine-tuning as one population");
-        let settings = self.settings(jobs[0].1);
-        let trained = fine_tune_population(members, algorithm, &settings, device)?;
-        for ((hook, t), &(_, task, method)) in hooks.iter_mut().zip(&trained).zip(jobs) {
-            self.finished(hook, task, method, &t.rows)?;
-        }
-        Ok(())
-    }
-
-    /// The network `method` fine-tunes and its loss: w0 with the loss its checkpoint names, the
-    /// `pretrained` network, or a random init.
+    /// The network `method` fine-tunes: w0, the `pretrained` network, or a random init.
     fn init(
         &self,
         method: Method,
         pretrained: Option<&QNetwork>,
-    ) -> Result<(QNetwork, Loss), MetaProcessError> {
+    ) -> Result<QNetwork, MetaProcessError> {
         let config = self.config;
-        Ok(match (method, pretrained) {
-            (Method::CqlMaml | Method::DqnMaml, _) => {
-                check_init(self.w0, method)?;
-                let (q, meta) = checkpoint::load(self.w0, config)?;
-                (q, fine_tune_algorithm(self.w0, &meta.algorithm)?)
+        Ok(match (method.start(), pretrained) {
+            (Some(Start::Maml | Start::W0), _) => {
+                check_init(self.w0, Method::maml(config.meta.inner_loss))?;
+                checkpoint::load(self.w0, config)?.0
             }
-            (Method::CqlPretrain, Some(pretrained)) => (pretrained.duplicate(), Loss::Cql),
-            (method, _) => {
-                // The init's seed is the run's + 1, the shots' the run's: `uavmeta train --seed S
-                // --init-seed S+1` is this run (kept so that earlier tables stay reproducible).
-                let q = QNetworkConfig::for_world(&config.world, &config.learner.hidden)
-                    .init(self.seed.wrapping_add(1));
-                let loss = match method {
-                    Method::Dqn => Loss::Dqn,
-                    _ => Loss::Cql,
-                };
-                (q, loss)
-            }
+            (Some(Start::Pretrain), Some(pretrained)) => pretrained.duplicate(),
+            // The init's seed is the run's + 1, the shots' the run's: `uavmeta train --seed S
+            // --init-seed S+1` is this run (kept so that earlier tables stay reproducible).
+            _ => QNetworkConfig::for_world(&config.world, &config.learner.hidden)
+                .init(self.seed.wrapping_add(1)),
         })
     }
 
@@ -576,7 +495,7 @@ impl EvaluatePolicy for Announcing<'_> {
             let saved = checkpoint::save(
                 &path,
                 q,
-                self.method.name(),
+                &self.method.name(),
                 self.epoch as usize,
                 self.config,
             )
@@ -596,10 +515,5 @@ impl EvaluatePolicy for Announcing<'_> {
             }
         }
         self.inner.evaluate(q)
-    }
-
-    /// The inner evaluator's score alone: no epoch counted, no checkpoint announced.
-    fn measure(&mut self, q: &QNetwork) -> Option<PolicyMetrics> {
-        self.inner.measure(q)
     }
 }

@@ -2,11 +2,11 @@
 
 use std::io::Write;
 
-use uavmeta_actors::policy::heuristics::{
+use uavmeta_world::heuristics::{
     EpsilonPolicy, GreedyPolicy, PolicySpec, RandomPolicy, StalestPolicy,
 };
-use uavmeta_actors::rollout::Policy;
-use uavmeta_actors::world::{Move, World};
+use uavmeta_world::rollout::Policy;
+use uavmeta_world::world::{Move, World};
 use uavmeta_proto::config::{Config, RainZone, TaskConfig};
 
 fn world(world_toml: &str, lambda: f64, rain: Option<RainZone>) -> World {

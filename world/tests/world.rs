@@ -1,10 +1,10 @@
-//! The world against hand-computed steps (SPEC sections 1 and 3), its invariants under random
-//! action sequences, and the SPEC's sanity figures for two heuristics.
+//! The world against hand-computed steps (docs/MODEL.md sections 1 and 3), its invariants under
+//! random action sequences, and the sanity figures of docs/MODEL.md section 1 for two heuristics.
 
 use proptest::prelude::*;
-use uavmeta_actors::policy::heuristics::{RandomPolicy, StalestPolicy};
-use uavmeta_actors::rollout::{evaluate, rollout};
-use uavmeta_actors::world::{Move, World};
+use uavmeta_world::heuristics::{RandomPolicy, StalestPolicy};
+use uavmeta_world::rollout::{evaluate, rollout};
+use uavmeta_world::world::{Move, World};
 use uavmeta_proto::config::{Config, RainZone, TaskConfig, MOVES};
 
 /// W/m^2 of the defaults: (2^(5e6/1e6) - 1) * 1e-13 W / 1e-3 = 31 * 1e-10.
@@ -331,22 +331,22 @@ fn cost_of_is_the_step_cost() {
             let want = -probe.step(action(&probe, Move::Hover, k)).reward;
             assert_close(w.cost_of(k), want);
         }
-        let a = uavmeta_actors::rollout::Policy::act(&mut policy, &w);
+        let a = uavmeta_world::rollout::Policy::act(&mut policy, &w);
         w.step(a);
     }
 }
 
-/// SPEC section 1's figures from an independent implementation (lambda = 300, defaults, 200
-/// episodes): random about AoI 9.3 and 1.14 mW, stalest about AoI 5.4 and 0.63 mW.
+/// docs/MODEL.md section 1's figures from an independent implementation (lambda = 300, defaults,
+/// 200 episodes): random about AoI 9.3 and 1.14 mW, stalest about AoI 5.4 and 0.63 mW.
 ///
 /// The AoI figures do not depend on where the devices are, so they are checked on the default
-/// layout. The powers do, and SPEC does not give the layout behind its figures (ours, drawn from
-/// `layout_seed`, cannot be theirs): over layout seeds 0-15, stalest spends 0.56-1.08 mW and
+/// layout. The powers do, and the paper does not give the layout behind its figures (ours, drawn
+/// from `layout_seed`, cannot be theirs): over layout seeds 0-15, stalest spends 0.56-1.08 mW and
 /// random 0.96-1.26 mW. So the powers are checked as means over those 16 layouts. Stalest's mean
-/// (0.81 mW) sits above SPEC's 0.63 mW because SPEC's step order transmits before the move: a
-/// model of stalest that moves first and then transmits averages 0.64 mW over random layouts,
-/// which suggests that is what the independent implementation did. Stalest's power therefore gets
-/// a wider tolerance, and it must spend less than random on every layout.
+/// (0.81 mW) sits above the reference 0.63 mW because the reference's step order transmits before
+/// the move: a model of stalest that moves first and then transmits averages 0.64 mW over random
+/// layouts, which suggests that is what the independent implementation did. Stalest's power
+/// therefore gets a wider tolerance, and it must spend less than random on every layout.
 #[test]
 fn sanity_figures_of_the_spec() {
     let task = TaskConfig::one_off(300.0, None);
@@ -367,7 +367,7 @@ fn sanity_figures_of_the_spec() {
     let within = |name: &str, got: f64, want: f64, tolerance: f64| {
         assert!(
             (got - want).abs() <= tolerance * want,
-            "{name}: measured {got}, SPEC says about {want}"
+            "{name}: measured {got}, docs/MODEL.md says about {want}"
         );
     };
     let layouts: Vec<_> = (0..16).map(measure).collect();
@@ -387,7 +387,7 @@ fn sanity_figures_of_the_spec() {
 fn evaluation_episodes_do_not_depend_on_the_policy() {
     let cfg = config("");
     let task = TaskConfig::one_off(300.0, None);
-    let starts = |policy: &mut dyn uavmeta_actors::rollout::Policy| {
+    let starts = |policy: &mut dyn uavmeta_world::rollout::Policy| {
         let mut first = vec![];
         rollout(&cfg.world, &task, policy, 10, 42, |_, step| {
             if step.t == 0 {
