@@ -11,6 +11,7 @@ use tch::Tensor;
 use uavmeta_proto::method::Algo;
 
 use crate::batch::Batch;
+use crate::bc::Bc;
 use crate::cql::Cql;
 use crate::dqn::Dqn;
 
@@ -49,7 +50,7 @@ pub trait OfflineAlgorithm: Sync {
 }
 
 /// Every algorithm's loss, in the order of `uavmeta_proto::method::ALGORITHMS`.
-pub const ALGORITHMS: &[&dyn OfflineAlgorithm] = &[&Cql, &Dqn];
+pub const ALGORITHMS: &[&dyn OfflineAlgorithm] = &[&Cql, &Dqn, &Bc];
 
 /// The loss of `algo`.
 pub fn of(algo: Algo) -> &'static dyn OfflineAlgorithm {

@@ -4,6 +4,7 @@
 //! - [`algorithm`]: [`algorithm::OfflineAlgorithm`], the loss an offline algorithm minimises,
 //!   and [`algorithm::ALGORITHMS`], where each is registered; one file each:
 //!   - [`cql`]: conservative Q-learning, paper eq. 8;
+//!   - [`bc`]: behaviour cloning (d3rlpy's DiscreteBC), the offline baseline;
 //!   - [`dqn`]: DQN, paper eq. 7, and the one TD-target computation every learner uses
 //!     ([`dqn::TdConfig::td_errors`]; double DQN and Huber as options, off by default).
 //! - [`qnet`]: [`qnet::QNetwork`], the MLP of docs/MODEL.md section 5, built by
@@ -57,6 +58,7 @@
 
 pub mod algorithm;
 pub mod batch;
+pub mod bc;
 pub mod checkpoint;
 pub mod cql;
 pub mod dqn;

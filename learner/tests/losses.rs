@@ -1,7 +1,10 @@
-//! Eq. 7 and eq. 8 against values worked out by hand on a two-row, three-action batch.
+//! Eq. 7, eq. 8 and behaviour cloning against values worked out by hand on a two-row, three-action
+//! batch.
 
 use tch::{Kind, Tensor};
+use uavmeta_learner::algorithm::{OfflineAlgorithm, Terms};
 use uavmeta_learner::batch::{Batch, BatchError};
+use uavmeta_learner::bc::Bc;
 use uavmeta_learner::cql::{conservative_term, cql_loss};
 use uavmeta_learner::dqn::{dqn_loss, Bootstrap, TdConfig};
 use uavmeta_proto::config::WorldConfig;
@@ -236,4 +239,18 @@ fn batch_rejects_transitions_of_another_world() {
         Batch::new::<Transition>(&[], &world_k2(), 1.0),
         Err(BatchError::Empty)
     ));
+}
+
+#[test]
+fn bc_loss_matches_d3rlpy_s_discrete_bc_by_hand() {
+    let (q, _, batch) = fixture();
+    // Cross-entropy of the logged actions: the conservative rows above, mean 2.216176.
+    // d3rlpy's penalty: beta * mean of the squared logits = 0.5 * (1 + 4 + 9 + 0 + 1 + 16) / 6.
+    let expected = 2.216176 + 0.5 * 31.0 / 6.0;
+    let mean = |rows: Tensor| rows.mean(None);
+    let td = Tensor::from(0.0f32);
+    let terms = Terms { q: &q, batch: &batch, td: &td, mean: &mean, alpha: 1.0 };
+    let got = scalar(&Bc.loss(&terms));
+    assert!((got - expected).abs() < 1e-5, "{got} against {expected}");
+    assert!(!Bc.learns_values());
 }

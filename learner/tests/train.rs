@@ -302,3 +302,29 @@ fn without_the_value_guard_every_epoch_trains() {
         vec![13, 26, 39, 52]
     );
 }
+
+/// Behaviour cloning imitates the logged actions and ignores the rewards: on data whose behaviour
+/// policy takes the rewarded action 80% of the time but whose rewards are all 0, BC's greedy
+/// action is the behaviour's most frequent one on every x, and the value guard (a Q-learning
+/// check) never stops it.
+#[test]
+fn behaviour_cloning_takes_the_data_s_most_frequent_action_whatever_the_rewards() {
+    tch::set_num_threads(1);
+    let mut cfg = config();
+    cfg.learner.value_guard = 0.01;
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let data: Vec<Transition> = dataset(400)
+        .into_iter()
+        .map(|t| {
+            let action = match rng.random_bool(0.8) {
+                true => best_action(t.obs[0]),
+                false => rng.random_range(0..5u16),
+            };
+            Transition { action, reward: 0.0, ..t }
+        })
+        .collect();
+    let data = Batch::new(&data, &cfg.world, cfg.learner.reward_scale).unwrap();
+    let (_, rows) = alone(&cfg, "bc".parse::<Algo>().unwrap(), 0, &data, 4);
+    assert_eq!(rows.last().unwrap().policy.ret.mean, 1.0, "{:?}", rows.last());
+    assert_eq!(rows.last().unwrap().steps, cfg.learner.epochs * 13, "BC was stopped");
+}

@@ -28,6 +28,7 @@ pub struct AlgoInfo {
 pub const ALGORITHMS: &[AlgoInfo] = &[
     AlgoInfo { name: "cql", label: "CQL", baseline: false },
     AlgoInfo { name: "dqn", label: "DQN", baseline: false },
+    AlgoInfo { name: "bc", label: "BC", baseline: true },
 ];
 
 /// An offline algorithm of [`ALGORITHMS`] (its index); written as its name.
