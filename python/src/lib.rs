@@ -4,8 +4,10 @@
 //!
 //! - [`task`]: a config file, a task name or one-off arguments to the world and task they mean,
 //!   with every bad argument a `ValueError` naming the key and the value.
-//! - [`worlds`]: [`worlds::Worlds`], N worlds of one task stepped in one call on numpy arrays
-//!   with the GIL released, with Gymnasium's next-step autoreset and the CLI's episode seeds.
+//! - [`worlds`]: [`worlds::Worlds`], N worlds stepped in one call on numpy arrays with the GIL
+//!   released, with Gymnasium's next-step autoreset and the CLI's episode seeds.
+//! - [`tasks`]: where each of those worlds takes its task: one for all, a list, or a sampler that
+//!   draws a new task at every reset.
 //! - [`policies`]: the heuristics (random, stalest, greedy) as batched functions of observations.
 //! - [`dataset`]: a `.uavds` file as numpy arrays with its task's metadata.
 //!
@@ -22,6 +24,7 @@ use pyo3::prelude::*;
 pub mod dataset;
 pub mod policies;
 pub mod task;
+pub mod tasks;
 pub mod worlds;
 
 #[pymodule]

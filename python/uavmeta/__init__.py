@@ -6,8 +6,9 @@ as the ``uavmeta`` command line, without libtorch:
 
 - :class:`UavEnv`, a ``gymnasium.Env``, registered as ``uavmeta/UAV-v0``;
 - :class:`VectorEnv`, N worlds stepped in one call in Rust (Gymnasium's ``VectorEnv`` API,
-  next-step autoreset), also reachable as ``gymnasium.make_vec("uavmeta/UAV-v0", n,
-  vectorization_mode="vector_entry_point")``;
+  next-step autoreset), each of its own task (``tasks=[...]``) or drawing a new one at every
+  reset (``tasks=TaskSampler(...)``), also reachable as ``gymnasium.make_vec("uavmeta/UAV-v0",
+  n, vectorization_mode="vector_entry_point")``;
 - :mod:`uavmeta.policies`, the heuristics (random, stalest, greedy), the planner and any saved
   Q-network (``checkpoint``) as batched functions of observations;
 - :func:`load_dataset`, a ``.uavds`` file as numpy arrays with its task's metadata;
@@ -21,7 +22,8 @@ import gymnasium
 from ._uavmeta import ACTION_MOVES as _MOVES
 from ._uavmeta import DatasetError, episode_seed
 from .dataset import Dataset, load_dataset
-from .env import UavEnv
+from .env import ResetNeeded, UavEnv
+from .tasks import TaskSampler
 from .vector import VectorEnv
 from . import policies, render
 
@@ -60,6 +62,8 @@ __all__ = [
     "MOVES",
     "Dataset",
     "DatasetError",
+    "ResetNeeded",
+    "TaskSampler",
     "UavEnv",
     "VectorEnv",
     "action",
