@@ -52,7 +52,11 @@ fn the_python_package_passes_its_pytest_suite() {
 #[test]
 fn the_wheel_installs_and_runs_without_a_rust_toolchain() {
     let python = support::venv_python();
-    if !support::python_imports(&python, "maturin, numpy, gymnasium, safetensors", "make interop") {
+    if !support::python_imports(
+        &python,
+        "maturin, numpy, gymnasium, safetensors",
+        "make interop",
+    ) {
         return;
     }
     let bin_dir = python.parent().expect("the venv's bin");
@@ -83,12 +87,18 @@ fn the_wheel_installs_and_runs_without_a_rust_toolchain() {
     let venv = dir.path().join("venv");
     run(Command::new(&python).args(["-m", "venv"]).arg(&venv));
     let site = Command::new(&python)
-        .args(["-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"])
+        .args([
+            "-c",
+            "import sysconfig; print(sysconfig.get_paths()['purelib'])",
+        ])
         .output()
         .expect("site-packages");
     let site = String::from_utf8_lossy(&site.stdout).trim().to_string();
     let new_site = Command::new(venv.join("bin/python"))
-        .args(["-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"])
+        .args([
+            "-c",
+            "import sysconfig; print(sysconfig.get_paths()['purelib'])",
+        ])
         .output()
         .expect("new site-packages");
     let new_site = String::from_utf8_lossy(&new_site.stdout).trim().to_string();
@@ -105,7 +115,15 @@ fn the_wheel_installs_and_runs_without_a_rust_toolchain() {
         .expect("sh");
     assert_eq!(String::from_utf8_lossy(&no_rust.stdout).trim(), "none");
     run(Command::new(venv.join("bin/python"))
-        .args(["-m", "pip", "install", "--no-index", "--no-deps", "--no-input", "-q"])
+        .args([
+            "-m",
+            "pip",
+            "install",
+            "--no-index",
+            "--no-deps",
+            "--no-input",
+            "-q",
+        ])
         .arg(&wheel)
         .env("PATH", &path)
         .env_remove("CARGO_HOME")

@@ -19,15 +19,19 @@ use pyo3::types::PyDict;
 use uavmeta_proto::config::{Config, TaskConfig};
 use uavmeta_proto::stats::{EpisodeMetrics, Estimate, PolicyMetrics};
 use uavmeta_world::heuristics::PolicySpec;
-use uavmeta_world::rollout::{
-    episode_worlds, evaluation_worlds, run_episode, EpisodeTally,
-};
+use uavmeta_world::rollout::{episode_worlds, evaluation_worlds, run_episode, EpisodeTally};
 use uavmeta_world::world::World;
 
 use crate::worlds::Worlds;
 
 /// The worlds of one evaluation: `exact` as `--exact` asks, else `episodes` Monte-Carlo ones.
-fn worlds_of(config: &Config, task: &TaskConfig, episodes: usize, seed: u64, exact: bool) -> Vec<World> {
+fn worlds_of(
+    config: &Config,
+    task: &TaskConfig,
+    episodes: usize,
+    seed: u64,
+    exact: bool,
+) -> Vec<World> {
     match exact {
         true => evaluation_worlds(&config.world, task, episodes, seed),
         false => episode_worlds(&config.world, task, episodes, seed).collect(),
@@ -59,9 +63,11 @@ pub fn evaluate_spec<'py>(
 ) -> PyResult<Bound<'py, PyDict>> {
     check_episodes(episodes)?;
     let (config, task) = worlds.config_and_task_of(env)?;
-    let parsed: PolicySpec = spec
-        .parse()
-        .map_err(|e: uavmeta_world::heuristics::PolicyError| PyValueError::new_err(e.to_string()))?;
+    let parsed: PolicySpec =
+        spec.parse()
+            .map_err(|e: uavmeta_world::heuristics::PolicyError| {
+                PyValueError::new_err(e.to_string())
+            })?;
     let mut evaluation = worlds_of(config, &task, episodes, seed, exact);
     let steps = evaluation.len() * config.world.horizon as usize;
     let (starts, runs) = py
@@ -97,7 +103,10 @@ fn results<'py>(
     runs: &[EpisodeMetrics],
 ) -> PyResult<Bound<'py, PyDict>> {
     let out = PyDict::new(py);
-    let flat: Vec<i64> = starts.iter().flat_map(|&(x, y)| [x as i64, y as i64]).collect();
+    let flat: Vec<i64> = starts
+        .iter()
+        .flat_map(|&(x, y)| [x as i64, y as i64])
+        .collect();
     out.set_item("start", flat.into_pyarray(py).reshape([starts.len(), 2])?)?;
     let column = |f: fn(&EpisodeMetrics) -> f64| runs.iter().map(f).collect::<Vec<f64>>();
     out.set_item("ret", column(|e| e.ret).into_pyarray(py))?;

@@ -137,7 +137,8 @@ impl TaskSource {
                         y1: y0 + h - 1,
                     }
                 });
-                let moves = r.rain_moves_every[draws.below(r.rain_moves_every.len() as u64) as usize];
+                let moves =
+                    r.rain_moves_every[draws.below(r.rain_moves_every.len() as u64) as usize];
                 let task = TaskConfig {
                     name: String::new(),
                     lambda,
@@ -181,7 +182,9 @@ impl Ranges {
             ));
         }
         if rain_moves_every.is_empty() {
-            return bad("rain_moves_every = []: expected at least one choice (None: the rain stays)".into());
+            return bad(
+                "rain_moves_every = []: expected at least one choice (None: the rain stays)".into(),
+            );
         }
         if let Some(Some(0)) = rain_moves_every.iter().find(|m| **m == Some(0)) {
             return bad("rain_moves_every = 0: expected at least 1 step, or None".into());

@@ -462,7 +462,13 @@ impl Worlds {
         self.check_env(i)?;
         let c = self.current[i];
         let rain = c.rain.map(|z| (z.x0, z.y0, z.x1, z.y1));
-        Ok((c.id, c.lambda, rain, c.rain_moves_every, self.task_of(i).name))
+        Ok((
+            c.id,
+            c.lambda,
+            rain,
+            c.rain_moves_every,
+            self.task_of(i).name,
+        ))
     }
 
     /// Every env's task id and lambda now: two arrays of N.

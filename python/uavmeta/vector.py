@@ -107,8 +107,11 @@ class VectorEnv(WorldProperties, _GymVectorEnv):
         return obs, self._task_infos(task_id, lam)
 
     def _task_infos(self, task_id, lam):
-        every = np.ones(self.num_envs, dtype=bool)
-        return {"task_id": task_id, "_task_id": every, "lam": lam, "_lam": every.copy()}
+        every = getattr(self, "_every", None)
+        if every is None:  # one read-only mask of all envs, shared by every step's infos
+            every = self._every = np.ones(self.num_envs, dtype=bool)
+            every.flags.writeable = False
+        return {"task_id": task_id, "_task_id": every, "lam": lam, "_lam": every}
 
     def step(self, actions):
         actions = check_actions(actions, self.num_envs, self.single_action_space.n)
@@ -144,15 +147,16 @@ class VectorEnv(WorldProperties, _GymVectorEnv):
 def check_actions(actions, num_envs, count):
     """``actions`` as a contiguous int64 array of one action index per env: a TypeError naming
     them if they are no integers, a ValueError naming the first out of range (by its own value,
-    before any cast)."""
+    before any cast; Rust checks the rest)."""
     actions = np.asarray(actions)
     if actions.dtype.kind not in "iu":
         raise TypeError(f"actions of dtype {actions.dtype}: expected integer action indices")
     if actions.shape != (num_envs,):
         raise ValueError(f"actions of shape {actions.shape}: expected ({num_envs},), one per env")
-    bad = np.flatnonzero((actions < 0) | (actions >= count))
-    if bad.size:
-        i = int(bad[0])
+    # Every signed and small unsigned value survives the cast, and Rust names any out of range;
+    # a uint64 above int64's range would wrap, so it is named here by its own value.
+    if actions.dtype == np.uint64 and num_envs and actions.max() >= count:
+        i = int(np.argmax(actions >= count))
         raise ValueError(
             f"actions[{i}] = {int(actions[i])}: expected an action index in 0..{count} "
             f"(a = move * K + device)"
