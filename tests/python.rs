@@ -63,17 +63,10 @@ fn the_wheel_installs_and_runs_without_a_rust_toolchain() {
     let dir = tempfile::tempdir().expect("temp dir");
     let wheels = dir.path().join("wheels");
     // The Makefile's `wheel` target, with the wheel written here rather than to target/wheels.
-    let build = Command::new(bin_dir.join("maturin"))
+    run(Command::new(bin_dir.join("maturin"))
         .args(["build", "--release", "-m", "python/Cargo.toml", "--out"])
         .arg(&wheels)
-        .current_dir(REPO)
-        .output()
-        .expect("run maturin");
-    assert!(
-        build.status.success(),
-        "maturin build failed:\n{}",
-        String::from_utf8_lossy(&build.stderr)
-    );
+        .current_dir(REPO));
     let wheel = std::fs::read_dir(&wheels)
         .expect("the wheels directory")
         .map(|e| e.expect("entry").path())
@@ -86,22 +79,13 @@ fn the_wheel_installs_and_runs_without_a_rust_toolchain() {
     // virtualenv's site-packages through a .pth file, as pip would fetch them, so no network.
     let venv = dir.path().join("venv");
     run(Command::new(&python).args(["-m", "venv"]).arg(&venv));
-    let site = Command::new(&python)
-        .args([
-            "-c",
-            "import sysconfig; print(sysconfig.get_paths()['purelib'])",
-        ])
-        .output()
-        .expect("site-packages");
-    let site = String::from_utf8_lossy(&site.stdout).trim().to_string();
-    let new_site = Command::new(venv.join("bin/python"))
-        .args([
-            "-c",
-            "import sysconfig; print(sysconfig.get_paths()['purelib'])",
-        ])
-        .output()
-        .expect("new site-packages");
-    let new_site = String::from_utf8_lossy(&new_site.stdout).trim().to_string();
+    let purelib = |python: &Path| {
+        let query = "import sysconfig; print(sysconfig.get_paths()['purelib'])";
+        run(Command::new(python).args(["-c", query]))
+            .trim()
+            .to_string()
+    };
+    let (site, new_site) = (purelib(&python), purelib(&venv.join("bin/python")));
     // addsitedir, so the .pth files there (an editable install's, a chained virtualenv's) count.
     let pth = format!("import site; site.addsitedir({site:?})\n");
     std::fs::write(Path::new(&new_site).join("deps.pth"), pth).expect("pth");
