@@ -9,7 +9,7 @@ TORCH_VERSION := 2.13.0
 TORCH_VENV ?= $(HOME)/.cache/uavmeta/torch-$(TORCH_VERSION)
 CONFIG ?= configs/default.toml
 
-.PHONY: run test build bench libtorch test-tools interop python
+.PHONY: run test build bench libtorch test-tools interop python wheel
 
 run: build
 	target/release/uavmeta launch --config $(CONFIG)
@@ -78,3 +78,9 @@ python: interop
 	@PATH="$(TORCH_VENV)/bin:$$PATH" $(TORCH_VENV)/bin/pip install --no-input --disable-pip-version-check -q \
 	  --no-build-isolation --no-deps --force-reinstall ./python || \
 	  echo "the Python package (python/) is not installed; tests/python.rs skips"
+
+# A wheel of the Python package for every CPython >= 3.9 on this platform (PyO3's abi3), in
+# target/wheels; it installs with pip into any virtualenv without a Rust toolchain
+# (tests/python.rs installs it so). maturin comes from the interop requirements.
+wheel: interop
+	PATH="$(TORCH_VENV)/bin:$$PATH" maturin build --release -m python/Cargo.toml --out target/wheels

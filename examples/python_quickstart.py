@@ -2,7 +2,8 @@
 batched vector env, a picture, (with --dataset FILE) a collected dataset and (with --checkpoint
 PATH) a Q-network the command line trained.
 
-    pip install ./python          # or: make python (into the test virtualenv)
+    pip install ./python          # or: make python (into the test virtualenv); --png needs the
+                                  # png extra: pip install "uavmeta[png]"
     python examples/python_quickstart.py [--dataset data/lambda-300.uavds] [--png world.png] \
         [--checkpoint runs/default/seed-0/inits/w0]
 """
@@ -57,7 +58,10 @@ def main():
     frame = env.unwrapped.render_trajectory()
     print("frame:", frame.shape, frame.dtype)
     if args.png:
-        from PIL import Image
+        try:
+            from PIL import Image
+        except ImportError:
+            parser.exit(2, "--png needs Pillow: pip install 'uavmeta[png]' (or pillow)\n")
 
         Image.fromarray(frame).save(args.png)
         print("wrote", args.png)

@@ -3,7 +3,8 @@
 //! `MINARI_DATASETS_PATH` is the root it was written under:
 //!
 //! ```text
-//! ROOT/ID/data/metadata.json        the dataset: id, counts, spaces, format, task, lambda, rain, config
+//! ROOT/ID/data/metadata.json        the dataset: id, counts, spaces, format, task, lambda, rain, config,
+//!                                   whether the observations are normalised and by what scale
 //! ROOT/ID/data/<i>/part-0.arrow     episode i: one Arrow IPC record batch
 //! ROOT/ID/data/<i>/metadata.json    its id and steps, and the actor, episode and first step it comes from
 //! ```
@@ -16,7 +17,8 @@
 //!
 //! **Episodes.** Each run of consecutive steps ([`crate::runs`]) is an episode.
 //! `observations` hold its n steps' observations and the final next observation (n + 1 rows,
-//! raw float32 values as in the dataset file); `actions`, `rewards`, `terminations` and
+//! raw float32 values as in the dataset file, or with [`Observations::Normalised`] divided by
+//! L-1, L-1 and aoi_max bit for bit as the Python env's `normalised=True` gives them); `actions`, `rewards`, `terminations` and
 //! `truncations` hold n values, padded by one row as Minari's own writer does (its reader drops
 //! that row). Terminations are all false, since the world has no terminal state; a truncation
 //! marks the step that reached the horizon. A run that the sampling cut short ends with neither:
@@ -43,6 +45,16 @@ pub const MINARI_VERSION: &str = "0.5.4";
 
 /// The name pyarrow's `write_dataset` gives the one file of a partition.
 const EPISODE_FILE: &str = "part-0.arrow";
+
+/// How the observations are written.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Observations {
+    /// As the dataset file holds them: [x, y, A_1..A_K] as float32 integers.
+    #[default]
+    Raw,
+    /// x/(L-1), y/(L-1), A/aoi_max: what the networks and `uavmeta.UavEnv(normalised=True)` see.
+    Normalised,
+}
 
 /// What [`write`] wrote.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -93,6 +105,16 @@ fn check_id(id: &str) -> Result<(), InteropError> {
 /// Writes `export` as Minari dataset `id` under `root`. The dataset appears whole or not at all:
 /// it is written beside its place under a hidden name, which Minari's listing skips, and renamed.
 pub fn write(export: &Export, root: &Path, id: &str) -> Result<MinariSummary, InteropError> {
+    write_observations(export, root, id, Observations::Raw)
+}
+
+/// As [`write`], the observations written as `observations` says.
+pub fn write_observations(
+    export: &Export,
+    root: &Path,
+    id: &str,
+    observations: Observations,
+) -> Result<MinariSummary, InteropError> {
     check_id(id)?;
     let dir = root.join(id);
     let parent = prepare_output(&dir)?;
@@ -103,9 +125,15 @@ pub fn write(export: &Export, root: &Path, id: &str) -> Result<MinariSummary, In
     let data = staging.path().join("data");
     let mut bytes = 0;
     for (i, run) in export.runs.iter().enumerate() {
-        bytes += write_episode(&data.join(i.to_string()), i, run, &export.config.world)?;
+        bytes += write_episode(
+            &data.join(i.to_string()),
+            i,
+            run,
+            &export.config.world,
+            observations,
+        )?;
     }
-    let metadata = dataset_metadata(export, id, bytes);
+    let metadata = dataset_metadata(export, id, bytes, observations);
     write_json(&data.join("metadata.json"), &metadata)?;
     // Dropping `staging` after the rename finds nothing left to remove.
     std::fs::rename(staging.path(), &dir).map_err(InteropError::io(&dir, "create"))?;
@@ -122,6 +150,7 @@ fn write_episode(
     id: usize,
     run: &[Transition],
     world: &WorldConfig,
+    observations: Observations,
 ) -> Result<u64, InteropError> {
     std::fs::create_dir_all(dir).map_err(InteropError::io(dir, "create the directory"))?;
     let path = dir.join(EPISODE_FILE);
@@ -129,7 +158,7 @@ fn write_episode(
         path: path.clone(),
         source,
     };
-    let batch = episode_batch(run, world.observation_len()).map_err(arrow)?;
+    let batch = episode_batch(run, &scale_of(world, observations)).map_err(arrow)?;
     let file = File::create(&path).map_err(InteropError::io(&path, "create"))?;
     let mut writer = FileWriter::try_new(BufWriter::new(file), &batch.schema()).map_err(arrow)?;
     writer.write(&batch).map_err(arrow)?;
@@ -154,15 +183,26 @@ fn write_episode(
     Ok(size.len())
 }
 
-/// One episode's columns, each padded to the n + 1 rows of its observations.
-fn episode_batch(run: &[Transition], observation_len: usize) -> Result<RecordBatch, ArrowError> {
+/// What each observation entry is multiplied by: 1, or the f32 reciprocal of its scale, as
+/// `World::write_normalised` computes it.
+fn scale_of(world: &WorldConfig, observations: Observations) -> Vec<f32> {
+    match observations {
+        Observations::Raw => vec![1.0; world.observation_len()],
+        Observations::Normalised => world.observation_scale().iter().map(|s| 1.0 / s).collect(),
+    }
+}
+
+/// One episode's columns, each padded to the n + 1 rows of its observations, which are
+/// multiplied entry by entry by `inv_scale`.
+fn episode_batch(run: &[Transition], inv_scale: &[f32]) -> Result<RecordBatch, ArrowError> {
+    let observation_len = inv_scale.len();
     let last = run.last().expect("a run is never empty");
     let observations: Float32Array = run
         .iter()
         .map(|t| &t.obs)
         .chain([&last.next_obs])
-        .flatten()
-        .map(|&v| Some(f32::from(v)))
+        .flat_map(|obs| obs.iter().zip(inv_scale))
+        .map(|(&v, &inv)| Some(f32::from(v) * inv))
         .collect();
     // pyarrow's `pa.list_(pa.float32(), list_size=n)`, as Minari encodes a Box space.
     let item = Arc::new(Field::new("item", DataType::Float32, true));
@@ -186,7 +226,7 @@ fn episode_batch(run: &[Transition], observation_len: usize) -> Result<RecordBat
 }
 
 /// The dataset's `metadata.json`: Minari's keys, then what uavmeta knows of the data.
-fn dataset_metadata(export: &Export, id: &str, bytes: u64) -> Value {
+fn dataset_metadata(export: &Export, id: &str, bytes: u64, observations: Observations) -> Value {
     let world = &export.config.world;
     let action_space = json!({
         "type": "Discrete", "dtype": "int64", "start": 0, "n": world.action_count(),
@@ -198,7 +238,7 @@ fn dataset_metadata(export: &Export, id: &str, bytes: u64) -> Value {
         "data_format": "arrow",
         "jpeg_encoding": false,
         // Minari stores spaces as JSON strings inside the JSON.
-        "observation_space": observation_space(world).to_string(),
+        "observation_space": observation_space(world, observations).to_string(),
         "action_space": action_space.to_string(),
         "minari_version": MINARI_VERSION,
         // In MB with one decimal, as `minari list local` shows it.
@@ -212,6 +252,12 @@ fn dataset_metadata(export: &Export, id: &str, bytes: u64) -> Value {
         "lambda": export.task.lambda,
         "rain": export.task.rain,
         "rain_moves_every": export.task.rain_moves_every,
+        "task_id": export.config.tasks.iter().position(|t| t.name == export.task.name),
+        "role": export.task.role,
+        "normalised": observations == Observations::Normalised,
+        "observation_scale": world.observation_scale(),
+        // The horizon is a time limit: `terminations` are all false, `truncations` mark it.
+        "horizon": world.horizon,
         "config": export.config.to_toml_string(),
         "source": export.source.display().to_string(),
         "shots": export.shots.map(|s| s.n),
@@ -219,11 +265,18 @@ fn dataset_metadata(export: &Export, id: &str, bytes: u64) -> Value {
     })
 }
 
-/// A Box of the raw observation: x and y in 0..L-1, every AoI in 1..aoi_max.
-fn observation_space(world: &WorldConfig) -> Value {
-    let high = world.observation_scale();
+/// A Box of the raw observation: x and y in 0..L-1, every AoI in 1..aoi_max; normalised, each
+/// bound multiplied as the observations are.
+fn observation_space(world: &WorldConfig, observations: Observations) -> Value {
+    let inv = scale_of(world, observations);
+    let high: Vec<f32> = world
+        .observation_scale()
+        .iter()
+        .zip(&inv)
+        .map(|(h, i)| h * i)
+        .collect();
     let low: Vec<f32> = (0..high.len())
-        .map(|i| if i < 2 { 0.0 } else { 1.0 })
+        .map(|i| if i < 2 { 0.0 } else { inv[i] })
         .collect();
     json!({
         "type": "Box", "dtype": "float32", "shape": [high.len()], "low": low, "high": high,

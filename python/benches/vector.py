@@ -2,9 +2,15 @@
 Python"): uavmeta.VectorEnv beside gymnasium.vector.SyncVectorEnv of uavmeta.UavEnv and beside
 NumpyWorld, the same world written in a page of numpy, at N = 1, 64 and 4096 envs.
 
+With ``--mixed`` every env runs a task of its own: uavmeta.VectorEnv draws a new task at every
+reset from a TaskSampler (lambda in [0, 1000], rain on half the episodes, a third of those
+moving), SyncVectorEnv runs UavEnvs with the same sampler, and NumpyWorld holds a fixed mix of
+lambdas and rain zones, one per env (no redraws: the comparison is generous to it); the
+single-task VectorEnv runs beside them as the reference.
+
 Run on one core, in the virtualenv where the package is installed:
 
-    taskset -c 1 python python/benches/vector.py
+    taskset -c 1 python python/benches/vector.py [--mixed]
 
 Every loop steps with actions drawn beforehand (a pool of up to 64 batches, cycled), so it times
 the env alone, for at least --seconds; the three envs take turns, --rounds loops each, and the
@@ -28,11 +34,13 @@ class NumpyWorld:
 
     def __init__(self, n, device_cells, lam, rain=None, grid=10, horizon=100, aoi_max=100,
                  start_cell=None, seed=0):
+        # lam: one lambda or one per env; rain: one zone, None, or an (n, 4) array of zones
+        # (x0 > x1 for an env without rain).
         self.n, self.grid, self.horizon, self.aoi_max = n, grid, horizon, aoi_max
         self.cells = np.asarray(device_cells)
         self.k = len(self.cells)
-        self.weight = lam / self.k
-        self.rain = rain
+        self.weight = np.asarray(lam, dtype=np.float64) / self.k
+        self.rain = None if rain is None else np.asarray(rain).T
         self.start_cell = start_cell
         self.rng = np.random.default_rng(seed)
         # P = (2^(M/B) - 1) sigma^2 / g0 (h^2 + d^2) W, in mW; rain: * 10^(gamma_R d_km / 10).
@@ -106,6 +114,21 @@ def check_numpy_world_is_the_world():
         np.testing.assert_array_equal(got[3], want[3])
 
 
+MIXED = uavmeta.TaskSampler(lam=(0.0, 1000.0), rain_probability=0.5, rain_size=(1, 4),
+                            rain_moves_every=(None, None, 10))
+
+
+def numpy_mix(n, seed=0):
+    """One lambda and one rain zone (or none) per env, as MIXED draws them."""
+    rng = np.random.default_rng(seed)
+    lam = rng.uniform(0.0, 1000.0, n)
+    w, h = rng.integers(1, 5, n), rng.integers(1, 5, n)
+    x0, y0 = rng.integers(0, 11 - w), rng.integers(0, 11 - h)
+    zones = np.stack([x0, y0, x0 + w - 1, y0 + h - 1], axis=1)
+    zones[rng.random(n) >= 0.5] = (1, 1, 0, 0)  # empty: no rain
+    return lam, zones
+
+
 def rate(env, pool, seconds):
     """Env steps per second of one loop of at least ``seconds``."""
     n = pool.shape[1]
@@ -124,8 +147,10 @@ def main():
     parser.add_argument("--sizes", type=int, nargs="+", default=[1, 64, 4096])
     parser.add_argument("--seconds", type=float, default=0.5, help="per loop")
     parser.add_argument("--rounds", type=int, default=7, help="loops per env, interleaved")
+    parser.add_argument("--mixed", action="store_true", help="a task per env (module doc)")
     args = parser.parse_args()
     check_numpy_world_is_the_world()
+    cells = uavmeta.UavEnv(lam=300.0)._worlds.device_cells
     makers = {
         "uavmeta.VectorEnv": lambda n: uavmeta.VectorEnv(n, lam=300.0, rain=(3, 3, 5, 5)),
         "SyncVectorEnv(UavEnv)": lambda n: gymnasium.vector.SyncVectorEnv(
@@ -135,6 +160,15 @@ def main():
             n, uavmeta.UavEnv(lam=300.0)._worlds.device_cells, 300.0, rain=(3, 3, 5, 5)
         ),
     }
+    if args.mixed:
+        makers = {
+            "uavmeta.VectorEnv, one task": makers["uavmeta.VectorEnv"],
+            "uavmeta.VectorEnv, TaskSampler": lambda n: uavmeta.VectorEnv(n, tasks=MIXED),
+            "SyncVectorEnv(UavEnv), TaskSampler": lambda n: gymnasium.vector.SyncVectorEnv(
+                [lambda: uavmeta.UavEnv(tasks=MIXED) for _ in range(n)]
+            ),
+            "NumpyWorld, a task per env": lambda n: NumpyWorld(n, cells, *numpy_mix(n)),
+        }
     results = {name: [] for name in makers}
     for n in args.sizes:
         envs = {name: make(n) for name, make in makers.items()}

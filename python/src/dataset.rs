@@ -8,7 +8,7 @@
 use std::path::{Path, PathBuf};
 
 use numpy::ndarray::Array2;
-use numpy::{IntoPyArray, PyArray1, PyArray2};
+use numpy::{IntoPyArray, PyArray1};
 use pyo3::exceptions::{PyFileNotFoundError, PyOSError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -26,24 +26,44 @@ pyo3::create_exception!(
 
 /// Reads `path` into a dict of numpy arrays (obs, action, reward, next_obs, truncated, task,
 /// actor, episode, step, seq; one row per transition) and its metadata (task_name, task_id,
-/// devices, world_hash, chunks, and, from the config, lam, rain, rain_moves_every, role and
-/// config_path). `config` defaults to `FILE.config.toml` when that exists.
+/// devices, world_hash, chunks, and, from the config, lam, rain, rain_moves_every, role,
+/// grid_cells, horizon, aoi_max, observation_scale and config_path). `config` defaults to
+/// `FILE.config.toml` when that exists. With `normalised`, obs and next_obs are float32 divided
+/// by the observation scale (x/(L-1), y/(L-1), A/aoi_max), as the env's `normalised=True`
+/// gives them; that needs the config.
 #[pyfunction]
-#[pyo3(signature = (path, config=None))]
+#[pyo3(signature = (path, config=None, normalised=false))]
 pub fn load_dataset<'py>(
     py: Python<'py>,
     path: PathBuf,
     config: Option<PathBuf>,
+    normalised: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
     let reader = py
         .detach(|| DatasetReader::open(&path))
         .map_err(dataset_error)?;
+    let config_path = config.or_else(|| Some(saved_config(&path)).filter(|p| p.exists()));
+    let loaded = match &config_path {
+        Some(p) => Some(Config::load(p, &[]).map_err(config_error)?),
+        None => None,
+    };
+    let scale = match (&loaded, normalised) {
+        (Some(c), true) => Some(c.world.observation_scale()),
+        (None, true) => {
+            return Err(PyValueError::new_err(format!(
+                "normalised = True: the observation scale comes from the dataset's config, and                  {} has none: expected config= or the FILE.config.toml `uavmeta collect` saves",
+                path.display()
+            )))
+        }
+        (_, false) => None,
+    };
     let out = PyDict::new(py);
     arrays(
         py,
         &out,
         reader.transitions(),
         reader.header().observation_len(),
+        scale.as_deref(),
     )?;
     let header = reader.header();
     out.set_item("task_name", &header.task_name)?;
@@ -52,9 +72,9 @@ pub fn load_dataset<'py>(
     out.set_item("world_hash", header.world_hash)?;
     out.set_item("chunks", reader.chunks())?;
     out.set_item("path", path.display().to_string())?;
-    let config_path = config.or_else(|| Some(saved_config(&path)).filter(|p| p.exists()));
-    if let Some(config_path) = config_path {
-        task_metadata(&out, &reader, &config_path)?;
+    out.set_item("normalised", normalised)?;
+    if let (Some(config_path), Some(config)) = (config_path, loaded) {
+        task_metadata(&out, &reader, &config_path, &config)?;
     }
     Ok(out)
 }
@@ -67,26 +87,46 @@ fn saved_config(path: &Path) -> PathBuf {
 }
 
 /// The transitions as columns.
+/// The transitions as columns; the observations raw (uint16), or divided by `scale` (float32).
 fn arrays(
     py: Python<'_>,
     out: &Bound<'_, PyDict>,
     transitions: &[Transition],
     obs_len: usize,
+    scale: Option<&[f32]>,
 ) -> PyResult<()> {
-    let rows = |f: fn(&Transition) -> &[u16]| -> PyResult<Bound<'_, PyArray2<u16>>> {
-        let flat: Vec<u16> = transitions
-            .iter()
-            .flat_map(|t| f(t).iter().copied())
-            .collect();
-        let array = Array2::from_shape_vec((transitions.len(), obs_len), flat)
-            .map_err(|e| PyValueError::new_err(e.to_string()))?;
-        Ok(array.into_pyarray(py))
+    let shape = (transitions.len(), obs_len);
+    let bad_shape = |e: numpy::ndarray::ShapeError| PyValueError::new_err(e.to_string());
+    let rows = |f: fn(&Transition) -> &[u16]| -> PyResult<Bound<'_, PyAny>> {
+        let raw = transitions.iter().flat_map(|t| f(t).iter().copied());
+        Ok(match scale {
+            None => Array2::from_shape_vec(shape, raw.collect())
+                .map_err(bad_shape)?
+                .into_pyarray(py)
+                .into_any(),
+            Some(scale) => {
+                // As `World::write_normalised`: times the f32 reciprocal, so the values equal
+                // the env's bit for bit.
+                let inv: Vec<f32> = scale.iter().map(|s| 1.0 / s).collect();
+                let flat: Vec<f32> = raw
+                    .zip(inv.iter().cycle())
+                    .map(|(v, inv)| v as f32 * inv)
+                    .collect();
+                Array2::from_shape_vec(shape, flat)
+                    .map_err(bad_shape)?
+                    .into_pyarray(py)
+                    .into_any()
+            }
+        })
     };
     out.set_item("obs", rows(|t| &t.obs)?)?;
     out.set_item("next_obs", rows(|t| &t.next_obs)?)?;
     out.set_item("action", column(py, transitions, |t| t.action as i64))?;
     out.set_item("reward", column(py, transitions, |t| t.reward))?;
     out.set_item("truncated", column(py, transitions, |t| t.truncated))?;
+    // The horizon is a time limit, never a terminal state: D4RL's and Minari's two columns.
+    out.set_item("terminals", column(py, transitions, |_| false))?;
+    out.set_item("truncations", column(py, transitions, |t| t.truncated))?;
     out.set_item("task", column(py, transitions, |t| t.task))?;
     out.set_item("actor", column(py, transitions, |t| t.actor))?;
     out.set_item("episode", column(py, transitions, |t| t.episode))?;
@@ -113,9 +153,9 @@ fn task_metadata(
     out: &Bound<'_, PyDict>,
     reader: &DatasetReader,
     config_path: &Path,
+    config: &Config,
 ) -> PyResult<()> {
-    let config = Config::load(config_path, &[]).map_err(config_error)?;
-    reader.check_world(&config).map_err(dataset_error)?;
+    reader.check_world(config).map_err(dataset_error)?;
     let task = config
         .task(&reader.header().task_name)
         .map_err(config_error)?;
@@ -127,6 +167,10 @@ fn task_metadata(
         uavmeta_proto::config::TaskRole::MetaTest => "meta-test",
     };
     out.set_item("role", role)?;
+    out.set_item("grid_cells", config.world.grid_cells)?;
+    out.set_item("horizon", config.world.horizon)?;
+    out.set_item("aoi_max", config.world.aoi_max)?;
+    out.set_item("observation_scale", config.world.observation_scale())?;
     out.set_item("config_path", config_path.display().to_string())?;
     Ok(())
 }

@@ -4,8 +4,11 @@
 //!
 //! - [`task`]: a config file, a task name or one-off arguments to the world and task they mean,
 //!   with every bad argument a `ValueError` naming the key and the value.
-//! - [`worlds`]: [`worlds::Worlds`], N worlds of one task stepped in one call on numpy arrays
-//!   with the GIL released, with Gymnasium's next-step autoreset and the CLI's episode seeds.
+//! - [`worlds`]: [`worlds::Worlds`], N worlds stepped in one call on numpy arrays with the GIL
+//!   released, with Gymnasium's next-step autoreset and the CLI's episode seeds.
+//! - [`tasks`]: where each of those worlds takes its task: one for all, a list, or a sampler that
+//!   draws a new task at every reset.
+//! - [`evaluate`]: a policy scored by the world crate's own evaluation, as the CLI scores it.
 //! - [`policies`]: the heuristics (random, stalest, greedy) as batched functions of observations.
 //! - [`dataset`]: a `.uavds` file as numpy arrays with its task's metadata.
 //!
@@ -20,14 +23,19 @@
 use pyo3::prelude::*;
 
 pub mod dataset;
+pub mod evaluate;
 pub mod policies;
 pub mod task;
+pub mod tasks;
 pub mod worlds;
 
 #[pymodule]
 fn _uavmeta(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<worlds::Worlds>()?;
     m.add_class::<policies::Heuristic>()?;
+    m.add_class::<evaluate::Evaluation>()?;
+    m.add_function(wrap_pyfunction!(evaluate::evaluate_spec, m)?)?;
+    m.add_function(wrap_pyfunction!(evaluate::reference_names, m)?)?;
     m.add_function(wrap_pyfunction!(dataset::load_dataset, m)?)?;
     m.add_function(wrap_pyfunction!(worlds::episode_seed, m)?)?;
     m.add_function(wrap_pyfunction!(policies::checkpoint_spec, m)?)?;

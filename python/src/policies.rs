@@ -87,7 +87,7 @@ impl Heuristic {
         Ok(Self {
             name: name.to_string(),
             kind,
-            world: World::new(&config.world, task, 0),
+            world: World::new(&config.world, &task, 0),
             to_raw,
             max_raw,
             normalised,

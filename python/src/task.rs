@@ -9,7 +9,8 @@
 
 use std::path::PathBuf;
 
-use pyo3::exceptions::{PyOSError, PyValueError};
+use pyo3::exceptions::{PyFileNotFoundError, PyOSError, PyValueError};
+use pyo3::prelude::*;
 use pyo3::PyErr;
 use uavmeta_proto::config::{Config, ConfigError, RainZone, TaskConfig};
 
@@ -87,11 +88,17 @@ fn one_off(lam: f64, args: &TaskArgs) -> TaskConfig {
     task
 }
 
-/// A config error as the Python exception that fits: unreadable files are `OSError`s, the rest
-/// `ValueError`s, each with the config crate's message.
+/// A config error as the Python exception that fits: a missing file is a `FileNotFoundError`
+/// naming the `config` argument, another unreadable one an `OSError`, the rest `ValueError`s,
+/// each with the config crate's message.
 pub fn config_error(e: ConfigError) -> PyErr {
-    match e {
-        ConfigError::Read { .. } => PyOSError::new_err(e.to_string()),
+    match &e {
+        ConfigError::Read { origin, error } if error.kind() == std::io::ErrorKind::NotFound => {
+            PyFileNotFoundError::new_err(format!(
+                "config = {origin:?}: no such file: expected a TOML config file (configs/default.toml, or one `uavmeta` saved beside a dataset or checkpoint)"
+            ))
+        }
+        ConfigError::Read { .. } => PyOSError::new_err(format!("config: {e}")),
         _ => PyValueError::new_err(e.to_string()),
     }
 }
@@ -116,4 +123,48 @@ fn one_off_error(e: ConfigError, index: usize, args: &TaskArgs) -> PyErr {
         }
     }
     config_error(e)
+}
+
+/// One entry of a task list from Python: a task of the config by name, or a one-off.
+#[derive(Debug, Clone, Default)]
+pub struct TaskSpec {
+    pub task: Option<String>,
+    pub lam: Option<f64>,
+    pub rain: Option<(u32, u32, u32, u32)>,
+    pub rain_moves_every: Option<u32>,
+}
+
+/// The config of `args` and the task of every entry of `specs` (`tasks[i]` of the Python
+/// argument `argument`), each resolved as [`resolve`] resolves one, its errors prefixed with the
+/// entry's place.
+pub fn resolve_list(
+    args: &TaskArgs,
+    specs: &[TaskSpec],
+    argument: &str,
+) -> Result<(Config, Vec<TaskConfig>), PyErr> {
+    if specs.is_empty() {
+        return Err(PyValueError::new_err(format!(
+            "{argument} = []: expected at least one task"
+        )));
+    }
+    let mut config = None;
+    let mut tasks = Vec::with_capacity(specs.len());
+    for (i, spec) in specs.iter().enumerate() {
+        let one = TaskArgs {
+            task: spec.task.clone(),
+            lam: spec.lam,
+            rain: spec.rain,
+            rain_moves_every: spec.rain_moves_every,
+            ..args.clone()
+        };
+        let (c, task) = resolve(&one).map_err(|e| {
+            Python::attach(|py| {
+                let message = format!("{argument}[{i}]: {}", e.value(py));
+                PyErr::from_type(e.get_type(py), message)
+            })
+        })?;
+        config.get_or_insert(c);
+        tasks.push(task);
+    }
+    Ok((config.expect("at least one task"), tasks))
 }

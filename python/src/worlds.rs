@@ -1,4 +1,10 @@
-//! [`Worlds`]: N worlds of one task, stepped in one call on numpy arrays with the GIL released.
+//! [`Worlds`]: N worlds, each of its own task or all of one, stepped in one call on numpy arrays
+//! with the GIL released.
+//!
+//! **Tasks** come from a [`TaskSource`]: one task for all envs, a list (env i runs task
+//! `i % len`), or a sampler that draws env i's task afresh at each of its resets from the world
+//! seed of the episode it starts (so the draw is reproducible and independent of the order envs
+//! reset in). Every step reports each env's task id and lambda.
 //!
 //! **Seeds.** Env i keeps a base seed and an episode counter. `reset` with a seed S starts
 //! episode 0 of S; every later reset without a seed (including an autoreset) starts the next
@@ -18,7 +24,8 @@ use uavmeta_proto::config::{Config, TaskConfig};
 use uavmeta_world::rollout;
 use uavmeta_world::world::World;
 
-use crate::task::{resolve, TaskArgs};
+use crate::task::{resolve, resolve_list, TaskArgs, TaskSpec};
+use crate::tasks::{Current, Ranges, TaskSource};
 
 /// The world seed of episode `episode` of base seed `seed`: the one `uavmeta env rollout --seed`
 /// gives its episode `episode`.
@@ -30,7 +37,7 @@ pub fn episode_seed(seed: u64, episode: usize) -> u64 {
 /// The most envs one `Worlds` holds: a step's arrays are then about 1 GiB at K = 10.
 const MAX_ENVS: usize = 1 << 24;
 
-/// N worlds of one task (see the module doc for seeds and autoreset).
+/// N worlds (see the module doc for tasks, seeds and autoreset).
 #[pyclass(module = "uavmeta._uavmeta")]
 pub struct Worlds {
     worlds: Vec<World>,
@@ -38,11 +45,30 @@ pub struct Worlds {
     episodes: Vec<usize>,
     /// Env i reached its horizon in the last step: the next step resets it.
     pending_reset: Vec<bool>,
+    /// Envs never reset: a batched step refuses to run while any is left.
+    never_reset: usize,
+    reset_once: Vec<bool>,
+    /// Where each env's task comes from, and the task it runs now.
+    source: TaskSource,
+    current: Vec<Current>,
     /// Observations as the networks see them (x/(L-1), y/(L-1), A/aoi_max) instead of raw.
     normalised: bool,
     config: Config,
+    /// The first task: the one of every env unless a list or a sampler gives others.
     task: TaskConfig,
 }
+
+/// Python's form of a task list entry: (task name, lam, rain, rain_moves_every).
+type TaskTuple = (
+    Option<String>,
+    Option<f64>,
+    Option<(u32, u32, u32, u32)>,
+    Option<u32>,
+);
+
+/// Python's form of a parametric sampler: (lam range, rain probability, rain side range, the
+/// choices of rain_moves_every).
+type RangesTuple = ((f64, f64), f64, (u32, u32), Vec<Option<u32>>);
 
 /// What one batched step returns, one entry per env.
 #[derive(Default)]
@@ -54,6 +80,8 @@ struct StepOut {
     power_mw: Vec<f64>,
     outage: Vec<bool>,
     device: Vec<i64>,
+    task_id: Vec<i64>,
+    lam: Vec<f64>,
     /// Env i stepped (false where it was autoreset instead): the mask of every info key.
     stepped: Vec<bool>,
 }
@@ -77,10 +105,42 @@ impl Worlds {
             }
             None => self.episodes[i] += 1,
         }
+        self.start_episode(i);
+    }
+
+    /// Starts episode `episodes[i]` of `base_seeds[i]` in env i, drawing its task first if the
+    /// tasks are sampled.
+    fn start_episode(&mut self, i: usize) {
+        let world_seed = rollout::episode_seed(self.base_seeds[i], self.episodes[i]);
         let world = &mut self.worlds[i];
-        world.reseed(rollout::episode_seed(self.base_seeds[i], self.episodes[i]));
+        if self.source.resamples() {
+            let (id, task) = self.source.task(i, world_seed, world.grid_cells());
+            world.set_task(&task);
+            self.current[i] = Current::of(id, &task);
+        }
+        world.reseed(world_seed);
         world.reset();
         self.pending_reset[i] = false;
+        if !self.reset_once[i] {
+            self.reset_once[i] = true;
+            self.never_reset -= 1;
+        }
+    }
+
+    /// The task env i runs now, named as the config or the one-off naming names it.
+    fn task_of(&self, i: usize) -> TaskConfig {
+        let c = self.current[i];
+        match &self.source {
+            TaskSource::Fixed(tasks) | TaskSource::Draw(tasks) => tasks[c.id as usize].clone(),
+            TaskSource::Ranges(..) => {
+                let mut task = TaskConfig::one_off(c.lambda, c.rain);
+                if let Some(every) = c.rain_moves_every {
+                    task.name = format!("{}-moves-{every}", task.name);
+                    task.rain_moves_every = Some(every);
+                }
+                task
+            }
+        }
     }
 
     fn write_obs(&self, i: usize, out: &mut [f32]) {
@@ -106,6 +166,8 @@ impl Worlds {
             power_mw: vec![0.0; n],
             outage: vec![false; n],
             device: vec![0; n],
+            task_id: vec![0; n],
+            lam: vec![0.0; n],
             stepped: vec![false; n],
         };
         for (i, &action) in actions.iter().enumerate() {
@@ -123,6 +185,8 @@ impl Worlds {
                 self.pending_reset[i] = step.truncated;
             }
             self.write_obs(i, &mut out.obs[i * d..(i + 1) * d]);
+            out.task_id[i] = self.current[i].id;
+            out.lam[i] = self.current[i].lambda;
         }
         out
     }
@@ -163,7 +227,8 @@ type StepOne<'py> = (
     (u32, u32),
 );
 
-/// A batched step: obs, reward, terminated, truncated, aoi, power_mw, outage, device, stepped.
+/// A batched step: obs, reward, terminated, truncated, aoi, power_mw, outage, device, stepped,
+/// task_id, lam.
 type StepBatch<'py> = (
     Bound<'py, PyArray2<f32>>,
     Bound<'py, PyArray1<f64>>,
@@ -174,14 +239,19 @@ type StepBatch<'py> = (
     Bound<'py, PyArray1<bool>>,
     Bound<'py, PyArray1<i64>>,
     Bound<'py, PyArray1<bool>>,
+    Bound<'py, PyArray1<i64>>,
+    Bound<'py, PyArray1<f64>>,
 );
 
 #[pymethods]
 impl Worlds {
     /// `num_envs` worlds of the task that `config`, `task`, `lam`, `rain`, `rain_moves_every`
-    /// and the `KEY=VALUE` `overrides` name (see `uavmeta.UavEnv`). Call `reset` before stepping.
+    /// and the `KEY=VALUE` `overrides` name (see `uavmeta.UavEnv`); or, given `tasks` (a list
+    /// of (task name, lam, rain, rain_moves_every)), env i runs `tasks[i % len]`, or with
+    /// `draw=True` draws one of them at each reset; or, given `ranges`, draws a task from those
+    /// ranges at each reset. Call `reset` before stepping.
     #[new]
-    #[pyo3(signature = (num_envs, *, normalised=false, config=None, task=None, lam=None, rain=None, rain_moves_every=None, overrides=Vec::new()))]
+    #[pyo3(signature = (num_envs, *, normalised=false, config=None, task=None, lam=None, rain=None, rain_moves_every=None, overrides=Vec::new(), tasks=None, draw=false, ranges=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         num_envs: usize,
@@ -192,6 +262,9 @@ impl Worlds {
         rain: Option<(u32, u32, u32, u32)>,
         rain_moves_every: Option<u32>,
         overrides: Vec<String>,
+        tasks: Option<Vec<TaskTuple>>,
+        draw: bool,
+        ranges: Option<RangesTuple>,
     ) -> PyResult<Self> {
         if !(1..=MAX_ENVS).contains(&num_envs) {
             return Err(PyValueError::new_err(format!(
@@ -206,14 +279,62 @@ impl Worlds {
             rain_moves_every,
             overrides,
         };
-        let (config, task) = resolve(&args)?;
+        let (config, source) = match (tasks, ranges) {
+            (Some(_), Some(_)) => {
+                return Err(PyValueError::new_err(
+                    "tasks and a sampler's ranges: expected one source of tasks, not both",
+                ))
+            }
+            (Some(list), None) => {
+                let specs: Vec<TaskSpec> = list
+                    .into_iter()
+                    .map(|(task, lam, rain, rain_moves_every)| TaskSpec {
+                        task,
+                        lam,
+                        rain,
+                        rain_moves_every,
+                    })
+                    .collect();
+                let (config, tasks) = resolve_list(&args, &specs, "tasks")?;
+                let source = match draw {
+                    true => TaskSource::Draw(tasks),
+                    false => TaskSource::Fixed(tasks),
+                };
+                (config, source)
+            }
+            (None, Some((lam, rain_probability, rain_size, moves))) => {
+                // Until its first reset every env holds the base task of the other arguments.
+                let (config, task) = resolve(&args)?;
+                let grid = config.world.grid_cells;
+                let ranges = Ranges::new(lam, rain_probability, rain_size, moves, grid)?;
+                (config, TaskSource::Ranges(ranges, task))
+            }
+            (None, None) => {
+                let (config, task) = resolve(&args)?;
+                (config, TaskSource::Fixed(vec![task]))
+            }
+        };
+        let task = source.first().clone();
         let template = World::new(&config.world, &task, 0);
+        let mut worlds = vec![template; num_envs];
+        let mut current = vec![Current::of(0, &task); num_envs];
+        if let TaskSource::Fixed(tasks) = &source {
+            for (i, (world, now)) in worlds.iter_mut().zip(&mut current).enumerate() {
+                let j = i % tasks.len();
+                world.set_task(&tasks[j]);
+                *now = Current::of(j as i64, &tasks[j]);
+            }
+        }
         Ok(Self {
-            worlds: vec![template; num_envs],
+            worlds,
             base_seeds: vec![0; num_envs],
             episodes: vec![0; num_envs],
             // Until the first reset, a step resets first.
             pending_reset: vec![true; num_envs],
+            never_reset: num_envs,
+            reset_once: vec![false; num_envs],
+            source,
+            current,
             normalised,
             config,
             task,
@@ -306,6 +427,12 @@ impl Worlds {
                 actions.len()
             )));
         }
+        if self.never_reset > 0 {
+            let i = self.reset_once.iter().position(|r| !r).unwrap_or(0);
+            return Err(PyRuntimeError::new_err(format!(
+                "env {i} was never reset: call reset() before step()"
+            )));
+        }
         let count = self.action_count() as i64;
         if let Some(i) = actions.iter().position(|a| !(0..count).contains(a)) {
             self.check_action(&format!("actions[{i}]"), actions[i])?;
@@ -321,7 +448,75 @@ impl Worlds {
             out.outage.into_pyarray(py),
             out.device.into_pyarray(py),
             out.stepped.into_pyarray(py),
+            out.task_id.into_pyarray(py),
+            out.lam.into_pyarray(py),
         ))
+    }
+
+    /// Env i's task now: (task id, lambda, rain zone or None, rain_moves_every or None, name).
+    #[allow(clippy::type_complexity)]
+    fn task_now(
+        &self,
+        i: usize,
+    ) -> PyResult<(i64, f64, Option<(u32, u32, u32, u32)>, Option<u32>, String)> {
+        self.check_env(i)?;
+        let c = self.current[i];
+        let rain = c.rain.map(|z| (z.x0, z.y0, z.x1, z.y1));
+        Ok((
+            c.id,
+            c.lambda,
+            rain,
+            c.rain_moves_every,
+            self.task_of(i).name,
+        ))
+    }
+
+    /// Every env's task id and lambda now: two arrays of N.
+    fn task_ids_and_lams<'py>(
+        &self,
+        py: Python<'py>,
+    ) -> (Bound<'py, PyArray1<i64>>, Bound<'py, PyArray1<f64>>) {
+        let ids: Vec<i64> = self.current.iter().map(|c| c.id).collect();
+        let lams: Vec<f64> = self.current.iter().map(|c| c.lambda).collect();
+        (ids.into_pyarray(py), lams.into_pyarray(py))
+    }
+
+    /// Whether env i's task changes at its resets (a sampler).
+    #[getter]
+    fn resamples_tasks(&self) -> bool {
+        self.source.resamples()
+    }
+
+    /// How many tasks the envs run: 1 for one task, the list's length, or None for a sampler
+    /// of ranges.
+    #[getter]
+    fn task_count(&self) -> Option<usize> {
+        match &self.source {
+            TaskSource::Ranges(..) => None,
+            s => Some(s.list().len()),
+        }
+    }
+
+    /// (base seed, episode) of env i: its episode is episode `episode` of `base seed`.
+    fn seed_and_episode(&self, i: usize) -> PyResult<(u64, usize)> {
+        self.check_env(i)?;
+        Ok((self.base_seeds[i], self.episodes[i]))
+    }
+
+    /// Makes env i stand at the start of episode `episode` of `seed`, as `reset_one(i, seed)`
+    /// and `episode` more resets would; returns its observation.
+    fn reset_to<'py>(
+        &mut self,
+        py: Python<'py>,
+        i: usize,
+        seed: u64,
+        episode: usize,
+    ) -> PyResult<Bound<'py, PyArray1<f32>>> {
+        self.check_env(i)?;
+        self.base_seeds[i] = seed;
+        self.episodes[i] = episode;
+        self.start_episode(i);
+        self.observation(py, i)
     }
 
     /// Env i's state for drawing: ((x, y) of the UAV, step t, the rain zone now or None, A_1..A_K).
@@ -365,6 +560,18 @@ impl Worlds {
     #[getter]
     fn world_hash(&self) -> u64 {
         self.config.world_hash()
+    }
+
+    /// Episodes of `uavmeta eval` and of the tables' evaluations (`learner.eval_episodes`).
+    #[getter]
+    fn eval_episodes(&self) -> usize {
+        self.config.learner.eval_episodes
+    }
+
+    /// Their seed (`learner.eval_seed`).
+    #[getter]
+    fn eval_seed(&self) -> u64 {
+        self.config.learner.eval_seed
     }
 
     #[getter]
@@ -423,8 +630,20 @@ impl Worlds {
 }
 
 impl Worlds {
-    /// The resolved config and task, for the policies built on an env.
-    pub fn config_and_task(&self) -> (&Config, &TaskConfig) {
-        (&self.config, &self.task)
+    /// The resolved config and the task env 0 runs now, for the policies and evaluations built
+    /// on an env.
+    pub fn config_and_task(&self) -> (&Config, TaskConfig) {
+        (&self.config, self.task_of(0))
+    }
+
+    /// Whether the observations are normalised.
+    pub fn normalised_obs(&self) -> bool {
+        self.normalised
+    }
+
+    /// The resolved config and the task env `i` runs now.
+    pub fn config_and_task_of(&self, i: usize) -> PyResult<(&Config, TaskConfig)> {
+        self.check_env(i)?;
+        Ok((&self.config, self.task_of(i)))
     }
 }

@@ -13,23 +13,6 @@ from conftest import CONFIG, REPO
 from test_env import assert_same_steps, trace
 
 
-@pytest.fixture(scope="module")
-def trained(run_cli, tmp_path_factory):
-    """A CQL network trained for 60 epochs on 400 shots of the stalest heuristic's eps:0.3 data on
-    lambda-300: a policy whose action depends on the state, and none of the heuristics."""
-    root = tmp_path_factory.mktemp("checkpoint")
-    data = root / "lambda-300.uavds"
-    run_cli(
-        "collect", "--config", CONFIG, "--task", "lambda-300", "--policy", "eps:0.3",
-        "--transitions", 400, "--seed", 5, "--out", data,
-    )
-    run_cli(
-        "train", "--config", CONFIG, "--task", "lambda-300", "--algo", "cql",
-        "--dataset", data, "--shots", 400, "--epochs", 60, "--seed", 2, "--out", root / "cql",
-    )
-    return root / "cql" / "final"
-
-
 @pytest.mark.parametrize("normalised", [False, True])
 def test_the_greedy_policy_chooses_what_the_cli_chooses(run_cli, tmp_path, trained, normalised):
     steps = trace(run_cli, tmp_path, 3, 4, f"q:0:{trained}", "--task", "lambda-300")

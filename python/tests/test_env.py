@@ -1,6 +1,7 @@
 """UavEnv as Gymnasium's checker, the CLI's traces and a user's bad arguments see it."""
 
 import json
+import re
 
 import gymnasium
 import numpy as np
@@ -154,19 +155,64 @@ def test_bad_arguments_raise_value_errors_naming_them(kwargs, needle):
     assert needle.replace("'", '"') in str(error.value).replace("'", '"'), str(error.value)
 
 
-@pytest.mark.parametrize("action", [50, -1, 3.5, "north", None])
-def test_an_action_out_of_range_raises_a_value_error_naming_it(action):
+@pytest.mark.parametrize(
+    "action, error",
+    [(50, ValueError), (-1, ValueError), (np.uint64(2**63), ValueError), (3.5, TypeError),
+     ("north", TypeError), (None, TypeError), (True, TypeError)],
+)
+def test_a_bad_action_raises_an_error_naming_it(action, error):
     env = uavmeta.UavEnv(lam=300.0)
     env.reset(seed=0)
-    with pytest.raises(ValueError, match=f"action = {action!r}"):
+    with pytest.raises(error, match=re.escape(f"action = {action!r}")):
         env.step(action)
     env.step(np.int64(49))  # the env is still usable
 
 
-def test_bad_seeds_raise_value_errors():
+def test_bad_seeds_raise_errors_naming_them():
     env = uavmeta.UavEnv(lam=300.0)
     with pytest.raises(ValueError, match="seed = -1"):
         env.reset(seed=-1)
+    with pytest.raises(TypeError, match="seed = 1.5"):
+        env.reset(seed=1.5)
+
+
+def test_step_before_reset_is_refused():
+    env = uavmeta.UavEnv(lam=300.0)
+    with pytest.raises(uavmeta.ResetNeeded, match="reset"):
+        env.step(0)
+
+
+@pytest.mark.parametrize(
+    "kwargs, error, needle",
+    [
+        (dict(set="world.devices=5"), TypeError, "set = 'world.devices=5': expected a list"),
+        (dict(set=["world.devices"]), ValueError, "set[0] = 'world.devices'"),
+        (dict(set=[5]), TypeError, "set[0] = 5"),
+        (dict(config="no/such/config.toml"), FileNotFoundError, 'config = "no/such/config.toml"'),
+        (dict(config=3), TypeError, "config = 3"),
+        (dict(lam="300"), TypeError, "lam = '300'"),
+        (dict(task=300), TypeError, "task = 300"),
+        (dict(rain=5), TypeError, "rain = 5"),
+        (dict(rain=(1, 1, 2.5, 3)), TypeError, "rain = (1, 1, 2.5, 3)"),
+        (dict(normalised="yes"), TypeError, "normalised = 'yes'"),
+        (dict(horizon=object()), TypeError, "world.horizon"),
+    ],
+)
+def test_bad_argument_types_raise_the_right_error_naming_them(kwargs, error, needle):
+    with pytest.raises(error) as e:
+        uavmeta.UavEnv(**kwargs)
+    assert needle in str(e.value), str(e.value)
+
+
+def test_the_planners_step_must_be_a_step_of_the_episode():
+    env = uavmeta.UavEnv(lam=300.0)
+    obs, _ = env.reset(seed=0)
+    plan = uavmeta.policies.planner(env)
+    with pytest.raises(ValueError, match="t = -1: expected a step of the episode, 0..100"):
+        plan(obs, t=-1)
+    with pytest.raises(TypeError, match="t = 2.0"):
+        plan(obs, t=2.0)
+    assert 0 <= plan(obs, t=np.int64(0)) < 50
 
 
 def test_reset_is_deterministic_and_episodes_follow_the_seed():

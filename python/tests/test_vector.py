@@ -37,21 +37,21 @@ def test_the_vector_env_equals_n_single_envs(kwargs):
     same_steps(ours, theirs, rng, 40)
 
 
-def same_steps(ours, theirs, rng, steps):
-    """Steps both with the same random actions, checking every array; returns how many env
-    steps were autoresets."""
+def same_steps(ours, theirs, rng, steps, n=N, ignore=()):
+    """Steps both with the same random actions, checking every array (but the info keys
+    ``ignore``); returns how many env steps were autoresets."""
     autoresets = 0
     for t in range(steps):
-        actions = rng.integers(0, ours.single_action_space.n, size=N)
+        actions = rng.integers(0, ours.single_action_space.n, size=n)
         got, want = ours.step(actions), theirs.step(actions)
         for g, w in zip(got[:4], want[:4]):
             assert g.dtype == w.dtype and g.shape == w.shape
             np.testing.assert_array_equal(g, w, err_msg=f"step {t}")
         assert got[4].keys() == want[4].keys(), t
-        for key in got[4]:
+        for key in set(got[4]) - set(ignore):
             assert got[4][key].dtype == want[4][key].dtype, key
             np.testing.assert_array_equal(got[4][key], want[4][key], err_msg=f"{key} at {t}")
-        autoresets += int((~got[4].get("_aoi", np.zeros(N, bool))).sum())
+        autoresets += int((~got[4].get("_aoi", np.zeros(n, bool))).sum())
     return autoresets
 
 
@@ -71,7 +71,7 @@ def test_reset_takes_a_list_of_seeds_and_make_vec_finds_the_vector_env():
         (np.array([0, 1, 50]), "actions[2] = 50"),
         (np.array([0, -3, 1]), "actions[1] = -3"),
         (np.array([0, 1]), "shape (2,)"),
-        (np.array([0.0, 1.0, 2.0]), "dtype float64"),
+        (np.array([0, 2**63, 1], dtype=np.uint64), "actions[1] = 9223372036854775808"),
     ],
 )
 def test_bad_actions_raise_value_errors_naming_them(actions, needle):
@@ -87,3 +87,13 @@ def test_bad_actions_raise_value_errors_naming_them(actions, needle):
 def test_a_bad_num_envs_raises_a_value_error(num_envs):
     with pytest.raises(ValueError, match=f"num_envs = {num_envs}"):
         uavmeta.VectorEnv(num_envs, lam=300.0)
+
+
+def test_float_actions_are_a_type_error_and_step_before_reset_is_refused():
+    env = uavmeta.VectorEnv(3, lam=300.0)
+    with pytest.raises(uavmeta.ResetNeeded, match="reset"):
+        env.step(np.array([0, 1, 2]))
+    assert isinstance(uavmeta.ResetNeeded("x"), (RuntimeError, gymnasium.error.ResetNeeded))
+    env.reset(seed=0)
+    with pytest.raises(TypeError, match="dtype float64"):
+        env.step(np.array([0.0, 1.0, 2.0]))

@@ -6,8 +6,11 @@ as the ``uavmeta`` command line, without libtorch:
 
 - :class:`UavEnv`, a ``gymnasium.Env``, registered as ``uavmeta/UAV-v0``;
 - :class:`VectorEnv`, N worlds stepped in one call in Rust (Gymnasium's ``VectorEnv`` API,
-  next-step autoreset), also reachable as ``gymnasium.make_vec("uavmeta/UAV-v0", n,
-  vectorization_mode="vector_entry_point")``;
+  next-step autoreset), each of its own task (``tasks=[...]``) or drawing a new one at every
+  reset (``tasks=TaskSampler(...)``), also reachable as ``gymnasium.make_vec("uavmeta/UAV-v0",
+  n, vectorization_mode="vector_entry_point")``;
+- :func:`evaluate`, :func:`references` and :func:`normalised_score`: a policy scored as the
+  tables and the command line score it, to the digit;
 - :mod:`uavmeta.policies`, the heuristics (random, stalest, greedy), the planner and any saved
   Q-network (``checkpoint``) as batched functions of observations;
 - :func:`load_dataset`, a ``.uavds`` file as numpy arrays with its task's metadata;
@@ -21,7 +24,9 @@ import gymnasium
 from ._uavmeta import ACTION_MOVES as _MOVES
 from ._uavmeta import DatasetError, episode_seed
 from .dataset import Dataset, load_dataset
-from .env import UavEnv
+from .env import ResetNeeded, UavEnv
+from .evaluate import REFERENCES, Estimate, Score, evaluate, normalised_score, references
+from .tasks import TaskSampler
 from .vector import VectorEnv
 from . import policies, render
 
@@ -58,14 +63,22 @@ if ENV_ID not in gymnasium.registry:
 __all__ = [
     "ENV_ID",
     "MOVES",
+    "REFERENCES",
     "Dataset",
     "DatasetError",
+    "Estimate",
+    "ResetNeeded",
+    "Score",
+    "TaskSampler",
     "UavEnv",
     "VectorEnv",
     "action",
     "action_parts",
     "episode_seed",
+    "evaluate",
     "load_dataset",
+    "normalised_score",
     "policies",
+    "references",
     "render",
 ]

@@ -1,10 +1,12 @@
 """Python arguments to what the native ``Worlds`` takes: world keys as ``--set`` overrides in
 TOML syntax, and checks of the arguments Rust would otherwise reject with a less helpful error.
-Every error is a ``ValueError`` naming the argument and its value."""
+Every error names the argument, its value and what was expected: a ``TypeError`` for a value of
+the wrong type, a ``ValueError`` for one out of range."""
 
 import json
 import math
 import operator
+import os
 
 import numpy as np
 
@@ -26,7 +28,7 @@ def toml_value(key, value):
         return json.dumps(value)
     if isinstance(value, (list, tuple, np.ndarray)):
         return "[" + ", ".join(toml_value(key, v) for v in value) + "]"
-    raise ValueError(
+    raise TypeError(
         f"{key} = {value!r}: expected a number, a bool, a string or a list of them"
     )
 
@@ -35,19 +37,29 @@ def overrides(world, extra):
     """``world.KEY=VALUE`` for every world key given as a keyword, then the raw ``extra``
     overrides (``section.key=value``, as the CLI's ``--set``)."""
     out = [f"world.{k}={toml_value('world.' + k, v)}" for k, v in world.items()]
-    for o in extra or ():
-        if not isinstance(o, str) or "=" not in o:
-            raise ValueError(f"set = {o!r}: expected 'KEY=VALUE', e.g. 'world.devices=5'")
+    if extra is None:
+        return out
+    if isinstance(extra, (str, bytes)) or not isinstance(extra, (list, tuple)):
+        raise TypeError(
+            f"set = {extra!r}: expected a list of 'KEY=VALUE' strings, e.g. ['world.devices=5']"
+        )
+    for i, o in enumerate(extra):
+        if not isinstance(o, str):
+            raise TypeError(f"set[{i}] = {o!r}: expected a 'KEY=VALUE' string, e.g. 'world.devices=5'")
+        if "=" not in o:
+            raise ValueError(f"set[{i}] = {o!r}: expected 'KEY=VALUE', e.g. 'world.devices=5'")
         out.append(o)
     return out
 
 
 def natural(key, value, upper=None):
     """``value`` as a non-negative integer (below ``upper`` if given)."""
+    if isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{key} = {value!r}: expected an integer, not a bool")
     try:
         n = operator.index(value)
     except TypeError:
-        raise ValueError(f"{key} = {value!r}: expected an integer") from None
+        raise TypeError(f"{key} = {value!r}: expected an integer") from None
     if n < 0 or (upper is not None and n >= upper):
         bound = f" below {upper}" if upper is not None else ""
         raise ValueError(f"{key} = {value!r}: expected an integer >= 0{bound}")
@@ -58,16 +70,17 @@ def seed(value, key="seed"):
     return natural(key, value, upper=2**64)
 
 
-def lam(value):
+def lam(value, key="lam"):
     if value is None:
         return None
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"lam = {value!r}: expected a finite number >= 0") from None
+    if isinstance(value, (str, bytes, bool, np.bool_)) or not isinstance(
+        value, (int, float, np.integer, np.floating)
+    ):
+        raise TypeError(f"{key} = {value!r}: expected a finite number >= 0")
+    return float(value)
 
 
-def rain(value):
+def rain(value, key="rain"):
     """A rain zone as (x0, y0, x1, y1): a sequence of four cells or a dict with those keys."""
     if value is None:
         return None
@@ -75,27 +88,97 @@ def rain(value):
         try:
             value = [value[k] for k in ("x0", "y0", "x1", "y1")]
         except KeyError:
-            raise ValueError(f"rain = {value!r}: expected the keys x0, y0, x1, y1") from None
-    if isinstance(value, str) or len(value) != 4:
-        raise ValueError(f"rain = {value!r}: expected four cell indices (x0, y0, x1, y1)")
+            raise ValueError(f"{key} = {value!r}: expected the keys x0, y0, x1, y1") from None
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__"):
+        raise TypeError(f"{key} = {value!r}: expected four cell indices (x0, y0, x1, y1)")
+    if len(value) != 4:
+        raise ValueError(f"{key} = {value!r}: expected four cell indices (x0, y0, x1, y1)")
     try:
-        return tuple(natural("rain", v, upper=2**32) for v in value)
+        return tuple(natural(key, v, upper=2**32) for v in value)
     except ValueError:
         raise ValueError(
-            f"rain = {value!r}: expected four cell indices (x0, y0, x1, y1), each >= 0"
+            f"{key} = {value!r}: expected four cell indices (x0, y0, x1, y1), each >= 0"
+        ) from None
+    except TypeError:
+        raise TypeError(
+            f"{key} = {value!r}: expected four integer cell indices (x0, y0, x1, y1)"
         ) from None
 
 
-def native_kwargs(config, task, lam_, rain_, rain_moves_every, normalised, set_, world):
+def moves_every(value, key="rain_moves_every"):
+    return None if value is None else natural(key, value, upper=2**32)
+
+
+def path(value, key):
+    """A file argument as a str (``os.PathLike`` or ``str``), or a TypeError naming it."""
+    if value is None:
+        return None
+    if isinstance(value, os.PathLike):
+        value = os.fspath(value)
+    if not isinstance(value, str):
+        raise TypeError(f"{key} = {value!r}: expected a path (str or os.PathLike)")
+    return value
+
+
+def task_entry(entry, i):
+    """Entry ``i`` of a task list as (task name, lam, rain, rain_moves_every): a task name of
+    the config, a lambda, or a dict of ``lam``, ``rain``, ``rain_moves_every`` (or ``task``)."""
+    key = f"tasks[{i}]"
+    if isinstance(entry, str):
+        return (entry, None, None, None)
+    if isinstance(entry, (int, float, np.integer, np.floating)) and not isinstance(entry, bool):
+        return (None, lam(entry, key), None, None)
+    if isinstance(entry, dict):
+        unknown = set(entry) - {"task", "lam", "rain", "rain_moves_every"}
+        if unknown:
+            raise ValueError(
+                f"{key} has {sorted(unknown)}: expected the keys task, lam, rain, rain_moves_every"
+            )
+        name = entry.get("task")
+        if name is not None and not isinstance(name, str):
+            raise TypeError(f"{key}['task'] = {name!r}: expected a task name")
+        return (
+            name,
+            lam(entry.get("lam"), f"{key}['lam']"),
+            rain(entry.get("rain"), f"{key}['rain']"),
+            moves_every(entry.get("rain_moves_every"), f"{key}['rain_moves_every']"),
+        )
+    raise TypeError(
+        f"{key} = {entry!r}: expected a task name, a lambda or a dict of lam, rain, rain_moves_every"
+    )
+
+
+def native_kwargs(config, task, lam_, rain_, rain_moves_every, normalised, set_, world, tasks=None):
     """The keyword arguments of ``_uavmeta.Worlds`` (after ``num_envs``)."""
-    return dict(
+    if task is not None and not isinstance(task, str):
+        raise TypeError(f"task = {task!r}: expected the name of a task of the config")
+    if not isinstance(normalised, (bool, np.bool_)):
+        raise TypeError(f"normalised = {normalised!r}: expected True or False")
+    kwargs = dict(
         normalised=bool(normalised),
-        config=None if config is None else str(config),
+        config=path(config, "config"),
         task=task,
         lam=lam(lam_),
         rain=rain(rain_),
-        rain_moves_every=None
-        if rain_moves_every is None
-        else natural("rain_moves_every", rain_moves_every, upper=2**32),
+        rain_moves_every=moves_every(rain_moves_every),
         overrides=overrides(world, set_),
+    )
+    kwargs.update(task_source(tasks))
+    return kwargs
+
+
+def task_source(tasks):
+    """``tasks`` (None, a list of tasks, or a ``TaskSampler``) as the native ``tasks``,
+    ``draw`` and ``ranges`` arguments."""
+    from .tasks import TaskSampler
+
+    if tasks is None:
+        return {}
+    if isinstance(tasks, TaskSampler):
+        return tasks._native()
+    if isinstance(tasks, (list, tuple)):
+        return dict(tasks=[task_entry(t, i) for i, t in enumerate(tasks)], draw=False)
+    raise TypeError(
+        f"tasks = {tasks!r}: expected a list of tasks (names, lambdas or dicts of lam, rain, "
+        "rain_moves_every) or a uavmeta.TaskSampler"
     )

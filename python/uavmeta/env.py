@@ -24,12 +24,19 @@ def observation_space(worlds):
     return spaces.Box(low, high, dtype=np.float32)
 
 
+class ResetNeeded(gymnasium.error.ResetNeeded, RuntimeError):
+    """``step`` before the first ``reset`` (or after the episode ended, for ``UavEnv``)."""
+
+
 def action_index(action, count):
-    """An action as a Python int, or a ValueError naming it."""
+    """An action as a Python int: a TypeError naming it if it is no integer, a ValueError if it
+    is out of range."""
+    if isinstance(action, (bool, np.bool_)):
+        raise TypeError(f"action = {action!r}: expected an integer action index in 0..{count}")
     try:
         a = operator.index(action)
     except TypeError:
-        raise ValueError(
+        raise TypeError(
             f"action = {action!r}: expected an integer action index in 0..{count}"
         ) from None
     if not 0 <= a < count:
@@ -73,6 +80,13 @@ class WorldProperties:
         """The whole config the env was built from, every key written out."""
         return self._worlds.config_toml
 
+    def task_of(self, i=0):
+        """Sub-env ``i``'s task now, as a dict: ``task_id``, ``lam``, ``rain`` (x0, y0, x1, y1)
+        or None, ``rain_moves_every`` or None, and ``name`` (the config's, or the one-off
+        name ``uavmeta env rollout --lambda ... --rain ...`` gives it)."""
+        task_id, lam, rain, moves, name = self._worlds.task_now(i)
+        return dict(task_id=task_id, lam=lam, rain=rain, rain_moves_every=moves, name=name)
+
 
 class UavEnv(WorldProperties, gymnasium.Env):
     """The UAV world of one task (SPEC sections 1-3), stepped in Rust.
@@ -89,9 +103,16 @@ class UavEnv(WorldProperties, gymnasium.Env):
 
     The task: ``config`` (a TOML file; SPEC's defaults when absent) and ``task`` (a task name
     in it), or a one-off ``lam`` with optional ``rain`` = (x0, y0, x1, y1) and
-    ``rain_moves_every``; with neither, lambda = 300. Any other keyword is a ``world.*`` key
-    (``horizon=20``, ``devices=5``, ``start_cell=[0, 0]``, ...), and ``set`` takes raw
-    ``KEY=VALUE`` overrides as the CLI's ``--set``. Bad arguments raise ``ValueError``.
+    ``rain_moves_every``; with neither, lambda = 300; or ``tasks=uavmeta.TaskSampler(...)``,
+    a new task at every reset. ``info`` (of ``reset`` too) then has the task's ``task_id``
+    and ``lam``. Any other keyword is a ``world.*`` key (``horizon=20``, ``devices=5``,
+    ``start_cell=[0, 0]``, ...), and ``set`` takes a list of raw ``KEY=VALUE`` overrides as
+    the CLI's ``--set``. Bad arguments raise ``TypeError`` (a wrong type) or ``ValueError``
+    (a wrong value), naming the argument; a missing ``config`` file ``FileNotFoundError``.
+    ``step`` before ``reset`` raises ``uavmeta.ResetNeeded``.
+
+    An env pickles and deep-copies with its state: the copy stands at the same step of the
+    same episode and steps on exactly as the original.
 
     Seeds: ``reset(seed=S)`` starts episode 0 of S and each later ``reset()`` the next
     episode, the episodes ``uavmeta env rollout --seed S`` runs. As Gymnasium specifies, a
@@ -111,14 +132,26 @@ class UavEnv(WorldProperties, gymnasium.Env):
         normalised=False,
         render_mode="rgb_array",
         set=None,
+        tasks=None,
         **world,
     ):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode = {render_mode!r}: expected 'rgb_array' or None")
+        from .tasks import TaskSampler
+
+        if tasks is not None and not isinstance(tasks, TaskSampler):
+            raise TypeError(
+                f"tasks = {tasks!r}: expected a uavmeta.TaskSampler (a list of tasks, one per "
+                "sub-env, is for VectorEnv)"
+            )
+        self._init_kwargs = dict(
+            config=config, task=task, lam=lam, rain=rain, rain_moves_every=rain_moves_every,
+            normalised=normalised, render_mode=render_mode, set=set, tasks=tasks, **world,
+        )
         self._worlds = Worlds(
             1,
             **_args.native_kwargs(
-                config, task, lam, rain, rain_moves_every, normalised, set, world
+                config, task, lam, rain, rain_moves_every, normalised, set, world, tasks
             ),
         )
         self.render_mode = render_mode
@@ -126,6 +159,34 @@ class UavEnv(WorldProperties, gymnasium.Env):
         self.action_space = spaces.Discrete(5 * self._worlds.devices)
         self._started = False
         self._cells = []
+        self._actions = []
+
+    def __getstate__(self):
+        """The constructor's arguments, where the env stands (its seed, episode and the actions
+        of the episode so far) and its Gymnasium random stream; no native object."""
+        seed, episode = self._worlds.seed_and_episode(0)
+        return dict(
+            init=self._init_kwargs,
+            started=self._started,
+            seed=seed,
+            episode=episode,
+            actions=list(self._actions),
+            np_random=self._np_random if getattr(self, "_np_random", None) is not None else None,
+            np_random_seed=getattr(self, "_np_random_seed", None),
+        )
+
+    def __setstate__(self, state):
+        self.__init__(**state["init"])
+        self._np_random = state["np_random"]
+        if state["np_random_seed"] is not None:
+            self._np_random_seed = state["np_random_seed"]
+        if state["started"]:
+            # The world is deterministic given its seed, episode and actions: replay them.
+            self._worlds.reset_to(0, state["seed"], state["episode"])
+            self._started = True
+            self._cells = [self.uav]
+            for a in state["actions"]:
+                self._step(a)
 
     @classmethod
     def from_config(cls, path, task=None, **kwargs):
@@ -140,13 +201,30 @@ class UavEnv(WorldProperties, gymnasium.Env):
         obs = self._worlds.reset_one(0, seed)
         self._started = True
         self._cells = [self.uav]
-        return obs, {}
+        self._actions = []
+        return obs, self._task_info()
+
+    def _task_info(self):
+        task_id, lam, *_ = self._worlds.task_now(0)
+        return {"task_id": task_id, "lam": lam}
 
     def step(self, action):
         a = action_index(action, self.action_space.n)
-        obs, reward, truncated, aoi, power_mw, outage, device, cell = self._worlds.step_one(0, a)
+        if not self._started:
+            raise ResetNeeded("step() before reset(): call reset() first")
+        return self._step(a)
+
+    def _step(self, a):
+        try:
+            obs, reward, truncated, aoi, power_mw, outage, device, cell = (
+                self._worlds.step_one(0, a)
+            )
+        except RuntimeError as e:
+            raise ResetNeeded(str(e)) from None
         self._cells.append(cell)
+        self._actions.append(a)
         info = {"aoi": aoi, "power_mw": power_mw, "outage": outage, "device": device}
+        info.update(self._task_info())
         return obs, reward, False, truncated, info
 
     def render(self):

@@ -1,7 +1,8 @@
 """The heuristic behaviour policies as batched functions of observations.
 
 Each is built for an env (a ``UavEnv``, a ``VectorEnv`` or a ``gymnasium.make`` of them), whose
-task it knows (device cells, deltas, powers, the configured rain zone), and maps observations as
+task it knows (device cells, deltas, powers, the configured rain zone; on an env of several
+tasks, the one its first sub-env runs when the policy is built), and maps observations as
 that env returns them (raw or normalised), one (2 + K,) row or an (N, 2 + K) batch, to action
 indices. They are the Rust policies of ``uavmeta env rollout --policy NAME``, so both choose the
 same actions:
@@ -41,14 +42,24 @@ class HeuristicPolicy:
         worlds = _worlds_of(env)
         self.name = name
         self._native = _Heuristic(name, worlds, normalised=worlds.normalised, seed=seed)
+        self._horizon = worlds.horizon
 
     def __call__(self, obs, t=0):
-        obs = np.asarray(obs, dtype=np.float32)
+        if isinstance(t, (bool, np.bool_)) or not isinstance(t, (int, np.integer)):
+            raise TypeError(f"t = {t!r}: expected the integer step of the episode, 0..{self._horizon}")
+        if not 0 <= t < self._horizon:
+            raise ValueError(f"t = {t!r}: expected a step of the episode, 0..{self._horizon}")
+        try:
+            obs = np.asarray(obs, dtype=np.float32)
+        except (TypeError, ValueError):
+            raise TypeError(
+                f"observations = {obs!r}: expected an array of (2 + K,) or (N, 2 + K) numbers"
+            ) from None
         if obs.ndim not in (1, 2):
             raise ValueError(
                 f"observations of shape {obs.shape}: expected (2 + K,) or (N, 2 + K)"
             )
-        actions = self._native(np.ascontiguousarray(np.atleast_2d(obs)), t=t)
+        actions = self._native(np.ascontiguousarray(np.atleast_2d(obs)), t=int(t))
         return int(actions[0]) if obs.ndim == 1 else actions
 
     def __repr__(self):

@@ -1,4 +1,5 @@
-"""``VectorEnv``: N worlds of one task stepped in Rust in one call, Gymnasium's ``VectorEnv``."""
+"""``VectorEnv``: N worlds stepped in Rust in one call, each of its own task or all of one,
+Gymnasium's ``VectorEnv``."""
 
 import numpy as np
 from gymnasium.vector import VectorEnv as _GymVectorEnv
@@ -8,7 +9,7 @@ from gymnasium import spaces
 from . import _args
 from ._uavmeta import Worlds
 from . import render as _render
-from .env import WorldProperties, observation_space
+from .env import ResetNeeded, WorldProperties, observation_space
 
 try:  # Gymnasium >= 1.1 names the autoreset modes.
     from gymnasium.vector import AutoresetMode
@@ -19,17 +20,24 @@ except ImportError:  # Gymnasium 1.0: next-step autoreset is the only mode.
 
 
 class VectorEnv(WorldProperties, _GymVectorEnv):
-    """``num_envs`` worlds of one task, stepped together by the Rust world with the GIL
-    released: no Python per env or per step of an env.
+    """``num_envs`` worlds, stepped together by the Rust world with the GIL released: no
+    Python per env or per step of an env.
 
     Takes the same task and world arguments as :class:`uavmeta.UavEnv`, and behaves exactly as
     ``gymnasium.vector.SyncVectorEnv`` of ``num_envs`` such envs: ``reset(seed=S)`` seeds env i
     with S + i (or with ``seed[i]`` given a list), and autoreset is Gymnasium 1.x's next-step
     mode: the step after env i is truncated ignores its action, resets it and returns its first
     observation with reward 0. ``infos`` has ``aoi``, ``power_mw``, ``outage`` and ``device``
-    with the masks ``_aoi``, ... that say which envs stepped (none when every env reset).
+    with the masks ``_aoi``, ... that say which envs stepped, and every env's ``task_id`` and
+    ``lam`` (``reset``'s infos too).
+
+    A task per sub-env: ``tasks=[...]`` gives env i the task ``tasks[i % len(tasks)]`` (a
+    task name of the config, a lambda, or a dict of ``lam``, ``rain``, ``rain_moves_every``);
+    ``tasks=uavmeta.TaskSampler(...)`` draws env i a new task at each of its resets.
+    ``task_of(i)`` says which task env i runs now.
 
     Returned arrays are new each step: observations (N, 2 + K) float32, rewards float64.
+    ``step`` before ``reset`` raises ``uavmeta.ResetNeeded``.
     """
 
     metadata = {"autoreset_mode": _NEXT_STEP, "render_modes": ["rgb_array"], "render_fps": 4}
@@ -46,13 +54,14 @@ class VectorEnv(WorldProperties, _GymVectorEnv):
         normalised=False,
         render_mode=None,
         set=None,
+        tasks=None,
         **world,
     ):
         num_envs = _args.natural("num_envs", num_envs)
         self._worlds = Worlds(
             num_envs,
             **_args.native_kwargs(
-                config, task, lam, rain, rain_moves_every, normalised, set, world
+                config, task, lam, rain, rain_moves_every, normalised, set, world, tasks
             ),
         )
         self.num_envs = num_envs
@@ -81,29 +90,35 @@ class VectorEnv(WorldProperties, _GymVectorEnv):
                 raise ValueError(
                     f"seed has {len(seed)} entries: expected one per env, num_envs = {n}"
                 )
-            seeds = [_args.seed(s, f"seed[{i}]") for i, s in enumerate(seed)]
+            # None entries: that env goes on to its next episode, as in SyncVectorEnv.
+            seeds = [None if s is None else _args.seed(s, f"seed[{i}]") for i, s in enumerate(seed)]
+            if not self._started and None in seeds:
+                raise ValueError(
+                    f"seed = {seed!r}: the first reset needs a seed for every env (or seed=None)"
+                )
             super().reset(seed=seeds[0])
         else:
             base = _args.seed(seed)
             seeds = [_args.seed(base + i, f"seed + {i}") for i in range(n)]
             super().reset(seed=base)
         self._started = True
-        return self._worlds.reset(seeds), {}
+        obs = self._worlds.reset(seeds)
+        task_id, lam = self._worlds.task_ids_and_lams()
+        return obs, self._task_infos(task_id, lam)
+
+    def _task_infos(self, task_id, lam):
+        every = getattr(self, "_every", None)
+        if every is None:  # one read-only mask of all envs, shared by every step's infos
+            every = self._every = np.ones(self.num_envs, dtype=bool)
+            every.flags.writeable = False
+        return {"task_id": task_id, "_task_id": every, "lam": lam, "_lam": every}
 
     def step(self, actions):
-        actions = np.asarray(actions)
-        if actions.dtype.kind not in "iu":
-            raise ValueError(
-                f"actions of dtype {actions.dtype}: expected integer action indices"
-            )
-        if actions.shape != (self.num_envs,):
-            raise ValueError(
-                f"actions of shape {actions.shape}: expected ({self.num_envs},), one per env"
-            )
-        actions = np.ascontiguousarray(actions, dtype=np.int64)
-        obs, reward, terminated, truncated, aoi, power_mw, outage, device, stepped = (
-            self._worlds.step(actions)
-        )
+        actions = check_actions(actions, self.num_envs, self.single_action_space.n)
+        if not self._started:
+            raise ResetNeeded("step() before reset(): call reset() first")
+        (obs, reward, terminated, truncated, aoi, power_mw, outage, device, stepped, task_id,
+         lam) = self._worlds.step(actions)
         infos = {}
         if stepped.any():
             infos = {
@@ -116,8 +131,34 @@ class VectorEnv(WorldProperties, _GymVectorEnv):
                 "device": device,
                 "_device": stepped,
             }
+        infos.update(self._task_infos(task_id, lam))
         return obs, reward, terminated, truncated, infos
+
+    @property
+    def tasks(self):
+        """Every sub-env's task now (``task_of(i)`` for each i)."""
+        return [self.task_of(i) for i in range(self.num_envs)]
 
     def render(self):
         """One RGB array per env, as ``UavEnv.render`` draws it (without the path)."""
         return tuple(_render.frame(self._worlds, i) for i in range(self.num_envs))
+
+
+def check_actions(actions, num_envs, count):
+    """``actions`` as a contiguous int64 array of one action index per env: a TypeError naming
+    them if they are no integers, a ValueError naming the first out of range (by its own value,
+    before any cast; Rust checks the rest)."""
+    actions = np.asarray(actions)
+    if actions.dtype.kind not in "iu":
+        raise TypeError(f"actions of dtype {actions.dtype}: expected integer action indices")
+    if actions.shape != (num_envs,):
+        raise ValueError(f"actions of shape {actions.shape}: expected ({num_envs},), one per env")
+    # Every signed and small unsigned value survives the cast, and Rust names any out of range;
+    # a uint64 above int64's range would wrap, so it is named here by its own value.
+    if actions.dtype == np.uint64 and num_envs and actions.max() >= count:
+        i = int(np.argmax(actions >= count))
+        raise ValueError(
+            f"actions[{i}] = {int(actions[i])}: expected an action index in 0..{count} "
+            f"(a = move * K + device)"
+        )
+    return np.ascontiguousarray(actions, dtype=np.int64)

@@ -45,6 +45,10 @@ pub struct ExportArgs {
     /// Seed of the shot draw [default: run.seeds[0], as for train].
     #[arg(long, requires = "shots")]
     seed: Option<u64>,
+    /// minari: write the observations normalised (x/(L-1), y/(L-1), A/aoi_max), as the networks
+    /// and the Python env's `normalised=True` see them, instead of raw.
+    #[arg(long)]
+    normalised: bool,
 }
 
 #[derive(Args)]
@@ -68,6 +72,9 @@ pub fn run(command: DatasetCommand) -> Result<()> {
 fn export(args: ExportArgs) -> Result<()> {
     if args.id.is_some() && args.format != Format::Minari {
         anyhow::bail!("--id names a Minari dataset; --format npz writes the one file --out names");
+    }
+    if args.normalised && args.format != Format::Minari {
+        anyhow::bail!("--normalised applies to --format minari; npz keeps the raw observations");
     }
     // The dataset first: a mistyped dataset path is reported as that, not as a missing config.
     let reader = DatasetReader::open(&args.dataset)?;
@@ -102,7 +109,11 @@ fn export(args: ExportArgs) -> Result<()> {
             let id = args
                 .id
                 .unwrap_or_else(|| minari::default_id(&export.task.name, shots));
-            let written = minari::write(&export, &args.out, &id)?;
+            let observations = match args.normalised {
+                true => minari::Observations::Normalised,
+                false => minari::Observations::Raw,
+            };
+            let written = minari::write_observations(&export, &args.out, &id, observations)?;
             println!(
                 "{}: Minari dataset `{id}`, {} steps of task `{}` in {} episodes; load it with MINARI_DATASETS_PATH={}",
                 written.dir.display(),

@@ -201,6 +201,15 @@ impl World {
         w
     }
 
+    /// Puts this world under another task of the same world config in place, for the next
+    /// reset: as [`World::with_task`] without a clone, for batched envs that draw a new task
+    /// at every reset. The current episode's rain zone is left as it is until then.
+    pub fn set_task(&mut self, task: &TaskConfig) {
+        self.power_weight = task.lambda / self.devices as f64;
+        self.task_rain = task.rain;
+        self.rain_moves_every = task.rain_moves_every;
+    }
+
     /// Restarts the world's random stream, so the next episodes are those of `seed`.
     pub fn reseed(&mut self, seed: u64) {
         self.rng = ChaCha8Rng::seed_from_u64(seed);
