@@ -325,8 +325,32 @@ fn a_launch_into_a_run_of_another_config_is_refused_naming_the_key_and_fresh_mov
 fn an_oversized_config_is_refused_before_any_process_starts() {
     let run = Run::new("big");
     let path = run.path();
-    let cases: [(&[&str], &str); 4] = [
+    let cases: [(&[&str], &str); 8] = [
         (&["run.batch_size=10000000"], "run.batch_size"),
+        // Sizes within the config's rules whose memory this machine lacks (issue #61): each
+        // refused naming its key and value, where the process would have aborted on allocation.
+        (
+            &[
+                "collect.policy=dqn-online",
+                "collect.replay_capacity=1000000000",
+            ],
+            "collect.replay_capacity = 1000000000",
+        ),
+        (
+            &["collect.transitions=1000000000"],
+            "collect.transitions = 1000000000",
+        ),
+        (
+            &[
+                "planner.beam_width=100000000",
+                "planner.max_memory_mib=1000000000",
+            ],
+            "planner.beam_width = 100000000",
+        ),
+        (
+            &["learner.population=1000", "learner.hidden=[4096, 4096]"],
+            "learner.population = 1000",
+        ),
         (
             &["world.grid_cells=1000", "world.devices=64"],
             "world.grid_cells",
@@ -342,6 +366,11 @@ fn an_oversized_config_is_refused_before_any_process_starts() {
         let out = Proc::spawn("launch", &run.args(&["launch"], overrides)).wait(within(60));
         assert!(!out.status.success(), "{overrides:?} was launched");
         assert!(out.stderr.contains(needle), "{overrides:?}: {}", out.stderr);
+        assert!(
+            !out.stderr.contains("panicked"),
+            "{overrides:?}: {}",
+            out.stderr
+        );
         assert!(!path.exists(), "{overrides:?}: the run directory was made");
     }
     // A GPU libtorch does not see.
