@@ -7,7 +7,7 @@ use iceoryx2::prelude::*;
 use uavmeta_proto::config::Config;
 use uavmeta_proto::metrics::store::TRANSITIONS_STORED;
 
-use crate::metrics::{parse, scrape, sum};
+use crate::metrics::{scrape_process, sum};
 use crate::run_dir::{RemoteHost, RunDir};
 use crate::{actor, liveness, store};
 
@@ -45,10 +45,7 @@ pub(super) fn wait_for_remote_hosts(
             .iter()
             .filter(|w| !hosts.iter().any(|h| &h.host == *w && announces_actors(h)))
             .collect();
-        let stored = std::fs::read_to_string(run.port_file(store::PROCESS))
-            .ok()
-            .and_then(|port| scrape(&config.run.metrics_host, port.trim().parse().ok()?).ok())
-            .and_then(|text| parse(&text).ok())
+        let stored = scrape_process(run, &config.run.metrics_host, store::PROCESS)
             .map_or(0.0, |samples| sum(&samples, TRANSITIONS_STORED, &[]));
         if missing.is_empty() && stored > 0.0 {
             tracing::info!(hosts = ?wanted, "remote actor hosts are publishing");
