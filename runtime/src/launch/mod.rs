@@ -75,7 +75,7 @@ pub use reuse::Reuse;
 pub use seeds::{launch_seeds, SeedsReport};
 pub use stall::Stall;
 use supervise::{start_children, stop_all, supervise, Announcements, Supervisor, CLEANUP_WAIT};
-use targets::{write_prometheus_yml, write_targets};
+use targets::{write_prometheus_yml, write_targets, Targets};
 
 /// How often the run's `prometheus.yml` has Prometheus scrape every process; `uavmeta dashboard
 /// render` takes it for the interval of its rates.

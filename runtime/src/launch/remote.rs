@@ -12,7 +12,7 @@ use crate::run_dir::{RemoteHost, RunDir};
 use crate::{actor, liveness, store};
 
 use super::supervise::TICK;
-use super::targets::write_targets;
+use super::targets::{write_targets, Targets};
 use super::LaunchError;
 
 /// The tunnel child's name (`uavmeta tunnel serve`; the tunnel crate is not linked here).
@@ -36,10 +36,10 @@ pub(super) fn wait_for_remote_hosts(
     }
     tracing::info!(hosts = ?wanted, endpoint = %config.tunnel.listen, "waiting for remote actor hosts");
     let deadline = Instant::now() + Duration::from_secs_f64(config.tunnel.wait_seconds);
-    let mut targets = String::new();
+    let mut targets = Targets::default();
     loop {
         // Prometheus sees the remote actors from the start, however short-lived they are.
-        targets = write_targets(run, &[], targets)?;
+        write_targets(run, &[], &mut targets)?;
         let hosts = remote_hosts(run);
         let missing: Vec<&String> = wanted
             .iter()

@@ -63,7 +63,7 @@ pub(super) fn supervise(
     let mut ready_tasks = vec![false; tasks];
     let mut shutdown_sent = false;
     let mut shutdown_at = Instant::now();
-    let mut last_targets = String::new();
+    let mut targets = Targets::default();
     loop {
         if !liveness::keep_running(node, TICK) {
             return Err(LaunchError::Interrupted);
@@ -83,7 +83,7 @@ pub(super) fn supervise(
             &mut ready_tasks,
             metrics,
         )?;
-        last_targets = write_targets(&supervisor.run, children, last_targets)?;
+        write_targets(&supervisor.run, children, &mut targets)?;
         metrics
             .children_running
             .set(children.iter().filter(|c| c.child.is_some()).count() as i64);
