@@ -124,13 +124,18 @@ fn send_until(
     mut arrived: impl FnMut() -> bool,
 ) {
     wait_until("the store to take the batch", within(60), || {
-        let mut loan = publisher.loan(first_seq, batch.len()).expect("loan");
-        for (slot, t) in loan.slots_mut().iter_mut().zip(batch) {
-            TransitionSlot::set_transition(slot, t);
-        }
-        loan.send().expect("send");
+        send(publisher, first_seq, batch);
         arrived()
     });
+}
+
+/// Sends `batch` once from `publisher`, numbered from `first_seq`.
+fn send(publisher: &TransitionPublisher, first_seq: u64, batch: &[Transition]) {
+    let mut loan = publisher.loan(first_seq, batch.len()).expect("loan");
+    for (slot, t) in loan.slots_mut().iter_mut().zip(batch) {
+        TransitionSlot::set_transition(slot, t);
+    }
+    loan.send().expect("send");
 }
 
 #[test]
@@ -242,6 +247,143 @@ fn a_hostile_publisher_leaves_the_store_running_the_dataset_clean_and_the_drops_
     assert!(out.contains("every transition passes"), "{out}");
 }
 
+/// Issue #61: a publisher under a live actor's id, numbered ahead inside the store's sequence
+/// window, would have the store drop the real actor's later transitions as duplicates and
+/// acknowledge them. The actor sees an acknowledgement beyond what it sent and fails, naming
+/// itself and what happened, rather than sending into the void.
+#[test]
+fn an_actor_acknowledged_beyond_what_it_sent_fails_naming_the_forged_id() {
+    let run = Run::new("ackjump");
+    let path = run.path();
+    // A window of 4 x (2 x 4096 + 2) batches of 16, 524 288 transitions: room to forge far ahead
+    // of a fast actor and still inside it.
+    let sets = [
+        "collect.transitions=1000000000",
+        "run.subscriber_buffer=4096",
+    ];
+    let run_arg = path.display().to_string();
+    let _store = Proc::spawn("store", &run.args(&["store", "--run", &run_arg], &sets));
+    wait_until("the store", within(60), || {
+        path.join("ports/store.port").exists()
+    });
+    let run_dir = RunDir::open(&path).expect("run");
+    let config = Config::load(&run_dir.config_file(), &[]).expect("config");
+    let (task, task_name) = (1, config.tasks[1].name.clone());
+    let options = ActorOptions {
+        task: task_name.clone(),
+        policy: "random".parse().expect("policy"),
+        seed: 1,
+        transitions: None,
+    };
+    let args = [
+        "actor", "--run", &run_arg, "--task", &task_name, "--seed", "1",
+    ];
+    let mut args: Vec<String> = args.map(String::from).to_vec();
+    args.extend(["--policy", "random", "--transitions", "5000000"].map(String::from));
+    let mut actor = Proc::spawn("actor", &args);
+    let stored = || {
+        let samples = scrape(&path, "store");
+        sum(
+            &samples,
+            names::DATASET_TRANSITIONS,
+            &[("task", task_name.as_str())],
+        )
+    };
+    wait_until("the actor's first transitions stored", within(60), || {
+        stored() > 0.0
+    });
+    let node = domain::node("forger", &config.run).expect("node");
+    let service = transport::transition_service(
+        &node,
+        &ServiceNames::new(run_dir.id()),
+        &task_name,
+        &config.run,
+    )
+    .expect("service");
+    let forger =
+        TransitionPublisher::new(&service, &run_dir, &config, task as u32, options.actor_id())
+            .expect("forger");
+    // Numbered afresh at each try: the actor runs on while iceoryx2 connects the forger.
+    let forged = real_steps(&config, task, 16);
+    wait_until("the actor to stop", within(60), || {
+        send(&forger, stored() as u64 + 400_000, &forged);
+        !actor.running()
+    });
+    let out = actor.wait(within(60));
+    assert!(!out.status.success(), "the actor went on: {}", out.stderr);
+    let id = format!("actor {:08x}", options.actor_id());
+    assert!(
+        out.stderr.contains(&id)
+            && out
+                .stderr
+                .contains("another publisher sends under this actor's id"),
+        "{}",
+        out.stderr
+    );
+}
+
+/// Issue #61: one forged batch under an actor's id, numbered ahead of it, before the actor sends
+/// (here while its online DQN agent trains): the store takes every transition the actor then
+/// sends for a duplicate, the actor has sent everything and waits, and the dataset stays short
+/// for ever. The launcher sees the dataset still while the actor went on, and ends the run with
+/// an error naming the task, the actor and the duplicates, within run.hang_timeout_seconds.
+#[test]
+fn a_dataset_that_stops_growing_ends_the_launch_naming_the_task_and_the_actor() {
+    let run = Run::new("stall");
+    let path = run.path();
+    let mut sets = support::DQN_RUN.to_vec();
+    sets.push("run.hang_timeout_seconds=10");
+    let launcher = Proc::spawn("launch", &run.args(&["launch"], &sets));
+    wait_until("the store", within(60), || {
+        path.join("ports/store.port").exists()
+    });
+    let run_dir = RunDir::open(&path).expect("run");
+    let config = Config::load(&run_dir.config_file(), &[]).expect("config");
+    let task_name = config.tasks[0].name.clone();
+    let victim = ActorOptions {
+        task: task_name.clone(),
+        policy: "dqn-online".parse().expect("policy"),
+        seed: config.collect.seed,
+        transitions: None,
+    };
+    let node = domain::node("forger", &config.run).expect("node");
+    let names_of_run = ServiceNames::new(run_dir.id());
+    let service = transport::transition_service(&node, &names_of_run, &task_name, &config.run)
+        .expect("service");
+    let forger = TransitionPublisher::new(&service, &run_dir, &config, 0, victim.actor_id())
+        .expect("forger");
+    let stored = || {
+        sum(
+            &scrape(&path, "store"),
+            names::DATASET_TRANSITIONS,
+            &[("task", task_name.as_str())],
+        )
+    };
+    // Inside the store's window (4 x (2 x 64 + 2) batches of 16), far beyond the 300 the actor
+    // will send.
+    send_until(&forger, 8000, &real_steps(&config, 0, 16), || {
+        stored() > 0.0
+    });
+    let out = launcher.wait(within(300));
+    assert!(
+        !out.status.success(),
+        "the launch ended well: {}",
+        out.stderr
+    );
+    let expected = [
+        format!("the dataset of task `{task_name}` has held 16 of its 300 transitions"),
+        victim.process_name(),
+        "as duplicates".to_string(),
+    ];
+    for needle in expected {
+        assert!(
+            out.stderr.contains(&needle),
+            "no `{needle}` in: {}",
+            out.stderr
+        );
+    }
+}
+
 #[test]
 fn dataset_inspect_names_a_fabricated_transition_in_a_file_with_valid_crcs() {
     let dir = run_dir("hostile-inspect-");
@@ -325,8 +467,32 @@ fn a_launch_into_a_run_of_another_config_is_refused_naming_the_key_and_fresh_mov
 fn an_oversized_config_is_refused_before_any_process_starts() {
     let run = Run::new("big");
     let path = run.path();
-    let cases: [(&[&str], &str); 4] = [
+    let cases: [(&[&str], &str); 8] = [
         (&["run.batch_size=10000000"], "run.batch_size"),
+        // Sizes within the config's rules whose memory this machine lacks (issue #61): each
+        // refused naming its key and value, where the process would have aborted on allocation.
+        (
+            &[
+                "collect.policy=dqn-online",
+                "collect.dqn.replay_capacity=1000000000",
+            ],
+            "collect.dqn.replay_capacity = 1000000000",
+        ),
+        (
+            &["collect.transitions=1000000000"],
+            "collect.transitions = 1000000000",
+        ),
+        (
+            &[
+                "planner.beam_width=100000000",
+                "planner.max_memory_mib=1000000000",
+            ],
+            "planner.beam_width = 100000000",
+        ),
+        (
+            &["learner.hidden=[65536, 65536]"],
+            "learner.hidden = [65536, 65536]",
+        ),
         (
             &["world.grid_cells=1000", "world.devices=64"],
             "world.grid_cells",
@@ -342,6 +508,11 @@ fn an_oversized_config_is_refused_before_any_process_starts() {
         let out = Proc::spawn("launch", &run.args(&["launch"], overrides)).wait(within(60));
         assert!(!out.status.success(), "{overrides:?} was launched");
         assert!(out.stderr.contains(needle), "{overrides:?}: {}", out.stderr);
+        assert!(
+            !out.stderr.contains("panicked"),
+            "{overrides:?}: {}",
+            out.stderr
+        );
         assert!(!path.exists(), "{overrides:?}: the run directory was made");
     }
 }

@@ -666,3 +666,163 @@ fn a_remote_hosts_forged_shutdown_and_dataset_ready_reach_nothing_on_the_learner
     let announced = std::iter::from_fn(|| subscriber.receive().expect("receive")).count();
     assert_eq!(announced, 0, "a forged DatasetReady reached host A");
 }
+
+/// A Zenoh session admitted as host B (its certificate and password), as a hostile or buggy
+/// remote host holds one: the project's own `session::connect`.
+fn rogue_session(hosts: &Hosts) -> zenoh::Session {
+    let security = uavmeta_tunnel::Security {
+        ca: Some(hosts.tls("ca.pem").into()),
+        certificate: Some(hosts.tls("hostb.pem").into()),
+        private_key: Some(hosts.tls("hostb.key").into()),
+        credentials: Some(hosts.tls("hostb.credentials").into()),
+    };
+    let mut session = None;
+    // The tunnel may still be starting: a client's session fails to open until it listens.
+    wait_until("an admitted session", within(60), || {
+        session = uavmeta_tunnel::session::connect(&hosts.endpoint, &security).ok();
+        session.is_some()
+    });
+    session.expect("connected")
+}
+
+/// The handshake's answers to a query of `key` within a few seconds (a Hello as `join` sends).
+fn handshake_answers(session: &zenoh::Session, key: &str) -> usize {
+    use zenoh::Wait;
+    let hello = br#"{"schema_version":0,"host":"hostb"}"#.to_vec();
+    let replies = session
+        .get(key)
+        .payload(hello)
+        .timeout(Duration::from_secs(3))
+        .wait()
+        .expect("query");
+    std::iter::from_fn(|| replies.recv().ok()).count()
+}
+
+/// Issue #61: `--run-id '*'` admits nothing. `join` refuses a run id that is not one (a Zenoh
+/// wildcard above all) before it connects, and the learner host's tunnel answers only a
+/// handshake that names its run: an admitted session's wildcard query gets no answer. What an
+/// admitted host can still see, docs/SECURITY.md says: the run ids in the tunnels' liveliness
+/// tokens.
+#[test]
+fn a_wildcard_run_id_admits_nothing_and_learns_no_run() {
+    use zenoh::Wait;
+    let hosts = Hosts::new("wild");
+    let (_store, _tunnel) = start_host_a(&hosts, &[]);
+    for id in ["*", "**", "$*", "a/b"] {
+        let refused = refused_join(&hosts, &hosts.endpoint, id, &hosts.b_credentials());
+        assert!(
+            refused.contains(&format!("--run-id `{id}`")) && !refused.contains(hosts.run_a.id()),
+            "{id}: {refused}"
+        );
+    }
+    let rogue = rogue_session(&hosts);
+    let run_key = uavmeta_tunnel::session::run_key(hosts.run_a.id());
+    // The exact key is answered (with a refusal of the schema version 0): the check is not blind.
+    wait_until("the tunnel to answer its run's key", within(60), || {
+        handshake_answers(&rogue, &run_key) > 0
+    });
+    for wildcard in ["uavmeta/runs/*", "uavmeta/**", "uavmeta/runs/host-a$*"] {
+        assert_eq!(
+            handshake_answers(&rogue, wildcard),
+            0,
+            "{wildcard} was answered"
+        );
+    }
+    // docs/SECURITY.md: an admitted host sees the run ids in the liveliness tokens' keys.
+    let tokens = rogue
+        .liveliness()
+        .get("uavmeta/runs/*")
+        .timeout(Duration::from_secs(3))
+        .wait()
+        .expect("liveliness query");
+    let keys: Vec<String> = std::iter::from_fn(|| tokens.recv().ok())
+        .filter_map(|reply| reply.result().ok().map(|s| s.key_expr().to_string()))
+        .collect();
+    assert_eq!(
+        keys,
+        [run_key],
+        "what SECURITY.md says an admitted host sees"
+    );
+}
+
+/// An announcement as a remote host's `join` sends it: `processes` names at `address`, each with
+/// its own port from `first_port` on.
+fn announcement(host: &str, address: &str, processes: usize, first_port: u16) -> Vec<u8> {
+    let processes: Vec<uavmeta_runtime::run_dir::RemoteProcess> = (0..processes)
+        .map(|i| uavmeta_runtime::run_dir::RemoteProcess {
+            name: format!("actor-lambda-0-{i:08x}"),
+            metrics: format!("{address}:{}", first_port + i as u16),
+        })
+        .collect();
+    let host = uavmeta_runtime::run_dir::RemoteHost {
+        host: host.into(),
+        processes,
+    };
+    serde_json::to_vec(&host).expect("serialises")
+}
+
+/// Issue #61: an admitted host's announcements can neither point the learner's Prometheus
+/// elsewhere nor flood the launcher's log. Host B (certificate `hostb`) announces, ten times a
+/// second for five seconds, 253 processes at the learner's loopback with ports that change
+/// every time, and the same under the name `evil`: the targets list `hostb`'s processes only
+/// at the address B reaches the tunnel from (with the ports B named), nothing of `evil`, and the
+/// launcher logs B once.
+#[test]
+fn a_remote_hosts_announcements_cannot_redirect_the_scrapes_or_flood_the_log() {
+    use zenoh::Wait;
+    let hosts = Hosts::new("announce");
+    let mut args = strings(&["launch"]);
+    args.extend(hosts.config_args(&[
+        "tunnel.wait_for_hosts=[\"hostb\"]".into(),
+        "tunnel.wait_seconds=60".into(),
+    ]));
+    let mut launch = Proc::spawn("launch", &args);
+    launch.logs("remote actor hosts join with", within(120));
+    let rogue = rogue_session(&hosts);
+    let key = |host: &str| format!("uavmeta/runs/{}/hosts/{host}", hosts.run_a.id());
+    for round in 0..50u16 {
+        for (host, address) in [("hostb", "10.9.9.9"), ("evil", "127.0.0.1")] {
+            let payload = announcement(host, address, 253, 1000 + round);
+            rogue.put(key(host), payload).wait().expect("put");
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let targets_file = hosts.run_a.root().join("prometheus-targets.json");
+    let read_targets = || -> Vec<serde_json::Value> {
+        let text = std::fs::read_to_string(&targets_file).unwrap_or_default();
+        serde_json::from_str(&text).unwrap_or_default()
+    };
+    let of_host = |targets: &[serde_json::Value], host: &str| -> Vec<String> {
+        (targets.iter())
+            .filter(|t| t["labels"]["host"] == host)
+            .map(|t| t["targets"][0].as_str().expect("a target").to_string())
+            .collect()
+    };
+    wait_until("host B's targets", within(60), || {
+        !of_host(&read_targets(), "hostb").is_empty()
+    });
+    let targets = read_targets();
+    let b = of_host(&targets, "hostb");
+    let evil = of_host(&targets, "evil");
+    assert!(
+        evil.is_empty(),
+        "{} targets of `evil`: {:?}",
+        evil.len(),
+        &evil[..1]
+    );
+    assert_eq!(b.len(), 253, "{b:?}");
+    let elsewhere: Vec<&String> = b.iter().filter(|t| !t.starts_with("127.0.0.1:")).collect();
+    assert!(
+        elsewhere.is_empty(),
+        "{} of B's targets elsewhere: {:?}",
+        elsewhere.len(),
+        &elsewhere[..1]
+    );
+    launch.signal(libc::SIGTERM);
+    let log = launch.wait(within(120)).stderr;
+    let lines = log
+        .lines()
+        .filter(|l| l.contains("remote actor host host="))
+        .count();
+    assert_eq!(lines, 1, "{log}");
+}

@@ -293,6 +293,14 @@ pub fn scrape(host: &str, port: u16) -> Result<String, MetricsError> {
     Ok(body.to_string())
 }
 
+/// A live process of `run`: its samples, through the port file it wrote; `None` while it has
+/// none (not started, restarting, or not answering).
+pub fn scrape_process(run: &RunDir, host: &str, process: &str) -> Option<Vec<Sample>> {
+    let port = std::fs::read_to_string(run.port_file(process)).ok()?;
+    let text = scrape(host, port.trim().parse().ok()?).ok()?;
+    parse(&text).ok()
+}
+
 /// One sample of the text format: `name{labels} value`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Sample {

@@ -62,8 +62,14 @@ pub fn answer(info: &RunInfo, hello: &Hello) -> Result<RunInfo, String> {
     Ok(info.clone())
 }
 
-/// Answers one query on the run's key, logging every refusal.
+/// Answers one query on the run's key, logging every refusal. A query of any other key that
+/// the run's matches (a wildcard such as `uavmeta/runs/*`) gets no answer, as a run id that is
+/// not served: the run id is told only to a host that names it.
 pub(crate) fn reply(query: &Query, info: &RunInfo) {
+    if query.key_expr().as_str() != run_key(&info.run_id) {
+        tracing::debug!(key = %query.key_expr(), "ignored a handshake that does not name the run");
+        return;
+    }
     let hello = query
         .payload()
         .ok_or_else(|| "a handshake without a Hello".to_string())

@@ -66,6 +66,7 @@ pub fn join(options: &JoinOptions) -> Result<(), TunnelError> {
             ),
         });
     }
+    check_run_id(&options.run_id)?;
     check_endpoint(options)?;
     let hello = Hello {
         schema_version: SCHEMA_VERSION,
@@ -107,6 +108,22 @@ pub fn join(options: &JoinOptions) -> Result<(), TunnelError> {
     tracing::info!("tunnel stopped");
     Ok(())
 }
+
+/// A run id is what `RunDir` makes: letters, digits, `-` and `_`. Anything else, a Zenoh
+/// wildcard above all (`*`, `**`, `$*`), would ask every run the tunnel serves at once.
+fn check_run_id(run_id: &str) -> Result<(), TunnelError> {
+    let plain = |c: char| c.is_ascii_alphanumeric() || matches!(c, '-' | '_');
+    match (1..=MAX_RUN_ID).contains(&run_id.len()) && run_id.chars().all(plain) {
+        true => Ok(()),
+        false => Err(TunnelError::BadRunId {
+            run_id: run_id.escape_debug().to_string(),
+        }),
+    }
+}
+
+/// The longest run id `RunDir` makes: 64 characters of the directory's name, `-` and 8 hex
+/// digits.
+const MAX_RUN_ID: usize = 73;
 
 /// Refuses to join in clear beyond loopback (the run's data and this host's actors would be open
 /// to anyone on the way), and files named by the flags that cannot be read.

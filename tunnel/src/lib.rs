@@ -100,6 +100,11 @@ pub enum TunnelError {
         run: String,
         waited: Duration,
     },
+    #[error(
+        "--run-id `{run_id}`: expected the run id the learner host's `uavmeta launch` logs, 1 to \
+         73 letters, digits, `-` and `_` (no Zenoh wildcards such as `*`)"
+    )]
+    BadRunId { run_id: String },
     #[error("the run's host at `{endpoint}` refused this host: {message}")]
     Refused { endpoint: String, message: String },
     #[error(

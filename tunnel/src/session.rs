@@ -10,7 +10,7 @@ use zenoh::{Session, Wait};
 use crate::TunnelError;
 
 /// The key the learner host's tunnel answers the handshake on, and holds its liveliness token on.
-pub(crate) fn run_key(run_id: &str) -> String {
+pub fn run_key(run_id: &str) -> String {
     format!("uavmeta/runs/{run_id}")
 }
 
@@ -87,7 +87,7 @@ pub(crate) fn listen(endpoint: &str, security: &Security) -> Result<Session, Tun
 
 /// A remote host: a client of the learner host's peer at `endpoint`. A client's session fails to
 /// open while it cannot connect (or is refused), so that is an error to report, not a wait.
-pub(crate) fn connect(endpoint: &str, security: &Security) -> Result<Session, TunnelError> {
+pub fn connect(endpoint: &str, security: &Security) -> Result<Session, TunnelError> {
     open(endpoint, "client", "connect/endpoints", security)
 }
 

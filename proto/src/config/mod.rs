@@ -37,7 +37,7 @@ pub use planner::PlannerConfig;
 pub use run::{RunConfig, MAX_BATCH_SIZE, MAX_DOMAIN_LEN, MAX_SUBSCRIBER_BUFFER};
 pub use section::{OwnedSection, Section};
 pub use task::{RainZone, TaskConfig, TaskRole};
-pub use tunnel::{is_loopback_endpoint, TunnelConfig};
+pub use tunnel::{is_loopback_endpoint, TunnelConfig, MAX_HOSTS};
 pub use world::{Delta, PowerTerm, WorldConfig, MAX_DEVICES, MAX_GRID_CELLS, MOVES};
 
 use rules::{first_broken, non_empty, Broken};

@@ -7,7 +7,10 @@ use garde::Validate;
 use serde::{Deserialize, Serialize};
 use smart_default::SmartDefault;
 
-use super::rules::{positive, satisfies, Broken};
+use super::rules::{positive, satisfies, within, Broken};
+
+/// Most remote hosts a run lists (`tunnel.max_hosts`).
+pub const MAX_HOSTS: usize = 64;
 
 /// Remote actor hosts reach the run through iceoryx2's tunnel over Zenoh (`uavmeta tunnel`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, SmartDefault, Validate)]
@@ -25,6 +28,11 @@ pub struct TunnelConfig {
     /// starts the local ones: until each has joined and the store has stored a transition, so
     /// that a run's data comes from every host it was planned with.
     pub wait_for_hosts: Vec<String>,
+    /// Remote hosts whose processes the launcher lists (Prometheus targets, log); later ones are
+    /// ignored.
+    #[default(8)]
+    #[garde(custom(within(1..=MAX_HOSTS, format!("between 1 and {MAX_HOSTS} hosts"))))]
+    pub max_hosts: usize,
     /// How long the launcher waits for `wait_for_hosts` before it gives up.
     #[default(120.0)]
     #[garde(custom(positive("seconds > 0")))]

@@ -52,6 +52,8 @@ pub(super) struct Sender<'a, 's> {
     actor: u32,
     keep_until_stored: bool,
     outbox: Outbox,
+    /// Whether an acknowledgement has been read: the first says where the store stands.
+    first_ack_seen: bool,
 }
 
 impl<'a, 's> Sender<'a, 's> {
@@ -76,6 +78,7 @@ impl<'a, 's> Sender<'a, 's> {
             actor,
             keep_until_stored,
             outbox: Outbox::default(),
+            first_ack_seen: false,
         }
     }
 
@@ -92,10 +95,32 @@ impl<'a, 's> Sender<'a, 's> {
     /// Reads the store's acknowledgements and forgets the batches they cover.
     pub fn read_acks(&mut self) -> Result<(), ActorError> {
         if let Some(next) = transport::latest_ack(&self.acks, self.task, self.actor)? {
+            self.check_ack(next)?;
             self.outbox.acknowledged(next);
             self.show_kept();
         }
         Ok(())
+    }
+
+    /// After the first acknowledgement (where the store stands: what a predecessor of this actor,
+    /// restarted, sent is in it), only this actor's own batches move the store's number on: one
+    /// that moves beyond what this actor has sent means that another publisher sends under its
+    /// id, which would have the store drop this actor's transitions as duplicates (issue #61).
+    fn check_ack(&mut self, next: u64) -> Result<(), ActorError> {
+        let sent = self.port.delivered_up_to;
+        if !self.first_ack_seen {
+            self.first_ack_seen = true;
+            return Ok(());
+        }
+        match next > self.outbox.stored && next > sent {
+            true => Err(ActorError::AckedBeyondSent {
+                task: self.task,
+                actor: self.actor,
+                acknowledged: next,
+                sent,
+            }),
+            false => Ok(()),
+        }
     }
 
     fn show_kept(&self) {

@@ -65,6 +65,18 @@ pub enum ActorError {
     Config(#[from] ConfigError),
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
+    #[error(
+        "the store acknowledged actor {actor:08x} of task {task} up to sequence number \
+         {acknowledged}, but this actor has sent numbers below {sent} only: another publisher \
+         sends under this actor's id (a second actor of the same task, policy and seed, or a \
+         forged id), and the store would drop this actor's own transitions as duplicates"
+    )]
+    AckedBeyondSent {
+        task: u32,
+        actor: u32,
+        acknowledged: u64,
+        sent: u64,
+    },
 }
 
 /// What to run: the flags of `uavmeta actor`.

@@ -21,7 +21,7 @@ use uavmeta_proto::method::Method;
 use uavmeta_proto::metrics::{self, Metric};
 
 use crate::actor::Phase;
-use crate::metrics::{parse, scrape, sum, Sample};
+use crate::metrics::{scrape_process, sum, Sample};
 use crate::run_dir::RunDir;
 use crate::{meta_learner, store};
 
@@ -191,9 +191,7 @@ impl View {
 
     /// A live process's samples, through the port it published; `None` while it has none.
     fn scrape(&self, process: &str) -> Option<Vec<Sample>> {
-        let port = std::fs::read_to_string(self.run.port_file(process)).ok()?;
-        let text = scrape(&self.host, port.trim().parse().ok()?).ok()?;
-        parse(&text).ok()
+        scrape_process(&self.run, &self.host, process)
     }
 
     fn show_actor(&self, bar: &ProgressBar, samples: &[Sample]) {

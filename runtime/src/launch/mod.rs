@@ -64,6 +64,7 @@ mod report;
 pub mod resources;
 pub mod reuse;
 pub mod seeds;
+mod stall;
 mod supervise;
 mod targets;
 
@@ -73,8 +74,9 @@ use report::{latest_results, reference_rows};
 pub use report::{results_table, LaunchReport};
 pub use reuse::Reuse;
 pub use seeds::{launch_seeds, SeedsReport};
+pub use stall::Stall;
 use supervise::{start_children, stop_all, supervise, Announcements, Supervisor, CLEANUP_WAIT};
-use targets::{write_prometheus_yml, write_targets};
+use targets::{write_prometheus_yml, write_targets, Targets};
 
 /// How often the run's `prometheus.yml` has Prometheus scrape every process; `uavmeta dashboard
 /// render` takes it for the interval of its rates.
@@ -141,6 +143,13 @@ pub enum LaunchError {
          (launch again to continue it)"
     )]
     ForeignShutdown,
+    #[error(
+        "the dataset of task `{}` has held {} of its {} transitions for {:.0} s \
+         (run.hang_timeout_seconds) while its actors went on: {}; {}. The run stays as it is; \
+         launch again to continue it",
+        .0.task, .0.stored, .0.target, .0.seconds, .0.actors, .0.cause
+    )]
+    DatasetStalled(Box<stall::Stall>),
     #[error("run directory {}: {message}", dir.display())]
     Reuse { dir: PathBuf, message: String },
     #[error("this machine cannot hold the run: {message}")]
@@ -193,10 +202,11 @@ pub fn launch(
         launcher_metrics.restarts.with_label_values(&[&child.name]);
         launcher_metrics.hangs.with_label_values(&[&child.name]);
     }
-    let actors = children
+    let actors: Vec<(String, String)> = children
         .iter()
-        .filter_map(|c| Some((c.name.clone(), c.task.clone()?)));
-    let display = terminal.map(|t| display::Display::start(t, &run, config, actors.collect()));
+        .filter_map(|c| Some((c.name.clone(), c.task.clone()?)))
+        .collect();
+    let display = terminal.map(|t| display::Display::start(t, &run, config, actors.clone()));
     let supervisor = Supervisor {
         exe,
         run: run.clone(),
@@ -209,12 +219,14 @@ pub fn launch(
     start_children(&supervisor, &mut children, config, &node)?;
     tracing::info!(run = %run.root().display(), children = children.len(), "launched");
 
+    let stalls = stall::StallWatch::start(&run, config, actors);
     let outcome = supervise(
         &supervisor,
         &mut children,
         &node,
         &announcements,
         config.tasks.len(),
+        stalls.as_ref(),
     );
     stop_all(&mut children);
     supervisor.cleaner.sweep_within(CLEANUP_WAIT);

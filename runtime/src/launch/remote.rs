@@ -7,12 +7,12 @@ use iceoryx2::prelude::*;
 use uavmeta_proto::config::Config;
 use uavmeta_proto::metrics::store::TRANSITIONS_STORED;
 
-use crate::metrics::{parse, scrape, sum};
+use crate::metrics::{scrape_process, sum};
 use crate::run_dir::{RemoteHost, RunDir};
 use crate::{actor, liveness, store};
 
 use super::supervise::TICK;
-use super::targets::write_targets;
+use super::targets::{write_targets, Targets};
 use super::LaunchError;
 
 /// The tunnel child's name (`uavmeta tunnel serve`; the tunnel crate is not linked here).
@@ -36,19 +36,16 @@ pub(super) fn wait_for_remote_hosts(
     }
     tracing::info!(hosts = ?wanted, endpoint = %config.tunnel.listen, "waiting for remote actor hosts");
     let deadline = Instant::now() + Duration::from_secs_f64(config.tunnel.wait_seconds);
-    let mut targets = String::new();
+    let mut targets = Targets::default();
     loop {
         // Prometheus sees the remote actors from the start, however short-lived they are.
-        targets = write_targets(run, &[], targets)?;
+        write_targets(run, &[], &mut targets)?;
         let hosts = remote_hosts(run);
         let missing: Vec<&String> = wanted
             .iter()
             .filter(|w| !hosts.iter().any(|h| &h.host == *w && announces_actors(h)))
             .collect();
-        let stored = std::fs::read_to_string(run.port_file(store::PROCESS))
-            .ok()
-            .and_then(|port| scrape(&config.run.metrics_host, port.trim().parse().ok()?).ok())
-            .and_then(|text| parse(&text).ok())
+        let stored = scrape_process(run, &config.run.metrics_host, store::PROCESS)
             .map_or(0.0, |samples| sum(&samples, TRANSITIONS_STORED, &[]));
         if missing.is_empty() && stored > 0.0 {
             tracing::info!(hosts = ?wanted, "remote actor hosts are publishing");

@@ -1,9 +1,12 @@
 //! What a run will ask of this machine, estimated from its config before anything starts, and
 //! refused, naming the key and the estimate, when the machine cannot hold it: shared memory for
-//! every actor's batches (against the free space of /dev/shm), memory for every process (against
-//! `MemAvailable`), and the number of processes.
+//! every actor's batches (against the free space of /dev/shm), and memory (against
+//! `MemAvailable`) for every process and for every size a config sets ([`size_terms`]: replay
+//! buffers, datasets, networks, the planner's search).
 
+use uavmeta_actors::policy::heuristics::PolicySpec;
 use uavmeta_proto::config::Config;
+use uavmeta_proto::dataset::Transition;
 
 use super::LaunchError;
 use crate::transport;
@@ -17,13 +20,33 @@ pub const PROCESS_BASE_BYTES: u64 = 192 << 20;
 const OTHER_PROCESSES: u64 = 5;
 
 /// What a run needs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Needs {
     pub actors: u64,
     /// Shared memory of one actor's batches.
     pub shm_per_actor: u64,
     /// Memory of one process: the base and its world's power tables.
     pub memory_per_process: u64,
+    /// Memory beyond the base that a size the config sets makes some processes hold, one term
+    /// per key ([`size_terms`]).
+    pub sizes: Vec<Term>,
+}
+
+/// Memory that one key of the config makes `count` processes hold, `bytes` each.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Term {
+    /// The key and its value as the config has it, such as `collect.dqn.replay_capacity = 10000`.
+    pub key: String,
+    /// What the memory holds and where.
+    pub what: &'static str,
+    pub bytes: u64,
+    pub count: u64,
+}
+
+impl Term {
+    fn total(&self) -> u64 {
+        self.bytes.saturating_mul(self.count)
+    }
 }
 
 impl Needs {
@@ -31,16 +54,101 @@ impl Needs {
         let cells = u64::from(config.world.grid_cells).pow(2);
         // Two tables (clear and rain) of one f64 per cell and device.
         let tables = 2 * 8 * cells * config.world.devices as u64;
+        let actors = (config.tasks.len() * config.collect.actors_per_task) as u64;
         Self {
-            actors: (config.tasks.len() * config.collect.actors_per_task) as u64,
+            actors,
             shm_per_actor: transport::actor_shared_memory(&config.run),
             memory_per_process: PROCESS_BASE_BYTES + tables,
+            sizes: size_terms(config, actors),
         }
     }
 
     pub fn processes(&self) -> u64 {
         self.actors + OTHER_PROCESSES
     }
+
+    /// Every process's base and tables, and every size term.
+    pub fn memory(&self) -> u64 {
+        let sizes = self.sizes.iter().map(Term::total);
+        sizes.fold(
+            self.memory_per_process.saturating_mul(self.processes()),
+            u64::saturating_add,
+        )
+    }
+}
+
+/// Bytes one dataset transition takes in memory with `devices` devices: the struct, and its two
+/// observation arrays of 2 + K `u16`s on the heap, each with the allocator's 8-byte header,
+/// rounded up to its 16-byte granule.
+pub fn transition_bytes(devices: usize) -> u64 {
+    let array = (2 * (2 + devices) as u64 + 8).div_ceil(16) * 16;
+    std::mem::size_of::<Transition>() as u64 + 2 * array
+}
+
+/// Bytes a Q-network of `hidden` widths takes while it trains: f32 weights, their gradients,
+/// Adam's two moments and a target network, five copies of its parameters.
+fn network_bytes(config: &Config, hidden: &[usize]) -> u64 {
+    let widths = std::iter::once(config.world.observation_len())
+        .chain(hidden.iter().copied())
+        .chain(std::iter::once(config.world.action_count()));
+    let widths: Vec<u64> = widths.map(|w| w as u64).collect();
+    let parameters = widths
+        .windows(2)
+        .map(|pair| (pair[0] + 1).saturating_mul(pair[1]))
+        .fold(0u64, u64::saturating_add);
+    parameters.saturating_mul(5 * 4)
+}
+
+/// The memory each size a config sets makes its processes hold: the online agents' replay
+/// buffers and networks, the datasets the meta-learner loads, the networks it trains, and the
+/// planner's search in the launcher.
+pub fn size_terms(config: &Config, actors: u64) -> Vec<Term> {
+    let (collect, dqn, k) = (&config.collect, &config.collect.dqn, config.world.devices);
+    let online = matches!(collect.policy.parse(), Ok(PolicySpec::DqnOnline));
+    let online_actors = if online { actors } else { 0 };
+    let tasks = config.tasks.len() as u64;
+    let transition = transition_bytes(k);
+    // A replay buffer reserves its capacity of structs at once and fills the arrays as it goes.
+    let struct_bytes = std::mem::size_of::<Transition>() as u64;
+    let replay = (dqn.replay_capacity as u64)
+        .saturating_mul(struct_bytes)
+        .saturating_add(
+            (dqn.replay_capacity.min(dqn.steps) as u64).saturating_mul(transition - struct_bytes),
+        );
+    let datasets = (collect.transitions as u64).saturating_mul(transition);
+    let learner = &config.learner;
+    vec![
+        Term {
+            key: format!("collect.dqn.replay_capacity = {}", dqn.replay_capacity),
+            what: "the online DQN agent's replay buffer, in each actor",
+            bytes: replay,
+            count: online_actors,
+        },
+        Term {
+            key: format!("collect.dqn.hidden = {:?}", dqn.hidden),
+            what: "the online DQN agent's network while it trains, in each actor",
+            bytes: network_bytes(config, &dqn.hidden),
+            count: online_actors,
+        },
+        Term {
+            key: format!("collect.transitions = {}", collect.transitions),
+            what: "one task's dataset, per task in the meta-learner and per online agent's sample",
+            bytes: datasets,
+            count: tasks + online_actors,
+        },
+        Term {
+            key: format!("learner.hidden = {:?}", learner.hidden),
+            what: "the network the meta-learner trains",
+            bytes: network_bytes(config, &learner.hidden),
+            count: 1,
+        },
+        Term {
+            key: format!("planner.beam_width = {}", config.planner.beam_width),
+            what: "the planner reference's search, in the launcher",
+            bytes: u64::try_from(config.planner.memory_bytes(&config.world)).unwrap_or(u64::MAX),
+            count: 1,
+        },
+    ]
 }
 
 /// What this machine has free now.
@@ -76,23 +184,56 @@ pub fn check(config: &Config, needs: &Needs, available: &Available) -> Result<()
             gb(available.shm_bytes)
         ));
     }
-    let memory = needs.memory_per_process * needs.processes();
+    let memory = needs.memory();
     if memory > available.memory_bytes {
-        return refuse(format!(
-            "world.grid_cells = {} with world.devices = {} needs about {} per process, and \
-             {} tasks x collect.actors_per_task = {} make {} processes: {} in all; this machine \
-             has {} available",
-            config.world.grid_cells,
-            config.world.devices,
-            gb(needs.memory_per_process),
-            config.tasks.len(),
-            config.collect.actors_per_task,
-            needs.processes(),
-            gb(memory),
-            gb(available.memory_bytes)
+        return refuse(memory_refusal(
+            config,
+            needs,
+            memory,
+            available.memory_bytes,
         ));
     }
     Ok(())
+}
+
+/// What a run that does not fit the memory available needs, by key, largest first.
+fn memory_refusal(config: &Config, needs: &Needs, memory: u64, available: u64) -> String {
+    let processes = Term {
+        key: format!(
+            "world.grid_cells = {} with world.devices = {}",
+            config.world.grid_cells, config.world.devices
+        ),
+        what: "the process and its world's tables, in each process",
+        bytes: needs.memory_per_process,
+        count: needs.processes(),
+    };
+    let mut terms: Vec<&Term> = needs.sizes.iter().chain([&processes]).collect();
+    terms.sort_by_key(|t| std::cmp::Reverse(t.total()));
+    let listed: Vec<String> = terms
+        .iter()
+        // The terms of at least 1% of the total: the rest changes nothing.
+        .filter(|t| t.total() >= memory / 100)
+        .map(|t| {
+            format!(
+                "{}: {} for {} ({} x {})",
+                t.key,
+                gb(t.total()),
+                t.what,
+                t.count,
+                gb(t.bytes)
+            )
+        })
+        .collect();
+    format!(
+        "the run needs about {} of memory and this machine has {} available; by key, largest \
+         first (those of 1% or more): {} ({} tasks x collect.actors_per_task = {} make {} processes)",
+        gb(memory),
+        gb(available),
+        listed.join("; "),
+        config.tasks.len(),
+        config.collect.actors_per_task,
+        needs.processes()
+    )
 }
 
 /// Checks the run against this machine, if the machine says what it has.
@@ -152,18 +293,36 @@ mod tests {
     }
 
     #[test]
+    fn a_replay_buffer_beyond_memory_is_refused_naming_the_key_the_value_and_the_estimate() {
+        let mut config = Config::default();
+        config.collect.dqn.replay_capacity = 1_000_000_000;
+        let refused = refused_on_24_gib(&config);
+        let each = 1e9 * std::mem::size_of::<Transition>() as f64 / 1e9;
+        assert!(
+            refused.contains("collect.dqn.replay_capacity = 1000000000")
+                && refused.contains(&format!("{each:.1} GB")),
+            "{refused}"
+        );
+    }
+
+    #[test]
     fn a_large_world_times_many_processes_is_refused_naming_the_world() {
         let mut config = Config::default();
         config.world.grid_cells = 500;
         config.world.devices = 64;
         config.collect.actors_per_task = 7;
+        let refused = refused_on_24_gib(&config);
+        assert!(refused.contains("world.grid_cells = 500"), "{refused}");
+    }
+
+    /// Why a machine of 12 GiB of /dev/shm and 24 GiB of memory refuses `config`.
+    fn refused_on_24_gib(config: &Config) -> String {
         let available = Available {
             shm_bytes: 12 << 30,
             memory_bytes: 24 << 30,
         };
-        let refused = check(&config, &Needs::of(&config), &available)
+        check(config, &Needs::of(config), &available)
             .expect_err("too much memory")
-            .to_string();
-        assert!(refused.contains("world.grid_cells = 500"), "{refused}");
+            .to_string()
     }
 }

@@ -1,6 +1,7 @@
 //! Supervision: starting the children in order, restarting a crashed or hung one with backoff,
 //! hearing the run's announcements, and stopping everything in order at the end.
 
+use super::stall::StallWatch;
 use super::*;
 
 pub(super) const TICK: Duration = Duration::from_millis(100);
@@ -48,24 +49,29 @@ impl Announcements {
 }
 
 /// Supervises the children until they have all finished after the shutdown (announced once
-/// meta-learning is done and every one of the `tasks` datasets is ready), or SIGINT/SIGTERM.
+/// meta-learning is done and every one of the `tasks` datasets is ready), SIGINT/SIGTERM, or a
+/// dataset that `stalls` reports stopped growing.
 pub(super) fn supervise(
     supervisor: &Supervisor,
     children: &mut [Supervised],
     node: &Node<ipc::Service>,
     announcements: &Announcements,
     tasks: usize,
+    stalls: Option<&StallWatch>,
 ) -> Result<(), LaunchError> {
     let metrics = supervisor.metrics;
     let mut ready_tasks = vec![false; tasks];
     let mut shutdown_sent = false;
     let mut shutdown_at = Instant::now();
-    let mut last_targets = String::new();
+    let mut targets = Targets::default();
     loop {
         if !liveness::keep_running(node, TICK) {
             return Err(LaunchError::Interrupted);
         }
         supervisor.poll(children)?;
+        if let Some(stall) = stalls.and_then(|s| s.stalled.try_recv().ok()) {
+            return Err(LaunchError::DatasetStalled(Box::new(stall)));
+        }
         // Before its own, any shutdown is another process's: the children stop on it, and the
         // run must not end as if its work were done.
         if !shutdown_sent && transport::shutdown_requested(&announcements.shutdowns)? {
@@ -77,7 +83,7 @@ pub(super) fn supervise(
             &mut ready_tasks,
             metrics,
         )?;
-        last_targets = write_targets(&supervisor.run, children, last_targets)?;
+        write_targets(&supervisor.run, children, &mut targets)?;
         metrics
             .children_running
             .set(children.iter().filter(|c| c.child.is_some()).count() as i64);
