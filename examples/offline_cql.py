@@ -85,7 +85,7 @@ def main():
     assert not data.terminals.any()  # a time limit: bootstrap everywhere
     print(f"{args.dataset}: {len(data)} transitions of task {data.task_name} (lambda = {data.lam})")
 
-    # --- network: the SPEC's MLP, so the result is a checkpoint the command line reads
+    # --- network: the model's MLP (docs/MODEL.md section 5), so the result is a checkpoint the command line reads
     env = uavmeta.UavEnv(config=data.config_path, task=data.task_name, normalised=True)
     q = QNetwork(obs.shape[1], env.action_space.n, args.hidden)
     target = QNetwork(obs.shape[1], env.action_space.n, args.hidden)

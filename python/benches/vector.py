@@ -29,7 +29,7 @@ MOVES = np.array([(0, 1), (0, -1), (1, 0), (-1, 0), (0, 0)])
 
 
 class NumpyWorld:
-    """SPEC section 1 (defaults, one rain zone, no moving rain) for N envs in numpy, with
+    """docs/MODEL.md section 1 (defaults, one rain zone, no moving rain) for N envs in numpy, with
     next-step autoreset: the comparison a Python user could write in an afternoon."""
 
     def __init__(self, n, device_cells, lam, rain=None, grid=10, horizon=100, aoi_max=100,

@@ -14,13 +14,13 @@ use pyo3::prelude::*;
 use pyo3::PyErr;
 use uavmeta_proto::config::{Config, ConfigError, RainZone, TaskConfig};
 
-/// The task of SPEC section 2 that an env gets when no task is named: the paper's unseen one.
+/// The task of docs/MODEL.md section 2 that an env gets when no task is named: the paper's unseen one.
 pub const DEFAULT_LAMBDA: f64 = 300.0;
 
 /// What the Python caller asked for.
 #[derive(Debug, Clone, Default)]
 pub struct TaskArgs {
-    /// A config file; SPEC's defaults when absent.
+    /// A config file; the defaults when absent.
     pub config: Option<PathBuf>,
     /// A task of the config, by name.
     pub task: Option<String>,
@@ -37,7 +37,7 @@ pub struct TaskArgs {
 pub fn resolve(args: &TaskArgs) -> Result<(Config, TaskConfig), PyErr> {
     let mut config = match &args.config {
         Some(path) => Config::load(path, &args.overrides),
-        None => Config::from_toml_str("", "the default config (SPEC)", &args.overrides),
+        None => Config::from_toml_str("", "the default config", &args.overrides),
     }
     .map_err(config_error)?;
     match (&args.task, args.lam) {

@@ -1,7 +1,7 @@
 """The uavmeta UAV world from Python.
 
 The world of the paper "Resilient UAV Trajectory Planning via Few-Shot Meta-Offline
-Reinforcement Learning" (SPEC sections 1-3 of this repository), stepped by the same Rust code
+Reinforcement Learning" (docs/MODEL.md sections 1-3 of this repository), stepped by the same Rust code
 as the ``uavmeta`` command line, without libtorch:
 
 - :class:`UavEnv`, a ``gymnasium.Env``, registered as ``uavmeta/UAV-v0``;

@@ -89,7 +89,7 @@ class WorldProperties:
 
 
 class UavEnv(WorldProperties, gymnasium.Env):
-    """The UAV world of one task (SPEC sections 1-3), stepped in Rust.
+    """The UAV world of one task (docs/MODEL.md sections 1-3), stepped in Rust.
 
     - Observation: ``Box`` of 2 + K float32 values, **raw** by default: [x_u, y_u, A_1..A_K]
       with the cell in 0..L-1 and every AoI in 1..aoi_max. ``normalised=True`` divides them by
@@ -101,7 +101,7 @@ class UavEnv(WorldProperties, gymnasium.Env):
     - ``info``: ``aoi`` (mean AoI over the devices after the step), ``power_mw`` (the power
       spent), ``outage`` (the UAV was in rain) and ``device`` (the served device).
 
-    The task: ``config`` (a TOML file; SPEC's defaults when absent) and ``task`` (a task name
+    The task: ``config`` (a TOML file; the defaults when absent) and ``task`` (a task name
     in it), or a one-off ``lam`` with optional ``rain`` = (x0, y0, x1, y1) and
     ``rain_moves_every``; with neither, lambda = 300; or ``tasks=uavmeta.TaskSampler(...)``,
     a new task at every reset. ``info`` (of ``reset`` too) then has the task's ``task_id``

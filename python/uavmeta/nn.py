@@ -26,7 +26,7 @@ FORMAT_VERSION = 1
 
 
 class QNetwork(nn.Module):
-    """The SPEC's MLP: ``layer0`` .. ``layer{n}`` linear layers with ReLU between them, from the
+    """The model's MLP (docs/MODEL.md section 5): ``layer0`` .. ``layer{n}`` linear layers with ReLU between them, from the
     normalised observation (2 + K values) to the 5K Q-values.
 
     ``meta`` is the checkpoint metadata it was loaded with (or built from), ``config_toml`` the

@@ -11,7 +11,7 @@ same actions:
   ``seed`` (the CLI's ``--seed``);
 - ``stalest(env)``: serve the device with the largest delta_k A_k, fly towards it;
 - ``greedy(env)``: serve the device that makes this step cheapest, fly towards the stalest;
-- ``planner(env)``: the planner reference (SPEC section 5), a search that knows the world, the
+- ``planner(env)``: the planner reference (docs/MODEL.md section 5), a search that knows the world, the
   measure of what is achievable. Call it with the step ``t`` the observations are at
   (``policy(obs, t=env.t)``): it plans the remaining T - t steps from each row, exactly where the
   rain does not move (with the task's configured zone where it does). It keeps its plan while
@@ -113,7 +113,7 @@ class QNetworkPolicy:
     uniform random action instead, from a numpy stream seeded by ``seed`` (not the command
     line's stream: with ``epsilon > 0`` the two choose alike in distribution only).
 
-    The network is the SPEC's MLP (ReLU between layers) with the widths its metadata records.
+    The network is the model's MLP (docs/MODEL.md section 5) (ReLU between layers) with the widths its metadata records.
     ``q_values(obs)`` gives the Q-values themselves. Q-values are float32 sums taken in another
     order than libtorch's, so an action whose two best Q-values differ in the last bits may
     differ from the command line's."""
