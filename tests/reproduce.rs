@@ -121,6 +121,9 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     let rain = config.tasks.iter().filter(|t| t.rain.is_some()).count();
     let meta_tasks = r.meta_tasks;
     let curve = "seed,epoch,return,return_ci95,aoi,power_mw,outages";
+    // Each of `learner.baselines` adds two methods (from w0 and from a random init) to figures 5
+    // and 6.
+    let baselines = config.learner.baselines.len();
 
     let meta = out.join("meta-training");
     check_csv(
@@ -136,8 +139,8 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     check_csv(
         &out.join("convergence/curves.csv"),
         &format!("method,{curve}"),
-        // CQL-MAML, CQL-pretrain, CQL, DQN, DQN-MAML.
-        5 * seeds * r.convergence_epochs,
+        // CQL-MAML, CQL-pretrain, CQL, DQN, DQN-MAML, then the baselines.
+        (5 + 2 * baselines) * seeds * r.convergence_epochs,
     );
     check_csv(
         &out.join("convergence/references.csv"),
@@ -148,7 +151,7 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     check_csv(
         &out.join("shots/curves.csv"),
         &format!("method,shots,{curve}"),
-        r.shots.len() * 3 * seeds * r.convergence_epochs,
+        r.shots.len() * (3 + 2 * baselines) * seeds * r.convergence_epochs,
     );
     check_csv(
         &out.join("tasks/curves.csv"),

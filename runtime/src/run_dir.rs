@@ -13,6 +13,9 @@ use uavmeta_proto::method::Method;
 
 use crate::transport::TransportError;
 
+/// A remote host that has not announced itself for this long is gone: out of the scrape targets.
+pub const REMOTE_HOST_SILENCE: std::time::Duration = std::time::Duration::from_secs(10);
+
 /// A run's directory and the layout of everything in it.
 #[derive(Debug, Clone)]
 pub struct RunDir {
@@ -121,6 +124,25 @@ impl RunDir {
     /// Where the learner host's tunnel keeps what remote hosts announced: one file per host.
     pub fn remote_hosts_dir(&self) -> PathBuf {
         self.root.join("remote-hosts")
+    }
+
+    /// The remote actor hosts that announced themselves through the tunnel in the last
+    /// [`REMOTE_HOST_SILENCE`], by name.
+    pub fn remote_hosts(&self) -> Vec<RemoteHost> {
+        let entries = std::fs::read_dir(self.remote_hosts_dir());
+        let mut hosts: Vec<RemoteHost> = entries
+            .into_iter()
+            .flatten()
+            .flatten()
+            .filter(|entry| {
+                (entry.metadata().and_then(|m| m.modified()).ok())
+                    .and_then(|at| at.elapsed().ok())
+                    .is_some_and(|age| age < REMOTE_HOST_SILENCE)
+            })
+            .filter_map(|entry| serde_json::from_slice(&std::fs::read(entry.path()).ok()?).ok())
+            .collect();
+        hosts.sort_by(|a, b| a.host.cmp(&b.host));
+        hosts
     }
 
     pub fn root(&self) -> &Path {

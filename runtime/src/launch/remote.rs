@@ -17,8 +17,6 @@ use super::LaunchError;
 
 /// The tunnel child's name (`uavmeta tunnel serve`; the tunnel crate is not linked here).
 pub(super) const TUNNEL_PROCESS: &str = "tunnel";
-/// A remote host that has not announced itself for this long is gone: out of the targets.
-pub(super) const REMOTE_HOST_SILENCE: Duration = Duration::from_secs(10);
 
 /// Waits until every host of `tunnel.wait_for_hosts` has announced itself with its actors and
 /// the store has stored a transition (only remote actors run yet, so it came through the tunnel).
@@ -40,7 +38,7 @@ pub(super) fn wait_for_remote_hosts(
     loop {
         // Prometheus sees the remote actors from the start, however short-lived they are.
         write_targets(run, &[], &mut targets)?;
-        let hosts = remote_hosts(run);
+        let hosts = run.remote_hosts();
         let missing: Vec<&String> = wanted
             .iter()
             .filter(|w| !hosts.iter().any(|h| &h.host == *w && announces_actors(h)))
@@ -70,25 +68,4 @@ pub(super) fn announces_actors(host: &RemoteHost) -> bool {
     host.processes
         .iter()
         .any(|p| p.name.starts_with(actor::PROCESS_PREFIX))
-}
-
-/// The remote actor hosts that announced themselves through the tunnel lately.
-pub(super) fn remote_hosts(run: &RunDir) -> Vec<RemoteHost> {
-    let entries = std::fs::read_dir(run.remote_hosts_dir());
-    let mut hosts: Vec<RemoteHost> = entries
-        .into_iter()
-        .flatten()
-        .flatten()
-        .filter(|entry| {
-            entry
-                .metadata()
-                .and_then(|m| m.modified())
-                .ok()
-                .and_then(|at| at.elapsed().ok())
-                .is_some_and(|age| age < REMOTE_HOST_SILENCE)
-        })
-        .filter_map(|entry| serde_json::from_slice(&std::fs::read(entry.path()).ok()?).ok())
-        .collect();
-    hosts.sort_by(|a, b| a.host.cmp(&b.host));
-    hosts
 }

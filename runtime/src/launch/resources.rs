@@ -4,7 +4,7 @@
 //! `MemAvailable`) for every process and for every size a config sets ([`size_terms`]: replay
 //! buffers, datasets, networks, the planner's search).
 
-use uavmeta_actors::policy::heuristics::PolicySpec;
+use uavmeta_world::heuristics::PolicySpec;
 use uavmeta_proto::config::Config;
 use uavmeta_proto::dataset::Transition;
 

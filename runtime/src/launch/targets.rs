@@ -4,7 +4,6 @@
 use std::collections::HashMap;
 use std::time::{Duration, Instant};
 
-use super::remote::remote_hosts;
 use super::{LaunchError, Supervised, PROCESS, SCRAPE_INTERVAL_SECONDS};
 use crate::run_dir::{write_atomic, RemoteHost, RunDir};
 
@@ -59,7 +58,7 @@ pub(super) fn write_targets(
             }));
         }
     }
-    let hosts = remote_hosts(run);
+    let hosts = run.remote_hosts();
     for host in &hosts {
         for process in &host.processes {
             targets.push(serde_json::json!({
