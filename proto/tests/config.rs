@@ -333,7 +333,7 @@ fn a_section_another_crate_owns_is_kept_as_written() {
 #[test]
 fn learning_rate_schedules_are_checked() {
     error_of(
-        "[collect]\ndqn_lr_final_fraction = 1.5\n",
+        "[collect.dqn]\nlr_final_fraction = 1.5\n",
         &[],
         &[
             "collect.dqn.lr_final_fraction",
@@ -362,7 +362,7 @@ fn not_a_number_and_infinity_break_the_finite_rules() {
     );
     // Ranges without "finite" in their words still refuse NaN: it is inside no range.
     error_of(
-        "[collect]\neps_end = nan\n",
+        "[collect.dqn]\neps_end = nan\n",
         &[],
         &["collect.dqn.eps_end", "NaN", "a probability in [0, 1]"],
     );

@@ -45,7 +45,7 @@ eval_episodes = 2
 [meta]
 meta_epochs = 4
 checkpoint_every = 2
-shots = 16
+support_shots = 16
 query_shots = 16
 eval_every = 0
 
