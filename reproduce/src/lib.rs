@@ -697,8 +697,10 @@ mod tests {
                 Experiment::AoiPower
             ]
         );
-        // 5 methods + 3 x 2 more shot counts + CQL-MAML on 2 tasks + 3 on the rain task.
-        assert_eq!(plan.runs.len(), 5 + 6 + 1 + 3);
+        // 5 methods and each baseline from w0 and from a random init, the CQL inits and the
+        // baselines at 2 more shot counts, CQL-MAML on 2 tasks, 3 on the rain task.
+        let b = config.learner.baselines.len();
+        assert_eq!(plan.runs.len(), (5 + 2 * b) + (3 + 2 * b) * 2 + 1 + 3);
         assert_eq!(plan.runs.iter().filter(|r| r.trajectory).count(), 3);
     }
 
