@@ -37,9 +37,6 @@ use iceoryx2::node::Node;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::prelude::ipc;
 
-use uavmeta_world::heuristics::PolicySpec;
-use uavmeta_world::rollout::{episode_seed, run_episode, Policy};
-use uavmeta_world::world::World;
 use uavmeta_proto::config::{Config, RunConfig};
 use uavmeta_proto::payload::{ServiceNames, StoreAck, TransitionSlot, SCHEMA_VERSION};
 use uavmeta_runtime::actor::{ActorOptions, Rollout};
@@ -47,6 +44,9 @@ use uavmeta_runtime::domain;
 use uavmeta_runtime::run_dir::RunDir;
 use uavmeta_runtime::store;
 use uavmeta_runtime::transport::{self, TransitionPublisher};
+use uavmeta_world::heuristics::PolicySpec;
+use uavmeta_world::rollout::{episode_seed, run_episode, Policy};
+use uavmeta_world::world::World;
 
 const BIN: &str = env!("CARGO_BIN_EXE_uavmeta");
 

@@ -5,7 +5,6 @@
 
 use std::path::{Path, PathBuf};
 
-use uavmeta_world::world::World;
 use uavmeta_proto::config::{Config, RunConfig};
 use uavmeta_proto::dataset::{DatasetHeader, DatasetWriter, Transition};
 use uavmeta_proto::metrics::store as names;
@@ -15,6 +14,7 @@ use uavmeta_runtime::domain;
 use uavmeta_runtime::metrics::{parse, sum, Sample};
 use uavmeta_runtime::run_dir::RunDir;
 use uavmeta_runtime::transport::{self, TransitionPublisher};
+use uavmeta_world::world::World;
 
 mod support;
 use support::{config_args, run_dir, wait_until, within, Proc};

@@ -9,7 +9,6 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-
 use uavmeta_proto::method::{Algo, Method};
 use uavmeta_proto::metrics::{self, Metric};
 use uavmeta_runtime::metrics::{parse, sum, Sample};
@@ -932,8 +931,10 @@ fn a_launch_with_the_dqn_inner_loss_fine_tunes_and_reports_dqn_maml() {
         expected.insert(format!("{algo}-w0"), 2);
         expected.insert(algo.to_string(), 2);
     }
-    let methods: BTreeMap<String, usize> =
-        methods.into_iter().map(|(m, n)| (m.to_string(), n)).collect();
+    let methods: BTreeMap<String, usize> = methods
+        .into_iter()
+        .map(|(m, n)| (m.to_string(), n))
+        .collect();
     assert_eq!(methods, expected, "{csv}");
     let w0 = run.join("checkpoints/maml-init/epoch-00004");
     let meta = uavmeta_learner::checkpoint::read_meta(&w0).expect("the final w0 checkpoint");

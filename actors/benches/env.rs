@@ -13,11 +13,11 @@ use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use uavmeta_actors::policy::q_policy::{Evaluator, QPolicy};
-use uavmeta_world::rollout::evaluate;
-use uavmeta_world::world::World;
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_proto::config::{Config, RainZone, TaskConfig};
+use uavmeta_world::rollout::evaluate;
+use uavmeta_world::world::World;
 
 const STEPS: usize = 1 << 16;
 const BATCH: usize = 64;

@@ -280,7 +280,10 @@ pub fn collect(
 /// Refuses a config whose online agent's replay buffer holds fewer transitions than its dataset
 /// is to sample.
 fn check_replay_window(config: &Config) -> Result<(), CollectError> {
-    let (wanted, available) = (config.collect.transitions, config.collect.dqn.sampled_window());
+    let (wanted, available) = (
+        config.collect.transitions,
+        config.collect.dqn.sampled_window(),
+    );
     if available < wanted {
         return Err(CollectError::ReplayTooSmall {
             origin: config.origin.clone(),

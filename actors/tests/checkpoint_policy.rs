@@ -5,15 +5,15 @@ use std::path::{Path, PathBuf};
 
 use indicatif::ProgressBar;
 use uavmeta_actors::collect::collect;
-use uavmeta_world::heuristics::{PolicySpec, RandomPolicy};
 use uavmeta_actors::policy::q_policy::QPolicy;
 use uavmeta_actors::policy::{self};
-use uavmeta_world::rollout::Policy;
-use uavmeta_world::world::World;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_proto::config::{Config, TaskConfig};
 use uavmeta_proto::dataset::DatasetReader;
+use uavmeta_world::heuristics::{PolicySpec, RandomPolicy};
+use uavmeta_world::rollout::Policy;
+use uavmeta_world::world::World;
 
 /// A network of `config`'s learner shape, seeded 3, saved as `dir/net`.
 fn saved_network(config: &Config, dir: &Path) -> (QNetwork, PathBuf) {

@@ -11,17 +11,17 @@ use std::sync::OnceLock;
 
 use uavmeta_actors::collect::{online_dqn_dataset, Collector};
 use uavmeta_actors::policy::dqn_online::OnlineDqn;
-use uavmeta_world::heuristics::{GreedyPolicy, PolicySpec, RandomPolicy, StalestPolicy};
 use uavmeta_actors::policy::q_policy::Evaluator;
-use uavmeta_world::rollout::{evaluate, Policy};
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{train, EpochRow, EvaluatePolicy, TrainOptions};
 use uavmeta_proto::config::Config;
-use uavmeta_proto::method::Algo;
 use uavmeta_proto::dataset::Transition;
+use uavmeta_proto::method::Algo;
 use uavmeta_proto::stats::PolicyMetrics;
+use uavmeta_world::heuristics::{GreedyPolicy, PolicySpec, RandomPolicy, StalestPolicy};
+use uavmeta_world::rollout::{evaluate, Policy};
 
 mod support;
 use support::DEFAULT_CONFIG;

@@ -12,12 +12,12 @@
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use uavmeta_world::world::World;
 use uavmeta_proto::config::Config;
 use uavmeta_proto::metrics::store::DATASET_TRANSITIONS;
 use uavmeta_proto::payload::TransitionSlot;
 use uavmeta_runtime::metrics::{parse, scrape, sum};
 use uavmeta_world::validate::{Claimed, Validator};
+use uavmeta_world::world::World;
 
 use super::{cpu_time, process_cpu, BenchRun, BIN, RAW_REPEATS};
 

@@ -21,9 +21,9 @@ use uavmeta_proto::config::{Config, LearnerConfig};
 use uavmeta_proto::method::Algo;
 use uavmeta_proto::stats::PolicyMetrics;
 
+use crate::algorithm::{self, OfflineAlgorithm, Terms};
 use crate::batch::Batch;
 use crate::checkpoint::{self, CheckpointError};
-use crate::algorithm::{self, OfflineAlgorithm, Terms};
 use crate::cql::conservative_term;
 use crate::dqn::{q_taken, TdConfig};
 use crate::optim::FusedAdam;
@@ -283,8 +283,8 @@ pub fn train(
 
     let started = Instant::now();
     let mut rows: Vec<EpochRow> = Vec::with_capacity(cfg.epochs);
-    let guard = ValueGuard::new(cfg, q, data)
-        .filter(|_| algorithm::of(opts.algorithm).learns_values());
+    let guard =
+        ValueGuard::new(cfg, q, data).filter(|_| algorithm::of(opts.algorithm).learns_values());
     let mut last_good = guard.as_ref().map(|_| q.duplicate());
     let mut average = Average::new(cfg);
     let mut stopped = false;

@@ -249,7 +249,13 @@ fn bc_loss_matches_d3rlpy_s_discrete_bc_by_hand() {
     let expected = 2.216176 + 0.5 * 31.0 / 6.0;
     let mean = |rows: Tensor| rows.mean(None);
     let td = Tensor::from(0.0f32);
-    let terms = Terms { q: &q, batch: &batch, td: &td, mean: &mean, alpha: 1.0 };
+    let terms = Terms {
+        q: &q,
+        batch: &batch,
+        td: &td,
+        mean: &mean,
+        alpha: 1.0,
+    };
     let got = scalar(&Bc.loss(&terms));
     assert!((got - expected).abs() < 1e-5, "{got} against {expected}");
     assert!(!Bc.learns_values());

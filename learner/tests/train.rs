@@ -10,8 +10,8 @@ use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{train, EpochRow, EvaluatePolicy, TrainOptions};
 use uavmeta_proto::config::Config;
-use uavmeta_proto::method::Algo;
 use uavmeta_proto::dataset::Transition;
+use uavmeta_proto::method::Algo;
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 
 fn best_action(x: u16) -> u16 {
@@ -270,7 +270,14 @@ fn the_value_guard_stops_a_run_and_keeps_its_last_good_network() {
     let mut stopped = 0;
     for (i, data) in batches(&cfg, 1..=2).iter().enumerate() {
         let mut recorder = Recorder(Vec::new());
-        let (q, rows) = alone_scored(&cfg, Algo::CQL, i as u64, data, 10 + i as u64, &mut recorder);
+        let (q, rows) = alone_scored(
+            &cfg,
+            Algo::CQL,
+            i as u64,
+            data,
+            10 + i as u64,
+            &mut recorder,
+        );
         let Some(last) = rows.iter().position(|r| r.steps < r.epoch * 13) else {
             continue;
         };
@@ -320,11 +327,24 @@ fn behaviour_cloning_takes_the_data_s_most_frequent_action_whatever_the_rewards(
                 true => best_action(t.obs[0]),
                 false => rng.random_range(0..5u16),
             };
-            Transition { action, reward: 0.0, ..t }
+            Transition {
+                action,
+                reward: 0.0,
+                ..t
+            }
         })
         .collect();
     let data = Batch::new(&data, &cfg.world, cfg.learner.reward_scale).unwrap();
     let (_, rows) = alone(&cfg, "bc".parse::<Algo>().unwrap(), 0, &data, 4);
-    assert_eq!(rows.last().unwrap().policy.ret.mean, 1.0, "{:?}", rows.last());
-    assert_eq!(rows.last().unwrap().steps, cfg.learner.epochs * 13, "BC was stopped");
+    assert_eq!(
+        rows.last().unwrap().policy.ret.mean,
+        1.0,
+        "{:?}",
+        rows.last()
+    );
+    assert_eq!(
+        rows.last().unwrap().steps,
+        cfg.learner.epochs * 13,
+        "BC was stopped"
+    );
 }

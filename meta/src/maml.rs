@@ -80,9 +80,9 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use tch::{Kind, Tensor};
+use uavmeta_learner::algorithm::{self, Terms};
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
-use uavmeta_learner::algorithm::{self, Terms};
 use uavmeta_learner::dqn::TdConfig;
 use uavmeta_learner::optim::FusedAdam;
 use uavmeta_learner::progress::OnStep;
@@ -507,10 +507,7 @@ fn meta_parameters(weights: Vec<Tensor>, inner_lr: &Option<Vec<Tensor>>) -> Vec<
 
 /// Meta-SGD's starting step sizes (`meta.eta_inner` in a leaf of each weight's shape, when
 /// `meta.learn_inner_lr`) and the outer Adam over `weights` and them (eq. 16).
-fn outer_optimizer(
-    weights: Vec<Tensor>,
-    config: &MamlConfig,
-) -> (Option<Vec<Tensor>>, FusedAdam) {
+fn outer_optimizer(weights: Vec<Tensor>, config: &MamlConfig) -> (Option<Vec<Tensor>>, FusedAdam) {
     let inner_lr: Option<Vec<Tensor>> = config.meta.learn_inner_lr.then(|| {
         (weights.iter())
             .map(|p| {

@@ -35,9 +35,8 @@ pub fn pretrain<E>(
     budget.learner.alpha = maml.meta.alpha;
     let w = &config.world;
     let mut q = QNetworkConfig::for_world(w, &config.learner.hidden).init(seed);
-    let mut trainer =
-        OfflineTrainer::new(&q, union.len(), config.meta.inner_loss, &budget, seed)
-            .with_on_step(on_step);
+    let mut trainer = OfflineTrainer::new(&q, union.len(), config.meta.inner_loss, &budget, seed)
+        .with_on_step(on_step);
     for epoch in 1..=config.meta.meta_epochs {
         for _ in 0..maml.outer_steps(tasks) {
             trainer.step(&mut q, &union);

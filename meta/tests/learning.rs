@@ -9,15 +9,15 @@
 //! from random to a policy of the data's quality.
 
 use uavmeta_actors::collect::Collector;
-use uavmeta_world::heuristics::{EpsilonPolicy, RandomPolicy};
 use uavmeta_actors::policy::q_policy::Evaluator;
-use uavmeta_world::rollout::evaluate;
 use uavmeta_learner::batch::Batch;
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_meta::maml::{Maml, MamlConfig, MetaTask};
 use uavmeta_proto::config::Config;
 use uavmeta_proto::dataset::split;
+use uavmeta_world::heuristics::{EpsilonPolicy, RandomPolicy};
+use uavmeta_world::rollout::evaluate;
 
 const DEFAULT_CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../configs/default.toml");
 const EVAL_EPISODES: usize = 20;

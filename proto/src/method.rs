@@ -26,9 +26,21 @@ pub struct AlgoInfo {
 /// Every offline algorithm, in wire order: one line each. Adding one here and its loss to
 /// `uavmeta_learner::algorithm::ALGORITHMS` (same name, same order) is the whole registration.
 pub const ALGORITHMS: &[AlgoInfo] = &[
-    AlgoInfo { name: "cql", label: "CQL", baseline: false },
-    AlgoInfo { name: "dqn", label: "DQN", baseline: false },
-    AlgoInfo { name: "bc", label: "BC", baseline: true },
+    AlgoInfo {
+        name: "cql",
+        label: "CQL",
+        baseline: false,
+    },
+    AlgoInfo {
+        name: "dqn",
+        label: "DQN",
+        baseline: false,
+    },
+    AlgoInfo {
+        name: "bc",
+        label: "BC",
+        baseline: true,
+    },
 ];
 
 /// An offline algorithm of [`ALGORITHMS`] (its index); written as its name.
@@ -48,7 +60,9 @@ impl Algo {
 
     /// The algorithms registered as baselines: `learner.baselines`' default.
     pub fn baselines() -> Vec<Algo> {
-        Algo::all().filter(|a| ALGORITHMS[a.index()].baseline).collect()
+        Algo::all()
+            .filter(|a| ALGORITHMS[a.index()].baseline)
+            .collect()
     }
 
     /// Its place in [`ALGORITHMS`].
@@ -261,9 +275,14 @@ impl Method {
 
     /// Every method: the references, then each algorithm from each start.
     pub fn all() -> impl Iterator<Item = Method> {
-        let tuned = Algo::all()
-            .flat_map(|algo| Start::ALL.into_iter().map(move |start| Method::tuned(algo, start)));
-        [Method::MetaInit, Method::OnlineDqn].into_iter().chain(tuned)
+        let tuned = Algo::all().flat_map(|algo| {
+            Start::ALL
+                .into_iter()
+                .map(move |start| Method::tuned(algo, start))
+        });
+        [Method::MetaInit, Method::OnlineDqn]
+            .into_iter()
+            .chain(tuned)
     }
 }
 
@@ -284,7 +303,11 @@ mod tests {
         for m in &all {
             assert_eq!(Method::from_code(m.code()), Some(*m), "{m}");
             assert_eq!(Method::from_name(&m.name()), Some(*m), "{m}");
-            assert_eq!(all.iter().filter(|o| o.name() == m.name()).count(), 1, "{m}");
+            assert_eq!(
+                all.iter().filter(|o| o.name() == m.name()).count(),
+                1,
+                "{m}"
+            );
         }
         assert_eq!(Method::from_code(2 + 4 * 64), None);
         assert_eq!(Method::from_code(2 + ALGORITHMS.len() as u32), None);
@@ -295,7 +318,10 @@ mod tests {
     #[test]
     fn an_unknown_algorithm_is_refused_with_the_registered_names() {
         let error = "ppo".parse::<Algo>().unwrap_err();
-        assert!(error.contains("`ppo`") && error.contains("`cql`, `dqn`"), "{error}");
+        assert!(
+            error.contains("`ppo`") && error.contains("`cql`, `dqn`"),
+            "{error}"
+        );
         assert_eq!("dqn".parse::<Algo>(), Ok(Algo::DQN));
     }
 }

@@ -64,9 +64,9 @@ use std::time::{Duration, Instant};
 
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
 use rayon::prelude::*;
-use uavmeta_world::heuristics::reference_metrics;
 use uavmeta_proto::config::{Config, ConfigError, TaskConfig, TaskRole};
 use uavmeta_proto::stats::PolicyMetrics;
+use uavmeta_world::heuristics::reference_metrics;
 
 use claims::Claim;
 use runs::{meta_train_tasks, InitKey, Plan, SeedResult};

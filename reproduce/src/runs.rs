@@ -11,12 +11,8 @@
 use std::path::{Path, PathBuf};
 
 use indicatif::ProgressBar;
-use uavmeta_actors::collect::{
-    agent_path, collect, config_path,
-};
-use uavmeta_world::heuristics::PolicySpec;
+use uavmeta_actors::collect::{agent_path, collect, config_path};
 use uavmeta_actors::policy::q_policy::{Evaluator, QPolicy};
-use uavmeta_world::rollout::{record_trajectory, Trajectory};
 use uavmeta_learner::checkpoint::{self, CheckpointPaths};
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::QNetworkConfig;
@@ -24,6 +20,8 @@ use uavmeta_learner::train::{EpochRow, EvaluatePolicy};
 use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
 use uavmeta_proto::dataset::DatasetReader;
 use uavmeta_proto::stats::PolicyMetrics;
+use uavmeta_world::heuristics::PolicySpec;
+use uavmeta_world::rollout::{record_trajectory, Trajectory};
 
 use super::Experiment;
 use uavmeta_learner::batch::load_shots;
@@ -31,8 +29,7 @@ use uavmeta_learner::batch::Batch;
 use uavmeta_learner::qnet::QNetwork;
 use uavmeta_meta::fine_tune::{fine_tune, FineTune};
 use uavmeta_meta::meta_train::{
-    dataset_path, load_tasks, meta_train, Evaluation, MetaRow,
-    MetaTrainOptions,
+    dataset_path, load_tasks, meta_train, Evaluation, MetaRow, MetaTrainOptions,
 };
 use uavmeta_meta::{create_dir, pretrain, MetaError};
 use uavmeta_proto::method::{Algo, Method, Start};
@@ -137,7 +134,6 @@ impl RunNeed {
             .algo()
             .expect("every run of the plan is a fine-tuned method")
     }
-
 }
 
 /// Everything every seed computes for the selected experiments, each item once.
@@ -393,7 +389,12 @@ impl DatasetJob {
 
 /// Collects `job` (not cached) as `uavmeta collect` does.
 pub fn collect_dataset(job: &DatasetJob) -> Result<(), ReproduceError> {
-    collect(&job.collection, &job.task, &job.path, &ProgressBar::hidden())?;
+    collect(
+        &job.collection,
+        &job.task,
+        &job.path,
+        &ProgressBar::hidden(),
+    )?;
     Ok(())
 }
 
@@ -560,7 +561,7 @@ fn ensure_w0(
             })?
             .expect("a pretraining never told to stop finishes");
             checkpoint::save(&w0, &q, &key.kind.name(), meta.meta.meta_epochs, &meta)
-            .map_err(MetaError::from)?;
+                .map_err(MetaError::from)?;
         }
         return Ok((w0, MetaCurve::default()));
     }
@@ -603,7 +604,6 @@ fn cached_w0(meta: &Config, key: InitKey, out: &Path) -> Option<(PathBuf, MetaCu
         }
     }
 }
-
 
 /// Reads back `meta_train.csv` of `tasks` tasks (columns: meta_epoch, meta_loss, one loss, then
 /// one adapted and then one zero-shot return per task, seconds; empty returns on meta-epochs that
@@ -698,10 +698,7 @@ mod tests {
         let path = dir.join("w0.toml");
         let mut run = Config::default();
         crate::ReproduceConfig::default().write_into(&mut run);
-        let key = InitKey {
-            kind: W0,
-            tasks: 8,
-        };
+        let key = InitKey { kind: W0, tasks: 8 };
         let meta = meta_config(&run, key, 1, 10);
         assert!(meta.reproduce.is_empty());
         // Saved before `[reproduce]` moved to this crate: every key written out.

@@ -3,8 +3,8 @@
 
 use anyhow::{Context, Result};
 use clap::Args;
-use uavmeta_world::heuristics::PolicySpec;
 use uavmeta_runtime::actor::{self, ActorOptions};
+use uavmeta_world::heuristics::PolicySpec;
 
 use super::launch::RunArgs;
 

@@ -5,9 +5,9 @@ use std::io::{self, Write};
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use serde::Serialize;
+use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 use uavmeta_world::heuristics::PolicySpec;
 use uavmeta_world::rollout::{episode_worlds, evaluation_worlds, run_worlds, StepRecord};
-use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 
 use super::common::{ConfigArgs, TaskArgs};
 

@@ -5,12 +5,12 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use clap::Args;
-use uavmeta_world::heuristics::PolicySpec;
 use uavmeta_actors::policy::q_policy::Evaluator;
-use uavmeta_world::rollout::evaluate;
 use uavmeta_learner::checkpoint;
 use uavmeta_proto::config::{Config, TaskConfig};
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
+use uavmeta_world::heuristics::PolicySpec;
+use uavmeta_world::rollout::evaluate;
 
 use super::common::{ConfigArgs, TaskArgs};
 

@@ -2,12 +2,12 @@
 
 use std::io::Write;
 
+use uavmeta_proto::config::{Config, RainZone, TaskConfig};
 use uavmeta_world::heuristics::{
     EpsilonPolicy, GreedyPolicy, PolicySpec, RandomPolicy, StalestPolicy,
 };
 use uavmeta_world::rollout::Policy;
 use uavmeta_world::world::{Move, World};
-use uavmeta_proto::config::{Config, RainZone, TaskConfig};
 
 fn world(world_toml: &str, lambda: f64, rain: Option<RainZone>) -> World {
     let cfg = Config::from_toml_str(&format!("[world]\n{world_toml}"), "test.toml", &[])

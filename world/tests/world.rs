@@ -2,10 +2,10 @@
 //! random action sequences, and the sanity figures of docs/MODEL.md section 1 for two heuristics.
 
 use proptest::prelude::*;
+use uavmeta_proto::config::{Config, RainZone, TaskConfig, MOVES};
 use uavmeta_world::heuristics::{RandomPolicy, StalestPolicy};
 use uavmeta_world::rollout::{evaluate, rollout};
 use uavmeta_world::world::{Move, World};
-use uavmeta_proto::config::{Config, RainZone, TaskConfig, MOVES};
 
 /// W/m^2 of the defaults: (2^(5e6/1e6) - 1) * 1e-13 W / 1e-3 = 31 * 1e-10.
 const WATTS_PER_M2: f64 = 3.1e-9;

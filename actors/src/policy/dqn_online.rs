@@ -217,7 +217,10 @@ impl OnlineDqn {
         }
         self.opt.step();
         self.gradient_steps += 1;
-        if self.gradient_steps.is_multiple_of(self.dqn.target_update_every) {
+        if self
+            .gradient_steps
+            .is_multiple_of(self.dqn.target_update_every)
+        {
             self.target.copy_from(&self.q);
         }
         Ok(())

@@ -7,8 +7,8 @@ pub mod q_policy;
 use uavmeta_learner::checkpoint;
 use uavmeta_proto::config::Config;
 
-use uavmeta_world::heuristics::{EpsilonPolicy, PolicyError, PolicySpec};
 use q_policy::QPolicy;
+use uavmeta_world::heuristics::{EpsilonPolicy, PolicyError, PolicySpec};
 use uavmeta_world::rollout::Policy;
 
 /// `spec`'s policy for `config`'s world, its random stream seeded by `seed`, asked for `steps`

@@ -216,9 +216,9 @@ mod tests {
     use uavmeta_proto::config::{Config, RainZone};
 
     use super::*;
+    use uavmeta_learner::qnet::QNetworkConfig;
     use uavmeta_world::rollout::{evaluate, evaluate_episodes};
     use uavmeta_world::world::Move;
-    use uavmeta_learner::qnet::QNetworkConfig;
 
     fn assert_metrics_close(batched: &PolicyMetrics, single: &PolicyMetrics) {
         assert_eq!(batched.episodes, single.episodes);

@@ -7,11 +7,11 @@
 use std::fmt::Write as _;
 use std::path::Path;
 
-use uavmeta_world::world::World;
 use uavmeta_learner::train::EpochRow;
 use uavmeta_plot::{self as plot, Band, Bar, LineChart, Reference, Series, TrajectoryChart};
 use uavmeta_proto::config::{Config, RainZone, TaskConfig};
 use uavmeta_proto::stats::{Estimate, PolicyMetrics};
+use uavmeta_world::world::World;
 
 use crate::claims::{
     self, converged_at, final_return, mean_swing, return_at, settle_epoch, Claim, Verdict,
@@ -57,7 +57,10 @@ pub fn fine_tuned(config: &Config) -> Vec<Method> {
 /// Each of `learner.baselines` from w0 and from a random init, after `methods`.
 fn add_baselines(config: &Config, methods: &mut Vec<Method>) {
     for &algo in &config.learner.baselines {
-        for method in [Method::tuned(algo, Start::W0), Method::tuned(algo, Start::Random)] {
+        for method in [
+            Method::tuned(algo, Start::W0),
+            Method::tuned(algo, Start::Random),
+        ] {
             if !methods.contains(&method) && algo != Algo::CQL {
                 methods.push(method);
             }

@@ -24,15 +24,15 @@ use iceoryx2::node::Node;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use uavmeta_actors::collect::{online_dqn_dataset, CollectError};
-use uavmeta_world::heuristics::{PolicyError, PolicySpec};
-use uavmeta_world::rollout::{episode_seed, EpisodeTally, Policy};
-use uavmeta_world::world::World;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_proto::config::{Config, ConfigError, TaskConfig};
 use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::method::Method;
 use uavmeta_proto::payload::{DatasetReady, Shutdown, TransitionSlot, SCHEMA_VERSION};
 use uavmeta_proto::stats::EpisodeMetrics;
+use uavmeta_world::heuristics::{PolicyError, PolicySpec};
+use uavmeta_world::rollout::{episode_seed, EpisodeTally, Policy};
+use uavmeta_world::world::World;
 
 use crate::liveness;
 use crate::metrics::MetricsError;

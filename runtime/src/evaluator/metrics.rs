@@ -41,7 +41,9 @@ impl EvaluatorMetrics {
         let labels = [row.task.as_str(), row.method.as_str()];
         self.ret.with_label_values(&labels).set(row.ret);
         self.aoi.with_label_values(&labels).set(row.aoi);
-        self.power.with_label_values(&labels).set(row.power_mw * 1e-3);
+        self.power
+            .with_label_values(&labels)
+            .set(row.power_mw * 1e-3);
         self.outages.with_label_values(&labels).set(row.outages);
         self.epoch.with_label_values(&labels).set(row.epoch as f64);
         self.evaluated.inc();

@@ -44,11 +44,11 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use indicatif::MultiProgress;
-use uavmeta_world::heuristics::PolicySpec;
 use uavmeta_proto::config::{Config, TaskRole};
 use uavmeta_proto::payload::{
     CheckpointReady, DatasetReady, ServiceNames, Shutdown, SCHEMA_VERSION,
 };
+use uavmeta_world::heuristics::PolicySpec;
 
 use crate::actor::ActorOptions;
 use crate::metrics::{wait_for_port, MetricsError, MetricsServer};

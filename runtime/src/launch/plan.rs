@@ -32,12 +32,17 @@ pub(super) struct Supervised {
 
 /// The children of a run: store, actors, meta-learner, evaluator.
 pub(super) fn plan(run: &RunDir, config: &Config) -> Result<Vec<Supervised>, LaunchError> {
-    let policy: PolicySpec = config.collect.policy.parse().map_err(
-        |e: uavmeta_world::heuristics::PolicyError| LaunchError::Policy {
-            origin: config.origin.clone(),
-            message: e.to_string(),
-        },
-    )?;
+    let policy: PolicySpec =
+        config
+            .collect
+            .policy
+            .parse()
+            .map_err(
+                |e: uavmeta_world::heuristics::PolicyError| LaunchError::Policy {
+                    origin: config.origin.clone(),
+                    message: e.to_string(),
+                },
+            )?;
     let run_arg = run.root().display().to_string();
     let child = |name: String, role: Role, args: Vec<String>| Supervised {
         name,

@@ -4,10 +4,10 @@
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 
-use uavmeta_world::heuristics::{reference_metrics, PolicySpec, REFERENCES};
 use uavmeta_proto::config::{Config, TaskRole};
 use uavmeta_proto::method::Method;
 use uavmeta_proto::stats;
+use uavmeta_world::heuristics::{reference_metrics, PolicySpec, REFERENCES};
 
 use super::LaunchError;
 use crate::evaluator::{self, EvaluationRow};

@@ -4,9 +4,9 @@
 //! `MemAvailable`) for every process and for every size a config sets ([`size_terms`]: replay
 //! buffers, datasets, networks, the planner's search).
 
-use uavmeta_world::heuristics::PolicySpec;
 use uavmeta_proto::config::Config;
 use uavmeta_proto::dataset::Transition;
+use uavmeta_world::heuristics::PolicySpec;
 
 use super::LaunchError;
 use crate::transport;
