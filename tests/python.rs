@@ -75,20 +75,8 @@ fn the_wheel_installs_and_runs_without_a_rust_toolchain() {
     let name = wheel.file_name().unwrap().to_string_lossy().into_owned();
     assert!(name.contains("-abi3-"), "{name}: expected an abi3 wheel");
 
-    // A new virtualenv; its dependencies (numpy, gymnasium, safetensors) come from the test
-    // virtualenv's site-packages through a .pth file, as pip would fetch them, so no network.
     let venv = dir.path().join("venv");
     run(Command::new(&python).args(["-m", "venv"]).arg(&venv));
-    let purelib = |python: &Path| {
-        let query = "import sysconfig; print(sysconfig.get_paths()['purelib'])";
-        run(Command::new(python).args(["-c", query]))
-            .trim()
-            .to_string()
-    };
-    let (site, new_site) = (purelib(&python), purelib(&venv.join("bin/python")));
-    // addsitedir, so the .pth files there (an editable install's, a chained virtualenv's) count.
-    let pth = format!("import site; site.addsitedir({site:?})\n");
-    std::fs::write(Path::new(&new_site).join("deps.pth"), pth).expect("pth");
 
     // No cargo, no rustc: only the venv and the system's own directories.
     let path = format!("{}:/usr/bin:/bin", venv.join("bin").display());
@@ -105,6 +93,7 @@ fn the_wheel_installs_and_runs_without_a_rust_toolchain() {
             "install",
             "--no-index",
             "--no-deps",
+            "--ignore-installed",
             "--no-input",
             "-q",
         ])
@@ -112,6 +101,20 @@ fn the_wheel_installs_and_runs_without_a_rust_toolchain() {
         .env("PATH", &path)
         .env_remove("CARGO_HOME")
         .env_remove("RUSTUP_HOME"));
+    // The wheel's dependencies (numpy, gymnasium, safetensors) come from the test virtualenv's
+    // site-packages through a .pth file, as pip would fetch them, so no network. Written after
+    // the install: that site-packages holds `make python`'s uavmeta too, which pip would take
+    // for this one and skip the wheel; the venv's own site-packages stays first on sys.path.
+    let purelib = |python: &Path| {
+        let query = "import sysconfig; print(sysconfig.get_paths()['purelib'])";
+        run(Command::new(python).args(["-c", query]))
+            .trim()
+            .to_string()
+    };
+    let (site, new_site) = (purelib(&python), purelib(&venv.join("bin/python")));
+    // addsitedir, so the .pth files there (an editable install's, a chained virtualenv's) count.
+    let pth = format!("import site; site.addsitedir({site:?})\n");
+    std::fs::write(Path::new(&new_site).join("deps.pth"), pth).expect("pth");
     let script = r#"
 import sys, numpy as np, uavmeta
 assert uavmeta.__file__.startswith(sys.prefix), uavmeta.__file__
