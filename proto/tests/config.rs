@@ -489,3 +489,25 @@ fn a_removed_or_renamed_key_says_what_became_of_it() {
     let message = error_of("[learner]\nno_such_key = 1\n", &[], &["no_such_key"]);
     assert!(!message.contains("was removed"), "{message}");
 }
+
+/// Every file in configs/ loads, and configs/paper-90dbm.toml is configs/paper.toml but for the
+/// noise floor (and its run directory), so the two cannot drift apart.
+#[test]
+fn every_shipped_config_loads_and_the_paper_floors_differ_only_in_the_noise() {
+    let configs = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs");
+    let mut loaded = 0;
+    for entry in std::fs::read_dir(&configs).expect("configs/") {
+        let path = entry.expect("entry").path();
+        if path.extension().is_some_and(|e| e == "toml") {
+            Config::load(&path, &[]).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+            loaded += 1;
+        }
+    }
+    assert!(loaded >= 4, "{loaded} configs in {}", configs.display());
+    let paper = Config::load(&configs.join("paper.toml"), &[]).expect("paper.toml");
+    let at_90 = ["world.noise_dbm=-100.0", "run.dir=\"runs/paper\""].map(String::from);
+    let louder = Config::load(&configs.join("paper-90dbm.toml"), &at_90).expect("paper-90dbm");
+    assert_eq!(louder.to_toml_string(), paper.to_toml_string());
+    let louder = Config::load(&configs.join("paper-90dbm.toml"), &[]).expect("paper-90dbm");
+    assert_eq!(louder.world.noise_dbm, -90.0);
+}

@@ -98,6 +98,9 @@ pub fn results_table(report: &LaunchReport) -> String {
         rows.sort_by_key(|r| row_rank(&r.method));
         let planner = PolicySpec::Planner.to_string();
         let planner = rows.iter().find(|r| r.method == planner).map(|r| r.ret);
+        // Rows above the planner: there it is not the best achievable, and the column then
+        // says how far below the best row found, not below the optimum.
+        let above = |r: &EvaluationRow| planner.is_some_and(|p| r.ret > p);
         for (i, r) in rows.iter().enumerate() {
             let reference = is_reference(&r.method);
             if i > 0 && !reference && is_reference(&rows[i - 1].method) {
@@ -115,17 +118,33 @@ pub fn results_table(report: &LaunchReport) -> String {
                 format!("{:.1} ± {:.1}", r.ret, r.ret_ci95),
                 // Returns are costs: a row 3% below the planner reads -3.0%.
                 planner.map_or("-".to_string(), |p| format!(
-                    "{:+.1}%",
-                    stats::percent_from(r.ret, p)
+                    "{:+.1}%{}",
+                    stats::percent_from(r.ret, p),
+                    if above(r) { ABOVE_PLANNER } else { "" }
                 )),
                 format!("{:.2} ± {:.2}", r.aoi, r.aoi_ci95),
                 format!("{:.3} ± {:.3}", r.power_mw, r.power_mw_ci95),
                 format!("{:.1} ± {:.1}", r.outages, r.outages_ci95),
             ));
         }
+        if let (Some(p), Some(best)) = (
+            planner,
+            rows.iter()
+                .filter(|r| above(r))
+                .map(|r| r.ret)
+                .reduce(f64::max),
+        ) {
+            out.push_str(&format!(
+                "{ABOVE_PLANNER} above the planner: on {task} the planner is a search, not the optimum, and the best row beats it by {:.1}% (docs/MODEL.md section 9)\n",
+                stats::percent_from(best, p)
+            ));
+        }
     }
     out
 }
+
+/// The mark of a row whose return is above the planner's.
+const ABOVE_PLANNER: &str = "*";
 
 #[cfg(test)]
 mod tests {
@@ -190,6 +209,8 @@ mod tests {
             );
         }
         assert!(table.contains("power (mW)"), "{table}");
+        // Nothing beats the planner here, so nothing is marked.
+        assert!(!table.contains(ABOVE_PLANNER), "{table}");
         assert!(table.contains("0.325 ± 0.000"), "{table}");
         // Each row's distance to the planner: cql-maml's -7100 is 9.2% below its -6500.
         let cql_maml = table.lines().find(|l| l.contains(" cql-maml ")).unwrap();
@@ -201,5 +222,34 @@ mod tests {
                 .any(|l| l.starts_with("lambda-300     greedy             -")),
             "{table}"
         );
+    }
+
+    #[test]
+    fn a_row_above_the_planner_is_marked_and_the_margin_said() {
+        let report = LaunchReport {
+            run: PathBuf::from("runs/x"),
+            restarts: 0,
+            results: vec![row("online-dqn", -6100.0, 0.5), row("cql", -6400.0, 0.5)],
+            references: vec![row("planner", -6500.0, 0.3)],
+        };
+        let table = results_table(&report);
+        let line = |method: &str| {
+            let pattern = format!(" {method} ");
+            table
+                .lines()
+                .find(|l| l.contains(&pattern))
+                .unwrap()
+                .to_string()
+        };
+        assert!(line("online-dqn").contains("+6.2%*"), "{table}");
+        assert!(line("cql").contains("+1.5%*"), "{table}");
+        assert!(!line("planner").contains('*'), "{table}");
+        // The footnote gives the best row's margin.
+        let note = table.lines().last().unwrap();
+        assert!(
+            note.starts_with("* above the planner: on lambda-300"),
+            "{table}"
+        );
+        assert!(note.contains("by 6.2%"), "{table}");
     }
 }
