@@ -210,7 +210,7 @@ impl BenchRun {
             .expect("temp dir");
         let run = RunDir::create(&dir.path().join("run")).expect("run dir");
         let mut text = format!(
-            "[[tasks]]\nname = \"bench\"\nlambda = 300.0\nrole = \"meta-test\"\n[collect]\ntransitions = 1000000000\n[run]\nbatch_size = {batch}\nkeep_until_stored = {keep_until_stored}\n"
+            "[[tasks]]\nname = \"bench\"\nlambda = 300.0\nrole = \"meta-test\"\n[collect]\ntransitions = 1000000000\n[run]\ntransitions_per_message = {batch}\nkeep_until_stored = {keep_until_stored}\n"
         );
         if let Some(Served { endpoint, domain }) = served {
             text += &format!("domain = \"{domain}\"\n[tunnel]\nlisten = \"{endpoint}\"\n");
@@ -332,7 +332,7 @@ fn measure(
     watched: &[u32],
 ) -> Figures {
     let (run, config) = (&bench.run, &bench.config);
-    let batch = config.run.batch_size;
+    let batch = config.run.transitions_per_message;
     let node = domain::node("transport-bench", &config.run).expect("node");
     let service = bench.service(&node);
     let subscriber = transport::transition_subscriber(&service, &config.run).expect("subscriber");

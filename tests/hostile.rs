@@ -468,7 +468,10 @@ fn an_oversized_config_is_refused_before_any_process_starts() {
     let run = Run::new("big");
     let path = run.path();
     let cases: [(&[&str], &str); 8] = [
-        (&["run.batch_size=10000000"], "run.batch_size"),
+        (
+            &["run.transitions_per_message=10000000"],
+            "run.transitions_per_message",
+        ),
         // Sizes within the config's rules whose memory this machine lacks (issue #61): each
         // refused naming its key and value, where the process would have aborted on allocation.
         (
@@ -500,7 +503,10 @@ fn an_oversized_config_is_refused_before_any_process_starts() {
         (&["collect.actors_per_task=1000"], "collect.actors_per_task"),
         // Within the config's caps, beyond this machine: 3 actors x 77 GB of shared memory.
         (
-            &["run.batch_size=16384", "run.subscriber_buffer=4096"],
+            &[
+                "run.transitions_per_message=16384",
+                "run.subscriber_buffer=4096",
+            ],
             "/dev/shm has",
         ),
     ];

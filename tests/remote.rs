@@ -40,7 +40,7 @@ policy = "random"
 actors_per_task = 1
 
 [run]
-batch_size = 16
+transitions_per_message = 16
 "#;
 
 /// The two hosts of one test: domains, directories, the Zenoh endpoint, and A's run. The tunnel
@@ -652,7 +652,7 @@ fn a_remote_hosts_forged_shutdown_and_dataset_ready_reach_nothing_on_the_learner
     let heard = |service: String| -> usize {
         let service =
             transport::control_service::<Shutdown>(&node_a, service, &config_a).expect("service");
-        let subscriber = transport::control_subscriber(&service, &config_a).expect("subscriber");
+        let subscriber = transport::control_subscriber(&service).expect("subscriber");
         std::iter::from_fn(|| subscriber.receive().expect("receive")).count()
     };
     assert_eq!(
@@ -662,7 +662,7 @@ fn a_remote_hosts_forged_shutdown_and_dataset_ready_reach_nothing_on_the_learner
     );
     let ready_service =
         transport::dataset_ready_service(&node_a, &names_a, &config_a).expect("service");
-    let subscriber = transport::control_subscriber(&ready_service, &config_a).expect("subscriber");
+    let subscriber = transport::control_subscriber(&ready_service).expect("subscriber");
     let announced = std::iter::from_fn(|| subscriber.receive().expect("receive")).count();
     assert_eq!(announced, 0, "a forged DatasetReady reached host A");
 }

@@ -2,7 +2,7 @@
 //!
 //! [`Collector`] rolls a policy out in the task's world and turns every step into a
 //! `uavmeta_proto::dataset::Transition`; [`collect()`] drives it for `uavmeta collect`, writes the
-//! dataset file in chunks of `run.batch_size` transitions and saves the full config beside it
+//! dataset file in chunks of `run.transitions_per_message` transitions and saves the full config beside it
 //! (`FILE.config.toml`), so a dataset always says which world, task, policy and seed made it.
 //!
 //! With `dqn-online`, the paper's behaviour policy, the dataset is instead sampled uniformly
@@ -16,9 +16,9 @@
 use std::path::{Path, PathBuf};
 
 use indicatif::ProgressBar;
-use uavmeta_learner::batch::BatchError;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::transitions::TransitionsError;
 use uavmeta_proto::config::{Config, ConfigError, TaskConfig, WorldConfig};
 use uavmeta_proto::dataset::{
     sample_shots, DatasetError, DatasetHeader, DatasetWriter, Transition,
@@ -45,7 +45,7 @@ pub enum CollectError {
         source: std::io::Error,
     },
     #[error("online DQN training: {0}")]
-    Train(#[from] BatchError),
+    Train(#[from] TransitionsError),
     #[error("saving the online DQN agent")]
     Agent(#[from] CheckpointError),
     #[error(
@@ -314,7 +314,7 @@ fn write_replay_sample(
     Ok(agent.steps() as u64)
 }
 
-/// Writes a replay sample into `writer`, `run.batch_size` transitions a chunk, and saves the
+/// Writes a replay sample into `writer`, `run.transitions_per_message` transitions a chunk, and saves the
 /// agent `q` that made it beside dataset `out`.
 fn write_sample(
     config: &Config,
@@ -323,14 +323,14 @@ fn write_sample(
     sampled: &[Transition],
     q: &QNetwork,
 ) -> Result<(), CollectError> {
-    for chunk in sampled.chunks(config.run.batch_size) {
+    for chunk in sampled.chunks(config.run.transitions_per_message) {
         writer.append(chunk)?;
     }
     checkpoint::save(&agent_path(out), q, &Method::OnlineDqn.name(), 1, config)?;
     Ok(())
 }
 
-/// Rolls `policy` out into `writer`, `run.batch_size` transitions a chunk; returns the steps
+/// Rolls `policy` out into `writer`, `run.transitions_per_message` transitions a chunk; returns the steps
 /// taken.
 fn write_rollout(
     config: &Config,
@@ -344,10 +344,10 @@ fn write_rollout(
     let task_id = writer.header().task;
     let mut collector =
         Collector::new(&config.world, task, task_id, 0, policy, config.collect.seed);
-    let mut chunk = Vec::with_capacity(config.run.batch_size);
+    let mut chunk = Vec::with_capacity(config.run.transitions_per_message);
     let mut left = wanted;
     while left > 0 {
-        let n = left.min(config.run.batch_size);
+        let n = left.min(config.run.transitions_per_message);
         chunk.clear();
         collector.fill(n, &mut chunk);
         writer.append(&chunk)?;
@@ -365,7 +365,7 @@ mod tests {
     use uavmeta_world::heuristics::RandomPolicy;
 
     fn small_config(policy: &str) -> Config {
-        let text = format!("[world]\ndevices = 4\nhorizon = 7\n[collect]\npolicy = \"{policy}\"\ntransitions = 30\nseed = 5\n[run]\nbatch_size = 8");
+        let text = format!("[world]\ndevices = 4\nhorizon = 7\n[collect]\npolicy = \"{policy}\"\ntransitions = 30\nseed = 5\n[run]\ntransitions_per_message = 8");
         Config::from_toml_str(&text, "small.toml", &[]).unwrap()
     }
 
@@ -456,7 +456,7 @@ mod tests {
         config.collect.dqn.replay_capacity = 50;
         config.collect.dqn.learning_starts = 10;
         config.learner.hidden = vec![8];
-        config.learner.batch = 8;
+        config.learner.batch_size = 8;
         let (a, b) = (dir.path().join("a.uavds"), dir.path().join("b.uavds"));
         let summary = collect(&config, "lambda-300", &a, &ProgressBar::hidden()).unwrap();
         assert_eq!((summary.transitions, summary.steps), (30, 60));

@@ -12,10 +12,10 @@ use std::sync::OnceLock;
 use uavmeta_actors::collect::{online_dqn_dataset, Collector};
 use uavmeta_actors::policy::dqn_online::OnlineDqn;
 use uavmeta_actors::policy::q_policy::Evaluator;
-use uavmeta_learner::batch::Batch;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{train, EpochRow, EvaluatePolicy, TrainOptions};
+use uavmeta_learner::transitions::Transitions;
 use uavmeta_proto::config::Config;
 use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::method::Algo;
@@ -253,7 +253,7 @@ fn offline_config() -> Config {
         "learner.epochs=40".into(),
         "learner.steps_per_epoch=100".into(),
         "learner.target_update_every=10".into(),
-        "learner.batch=128".into(),
+        "learner.batch_size=128".into(),
         "learner.eval_episodes=10".into(),
     ];
     Config::load(DEFAULT_CONFIG.as_ref(), &overrides).unwrap()
@@ -273,7 +273,7 @@ fn train_offline(
     algorithm: Algo,
 ) -> (QNetwork, Vec<EpochRow>) {
     let task = config.task("lambda-300").unwrap();
-    let batch = Batch::new(data, &config.world, config.learner.reward_scale).unwrap();
+    let batch = Transitions::new(data, &config.world, config.learner.reward_scale).unwrap();
     let mut q = QNetworkConfig::for_world(&config.world, &config.learner.hidden).init(11);
     let opts = TrainOptions {
         algorithm,

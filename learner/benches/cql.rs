@@ -15,10 +15,10 @@ use std::time::{Duration, Instant};
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use tch::nn::OptimizerConfig;
 use tch::{nn, Kind, Reduction, Tensor};
-use uavmeta_learner::batch::Batch;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{train, EvaluatePolicy, TrainOptions};
+use uavmeta_learner::transitions::Transitions;
 use uavmeta_proto::config::Config;
 use uavmeta_proto::method::Algo;
 use uavmeta_proto::stats::PolicyMetrics;
@@ -35,10 +35,10 @@ impl EvaluatePolicy for NoEvaluation {
     }
 }
 
-fn dataset() -> Batch {
+fn dataset() -> Transitions {
     tch::manual_seed(0);
     let cpu = tch::Device::Cpu;
-    Batch {
+    Transitions {
         obs: Tensor::rand([ROWS, OBS], (Kind::Float, cpu)),
         actions: Tensor::randint(ACTIONS, [ROWS], (Kind::Int64, cpu)),
         rewards: -Tensor::rand([ROWS], (Kind::Float, cpu)),
@@ -48,7 +48,7 @@ fn dataset() -> Batch {
 
 fn config(batch: usize, steps: u64) -> Config {
     let overrides = [
-        format!("learner.batch={batch}"),
+        format!("learner.batch_size={batch}"),
         format!("learner.steps_per_epoch={steps}"),
         "learner.epochs=1".into(),
         // The value guard costs a forward pass over the whole dataset per epoch (4096 rows

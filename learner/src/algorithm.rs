@@ -10,10 +10,10 @@
 use tch::Tensor;
 use uavmeta_proto::method::Algo;
 
-use crate::batch::Batch;
 use crate::bc::Bc;
 use crate::cql::Cql;
 use crate::dqn::Dqn;
+use crate::transitions::Transitions;
 
 /// What every loss is made from, for one minibatch, or for T tasks' shots at once (a leading
 /// task dimension on every tensor, as MAML evaluates them).
@@ -21,7 +21,7 @@ pub struct Terms<'a> {
     /// `Q_w(s, .)`: [B, A], or [T, B, A], with its graph back to the weights.
     pub q: &'a Tensor,
     /// The transitions (normalised, rewards scaled).
-    pub batch: &'a Batch,
+    pub batch: &'a Transitions,
     /// Eq. 7 averaged over the transitions, with the run's TD options (target network, double
     /// DQN, Huber): a scalar, or [T], with its graph.
     pub td: &'a Tensor,

@@ -12,8 +12,8 @@
 use tch::Tensor;
 
 use crate::algorithm::{OfflineAlgorithm, Terms};
-use crate::batch::Batch;
 use crate::dqn::q_taken;
+use crate::transitions::Transitions;
 
 /// CQL, eq. 8.
 pub struct Cql;
@@ -35,13 +35,13 @@ pub fn eq8(td: &Tensor, conservative: &Tensor, alpha: f64) -> Tensor {
 }
 
 /// `mean_batch [logsumexp_a Q(s, a) - Q(s, a_data)]`, scalar, from `q` [B, A].
-pub fn conservative_term(q: &Tensor, batch: &Batch) -> Tensor {
+pub fn conservative_term(q: &Tensor, batch: &Transitions) -> Tensor {
     conservative_rows(q, batch).mean(None)
 }
 
 /// Each transition's `logsumexp_a Q(s, a) - Q(s, a_data)`: `q` [B, A] -> [B] (or, with a
 /// leading task dimension, [T, B, A] -> [T, B]).
-pub fn conservative_rows(q: &Tensor, batch: &Batch) -> Tensor {
+pub fn conservative_rows(q: &Tensor, batch: &Transitions) -> Tensor {
     q.logsumexp([-1i64], false) - q_taken(q, batch)
 }
 
@@ -50,7 +50,7 @@ pub fn conservative_rows(q: &Tensor, batch: &Batch) -> Tensor {
 pub fn cql_loss(
     q: &Tensor,
     next_q_target: &Tensor,
-    batch: &Batch,
+    batch: &Transitions,
     gamma: f64,
     alpha: f64,
 ) -> Tensor {

@@ -15,7 +15,7 @@ use tch::{Reduction, Tensor};
 use uavmeta_proto::config::LearnerConfig;
 
 use crate::algorithm::{OfflineAlgorithm, Terms};
-use crate::batch::Batch;
+use crate::transitions::Transitions;
 
 /// DQN on a fixed dataset, eq. 7 itself: the offline baseline that overestimates.
 pub struct Dqn;
@@ -81,7 +81,7 @@ impl TdConfig {
     pub fn td_errors(
         &self,
         q: &Tensor,
-        batch: &Batch,
+        batch: &Transitions,
         target: impl FnOnce(&Tensor) -> Tensor,
         online: impl FnOnce(&Tensor) -> Tensor,
     ) -> Tensor {
@@ -93,7 +93,7 @@ impl TdConfig {
     /// network `Qhat(s', .)`, with the online network's choice for [`Bootstrap::Double`].
     fn next_values(
         &self,
-        batch: &Batch,
+        batch: &Transitions,
         target: impl FnOnce(&Tensor) -> Tensor,
         online: impl FnOnce(&Tensor) -> Tensor,
     ) -> Tensor {
@@ -134,7 +134,7 @@ pub fn next_value(
 }
 
 /// `Q(s, a_data)`: the Q-value of each transition's logged action. `q` [B, A] -> [B].
-pub fn q_taken(q: &Tensor, batch: &Batch) -> Tensor {
+pub fn q_taken(q: &Tensor, batch: &Transitions) -> Tensor {
     q.gather(-1, &batch.actions.unsqueeze(-1), false)
         .squeeze_dim(-1)
 }
@@ -142,7 +142,13 @@ pub fn q_taken(q: &Tensor, batch: &Batch) -> Tensor {
 /// Each transition's term of eq. 7 from a precomputed bootstrap value `next_v` [B] (see
 /// [`next_value`]): `(y - Q(s, a))^2`, or its Huber form. `q` = `Q_w(s, .)` [B, A] carries the
 /// graph; the result is [B], whose mean is the loss.
-pub fn td_errors(q: &Tensor, next_v: &Tensor, batch: &Batch, gamma: f64, huber: bool) -> Tensor {
+pub fn td_errors(
+    q: &Tensor,
+    next_v: &Tensor,
+    batch: &Transitions,
+    gamma: f64,
+    huber: bool,
+) -> Tensor {
     // y = r + gamma * V(s'), a constant of the optimisation (eq. 7's target term).
     let target = (&batch.rewards + next_v * gamma).detach();
     let q_sa = q_taken(q, batch); // [B]
@@ -156,7 +162,7 @@ pub fn td_errors(q: &Tensor, next_v: &Tensor, batch: &Batch, gamma: f64, huber: 
 /// Paper eq. 7: `mean (r + gamma * max_a' Qhat(s', a') - Q(s, a))^2`, a scalar.
 ///
 /// `q` is `Q_w(s, .)` [B, A] (with its graph), `next_q_target` is `Qhat(s', .)` [B, A].
-pub fn dqn_loss(q: &Tensor, next_q_target: &Tensor, batch: &Batch, gamma: f64) -> Tensor {
+pub fn dqn_loss(q: &Tensor, next_q_target: &Tensor, batch: &Transitions, gamma: f64) -> Tensor {
     // mean_batch (y - Q(s, a))^2
     let next_v = next_value(Bootstrap::Max, next_q_target, || unreachable!("plain max"));
     td_errors(q, &next_v, batch, gamma, false).mean(None)

@@ -11,7 +11,7 @@
 //!   [`qnet::QNetworkConfig::init`] with a seeded, global-state-free initialisation, and a
 //!   functional forward pass on explicit (fast) weights for MAML.
 //! - [`optim`]: [`optim::FusedAdam`], libtorch's one-pass Adam kernel, which tch does not wrap.
-//! - [`batch`]: [`batch::Batch`], `proto::dataset` transitions as normalised tensors.
+//! - [`transitions`]: [`transitions::Transitions`], `proto::dataset` transitions as normalised tensors.
 //! - [`train`]: offline training with any registered algorithm, evaluated each epoch through the
 //!   [`train::EvaluatePolicy`] hook; per-epoch table on stderr and `train.csv`.
 //! - [`progress`]: the CSV log and the progress bar of a training loop (offline and meta), and
@@ -29,7 +29,7 @@
 //!
 //! ```
 //! use tch::nn::OptimizerConfig;
-//! use uavmeta_learner::batch::Batch;
+//! use uavmeta_learner::transitions::Transitions;
 //! use uavmeta_learner::cql::{conservative_term, cql_loss};
 //! use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 //! use uavmeta_proto::{config::WorldConfig, dataset::Transition};
@@ -40,7 +40,7 @@
 //!     task: 0, actor: 0, episode: 0, step: 0, seq: 0,
 //!     obs: vec![4, 5, 1, 1], action: 3, reward: -2.0, next_obs: vec![4, 6, 2, 1], truncated: false,
 //! };
-//! let batch = Batch::new(&[t], &world, 0.01).unwrap();
+//! let batch = Transitions::new(&[t], &world, 0.01).unwrap();
 //! let q = QNetworkConfig::for_world(&world, &[16, 16]).init(7);
 //! let target = q.duplicate();
 //! let mut adam = tch::nn::Adam::default().build(&q.vs, 1e-3).unwrap();
@@ -57,7 +57,6 @@
 //! ```
 
 pub mod algorithm;
-pub mod batch;
 pub mod bc;
 pub mod checkpoint;
 pub mod cql;
@@ -67,3 +66,4 @@ pub mod optim;
 pub mod progress;
 pub mod qnet;
 pub mod train;
+pub mod transitions;

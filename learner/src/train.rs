@@ -22,13 +22,13 @@ use uavmeta_proto::method::Algo;
 use uavmeta_proto::stats::PolicyMetrics;
 
 use crate::algorithm::{self, OfflineAlgorithm, Terms};
-use crate::batch::Batch;
 use crate::checkpoint::{self, CheckpointError};
 use crate::cql::conservative_term;
 use crate::dqn::{q_taken, TdConfig};
 use crate::optim::FusedAdam;
 use crate::progress::{progress_bar, CsvError, CsvLog, OnStep};
 use crate::qnet::QNetwork;
+use crate::transitions::Transitions;
 
 /// Measures the greedy policy of a Q-network on the true environment.
 ///
@@ -182,7 +182,7 @@ impl OfflineTrainer {
             target_update_every: cfg.target_update_every,
             opt: FusedAdam::new(q.parameters(), cfg.lr),
             target: q.duplicate(),
-            order: MinibatchOrder::new(rows, cfg.batch.min(rows), seed),
+            order: MinibatchOrder::new(rows, cfg.batch_size.min(rows), seed),
             steps: 0,
             on_step: OnStep::default(),
         }
@@ -194,7 +194,7 @@ impl OfflineTrainer {
     }
 
     /// ALGO: one Adam step on the algorithm's loss over the next minibatch of `data`.
-    pub fn step(&mut self, q: &mut QNetwork, data: &Batch) -> StepFigures {
+    pub fn step(&mut self, q: &mut QNetwork, data: &Transitions) -> StepFigures {
         self.on_step.step();
         let mb = data.select(&self.order.next_indices());
         // Q_w(s, .) with its graph; Qhat(s', .) from the frozen target network.
@@ -230,7 +230,7 @@ impl OfflineTrainer {
     fn epoch(
         &mut self,
         q: &mut QNetwork,
-        data: &Batch,
+        data: &Transitions,
         steps: usize,
         bar: &ProgressBar,
     ) -> StepFigures {
@@ -259,7 +259,7 @@ impl OfflineTrainer {
 /// Trains `q` in place on `data` (every transition of the N shots) and returns one row per epoch.
 pub fn train(
     q: &mut QNetwork,
-    data: &Batch,
+    data: &Transitions,
     opts: &TrainOptions,
     evaluator: &mut dyn EvaluatePolicy,
 ) -> Result<Vec<EpochRow>, TrainError> {
@@ -375,7 +375,7 @@ struct ValueGuard {
 }
 
 impl ValueGuard {
-    fn new(cfg: &LearnerConfig, q: &QNetwork, data: &Batch) -> Option<Self> {
+    fn new(cfg: &LearnerConfig, q: &QNetwork, data: &Transitions) -> Option<Self> {
         if cfg.value_guard == 0.0 || cfg.gamma >= 1.0 {
             return None;
         }
@@ -388,17 +388,22 @@ impl ValueGuard {
     }
 
     /// `mean Q(s, a_data)` over the data, scaled.
-    fn mean_q(q: &QNetwork, data: &Batch) -> f64 {
+    fn mean_q(q: &QNetwork, data: &Transitions) -> f64 {
         tch::no_grad(|| q_taken(&q.forward(&data.obs), data).mean(None)).double_value(&[])
     }
 
-    fn tripped(&self, q: &QNetwork, data: &Batch) -> bool {
+    fn tripped(&self, q: &QNetwork, data: &Transitions) -> bool {
         self.direction * (Self::mean_q(q, data) - self.v_data) > self.margin
     }
 
     /// After an epoch: puts `last_good` back into `q` if the guard tripped, else keeps `q` as the
     /// new `last_good`; returns whether it tripped.
-    fn restore_if_tripped(&self, q: &mut QNetwork, last_good: &mut QNetwork, data: &Batch) -> bool {
+    fn restore_if_tripped(
+        &self,
+        q: &mut QNetwork,
+        last_good: &mut QNetwork,
+        data: &Transitions,
+    ) -> bool {
         let tripped = self.tripped(q, data);
         if tripped {
             q.copy_from(last_good);
@@ -460,7 +465,7 @@ impl Average {
 /// ceil(rows / batch), when that is 0.
 pub fn steps_per_epoch(cfg: &LearnerConfig, rows: usize) -> usize {
     match cfg.steps_per_epoch {
-        0 => rows.div_ceil(cfg.batch.min(rows).max(1)),
+        0 => rows.div_ceil(cfg.batch_size.min(rows).max(1)),
         n => n,
     }
 }
@@ -515,7 +520,7 @@ mod tests {
     #[test]
     fn the_value_guard_trips_only_past_the_data_value_in_the_direction_q_travels() {
         // Rewards averaging -1 with gamma 0.5: V_data = -2; margin 0.5 * 2 = 1.
-        let data = Batch {
+        let data = Transitions {
             obs: Tensor::zeros([4, 2], (tch::Kind::Float, tch::Device::Cpu)),
             actions: Tensor::from_slice(&[0i64, 1, 2, 0]),
             rewards: Tensor::from_slice(&[-0.5f32, -1.5, -1.0, -1.0]),

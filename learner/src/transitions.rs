@@ -47,7 +47,10 @@ pub enum ShotsError {
     Dataset(#[from] DatasetError),
     // The source is not in the message: `{:#}` prints the cause chain after it.
     #[error("{}", path.display())]
-    Transitions { path: PathBuf, source: TransitionsError },
+    Transitions {
+        path: PathBuf,
+        source: TransitionsError,
+    },
 }
 
 /// `shots` transitions of `task` drawn (seeded) from the dataset file `path`, encoded for the

@@ -3,10 +3,10 @@
 
 use tch::{Kind, Tensor};
 use uavmeta_learner::algorithm::{OfflineAlgorithm, Terms};
-use uavmeta_learner::batch::{Batch, BatchError};
 use uavmeta_learner::bc::Bc;
 use uavmeta_learner::cql::{conservative_term, cql_loss};
 use uavmeta_learner::dqn::{dqn_loss, Bootstrap, TdConfig};
+use uavmeta_learner::transitions::{Transitions, TransitionsError};
 use uavmeta_proto::config::WorldConfig;
 use uavmeta_proto::dataset::Transition;
 
@@ -19,11 +19,11 @@ fn t2(rows: &[[f64; 3]; 2]) -> Tensor {
 /// The batch every hand computation below uses:
 /// Q(s, .) = [[1, 2, 3], [0, -1, 4]], a = [2, 0], r = [1, -2],
 /// Qhat(s', .) = [[0.5, 2, 1], [3, 0, -1]], gamma = 0.5.
-fn fixture() -> (Tensor, Tensor, Batch) {
+fn fixture() -> (Tensor, Tensor, Transitions) {
     let q = t2(&[[1.0, 2.0, 3.0], [0.0, -1.0, 4.0]]);
     let next = t2(&[[0.5, 2.0, 1.0], [3.0, 0.0, -1.0]]);
     let obs = Tensor::zeros([2, 1], (Kind::Float, tch::Device::Cpu));
-    let batch = Batch {
+    let batch = Transitions {
         obs: obs.shallow_clone(),
         actions: Tensor::from_slice(&[2i64, 0]),
         rewards: Tensor::from_slice(&[1.0f32, -2.0]),
@@ -171,7 +171,7 @@ fn transition(
 fn batch_normalises_and_scales() {
     // L = 10, aoi_max = 100: x/9, y/9, A/100.
     let t = transition(vec![9, 0, 50, 100], 7, -120.0, vec![3, 6, 1, 2], false);
-    let b = Batch::new(&[t], &world_k2(), 0.01).unwrap();
+    let b = Transitions::new(&[t], &world_k2(), 0.01).unwrap();
     let obs: Vec<f32> = b.obs.view([-1]).try_into().unwrap();
     assert_eq!(obs, vec![1.0, 0.0, 0.5, 1.0]);
     let next: Vec<f32> = b.next_obs.view([-1]).try_into().unwrap();
@@ -186,7 +186,7 @@ fn truncation_still_bootstraps() {
     // y = r + gamma * max Qhat(s', .) in both cases, never y = r.
     let world = world_k2();
     let make = |truncated| {
-        Batch::new(
+        Transitions::new(
             &[transition(
                 vec![1, 1, 1, 1],
                 0,
@@ -211,9 +211,9 @@ fn truncation_still_bootstraps() {
 #[test]
 fn batch_rejects_transitions_of_another_world() {
     let short = transition(vec![1, 1, 1], 0, -1.0, vec![1, 1, 1, 1], false);
-    match Batch::new(&[short], &world_k2(), 1.0) {
+    match Transitions::new(&[short], &world_k2(), 1.0) {
         Err(
-            e @ BatchError::ObservationLength {
+            e @ TransitionsError::ObservationLength {
                 got: 3,
                 expected: 4,
                 ..
@@ -228,16 +228,16 @@ fn batch_rejects_transitions_of_another_world() {
     }
     let bad_action = transition(vec![1, 1, 1, 1], 10, -1.0, vec![1, 1, 1, 1], false);
     assert!(matches!(
-        Batch::new(&[bad_action], &world_k2(), 1.0),
-        Err(BatchError::Action {
+        Transitions::new(&[bad_action], &world_k2(), 1.0),
+        Err(TransitionsError::Action {
             action: 10,
             actions: 10,
             ..
         })
     ));
     assert!(matches!(
-        Batch::new::<Transition>(&[], &world_k2(), 1.0),
-        Err(BatchError::Empty)
+        Transitions::new::<Transition>(&[], &world_k2(), 1.0),
+        Err(TransitionsError::Empty)
     ));
 }
 

@@ -4,11 +4,11 @@
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use tch::Tensor;
-use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{train, EpochRow, EvaluatePolicy, TrainOptions};
+use uavmeta_learner::transitions::Transitions;
 use uavmeta_proto::config::Config;
 use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::method::Algo;
@@ -83,7 +83,7 @@ fn cql_learns_the_bandit_and_writes_its_outputs() {
     // Small networks: one libtorch thread avoids OpenMP spin-waiting on a shared machine.
     tch::set_num_threads(1);
     let cfg = config();
-    let data = Batch::new(&dataset(400), &cfg.world, cfg.learner.reward_scale).unwrap();
+    let data = Transitions::new(&dataset(400), &cfg.world, cfg.learner.reward_scale).unwrap();
     let dir = tempfile::tempdir().unwrap();
     let run = |out: Option<&std::path::Path>| {
         let mut q = QNetworkConfig::new(3, 5, &cfg.learner.hidden).init(0);
@@ -134,7 +134,7 @@ fn alone(
     cfg: &Config,
     algorithm: Algo,
     init: u64,
-    data: &Batch,
+    data: &Transitions,
     seed: u64,
 ) -> (QNetwork, Vec<EpochRow>) {
     alone_scored(cfg, algorithm, init, data, seed, &mut Exact)
@@ -145,7 +145,7 @@ fn alone_scored(
     cfg: &Config,
     algorithm: Algo,
     init: u64,
-    data: &Batch,
+    data: &Transitions,
     seed: u64,
     evaluator: &mut dyn EvaluatePolicy,
 ) -> (QNetwork, Vec<EpochRow>) {
@@ -159,7 +159,7 @@ fn trained(
     cfg: &Config,
     algorithm: Algo,
     mut q: QNetwork,
-    data: &Batch,
+    data: &Transitions,
     seed: u64,
     out_dir: Option<&std::path::Path>,
     evaluator: &mut dyn EvaluatePolicy,
@@ -177,10 +177,10 @@ fn trained(
 }
 
 /// Training sets of 400 transitions, one per data seed.
-fn batches(cfg: &Config, seeds: std::ops::RangeInclusive<u64>) -> Vec<Batch> {
+fn batches(cfg: &Config, seeds: std::ops::RangeInclusive<u64>) -> Vec<Transitions> {
     seeds
         .map(|s| {
-            Batch::new(
+            Transitions::new(
                 &dataset_seeded(400, s),
                 &cfg.world,
                 cfg.learner.reward_scale,
@@ -208,7 +208,7 @@ fn averaging_publishes_the_bias_corrected_average_of_the_epochs_networks() {
     tch::set_num_threads(1);
     let mut cfg = config();
     cfg.learner.epochs = 5;
-    let data = Batch::new(&dataset(400), &cfg.world, cfg.learner.reward_scale).unwrap();
+    let data = Transitions::new(&dataset(400), &cfg.world, cfg.learner.reward_scale).unwrap();
     let run = |cfg: &Config| {
         let mut recorder = Recorder(Vec::new());
         let (q, _) = alone_scored(cfg, Algo::CQL, 2, &data, 6, &mut recorder);
@@ -302,7 +302,7 @@ fn without_the_value_guard_every_epoch_trains() {
     let mut cfg = config();
     cfg.learner.epochs = 4;
     cfg.learner.value_guard = 0.0;
-    let data = Batch::new(&dataset(400), &cfg.world, cfg.learner.reward_scale).unwrap();
+    let data = Transitions::new(&dataset(400), &cfg.world, cfg.learner.reward_scale).unwrap();
     let (_, rows) = alone(&cfg, Algo::CQL, 0, &data, 1);
     assert_eq!(
         rows.iter().map(|r| r.steps).collect::<Vec<_>>(),
@@ -334,7 +334,7 @@ fn behaviour_cloning_takes_the_data_s_most_frequent_action_whatever_the_rewards(
             }
         })
         .collect();
-    let data = Batch::new(&data, &cfg.world, cfg.learner.reward_scale).unwrap();
+    let data = Transitions::new(&data, &cfg.world, cfg.learner.reward_scale).unwrap();
     let (_, rows) = alone(&cfg, "bc".parse::<Algo>().unwrap(), 0, &data, 4);
     assert_eq!(
         rows.last().unwrap().policy.ret.mean,

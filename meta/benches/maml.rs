@@ -11,8 +11,8 @@ use std::time::{Duration, Instant};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use tch::Tensor;
-use uavmeta_learner::batch::Batch;
 use uavmeta_learner::qnet::QNetworkConfig;
+use uavmeta_learner::transitions::Transitions;
 use uavmeta_meta::maml::{Maml, MamlConfig, MetaTask};
 use uavmeta_proto::config::Config;
 
@@ -22,7 +22,7 @@ const WARMUP_EPOCHS: usize = 3;
 const MIN_EPOCHS: usize = 10;
 const MIN_TIME: Duration = Duration::from_secs(3);
 
-fn random_batch(config: &Config, rng: &mut ChaCha8Rng) -> Batch {
+fn random_batch(config: &Config, rng: &mut ChaCha8Rng) -> Transitions {
     let d = config.world.observation_len();
     let a = config.world.action_count();
     let mut uniform =
@@ -34,7 +34,7 @@ fn random_batch(config: &Config, rng: &mut ChaCha8Rng) -> Batch {
         .iter()
         .map(|u| (u * a as f32) as i64)
         .collect();
-    Batch {
+    Transitions {
         obs: Tensor::from_slice(&obs).view([ROWS as i64, d as i64]),
         actions: Tensor::from_slice(&actions),
         rewards: Tensor::from_slice(&rewards),

@@ -11,11 +11,11 @@
 use std::path::Path;
 
 use uavmeta_actors::policy::q_policy::Evaluator;
-use uavmeta_learner::batch::{load_shots, Batch};
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::QNetwork;
 use uavmeta_learner::train::{train, EpochRow, EvaluatePolicy, TrainOptions};
+use uavmeta_learner::transitions::{load_shots, Transitions};
 use uavmeta_proto::config::{Config, TaskConfig};
 use uavmeta_proto::method::{Algo, Method, Start};
 
@@ -73,7 +73,7 @@ pub fn fine_tune_algorithm(init: &Path, algorithm: &str) -> Result<Algo, MetaErr
 /// comparison.
 pub fn fine_tune(
     q: &mut QNetwork,
-    shots: &Batch,
+    shots: &Transitions,
     algorithm: Algo,
     run: &FineTune,
     evaluator: &mut dyn EvaluatePolicy,

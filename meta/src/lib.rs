@@ -19,13 +19,13 @@
 //!
 //! ```
 //! use tch::Tensor;
-//! use uavmeta_learner::batch::Batch;
+//! use uavmeta_learner::transitions::Transitions;
 //! use uavmeta_learner::qnet::QNetworkConfig;
 //! use uavmeta_meta::maml::{Maml, MamlConfig, MetaTask};
 //! use uavmeta_proto::config::Config;
 //!
 //! // Two transitions of a world with 1 device: 3 inputs, 5 actions.
-//! let rows = |scale: f64| Batch {
+//! let rows = |scale: f64| Transitions {
 //!     obs: Tensor::from_slice(&[0.1f32, 0.2, 0.3, 0.4, 0.5, 0.6]).view([2, 3]) * scale,
 //!     actions: Tensor::from_slice(&[0i64, 4]),
 //!     rewards: Tensor::from_slice(&[-0.5f32, -0.2]),
@@ -50,10 +50,10 @@ pub mod pretrain;
 
 use std::path::{Path, PathBuf};
 
-use uavmeta_learner::batch::{BatchError, ShotsError};
 use uavmeta_learner::checkpoint::CheckpointError;
 use uavmeta_learner::progress::CsvError;
 use uavmeta_learner::train::TrainError;
+use uavmeta_learner::transitions::{ShotsError, TransitionsError};
 use uavmeta_proto::config::ConfigError;
 use uavmeta_proto::dataset::DatasetError;
 
@@ -66,7 +66,10 @@ pub enum MetaError {
     NoMetaTrainTasks { origin: String },
     // The source is not in the message: `{:#}` prints the cause chain after it.
     #[error("{}", path.display())]
-    Batch { path: PathBuf, source: BatchError },
+    Transitions {
+        path: PathBuf,
+        source: TransitionsError,
+    },
     #[error("{}: trained by `{algorithm}`, expected a meta-trained or pretrained init (`cql-maml`, `dqn-maml` or `cql-pretrain`)", path.display())]
     NotMetaTrained { path: PathBuf, algorithm: String },
     #[error("{}: cannot {action}", path.display())]
@@ -93,7 +96,7 @@ impl From<ShotsError> for MetaError {
     fn from(error: ShotsError) -> Self {
         match error {
             ShotsError::Dataset(e) => MetaError::Dataset(e),
-            ShotsError::Batch { path, source } => MetaError::Batch { path, source },
+            ShotsError::Transitions { path, source } => MetaError::Transitions { path, source },
         }
     }
 }

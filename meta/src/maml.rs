@@ -81,12 +81,12 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use tch::{Kind, Tensor};
 use uavmeta_learner::algorithm::{self, Terms};
-use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_learner::dqn::TdConfig;
 use uavmeta_learner::optim::FusedAdam;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::transitions::Transitions;
 use uavmeta_proto::config::{Config, MetaConfig};
 
 use crate::MetaError;
@@ -128,7 +128,7 @@ impl MamlConfig {
     /// `L(w; batch)`: the loss of `meta.inner_loss` (eq. 8 for CQL-MAML) for the network with
     /// weights `params`, bootstrapping from the target network `target`, which no gradient reaches.
     /// Scalar.
-    pub fn task_loss(&self, params: &[Tensor], target: &[Tensor], batch: &Batch) -> Tensor {
+    pub fn task_loss(&self, params: &[Tensor], target: &[Tensor], batch: &Transitions) -> Tensor {
         self.task_losses(params, target, &StackedShots::stack(&[batch]))
             .squeeze_dim(0)
     }
@@ -171,7 +171,7 @@ impl MamlConfig {
         w0: &[Tensor],
         step: StepSize,
         target: &[Tensor],
-        support: &Batch,
+        support: &Transitions,
     ) -> Vec<Tensor> {
         self.adapt_stacked(w0, step, target, &StackedShots::stack(&[support]))
             .iter()
@@ -233,8 +233,8 @@ impl MamlConfig {
         target: &[Tensor],
         tasks: &[TaskShots],
     ) -> Vec<f64> {
-        let support: Vec<&Batch> = tasks.iter().map(|t| &t.support).collect();
-        let query: Vec<&Batch> = tasks.iter().map(|t| &t.query).collect();
+        let support: Vec<&Transitions> = tasks.iter().map(|t| &t.support).collect();
+        let query: Vec<&Transitions> = tasks.iter().map(|t| &t.query).collect();
         let query = StackedShots::stack(&query);
         let w = self.adapt_stacked(w0, step, target, &StackedShots::stack(&support)); // eq. 14
         let query_losses = self.task_losses(&w, target, &query); // eq. 15's terms
@@ -271,10 +271,10 @@ pub enum StepSize<'a> {
     PerWeight(&'a [Tensor]),
 }
 
-/// The shots of T tasks as one [`Batch`] with a leading task dimension ([T, B, ..]), each task's
+/// The shots of T tasks as one [`Transitions`] with a leading task dimension ([T, B, ..]), each task's
 /// rows padded to the longest task's B with rows that weigh 0.
 pub struct StackedShots {
-    pub batch: Batch,
+    pub batch: Transitions,
     /// [T, B]: 1 / (task t's row count) on its rows, 0 on its padding; a task's loss is the
     /// weighted sum of its rows' terms, the mean over its own rows.
     pub weight: Tensor,
@@ -282,7 +282,7 @@ pub struct StackedShots {
 
 impl StackedShots {
     /// Stacks `parts` (at least one).
-    pub fn stack(parts: &[&Batch]) -> StackedShots {
+    pub fn stack(parts: &[&Transitions]) -> StackedShots {
         let rows = parts.iter().map(|b| b.len()).max().unwrap_or(0) as i64;
         let pad = |t: &Tensor| {
             let missing = rows - t.size()[0];
@@ -299,7 +299,7 @@ impl StackedShots {
                 0,
             )
         };
-        let column = |pick: fn(&Batch) -> &Tensor| {
+        let column = |pick: fn(&Transitions) -> &Tensor| {
             Tensor::stack(&parts.iter().map(|b| pad(pick(b))).collect::<Vec<_>>(), 0)
         };
         let weight: Vec<Tensor> = parts
@@ -311,7 +311,7 @@ impl StackedShots {
             })
             .collect();
         StackedShots {
-            batch: Batch {
+            batch: Transitions {
                 obs: column(|b| &b.obs),
                 actions: column(|b| &b.actions),
                 rewards: column(|b| &b.rewards),
@@ -331,16 +331,16 @@ impl StackedShots {
 /// encoded once; the shots of a meta-epoch are row selections of them.
 pub struct MetaTask {
     pub name: String,
-    pub support: Batch,
-    pub query: Batch,
+    pub support: Transitions,
+    pub query: Transitions,
 }
 
 /// The shots one task contributes to one meta-epoch.
 pub struct TaskShots {
     /// k shots of the support set.
-    pub support: Batch,
+    pub support: Transitions,
     /// Shots of the query set.
-    pub query: Batch,
+    pub query: Transitions,
 }
 
 impl MetaTask {
@@ -379,7 +379,7 @@ impl SupportPass {
     }
 
     /// The next (at most) `shots` rows of `support`.
-    fn take(&mut self, support: &Batch, shots: usize, rng: &mut ChaCha8Rng) -> Batch {
+    fn take(&mut self, support: &Transitions, shots: usize, rng: &mut ChaCha8Rng) -> Transitions {
         let end = (self.next + shots).min(self.order.len());
         let rows = Tensor::from_slice(&self.order[self.next..end]);
         self.next = end;
@@ -388,7 +388,7 @@ impl SupportPass {
     }
 }
 
-fn sample_rows(batch: &Batch, amount: usize, rng: &mut ChaCha8Rng) -> Batch {
+fn sample_rows(batch: &Transitions, amount: usize, rng: &mut ChaCha8Rng) -> Transitions {
     let rows: Vec<i64> = index::sample(rng, batch.len(), amount.min(batch.len()))
         .into_iter()
         .map(|i| i as i64)
@@ -755,7 +755,7 @@ impl Maml {
 
     /// The network `w0` adapts to on `support` (eq. 14 with the meta-epoch's target), as a plain
     /// Q-network: what meta-train evaluates on each task's environment.
-    pub fn adapted(&self, support: &Batch) -> QNetwork {
+    pub fn adapted(&self, support: &Transitions) -> QNetwork {
         let w0 = self.w0.parameters();
         let target = self.target.parameters();
         let w_i = self.adapt_detached(&w0, &target, support);
@@ -769,7 +769,12 @@ impl Maml {
     }
 
     /// Eq. 14 with first-order gradients: the same fast weights, without keeping graphs.
-    fn adapt_detached(&self, w0: &[Tensor], target: &[Tensor], support: &Batch) -> Vec<Tensor> {
+    fn adapt_detached(
+        &self,
+        w0: &[Tensor],
+        target: &[Tensor],
+        support: &Transitions,
+    ) -> Vec<Tensor> {
         let mut first_order = self.config.clone();
         first_order.meta.first_order = true;
         first_order

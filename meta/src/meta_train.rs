@@ -25,11 +25,11 @@ use std::time::Instant;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use uavmeta_actors::policy::q_policy::Evaluator;
-use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::progress::{progress_bar, CsvLog, OnStep};
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::EvaluatePolicy;
+use uavmeta_learner::transitions::Transitions;
 use uavmeta_proto::config::{Config, MetaConfig, TaskConfig, TaskRole};
 use uavmeta_proto::dataset::{self, DatasetReader};
 use uavmeta_proto::method::Method;
@@ -149,8 +149,8 @@ pub fn load_tasks(
             seed.wrapping_add(i as u64),
         )?;
         let encode = |set: &[_]| {
-            Batch::new(set, &config.world, config.learner.reward_scale).map_err(|source| {
-                MetaError::Batch {
+            Transitions::new(set, &config.world, config.learner.reward_scale).map_err(|source| {
+                MetaError::Transitions {
                     path: path.clone(),
                     source,
                 }

@@ -9,10 +9,10 @@
 //! tasks' average loss here, the loss after one adaptation step in MAML. If MAML adds nothing, the
 //! two score alike.
 
-use uavmeta_learner::batch::Batch;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::OfflineTrainer;
+use uavmeta_learner::transitions::Transitions;
 use uavmeta_proto::config::Config;
 
 use crate::maml::{MamlConfig, MetaTask};
@@ -28,10 +28,10 @@ pub fn pretrain<E>(
     on_step: OnStep,
     mut keep_going: impl FnMut(usize) -> Result<bool, E>,
 ) -> Result<Option<QNetwork>, E> {
-    let union = Batch::concat(tasks.iter().flat_map(|t| [&t.support, &t.query]));
+    let union = Transitions::concat(tasks.iter().flat_map(|t| [&t.support, &t.query]));
     let maml = MamlConfig::from_config(config);
     let mut budget = config.clone();
-    budget.learner.batch = tasks.len() * (maml.meta.support_shots + maml.meta.query_shots);
+    budget.learner.batch_size = tasks.len() * (maml.meta.support_shots + maml.meta.query_shots);
     budget.learner.alpha = maml.meta.alpha;
     let w = &config.world;
     let mut q = QNetworkConfig::for_world(w, &config.learner.hidden).init(seed);

@@ -10,9 +10,9 @@
 
 use uavmeta_actors::collect::Collector;
 use uavmeta_actors::policy::q_policy::Evaluator;
-use uavmeta_learner::batch::Batch;
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::EvaluatePolicy;
+use uavmeta_learner::transitions::Transitions;
 use uavmeta_meta::maml::{Maml, MamlConfig, MetaTask};
 use uavmeta_proto::config::Config;
 use uavmeta_proto::dataset::split;
@@ -36,7 +36,8 @@ fn meta_task(config: &Config, name: &str, seed: u64) -> MetaTask {
     )
     .fill(config.collect.transitions, &mut data);
     let (support, query) = split(&data, config.meta.support_fraction, seed).unwrap();
-    let encode = |set: &[_]| Batch::new(set, &config.world, config.learner.reward_scale).unwrap();
+    let encode =
+        |set: &[_]| Transitions::new(set, &config.world, config.learner.reward_scale).unwrap();
     MetaTask {
         name: name.to_string(),
         support: encode(&support),

@@ -5,10 +5,10 @@
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use tch::{Kind, Tensor};
-use uavmeta_learner::batch::Batch;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::dqn::TdConfig;
 use uavmeta_learner::qnet::QNetworkConfig;
+use uavmeta_learner::transitions::Transitions;
 use uavmeta_meta::maml::{Maml, MamlConfig, MetaTask, StepSize, TaskShots};
 use uavmeta_proto::config::{Config, MetaConfig};
 use uavmeta_proto::method::Algo;
@@ -47,7 +47,7 @@ fn config(inner_loss: Algo, inner_steps: usize, first_order: bool) -> MamlConfig
 }
 
 /// `rows` random transitions of a task whose reward weighs the observation by `lambda`, in `kind`.
-fn batch(rows: usize, lambda: f64, kind: Kind, rng: &mut ChaCha8Rng) -> Batch {
+fn batch(rows: usize, lambda: f64, kind: Kind, rng: &mut ChaCha8Rng) -> Transitions {
     let mut uniform =
         |n: usize| -> Vec<f64> { (0..n).map(|_| rng.random_range(0.0..1.0)).collect() };
     let obs = uniform(rows * OBS);
@@ -62,7 +62,7 @@ fn batch(rows: usize, lambda: f64, kind: Kind, rng: &mut ChaCha8Rng) -> Batch {
         })
         .collect();
     let shape = [rows as i64, OBS as i64];
-    Batch {
+    Transitions {
         obs: Tensor::from_slice(&obs).view(shape).to_kind(kind),
         actions: Tensor::from_slice(&actions),
         rewards: Tensor::from_slice(&rewards).to_kind(kind),

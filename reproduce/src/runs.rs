@@ -24,9 +24,9 @@ use uavmeta_world::heuristics::PolicySpec;
 use uavmeta_world::rollout::{record_trajectory, Trajectory};
 
 use super::Experiment;
-use uavmeta_learner::batch::load_shots;
-use uavmeta_learner::batch::Batch;
 use uavmeta_learner::qnet::QNetwork;
+use uavmeta_learner::transitions::load_shots;
+use uavmeta_learner::transitions::Transitions;
 use uavmeta_meta::fine_tune::{fine_tune, FineTune};
 use uavmeta_meta::meta_train::{
     dataset_path, load_tasks, meta_train, Evaluation, MetaRow, MetaTrainOptions,
@@ -458,7 +458,7 @@ pub fn fine_tune_run(
 struct FineTuneStart<'a> {
     task: &'a TaskConfig,
     seed: u64,
-    shots: Batch,
+    shots: Transitions,
     eval_config: Config,
 }
 

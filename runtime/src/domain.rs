@@ -11,6 +11,7 @@ use iceoryx2::node::Node;
 use iceoryx2::prelude::*;
 use uavmeta_proto::config::RunConfig;
 
+use crate::run_dir::FileError;
 use crate::transport::TransportError;
 
 /// The iceoryx2 config of `run.domain`: iceoryx2's defaults, with the domain's own prefix and
@@ -44,11 +45,13 @@ pub fn remove_domain(run: &RunConfig) -> Result<(), TransportError> {
     }
     let config = iceoryx_config(run)?;
     let gone = |path: PathBuf, removed: std::io::Result<()>| match removed {
-        Err(source) if source.kind() != std::io::ErrorKind::NotFound => Err(TransportError::Io {
-            path,
-            action: "remove",
-            source,
-        }),
+        Err(source) if source.kind() != std::io::ErrorKind::NotFound => {
+            Err(TransportError::from(FileError {
+                path,
+                action: "remove",
+                source,
+            }))
+        }
         _ => Ok(()),
     };
     let root = PathBuf::from(config.global.root_path().to_string());

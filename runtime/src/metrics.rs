@@ -25,7 +25,7 @@ use prometheus::{
 };
 use uavmeta_proto::metrics::{Kind, Metric};
 
-use crate::run_dir::{write_atomic, RunDir};
+use crate::run_dir::{write_atomic, FileError, RunDir};
 use crate::transport::TransportError;
 
 /// Everything serving or reading metrics can fail on.
@@ -35,6 +35,8 @@ pub enum MetricsError {
     Bind { addr: String, message: String },
     #[error(transparent)]
     Run(#[from] TransportError),
+    #[error(transparent)]
+    File(#[from] FileError),
     #[error("{}: no metrics port after {waited:?}; is the process running?", path.display())]
     NoPort { path: PathBuf, waited: Duration },
     #[error("{}: expected a port number, found `{text}`", path.display())]

@@ -50,10 +50,8 @@ impl Process {
     pub fn start(run: &RunDir, config: &Config, name: &str) -> Result<Self, TransportError> {
         let node = domain::node(&format!("{}-{name}", run.id()), &config.run)?;
         let names = ServiceNames::new(run.id());
-        let shutdown = transport::control_subscriber(
-            &transport::shutdown_service(&node, &names, config)?,
-            config,
-        )?;
+        let shutdown =
+            transport::control_subscriber(&transport::shutdown_service(&node, &names, config)?)?;
         Ok(Self {
             name: name.to_string(),
             node,

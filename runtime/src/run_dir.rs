@@ -11,7 +11,14 @@ use std::path::{Path, PathBuf};
 use uavmeta_proto::config::{Config, TaskConfig};
 use uavmeta_proto::method::Method;
 
-use crate::transport::TransportError;
+/// A file or directory of a run that cannot be created, read or written.
+#[derive(Debug, thiserror::Error)]
+#[error("{}: cannot {action}", path.display())]
+pub struct FileError {
+    pub path: PathBuf,
+    pub action: &'static str,
+    pub source: std::io::Error,
+}
 
 /// A remote host that has not announced itself for this long is gone: out of the scrape targets.
 pub const REMOTE_HOST_SILENCE: std::time::Duration = std::time::Duration::from_secs(10);
@@ -28,8 +35,8 @@ impl RunDir {
     /// Opens `path`, creating it and its subdirectories when missing. The run id is the
     /// directory's name plus a hash of its absolute path: readable in service names, and
     /// distinct for two runs whose directories share a name.
-    pub fn create(path: &Path) -> Result<Self, TransportError> {
-        std::fs::create_dir_all(path).map_err(|source| TransportError::Io {
+    pub fn create(path: &Path) -> Result<Self, FileError> {
+        std::fs::create_dir_all(path).map_err(|source| FileError {
             path: path.to_path_buf(),
             action: "create the run directory",
             source,
@@ -37,7 +44,7 @@ impl RunDir {
         let run = Self::open(path)?;
         for sub in ["datasets", "checkpoints", "ports", "metrics", "logs"] {
             let dir = run.root.join(sub);
-            std::fs::create_dir_all(&dir).map_err(|source| TransportError::Io {
+            std::fs::create_dir_all(&dir).map_err(|source| FileError {
                 path: dir.clone(),
                 action: "create",
                 source,
@@ -48,8 +55,8 @@ impl RunDir {
 
     /// The existing run directory `path`, with the id [`RunDir::create`] gives it; nothing is
     /// created.
-    pub fn open(path: &Path) -> Result<Self, TransportError> {
-        let root = path.canonicalize().map_err(|source| TransportError::Io {
+    pub fn open(path: &Path) -> Result<Self, FileError> {
+        let root = path.canonicalize().map_err(|source| FileError {
             path: path.to_path_buf(),
             action: "resolve the run directory",
             source,
@@ -82,7 +89,7 @@ impl RunDir {
     /// Makes `path` the directory of run `id` (hash `hash`) of another host, on a remote actor
     /// host (`uavmeta tunnel join`): the processes started in it join that run, since id and
     /// hash, which come from the learner host's path, are read from [`REMOTE_RUN_FILE`].
-    pub fn create_remote(path: &Path, id: &str, hash: u64) -> Result<Self, TransportError> {
+    pub fn create_remote(path: &Path, id: &str, hash: u64) -> Result<Self, FileError> {
         let local = Self::create(path)?;
         let file = local.root.join(REMOTE_RUN_FILE);
         write_atomic(&file, format!("{id}\n{hash:016x}\n").as_bytes())?;
@@ -90,13 +97,13 @@ impl RunDir {
     }
 
     /// The id and hash of the remote run this directory stands for, if it does.
-    fn remote_identity(&self) -> Result<Option<Self>, TransportError> {
+    fn remote_identity(&self) -> Result<Option<Self>, FileError> {
         let file = self.root.join(REMOTE_RUN_FILE);
         let text = match std::fs::read_to_string(&file) {
             Ok(text) => text,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
             Err(source) => {
-                return Err(TransportError::Io {
+                return Err(FileError {
                     path: file,
                     action: "read",
                     source,
@@ -108,7 +115,7 @@ impl RunDir {
             .next()
             .zip(lines.next().and_then(|h| u64::from_str_radix(h, 16).ok()));
         let Some((id, hash)) = parsed else {
-            return Err(TransportError::Io {
+            return Err(FileError {
                 path: file,
                 action: "parse (expected a run id and a hexadecimal hash)",
                 source: std::io::ErrorKind::InvalidData.into(),
@@ -254,15 +261,15 @@ pub enum RunConfigError {
     #[error(transparent)]
     Config(#[from] uavmeta_proto::config::ConfigError),
     #[error(transparent)]
-    Transport(#[from] TransportError),
+    File(#[from] FileError),
 }
 
 /// Writes `bytes` to `path` through a temporary file in the same directory, fsynced and renamed,
 /// so readers see the old content or the new, never a torn file. A failure (a full disk) removes
 /// the temporary file.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), TransportError> {
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FileError> {
     use std::io::Write;
-    let io = |path: &Path, action, source| TransportError::Io {
+    let io = |path: &Path, action, source| FileError {
         path: path.to_path_buf(),
         action,
         source,

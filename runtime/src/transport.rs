@@ -41,7 +41,6 @@
 //! which names the service and both versions.
 
 use std::fmt;
-use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
@@ -59,7 +58,7 @@ use uavmeta_proto::payload::{
 };
 
 use crate::liveness::termination_requested;
-use crate::run_dir::RunDir;
+use crate::run_dir::{FileError, RunDir};
 
 /// Subscribers a transition service admits: the store, plus room for a benchmark or a monitor.
 const TRANSITION_SUBSCRIBERS: usize = 4;
@@ -71,6 +70,10 @@ const ACK_BUFFER: usize = 16;
 /// Processes besides the actors that open a control service: store, meta-learner, evaluator,
 /// launcher, and room for a hand-started one of each.
 const CONTROL_PEERS: usize = 8;
+/// Announcements (dataset ready, checkpoint ready, shutdown) a control subscriber buffers; also the
+/// history a process joining late receives: several times what a default launch announces (a
+/// dataset per task and seed, a checkpoint per `meta.checkpoint_every`, the shutdown).
+const CONTROL_HISTORY: usize = 256;
 
 /// A control publisher blocked this long on one subscriber's full buffer gives up on that
 /// subscriber: it is dead or stuck, and announcements must not stall the run.
@@ -97,12 +100,8 @@ pub enum TransportError {
     },
     #[error("`{name}` is not a valid iceoryx2 service name: {message}")]
     ServiceName { name: String, message: String },
-    #[error("{}: cannot {action}", path.display())]
-    Io {
-        path: PathBuf,
-        action: &'static str,
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    File(#[from] FileError),
 }
 
 fn service_name(name: &str) -> Result<ServiceName, TransportError> {
@@ -179,12 +178,12 @@ const SUBSCRIBER_BORROWED: usize = 2;
 
 /// Bytes of shared memory one actor's transition publisher maps: iceoryx2 sizes its data
 /// segment for every sample that can be in flight (each subscriber's buffer and borrowed
-/// samples, plus the one the actor loans), each a batch of `run.batch_size` slots. The launcher
+/// samples, plus the one the actor loans), each a batch of `run.transitions_per_message` slots. The launcher
 /// checks the run's total against /dev/shm before it starts anything.
 pub fn actor_shared_memory(run: &RunConfig) -> u64 {
     let samples = TRANSITION_SUBSCRIBERS * (run.subscriber_buffer + SUBSCRIBER_BORROWED) + 1;
-    let batch =
-        std::mem::size_of::<TransitionSlot>() * run.batch_size + std::mem::size_of::<BatchHeader>();
+    let batch = std::mem::size_of::<TransitionSlot>() * run.transitions_per_message
+        + std::mem::size_of::<BatchHeader>();
     samples as u64 * batch as u64
 }
 
@@ -229,8 +228,8 @@ pub fn control_service<T: fmt::Debug + ZeroCopySend + 'static>(
         .publish_subscribe::<T>()
         // Announcements must reach everyone; a stuck subscriber is skipped after a timeout.
         .enable_safe_overflow(false)
-        .subscriber_max_buffer_size(config.run.control_buffer)
-        .history_size(config.run.control_buffer)
+        .subscriber_max_buffer_size(CONTROL_HISTORY)
+        .history_size(CONTROL_HISTORY)
         .max_publishers(CONTROL_PEERS)
         .max_subscribers(peers)
         .max_nodes(peers + CONTROL_PEERS)
@@ -290,11 +289,10 @@ pub fn shutdown_requested(
 /// A subscriber that also receives the service's history.
 pub fn control_subscriber<T: fmt::Debug + ZeroCopySend>(
     service: &ControlService<T>,
-    config: &Config,
 ) -> Result<Subscriber<ipc::Service, T, ()>, TransportError> {
     service
         .subscriber_builder()
-        .history_request(config.run.control_buffer)
+        .history_request(CONTROL_HISTORY)
         .create()
         .map_err(|e| TransportError::Service {
             service: format!("{:?}", service.name()),
@@ -511,7 +509,7 @@ pub struct TransitionPublisher<'s> {
 }
 
 impl<'s> TransitionPublisher<'s> {
-    /// A publisher on `service` for `actor`'s batches of `run.batch_size` transitions of task
+    /// A publisher on `service` for `actor`'s batches of `run.transitions_per_message` transitions of task
     /// `task` (its index) in a world with `obs_len` observation entries.
     pub fn new(
         service: &'s TransitionService,
@@ -524,7 +522,7 @@ impl<'s> TransitionPublisher<'s> {
         let handler_blocked = Arc::clone(&blocked_ns);
         let publisher = service
             .publisher_builder()
-            .initial_max_slice_len(config.run.batch_size)
+            .initial_max_slice_len(config.run.transitions_per_message)
             .max_loaned_samples(1)
             // Backpressure: wait for the store instead of dropping or overwriting.
             .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
@@ -556,7 +554,7 @@ impl<'s> TransitionPublisher<'s> {
             publisher,
             blocked_ns,
             header,
-            batch_size: config.run.batch_size,
+            batch_size: config.run.transitions_per_message,
             subscriber_buffer: config.run.subscriber_buffer,
         })
     }

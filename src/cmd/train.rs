@@ -6,11 +6,11 @@ use std::path::PathBuf;
 use anyhow::{Context, Result};
 use clap::Args;
 use uavmeta_actors::policy::q_policy::Evaluator;
-use uavmeta_learner::batch::load_shots;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::{train, TrainOptions};
+use uavmeta_learner::transitions::load_shots;
 use uavmeta_proto::method::Algo;
 
 use super::common::{ConfigArgs, TaskArgs};

@@ -50,7 +50,7 @@ query_shots = 16
 eval_every = 0
 
 [run]
-batch_size = 16
+transitions_per_message = 16
 
 # The planner's reference row only has to exist in these runs: one narrow search instead of the
 # default's four of width 256 (about half a minute per launch on the default world).

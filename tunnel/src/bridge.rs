@@ -127,7 +127,7 @@ pub(crate) struct Forwarders {
 }
 
 impl Forwarders {
-    pub fn new(services: &RunServices, config: &Config, side: Side) -> Result<Self, TunnelError> {
+    pub fn new(services: &RunServices, side: Side) -> Result<Self, TunnelError> {
         let acks = services
             .acks
             .iter()
@@ -141,8 +141,8 @@ impl Forwarders {
             .collect::<Result<_, TunnelError>>()?;
         Ok(Self {
             acks,
-            dataset_ready: control_forward(&services.dataset_ready, config, side)?,
-            shutdown: control_forward(&services.shutdown, config, side)?,
+            dataset_ready: control_forward(&services.dataset_ready, side)?,
+            shutdown: control_forward(&services.shutdown, side)?,
             last_warning: Default::default(),
         })
     }
@@ -179,13 +179,12 @@ fn ordered<'s, S>(own: &'s S, crossing: &'s S, side: Side) -> (&'s S, &'s S) {
 
 fn control_forward<T: fmt::Debug + ZeroCopySend + Copy + 'static>(
     (own, crossing): &(ControlService<T>, ControlService<T>),
-    config: &Config,
     side: Side,
 ) -> Result<Forward<T>, TunnelError> {
     let (from, to) = ordered(own, crossing, side);
     Ok(Forward {
         // With history: a remote host that joins late still hears what was announced.
-        from: transport::control_subscriber(from, config)?,
+        from: transport::control_subscriber(from)?,
         to: transport::control_publisher(to)?,
     })
 }

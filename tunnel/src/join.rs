@@ -78,8 +78,8 @@ pub fn join(options: &JoinOptions) -> Result<(), TunnelError> {
     // A killed predecessor's subscribers would block the actors on full buffers.
     domain::cleanup_dead_nodes(&node);
     let services = RunServices::open(&node, &run, &config)?;
-    let shutdown = transport::control_subscriber(services.shutdown(), &config)?;
-    let forwarders = Forwarders::new(&services, &config, Side::Remote)?;
+    let shutdown = transport::control_subscriber(services.shutdown())?;
+    let forwarders = Forwarders::new(&services, Side::Remote)?;
     let present = Arc::new(AtomicBool::new(false));
     let _presence = watch_presence(&session, options, present.clone())?;
     tracing::info!(run = run.id(), dir = %run.root().display(), "joined the run: start actors with `uavmeta actor --run {}`", run.root().display());

@@ -56,6 +56,7 @@
 use std::time::Duration;
 
 use uavmeta_proto::config::ConfigError;
+use uavmeta_runtime::run_dir::FileError;
 use uavmeta_runtime::transport::TransportError;
 
 mod bridge;
@@ -82,6 +83,8 @@ const SHUTDOWN_LINGER: Duration = Duration::from_secs(3);
 pub enum TunnelError {
     #[error(transparent)]
     Transport(#[from] TransportError),
+    #[error(transparent)]
+    File(#[from] FileError),
     #[error(transparent)]
     Config(#[from] ConfigError),
     #[error("zenoh endpoint `{endpoint}`: {message}")]

@@ -7,7 +7,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use uavmeta_proto::config::Config;
-use uavmeta_runtime::run_dir::{write_atomic, RemoteHost, RemoteProcess, RunDir};
+use uavmeta_runtime::run_dir::{write_atomic, FileError, RemoteHost, RemoteProcess, RunDir};
 use uavmeta_runtime::{domain, liveness, transport};
 use zenoh::{Session, Wait};
 
@@ -27,8 +27,8 @@ pub fn serve(run: &RunDir, config: &Config) -> Result<(), TunnelError> {
     // A killed predecessor's subscribers would block the actors on full buffers.
     domain::cleanup_dead_nodes(&node);
     let services = RunServices::open(&node, run, config)?;
-    let shutdown = transport::control_subscriber(services.shutdown(), config)?;
-    let forwarders = Forwarders::new(&services, config, Side::Learner)?;
+    let shutdown = transport::control_subscriber(services.shutdown())?;
+    let forwarders = Forwarders::new(&services, Side::Learner)?;
     let security = session::Security::of_config(&config.tunnel);
     let keys = [
         "tunnel.ca",
@@ -49,7 +49,7 @@ pub fn serve(run: &RunDir, config: &Config) -> Result<(), TunnelError> {
         .wait()
         .map_err(zenoh_error)?;
     let hosts_dir = run.remote_hosts_dir();
-    std::fs::create_dir_all(&hosts_dir).map_err(|source| transport::TransportError::Io {
+    std::fs::create_dir_all(&hosts_dir).map_err(|source| FileError {
         path: hosts_dir.clone(),
         action: "create",
         source,

@@ -25,11 +25,11 @@
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use tch::Tensor;
-use uavmeta_learner::batch::{Batch, BatchError};
 use uavmeta_learner::dqn::{Bootstrap, TdConfig};
 use uavmeta_learner::optim::{clip_grad_norm, FusedAdam};
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::EvaluatePolicy;
+use uavmeta_learner::transitions::{Transitions, TransitionsError};
 use uavmeta_proto::config::{Config, LearnerConfig, OnlineDqnConfig, TaskConfig, WorldConfig};
 use uavmeta_proto::dataset::Transition;
 
@@ -167,13 +167,13 @@ impl OnlineDqn {
     }
 
     /// Trains for `collect.dqn.steps` environment steps.
-    pub fn train(&mut self) -> Result<(), BatchError> {
+    pub fn train(&mut self) -> Result<(), TransitionsError> {
         self.train_steps(self.dqn.steps)
     }
 
     /// Trains for `steps` more environment steps, logging the recent return every
     /// [`RECENT_EPISODES`] episodes.
-    pub fn train_steps(&mut self, steps: usize) -> Result<(), BatchError> {
+    pub fn train_steps(&mut self, steps: usize) -> Result<(), TransitionsError> {
         for _ in 0..steps {
             let finished = self.step()?;
             self.log_progress(finished);
@@ -183,7 +183,7 @@ impl OnlineDqn {
 
     /// One environment step (and the gradient step it is due); the episode's return when the step
     /// ended an episode.
-    pub fn step(&mut self) -> Result<Option<f64>, BatchError> {
+    pub fn step(&mut self) -> Result<Option<f64>, TransitionsError> {
         // ALGO: epsilon-greedy behaviour.
         let action = match self.rng.random_bool(self.epsilon()) {
             true => self.rng.random_range(0..self.world.action_count()),
@@ -202,10 +202,10 @@ impl OnlineDqn {
 
     /// ALGO: one Adam step on eq. 7 (with the configured stabilisers) over a uniform minibatch of
     /// the replay buffer.
-    fn gradient_step(&mut self) -> Result<(), BatchError> {
+    fn gradient_step(&mut self) -> Result<(), TransitionsError> {
         self.opt.set_lr(self.learning_rate());
-        let sample = self.replay.sample(&mut self.rng, self.learner.batch);
-        let mb = Batch::new(&sample, &self.world_config, self.learner.reward_scale)?;
+        let sample = self.replay.sample(&mut self.rng, self.learner.batch_size);
+        let mb = Transitions::new(&sample, &self.world_config, self.learner.reward_scale)?;
         let q_all = self.q.forward(&mb.obs); // [B, A]
         let target = |s: &Tensor| self.target.forward(s);
         let online = |s: &Tensor| self.q.forward(s);

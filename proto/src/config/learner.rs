@@ -43,7 +43,7 @@ pub struct LearnerConfig {
     /// Minibatch size.
     #[default(64)]
     #[garde(custom(at_least(1)))]
-    pub batch: usize,
+    pub batch_size: usize,
     /// Adam learning rate of offline training and fine-tuning (eta_outer, so every method
     /// shares the meta-learner's optimiser settings).
     #[default(1e-3)]

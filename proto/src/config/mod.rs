@@ -34,7 +34,7 @@ pub use learner::LearnerConfig;
 pub use meta::MetaConfig;
 pub use moved::{Fate, MOVED};
 pub use planner::PlannerConfig;
-pub use run::{RunConfig, MAX_BATCH_SIZE, MAX_DOMAIN_LEN, MAX_SUBSCRIBER_BUFFER};
+pub use run::{RunConfig, MAX_DOMAIN_LEN, MAX_SUBSCRIBER_BUFFER, MAX_TRANSITIONS_PER_MESSAGE};
 pub use section::{OwnedSection, Section};
 pub use task::{RainZone, TaskConfig, TaskRole};
 pub use tunnel::{is_loopback_endpoint, TunnelConfig, MAX_HOSTS};
@@ -342,7 +342,7 @@ fn apply_override(
 // launcher also checks a config against the machine it runs on before starting anything
 // (`uavmeta_runtime::launch::resources`); these caps keep every estimate far from overflow and a
 // typo (a batch of 10 000 000) from reaching any process. A cap on one field is a rule of its
-// section (`run.batch_size`, `world.devices`, ...); the caps here span sections.
+// section (`run.transitions_per_message`, `world.devices`, ...); the caps here span sections.
 
 /// Most tasks in `[[tasks]]`: each has a dataset file, services and actors of its own.
 pub const MAX_TASKS: usize = 64;

@@ -54,6 +54,12 @@ pub const MOVED: &[(&str, Fate)] = &[
     ("meta.population", Fate::Removed(STACKING)),
     ("run.device", Fate::Removed(STACKING)),
     (
+        "run.control_buffer",
+        Fate::Removed("the announcements a control subscriber buffers and a late joiner receives are a constant of the transport (256)"),
+    ),
+    ("run.batch_size", Fate::Renamed("run.transitions_per_message")),
+    ("learner.batch", Fate::Renamed("learner.batch_size")),
+    (
         "collect.sample_newest",
         Fate::Removed("shots from the newest part of the buffer did worse than from all of it (docs/EXPERIMENTS.md, B and B4)"),
     ),

@@ -10,9 +10,9 @@ use smart_default::SmartDefault;
 
 use super::rules::{at_least, at_most, finite, non_empty, satisfies, toml_seed};
 
-/// Largest `run.batch_size`: an actor's shared memory grows with batch x subscriber buffer.
-pub const MAX_BATCH_SIZE: usize = 16_384;
-/// Largest `run.subscriber_buffer` (and `run.control_buffer`).
+/// Largest `run.transitions_per_message`: an actor's shared memory grows with it x subscriber buffer.
+pub const MAX_TRANSITIONS_PER_MESSAGE: usize = 16_384;
+/// Largest `run.subscriber_buffer`.
 pub const MAX_SUBSCRIBER_BUFFER: usize = 4_096;
 
 /// Longest `run.domain`: the iceoryx2 prefix of every shared-memory name grows with it.
@@ -36,10 +36,10 @@ pub struct RunConfig {
     /// Port of the launcher's /metrics; children get 0 (an ephemeral port written to the run dir).
     #[default(0)]
     pub metrics_port: u16,
-    /// Transitions per zero-copy batch.
+    /// Transitions per zero-copy message (a batch of the transport).
     #[default(64)]
-    #[garde(custom(at_least(1)), custom(at_most(MAX_BATCH_SIZE)))]
-    pub batch_size: usize,
+    #[garde(custom(at_least(1)), custom(at_most(MAX_TRANSITIONS_PER_MESSAGE)))]
+    pub transitions_per_message: usize,
     /// Batches a subscriber buffers before publishers wait.
     #[default(64)]
     #[garde(custom(at_least(1)), custom(at_most(MAX_SUBSCRIBER_BUFFER)))]
@@ -66,11 +66,6 @@ pub struct RunConfig {
     #[default(60.0)]
     #[garde(custom(finite(0.0.., "seconds >= 0 (0 = never)")))]
     pub hang_timeout_seconds: f64,
-    /// Announcements (dataset ready, checkpoint ready, shutdown) a control subscriber buffers;
-    /// also the history a process joining late receives.
-    #[default(256)]
-    #[garde(custom(at_least(1)), custom(at_most(MAX_SUBSCRIBER_BUFFER)))]
-    pub control_buffer: usize,
     /// The iceoryx2 domain of this host's processes of the run: their shared memory is named
     /// `iox2_<domain>_...` and iceoryx2's files live in `/tmp/iceoryx2/<domain>/`, so processes of
     /// two domains cannot see each other even on one machine; empty = iceoryx2's default domain.

@@ -2,7 +2,7 @@
 //! policy out in one task's world and publishes its transitions to the store.
 //!
 //! Each step is written straight into its fixed-layout slot of a batch loaned in shared memory
-//! (`proto::transport`), `run.batch_size` steps per batch, numbered 0, 1, 2, ... by a per-actor
+//! (`proto::transport`), `run.transitions_per_message` steps per batch, numbered 0, 1, 2, ... by a per-actor
 //! sequence number, and the batch is sent without a further copy. When the store's buffer is full
 //! the actor waits (backpressure); while no store is subscribed it holds its written batch and
 //! sends it once one is; both waits are counted. The actor keeps what the store has not yet
@@ -237,10 +237,8 @@ pub fn run(
     let _server = process.serve_metrics(run, config, metrics.registry.clone())?;
     let service = transport::transition_service(node, names, &task.name, &config.run)?;
     let publisher = TransitionPublisher::new(&service, run, config, task_id, actor)?;
-    let ready = transport::control_subscriber(
-        &transport::dataset_ready_service(node, names, config)?,
-        config,
-    )?;
+    let ready =
+        transport::control_subscriber(&transport::dataset_ready_service(node, names, config)?)?;
     let mut summary = ActorSummary {
         actor,
         ..ActorSummary::default()

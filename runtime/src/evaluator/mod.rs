@@ -158,10 +158,11 @@ pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
     let process = Process::start(run, config, PROCESS)?;
     let metrics = metrics::EvaluatorMetrics::new();
     let _server = process.serve_metrics(run, config, metrics.registry.clone())?;
-    let announcements = transport::control_subscriber(
-        &transport::checkpoint_ready_service(&process.node, &process.names, config)?,
+    let announcements = transport::control_subscriber(&transport::checkpoint_ready_service(
+        &process.node,
+        &process.names,
         config,
-    )?;
+    )?)?;
 
     let csv_path = run.evaluations_csv();
     let io = |action, source| EvaluatorError::Io {

@@ -52,7 +52,7 @@ use uavmeta_world::heuristics::PolicySpec;
 
 use crate::actor::ActorOptions;
 use crate::metrics::{wait_for_port, MetricsError, MetricsServer};
-use crate::run_dir::{write_atomic, RunDir};
+use crate::run_dir::{write_atomic, FileError, RunDir};
 use crate::transport::{self, TransportError};
 use crate::{domain, evaluator, liveness, meta_learner, store};
 
@@ -93,6 +93,8 @@ pub const PROCESS: &str = "launcher";
 pub enum LaunchError {
     #[error(transparent)]
     Transport(#[from] TransportError),
+    #[error(transparent)]
+    File(#[from] FileError),
     #[error(transparent)]
     Metrics(#[from] MetricsError),
     #[error("{}: cannot {action}", path.display())]

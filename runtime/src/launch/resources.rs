@@ -174,9 +174,9 @@ pub fn check(config: &Config, needs: &Needs, available: &Available) -> Result<()
     let shm = needs.shm_per_actor * needs.actors;
     if shm > available.shm_bytes {
         return refuse(format!(
-            "run.batch_size = {} with run.subscriber_buffer = {} needs {} of shared memory per \
+            "run.transitions_per_message = {} with run.subscriber_buffer = {} needs {} of shared memory per \
              actor, {} for {} actors; /dev/shm has {} free",
-            config.run.batch_size,
+            config.run.transitions_per_message,
             config.run.subscriber_buffer,
             gb(needs.shm_per_actor),
             gb(shm),
@@ -277,7 +277,7 @@ mod tests {
     #[test]
     fn a_huge_batch_is_refused_naming_the_key_and_both_figures() {
         let mut config = Config::default();
-        config.run.batch_size = 16_384;
+        config.run.transitions_per_message = 16_384;
         let needs = Needs::of(&config);
         let available = Available {
             shm_bytes: 2_000_000_000,
@@ -286,9 +286,12 @@ mod tests {
         let refused = check(&config, &needs, &available)
             .expect_err("too big")
             .to_string();
-        assert!(refused.contains("run.batch_size = 16384"), "{refused}");
+        assert!(
+            refused.contains("run.transitions_per_message = 16384"),
+            "{refused}"
+        );
         assert!(refused.contains("/dev/shm has 2.0 GB free"), "{refused}");
-        config.run.batch_size = 64;
+        config.run.transitions_per_message = 64;
         check(&config, &Needs::of(&config), &available).expect("the default fits");
     }
 

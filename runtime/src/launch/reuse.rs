@@ -28,17 +28,16 @@ pub enum Reuse {
 }
 
 /// Keys (and sections, ending in `.`) whose values do not reach a run's artefacts.
-const OPERATIONAL: [&str; 13] = [
+const OPERATIONAL: [&str; 12] = [
     "run.dir",
     "run.metrics_host",
     "run.metrics_port",
-    "run.batch_size",
+    "run.transitions_per_message",
     "run.subscriber_buffer",
     "run.max_publishers",
     "run.keep_until_stored",
     "run.max_restarts",
     "run.hang_timeout_seconds",
-    "run.control_buffer",
     "run.domain",
     "tunnel.",
     // A launch never reads it; runs saved before it became the reproduce crate's section wrote
@@ -167,7 +166,7 @@ mod tests {
         let old = Config::default();
         let mut new = old.clone();
         new.run.metrics_port = 9000;
-        new.run.batch_size = 1024;
+        new.run.transitions_per_message = 1024;
         new.tunnel.listen = "tcp/127.0.0.1:7447".into();
         assert!(differing_keys(&old, &new).is_empty());
         // A run saved with `[reproduce]` written out is the same run as one without it.

@@ -34,16 +34,14 @@ impl Announcements {
     ) -> Result<Self, LaunchError> {
         let shutdown = transport::shutdown_service(node, names, config)?;
         Ok(Self {
-            dataset_ready: transport::control_subscriber(
-                &transport::dataset_ready_service(node, names, config)?,
-                config,
-            )?,
-            checkpoint_ready: transport::control_subscriber(
-                &transport::checkpoint_ready_service(node, names, config)?,
-                config,
-            )?,
+            dataset_ready: transport::control_subscriber(&transport::dataset_ready_service(
+                node, names, config,
+            )?)?,
+            checkpoint_ready: transport::control_subscriber(&transport::checkpoint_ready_service(
+                node, names, config,
+            )?)?,
             shutdown: transport::control_publisher(&shutdown)?,
-            shutdowns: transport::control_subscriber(&shutdown, config)?,
+            shutdowns: transport::control_subscriber(&shutdown)?,
         })
     }
 }

@@ -37,11 +37,11 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use uavmeta_actors::policy::q_policy::Evaluator;
-use uavmeta_learner::batch::{load_shots, Batch};
 use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{EpochRow, EvaluatePolicy};
+use uavmeta_learner::transitions::{load_shots, Transitions};
 use uavmeta_meta::fine_tune::{fine_tune, FineTune};
 use uavmeta_meta::meta_train::{
     load_tasks, meta_train_with, MetaRow, MetaTrainHook, MetaTrainOptions,
@@ -91,10 +91,8 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
     let (node, names) = (&process.node, &process.names);
     let metrics = metrics::MetaLearnerMetrics::new();
     let _server = process.serve_metrics(run, config, metrics.registry.clone())?;
-    let ready = transport::control_subscriber(
-        &transport::dataset_ready_service(node, names, config)?,
-        config,
-    )?;
+    let ready =
+        transport::control_subscriber(&transport::dataset_ready_service(node, names, config)?)?;
     let announce =
         transport::control_publisher(&transport::checkpoint_ready_service(node, names, config)?)?;
     let stop = || -> Result<bool, MetaProcessError> {
@@ -343,7 +341,7 @@ impl MetaTest<'_> {
     }
 
     /// The task's `learner.shots` shots (all of its dataset by default), drawn with the run's seed.
-    fn shots(&self, task: &TaskConfig) -> Result<Batch, MetaProcessError> {
+    fn shots(&self, task: &TaskConfig) -> Result<Transitions, MetaProcessError> {
         let config = self.config;
         let dataset = self.run.dataset(task);
         Ok(

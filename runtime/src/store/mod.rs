@@ -80,7 +80,7 @@ const DROP_LOG_EVERY: Duration = Duration::from_secs(5);
 /// (`crate::actor`), so a real actor's gap (batches lost with a killed store, or dropped
 /// by a tunnel) stays within that many; four times it leaves room for all of them.
 pub fn sequence_window(run: &RunConfig) -> u64 {
-    4 * (2 * run.subscriber_buffer as u64 + 2) * run.batch_size as u64
+    4 * (2 * run.subscriber_buffer as u64 + 2) * run.transitions_per_message as u64
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -268,7 +268,7 @@ impl<'a> Store<'a> {
             ready,
             tasks,
             subscribers,
-            buffer: Vec::with_capacity(config.run.batch_size),
+            buffer: Vec::with_capacity(config.run.transitions_per_message),
             validators: Validator::for_tasks(&config.world, &config.tasks),
             seq_window: sequence_window(&config.run),
             labelled_actors: Default::default(),
