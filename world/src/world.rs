@@ -519,6 +519,24 @@ impl World {
         }
     }
 
+    /// A return no policy of this task can exceed (docs/MODEL.md section 9): each step's cost at
+    /// its least. After step t the devices served at distinct steps have distinct ages and the
+    /// others t + 1, so the i-th youngest is at least min(i, t + 1, A_max), and the heaviest
+    /// weights take the youngest ages (rearrangement); each step's power is at least the least
+    /// power of any device from any cell, without rain. Outages only raise both.
+    pub fn return_bound(&self) -> f64 {
+        let mut delta = self.delta.clone();
+        delta.sort_by(|a, b| b.total_cmp(a));
+        let least_mw = self.clear_mw.iter().copied().fold(f64::INFINITY, f64::min);
+        let cap = u32::from(self.aoi_max);
+        let step = |t: u32| {
+            let ages = (1..).map(|i: u32| f64::from(i.min(t + 1).min(cap)));
+            let aoi: f64 = delta.iter().zip(ages).map(|(d, a)| d * a).sum();
+            -self.cost(aoi, least_mw)
+        };
+        (1..=self.horizon).map(step).sum()
+    }
+
     /// Steps taken in this episode.
     pub fn t(&self) -> u32 {
         self.t

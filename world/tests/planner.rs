@@ -87,6 +87,13 @@ fn planner_equals_exhaustive_search_on_small_worlds() {
                 "{name}, start cell {cell}: planner {} against exhaustive {best}",
                 plan.cost
             );
+            // The bound holds on every small world, rain, weights, cap and power term included.
+            let bound = world.return_bound();
+            assert!(
+                -best <= bound + 1e-9 * bound.abs(),
+                "{name}, start cell {cell}: the optimum {} above the bound {bound}",
+                -best
+            );
             let charged = replay(&world, &plan.actions);
             assert!(
                 (charged - plan.cost).abs() <= 1e-9 * charged.abs(),
@@ -144,9 +151,13 @@ fn planner_beats_both_heuristics_on_the_default_world() {
         stalest.ret.mean,
         greedy.ret.mean
     );
-    // The bound of docs/MODEL.md section 5: no better than round robin's AoI with every power from
-    // straight above.
-    let bound = -(5380.0 + 0.31 * task.lambda);
+    // The bound of docs/MODEL.md section 9: round robin's AoI (5 380 for K = 10, T = 100) with
+    // every power from straight above a device (0.031 mW, lambda / K = 30 per mW, 100 steps).
+    let bound = World::new(&cfg.world, &task, 0).return_bound();
+    assert!(
+        (bound + 5380.0 + 0.031 * 30.0 * 100.0).abs() < 1e-6,
+        "{bound}"
+    );
     assert!(
         planner.ret.mean <= bound,
         "{} above the bound {bound}",

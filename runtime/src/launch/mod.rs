@@ -242,5 +242,6 @@ pub fn launch(
         restarts: children.iter().map(|c| c.failures).sum(),
         results,
         references: reference_rows(config),
+        bounds: report::bounds(config),
     })
 }

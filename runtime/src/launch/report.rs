@@ -8,6 +8,7 @@ use uavmeta_proto::config::{Config, TaskRole};
 use uavmeta_proto::method::Method;
 use uavmeta_proto::stats;
 use uavmeta_world::heuristics::{reference_metrics, PolicySpec, REFERENCES};
+use uavmeta_world::world::World;
 
 use super::LaunchError;
 use crate::evaluator::{self, EvaluationRow};
@@ -23,6 +24,8 @@ pub struct LaunchReport {
     /// The heuristics on every meta-test task, over the evaluator's episodes: what a learned
     /// return is measured against.
     pub references: Vec<EvaluationRow>,
+    /// Each meta-test task's return bound (`World::return_bound`): no policy scores above it.
+    pub bounds: Vec<(String, f64)>,
 }
 
 /// Where a row goes in its task's block: the references (random, the heuristics, the planner,
@@ -50,6 +53,17 @@ pub(super) fn reference_rows(config: &Config) -> Vec<EvaluationRow> {
             reference_metrics(config, task, config.learner.eval_episodes)
                 .into_iter()
                 .map(|(spec, m)| EvaluationRow::new(&task.name, &spec.to_string(), 0, &m))
+        })
+        .collect()
+}
+
+/// Each meta-test task's return bound.
+pub(super) fn bounds(config: &Config) -> Vec<(String, f64)> {
+    config
+        .tasks_with_role(TaskRole::MetaTest)
+        .map(|task| {
+            let bound = World::new(&config.world, task, 0).return_bound();
+            (task.name.clone(), bound)
         })
         .collect()
 }
@@ -127,6 +141,14 @@ pub fn results_table(report: &LaunchReport) -> String {
                 format!("{:.1} ± {:.1}", r.outages, r.outages_ci95),
             ));
         }
+        if let (Some(p), Some((_, bound))) =
+            (planner, report.bounds.iter().find(|(t, _)| t == task))
+        {
+            out.push_str(&format!(
+                "{task}: no policy can score above {bound:.1}, {:+.1}% vs planner (docs/MODEL.md section 9)\n",
+                stats::percent_from(*bound, p)
+            ));
+        }
         if let (Some(p), Some(best)) = (
             planner,
             rows.iter()
@@ -183,6 +205,7 @@ mod tests {
                 row("random", -13000.0, 1.3),
                 row("planner", -6500.0, 0.3),
             ],
+            bounds: vec![("lambda-300".into(), -5473.0)],
         };
         let table = results_table(&report);
         let methods: Vec<&str> = table
@@ -209,8 +232,12 @@ mod tests {
             );
         }
         assert!(table.contains("power (mW)"), "{table}");
-        // Nothing beats the planner here, so nothing is marked.
+        // Nothing beats the planner here, so nothing is marked; the bound is said.
         assert!(!table.contains(ABOVE_PLANNER), "{table}");
+        assert!(
+            table.contains("lambda-300: no policy can score above -5473.0, +15.8% vs planner"),
+            "{table}"
+        );
         assert!(table.contains("0.325 ± 0.000"), "{table}");
         // Each row's distance to the planner: cql-maml's -7100 is 9.2% below its -6500.
         let cql_maml = table.lines().find(|l| l.contains(" cql-maml ")).unwrap();
@@ -231,6 +258,7 @@ mod tests {
             restarts: 0,
             results: vec![row("online-dqn", -6100.0, 0.5), row("cql", -6400.0, 0.5)],
             references: vec![row("planner", -6500.0, 0.3)],
+            bounds: Vec::new(),
         };
         let table = results_table(&report);
         let line = |method: &str| {

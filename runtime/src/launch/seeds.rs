@@ -94,6 +94,7 @@ fn aggregate(dir: &Path, seeds: &[(u64, LaunchReport)]) -> LaunchReport {
         restarts: seeds.iter().map(|(_, r)| r.restarts).sum(),
         results,
         references: first.references.clone(),
+        bounds: first.bounds.clone(),
     }
 }
 
@@ -146,6 +147,7 @@ mod tests {
             restarts: 1,
             results: rows,
             references: vec![row("planner", -6341.0)],
+            bounds: Vec::new(),
         }
     }
 
