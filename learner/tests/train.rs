@@ -74,7 +74,7 @@ impl EvaluatePolicy for Exact {
 }
 
 fn config() -> Config {
-    let text = "[world]\ndevices = 1\n[learner]\nhidden = [32, 32]\ngamma = 0.0\nreward_scale = 1.0\nepochs = 30\nbatch = 32\nlr = 3e-3\n";
+    let text = "[world]\ndevices = 1\n[learner]\nhidden = [32, 32]\ngamma = 0.0\nreward_scale = 1.0\nepochs = 30\nbatch_size = 32\nlr = 3e-3\n";
     Config::from_toml_str(text, "bandit.toml", &[]).unwrap()
 }
 

@@ -417,7 +417,7 @@ fn rules_on_entries_name_the_entry() {
 fn the_first_broken_rule_is_reported_in_section_order() {
     // [learner] comes before [meta] in a config, whatever the order of the file.
     let message = error_of(
-        "[meta]\nalpha = -1.0\n\n[learner]\nalpha = -2.0\nbatch = 0\n",
+        "[meta]\nalpha = -1.0\n\n[learner]\nalpha = -2.0\nbatch_size = 0\n",
         &[],
         &["learner.alpha", "-2"],
     );
