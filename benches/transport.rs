@@ -17,9 +17,8 @@
 //! the store does (`proto::transport`), but only counts, so the figures are the transport's, not
 //! the dataset writer's; it acknowledges every batch as the store does (`StoreAck`), so actors keep
 //! what they keep in a run. Run: `cargo bench --bench transport` (prints Markdown tables);
-//! arguments pick sections (`floor`, `policies`, `keep`, `actors`, `tunnel`) and `ACTORSxBATCH`
-//! (e.g. `-- 1x64`) only those actor cases. `keep` measures what `run.keep_until_stored` costs an
-//! actor.
+//! arguments pick sections (`floor`, `policies`, `actors`, `tunnel`) and `ACTORSxBATCH`
+//! (e.g. `-- 1x64`) only those actor cases.
 //!
 //! `tunnel` puts the actor on a second host (issue #16): the bench's run is host A, served by a
 //! real `uavmeta tunnel serve`; a real `uavmeta tunnel join` makes host B's directory for it in an
@@ -203,14 +202,14 @@ struct Served<'a> {
 }
 
 impl BenchRun {
-    fn new(batch: usize, keep_until_stored: bool, served: Option<Served>) -> Self {
+    fn new(batch: usize, served: Option<Served>) -> Self {
         let dir = tempfile::Builder::new()
             .prefix("uavmeta-bench-")
             .tempdir()
             .expect("temp dir");
         let run = RunDir::create(&dir.path().join("run")).expect("run dir");
         let mut text = format!(
-            "[[tasks]]\nname = \"bench\"\nlambda = 300.0\nrole = \"meta-test\"\n[collect]\ntransitions = 1000000000\n[run]\ntransitions_per_message = {batch}\nkeep_until_stored = {keep_until_stored}\n"
+            "[[tasks]]\nname = \"bench\"\nlambda = 300.0\nrole = \"meta-test\"\n[collect]\ntransitions = 1000000000\n[run]\ntransitions_per_message = {batch}\n"
         );
         if let Some(Served { endpoint, domain }) = served {
             text += &format!("domain = \"{domain}\"\n[tunnel]\nlisten = \"{endpoint}\"\n");
@@ -232,7 +231,7 @@ impl BenchRun {
 /// environment takes to make the batch (`step` per transition), so the subscriber has taken the
 /// previous batch, as it has in an actor. Best of `RAW_REPEATS` rounds.
 fn send_floor(batch: usize, step: Duration) -> Duration {
-    let bench = BenchRun::new(batch, true, None);
+    let bench = BenchRun::new(batch, None);
     let stop = AtomicBool::new(false);
     let subscribed = AtomicBool::new(false);
     std::thread::scope(|scope| {
@@ -287,27 +286,16 @@ fn send_floor(batch: usize, step: Duration) -> Duration {
     })
 }
 
-/// The best of `CASE_REPEATS` runs of [`run_case`] with the default `run.keep_until_stored`.
+/// The best of `CASE_REPEATS` runs of [`run_case`].
 fn best_case(actors: usize, batch: usize, policy: &PolicySpec) -> Figures {
     (0..CASE_REPEATS)
-        .map(|_| run_case(actors, batch, policy, true))
+        .map(|_| run_case(actors, batch, policy))
         .min_by(|a, b| a.cpu_per_transition.total_cmp(&b.cpu_per_transition))
         .expect("runs")
 }
 
-/// One random-policy actor's CPU per transition at `batch` with `run.keep_until_stored` on and
-/// off, best of `CASE_REPEATS` runs each, taking turns so that interference hits both alike.
-fn keep_cost(batch: usize) -> (f64, f64) {
-    let (mut on, mut off) = (f64::INFINITY, f64::INFINITY);
-    for _ in 0..CASE_REPEATS {
-        on = on.min(run_case(1, batch, &PolicySpec::Random, true).cpu_per_transition);
-        off = off.min(run_case(1, batch, &PolicySpec::Random, false).cpu_per_transition);
-    }
-    (on, off)
-}
-
-fn run_case(actors: usize, batch: usize, policy: &PolicySpec, keep_until_stored: bool) -> Figures {
-    let bench = BenchRun::new(batch, keep_until_stored, None);
+fn run_case(actors: usize, batch: usize, policy: &PolicySpec) -> Figures {
+    let bench = BenchRun::new(batch, None);
     measure(&bench, bench.run.root(), actors, policy, Idle::Spin, &[])
 }
 
@@ -488,7 +476,7 @@ static TUNNEL_CASES: AtomicUsize = AtomicUsize::new(0);
 fn route_case(batch: usize, tunnel: bool) -> Figures {
     let (random, idle) = (PolicySpec::Random, Idle::AsTheStore);
     if !tunnel {
-        let bench = BenchRun::new(batch, true, None);
+        let bench = BenchRun::new(batch, None);
         return measure(&bench, bench.run.root(), 1, &random, idle, &[]);
     }
     let case = TUNNEL_CASES.fetch_add(1, Ordering::Relaxed);
@@ -504,7 +492,7 @@ fn route_case(batch: usize, tunnel: bool) -> Figures {
         endpoint: &endpoint,
         domain: &domains[0],
     };
-    let bench = BenchRun::new(batch, true, Some(served));
+    let bench = BenchRun::new(batch, Some(served));
     let host = SecondHost::start(&bench, &endpoint, domains);
     let watched = [host.serve.id(), host.join.id()];
     measure(&bench, &host.dir, 1, &random, idle, &watched)
@@ -590,14 +578,7 @@ fn main() {
         .skip(1)
         .filter(|a| !a.starts_with('-'))
         .collect();
-    const SECTIONS: [&str; 6] = [
-        "floor",
-        "policies",
-        "keep",
-        "actors",
-        "tunnel",
-        "validation",
-    ];
+    const SECTIONS: [&str; 5] = ["floor", "policies", "actors", "tunnel", "validation"];
     let (actor_counts, batches) = ([1, 2, 4], [1, 64, 1024]);
     let all_cases: Vec<String> = actor_counts
         .iter()
@@ -681,21 +662,6 @@ fn main() {
                 1e9 / rates[1],
                 per_transition * 1e9,
                 100.0 * (per_transition * rates[0] - 1.0)
-            );
-        }
-        println!();
-    }
-
-    if section("keep") {
-        println!("| batch (1 random actor) | actor CPU per transition, keep_until_stored on | off | cost of keeping |");
-        println!("| ---: | ---: | ---: | ---: |");
-        for batch in [64, 1024] {
-            let (on, off) = keep_cost(batch);
-            println!(
-                "| {batch} | {:.1} ns | {:.1} ns | {:+.1}% |",
-                on * 1e9,
-                off * 1e9,
-                100.0 * (on / off - 1.0)
             );
         }
         println!();

@@ -29,7 +29,7 @@ pub fn run() {
     println!("| batch | store CPU per transition stored | of which the checks | checks' share | store rate per CPU-second, checks on | checks off |");
     println!("| ---: | ---: | ---: | ---: | ---: | ---: |");
     for batch in [64, 1024] {
-        let bench = BenchRun::new(batch, true, None);
+        let bench = BenchRun::new(batch, None);
         let store = store_cpu_per_transition(&bench);
         let checks = checks_cpu_per_transition(&bench.config);
         println!(

@@ -59,7 +59,6 @@ pub mod actor {
         STORE_CHANGES: Counter "actor_store_changes_total", "Times a new store replaced the one the actor sent to, so the actor sent again what that store had not acknowledged.";
         TRANSITIONS_RESENT: Counter "actor_transitions_resent_total", "Transitions delivered again to a store that replaced the one they went to (not in transitions_published).";
         TRANSITIONS_UNACKNOWLEDGED: Gauge "actor_transitions_unacknowledged", "Transitions sent but not yet acknowledged as appended by the store, which the actor keeps to send again.";
-        TRANSITIONS_LOST: Counter "actor_transitions_lost_total", "Transitions delivered to no store because the store went away during the send and run.keep_until_stored is off; the restarted store counts them as missing.";
         BATCHES_PUBLISHED: Counter "actor_batches_published_total", "Batches sent to the store's service.";
         EPISODES: Counter "actor_episodes_total", "Episodes finished by the behaviour policy.";
         EPISODE_RETURN: Gauge "actor_episode_return", "Return of the last finished episode.";

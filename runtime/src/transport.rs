@@ -20,10 +20,8 @@
 //! store acknowledges what it has appended ([`StoreAck`], one service per task): per actor, every
 //! sequence number below `next_seq` is in the dataset file. An actor keeps what is not yet
 //! acknowledged and, when the store is replaced, sends it again from the acknowledged number, in
-//! order; the new store drops what the dead one had written as duplicates (see `crate::actor`,
-//! and `run.keep_until_stored` for the cheaper choice of keeping a rollout's batches only until
-//! the store is proven connected: more batches than its queue holds
-//! ([`TransitionPublisher::subscriber_buffer`]) delivered). Acknowledgements are cumulative, so
+//! order; the new store drops what the dead one had written as duplicates (see `crate::actor`).
+//! Acknowledgements are cumulative, so
 //! their service overwrites the oldest when an actor's buffer is full rather than ever blocking
 //! the store.
 //!

@@ -57,6 +57,10 @@ pub const MOVED: &[(&str, Fate)] = &[
         "run.control_buffer",
         Fate::Removed("the announcements a control subscriber buffers and a late joiner receives are a constant of the transport (256)"),
     ),
+    (
+        "run.keep_until_stored",
+        Fate::Removed("an actor always keeps its batches until the store acknowledges them; keeping them only until the store is proven connected saved 3 ns a transition (docs/EXPERIMENTS.md, T1)"),
+    ),
     ("run.batch_size", Fate::Renamed("run.transitions_per_message")),
     ("learner.batch", Fate::Renamed("learner.batch_size")),
     (

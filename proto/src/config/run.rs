@@ -48,14 +48,6 @@ pub struct RunConfig {
     #[default(64)]
     #[garde(custom(at_least(1)))]
     pub max_publishers: usize,
-    /// A rollout actor keeps a copy of every batch until the store acknowledges it appended, and
-    /// sends what is unacknowledged again to a store that replaced a killed one, so a store crash
-    /// loses nothing. `false` keeps a copy only until the store is proven connected: cheaper for
-    /// the actor (docs/BENCHMARKS.md, Transport), but a killed store's unwritten batches are then
-    /// lost (counted as missing). A replay sample (`dqn-online`) is always sent again from the
-    /// acknowledged number, since it needs no copy.
-    #[default(true)]
-    pub keep_until_stored: bool,
     /// Restarts of a crashed or hung child before the launcher gives up.
     #[default(5)]
     pub max_restarts: u32,

@@ -6,9 +6,7 @@
 //! the sender sends all of it again, oldest first and before anything new, so the new store sees
 //! each actor's numbers in order and drops what the dead one had already written as duplicates.
 //! A replay sample needs no copies: the actor writes it again from the sample, from the first
-//! unacknowledged number ([`Sent::Rewind`]). With `run.keep_until_stored` off, a rollout's batch
-//! is kept only until the store is proven connected ([`StoreLink`]), and a store's death loses
-//! what its queue held.
+//! unacknowledged number ([`Sent::Rewind`]).
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
@@ -34,9 +32,6 @@ const ACK_WAIT: Duration = Duration::from_micros(200);
 pub(super) enum Sent {
     /// The store's queue has it, and everything kept before it.
     Delivered,
-    /// The store went away during the send and the batch was not kept (`run.keep_until_stored`
-    /// off): the restarted store counts it as missing.
-    Lost,
     /// A new store replaced the one the replay sample went to: send the sample again from this
     /// number, the first one the store has not acknowledged.
     Rewind(u64),
@@ -50,7 +45,6 @@ pub(super) struct Sender<'a, 's> {
     acks: Subscriber<ipc::Service, StoreAck, ()>,
     task: u32,
     actor: u32,
-    keep_until_stored: bool,
     outbox: Outbox,
     /// Whether an acknowledgement has been read: the first says where the store stands.
     first_ack_seen: bool,
@@ -61,12 +55,11 @@ impl<'a, 's> Sender<'a, 's> {
         publisher: &'a TransitionPublisher<'s>,
         acks: Subscriber<ipc::Service, StoreAck, ()>,
         (task, actor): (u32, u32),
-        keep_until_stored: bool,
         metrics: &'a ActorMetrics,
     ) -> Self {
         Self {
             port: Port {
-                link: StoreLink::new(publisher.subscriber_buffer()),
+                link: StoreLink::default(),
                 publisher,
                 metrics,
                 waited: Duration::ZERO,
@@ -76,7 +69,6 @@ impl<'a, 's> Sender<'a, 's> {
             acks,
             task,
             actor,
-            keep_until_stored,
             outbox: Outbox::default(),
             first_ack_seen: false,
         }
@@ -134,30 +126,20 @@ impl<'a, 's> Sender<'a, 's> {
         mut batch: LoanedBatch<'a, 's>,
         control: &Control,
     ) -> Result<Sent, ActorError> {
-        let keep = self.keep_until_stored || !self.port.link.confirmed();
-        if !self.keep_until_stored {
-            self.outbox.clear();
+        if !self.wait_for_room(control)? {
+            return Ok(Sent::Stopped);
         }
-        if keep {
-            if !self.wait_for_room(control)? {
-                return Ok(Sent::Stopped);
-            }
-            let obs_len = self.port.publisher.obs_len();
-            self.outbox.keep(batch.first_seq(), batch.slots(), obs_len);
-            self.show_kept();
-        }
+        let obs_len = self.port.publisher.obs_len();
+        self.outbox.keep(batch.first_seq(), batch.slots(), obs_len);
+        self.show_kept();
         let (first_seq, count) = (batch.first_seq(), batch.slots_mut().len());
         let outbox = &self.outbox;
         let rewrite = |slots: &mut [TransitionSlot]| slots.copy_from_slice(outbox.newest());
-        match self
-            .port
-            .deliver(batch, rewrite, keep, self.keep_until_stored, control)?
-        {
+        match self.port.deliver(batch, rewrite, control)? {
             Outcome::Delivered => {
                 self.port.count_delivered(first_seq, count);
                 Ok(Sent::Delivered)
             }
-            Outcome::NoRecipient => Ok(Sent::Lost),
             Outcome::Stopped => Ok(Sent::Stopped),
             Outcome::Replaced => self.resend_outbox(control),
         }
@@ -204,12 +186,11 @@ impl<'a, 's> Sender<'a, 's> {
     ) -> Result<Sent, ActorError> {
         let (first_seq, count) = (batch.first_seq(), batch.slots().len());
         let rewrite = |slots: &mut [TransitionSlot]| write_sample(slots, sample, first_seq);
-        match self.port.deliver(batch, rewrite, true, true, control)? {
+        match self.port.deliver(batch, rewrite, control)? {
             Outcome::Delivered => {
                 self.port.count_delivered(first_seq, count);
                 Ok(Sent::Delivered)
             }
-            Outcome::NoRecipient => Ok(Sent::Lost),
             Outcome::Stopped => Ok(Sent::Stopped),
             Outcome::Replaced => Ok(self.rewind()),
         }
@@ -276,13 +257,12 @@ impl<'a, 's> Sender<'a, 's> {
                 let mut batch = self.port.publisher.loan(kept.first_seq, kept.slots.len())?;
                 batch.slots_mut().copy_from_slice(&kept.slots);
                 let rewrite = |slots: &mut [TransitionSlot]| slots.copy_from_slice(&kept.slots);
-                match self.port.deliver(batch, rewrite, true, true, control)? {
+                match self.port.deliver(batch, rewrite, control)? {
                     Outcome::Delivered => {
                         self.port.count_delivered(kept.first_seq, kept.slots.len())
                     }
                     Outcome::Replaced => continue 'again,
                     Outcome::Stopped => return Ok(Sent::Stopped),
-                    Outcome::NoRecipient => unreachable!("deliver retries kept batches"),
                 }
             }
             return Ok(Sent::Delivered);
@@ -295,8 +275,6 @@ enum Outcome {
     Delivered,
     /// A new store replaced the one earlier batches went to; the batch was not sent.
     Replaced,
-    /// Delivered to nobody and not to be retried.
-    NoRecipient,
     Stopped,
 }
 
@@ -313,14 +291,12 @@ struct Port<'a, 's> {
 
 impl<'a, 's> Port<'a, 's> {
     /// Sends `batch` once a store is subscribed. After a send that reached nobody it sends the
-    /// batch again, rewritten by `rewrite` under the same numbers, if `retry`; if `watch`, it
-    /// returns [`Outcome::Replaced`] instead of sending to a store that replaced the last one.
+    /// batch again, rewritten by `rewrite` under the same numbers; it returns
+    /// [`Outcome::Replaced`] instead of sending to a store that replaced the last one.
     fn deliver(
         &mut self,
         mut batch: LoanedBatch<'a, 's>,
         rewrite: impl Fn(&mut [TransitionSlot]),
-        retry: bool,
-        watch: bool,
         control: &Control,
     ) -> Result<Outcome, ActorError> {
         let (first_seq, count) = (batch.first_seq(), batch.slots().len());
@@ -340,7 +316,7 @@ impl<'a, 's> Port<'a, 's> {
             };
             let replaced = self.link.replaced(subscribers);
             self.link.observe(subscribers);
-            if replaced && watch {
+            if replaced {
                 return Ok(Outcome::Replaced);
             }
             let delivery = match batch.send() {
@@ -350,11 +326,7 @@ impl<'a, 's> Port<'a, 's> {
             };
             self.waited += delivery.backpressure;
             if delivery.recipients > 0 {
-                self.link.delivered();
                 return Ok(Outcome::Delivered);
-            }
-            if !retry {
-                return Ok(Outcome::NoRecipient);
             }
             // Not yet connected, or the store died: send it again under the same numbers.
             self.metrics.batches_resent.inc();
@@ -431,63 +403,33 @@ impl Outbox {
         }
     }
 
-    fn clear(&mut self) {
-        while let Some(kept) = self.batches.pop_front() {
-            self.spare.push(kept.slots);
-        }
-        self.kept = 0;
-    }
-
     fn transitions(&self) -> usize {
         self.kept
     }
 }
 
-/// What the actor knows of its connection to the store. iceoryx2 0.10 connects a subscriber to a
-/// new publisher only when the subscriber next looks for data; until then a batch sent into its
-/// full queue is dropped (0 recipients). A subscriber that has received more batches than its
-/// queue holds has taken some, so it is connected, and stays so until it goes away.
-#[derive(Debug)]
+/// The stores the actor's batches went to. iceoryx2 0.10 connects a subscriber to a new publisher
+/// only when the subscriber next looks for data; until then a batch sent into its full queue is
+/// dropped (0 recipients), which is why every rollout batch is kept until acknowledged.
+#[derive(Debug, Default)]
 struct StoreLink {
-    /// The subscriber's queue length: more batches than this delivered prove the connection.
-    queue: usize,
     /// Subscribers attached when the last batch was sent.
     subscribers: SubscriberSet,
-    /// Batches delivered since that set last changed.
-    delivered: usize,
 }
 
 impl StoreLink {
-    fn new(queue: usize) -> Self {
-        Self {
-            queue,
-            subscribers: SubscriberSet::default(),
-            delivered: 0,
-        }
-    }
-
-    /// A new store (or a dead one cleaned up) changes the set: its connection is unproven. No
-    /// store at all changes nothing: the last one is remembered, to tell a successor.
+    /// A new store (or a dead one cleaned up) changes the set. No store at all changes nothing:
+    /// the last one is remembered, to tell a successor.
     fn observe(&mut self, subscribers: SubscriberSet) {
         if !subscribers.is_empty() && subscribers != self.subscribers {
             self.subscribers = subscribers;
-            self.delivered = 0;
         }
-    }
-
-    fn delivered(&mut self) {
-        self.delivered = self.delivered.saturating_add(1);
     }
 
     /// True when a store is subscribed but the set differs from the one the last batch was sent
     /// to: a store that held batches may have died and been replaced.
     fn replaced(&self, now: SubscriberSet) -> bool {
         !self.subscribers.is_empty() && !now.is_empty() && now != self.subscribers
-    }
-
-    /// True once the store has provably taken batches from this publisher's queue.
-    fn confirmed(&self) -> bool {
-        !self.subscribers.is_empty() && self.delivered > self.queue
     }
 }
 

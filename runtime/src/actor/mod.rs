@@ -264,13 +264,7 @@ pub fn run(
     let mut feed = Feed {
         source,
         publisher: &publisher,
-        sender: Sender::new(
-            &publisher,
-            acks,
-            (task_id, actor),
-            config.run.keep_until_stored,
-            &metrics,
-        ),
+        sender: Sender::new(&publisher, acks, (task_id, actor), &metrics),
         metrics: &metrics,
         seq: 0,
         limit: transition_limit(options, config),
@@ -355,7 +349,6 @@ impl<'a, 's> Feed<'a, 's> {
             self.metrics.backpressure_wait.inc_by(waited.as_secs_f64());
             match sent {
                 Sent::Delivered => {}
-                Sent::Lost => self.metrics.transitions_lost.inc_by(count as u64),
                 Sent::Rewind(to) => {
                     self.seq = to;
                     continue;

@@ -28,14 +28,13 @@ pub enum Reuse {
 }
 
 /// Keys (and sections, ending in `.`) whose values do not reach a run's artefacts.
-const OPERATIONAL: [&str; 12] = [
+const OPERATIONAL: [&str; 11] = [
     "run.dir",
     "run.metrics_host",
     "run.metrics_port",
     "run.transitions_per_message",
     "run.subscriber_buffer",
     "run.max_publishers",
-    "run.keep_until_stored",
     "run.max_restarts",
     "run.hang_timeout_seconds",
     "run.domain",
