@@ -7,7 +7,8 @@
 //!   `uavmeta_proto::stats::EpisodeMetrics`, and evaluation: exact over every start cell where
 //!   the world is deterministic, Monte-Carlo over fixed episode seeds where the rain moves.
 //! - [`planner`]: the planner reference, a beam search that knows the world (docs/MODEL.md section
-//!   5), the measure of what is achievable.
+//!   9), the measure of what is achievable; [`schedule`] improves its plan by local search over
+//!   the device schedule, each schedule flown by its exact cheapest path.
 //! - [`heuristics`]: random, stalest-first, greedy, epsilon-mixed and replayed policies, and the
 //!   `PolicySpec` parser behind `--policy` and `collect.policy`.
 //! - [`validate`]: whether a transition is one the world makes ([`validate::Validator`]), which
@@ -16,5 +17,6 @@
 pub mod heuristics;
 pub mod planner;
 pub mod rollout;
+pub mod schedule;
 pub mod validate;
 pub mod world;

@@ -98,9 +98,15 @@ impl Planner {
         }
     }
 
-    /// The cheapest action sequence the searches find from `world`'s current state to its
-    /// horizon (the first weight's on a tie).
+    /// The cheapest action sequence from `world`'s current state to its horizon: the beam
+    /// searches' best ([`Planner::beam`]), then improved by local search over its device
+    /// schedule with the exact cheapest path of each ([`crate::schedule`]).
     pub fn plan(&self, world: &World) -> Plan {
+        crate::schedule::improve(world, self.beam(world))
+    }
+
+    /// The cheapest action sequence the beam searches find (the first weight's on a tie).
+    pub fn beam(&self, world: &World) -> Plan {
         let reach = Reach::new(world);
         self.h_power_weights
             .iter()

@@ -116,7 +116,7 @@ fn a_narrow_beam_is_not_exact_on_every_small_world() {
         let grid = cfg.world.grid_cells;
         (0..grid * grid).any(|cell| {
             let world = World::new(&cfg.world, &task, 3).with_start((cell % grid, cell / grid));
-            narrow.plan(&world).cost > exhaustive(&world) + 1e-6
+            narrow.beam(&world).cost > exhaustive(&world) + 1e-6
         })
     });
     assert!(
@@ -194,8 +194,8 @@ fn the_default_search_finds_the_wide_searchs_plans_where_serving_out_of_order_pa
     let (mut sum_default, mut sum_wide) = (0.0, 0.0);
     for cell in 0..16 {
         let world = World::new(&cfg.world, &task, 0).with_start((cell % 4, cell / 4));
-        sum_default += default.plan(&world).cost;
-        sum_wide += wide.plan(&world).cost;
+        sum_default += default.beam(&world).cost;
+        sum_wide += wide.beam(&world).cost;
     }
     assert!(
         (sum_default - sum_wide).abs() <= 1e-9 * sum_wide,
@@ -241,9 +241,9 @@ fn the_portfolio_keeps_the_cheapest_of_its_searches() {
     let mut cheapest_weights = std::collections::BTreeSet::new();
     for cell in (0..grid * grid).step_by(10) {
         let world = World::new(&cfg.world, &task, 0).with_start((cell % grid, cell / grid));
-        let plan = portfolio.plan(&world);
+        let plan = portfolio.beam(&world);
         assert!((replay(&world, &plan.actions) - plan.cost).abs() <= 1e-6 * plan.cost.abs());
-        let costs: Vec<f64> = alone.iter().map(|p| p.plan(&world).cost).collect();
+        let costs: Vec<f64> = alone.iter().map(|p| p.beam(&world).cost).collect();
         let (best, min) =
             costs.iter().enumerate().fold(
                 (0, f64::INFINITY),
@@ -260,6 +260,44 @@ fn the_portfolio_keeps_the_cheapest_of_its_searches() {
         cheapest_weights.len() > 1,
         "one weight ({cheapest_weights:?}) was the cheapest from every cell: the portfolio adds nothing here"
     );
+}
+
+/// Where power dominates (the default layout at lambda 2000, and at -90 dBm, where every power is
+/// 10x), the beam's stalest-first guide misses schedules that serve near devices more often: the
+/// local search over its schedule (`uavmeta_world::schedule`) finds cheaper plans from every
+/// start cell tried, each one what the world charges, below the bound, never worse than the beam.
+#[test]
+fn the_schedule_search_improves_the_beam_where_power_dominates() {
+    for (world_toml, lambda) in [
+        ("layout_seed = 7", 2000.0),
+        ("layout_seed = 7\nnoise_dbm = -90.0", 300.0),
+    ] {
+        let cfg = config(world_toml);
+        let task = TaskConfig::one_off(lambda, None);
+        let planner = Planner::new(&cfg.planner);
+        let (mut beam_sum, mut plan_sum) = (0.0, 0.0);
+        for k in 0..8u32 {
+            let cell = 7 * k % 100;
+            let world = World::new(&cfg.world, &task, 0).with_start((cell % 10, cell / 10));
+            let (beam, plan) = (planner.beam(&world), planner.plan(&world));
+            let charged = replay(&world, &plan.actions);
+            assert!(
+                (charged - plan.cost).abs() <= 1e-9 * charged.abs(),
+                "{world_toml}"
+            );
+            assert!(plan.cost <= beam.cost, "{world_toml}, cell {cell}");
+            assert!(
+                -plan.cost <= world.return_bound(),
+                "{world_toml}, cell {cell}"
+            );
+            beam_sum += beam.cost;
+            plan_sum += plan.cost;
+        }
+        assert!(
+            plan_sum < beam_sum * (1.0 - 1e-3),
+            "{world_toml}, lambda {lambda}: the schedule search gained nothing ({plan_sum} against {beam_sum})"
+        );
+    }
 }
 
 /// A width of 0, and a width and horizon whose search cannot fit the memory bound, are refused

@@ -1,0 +1,356 @@
+//! Local improvement of a plan (docs/MODEL.md section 9): its device schedule changed one step at
+//! a time, each schedule flown by its exact cheapest path.
+//!
+//! Without rain a plan's cost splits in two. The AoI part depends on the schedule alone (which
+//! device is served at each step); the power part is `lambda / K * sum_t P(c_t, s_t)`, the power
+//! of serving s_t from the UAV's cell c_t, and for a fixed schedule its cheapest path is a
+//! shortest path over (step, cell): dynamic programming, exact. Where power weighs much the beam
+//! search's stalest-first guide leaves good schedules unseen (docs/EXPERIMENTS.md, P3); this
+//! searches them from its best plan:
+//!
+//! - `F[t][c]`, the least power cost of steps 0..t arriving at cell c at step t, and `B[t][c]`, the
+//!   least from cell c at step t to the end, price a change of one step's device, or a swap of
+//!   two neighbouring steps', in O(cells) against the whole schedule's O(T x cells);
+//! - a sweep tries every step with every other device and every neighbouring swap, and keeps
+//!   each change that lowers the total; sweeps repeat until one finds nothing, at most
+//!   [`MAX_SWEEPS`]; the AoI part of a change is priced from the two devices' service steps;
+//! - then [`KICKS`] times a window of the best schedule is redrawn and the descent repeated
+//!   (iterated local search), keeping what is cheaper. The draws are seeded by the world's
+//!   state, so a plan is still a function of the state alone.
+//!
+//! The improved plan is scored by the world itself and kept only if cheaper than the one it
+//! started from, so the planner never gets worse.
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use crate::planner::Plan;
+use crate::world::{Move, World};
+
+/// Sweeps over the schedule at most: each costs about (T x K) x cells operations.
+pub const MAX_SWEEPS: usize = 50;
+
+/// Kicks of the iterated local search: each redraws [`KICK_WIDTH`] neighbouring steps' devices
+/// of the best schedule so far and descends again. 20 / 40 / 60 kicks reached -11 735 / -11 651 /
+/// -11 613 on lambda-300 at -90 dBm (docs/EXPERIMENTS.md, P3), at about 0.3 s a start cell for 40.
+const KICKS: usize = 40;
+
+/// Steps whose devices a kick redraws.
+const KICK_WIDTH: usize = 8;
+
+/// A hash of the world's state, the seed of the kicks: a plan stays a function of the state.
+fn state_key(world: &World) -> u64 {
+    let mut h = 0xcbf2_9ce4_8422_2325u64;
+    let (x, y) = world.uav();
+    for v in [x as u64, y as u64, world.t() as u64]
+        .into_iter()
+        .chain(world.aoi().iter().map(|&a| a as u64))
+    {
+        h = (h ^ v).wrapping_mul(0x100_0000_01b3);
+    }
+    h
+}
+
+/// `plan` improved as the module doc says, if `world` (at its current state) has no rain ahead;
+/// otherwise, or if nothing improves, `plan` itself.
+pub fn improve(world: &World, plan: Plan) -> Plan {
+    if world.rain_schedule().iter().any(Option::is_some) || plan.actions.is_empty() {
+        return plan;
+    }
+    let k = world.devices();
+    let mut best = Schedule::new(world, plan.actions.iter().map(|a| a % k).collect());
+    best.descend();
+    let mut rng = ChaCha8Rng::seed_from_u64(state_key(world));
+    let steps = best.devices.len();
+    for _ in 0..KICKS {
+        let mut devices = best.devices.clone();
+        let width = KICK_WIDTH.min(steps);
+        let from = rng.random_range(0..=steps - width);
+        for d in &mut devices[from..from + width] {
+            *d = rng.random_range(0..k);
+        }
+        let mut trial = Schedule::new(world, devices);
+        trial.descend();
+        if trial.total() < best.total() - 1e-9 * best.total().abs() {
+            best = trial;
+        }
+    }
+    let actions = best.actions();
+    let cost = replay(world, &actions);
+    if cost < plan.cost {
+        Plan { actions, cost }
+    } else {
+        plan
+    }
+}
+
+/// What the world charges for `actions` from its current state.
+fn replay(world: &World, actions: &[usize]) -> f64 {
+    let mut w = world.clone();
+    actions.iter().map(|&a| -w.step(a).reward).sum()
+}
+
+/// A device schedule from the world's state, with its tables of cheapest paths.
+struct Schedule<'w> {
+    world: &'w World,
+    devices: Vec<usize>,
+    /// Cells, row-major; `next[c]` are the cells one move from c, in move order.
+    cells: usize,
+    next: Vec<[usize; 5]>,
+    start: usize,
+    /// `F[t * cells + c]` and `B[t * cells + c]` (module doc); `B` has T + 1 rows.
+    forward: Vec<f64>,
+    backward: Vec<f64>,
+    /// The steps at which each device is served, ascending.
+    served: Vec<Vec<usize>>,
+}
+
+impl<'w> Schedule<'w> {
+    fn new(world: &'w World, devices: Vec<usize>) -> Self {
+        let l = world.grid_cells();
+        let cell = |c: usize| ((c as u32) % l, (c as u32) / l);
+        let index = |(x, y): (u32, u32)| (y * l + x) as usize;
+        let cells = (l * l) as usize;
+        let next = (0..cells)
+            .map(|c| std::array::from_fn(|m| index(world.moved(cell(c), Move::from_index(m)))))
+            .collect();
+        let mut s = Schedule {
+            world,
+            devices,
+            cells,
+            next,
+            start: index(world.uav()),
+            forward: Vec::new(),
+            backward: Vec::new(),
+            served: Vec::new(),
+        };
+        s.tabulate();
+        s
+    }
+
+    fn cell(&self, c: usize) -> (u32, u32) {
+        let l = self.world.grid_cells();
+        ((c as u32) % l, (c as u32) / l)
+    }
+
+    /// lambda / K times the power of serving `device` from cell `c`.
+    fn power(&self, c: usize, device: usize) -> f64 {
+        self.world.power_weight() * self.world.transmission_at(self.cell(c), device, None).0
+    }
+
+    /// F and B of the current schedule.
+    fn tabulate(&mut self) {
+        let (n, t_max) = (self.cells, self.devices.len());
+        let mut forward = vec![f64::INFINITY; (t_max + 1) * n];
+        forward[self.start] = 0.0;
+        for t in 0..t_max {
+            for c in 0..n {
+                let here = forward[t * n + c];
+                if here.is_finite() {
+                    let cost = here + self.power(c, self.devices[t]);
+                    for &to in &self.next[c] {
+                        let slot = &mut forward[(t + 1) * n + to];
+                        *slot = slot.min(cost);
+                    }
+                }
+            }
+        }
+        let mut backward = vec![0.0; (t_max + 1) * n];
+        for t in (0..t_max).rev() {
+            for c in 0..n {
+                let onward = self.next[c]
+                    .iter()
+                    .map(|&to| backward[(t + 1) * n + to])
+                    .fold(f64::INFINITY, f64::min);
+                backward[t * n + c] = self.power(c, self.devices[t]) + onward;
+            }
+        }
+        self.forward = forward;
+        self.backward = backward;
+        let mut served = vec![Vec::new(); self.world.devices()];
+        for (t, &device) in self.devices.iter().enumerate() {
+            served[device].push(t);
+        }
+        self.served = served;
+    }
+
+    /// Device j's AoI cost over the horizon when served at the ascending steps `times`: from its
+    /// age now until its first service, then 1, 2, .. after each (capped at A_max).
+    fn device_cost(&self, j: usize, times: impl Iterator<Item = usize>) -> f64 {
+        let cap = u64::from(self.world.aoi_max());
+        // The sum of min(from + i, cap) over i < n.
+        let ages = |from: u64, n: u64| {
+            let below = if from > cap {
+                0
+            } else {
+                (cap - from + 1).min(n)
+            };
+            below * from + below * below.saturating_sub(1) / 2 + (n - below) * cap
+        };
+        let now = u64::from(self.world.aoi()[j]);
+        let (mut sum, mut last) = (0, None);
+        for t in times.chain(std::iter::once(self.devices.len())) {
+            sum += match last {
+                None => ages(now + 1, t as u64),
+                Some(s) => ages(1, (t - s) as u64),
+            };
+            last = Some(t);
+        }
+        self.world.delta()[j] * sum as f64
+    }
+
+    /// How much the AoI cost changes with `devices[t..t + with.len()]` replaced by `with`: only
+    /// the devices served in that window before or after change.
+    fn aoi_change(&self, t: usize, with: &[usize]) -> f64 {
+        let end = t + with.len();
+        let mut changed: Vec<usize> = self.devices[t..end].iter().chain(with).copied().collect();
+        changed.sort_unstable();
+        changed.dedup();
+        changed
+            .into_iter()
+            .map(|j| {
+                let times = &self.served[j];
+                let before = times.iter().copied().filter(|&s| s < t);
+                let inside = (t..end).filter(|&s| with[s - t] == j);
+                let after = times.iter().copied().filter(|&s| s >= end);
+                self.device_cost(j, before.chain(inside).chain(after))
+                    - self.device_cost(j, times.iter().copied())
+            })
+            .sum()
+    }
+
+    /// The least power cost of the whole schedule with `devices[t..t + with.len()]` replaced by
+    /// `with` (one or two steps).
+    fn power_with(&self, t: usize, with: &[usize]) -> f64 {
+        let n = self.cells;
+        // From the end of the replaced steps back to step t: the cheapest cost-to-go of each cell.
+        let mut to_go: Vec<f64> = self.backward[(t + with.len()) * n..][..n].to_vec();
+        for &device in with.iter().rev() {
+            to_go = (0..n)
+                .map(|c| {
+                    let onward = self.next[c]
+                        .iter()
+                        .map(|&to| to_go[to])
+                        .fold(f64::INFINITY, f64::min);
+                    self.power(c, device) + onward
+                })
+                .collect();
+        }
+        (0..n)
+            .map(|c| self.forward[t * n + c] + to_go[c])
+            .fold(f64::INFINITY, f64::min)
+    }
+
+    /// The AoI cost of `devices` from the world's state (no rain: every transmission succeeds).
+    fn aoi_cost(&self, devices: &[usize]) -> f64 {
+        let cap = self.world.aoi_max();
+        let delta = self.world.delta();
+        let mut aoi = self.world.aoi().to_vec();
+        let mut cost = 0.0;
+        for &served in devices {
+            for a in aoi.iter_mut() {
+                *a = a.saturating_add(1).min(cap);
+            }
+            aoi[served] = 1;
+            cost += aoi
+                .iter()
+                .zip(delta)
+                .map(|(&a, &d)| d * f64::from(a))
+                .sum::<f64>();
+        }
+        cost
+    }
+
+    /// Sweeps until one keeps nothing, at most [`MAX_SWEEPS`].
+    fn descend(&mut self) {
+        for _ in 0..MAX_SWEEPS {
+            if !self.sweep() {
+                break;
+            }
+        }
+    }
+
+    /// The schedule's cost along its cheapest path.
+    fn total(&self) -> f64 {
+        self.aoi_cost(&self.devices) + self.power_with(0, &[])
+    }
+
+    /// One pass over every single-step change and neighbouring swap; true if one was kept.
+    fn sweep(&mut self) -> bool {
+        let k = self.world.devices();
+        let mut current_aoi = self.aoi_cost(&self.devices);
+        let mut best = current_aoi + self.power_with(0, &[]);
+        let mut improved = false;
+        for t in 0..self.devices.len() {
+            let mut candidates: Vec<Vec<usize>> = (0..k)
+                .filter(|&d| d != self.devices[t])
+                .map(|d| vec![d])
+                .collect();
+            if t + 1 < self.devices.len() && self.devices[t] != self.devices[t + 1] {
+                candidates.push(vec![self.devices[t + 1], self.devices[t]]);
+            }
+            for with in candidates {
+                let aoi = self.aoi_change(t, &with);
+                let total = current_aoi + aoi + self.power_with(t, &with);
+                // A margin against float noise: a change must gain, not tie.
+                if total < best - 1e-9 * best.abs() {
+                    best = total;
+                    current_aoi += aoi;
+                    self.devices[t..t + with.len()].copy_from_slice(&with);
+                    self.tabulate();
+                    improved = true;
+                }
+            }
+        }
+        improved
+    }
+
+    /// The schedule's actions along its cheapest path (the first cheapest move on a tie).
+    fn actions(&self) -> Vec<usize> {
+        let (n, k) = (self.cells, self.world.devices());
+        let mut c = self.start;
+        let mut actions = Vec::with_capacity(self.devices.len());
+        for (t, &device) in self.devices.iter().enumerate() {
+            let m = (0..5)
+                .min_by(|&a, &b| {
+                    let cost = |m: usize| self.backward[(t + 1) * n + self.next[c][m]];
+                    cost(a).total_cmp(&cost(b))
+                })
+                .expect("five moves");
+            actions.push(m * k + device);
+            c = self.next[c][m];
+        }
+        actions
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use uavmeta_proto::config::{Config, TaskConfig};
+
+    use super::*;
+
+    /// The per-device AoI sums and their changes equal the step-by-step simulation, with an AoI
+    /// cap that binds and unequal weights.
+    #[test]
+    fn the_aoi_changes_equal_the_simulation() {
+        let text = "[world]\ngrid_cells = 3\ndevices = 3\nhorizon = 30\naoi_max = 7\ndelta = [1.0, 2.5, 0.5]\n";
+        let cfg = Config::from_toml_str(text, "test", &[]).expect("config");
+        let world = World::new(&cfg.world, &TaskConfig::one_off(500.0, None), 1);
+        let devices: Vec<usize> = (0..30).map(|t| (t * t + t / 3) % 3).collect();
+        let schedule = Schedule::new(&world, devices.clone());
+        let total: f64 = (0..3)
+            .map(|j| schedule.device_cost(j, schedule.served[j].iter().copied()))
+            .sum();
+        assert!((total - schedule.aoi_cost(&devices)).abs() < 1e-9);
+        for (t, with) in [(0, vec![2]), (13, vec![0]), (28, vec![1, 0]), (29, vec![1])] {
+            let mut changed = devices.clone();
+            changed[t..t + with.len()].copy_from_slice(&with);
+            let expected = schedule.aoi_cost(&changed) - schedule.aoi_cost(&devices);
+            assert!(
+                (schedule.aoi_change(t, &with) - expected).abs() < 1e-9,
+                "{t} {with:?}"
+            );
+        }
+    }
+}
