@@ -8,17 +8,21 @@
 //! the reproduction's.
 
 use tch::Tensor;
+use uavmeta_proto::config::LearnerConfig;
 use uavmeta_proto::method::Algo;
 
 use crate::bc::Bc;
+use crate::bcq::Bcq;
 use crate::cql::Cql;
-use crate::dqn::Dqn;
+use crate::dqn::{next_value, Dqn, TdConfig};
+use crate::qnet::{q_values, Acting, QNetwork};
 use crate::transitions::Transitions;
 
 /// What every loss is made from, for one minibatch, or for T tasks' shots at once (a leading
 /// task dimension on every tensor, as MAML evaluates them).
 pub struct Terms<'a> {
-    /// `Q_w(s, .)`: [B, A], or [T, B, A], with its graph back to the weights.
+    /// The network's outputs on s, [B, heads * A] (or [T, ..]) with their graph back to the
+    /// weights: `Q_w(s, .)` itself for a one-head algorithm.
     pub q: &'a Tensor,
     /// The transitions (normalised, rewards scaled).
     pub batch: &'a Transitions,
@@ -31,6 +35,8 @@ pub struct Terms<'a> {
     /// The conservative weight alpha of eq. 8 for this run (`learner.alpha`, or `meta.alpha` in
     /// MAML and pretraining); algorithms without one ignore it.
     pub alpha: f64,
+    /// The `[learner]` section, for an algorithm's own settings (`learner.bcq_threshold`).
+    pub learner: &'a LearnerConfig,
 }
 
 /// An offline learning algorithm: the loss a Q-network minimises on logged transitions.
@@ -47,14 +53,51 @@ pub trait OfflineAlgorithm: Sync {
     fn learns_values(&self) -> bool {
         true
     }
+
+    /// Blocks of A outputs the network needs: the Q-values, then the algorithm's own.
+    fn heads(&self) -> usize {
+        1
+    }
+
+    /// Eq. 7's bootstrap value `V(s')` [.., B], without a graph, from the target network's
+    /// outputs on s' and (called only if needed) the online network's: by default `max_a'
+    /// Qhat(s', a')`, or double DQN's choice with `learner.double_dqn`.
+    fn next_value(
+        &self,
+        td: &TdConfig,
+        _learner: &LearnerConfig,
+        next_target: &Tensor,
+        next_online: &dyn Fn() -> Tensor,
+    ) -> Tensor {
+        let heads = self.heads();
+        next_value(td.bootstrap, &q_values(next_target, heads), || {
+            q_values(&next_online(), heads)
+        })
+    }
+
+    /// How a network it trained acts, if not greedily on its Q-values: outputs [.., heads * A]
+    /// to the values [.., A] whose argmax is the action.
+    fn acting(&self, _learner: &LearnerConfig) -> Option<Acting> {
+        None
+    }
 }
 
 /// Every algorithm's loss, in the order of `uavmeta_proto::method::ALGORITHMS`.
-pub const ALGORITHMS: &[&dyn OfflineAlgorithm] = &[&Cql, &Dqn, &Bc];
+pub const ALGORITHMS: &[&dyn OfflineAlgorithm] = &[&Cql, &Dqn, &Bc, &Bcq];
 
 /// The loss of `algo`.
 pub fn of(algo: Algo) -> &'static dyn OfflineAlgorithm {
     ALGORITHMS[algo.index()]
+}
+
+/// Makes `q` a network `algo` trains and acts with: its heads (the Q-values kept) and its
+/// acting rule under `learner`'s settings.
+pub fn prepare(q: &mut QNetwork, algo: Algo, learner: &LearnerConfig) {
+    let algorithm = of(algo);
+    if q.config().heads != algorithm.heads() {
+        *q = q.with_heads(algorithm.heads());
+    }
+    q.set_acting(algorithm.acting(learner));
 }
 
 #[cfg(test)]

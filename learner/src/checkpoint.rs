@@ -26,6 +26,7 @@ use tch::Tensor;
 use uavmeta_proto::config::Config;
 use uavmeta_proto::method::Method;
 
+use crate::algorithm;
 use crate::qnet::{QNetwork, QNetworkConfig};
 
 /// Version of the metadata layout; bumped when [`CheckpointMeta`] changes meaning.
@@ -43,6 +44,9 @@ pub struct CheckpointMeta {
     /// Network output size, 5K.
     pub actions: usize,
     pub hidden: Vec<usize>,
+    /// Blocks of `actions` outputs (`QNetworkConfig::heads`); written only when not 1.
+    #[serde(default = "one_head", skip_serializing_if = "is_one_head")]
+    pub heads: usize,
     /// `Config::world_hash` of the world it was trained in.
     pub world_hash: u64,
     /// Epochs (or meta-epochs) of training behind these weights.
@@ -145,6 +149,7 @@ pub fn save(
         obs_len: q.obs_len(),
         actions: q.actions(),
         hidden: q.hidden().to_vec(),
+        heads: q.config().heads,
         world_hash: config.world_hash(),
         epoch,
         weights_len: bytes.len() as u64,
@@ -318,13 +323,22 @@ pub fn load(path: &Path, config: &Config) -> Result<(QNetwork, CheckpointMeta), 
     }
 
     verify(&paths.weights, meta.weights_len, meta.weights_crc32)?;
-    let mut q = QNetworkConfig::new(obs_len, actions, &meta.hidden).init(0);
+    let heads = meta.heads;
+    let mut q = QNetworkConfig {
+        heads,
+        ..QNetworkConfig::new(obs_len, actions, &meta.hidden)
+    }
+    .init(0);
     q.vs.load(&paths.weights)
         .map_err(|source| CheckpointError::Weights {
             path: paths.weights.clone(),
             action: "load",
             source,
         })?;
+    // It acts as the algorithm that trained it does.
+    if let Some(algo) = Method::from_name(&meta.algorithm).and_then(Method::algo) {
+        q.set_acting(algorithm::of(algo).acting(&config.learner));
+    }
     Ok((q, meta))
 }
 
@@ -417,4 +431,12 @@ fn rename(from: &Path, to: &Path) -> Result<(), CheckpointError> {
         action: "rename into place",
         source,
     })
+}
+
+fn one_head() -> usize {
+    1
+}
+
+fn is_one_head(heads: &usize) -> bool {
+    *heads == 1
 }

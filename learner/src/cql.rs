@@ -10,6 +10,7 @@
 //! `Q(s, .)` is `(softmax(Q(s, .)) - onehot(a_data)) / B` per row.
 
 use tch::Tensor;
+use uavmeta_proto::config::LearnerConfig;
 
 use crate::algorithm::{OfflineAlgorithm, Terms};
 use crate::dqn::q_taken;
@@ -62,5 +63,6 @@ pub fn cql_loss(
         td: &td,
         mean: &mean,
         alpha,
+        learner: &LearnerConfig::default(),
     })
 }

@@ -71,36 +71,28 @@ impl TdConfig {
         }
     }
 
-    /// Each transition's term of eq. 7 with these options, [B] (their mean is the loss): the
-    /// whole target computation in one place, for offline training, the online DQN agent and
-    /// MAML's inner and outer losses.
+    /// Each transition's term of eq. 7 with these options and the bootstrap value of `algorithm`
+    /// under `learner`'s settings, [B]
+    /// (their mean is the loss): the whole target computation in one place, for offline
+    /// training, the online DQN agent and MAML's inner and outer losses.
     ///
-    /// `q` is `Q_w(s, .)` [B, A] with its graph. `target` and `online` are the target network
-    /// `Qhat` and the online network `Q_w` as functions of a batch of states; they are evaluated
-    /// on `batch.next_obs` without a graph, `online` only for [`Bootstrap::Double`].
+    /// `q` is the network's outputs on s, [B, heads * A], with its graph. `target` and `online`
+    /// are the target network `Qhat` and the online network `Q_w` as functions of a batch of
+    /// states; they are evaluated on `batch.next_obs` without a graph, `online` only where the
+    /// bootstrap value needs it (double DQN, BCQ).
     pub fn td_errors(
         &self,
+        (algorithm, learner): (&dyn OfflineAlgorithm, &LearnerConfig),
         q: &Tensor,
         batch: &Transitions,
-        target: impl FnOnce(&Tensor) -> Tensor,
-        online: impl FnOnce(&Tensor) -> Tensor,
+        target: impl Fn(&Tensor) -> Tensor,
+        online: impl Fn(&Tensor) -> Tensor,
     ) -> Tensor {
-        let next_v = self.next_values(batch, target, online);
+        let next_v = tch::no_grad(|| {
+            let next_target = target(&batch.next_obs); // Qhat(s', .) [B, heads * A]
+            algorithm.next_value(self, learner, &next_target, &|| online(&batch.next_obs))
+        });
         td_errors(q, &next_v, batch, self.gamma, self.huber)
-    }
-
-    /// `V(s')` [B] of each transition of `batch`, without a graph: [`next_value`] of the target
-    /// network `Qhat(s', .)`, with the online network's choice for [`Bootstrap::Double`].
-    fn next_values(
-        &self,
-        batch: &Transitions,
-        target: impl FnOnce(&Tensor) -> Tensor,
-        online: impl FnOnce(&Tensor) -> Tensor,
-    ) -> Tensor {
-        tch::no_grad(|| {
-            let next_q_target = target(&batch.next_obs); // Qhat(s', .) [B, A]
-            next_value(self.bootstrap, &next_q_target, || online(&batch.next_obs))
-        })
     }
 }
 

@@ -5,6 +5,8 @@
 //!   and [`algorithm::ALGORITHMS`], where each is registered; one file each:
 //!   - [`cql`]: conservative Q-learning, paper eq. 8;
 //!   - [`bc`]: behaviour cloning (d3rlpy's DiscreteBC), the offline baseline;
+//!   - [`bcq`]: discrete batch-constrained Q-learning (d3rlpy's DiscreteBCQ): Q-learning over
+//!     the actions an imitation head says the data supports;
 //!   - [`dqn`]: DQN, paper eq. 7, and the one TD-target computation every learner uses
 //!     ([`dqn::TdConfig::td_errors`]; double DQN and Huber as options, off by default).
 //! - [`qnet`]: [`qnet::QNetwork`], the MLP of docs/MODEL.md section 5, built by
@@ -58,6 +60,7 @@
 
 pub mod algorithm;
 pub mod bc;
+pub mod bcq;
 pub mod checkpoint;
 pub mod cql;
 pub mod dqn;

@@ -1,21 +1,28 @@
 //! The Q-network of docs/MODEL.md section 5: an MLP from the normalised observation (2 + K values)
-//! through ReLU hidden layers to one Q-value per action (5K).
+//! through ReLU hidden layers to one Q-value per action (5K). An algorithm that learns more than
+//! Q-values (discrete BCQ's imitation logits) asks for more heads: blocks of 5K outputs after the
+//! Q-values, on the same hidden layers, and says how the network acts on them.
 //!
 //! The parameters live in a `VarStore` (for Adam and safetensors checkpoints) and are also kept in
 //! layer order, so that the same forward pass runs on an explicit parameter list: MAML's fast
 //! weights `w_i = w0 - eta_inner * grad` are plain tensors, not variables of a store.
+
+use std::sync::Arc;
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use tch::{nn, Device, Tensor};
 use uavmeta_proto::config::WorldConfig;
 
-/// The architecture of a [`QNetwork`]: `obs_len -> hidden[0] -> .. -> actions`.
+/// The architecture of a [`QNetwork`]: `obs_len -> hidden[0] -> .. -> heads * actions`.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct QNetworkConfig {
     pub obs_len: usize,
     pub actions: usize,
     pub hidden: Vec<usize>,
+    /// Blocks of `actions` outputs: the Q-values first, then what the algorithm adds (1 for
+    /// every algorithm but discrete BCQ).
+    pub heads: usize,
 }
 
 impl QNetworkConfig {
@@ -24,6 +31,7 @@ impl QNetworkConfig {
             obs_len,
             actions,
             hidden: hidden.to_vec(),
+            heads: 1,
         }
     }
 
@@ -44,7 +52,7 @@ impl QNetworkConfig {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let widths: Vec<usize> = std::iter::once(self.obs_len)
             .chain(self.hidden.iter().copied())
-            .chain(std::iter::once(self.actions))
+            .chain(std::iter::once(self.heads * self.actions))
             .collect();
         let mut params = Vec::with_capacity(2 * (widths.len() - 1));
         let root = vs.root();
@@ -68,6 +76,26 @@ impl QNetworkConfig {
             vs,
             params,
             config: self.clone(),
+            acting: None,
+        }
+    }
+}
+
+/// How a network's outputs `[.., heads * A]` become the values its greedy action maximises,
+/// `[.., A]`: the algorithm's rule, where it has one (`OfflineAlgorithm::acting`).
+pub type Acting = Arc<dyn Fn(&Tensor) -> Tensor + Send + Sync>;
+
+/// The Q-values `[.., A]` among a network's outputs `[.., heads * A]`: its first block.
+pub fn q_values(outputs: &Tensor, heads: usize) -> Tensor {
+    match heads {
+        1 => outputs.shallow_clone(),
+        _ => {
+            let actions = outputs
+                .size()
+                .last()
+                .copied()
+                .expect("outputs have a last dimension");
+            outputs.narrow(-1, 0, actions / heads as i64)
         }
     }
 }
@@ -80,6 +108,8 @@ pub struct QNetwork {
     /// `[w1, b1, w2, b2, ..]`, shallow handles onto the variables of `vs`, in layer order.
     params: Vec<Tensor>,
     config: QNetworkConfig,
+    /// The algorithm's acting rule; `None` acts greedily on the Q-values.
+    acting: Option<Acting>,
 }
 
 impl QNetwork {
@@ -121,9 +151,48 @@ impl QNetwork {
         x
     }
 
-    /// Greedy actions `argmax_a Q(s, a)`: `obs` [B, obs_len] -> [B] i64, computed without a graph.
+    /// Greedy actions `argmax_a Q(s, a)`, or the algorithm's acting rule's argmax: `obs`
+    /// [B, obs_len] -> [B] i64, computed without a graph.
     pub fn greedy(&self, obs: &Tensor) -> Tensor {
-        tch::no_grad(|| self.forward(obs).argmax(-1, false))
+        tch::no_grad(|| {
+            let outputs = self.forward(obs);
+            let values = match &self.acting {
+                Some(acting) => acting(&outputs),
+                None => q_values(&outputs, self.config.heads),
+            };
+            values.argmax(-1, false)
+        })
+    }
+
+    /// Acts by `acting` from now on (`None`: greedily on the Q-values).
+    pub fn set_acting(&mut self, acting: Option<Acting>) {
+        self.acting = acting;
+    }
+
+    /// This network with `heads` blocks of outputs: its Q-value block repeated (or the others
+    /// dropped), so a network trained by one algorithm starts another's training with its
+    /// Q-values and its hidden layers unchanged.
+    pub fn with_heads(&self, heads: usize) -> QNetwork {
+        let config = QNetworkConfig {
+            heads,
+            ..self.config.clone()
+        };
+        let mut q = config.init(0);
+        let last = self.params.len() - 2;
+        let actions = self.config.actions as i64;
+        tch::no_grad(|| {
+            for (i, (dst, src)) in q.params.iter_mut().zip(&self.params).enumerate() {
+                if i < last {
+                    dst.copy_(src);
+                } else {
+                    let block = src.narrow(0, 0, actions);
+                    let blocks: Vec<&Tensor> = std::iter::repeat_n(&block, heads).collect();
+                    dst.copy_(&Tensor::cat(&blocks, 0));
+                }
+            }
+        });
+        q.acting = self.acting.clone();
+        q
     }
 
     /// Overwrites this network's parameters with `other`'s: the hard target-network update.
@@ -160,6 +229,7 @@ impl QNetwork {
     pub fn duplicate(&self) -> QNetwork {
         let mut copy = self.config.init(0);
         copy.copy_from(self);
+        copy.acting = self.acting.clone();
         copy
     }
 

@@ -27,7 +27,7 @@ use crate::cql::conservative_term;
 use crate::dqn::{q_taken, TdConfig};
 use crate::optim::FusedAdam;
 use crate::progress::{progress_bar, CsvError, CsvLog, OnStep};
-use crate::qnet::QNetwork;
+use crate::qnet::{q_values, QNetwork};
 use crate::transitions::Transitions;
 
 /// Measures the greedy policy of a Q-network on the true environment.
@@ -161,7 +161,7 @@ pub struct StepFigures {
 /// it epoch by epoch; multi-task pretraining drives it on the union of tasks' shots.
 pub struct OfflineTrainer {
     algorithm: &'static dyn OfflineAlgorithm,
-    alpha: f64,
+    learner: LearnerConfig,
     td: TdConfig,
     target_update_every: usize,
     opt: FusedAdam,
@@ -177,7 +177,7 @@ impl OfflineTrainer {
         let cfg = &config.learner;
         Self {
             algorithm: algorithm::of(algorithm),
-            alpha: cfg.alpha,
+            learner: cfg.clone(),
             td: TdConfig::from(cfg),
             target_update_every: cfg.target_update_every,
             opt: FusedAdam::new(q.parameters(), cfg.lr),
@@ -201,7 +201,13 @@ impl OfflineTrainer {
         let q_all = q.forward(&mb.obs); // [b, A]
         let td_loss = self
             .td
-            .td_errors(&q_all, &mb, |s| self.target.forward(s), |s| q.forward(s))
+            .td_errors(
+                (self.algorithm, &self.learner),
+                &q_all,
+                &mb,
+                |s| self.target.forward(s),
+                |s| q.forward(s),
+            )
             .mean(None); // eq. 7
         let mean = |rows: Tensor| rows.mean(None);
         let loss = self.algorithm.loss(&Terms {
@@ -209,12 +215,14 @@ impl OfflineTrainer {
             batch: &mb,
             td: &td_loss,
             mean: &mean,
-            alpha: self.alpha,
+            alpha: self.learner.alpha,
+            learner: &self.learner,
         });
         self.opt.backward_step(&loss);
         // Eq. 8's term, before alpha, for every algorithm: how far unseen actions drift above
         // the data's.
-        let conservative = tch::no_grad(|| conservative_term(&q_all, &mb));
+        let q_values = q_values(&q_all, self.algorithm.heads());
+        let conservative = tch::no_grad(|| conservative_term(&q_values, &mb));
         self.steps += 1;
         if self.steps.is_multiple_of(self.target_update_every) {
             self.target.copy_from(q);
@@ -222,7 +230,7 @@ impl OfflineTrainer {
         StepFigures {
             td_loss: td_loss.double_value(&[]),
             conservative_loss: conservative.double_value(&[]),
-            max_q: tch::no_grad(|| q_all.amax(-1, false).mean(None)).double_value(&[]),
+            max_q: tch::no_grad(|| q_values.amax(-1, false).mean(None)).double_value(&[]),
         }
     }
 
@@ -264,6 +272,7 @@ pub fn train(
     evaluator: &mut dyn EvaluatePolicy,
 ) -> Result<Vec<EpochRow>, TrainError> {
     let cfg = &opts.config.learner;
+    algorithm::prepare(q, opts.algorithm, cfg);
     let steps_per_epoch = steps_per_epoch(cfg, data.len());
     let mut trainer = OfflineTrainer::new(q, data.len(), opts.algorithm, opts.config, opts.seed)
         .with_on_step(opts.on_step.clone());

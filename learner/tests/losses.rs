@@ -1,13 +1,15 @@
-//! Eq. 7, eq. 8 and behaviour cloning against values worked out by hand on a two-row, three-action
+//! Eq. 7, eq. 8, behaviour cloning and discrete BCQ against values worked out by hand on a two-row, three-action
 //! batch.
 
 use tch::{Kind, Tensor};
-use uavmeta_learner::algorithm::{OfflineAlgorithm, Terms};
+use uavmeta_learner::algorithm::{prepare, OfflineAlgorithm, Terms};
 use uavmeta_learner::bc::Bc;
+use uavmeta_learner::bcq::{supported_values, Bcq};
 use uavmeta_learner::cql::{conservative_term, cql_loss};
-use uavmeta_learner::dqn::{dqn_loss, Bootstrap, TdConfig};
+use uavmeta_learner::dqn::{dqn_loss, Bootstrap, Dqn, TdConfig};
+use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::transitions::{Transitions, TransitionsError};
-use uavmeta_proto::config::WorldConfig;
+use uavmeta_proto::config::{LearnerConfig, WorldConfig};
 use uavmeta_proto::dataset::Transition;
 
 fn t2(rows: &[[f64; 3]; 2]) -> Tensor {
@@ -58,7 +60,15 @@ fn dqn_options_huber_and_double() {
     };
     let target = |_: &Tensor| next.shallow_clone();
     let no_online = |_: &Tensor| unreachable!("only double DQN evaluates the online network");
-    let loss = huber.td_errors(&q, &batch, target, no_online).mean(None);
+    let loss = huber
+        .td_errors(
+            (&Dqn, &LearnerConfig::default()),
+            &q,
+            &batch,
+            target,
+            no_online,
+        )
+        .mean(None);
     assert!((scalar(&loss) - 0.3125).abs() < 1e-6, "{}", scalar(&loss));
 
     // Double DQN: the online net picks a* = argmax [[0, 0, 5], [1, 2, 0]] = [2, 1], the target
@@ -72,13 +82,25 @@ fn dqn_options_huber_and_double() {
         huber: false,
     };
     let loss = double
-        .td_errors(&q, &batch, target, |_| online.shallow_clone())
+        .td_errors(
+            (&Dqn, &LearnerConfig::default()),
+            &q,
+            &batch,
+            target,
+            |_| online.shallow_clone(),
+        )
         .mean(None);
     assert!((scalar(&loss) - 3.125).abs() < 1e-6, "{}", scalar(&loss));
 
     // With both options off, the mean of the TD errors is eq. 7.
     let loss = TdConfig::eq7(0.5)
-        .td_errors(&q, &batch, target, no_online)
+        .td_errors(
+            (&Dqn, &LearnerConfig::default()),
+            &q,
+            &batch,
+            target,
+            no_online,
+        )
         .mean(None);
     assert!((scalar(&loss) - 0.625).abs() < 1e-6);
 }
@@ -255,8 +277,99 @@ fn bc_loss_matches_d3rlpy_s_discrete_bc_by_hand() {
         td: &td,
         mean: &mean,
         alpha: 1.0,
+        learner: &LearnerConfig::default(),
     };
     let got = scalar(&Bc.loss(&terms));
     assert!((got - expected).abs() < 1e-5, "{got} against {expected}");
     assert!(!Bc.learns_values());
+}
+
+/// Outputs [2, 6] of a BCQ network: the fixture's Q-values, then imitation logits under which
+/// row 0 supports actions 1 and 2 only (action 0's probability is e^-2 = 0.14 of the best's,
+/// below tau = 0.3) and row 1 supports only action 1.
+fn bcq_outputs(q: &Tensor) -> Tensor {
+    let logits = t2(&[[0.0, 2.0, 2.0], [0.0, 3.0, 1.0]]);
+    Tensor::cat(&[q.shallow_clone(), logits], 1)
+}
+
+#[test]
+fn bcq_acts_only_on_actions_the_data_supports() {
+    let (q, _, _) = fixture();
+    let out = bcq_outputs(&q);
+    let acting = Bcq
+        .acting(&LearnerConfig::default())
+        .expect("BCQ acts by its own rule");
+    // Row 0: Q = [1, 2, 3] over the supported {1, 2} -> 2. Row 1: Q = [0, -1, 4], but only
+    // action 1 is supported (e^-2 < 0.3 for action 2, e^-3 for action 0) -> 1, against Q's 2.
+    let greedy: Vec<i64> = acting(&out).argmax(-1, false).try_into().unwrap();
+    assert_eq!(greedy, [2, 1]);
+    // tau = 0 supports every action: plain argmax Q. tau = 1 keeps the imitation's best.
+    let all = LearnerConfig {
+        bcq_threshold: 0.0,
+        ..LearnerConfig::default()
+    };
+    let greedy: Vec<i64> = supported_values(&out, all.bcq_threshold)
+        .argmax(-1, false)
+        .try_into()
+        .unwrap();
+    assert_eq!(greedy, [2, 2]);
+    let unsupported = supported_values(&out, 0.3);
+    assert_eq!(scalar(&unsupported.get(0).get(0)), 0.0);
+    assert_eq!(scalar(&unsupported.get(1).get(2)), 0.0);
+    // Through a network: two heads, and greedy() follows the rule once prepared for BCQ.
+    let mut net = QNetworkConfig::new(1, 3, &[2]).init(0);
+    prepare(&mut net, "bcq".parse().unwrap(), &LearnerConfig::default());
+    assert_eq!(net.config().heads, 2);
+    tch::no_grad(|| {
+        let mut params = net.parameters();
+        params.iter_mut().for_each(|p| {
+            let _ = p.zero_();
+        });
+        let bias = Tensor::from_slice(&[0.0f32, -1.0, 4.0, 0.0, 3.0, 1.0]);
+        let _ = params.last_mut().unwrap().copy_(&bias);
+    });
+    let obs = Tensor::zeros([1, 1], (Kind::Float, tch::Device::Cpu));
+    assert_eq!(net.greedy(&obs).int64_value(&[0]), 1);
+}
+
+#[test]
+fn bcq_bootstraps_from_the_online_network_s_best_supported_action_and_clones_the_data() {
+    let (q, next, batch) = fixture();
+    let learner = LearnerConfig::default();
+    // The online network's outputs at s' are bcq_outputs(q): supported best actions [2, 1];
+    // the target network values them: Qhat(s'_0, 2) = 1, Qhat(s'_1, 1) = 0.
+    let next_target = Tensor::cat(&[next.shallow_clone(), next.zeros_like()], 1);
+    let online = bcq_outputs(&q);
+    let v = Bcq.next_value(&TdConfig::eq7(0.5), &learner, &next_target, &|| {
+        online.shallow_clone()
+    });
+    let v: Vec<f32> = v.try_into().unwrap();
+    assert_eq!(v, [1.0, 0.0]);
+    // The loss: eq. 7 with those values, y = [1 + 0.5, -2 + 0] against Q(s, a) = [3, 0]:
+    // (1.5 - 3)^2 = 2.25 and 4, mean 3.125; plus BC's loss on the imitation logits.
+    let out = bcq_outputs(&q);
+    let td = TdConfig::eq7(0.5)
+        .td_errors(
+            (&Bcq, &learner),
+            &out,
+            &batch,
+            |_| next_target.shallow_clone(),
+            |_| online.shallow_clone(),
+        )
+        .mean(None);
+    assert!((scalar(&td) - 3.125).abs() < 1e-6, "{}", scalar(&td));
+    let logits = out.narrow(1, 3, 3);
+    let mean = |rows: Tensor| rows.mean(None);
+    let mut terms = Terms {
+        q: &logits,
+        batch: &batch,
+        td: &td,
+        mean: &mean,
+        alpha: 1.0,
+        learner: &learner,
+    };
+    let imitation = Bc.loss(&terms);
+    terms.q = &out;
+    let got = scalar(&Bcq.loss(&terms));
+    assert!((got - 3.125 - scalar(&imitation)).abs() < 1e-5, "{got}");
 }

@@ -87,7 +87,7 @@ use uavmeta_learner::optim::FusedAdam;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::QNetwork;
 use uavmeta_learner::transitions::Transitions;
-use uavmeta_proto::config::{Config, MetaConfig};
+use uavmeta_proto::config::{Config, LearnerConfig, MetaConfig};
 
 use crate::MetaError;
 
@@ -100,6 +100,8 @@ pub struct MamlConfig {
     /// Discount and TD options shared with offline training (`[learner]`), Huber also with
     /// `meta.huber`.
     pub td: TdConfig,
+    /// `[learner]`, for the inner loss's own settings (`learner.bcq_threshold`).
+    pub learner: LearnerConfig,
 }
 
 impl MamlConfig {
@@ -110,6 +112,7 @@ impl MamlConfig {
                 huber: config.learner.huber || config.meta.huber,
                 ..TdConfig::from(&config.learner)
             },
+            learner: config.learner.clone(),
         }
     }
 
@@ -146,18 +149,21 @@ impl MamlConfig {
         let q = QNetwork::forward_with(params, &batch.obs);
         // Each task's mean over its own rows; padding rows weigh 0.
         let mean = |rows: Tensor| (rows * &shots.weight).sum_dim_intlist(-1, false, None::<Kind>);
+        let algorithm = algorithm::of(self.meta.inner_loss);
         let td = mean(self.td.td_errors(
+            (algorithm, &self.learner),
             &q,
             batch,
             |s| QNetwork::forward_with(target, s), // Qhat(s', .) [T, B, A]
             |s| QNetwork::forward_with(params, s),
         ));
-        algorithm::of(self.meta.inner_loss).loss(&Terms {
+        algorithm.loss(&Terms {
             q: &q,
             batch,
             td: &td,
             mean: &mean,
             alpha: self.meta.alpha,
+            learner: &self.learner,
         })
     }
 

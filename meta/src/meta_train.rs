@@ -25,6 +25,7 @@ use std::time::Instant;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use uavmeta_actors::policy::q_policy::Evaluator;
+use uavmeta_learner::algorithm;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::progress::{progress_bar, CsvLog, OnStep};
 use uavmeta_learner::qnet::QNetworkConfig;
@@ -376,7 +377,8 @@ fn start_or_resume(
     match latest {
         None => {
             let w = &config.world;
-            let w0 = QNetworkConfig::for_world(w, &config.learner.hidden).init(opts.seed);
+            let mut w0 = QNetworkConfig::for_world(w, &config.learner.hidden).init(opts.seed);
+            algorithm::prepare(&mut w0, config.meta.inner_loss, &config.learner);
             Ok((Maml::new(w0, maml, opts.seed)?, 0))
         }
         Some((epoch, path)) => {

@@ -9,6 +9,7 @@
 //! tasks' average loss here, the loss after one adaptation step in MAML. If MAML adds nothing, the
 //! two score alike.
 
+use uavmeta_learner::algorithm;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::OfflineTrainer;
@@ -35,6 +36,7 @@ pub fn pretrain<E>(
     budget.learner.alpha = maml.meta.alpha;
     let w = &config.world;
     let mut q = QNetworkConfig::for_world(w, &config.learner.hidden).init(seed);
+    algorithm::prepare(&mut q, config.meta.inner_loss, &config.learner);
     let mut trainer = OfflineTrainer::new(&q, union.len(), config.meta.inner_loss, &budget, seed)
         .with_on_step(on_step);
     for epoch in 1..=config.meta.meta_epochs {

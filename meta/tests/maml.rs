@@ -10,7 +10,7 @@ use uavmeta_learner::dqn::TdConfig;
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::transitions::Transitions;
 use uavmeta_meta::maml::{Maml, MamlConfig, MetaTask, StepSize, TaskShots};
-use uavmeta_proto::config::{Config, MetaConfig};
+use uavmeta_proto::config::{Config, LearnerConfig, MetaConfig};
 use uavmeta_proto::method::Algo;
 
 const OBS: usize = 3;
@@ -43,6 +43,7 @@ fn config(inner_loss: Algo, inner_steps: usize, first_order: bool) -> MamlConfig
             ..MetaConfig::default()
         },
         td: TdConfig::eq7(0.9),
+        learner: LearnerConfig::default(),
     }
 }
 

@@ -41,6 +41,11 @@ pub const ALGORITHMS: &[AlgoInfo] = &[
         label: "BC",
         baseline: true,
     },
+    AlgoInfo {
+        name: "bcq",
+        label: "BCQ",
+        baseline: false,
+    },
 ];
 
 /// An offline algorithm of [`ALGORITHMS`] (its index); written as its name.

@@ -50,3 +50,15 @@ def trained(run_cli, tmp_path_factory):
         "--dataset", data, "--shots", 400, "--epochs", 60, "--seed", 2, "--out", root / "cql",
     )
     return root / "cql" / "final"
+
+
+@pytest.fixture(scope="session")
+def trained_bcq(run_cli, trained):
+    """Discrete BCQ (two heads: Q-values and imitation logits) on the same shots as `trained`."""
+    root = trained.parent.parent
+    run_cli(
+        "train", "--config", CONFIG, "--task", "lambda-300", "--algo", "bcq",
+        "--dataset", root / "lambda-300.uavds", "--shots", 400, "--epochs", 30, "--seed", 2,
+        "--out", root / "bcq",
+    )
+    return root / "bcq" / "final"

@@ -24,6 +24,23 @@ def test_the_greedy_policy_chooses_what_the_cli_chooses(run_cli, tmp_path, train
     assert any(stalest(policy_obs) != policy(policy_obs) for policy_obs in _observations(env))
 
 
+def test_a_bcq_network_acts_on_the_actions_its_imitation_head_supports(run_cli, tmp_path, trained_bcq):
+    steps = trace(run_cli, tmp_path, 3, 4, f"q:0:{trained_bcq}", "--task", "lambda-300")
+    env = uavmeta.UavEnv.from_config(CONFIG, task="lambda-300", normalised=True)
+    policy = uavmeta.policies.checkpoint(env, trained_bcq)
+    assert policy.outputs(np.zeros(12, np.float32)).shape == (100,)
+    assert policy.q_values(np.zeros(12, np.float32)).shape == (50,)
+    assert_same_steps(env, steps, lambda obs, s: policy(obs), seed=4)
+    net = uavmeta.nn.load_q_network(trained_bcq)
+    obs = np.stack(_observations(env, 20))
+    assert (net.act(obs) == policy(obs)).all()
+    # The rule itself: Q = [1, 2, 3], logits [0, 2, 2]: action 0 is 0.14 as likely as the best,
+    # below tau = 0.3, so the greedy action is 2; with logits [0, 3, 1] only action 1 is left.
+    out = np.array([[1, 2, 3, 0, 2, 2], [0, -1, 4, 0, 3, 1]], np.float32)
+    assert uavmeta.policies.bcq_supported_values(out, 0.3).argmax(axis=1).tolist() == [2, 1]
+    assert uavmeta.policies.bcq_supported_values(out, 0.0).argmax(axis=1).tolist() == [2, 2]
+
+
 def _observations(env, n=50):
     obs, _ = env.reset(seed=0)
     rows = []

@@ -4,8 +4,8 @@ read it. Pure Python, torch and safetensors; no libtorch of ours.
 
 A checkpoint ``P`` is three files (learner/src/checkpoint.rs): ``P.safetensors``
 (``layer{i}.weight`` [out, in] and ``layer{i}.bias`` [out], float32), ``P.json`` (format 1:
-algorithm, obs_len, actions, hidden, world_hash, epoch and the weights file's length and CRC32)
-and ``P.toml``, the config of the run that wrote it.
+algorithm, obs_len, actions, hidden, heads where not 1, world_hash, epoch and the weights file's
+length and CRC32) and ``P.toml``, the config of the run that wrote it.
 
     net = uavmeta.nn.load_q_network("runs/default/seed-0/inits/w0")
     q = net(torch.from_numpy(obs))        # obs normalised: UavEnv(normalised=True)
@@ -20,27 +20,30 @@ import zlib
 import torch
 from torch import nn
 
-from .policies import _checkpoint_layers, _checkpoint_meta
+from .policies import _checkpoint_layers, _checkpoint_meta, acting_rule
 
 FORMAT_VERSION = 1
 
 
 class QNetwork(nn.Module):
     """The model's MLP (docs/MODEL.md section 5): ``layer0`` .. ``layer{n}`` linear layers with ReLU between them, from the
-    normalised observation (2 + K values) to the 5K Q-values.
+    normalised observation (2 + K values) to the 5K Q-values (times ``heads``: a discrete BCQ
+    network's imitation logits follow its Q-values).
 
     ``meta`` is the checkpoint metadata it was loaded with (or built from), ``config_toml`` the
     config beside it (or None)."""
 
-    def __init__(self, obs_len, actions, hidden=(256, 256)):
+    def __init__(self, obs_len, actions, hidden=(256, 256), heads=1):
         super().__init__()
         obs_len, actions, hidden = int(obs_len), int(actions), [int(h) for h in hidden]
-        widths = [obs_len, *hidden, actions]
+        widths = [obs_len, *hidden, actions * int(heads)]
         self.depth = len(widths) - 1
         for i, (n_in, n_out) in enumerate(zip(widths, widths[1:])):
             self.add_module(f"layer{i}", nn.Linear(n_in, n_out))
         self.meta = dict(format_version=FORMAT_VERSION, algorithm="python", obs_len=obs_len,
                          actions=actions, hidden=hidden, world_hash=None, epoch=0)
+        if int(heads) != 1:
+            self.meta["heads"] = int(heads)
         self.config_toml = None
 
     def forward(self, obs):
@@ -52,10 +55,11 @@ class QNetwork(nn.Module):
         return x  # [B, 5K]
 
     def act(self, obs):
-        """The greedy action of each row of a numpy batch: ``uavmeta.evaluate`` takes it."""
+        """The greedy action of each row of a numpy batch, as the command line acts with the
+        algorithm that trained it: ``uavmeta.evaluate`` takes it."""
         with torch.no_grad():
-            q = self(torch.as_tensor(obs, dtype=torch.float32))
-        return q.argmax(dim=-1).numpy()
+            out = self(torch.as_tensor(obs, dtype=torch.float32)).numpy()
+        return acting_rule(self.meta, self.config_toml)(out).argmax(axis=-1)
 
 
 def _path(path, key="path"):
@@ -71,7 +75,7 @@ def load_q_network(path):
     path = _path(path)
     meta = _checkpoint_meta(path)
     layers = _checkpoint_layers(path, meta)
-    net = QNetwork(meta["obs_len"], meta["actions"], meta.get("hidden", []))
+    net = QNetwork(meta["obs_len"], meta["actions"], meta.get("hidden", []), meta.get("heads", 1))
     with torch.no_grad():
         for i, (weight, bias) in enumerate(layers):
             layer = getattr(net, f"layer{i}")
@@ -121,13 +125,13 @@ def save_q_network(net, path, *, like=None, algorithm=None, epoch=None, world_ha
         weights_len=len(weights),
         weights_crc32=zlib.crc32(weights),
     )
-    keys = ("format_version", "algorithm", "obs_len", "actions", "hidden", "world_hash", "epoch",
-            "weights_len", "weights_crc32")
+    keys = ("format_version", "algorithm", "obs_len", "actions", "hidden", "heads", "world_hash",
+            "epoch", "weights_len", "weights_crc32")
     path.parent.mkdir(parents=True, exist_ok=True)
     _write_atomic(path.with_name(path.name + ".safetensors"), weights)
     _write_atomic(path.with_name(path.name + ".toml"), config.encode())
     _write_atomic(path.with_name(path.name + ".json"),
-                  json.dumps({k: meta[k] for k in keys}).encode())
+                  json.dumps({k: meta[k] for k in keys if k in meta}).encode())
     return path
 
 

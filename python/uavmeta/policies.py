@@ -143,12 +143,17 @@ class QNetworkPolicy:
                 stacklevel=3,
             )
         self._layers = _checkpoint_layers(self.path, self.meta)
+        self._acting = acting_rule(self.meta, _checkpoint_config(self.path))
         self._scale = None if worlds.normalised else np.asarray(worlds.observation_scale, np.float32)
         self._actions = actions
         self._rng = np.random.default_rng(seed)
 
     def q_values(self, obs):
         """Q(s, .) of one (2 + K,) observation or an (N, 2 + K) batch, as float32."""
+        return self.outputs(obs)[..., : self._actions]
+
+    def outputs(self, obs):
+        """The network's outputs: Q(s, .), then for a BCQ network its imitation logits."""
         x = np.atleast_2d(np.asarray(obs, dtype=np.float32))
         if x.ndim != 2 or x.shape[1] != self._layers[0][0].shape[1]:
             raise ValueError(
@@ -164,8 +169,8 @@ class QNetworkPolicy:
         return x[0] if np.ndim(obs) == 1 else x
 
     def __call__(self, obs, t=0):
-        q = np.atleast_2d(self.q_values(obs))
-        actions = q.argmax(axis=1).astype(np.int64)
+        values = self._acting(np.atleast_2d(self.outputs(obs)))
+        actions = values.argmax(axis=1).astype(np.int64)
         if self.epsilon > 0.0:
             explore = self._rng.random(len(actions)) < self.epsilon
             actions[explore] = self._rng.integers(0, self._actions, explore.sum())
@@ -180,6 +185,48 @@ def checkpoint(env, path, epsilon=0.0, seed=0):
     extension: ``runs/default/seed-0/inits/w0`` for ``w0.json`` and ``w0.safetensors``), epsilon-
     greedy with ``epsilon > 0``: ``uavmeta env rollout --policy q:EPSILON:PATH`` in numpy."""
     return QNetworkPolicy(env, path, epsilon, seed)
+
+
+def acting_rule(meta, config_toml):
+    """The function from a checkpoint's network outputs [N, heads * A] to the values whose argmax
+    is its action, as the command line acts (learner/src/algorithm.rs): the Q-values, or for a
+    discrete BCQ network (two heads) the Q-values of the actions its imitation head supports
+    (learner/src/bcq.rs), with the ``[learner] bcq_threshold`` of the config saved beside it."""
+    heads, algorithm = int(meta.get("heads", 1)), str(meta.get("algorithm", ""))
+    if heads == 1:
+        return lambda out: out
+    if heads == 2 and algorithm.split("-")[0] == "bcq":
+        return lambda out: bcq_supported_values(out, _bcq_threshold(config_toml))
+    raise ValueError(
+        f"checkpoint of {algorithm!r} with {heads} heads: this uavmeta acts only on one head, or "
+        "on discrete BCQ's two"
+    )
+
+
+def bcq_supported_values(outputs, threshold):
+    """learner/src/bcq.rs's ``supported_values``: Q-values shifted positive where the imitation
+    probability is at least ``threshold`` times the most likely action's, 0 elsewhere."""
+    outputs = np.asarray(outputs, np.float32)
+    a = outputs.shape[-1] // 2
+    q, logits = outputs[..., :a], outputs[..., a:]
+    log_ratio = logits - logits.max(axis=-1, keepdims=True)
+    with np.errstate(divide="ignore"):
+        supported = log_ratio >= np.log(np.float32(threshold))
+    return (q - q.min(axis=-1, keepdims=True) + np.float32(1e-5)) * supported
+
+
+def _bcq_threshold(config_toml, default=0.3):
+    """``[learner] bcq_threshold`` of a saved config (every saved config writes it)."""
+    import re
+
+    section = re.search(r"^\[learner\]\n(.*?)(?=^\[|\Z)", config_toml or "", re.M | re.S)
+    found = section and re.search(r"^bcq_threshold\s*=\s*([0-9.eE+-]+)", section.group(1), re.M)
+    return float(found.group(1)) if found else default
+
+
+def _checkpoint_config(path):
+    config = path.with_name(path.name + ".toml")
+    return config.read_text() if config.exists() else None
 
 
 def _checkpoint_meta(path):
@@ -218,7 +265,7 @@ def _checkpoint_layers(path, meta):
             f"{expected_crc:#010x}"
         )
     tensors = load_safetensors(data)
-    widths = [meta["obs_len"], *meta.get("hidden", []), meta["actions"]]
+    widths = [meta["obs_len"], *meta.get("hidden", []), meta["actions"] * int(meta.get("heads", 1))]
     layers = []
     for i, (n_in, n_out) in enumerate(zip(widths, widths[1:])):
         weight, bias = tensors.get(f"layer{i}.weight"), tensors.get(f"layer{i}.bias")

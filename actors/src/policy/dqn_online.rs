@@ -3,7 +3,7 @@
 //!
 //! Settings: `[collect.dqn]` (its budget, buffer, exploration schedule, network, rate and
 //! stabilisers; `proto::config::OnlineDqnConfig`) and `[learner]`'s `gamma`, `reward_scale` and
-//! `batch`, so the online agent and the offline learners see the same rewards.
+//! `batch_size`, so the online agent and the offline learners see the same rewards.
 //!
 //! The paper gives no settings for this agent; docs/MODEL.md section 5 asks for what a practitioner
 //! would use. The defaults are the usual DQN stabilisers: Double DQN, the Huber loss, gradient-norm
@@ -25,7 +25,7 @@
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use tch::Tensor;
-use uavmeta_learner::dqn::{Bootstrap, TdConfig};
+use uavmeta_learner::dqn::{Bootstrap, Dqn, TdConfig};
 use uavmeta_learner::optim::{clip_grad_norm, FusedAdam};
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::EvaluatePolicy;
@@ -209,7 +209,10 @@ impl OnlineDqn {
         let q_all = self.q.forward(&mb.obs); // [B, A]
         let target = |s: &Tensor| self.target.forward(s);
         let online = |s: &Tensor| self.q.forward(s);
-        let loss = self.td.td_errors(&q_all, &mb, target, online).mean(None); // eq. 7
+        let loss = self
+            .td
+            .td_errors((&Dqn, &self.learner), &q_all, &mb, target, online)
+            .mean(None); // eq. 7
         self.opt.zero_grad();
         loss.backward();
         if self.dqn.grad_clip_norm > 0.0 {

@@ -73,6 +73,11 @@ pub struct LearnerConfig {
     /// Huber instead of squared TD error (d3rlpy's choice); off to match eq. 7.
     #[default(false)]
     pub huber: bool,
+    /// Discrete BCQ's tau (`--algo bcq`): an action is supported where its imitation
+    /// probability is at least tau times the most likely action's (learner/src/bcq.rs).
+    #[default(0.3)]
+    #[garde(custom(within(0.0..=1.0, "a share in [0, 1]")))]
+    pub bcq_threshold: f64,
     /// Guard against late collapse, from the offline data alone: training stops, keeping the
     /// previous epoch's network, once the mean Q of the data's own actions falls below
     /// `V_data - value_guard * |V_data|`, `V_data` = the shots' mean reward / (1 - gamma) (see
