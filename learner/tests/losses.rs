@@ -58,18 +58,22 @@ fn dqn_options_huber_and_double() {
         bootstrap: Bootstrap::Max,
         huber: true,
     };
-    let target = |_: &Tensor| next.shallow_clone();
-    let no_online = |_: &Tensor| unreachable!("only double DQN evaluates the online network");
-    let loss = huber
-        .td_errors(
-            (&Dqn, &LearnerConfig::default()),
-            &q,
-            &batch,
-            target,
-            no_online,
+    // Eq. 7's errors with `td`'s options, the online network's outputs `online` at s', averaged.
+    let mean_td = |td: TdConfig, online: Option<&Tensor>| {
+        let online = |_: &Tensor| {
+            online
+                .expect("only double DQN reads the online network")
+                .shallow_clone()
+        };
+        let learner = LearnerConfig::default();
+        let target = |_: &Tensor| next.shallow_clone();
+        scalar(
+            &td.td_errors((&Dqn, &learner), &q, &batch, target, online)
+                .mean(None),
         )
-        .mean(None);
-    assert!((scalar(&loss) - 0.3125).abs() < 1e-6, "{}", scalar(&loss));
+    };
+    let loss = mean_td(huber, None);
+    assert!((loss - 0.3125).abs() < 1e-6, "{loss}");
 
     // Double DQN: the online net picks a* = argmax [[0, 0, 5], [1, 2, 0]] = [2, 1], the target
     // net values them: Qhat(s'_0, 2) = 1, Qhat(s'_1, 1) = 0.
@@ -81,28 +85,12 @@ fn dqn_options_huber_and_double() {
         bootstrap: Bootstrap::Double,
         huber: false,
     };
-    let loss = double
-        .td_errors(
-            (&Dqn, &LearnerConfig::default()),
-            &q,
-            &batch,
-            target,
-            |_| online.shallow_clone(),
-        )
-        .mean(None);
-    assert!((scalar(&loss) - 3.125).abs() < 1e-6, "{}", scalar(&loss));
+    let loss = mean_td(double, Some(&online));
+    assert!((loss - 3.125).abs() < 1e-6, "{loss}");
 
     // With both options off, the mean of the TD errors is eq. 7.
-    let loss = TdConfig::eq7(0.5)
-        .td_errors(
-            (&Dqn, &LearnerConfig::default()),
-            &q,
-            &batch,
-            target,
-            no_online,
-        )
-        .mean(None);
-    assert!((scalar(&loss) - 0.625).abs() < 1e-6);
+    let loss = mean_td(TdConfig::eq7(0.5), None);
+    assert!((loss - 0.625).abs() < 1e-6, "{loss}");
 }
 
 #[test]
