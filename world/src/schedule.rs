@@ -14,7 +14,8 @@
 //! - a sweep tries every step with every other device and every neighbouring swap, and keeps
 //!   each change that lowers the total; sweeps repeat until one finds nothing, at most
 //!   [`MAX_SWEEPS`]; the AoI part of a change is priced from the two devices' service steps;
-//! - then [`KICKS`] times a window of the best schedule is redrawn and the descent repeated
+//! - then `beam_width / `[`BEAM_PER_KICK`] times a window of the best schedule is redrawn and
+//!   the descent repeated
 //!   (iterated local search), keeping what is cheaper. The draws are seeded by the world's
 //!   state, so a plan is still a function of the state alone.
 //!
@@ -30,10 +31,12 @@ use crate::world::{Move, World};
 /// Sweeps over the schedule at most: each costs about (T x K) x cells operations.
 pub const MAX_SWEEPS: usize = 50;
 
-/// Kicks of the iterated local search: each redraws [`KICK_WIDTH`] neighbouring steps' devices
-/// of the best schedule so far and descends again. 20 / 40 / 60 kicks reached -11 735 / -11 651 /
-/// -11 613 on lambda-300 at -90 dBm (docs/EXPERIMENTS.md, P3), at about 0.3 s a start cell for 40.
-const KICKS: usize = 40;
+/// States of the beam per kick of the iterated local search: `planner.beam_width` sets the
+/// effort of both searches (32 kicks at the default 256, 2 for a quick run's 16). Each kick
+/// redraws [`KICK_WIDTH`] neighbouring steps' devices of the best schedule so far and descends
+/// again; 20 / 40 / 60 kicks reached -11 735 / -11 651 / -11 613 on lambda-300 at -90 dBm
+/// (docs/EXPERIMENTS.md, P3), about 0.3 s a start cell for 40.
+pub const BEAM_PER_KICK: usize = 8;
 
 /// Steps whose devices a kick redraws.
 const KICK_WIDTH: usize = 8;
@@ -51,9 +54,9 @@ fn state_key(world: &World) -> u64 {
     h
 }
 
-/// `plan` improved as the module doc says, if `world` (at its current state) has no rain ahead;
-/// otherwise, or if nothing improves, `plan` itself.
-pub fn improve(world: &World, plan: Plan) -> Plan {
+/// `plan` improved as the module doc says with `kicks` kicks, if `world` (at its current state)
+/// has no rain ahead; otherwise, or if nothing improves, `plan` itself.
+pub fn improve(world: &World, plan: Plan, kicks: usize) -> Plan {
     if world.rain_schedule().iter().any(Option::is_some) || plan.actions.is_empty() {
         return plan;
     }
@@ -62,7 +65,7 @@ pub fn improve(world: &World, plan: Plan) -> Plan {
     best.descend();
     let mut rng = ChaCha8Rng::seed_from_u64(state_key(world));
     let steps = best.devices.len();
-    for _ in 0..KICKS {
+    for _ in 0..kicks {
         let mut devices = best.devices.clone();
         let width = KICK_WIDTH.min(steps);
         let from = rng.random_range(0..=steps - width);
