@@ -41,6 +41,7 @@ pub mod prometheus;
 pub mod render;
 
 use std::path::PathBuf;
+use uavmeta_proto::fs::FileError;
 
 pub use prometheus::PrometheusError;
 
@@ -94,11 +95,8 @@ pub enum RenderError {
         url: String,
         values: Vec<String>,
     },
-    #[error("{}: cannot create the output directory: {source}", path.display())]
-    Io {
-        path: PathBuf,
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    File(#[from] FileError),
     #[error(transparent)]
     Plot(#[from] uavmeta_plot::PlotError),
 }

@@ -17,6 +17,7 @@ use uavmeta_plot::timeseries::{self, Cell, Placed, TimeSeries};
 use crate::grafana::{Dashboard, GridPos, LabelValues, Panel, Target};
 use crate::prometheus::{Prometheus, PrometheusError, Series, Window};
 use crate::RenderError;
+use uavmeta_proto::fs::FileError;
 
 /// Pixels of one of the grid's 24 columns (a 1920-pixel dashboard) and of one height unit
 /// (Grafana's 30 plus its 8 between panels).
@@ -87,10 +88,8 @@ pub fn render(
     prometheus: &Prometheus,
     options: &Options,
 ) -> Result<Report, RenderError> {
-    std::fs::create_dir_all(&options.out).map_err(|source| RenderError::Io {
-        path: options.out.clone(),
-        source,
-    })?;
+    std::fs::create_dir_all(&options.out)
+        .map_err(FileError::at(&options.out, "create the output directory"))?;
     let window = window(options);
     let variables = resolve_variables(dashboard, prometheus, options, &window)?;
     let mut expanded = variables.clone();

@@ -45,6 +45,7 @@ use std::path::{Path, PathBuf};
 
 use uavmeta_proto::config::{Config, ConfigError, TaskConfig};
 use uavmeta_proto::dataset::{DatasetError, DatasetReader, Transition};
+use uavmeta_proto::fs::FileError;
 
 /// Everything an export or an inspection can fail on; each names the file or the value.
 #[derive(Debug, thiserror::Error)]
@@ -55,12 +56,8 @@ pub enum InteropError {
     Config(#[from] ConfigError),
     #[error("{}: already exists; an export never overwrites, so remove it or choose another output", path.display())]
     Exists { path: PathBuf },
-    #[error("{}: cannot {action}", path.display())]
-    Io {
-        path: PathBuf,
-        action: &'static str,
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    File(#[from] FileError),
     #[error("{}: cannot write the Arrow file", path.display())]
     Arrow {
         path: PathBuf,
@@ -76,10 +73,12 @@ impl InteropError {
     /// The error of `action` on `path`, for `map_err`.
     fn io(path: &Path, action: &'static str) -> impl FnOnce(std::io::Error) -> Self {
         let path = path.to_path_buf();
-        move |source| Self::Io {
-            path,
-            action,
-            source,
+        move |source| {
+            Self::from(FileError {
+                path,
+                action,
+                source,
+            })
         }
     }
 }

@@ -28,7 +28,7 @@ use crate::algorithm::{OfflineAlgorithm, Terms};
 use crate::bc::BETA;
 use crate::cql::conservative_rows;
 use crate::dqn::TdConfig;
-use crate::qnet::{q_values, Acting};
+use crate::qnet::{head, q_values, Acting};
 
 /// Discrete BCQ.
 pub struct Bcq;
@@ -73,15 +73,9 @@ impl OfflineAlgorithm for Bcq {
     }
 }
 
-/// The imitation head's logits `g_w(s, .)` among the outputs [.., 2A].
+/// The imitation head's logits `g_w(s, .)`: the second block of the outputs [.., 2A].
 fn imitation_logits(outputs: &Tensor) -> Tensor {
-    let actions = outputs
-        .size()
-        .last()
-        .copied()
-        .expect("outputs have a last dimension")
-        / 2;
-    outputs.narrow(-1, actions, actions)
+    head(outputs, 2, 1)
 }
 
 /// The Q-values of the supported actions `A_tau(s)` shifted to be positive, and 0 elsewhere, from

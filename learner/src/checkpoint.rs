@@ -17,7 +17,6 @@
 //! always has its state.
 
 use std::fs::File;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use serde::de::DeserializeOwned;
@@ -28,6 +27,7 @@ use uavmeta_proto::method::Method;
 
 use crate::algorithm;
 use crate::qnet::{QNetwork, QNetworkConfig};
+use uavmeta_proto::fs::FileError;
 
 /// Version of the metadata layout; bumped when [`CheckpointMeta`] changes meaning.
 pub const FORMAT_VERSION: u32 = 1;
@@ -59,12 +59,8 @@ pub struct CheckpointMeta {
 
 #[derive(Debug, thiserror::Error)]
 pub enum CheckpointError {
-    #[error("{}: cannot {action}", path.display())]
-    Io {
-        path: PathBuf,
-        action: &'static str,
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    File(#[from] FileError),
     #[error("{}: not checkpoint metadata", path.display())]
     Meta {
         path: PathBuf,
@@ -92,6 +88,13 @@ pub enum CheckpointError {
         /// "load" or "save": a full disk on save must not read as a damaged file.
         action: &'static str,
         source: tch::TchError,
+    },
+    #[error("{}: `heads` = {found}, but a `{algorithm}` network has {expected} block(s) of outputs", path.display())]
+    Heads {
+        path: PathBuf,
+        algorithm: String,
+        found: usize,
+        expected: usize,
     },
     /// `key` is the config key whose value differs from the checkpoint's; `detail` says how.
     #[error("{}: {detail}", path.display())]
@@ -322,8 +325,20 @@ pub fn load(path: &Path, config: &Config) -> Result<(QNetwork, CheckpointMeta), 
         );
     }
 
+    // The algorithm decides the heads; a forged count would size the network.
+    let algorithm = Method::from_name(&meta.algorithm)
+        .and_then(Method::algo)
+        .map(algorithm::of);
+    let heads = algorithm.as_ref().map_or(1, |a| a.heads());
+    if meta.heads != heads {
+        return Err(CheckpointError::Heads {
+            path: paths.meta.clone(),
+            algorithm: meta.algorithm.clone(),
+            found: meta.heads,
+            expected: heads,
+        });
+    }
     verify(&paths.weights, meta.weights_len, meta.weights_crc32)?;
-    let heads = meta.heads;
     let mut q = QNetworkConfig {
         heads,
         ..QNetworkConfig::new(obs_len, actions, &meta.hidden)
@@ -336,8 +351,8 @@ pub fn load(path: &Path, config: &Config) -> Result<(QNetwork, CheckpointMeta), 
             source,
         })?;
     // It acts as the algorithm that trained it does.
-    if let Some(algo) = Method::from_name(&meta.algorithm).and_then(Method::algo) {
-        q.set_acting(algorithm::of(algo).acting(&config.learner));
+    if let Some(algorithm) = algorithm {
+        q.set_acting(algorithm.acting(&config.learner));
     }
     Ok((q, meta))
 }
@@ -367,10 +382,12 @@ fn verify(path: &Path, expected_len: u64, expected_crc: u32) -> Result<(), Check
 }
 
 fn read(path: &Path, action: &'static str) -> Result<Vec<u8>, CheckpointError> {
-    std::fs::read(path).map_err(|source| CheckpointError::Io {
-        path: path.to_path_buf(),
-        action,
-        source,
+    std::fs::read(path).map_err(|source| {
+        CheckpointError::from(FileError {
+            path: path.to_path_buf(),
+            action,
+            source,
+        })
     })
 }
 
@@ -381,10 +398,12 @@ fn create_parent(path: &Path) -> Result<PathBuf, CheckpointError> {
         .filter(|d| !d.as_os_str().is_empty())
         .unwrap_or(Path::new("."))
         .to_path_buf();
-    std::fs::create_dir_all(&dir).map_err(|source| CheckpointError::Io {
-        path: dir.clone(),
-        action: "create the directory",
-        source,
+    std::fs::create_dir_all(&dir).map_err(|source| {
+        CheckpointError::from(FileError {
+            path: dir.clone(),
+            action: "create the directory",
+            source,
+        })
     })?;
     Ok(dir)
 }
@@ -399,37 +418,28 @@ fn temp_name(path: &Path, ext: &str) -> PathBuf {
 }
 
 fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), CheckpointError> {
-    let ext = path
-        .extension()
-        .map(|e| e.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let tmp = temp_name(path, &ext);
-    let io = |action, source| CheckpointError::Io {
-        path: tmp.clone(),
-        action,
-        source,
-    };
-    let mut file = File::create(&tmp).map_err(|e| io("create", e))?;
-    file.write_all(bytes).map_err(|e| io("write", e))?;
-    file.sync_all().map_err(|e| io("fsync", e))?;
-    rename(&tmp, path)
+    Ok(uavmeta_proto::fs::write_atomic(path, bytes)?)
 }
 
 fn sync_file(path: &Path) -> Result<(), CheckpointError> {
     File::open(path)
         .and_then(|f| f.sync_all())
-        .map_err(|source| CheckpointError::Io {
-            path: path.to_path_buf(),
-            action: "fsync",
-            source,
+        .map_err(|source| {
+            CheckpointError::from(FileError {
+                path: path.to_path_buf(),
+                action: "fsync",
+                source,
+            })
         })
 }
 
 fn rename(from: &Path, to: &Path) -> Result<(), CheckpointError> {
-    std::fs::rename(from, to).map_err(|source| CheckpointError::Io {
-        path: to.to_path_buf(),
-        action: "rename into place",
-        source,
+    std::fs::rename(from, to).map_err(|source| {
+        CheckpointError::from(FileError {
+            path: to.to_path_buf(),
+            action: "rename into place",
+            source,
+        })
     })
 }
 

@@ -87,17 +87,21 @@ pub type Acting = Arc<dyn Fn(&Tensor) -> Tensor + Send + Sync>;
 
 /// The Q-values `[.., A]` among a network's outputs `[.., heads * A]`: its first block.
 pub fn q_values(outputs: &Tensor, heads: usize) -> Tensor {
-    match heads {
-        1 => outputs.shallow_clone(),
-        _ => {
-            let actions = outputs
-                .size()
-                .last()
-                .copied()
-                .expect("outputs have a last dimension");
-            outputs.narrow(-1, 0, actions / heads as i64)
-        }
+    head(outputs, heads, 0)
+}
+
+/// Block `index` `[.., A]` of a network's outputs `[.., heads * A]`.
+pub fn head(outputs: &Tensor, heads: usize, index: usize) -> Tensor {
+    if heads == 1 {
+        return outputs.shallow_clone();
     }
+    let width = outputs
+        .size()
+        .last()
+        .copied()
+        .expect("outputs have a last dimension")
+        / heads as i64;
+    outputs.narrow(-1, index as i64 * width, width)
 }
 
 /// An MLP Q-function `Q(s, .)`.

@@ -9,7 +9,7 @@
 //! implements it) and one row is written: to a table on stderr, to `train.csv` in the output
 //! directory, and to the returned list.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Instant;
 
 use indicatif::ProgressBar;
@@ -40,12 +40,6 @@ pub trait EvaluatePolicy {
 
 #[derive(Debug, thiserror::Error)]
 pub enum TrainError {
-    #[error("{}: cannot {action}", path.display())]
-    Io {
-        path: PathBuf,
-        action: &'static str,
-        source: std::io::Error,
-    },
     #[error(transparent)]
     Csv(#[from] CsvError),
     #[error(transparent)]

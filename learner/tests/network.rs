@@ -249,3 +249,32 @@ fn checkpoint_of_another_format_version_is_refused_by_name() {
         "{err}"
     );
 }
+
+/// The heads a checkpoint's metadata claims must be its algorithm's: a forged count, which would
+/// size the network (a million heads is gigabytes), is refused by name before anything is built.
+#[test]
+fn checkpoint_heads_other_than_the_algorithms_are_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, path) = saved(dir.path());
+    let meta_path = CheckpointPaths::new(&path).meta;
+    let original: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&meta_path).unwrap()).unwrap();
+    for (algorithm, heads, expected) in [("cql", 2, 1), ("cql", 1_000_000, 1), ("bcq", 1, 2)] {
+        let mut meta = original.clone();
+        meta["algorithm"] = serde_json::json!(algorithm);
+        meta["heads"] = serde_json::json!(heads);
+        std::fs::write(&meta_path, serde_json::to_vec(&meta).unwrap()).unwrap();
+        let err = checkpoint::load(&path, &config(4, "[16, 8]"))
+            .err()
+            .expect("the heads differ from the algorithm's");
+        assert!(
+            matches!(err, CheckpointError::Heads { found, expected: e, .. } if found == heads && e == expected),
+            "{err}"
+        );
+        let message = err.to_string();
+        assert!(
+            message.contains("epoch-7.json") && message.contains(algorithm),
+            "{message}"
+        );
+    }
+}

@@ -56,6 +56,7 @@ use uavmeta_learner::train::TrainError;
 use uavmeta_learner::transitions::{ShotsError, TransitionsError};
 use uavmeta_proto::config::ConfigError;
 use uavmeta_proto::dataset::DatasetError;
+use uavmeta_proto::fs::FileError;
 
 /// Everything meta-training and meta-testing can fail on.
 #[derive(Debug, thiserror::Error)]
@@ -72,12 +73,8 @@ pub enum MetaError {
     },
     #[error("{}: trained by `{algorithm}`, expected a meta-trained or pretrained init (`cql-maml`, `dqn-maml` or `cql-pretrain`)", path.display())]
     NotMetaTrained { path: PathBuf, algorithm: String },
-    #[error("{}: cannot {action}", path.display())]
-    Io {
-        path: PathBuf,
-        action: &'static str,
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    File(#[from] FileError),
     #[error(transparent)]
     Config(#[from] ConfigError),
     #[error(transparent)]
@@ -103,18 +100,22 @@ impl From<ShotsError> for MetaError {
 
 /// Creates `dir` and its parents, naming it on failure.
 pub fn create_dir(dir: &Path) -> Result<(), MetaError> {
-    std::fs::create_dir_all(dir).map_err(|source| MetaError::Io {
-        path: dir.to_path_buf(),
-        action: "create",
-        source,
+    std::fs::create_dir_all(dir).map_err(|source| {
+        MetaError::from(FileError {
+            path: dir.to_path_buf(),
+            action: "create",
+            source,
+        })
     })
 }
 
 /// Writes `text` to `path`, naming it on failure.
 pub fn write_file(path: &Path, text: &str) -> Result<(), MetaError> {
-    std::fs::write(path, text).map_err(|source| MetaError::Io {
-        path: path.to_path_buf(),
-        action: "write",
-        source,
+    std::fs::write(path, text).map_err(|source| {
+        MetaError::from(FileError {
+            path: path.to_path_buf(),
+            action: "write",
+            source,
+        })
     })
 }

@@ -53,6 +53,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::config::{Config, ConfigError, MOVES};
+use crate::fs::FileError;
 
 /// The format version this build reads and writes; bump it on any change to the layout above or
 /// to [`Transition`].
@@ -222,12 +223,8 @@ pub struct Recovery {
 /// Everything that can be wrong with a dataset file or a request on its contents.
 #[derive(Debug, thiserror::Error)]
 pub enum DatasetError {
-    #[error("{}: cannot {action}", path.display())]
-    Io {
-        path: PathBuf,
-        action: &'static str,
-        source: io::Error,
-    },
+    #[error(transparent)]
+    File(#[from] FileError),
     #[error("{}: not a uavmeta dataset: it starts with {found:02x?}, expected the magic {:?}", path.display(), String::from_utf8_lossy(FILE_MAGIC))]
     BadMagic { path: PathBuf, found: Vec<u8> },
     #[error("{}: offset {offset}: schema version {found}, this build reads version {SCHEMA_VERSION}", path.display())]
@@ -311,10 +308,12 @@ impl DatasetWriter {
             file.sync_all()?;
             Ok(file)
         };
-        let file = write().map_err(|source| DatasetError::Io {
-            path: path.clone(),
-            action: "create",
-            source,
+        let file = write().map_err(|source| {
+            DatasetError::from(FileError {
+                path: path.clone(),
+                action: "create",
+                source,
+            })
         })?;
         Ok(Self {
             path,
@@ -373,10 +372,12 @@ impl DatasetWriter {
             file.seek(SeekFrom::Start(len))?;
             Ok(file)
         };
-        let file = reopen().map_err(|source| DatasetError::Io {
-            path: path.clone(),
-            action: "open for appending",
-            source,
+        let file = reopen().map_err(|source| {
+            DatasetError::from(FileError {
+                path: path.clone(),
+                action: "open for appending",
+                source,
+            })
         })?;
         let writer = Self {
             path,
@@ -454,13 +455,13 @@ impl DatasetWriter {
         self.chunk[16..20].copy_from_slice(&payload_len.to_le_bytes());
         let crc = crc32fast::hash(&self.chunk);
         self.chunk.extend_from_slice(&crc.to_le_bytes());
-        self.file
-            .write_all(&self.chunk)
-            .map_err(|source| DatasetError::Io {
+        self.file.write_all(&self.chunk).map_err(|source| {
+            DatasetError::from(FileError {
                 path: self.path.clone(),
                 action: "append a chunk",
                 source,
-            })?;
+            })
+        })?;
         self.transitions += transitions.len() as u64;
         self.len += self.chunk.len() as u64;
         Ok(())
@@ -468,24 +469,25 @@ impl DatasetWriter {
 
     /// Hands buffered chunks to the operating system.
     pub fn flush(&mut self) -> Result<(), DatasetError> {
-        self.file.flush().map_err(|source| DatasetError::Io {
-            path: self.path.clone(),
-            action: "flush",
-            source,
+        self.file.flush().map_err(|source| {
+            DatasetError::from(FileError {
+                path: self.path.clone(),
+                action: "flush",
+                source,
+            })
         })
     }
 
     /// Flushes and waits until the chunks are on disk: after it returns they survive a crash.
     pub fn sync(&mut self) -> Result<(), DatasetError> {
         self.flush()?;
-        self.file
-            .get_ref()
-            .sync_data()
-            .map_err(|source| DatasetError::Io {
+        self.file.get_ref().sync_data().map_err(|source| {
+            DatasetError::from(FileError {
                 path: self.path.clone(),
                 action: "sync",
                 source,
             })
+        })
     }
 
     pub fn header(&self) -> &DatasetHeader {
@@ -519,10 +521,12 @@ pub struct DatasetReader {
 
 /// The whole file with its decoded header and the header's length: where every scan starts.
 fn read_with_header(path: &Path) -> Result<(Vec<u8>, DatasetHeader, usize), DatasetError> {
-    let bytes = std::fs::read(path).map_err(|source| DatasetError::Io {
-        path: path.to_path_buf(),
-        action: "read",
-        source,
+    let bytes = std::fs::read(path).map_err(|source| {
+        DatasetError::from(FileError {
+            path: path.to_path_buf(),
+            action: "read",
+            source,
+        })
     })?;
     let (header, header_len) = DatasetHeader::decode(&bytes, path)?;
     Ok((bytes, header, header_len))

@@ -4,6 +4,7 @@
 //! - [`config`]: the experiment configuration (docs/MODEL.md section 7), read from TOML with every
 //!   default, `--set` overrides and validation errors that name the file, key and value.
 //! - [`dataset`]: the on-disk dataset format that collectors and the store write and learners read.
+//! - [`fs`]: atomic file writes, for files other processes read while they change.
 //! - [`method`]: [`method::Method`], which method made a checkpoint or a row: its name, label,
 //!   loss and init.
 //! - [`stats`]: episode metrics (docs/MODEL.md section 1) and their Monte-Carlo summaries.
@@ -24,6 +25,7 @@
 
 pub mod config;
 pub mod dataset;
+pub mod fs;
 pub mod method;
 pub mod metrics;
 pub mod payload;

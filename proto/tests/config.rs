@@ -344,6 +344,21 @@ fn learning_rate_schedules_are_checked() {
 }
 
 #[test]
+fn the_bcq_threshold_is_a_share() {
+    for bad in ["1.5", "-0.1", "nan"] {
+        error_of(
+            &format!("[learner]\nbcq_threshold = {bad}\n"),
+            &[],
+            &["learner.bcq_threshold", "a share in [0, 1]"],
+        );
+    }
+    for good in ["0.0", "0.3", "1.0"] {
+        let (_, result) = load(&format!("[learner]\nbcq_threshold = {good}\n"), &[]);
+        result.expect("a share in [0, 1]");
+    }
+}
+
+#[test]
 fn not_a_number_and_infinity_break_the_finite_rules() {
     error_of(
         "[learner]\nalpha = nan\n",

@@ -11,14 +11,7 @@ use std::path::{Path, PathBuf};
 use uavmeta_proto::config::{Config, TaskConfig};
 use uavmeta_proto::method::Method;
 
-/// A file or directory of a run that cannot be created, read or written.
-#[derive(Debug, thiserror::Error)]
-#[error("{}: cannot {action}", path.display())]
-pub struct FileError {
-    pub path: PathBuf,
-    pub action: &'static str,
-    pub source: std::io::Error,
-}
+pub use uavmeta_proto::fs::{write_atomic, FileError};
 
 /// A remote host that has not announced itself for this long is gone: out of the scrape targets.
 pub const REMOTE_HOST_SILENCE: std::time::Duration = std::time::Duration::from_secs(10);
@@ -264,33 +257,11 @@ pub enum RunConfigError {
     File(#[from] FileError),
 }
 
-/// Writes `bytes` to `path` through a temporary file in the same directory, fsynced and renamed,
-/// so readers see the old content or the new, never a torn file. A failure (a full disk) removes
-/// the temporary file.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FileError> {
-    use std::io::Write;
-    let io = |path: &Path, action, source| FileError {
-        path: path.to_path_buf(),
-        action,
-        source,
-    };
-    let tmp = path.with_extension(format!("tmp.{}", std::process::id()));
-    let mut file = std::fs::File::create(&tmp).map_err(|e| io(&tmp, "create", e))?;
-    let written = file
-        .write_all(bytes)
-        .map_err(|e| io(&tmp, "write", e))
-        .and_then(|()| file.sync_all().map_err(|e| io(&tmp, "sync", e)))
-        .and_then(|()| std::fs::rename(&tmp, path).map_err(|e| io(path, "rename into place", e)));
-    if written.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    written
-}
-
-fn fnv1a(bytes: &[u8]) -> u64 {
-    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
-        (h ^ *b as u64).wrapping_mul(0x100_0000_01b3)
-    })
+/// FNV-1a of `bytes`: run ids and actor ids.
+pub(crate) fn fnv1a(bytes: &[u8]) -> u64 {
+    let mut hasher = fnv::FnvHasher::default();
+    std::hash::Hasher::write(&mut hasher, bytes);
+    std::hash::Hasher::finish(&hasher)
 }
 
 /// What a remote actor host announces to the learner's host (as JSON), which keeps the latest in

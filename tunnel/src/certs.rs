@@ -15,15 +15,12 @@ use rcgen::{
     BasicConstraints, CertificateParams, DnType, ExtendedKeyUsagePurpose, IsCa, Issuer, KeyPair,
     KeyUsagePurpose,
 };
+use uavmeta_proto::fs::FileError;
 
 #[derive(Debug, thiserror::Error)]
 pub enum CertsError {
-    #[error("{}: cannot {action}", path.display())]
-    Io {
-        path: PathBuf,
-        action: &'static str,
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    File(#[from] FileError),
     #[error("{}: {message}", path.display())]
     Invalid { path: PathBuf, message: String },
     #[error("{}: already exists; remove it (and its key) to make a new one", path.display())]
@@ -123,10 +120,12 @@ fn write(path: &Path, bytes: &[u8], mode: u32) -> Result<(), CertsError> {
 
 fn io(path: &Path, action: &'static str) -> impl FnOnce(std::io::Error) -> CertsError {
     let path = path.to_path_buf();
-    move |source| CertsError::Io {
-        path,
-        action,
-        source,
+    move |source| {
+        CertsError::from(FileError {
+            path,
+            action,
+            source,
+        })
     }
 }
 

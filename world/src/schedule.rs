@@ -25,7 +25,7 @@
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use crate::planner::Plan;
+use crate::planner::{fnv_words, Plan};
 use crate::world::{Move, World};
 
 /// Sweeps over the schedule at most: each costs about (T x K) x cells operations.
@@ -43,15 +43,12 @@ const KICK_WIDTH: usize = 8;
 
 /// A hash of the world's state, the seed of the kicks: a plan stays a function of the state.
 fn state_key(world: &World) -> u64 {
-    let mut h = 0xcbf2_9ce4_8422_2325u64;
     let (x, y) = world.uav();
-    for v in [x as u64, y as u64, world.t() as u64]
-        .into_iter()
-        .chain(world.aoi().iter().map(|&a| a as u64))
-    {
-        h = (h ^ v).wrapping_mul(0x100_0000_01b3);
-    }
-    h
+    fnv_words(
+        [x as u64, y as u64, world.t() as u64]
+            .into_iter()
+            .chain(world.aoi().iter().map(|&a| a as u64)),
+    )
 }
 
 /// `plan` improved as the module doc says with `kicks` kicks, if `world` (at its current state)
@@ -79,18 +76,12 @@ pub fn improve(world: &World, plan: Plan, kicks: usize) -> Plan {
         }
     }
     let actions = best.actions();
-    let cost = replay(world, &actions);
+    let cost = world.cost_of_actions(&actions);
     if cost < plan.cost {
         Plan { actions, cost }
     } else {
         plan
     }
-}
-
-/// What the world charges for `actions` from its current state.
-fn replay(world: &World, actions: &[usize]) -> f64 {
-    let mut w = world.clone();
-    actions.iter().map(|&a| -w.step(a).reward).sum()
 }
 
 /// A device schedule from the world's state, with its tables of cheapest paths.
@@ -111,11 +102,10 @@ struct Schedule<'w> {
 impl<'w> Schedule<'w> {
     fn new(world: &'w World, devices: Vec<usize>) -> Self {
         let l = world.grid_cells();
-        let cell = |c: usize| ((c as u32) % l, (c as u32) / l);
         let index = |(x, y): (u32, u32)| (y * l + x) as usize;
         let cells = (l * l) as usize;
         let next = (0..cells)
-            .map(|c| std::array::from_fn(|m| index(world.moved(cell(c), Move::from_index(m)))))
+            .map(|c| std::array::from_fn(|m| index(world.moved(cell(l, c), Move::from_index(m)))))
             .collect();
         let mut s = Schedule {
             world,
@@ -131,14 +121,13 @@ impl<'w> Schedule<'w> {
         s
     }
 
-    fn cell(&self, c: usize) -> (u32, u32) {
-        let l = self.world.grid_cells();
-        ((c as u32) % l, (c as u32) / l)
-    }
-
     /// lambda / K times the power of serving `device` from cell `c`.
     fn power(&self, c: usize, device: usize) -> f64 {
-        self.world.power_weight() * self.world.transmission_at(self.cell(c), device, None).0
+        self.world.power_weight()
+            * self
+                .world
+                .transmission_at(cell(self.world.grid_cells(), c), device, None)
+                .0
     }
 
     /// F and B of the current schedule.
@@ -325,6 +314,11 @@ impl<'w> Schedule<'w> {
         }
         actions
     }
+}
+
+/// Cell `c` (row-major index) of an `l x l` grid as `(x, y)`.
+fn cell(l: u32, c: usize) -> (u32, u32) {
+    ((c as u32) % l, (c as u32) / l)
 }
 
 #[cfg(test)]

@@ -476,6 +476,13 @@ impl World {
         self.start_cell
     }
 
+    /// The cost (minus the return) the world charges for `actions` taken from this state, on a
+    /// copy: how a plan is scored.
+    pub fn cost_of_actions(&self, actions: &[usize]) -> f64 {
+        let mut w = self.clone();
+        actions.iter().map(|&a| -w.step(a).reward).sum()
+    }
+
     /// This step's cost -r(t) if `device` were scheduled now. The move happens after the
     /// transmission, so it does not enter; the greedy heuristic minimises this.
     pub fn cost_of(&self, device: usize) -> f64 {

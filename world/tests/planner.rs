@@ -26,12 +26,6 @@ fn exhaustive(world: &World) -> f64 {
         .fold(f64::INFINITY, f64::min)
 }
 
-/// Replays `actions` from the world's state and returns the cost the world charges for them.
-fn replay(world: &World, actions: &[usize]) -> f64 {
-    let mut w = world.clone();
-    actions.iter().map(|&a| -w.step(a).reward).sum()
-}
-
 /// Worlds small enough to enumerate: rain that causes outages, rain that moves, unequal
 /// importance weights, the all-devices power term, and an AoI cap that binds.
 fn small_worlds() -> Vec<(&'static str, Config, TaskConfig)> {
@@ -94,7 +88,7 @@ fn planner_equals_exhaustive_search_on_small_worlds() {
                 "{name}, start cell {cell}: the optimum {} above the bound {bound}",
                 -best
             );
-            let charged = replay(&world, &plan.actions);
+            let charged = world.cost_of_actions(&plan.actions);
             assert!(
                 (charged - plan.cost).abs() <= 1e-9 * charged.abs(),
                 "{name}: the plan claims {} but the world charges {charged}",
@@ -242,7 +236,7 @@ fn the_portfolio_keeps_the_cheapest_of_its_searches() {
     for cell in (0..grid * grid).step_by(10) {
         let world = World::new(&cfg.world, &task, 0).with_start((cell % grid, cell / grid));
         let plan = portfolio.beam(&world);
-        assert!((replay(&world, &plan.actions) - plan.cost).abs() <= 1e-6 * plan.cost.abs());
+        assert!((world.cost_of_actions(&plan.actions) - plan.cost).abs() <= 1e-6 * plan.cost.abs());
         let costs: Vec<f64> = alone.iter().map(|p| p.beam(&world).cost).collect();
         let (best, min) =
             costs.iter().enumerate().fold(
@@ -280,7 +274,7 @@ fn the_schedule_search_improves_the_beam_where_power_dominates() {
             let cell = 7 * k % 100;
             let world = World::new(&cfg.world, &task, 0).with_start((cell % 10, cell / 10));
             let (beam, plan) = (planner.beam(&world), planner.plan(&world));
-            let charged = replay(&world, &plan.actions);
+            let charged = world.cost_of_actions(&plan.actions);
             assert!(
                 (charged - plan.cost).abs() <= 1e-9 * charged.abs(),
                 "{world_toml}"

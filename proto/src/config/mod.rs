@@ -187,9 +187,9 @@ impl Config {
     /// mismatched world is caught before a network or a file is used with it.
     pub fn world_hash(&self) -> u64 {
         let text = toml::to_string(&self.world).expect("a world config always serialises");
-        text.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
-            (h ^ b as u64).wrapping_mul(0x100_0000_01b3)
-        })
+        let mut hasher = fnv::FnvHasher::default();
+        std::hash::Hasher::write(&mut hasher, text.as_bytes());
+        std::hash::Hasher::finish(&hasher)
     }
 
     /// The task called `name`.

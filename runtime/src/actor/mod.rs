@@ -94,9 +94,7 @@ impl ActorOptions {
     /// The actor's id: an FNV-1a hash of task, policy and seed, so a restarted actor keeps its id.
     pub fn actor_id(&self) -> u32 {
         let key = format!("{}\0{}\0{}", self.task, self.policy, self.seed);
-        key.bytes().fold(0x811c_9dc5u32, |h, b| {
-            (h ^ b as u32).wrapping_mul(0x0100_0193)
-        })
+        crate::run_dir::fnv1a(key.as_bytes()) as u32
     }
 
     /// The process name: node, port file and metrics snapshot.

@@ -31,6 +31,7 @@ use crate::metrics::MetricsError;
 use crate::process::Process;
 use crate::run_dir::RunDir;
 use crate::transport::{self, TransportError};
+use uavmeta_proto::fs::FileError;
 
 mod metrics;
 
@@ -48,12 +49,8 @@ pub enum EvaluatorError {
     Metrics(#[from] MetricsError),
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
-    #[error("{}: cannot {action}", path.display())]
-    Io {
-        path: std::path::PathBuf,
-        action: &'static str,
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    File(#[from] FileError),
 }
 
 /// One evaluated checkpoint: a row of `evaluations.csv`. Power is in milliwatts, as in every
@@ -165,10 +162,12 @@ pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
     )?)?;
 
     let csv_path = run.evaluations_csv();
-    let io = |action, source| EvaluatorError::Io {
-        path: csv_path.clone(),
-        action,
-        source,
+    let io = |action, source| {
+        EvaluatorError::from(FileError {
+            path: csv_path.clone(),
+            action,
+            source,
+        })
     };
     let (mut csv, mut done) = open_csv(&csv_path).map_err(|(action, e)| io(action, e))?;
 

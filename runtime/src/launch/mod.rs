@@ -97,12 +97,6 @@ pub enum LaunchError {
     File(#[from] FileError),
     #[error(transparent)]
     Metrics(#[from] MetricsError),
-    #[error("{}: cannot {action}", path.display())]
-    Io {
-        path: PathBuf,
-        action: &'static str,
-        source: std::io::Error,
-    },
     #[error("cannot start `{name}` ({exe})", exe = exe.display())]
     Spawn {
         name: String,

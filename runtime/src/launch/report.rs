@@ -13,6 +13,7 @@ use uavmeta_world::world::World;
 use super::LaunchError;
 use crate::evaluator::{self, EvaluationRow};
 use crate::run_dir::RunDir;
+use uavmeta_proto::fs::FileError;
 
 /// What a finished launch reports.
 #[derive(Debug, Clone)]
@@ -74,10 +75,12 @@ pub(super) fn latest_results(run: &RunDir) -> Result<Vec<EvaluationRow>, LaunchE
     if !path.exists() {
         return Ok(Vec::new());
     }
-    let rows = evaluator::read_rows(&path).map_err(|source| LaunchError::Io {
-        path: path.clone(),
-        action: "read",
-        source,
+    let rows = evaluator::read_rows(&path).map_err(|source| {
+        LaunchError::from(FileError {
+            path: path.clone(),
+            action: "read",
+            source,
+        })
     })?;
     let mut latest: BTreeMap<(String, String), EvaluationRow> = BTreeMap::new();
     for row in rows {

@@ -14,6 +14,7 @@ use serde_json::Value;
 use uavmeta_proto::config::Config;
 
 use super::LaunchError;
+use uavmeta_proto::fs::FileError;
 
 /// What to do with a run directory that already holds a run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -98,10 +99,12 @@ fn move_aside(dir: &Path) -> Result<PathBuf, LaunchError> {
         .map(|n| dir.with_file_name(format!("{name}.moved-{n}")))
         .find(|candidate| !candidate.exists())
         .expect("some suffix is free");
-    std::fs::rename(dir, &to).map_err(|source| LaunchError::Io {
-        path: dir.to_path_buf(),
-        action: "move the old run aside (--fresh)",
-        source,
+    std::fs::rename(dir, &to).map_err(|source| {
+        LaunchError::from(FileError {
+            path: dir.to_path_buf(),
+            action: "move the old run aside (--fresh)",
+            source,
+        })
     })?;
     tracing::warn!(from = %dir.display(), to = %to.display(), "--fresh: moved the old run aside");
     Ok(to)

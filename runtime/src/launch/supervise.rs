@@ -3,6 +3,7 @@
 
 use super::stall::StallWatch;
 use super::*;
+use uavmeta_proto::fs::FileError;
 
 pub(super) const TICK: Duration = Duration::from_millis(100);
 /// How long the store may take to come up (its port file is the sign).
@@ -276,24 +277,30 @@ impl Supervisor<'_> {
             .create(true)
             .append(true)
             .open(&log_path)
-            .map_err(|source| LaunchError::Io {
+            .map_err(|source| {
+                LaunchError::from(FileError {
+                    path: log_path.clone(),
+                    action: "open the log",
+                    source,
+                })
+            })?;
+        let err_log = log.try_clone().map_err(|source| {
+            LaunchError::from(FileError {
                 path: log_path.clone(),
                 action: "open the log",
                 source,
-            })?;
-        let err_log = log.try_clone().map_err(|source| LaunchError::Io {
-            path: log_path.clone(),
-            action: "open the log",
-            source,
+            })
         })?;
         // A new file: its modification time is the start, the child's first beat.
         let heartbeat = self.run.heartbeat_file(&child.name);
         std::fs::create_dir_all(self.run.root().join("heartbeats"))
             .and_then(|()| std::fs::File::create(&heartbeat))
-            .map_err(|source| LaunchError::Io {
-                path: heartbeat.clone(),
-                action: "create the heartbeat file",
-                source,
+            .map_err(|source| {
+                LaunchError::from(FileError {
+                    path: heartbeat.clone(),
+                    action: "create the heartbeat file",
+                    source,
+                })
             })?;
         let parent = std::process::id() as libc::pid_t;
         let mut command = Command::new(&self.exe);
@@ -358,10 +365,12 @@ impl Supervisor<'_> {
                     None => continue,
                 },
             };
-            let status = waited.map_err(|source| LaunchError::Io {
-                path: self.run.log_file(&c.name),
-                action: "wait for a child",
-                source,
+            let status = waited.map_err(|source| {
+                LaunchError::from(FileError {
+                    path: self.run.log_file(&c.name),
+                    action: "wait for a child",
+                    source,
+                })
             })?;
             c.child = None;
             if status.success() {
