@@ -567,11 +567,14 @@ fn a_rollout_held_by_a_killed_store_is_sent_again_to_its_successor() {
 }
 
 /// Meta-training long enough (one outer step per meta-epoch, a checkpoint every 100) for a test to
-/// kill or stop the meta-learner mid-way, whatever the machine's speed.
-const LONG_META_TRAINING: [&str; 3] = [
+/// kill or stop the meta-learner mid-way, whatever the machine's speed; the fine-tuning after it
+/// on the small run's 300 shots, not on these tests' datasets of hundreds of thousands (two
+/// thirds of a launch's time, and nothing a kill lands in).
+const LONG_META_TRAINING: [&str; 4] = [
     "meta.meta_epochs=3000",
     "meta.outer_steps_per_meta_epoch=1",
     "meta.checkpoint_every=100",
+    "learner.shots=300",
 ];
 
 #[test]

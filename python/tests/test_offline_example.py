@@ -15,7 +15,11 @@ pytest.importorskip("torch")
 
 def test_the_offline_cql_example_trains_scores_and_saves(run_cli, tmp_path):
     data = tmp_path / "lambda-300.uavds"
-    run_cli("collect", "--config", CONFIG, "--task", "lambda-300", "--policy", "eps:0.3",
+    # The planner's tests' 4 x 4 world: its exact reference (100 start cells on the default
+    # world, over a minute) takes a second here.
+    small = [f"--set={s}" for s in ("world.grid_cells=4", "world.devices=3", "world.horizon=20",
+                                    "world.cell_m=200", "world.layout_seed=3")]
+    run_cli("collect", "--config", CONFIG, *small, "--task", "lambda-300", "--policy", "eps:0.3",
             "--transitions", 2000, "--seed", 1, "--out", data)
     out = subprocess.run(
         [sys.executable, str(REPO / "examples" / "offline_cql.py"), "--dataset", str(data),

@@ -12,6 +12,7 @@ if os.environ.get("CI") == "true":
     import stable_baselines3 as sb3
 else:
     sb3 = pytest.importorskip("stable_baselines3")
+from stable_baselines3.common.logger import configure  # noqa: E402
 from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor  # noqa: E402
 
 import uavmeta.sb3  # noqa: E402
@@ -46,11 +47,13 @@ def test_the_adapter_steps_as_sb3s_dummy_vec_env_of_uav_envs():
 
 
 @pytest.mark.parametrize("algo", ["PPO", "DQN"])
-def test_ppo_and_dqn_learn_on_the_adapter(algo):
+def test_ppo_and_dqn_learn_on_the_adapter(algo, tmp_path):
     venv = VecMonitor(uavmeta.sb3.SB3VecEnv(uavmeta.VectorEnv(8, **KW)))
     kwargs = dict(n_steps=64, batch_size=128) if algo == "PPO" else dict(
         learning_starts=256, buffer_size=5000, train_freq=4, target_update_interval=250)
     model = getattr(sb3, algo)("MlpPolicy", venv, seed=0, device="cpu", **kwargs)
+    # SB3's default logger makes a folder under /tmp that nobody removes; pytest removes tmp_path.
+    model.set_logger(configure(str(tmp_path), []))
     model.learn(total_timesteps=4096)
     assert model.num_timesteps >= 4096
     episodes = list(model.ep_info_buffer)
