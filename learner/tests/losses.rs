@@ -314,7 +314,7 @@ fn bcq_acts_only_on_actions_the_data_supports() {
             let _ = p.zero_();
         });
         let bias = Tensor::from_slice(&[0.0f32, -1.0, 4.0, 0.0, 3.0, 1.0]);
-        let _ = params.last_mut().unwrap().copy_(&bias);
+        params.last_mut().unwrap().copy_(&bias);
     });
     let obs = Tensor::zeros([1, 1], (Kind::Float, tch::Device::Cpu));
     assert_eq!(net.greedy(&obs).int64_value(&[0]), 1);

@@ -180,10 +180,10 @@ fn task_metadata(
 /// `DatasetError`.
 fn dataset_error(e: ReadError) -> PyErr {
     match &e {
-        ReadError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
+        ReadError::File(file) if file.source.kind() == std::io::ErrorKind::NotFound => {
             PyFileNotFoundError::new_err(e.to_string())
         }
-        ReadError::Io { source, .. } => PyOSError::new_err(format!("{e}: {source}")),
+        ReadError::File(file) => PyOSError::new_err(format!("{e}: {}", file.source)),
         _ => DatasetError::new_err(e.to_string()),
     }
 }

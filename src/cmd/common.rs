@@ -2,7 +2,7 @@
 
 use std::path::PathBuf;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::Args;
 use uavmeta_proto::config::{Config, RainZone, TaskConfig};
 
@@ -21,6 +21,27 @@ pub struct ConfigArgs {
 impl ConfigArgs {
     pub fn load(&self) -> Result<Config> {
         Ok(Config::load(&self.config, &self.overrides)?)
+    }
+}
+
+/// The shots an offline run trains on: `--dataset FILE --shots N [--epochs E]`.
+#[derive(Args, Debug, Clone)]
+pub struct ShotsArgs {
+    /// The task's dataset file.
+    #[arg(long)]
+    pub dataset: PathBuf,
+    /// N: transitions drawn from the dataset to train (or fine-tune) on.
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+    pub shots: u64,
+    /// Training epochs [default: learner.epochs].
+    #[arg(long)]
+    pub epochs: Option<usize>,
+}
+
+impl ShotsArgs {
+    /// `--shots` as a count of transitions in memory.
+    pub fn count(&self) -> Result<usize> {
+        usize::try_from(self.shots).context("--shots does not fit in memory")
     }
 }
 

@@ -8,7 +8,7 @@ use uavmeta_learner::progress::OnStep;
 use uavmeta_meta::fine_tune::{meta_test, FineTune, MetaTestOptions};
 use uavmeta_meta::meta_train::{meta_train, MetaTrainOptions};
 
-use super::common::{ConfigArgs, TaskArgs};
+use super::common::{ConfigArgs, ShotsArgs, TaskArgs};
 
 #[derive(Args)]
 pub struct MetaTrainArgs {
@@ -39,15 +39,8 @@ pub struct MetaTestArgs {
     /// The w0 checkpoint meta-train wrote (`OUT/w0`; any extension is ignored).
     #[arg(long)]
     init: PathBuf,
-    /// The unseen task's dataset file.
-    #[arg(long)]
-    dataset: PathBuf,
-    /// N: transitions drawn from the dataset to fine-tune on.
-    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
-    shots: u64,
-    /// Fine-tuning epochs [default: learner.epochs].
-    #[arg(long)]
-    epochs: Option<usize>,
+    #[command(flatten)]
+    shots: ShotsArgs,
     /// Output directory: train.csv and the final checkpoint.
     #[arg(long)]
     out: PathBuf,
@@ -99,15 +92,15 @@ pub fn run_test(args: MetaTestArgs) -> Result<()> {
         fine_tune: FineTune {
             config: &config,
             task: &task,
-            epochs: args.epochs.unwrap_or(config.learner.epochs),
+            epochs: args.shots.epochs.unwrap_or(config.learner.epochs),
             seed,
             out_dir: Some(&args.out),
             progress: true,
             on_step: OnStep::default(),
         },
         init: &args.init,
-        dataset: &args.dataset,
-        shots: usize::try_from(args.shots)?,
+        dataset: &args.shots.dataset,
+        shots: args.shots.count()?,
     })?;
     if let Some(last) = rows.last() {
         println!(

@@ -13,7 +13,7 @@ use uavmeta_learner::train::{train, TrainOptions};
 use uavmeta_learner::transitions::load_shots;
 use uavmeta_proto::method::Algo;
 
-use super::common::{ConfigArgs, TaskArgs};
+use super::common::{ConfigArgs, ShotsArgs, TaskArgs};
 
 #[derive(Args)]
 pub struct TrainArgs {
@@ -24,15 +24,8 @@ pub struct TrainArgs {
     /// The offline algorithm: cql (eq. 8), dqn (eq. 7) or any other registered one.
     #[arg(long, value_parser = |s: &str| s.parse::<Algo>())]
     algo: Algo,
-    /// The task's dataset file.
-    #[arg(long)]
-    dataset: PathBuf,
-    /// N: transitions drawn from the dataset to train on.
-    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
-    shots: u64,
-    /// Training epochs [default: learner.epochs].
-    #[arg(long)]
-    epochs: Option<usize>,
+    #[command(flatten)]
+    shots: ShotsArgs,
     /// `random` (a network seeded by --seed) or a checkpoint to start from.
     #[arg(long, default_value = "random")]
     init: String,
@@ -52,11 +45,11 @@ pub fn run(args: TrainArgs) -> Result<()> {
     let mut config = args.config.load()?;
     let task = args.task.resolve(&mut config)?;
     // Saved beside the final checkpoint, so the flags that change training go into the config.
-    if let Some(epochs) = args.epochs {
+    if let Some(epochs) = args.shots.epochs {
         config.learner.epochs = epochs;
     }
     let seed = args.seed.unwrap_or(config.run.seeds[0]);
-    let shots = usize::try_from(args.shots).context("--shots does not fit in memory")?;
+    let shots = args.shots.count()?;
     let mut q = match (args.init.as_str(), args.init_seed) {
         ("random", init_seed) => QNetworkConfig::for_world(&config.world, &config.learner.hidden)
             .init(init_seed.unwrap_or(seed)),
@@ -67,7 +60,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
         }
         (init, None) => checkpoint::load(init.as_ref(), &config)?.0,
     };
-    let data = load_shots(&config, &task, &args.dataset, shots, seed)?;
+    let data = load_shots(&config, &task, &args.shots.dataset, shots, seed)?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("{}: cannot create the directory", args.out.display()))?;
     let opts = TrainOptions {

@@ -36,7 +36,7 @@ pub(super) fn convergence(ctx: &Context, dir: &Path) -> Result<Section, Reproduc
     write_references_csv(ctx, dir, &r.unseen_task, c.learner.eval_episodes)?;
     let series: Vec<Series> = runs
         .iter()
-        .map(|(m, runs)| return_series(m.label().into(), runs))
+        .map(|(m, runs)| return_series(m.label(), runs))
         .collect();
     line_chart(
         &dir.join("fig5.png"),

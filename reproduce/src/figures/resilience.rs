@@ -129,7 +129,7 @@ fn plot_curves(
         .iter()
         .map(|(m, runs)| {
             return_series(
-                m.label().into(),
+                m.label(),
                 &mean_over_tasks(runs, seeds, |r| &r.returns),
             )
         })
@@ -147,7 +147,7 @@ fn plot_curves(
             let curves = mean_over_tasks(runs, seeds, |r| &r.outages);
             let len = curves.iter().map(Vec::len).max().unwrap_or(0);
             Series {
-                label: m.label().into(),
+                label: m.label(),
                 band: Band::from_runs(epochs_x(len), &curves),
             }
         })
