@@ -9,14 +9,26 @@ TORCH_VERSION := 2.13.0
 TORCH_VENV ?= $(HOME)/.cache/uavmeta/torch-$(TORCH_VERSION)
 CONFIG ?= configs/default.toml
 
-# The compiled dependencies, kept beside libtorch: a clone without target/ starts from a copy of
-# the last build's (the ~600 dependency crates are 18 of a clean build's 20 minutes on two cores);
-# cargo rebuilds whatever differs, this clone's own crates always. The copy is refreshed after a
-# build whenever Cargo.lock or the compiler changed. TARGET_CACHE= (empty) turns it off.
+# The compiled dependencies, kept beside libtorch: a clone without target/ (or python/target/)
+# starts from a copy of the last build's (the ~600 dependency crates are 18 of a clean build's 20
+# minutes on two cores); cargo rebuilds whatever differs, this clone's own crates always. A copy
+# is refreshed after a build whenever its Cargo.lock or the compiler changed. TARGET_CACHE=
+# (empty) turns both off.
 TARGET_CACHE ?= $(HOME)/.cache/uavmeta/target
-TARGET_STAMP = { rustc -V; cat Cargo.lock; } | cksum
 
-.PHONY: run test build bench libtorch test-tools interop python wheel target-from-cache
+# $(call from-cache,DIR,CACHE): DIR starts as a copy of CACHE if DIR is missing.
+from-cache = if [ -n "$(TARGET_CACHE)" ] && [ ! -d $(1) ] && [ -f "$(2)/stamp" ]; then \
+	  echo "starting $(1)/ from the compiled dependencies in $(2)"; cp -a --reflink=auto "$(2)" $(1); fi
+# $(call to-cache,DIR,CACHE,LOCKFILE): CACHE becomes a copy of DIR if LOCKFILE or rustc changed;
+# copied to a new directory, then renamed into place, so a clone copying the old one never sees
+# half of the new.
+to-cache = stamp="$$({ rustc -V; cat $(3); } | cksum)"; \
+	if [ -n "$(TARGET_CACHE)" ] && [ -d $(1) ] && [ "$$stamp" != "$$(cat "$(2)/stamp" 2>/dev/null)" ]; then \
+	  echo "keeping the compiled dependencies in $(2)"; \
+	  mkdir -p "$$(dirname "$(2)")" && rm -rf "$(2).new" && cp -a --reflink=auto $(1) "$(2).new" && \
+	  echo "$$stamp" > "$(2).new/stamp" && rm -rf "$(2)" && mv "$(2).new" "$(2)"; fi
+
+.PHONY: run test build bench libtorch test-tools interop python wheel
 
 run: build
 	target/release/uavmeta launch --config $(CONFIG)
@@ -25,35 +37,24 @@ run: build
 # installed (.config/nextest.toml: every test in its own process, both cores busy across test
 # binaries, the slowest first; about a fifth less wall time than `cargo test` on 2 cores,
 # docs/TESTING.md). Without nextest, `cargo test` runs the same tests one binary after another.
-test: libtorch test-tools interop python target-from-cache
+test: libtorch test-tools interop python
+	@$(call from-cache,target,$(TARGET_CACHE))
 ifneq ($(shell command -v cargo-nextest),)
 	cargo test --doc --workspace --release
 	cargo nextest run --workspace --release --no-run
-	@$(SAVE_TARGET)
+	@$(call to-cache,target,$(TARGET_CACHE),Cargo.lock)
 	cargo nextest run --workspace --release
 else
 	@echo "cargo-nextest is not installed (cargo install cargo-nextest --locked): running cargo test"
 	cargo test --workspace --release --no-run
-	@$(SAVE_TARGET)
+	@$(call to-cache,target,$(TARGET_CACHE),Cargo.lock)
 	cargo test --workspace --release
 endif
 
-build: libtorch target-from-cache
+build: libtorch
+	@$(call from-cache,target,$(TARGET_CACHE))
 	cargo build --release
-	@$(SAVE_TARGET)
-
-target-from-cache:
-	@if [ -n "$(TARGET_CACHE)" ] && [ ! -d target ] && [ -d "$(TARGET_CACHE)/release" ]; then \
-	  echo "starting target/ from the compiled dependencies in $(TARGET_CACHE)"; \
-	  cp -a --reflink=auto "$(TARGET_CACHE)" target; fi
-
-# Copied to a new directory, then renamed into place: a build reading the old copy never sees half
-# of the new one.
-SAVE_TARGET = if [ -n "$(TARGET_CACHE)" ] && [ "$$($(TARGET_STAMP))" != "$$(cat "$(TARGET_CACHE)/stamp" 2>/dev/null)" ]; then \
-	  echo "keeping the compiled dependencies in $(TARGET_CACHE)"; \
-	  mkdir -p "$$(dirname "$(TARGET_CACHE)")" && rm -rf "$(TARGET_CACHE).new" && \
-	  cp -a --reflink=auto target "$(TARGET_CACHE).new" && $(TARGET_STAMP) > "$(TARGET_CACHE).new/stamp" && \
-	  rm -rf "$(TARGET_CACHE)" && mv "$(TARGET_CACHE).new" "$(TARGET_CACHE)"; fi
+	@$(call to-cache,target,$(TARGET_CACHE),Cargo.lock)
 
 bench: libtorch
 	cargo bench --workspace
@@ -100,9 +101,11 @@ $(TORCH_VENV)/.interop-installed: $(INTEROP_REQUIREMENTS) $(TORCH_VENV)/.install
 # stable-baselines3. Installed again on every run: cargo rebuilds only what changed (python/target),
 # so an unchanged package costs seconds. If it cannot be built the test skips, except under CI=true.
 python: interop
-	@PATH="$(TORCH_VENV)/bin:$$PATH" $(TORCH_VENV)/bin/pip install --no-input --disable-pip-version-check -q \
-	  --no-build-isolation --no-deps --force-reinstall ./python || \
-	  echo "the Python package (python/) is not installed; tests/python.rs skips"
+	@$(call from-cache,python/target,$(TARGET_CACHE)-python)
+	@if PATH="$(TORCH_VENV)/bin:$$PATH" $(TORCH_VENV)/bin/pip install --no-input --disable-pip-version-check -q \
+	  --no-build-isolation --no-deps --force-reinstall ./python; \
+	then $(call to-cache,python/target,$(TARGET_CACHE)-python,python/Cargo.lock); \
+	else echo "the Python package (python/) is not installed; tests/python.rs skips"; fi
 
 # A wheel of the Python package for every CPython >= 3.9 on this platform (PyO3's abi3), in
 # target/wheels; it installs with pip into any virtualenv without a Rust toolchain
