@@ -31,6 +31,10 @@ fn the_python_package_passes_its_pytest_suite() {
         ])
         .current_dir(REPO)
         .env("UAVMETA_BIN", env!("CARGO_BIN_EXE_uavmeta"))
+        // One thread for torch, numpy and OpenBLAS, as the binary's libtorch has: beside the
+        // other tests on two cores, two threads each only wait for one another.
+        .env("OMP_NUM_THREADS", "1")
+        .env("OPENBLAS_NUM_THREADS", "1")
         .output()
         .expect("run pytest");
     let stdout = String::from_utf8_lossy(&out.stdout);
