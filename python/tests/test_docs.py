@@ -2,6 +2,7 @@
 commands make the files it reads, then its Python blocks run in order in one interpreter (a
 reader following the page), from a directory holding only what a checkout holds (configs/)."""
 
+import os
 import re
 import shutil
 import subprocess
@@ -36,7 +37,10 @@ def test_every_example_of_docs_python_runs_as_written(uavmeta_bin, tmp_path):
                 assert re.match(r"(pip|make) ", line), f"a command the test does not run: {line}"
     script = "\n\n".join(blocks("python"))
     (tmp_path / "page.py").write_text(script)
-    out = subprocess.run([sys.executable, "page.py"], cwd=tmp_path, capture_output=True, text=True)
+    # TMPDIR: SB3's default logger makes a folder there that nobody removes; pytest removes tmp_path.
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    out = subprocess.run([sys.executable, "page.py"], cwd=tmp_path, capture_output=True, text=True,
+                         env=env)
     assert out.returncode == 0, out.stderr
     assert "'task_id': 0, 'lam': 300.0" in out.stdout
     assert (tmp_path / "runs" / "quick" / "tuned.json").exists()
