@@ -127,12 +127,7 @@ fn plot_curves(
     let seeds = ctx.seeds.len();
     let returns: Vec<Series> = per_method
         .iter()
-        .map(|(m, runs)| {
-            return_series(
-                m.label(),
-                &mean_over_tasks(runs, seeds, |r| &r.returns),
-            )
-        })
+        .map(|(m, runs)| return_series(m.label(), &mean_over_tasks(runs, seeds, |r| &r.returns)))
         .collect();
     line_chart(
         &dir.join("fig9a_return.png"),
