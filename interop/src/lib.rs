@@ -72,14 +72,8 @@ pub enum InteropError {
 impl InteropError {
     /// The error of `action` on `path`, for `map_err`.
     fn io(path: &Path, action: &'static str) -> impl FnOnce(std::io::Error) -> Self {
-        let path = path.to_path_buf();
-        move |source| {
-            Self::from(FileError {
-                path,
-                action,
-                source,
-            })
-        }
+        let at = FileError::at(path, action);
+        move |source| Self::from(at(source))
     }
 }
 

@@ -382,13 +382,9 @@ fn verify(path: &Path, expected_len: u64, expected_crc: u32) -> Result<(), Check
 }
 
 fn read(path: &Path, action: &'static str) -> Result<Vec<u8>, CheckpointError> {
-    std::fs::read(path).map_err(|source| {
-        CheckpointError::from(FileError {
-            path: path.to_path_buf(),
-            action,
-            source,
-        })
-    })
+    std::fs::read(path)
+        .map_err(FileError::at(path, action))
+        .map_err(CheckpointError::from)
 }
 
 /// Creates the directory `path` goes into, and returns it.
@@ -398,13 +394,7 @@ fn create_parent(path: &Path) -> Result<PathBuf, CheckpointError> {
         .filter(|d| !d.as_os_str().is_empty())
         .unwrap_or(Path::new("."))
         .to_path_buf();
-    std::fs::create_dir_all(&dir).map_err(|source| {
-        CheckpointError::from(FileError {
-            path: dir.clone(),
-            action: "create the directory",
-            source,
-        })
-    })?;
+    std::fs::create_dir_all(&dir).map_err(FileError::at(&dir, "create the directory"))?;
     Ok(dir)
 }
 
@@ -424,23 +414,14 @@ fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), CheckpointError> {
 fn sync_file(path: &Path) -> Result<(), CheckpointError> {
     File::open(path)
         .and_then(|f| f.sync_all())
-        .map_err(|source| {
-            CheckpointError::from(FileError {
-                path: path.to_path_buf(),
-                action: "fsync",
-                source,
-            })
-        })
+        .map_err(FileError::at(path, "fsync"))
+        .map_err(CheckpointError::from)
 }
 
 fn rename(from: &Path, to: &Path) -> Result<(), CheckpointError> {
-    std::fs::rename(from, to).map_err(|source| {
-        CheckpointError::from(FileError {
-            path: to.to_path_buf(),
-            action: "rename into place",
-            source,
-        })
-    })
+    std::fs::rename(from, to)
+        .map_err(FileError::at(to, "rename into place"))
+        .map_err(CheckpointError::from)
 }
 
 fn one_head() -> usize {

@@ -100,22 +100,14 @@ impl From<ShotsError> for MetaError {
 
 /// Creates `dir` and its parents, naming it on failure.
 pub fn create_dir(dir: &Path) -> Result<(), MetaError> {
-    std::fs::create_dir_all(dir).map_err(|source| {
-        MetaError::from(FileError {
-            path: dir.to_path_buf(),
-            action: "create",
-            source,
-        })
-    })
+    std::fs::create_dir_all(dir)
+        .map_err(FileError::at(dir, "create"))
+        .map_err(MetaError::from)
 }
 
 /// Writes `text` to `path`, naming it on failure.
 pub fn write_file(path: &Path, text: &str) -> Result<(), MetaError> {
-    std::fs::write(path, text).map_err(|source| {
-        MetaError::from(FileError {
-            path: path.to_path_buf(),
-            action: "write",
-            source,
-        })
-    })
+    std::fs::write(path, text)
+        .map_err(FileError::at(path, "write"))
+        .map_err(MetaError::from)
 }

@@ -308,13 +308,7 @@ impl DatasetWriter {
             file.sync_all()?;
             Ok(file)
         };
-        let file = write().map_err(|source| {
-            DatasetError::from(FileError {
-                path: path.clone(),
-                action: "create",
-                source,
-            })
-        })?;
+        let file = write().map_err(FileError::at(&path, "create"))?;
         Ok(Self {
             path,
             header,
@@ -372,13 +366,7 @@ impl DatasetWriter {
             file.seek(SeekFrom::Start(len))?;
             Ok(file)
         };
-        let file = reopen().map_err(|source| {
-            DatasetError::from(FileError {
-                path: path.clone(),
-                action: "open for appending",
-                source,
-            })
-        })?;
+        let file = reopen().map_err(FileError::at(&path, "open for appending"))?;
         let writer = Self {
             path,
             header,
@@ -455,13 +443,9 @@ impl DatasetWriter {
         self.chunk[16..20].copy_from_slice(&payload_len.to_le_bytes());
         let crc = crc32fast::hash(&self.chunk);
         self.chunk.extend_from_slice(&crc.to_le_bytes());
-        self.file.write_all(&self.chunk).map_err(|source| {
-            DatasetError::from(FileError {
-                path: self.path.clone(),
-                action: "append a chunk",
-                source,
-            })
-        })?;
+        self.file
+            .write_all(&self.chunk)
+            .map_err(FileError::at(&self.path, "append a chunk"))?;
         self.transitions += transitions.len() as u64;
         self.len += self.chunk.len() as u64;
         Ok(())
@@ -469,25 +453,20 @@ impl DatasetWriter {
 
     /// Hands buffered chunks to the operating system.
     pub fn flush(&mut self) -> Result<(), DatasetError> {
-        self.file.flush().map_err(|source| {
-            DatasetError::from(FileError {
-                path: self.path.clone(),
-                action: "flush",
-                source,
-            })
-        })
+        self.file
+            .flush()
+            .map_err(FileError::at(&self.path, "flush"))
+            .map_err(DatasetError::from)
     }
 
     /// Flushes and waits until the chunks are on disk: after it returns they survive a crash.
     pub fn sync(&mut self) -> Result<(), DatasetError> {
         self.flush()?;
-        self.file.get_ref().sync_data().map_err(|source| {
-            DatasetError::from(FileError {
-                path: self.path.clone(),
-                action: "sync",
-                source,
-            })
-        })
+        self.file
+            .get_ref()
+            .sync_data()
+            .map_err(FileError::at(&self.path, "sync"))
+            .map_err(DatasetError::from)
     }
 
     pub fn header(&self) -> &DatasetHeader {
@@ -521,13 +500,7 @@ pub struct DatasetReader {
 
 /// The whole file with its decoded header and the header's length: where every scan starts.
 fn read_with_header(path: &Path) -> Result<(Vec<u8>, DatasetHeader, usize), DatasetError> {
-    let bytes = std::fs::read(path).map_err(|source| {
-        DatasetError::from(FileError {
-            path: path.to_path_buf(),
-            action: "read",
-            source,
-        })
-    })?;
+    let bytes = std::fs::read(path).map_err(FileError::at(path, "read"))?;
     let (header, header_len) = DatasetHeader::decode(&bytes, path)?;
     Ok((bytes, header, header_len))
 }

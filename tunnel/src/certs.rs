@@ -119,14 +119,8 @@ fn write(path: &Path, bytes: &[u8], mode: u32) -> Result<(), CertsError> {
 }
 
 fn io(path: &Path, action: &'static str) -> impl FnOnce(std::io::Error) -> CertsError {
-    let path = path.to_path_buf();
-    move |source| {
-        CertsError::from(FileError {
-            path,
-            action,
-            source,
-        })
-    }
+    let at = FileError::at(path, action);
+    move |source| CertsError::from(at(source))
 }
 
 fn invalid(path: &Path) -> impl FnOnce(rcgen::Error) -> CertsError {

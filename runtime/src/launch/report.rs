@@ -75,13 +75,7 @@ pub(super) fn latest_results(run: &RunDir) -> Result<Vec<EvaluationRow>, LaunchE
     if !path.exists() {
         return Ok(Vec::new());
     }
-    let rows = evaluator::read_rows(&path).map_err(|source| {
-        LaunchError::from(FileError {
-            path: path.clone(),
-            action: "read",
-            source,
-        })
-    })?;
+    let rows = evaluator::read_rows(&path).map_err(FileError::at(&path, "read"))?;
     let mut latest: BTreeMap<(String, String), EvaluationRow> = BTreeMap::new();
     for row in rows {
         latest.insert((row.task.clone(), row.method.clone()), row);

@@ -99,13 +99,7 @@ fn move_aside(dir: &Path) -> Result<PathBuf, LaunchError> {
         .map(|n| dir.with_file_name(format!("{name}.moved-{n}")))
         .find(|candidate| !candidate.exists())
         .expect("some suffix is free");
-    std::fs::rename(dir, &to).map_err(|source| {
-        LaunchError::from(FileError {
-            path: dir.to_path_buf(),
-            action: "move the old run aside (--fresh)",
-            source,
-        })
-    })?;
+    std::fs::rename(dir, &to).map_err(FileError::at(dir, "move the old run aside (--fresh)"))?;
     tracing::warn!(from = %dir.display(), to = %to.display(), "--fresh: moved the old run aside");
     Ok(to)
 }

@@ -277,31 +277,15 @@ impl Supervisor<'_> {
             .create(true)
             .append(true)
             .open(&log_path)
-            .map_err(|source| {
-                LaunchError::from(FileError {
-                    path: log_path.clone(),
-                    action: "open the log",
-                    source,
-                })
-            })?;
-        let err_log = log.try_clone().map_err(|source| {
-            LaunchError::from(FileError {
-                path: log_path.clone(),
-                action: "open the log",
-                source,
-            })
-        })?;
+            .map_err(FileError::at(&log_path, "open the log"))?;
+        let err_log = log
+            .try_clone()
+            .map_err(FileError::at(&log_path, "open the log"))?;
         // A new file: its modification time is the start, the child's first beat.
         let heartbeat = self.run.heartbeat_file(&child.name);
         std::fs::create_dir_all(self.run.root().join("heartbeats"))
             .and_then(|()| std::fs::File::create(&heartbeat))
-            .map_err(|source| {
-                LaunchError::from(FileError {
-                    path: heartbeat.clone(),
-                    action: "create the heartbeat file",
-                    source,
-                })
-            })?;
+            .map_err(FileError::at(&heartbeat, "create the heartbeat file"))?;
         let parent = std::process::id() as libc::pid_t;
         let mut command = Command::new(&self.exe);
         command
@@ -365,13 +349,10 @@ impl Supervisor<'_> {
                     None => continue,
                 },
             };
-            let status = waited.map_err(|source| {
-                LaunchError::from(FileError {
-                    path: self.run.log_file(&c.name),
-                    action: "wait for a child",
-                    source,
-                })
-            })?;
+            let status = waited.map_err(FileError::at(
+                &self.run.log_file(&c.name),
+                "wait for a child",
+            ))?;
             c.child = None;
             if status.success() {
                 tracing::info!(name = %c.name, "finished");
