@@ -11,21 +11,34 @@ CONFIG ?= configs/default.toml
 
 # The compiled dependencies, kept beside libtorch: a clone without target/ (or python/target/)
 # starts from a copy of the last build's (the ~600 dependency crates are 18 of a clean build's 20
-# minutes on two cores); cargo rebuilds whatever differs, this clone's own crates always. A copy
-# is refreshed after a build whenever its Cargo.lock or the compiler changed. TARGET_CACHE=
-# (empty) turns both off.
+# minutes on two cores); cargo rebuilds whatever differs, this clone's own crates always. The copy
+# is refreshed after a build whenever its stamp changed: the compiler, the lock file, the
+# manifest (profiles, patches) and the cargo config. TARGET_CACHE= (empty) turns both off.
 TARGET_CACHE ?= $(HOME)/.cache/uavmeta/target
 
-# $(call from-cache,DIR,CACHE): DIR starts as a copy of CACHE if DIR is missing.
+# $(call stamp,MANIFEST_DIR): what the compiled dependencies of the workspace there depend on,
+# the patched crates of vendor/ included.
+stamp = { rustc -V; cat $(1)/Cargo.lock $(1)/Cargo.toml .cargo/config.toml; \
+	  find vendor -type f -print0 | sort -z | xargs -0 cat; } | cksum
+# $(call from-cache,DIR,CACHE,MANIFEST_DIR,IF_SAME): DIR starts as a copy of CACHE if DIR is
+# missing; then IF_SAME runs if the copy's stamp is this tree's.
 from-cache = if [ -n "$(TARGET_CACHE)" ] && [ ! -d $(1) ] && [ -f "$(2)/stamp" ]; then \
-	  echo "starting $(1)/ from the compiled dependencies in $(2)"; cp -a --reflink=auto "$(2)" $(1); fi
-# $(call to-cache,DIR,CACHE,LOCKFILE): CACHE becomes a copy of DIR if LOCKFILE or rustc changed;
-# copied to a new directory, then renamed into place, so a clone copying the old one never sees
-# half of the new.
-to-cache = stamp="$$({ rustc -V; cat $(3); } | cksum)"; \
+	  echo "starting $(1)/ from the compiled dependencies in $(2)"; cp -a --reflink=auto "$(2)" $(1); \
+	  if [ "$$($(call stamp,$(3)))" = "$$(cat "$(2)/stamp")" ]; then $(4) true; fi; fi
+# The patched crates of vendor/ are path dependencies, which cargo judges by mtime: a clone's
+# checkout time would rebuild the patched Zenoh link and the Zenoh crates above it (300 s of CPU)
+# for no change. With the stamps equal, vendor/ is byte for byte what the copy was built from, and
+# its files get an old mtime.
+age-vendor = find vendor -exec touch -h -d @946684800 {} +;
+# $(call to-cache,DIR,CACHE,MANIFEST_DIR): CACHE becomes a copy of DIR if its stamp changed, less
+# the workspace's own products (half the size, and no other clone can use them). Copied to a new
+# directory, then renamed into place, so a clone copying the old one never sees half of the new.
+to-cache = stamp="$$($(call stamp,$(3)))"; \
 	if [ -n "$(TARGET_CACHE)" ] && [ -d $(1) ] && [ "$$stamp" != "$$(cat "$(2)/stamp" 2>/dev/null)" ]; then \
 	  echo "keeping the compiled dependencies in $(2)"; \
 	  mkdir -p "$$(dirname "$(2)")" && rm -rf "$(2).new" && cp -a --reflink=auto $(1) "$(2).new" && \
+	  { find "$(2).new" -maxdepth 3 -name '*uavmeta*' -exec rm -rf {} +; \
+	    find "$(2).new" -maxdepth 3 -path '*/deps/*' -type f -perm -u+x ! -name '*.so' -delete; true; } && \
 	  echo "$$stamp" > "$(2).new/stamp" && rm -rf "$(2)" && mv "$(2).new" "$(2)"; fi
 
 .PHONY: run test build bench libtorch test-tools interop python wheel
@@ -38,23 +51,23 @@ run: build
 # binaries, the slowest first; about a fifth less wall time than `cargo test` on 2 cores,
 # docs/TESTING.md). Without nextest, `cargo test` runs the same tests one binary after another.
 test: libtorch test-tools interop python
-	@$(call from-cache,target,$(TARGET_CACHE))
+	@$(call from-cache,target,$(TARGET_CACHE),.,$(age-vendor))
 ifneq ($(shell command -v cargo-nextest),)
 	cargo test --doc --workspace --release
 	cargo nextest run --workspace --release --no-run
-	@$(call to-cache,target,$(TARGET_CACHE),Cargo.lock)
+	@$(call to-cache,target,$(TARGET_CACHE),.)
 	cargo nextest run --workspace --release
 else
 	@echo "cargo-nextest is not installed (cargo install cargo-nextest --locked): running cargo test"
 	cargo test --workspace --release --no-run
-	@$(call to-cache,target,$(TARGET_CACHE),Cargo.lock)
+	@$(call to-cache,target,$(TARGET_CACHE),.)
 	cargo test --workspace --release
 endif
 
 build: libtorch
-	@$(call from-cache,target,$(TARGET_CACHE))
+	@$(call from-cache,target,$(TARGET_CACHE),.,$(age-vendor))
 	cargo build --release
-	@$(call to-cache,target,$(TARGET_CACHE),Cargo.lock)
+	@$(call to-cache,target,$(TARGET_CACHE),.)
 
 bench: libtorch
 	cargo bench --workspace
@@ -101,10 +114,10 @@ $(TORCH_VENV)/.interop-installed: $(INTEROP_REQUIREMENTS) $(TORCH_VENV)/.install
 # stable-baselines3. Installed again on every run: cargo rebuilds only what changed (python/target),
 # so an unchanged package costs seconds. If it cannot be built the test skips, except under CI=true.
 python: interop
-	@$(call from-cache,python/target,$(TARGET_CACHE)-python)
+	@$(call from-cache,python/target,$(TARGET_CACHE)-python,python)
 	@if PATH="$(TORCH_VENV)/bin:$$PATH" $(TORCH_VENV)/bin/pip install --no-input --disable-pip-version-check -q \
 	  --no-build-isolation --no-deps --force-reinstall ./python; \
-	then $(call to-cache,python/target,$(TARGET_CACHE)-python,python/Cargo.lock); \
+	then $(call to-cache,python/target,$(TARGET_CACHE)-python,python); \
 	else echo "the Python package (python/) is not installed; tests/python.rs skips"; fi
 
 # A wheel of the Python package for every CPython >= 3.9 on this platform (PyO3's abi3), in
