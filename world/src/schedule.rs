@@ -58,7 +58,8 @@ pub fn improve(world: &World, plan: Plan, kicks: usize) -> Plan {
         return plan;
     }
     let k = world.devices();
-    let mut best = Schedule::new(world, plan.actions.iter().map(|a| a % k).collect());
+    let grid = Grid::new(world);
+    let mut best = Schedule::new(&grid, plan.actions.iter().map(|a| a % k).collect());
     best.descend();
     let mut rng = ChaCha8Rng::seed_from_u64(state_key(world));
     let steps = best.devices.len();
@@ -69,7 +70,7 @@ pub fn improve(world: &World, plan: Plan, kicks: usize) -> Plan {
         for d in &mut devices[from..from + width] {
             *d = rng.random_range(0..k);
         }
-        let mut trial = Schedule::new(world, devices);
+        let mut trial = Schedule::new(&grid, devices);
         trial.descend();
         if trial.total() < best.total() - 1e-9 * best.total().abs() {
             best = trial;
@@ -84,36 +85,79 @@ pub fn improve(world: &World, plan: Plan, kicks: usize) -> Plan {
     }
 }
 
-/// A device schedule from the world's state, with its tables of cheapest paths.
-struct Schedule<'w> {
+/// The world's grid as the paths see it, made once for all the schedules of one improvement.
+struct Grid<'w> {
     world: &'w World,
-    devices: Vec<usize>,
     /// Cells, row-major; `next[c]` are the cells one move from c, in move order.
     cells: usize,
     next: Vec<[usize; 5]>,
     start: usize,
-    /// `F[t * cells + c]` and `B[t * cells + c]` (module doc); `B` has T + 1 rows.
-    forward: Vec<f64>,
-    backward: Vec<f64>,
-    /// The steps at which each device is served, ascending.
-    served: Vec<Vec<usize>>,
+    /// lambda / K times the clear-sky power of serving device j from cell c, at `[j * cells + c]`.
+    power: Vec<f64>,
 }
 
-impl<'w> Schedule<'w> {
-    fn new(world: &'w World, devices: Vec<usize>) -> Self {
+impl<'w> Grid<'w> {
+    fn new(world: &'w World) -> Self {
         let l = world.grid_cells();
         let index = |(x, y): (u32, u32)| (y * l + x) as usize;
         let cells = (l * l) as usize;
         let next = (0..cells)
             .map(|c| std::array::from_fn(|m| index(world.moved(cell(l, c), Move::from_index(m)))))
             .collect();
-        let mut s = Schedule {
+        let power = (0..world.devices())
+            .flat_map(|j| {
+                (0..cells).map(move |c| {
+                    world.power_weight() * world.transmission_at(cell(l, c), j, None).0
+                })
+            })
+            .collect();
+        Grid {
             world,
-            devices,
             cells,
             next,
             start: index(world.uav()),
+            power,
+        }
+    }
+
+    /// The power costs of serving `device`, by cell.
+    fn power_of(&self, device: usize) -> &[f64] {
+        &self.power[device * self.cells..][..self.cells]
+    }
+
+    /// `row` (the cheapest costs from step t + 1 on, by cell) moved back over step t serving
+    /// `device`: B's recursion.
+    fn back_over(&self, device: usize, row: &[f64], out: &mut [f64]) {
+        for ((o, next), power) in out.iter_mut().zip(&self.next).zip(self.power_of(device)) {
+            let onward = next.iter().map(|&to| row[to]).fold(f64::INFINITY, f64::min);
+            *o = power + onward;
+        }
+    }
+}
+
+/// A device schedule from the world's state, with its tables of cheapest paths.
+struct Schedule<'g> {
+    grid: &'g Grid<'g>,
+    world: &'g World,
+    devices: Vec<usize>,
+    /// `F[t * cells + c]` and `B[t * cells + c]` (module doc); `B` has T + 1 rows. While a sweep
+    /// runs, F is valid up to row `forward_rows` and B only from the sweep's step on (a change
+    /// at step t alters F after t and B up to t).
+    forward: Vec<f64>,
+    forward_rows: usize,
+    backward: Vec<f64>,
+    /// The steps at which each device is served, ascending.
+    served: Vec<Vec<usize>>,
+}
+
+impl<'g> Schedule<'g> {
+    fn new(grid: &'g Grid<'g>, devices: Vec<usize>) -> Self {
+        let mut s = Schedule {
+            grid,
+            world: grid.world,
+            devices,
             forward: Vec::new(),
+            forward_rows: 0,
             backward: Vec::new(),
             served: Vec::new(),
         };
@@ -121,44 +165,44 @@ impl<'w> Schedule<'w> {
         s
     }
 
-    /// lambda / K times the power of serving `device` from cell `c`.
-    fn power(&self, c: usize, device: usize) -> f64 {
-        self.world.power_weight()
-            * self
-                .world
-                .transmission_at(cell(self.world.grid_cells(), c), device, None)
-                .0
+    /// F and B of the current schedule, whole.
+    fn tabulate(&mut self) {
+        let (n, t_max) = (self.grid.cells, self.devices.len());
+        self.forward = vec![f64::INFINITY; (t_max + 1) * n];
+        self.forward[self.grid.start] = 0.0;
+        self.forward_rows = 0;
+        self.extend_forward(t_max);
+        let mut backward = vec![0.0; (t_max + 1) * n];
+        for t in (0..t_max).rev() {
+            let (here, onward) = backward[t * n..].split_at_mut(n);
+            self.grid.back_over(self.devices[t], &onward[..n], here);
+        }
+        self.backward = backward;
+        self.index_services();
     }
 
-    /// F and B of the current schedule.
-    fn tabulate(&mut self) {
-        let (n, t_max) = (self.cells, self.devices.len());
-        let mut forward = vec![f64::INFINITY; (t_max + 1) * n];
-        forward[self.start] = 0.0;
-        for t in 0..t_max {
-            for c in 0..n {
-                let here = forward[t * n + c];
+    /// F's rows up to `row`, from the last valid one.
+    fn extend_forward(&mut self, row: usize) {
+        let n = self.grid.cells;
+        for t in self.forward_rows..row {
+            let (done, rest) = self.forward.split_at_mut((t + 1) * n);
+            let next_row = &mut rest[..n];
+            next_row.fill(f64::INFINITY);
+            let power = self.grid.power_of(self.devices[t]);
+            for (c, &here) in done[t * n..].iter().enumerate() {
                 if here.is_finite() {
-                    let cost = here + self.power(c, self.devices[t]);
-                    for &to in &self.next[c] {
-                        let slot = &mut forward[(t + 1) * n + to];
-                        *slot = slot.min(cost);
+                    let cost = here + power[c];
+                    for &to in &self.grid.next[c] {
+                        next_row[to] = next_row[to].min(cost);
                     }
                 }
             }
         }
-        let mut backward = vec![0.0; (t_max + 1) * n];
-        for t in (0..t_max).rev() {
-            for c in 0..n {
-                let onward = self.next[c]
-                    .iter()
-                    .map(|&to| backward[(t + 1) * n + to])
-                    .fold(f64::INFINITY, f64::min);
-                backward[t * n + c] = self.power(c, self.devices[t]) + onward;
-            }
-        }
-        self.forward = forward;
-        self.backward = backward;
+        self.forward_rows = self.forward_rows.max(row);
+    }
+
+    /// `served` from `devices`.
+    fn index_services(&mut self) {
         let mut served = vec![Vec::new(); self.world.devices()];
         for (t, &device) in self.devices.iter().enumerate() {
             served[device].push(t);
@@ -214,22 +258,18 @@ impl<'w> Schedule<'w> {
     /// The least power cost of the whole schedule with `devices[t..t + with.len()]` replaced by
     /// `with` (one or two steps).
     fn power_with(&self, t: usize, with: &[usize]) -> f64 {
-        let n = self.cells;
+        let n = self.grid.cells;
         // From the end of the replaced steps back to step t: the cheapest cost-to-go of each cell.
-        let mut to_go: Vec<f64> = self.backward[(t + with.len()) * n..][..n].to_vec();
+        let mut to_go = self.backward[(t + with.len()) * n..][..n].to_vec();
+        let mut scratch = vec![0.0; n];
         for &device in with.iter().rev() {
-            to_go = (0..n)
-                .map(|c| {
-                    let onward = self.next[c]
-                        .iter()
-                        .map(|&to| to_go[to])
-                        .fold(f64::INFINITY, f64::min);
-                    self.power(c, device) + onward
-                })
-                .collect();
+            self.grid.back_over(device, &to_go, &mut scratch);
+            std::mem::swap(&mut to_go, &mut scratch);
         }
-        (0..n)
-            .map(|c| self.forward[t * n + c] + to_go[c])
+        self.forward[t * n..][..n]
+            .iter()
+            .zip(&to_go)
+            .map(|(f, b)| f + b)
             .fold(f64::INFINITY, f64::min)
     }
 
@@ -274,6 +314,7 @@ impl<'w> Schedule<'w> {
         let mut best = current_aoi + self.power_with(0, &[]);
         let mut improved = false;
         for t in 0..self.devices.len() {
+            self.extend_forward(t);
             let mut candidates: Vec<Vec<usize>> = (0..k)
                 .filter(|&d| d != self.devices[t])
                 .map(|d| vec![d])
@@ -289,28 +330,35 @@ impl<'w> Schedule<'w> {
                     best = total;
                     current_aoi += aoi;
                     self.devices[t..t + with.len()].copy_from_slice(&with);
-                    self.tabulate();
+                    self.index_services();
+                    // F's rows after t are stale; B's from t + with.len() on are not, and are
+                    // all the rest of the sweep reads.
+                    self.forward_rows = t;
                     improved = true;
                 }
             }
+        }
+        if improved {
+            self.tabulate();
         }
         improved
     }
 
     /// The schedule's actions along its cheapest path (the first cheapest move on a tie).
     fn actions(&self) -> Vec<usize> {
-        let (n, k) = (self.cells, self.world.devices());
-        let mut c = self.start;
+        let (n, k) = (self.grid.cells, self.world.devices());
+        let next = &self.grid.next;
+        let mut c = self.grid.start;
         let mut actions = Vec::with_capacity(self.devices.len());
         for (t, &device) in self.devices.iter().enumerate() {
             let m = (0..5)
                 .min_by(|&a, &b| {
-                    let cost = |m: usize| self.backward[(t + 1) * n + self.next[c][m]];
+                    let cost = |m: usize| self.backward[(t + 1) * n + next[c][m]];
                     cost(a).total_cmp(&cost(b))
                 })
                 .expect("five moves");
             actions.push(m * k + device);
-            c = self.next[c][m];
+            c = next[c][m];
         }
         actions
     }
@@ -335,7 +383,8 @@ mod tests {
         let cfg = Config::from_toml_str(text, "test", &[]).expect("config");
         let world = World::new(&cfg.world, &TaskConfig::one_off(500.0, None), 1);
         let devices: Vec<usize> = (0..30).map(|t| (t * t + t / 3) % 3).collect();
-        let schedule = Schedule::new(&world, devices.clone());
+        let grid = Grid::new(&world);
+        let schedule = Schedule::new(&grid, devices.clone());
         let total: f64 = (0..3)
             .map(|j| schedule.device_cost(j, schedule.served[j].iter().copied()))
             .sum();
