@@ -138,7 +138,6 @@ impl<'w> Grid<'w> {
 /// A device schedule from the world's state, with its tables of cheapest paths.
 struct Schedule<'g> {
     grid: &'g Grid<'g>,
-    world: &'g World,
     devices: Vec<usize>,
     /// `F[t * cells + c]` and `B[t * cells + c]` (module doc); `B` has T + 1 rows. While a sweep
     /// runs, F is valid up to row `forward_rows` and B only from the sweep's step on (a change
@@ -154,7 +153,6 @@ impl<'g> Schedule<'g> {
     fn new(grid: &'g Grid<'g>, devices: Vec<usize>) -> Self {
         let mut s = Schedule {
             grid,
-            world: grid.world,
             devices,
             forward: Vec::new(),
             forward_rows: 0,
@@ -163,6 +161,11 @@ impl<'g> Schedule<'g> {
         };
         s.tabulate();
         s
+    }
+
+    /// The world the grid was made from.
+    fn world(&self) -> &'g World {
+        self.grid.world
     }
 
     /// F and B of the current schedule, whole.
@@ -203,7 +206,7 @@ impl<'g> Schedule<'g> {
 
     /// `served` from `devices`.
     fn index_services(&mut self) {
-        let mut served = vec![Vec::new(); self.world.devices()];
+        let mut served = vec![Vec::new(); self.world().devices()];
         for (t, &device) in self.devices.iter().enumerate() {
             served[device].push(t);
         }
@@ -213,7 +216,7 @@ impl<'g> Schedule<'g> {
     /// Device j's AoI cost over the horizon when served at the ascending steps `times`: from its
     /// age now until its first service, then 1, 2, .. after each (capped at A_max).
     fn device_cost(&self, j: usize, times: impl Iterator<Item = usize>) -> f64 {
-        let cap = u64::from(self.world.aoi_max());
+        let cap = u64::from(self.world().aoi_max());
         // The sum of min(from + i, cap) over i < n.
         let ages = |from: u64, n: u64| {
             let below = if from > cap {
@@ -223,7 +226,7 @@ impl<'g> Schedule<'g> {
             };
             below * from + below * below.saturating_sub(1) / 2 + (n - below) * cap
         };
-        let now = u64::from(self.world.aoi()[j]);
+        let now = u64::from(self.world().aoi()[j]);
         let (mut sum, mut last) = (0, None);
         for t in times.chain(std::iter::once(self.devices.len())) {
             sum += match last {
@@ -232,7 +235,7 @@ impl<'g> Schedule<'g> {
             };
             last = Some(t);
         }
-        self.world.delta()[j] * sum as f64
+        self.world().delta()[j] * sum as f64
     }
 
     /// How much the AoI cost changes with `devices[t..t + with.len()]` replaced by `with`: only
@@ -275,9 +278,9 @@ impl<'g> Schedule<'g> {
 
     /// The AoI cost of `devices` from the world's state (no rain: every transmission succeeds).
     fn aoi_cost(&self, devices: &[usize]) -> f64 {
-        let cap = self.world.aoi_max();
-        let delta = self.world.delta();
-        let mut aoi = self.world.aoi().to_vec();
+        let cap = self.world().aoi_max();
+        let delta = self.world().delta();
+        let mut aoi = self.world().aoi().to_vec();
         let mut cost = 0.0;
         for &served in devices {
             for a in aoi.iter_mut() {
@@ -309,7 +312,7 @@ impl<'g> Schedule<'g> {
 
     /// One pass over every single-step change and neighbouring swap; true if one was kept.
     fn sweep(&mut self) -> bool {
-        let k = self.world.devices();
+        let k = self.world().devices();
         let mut current_aoi = self.aoi_cost(&self.devices);
         let mut best = current_aoi + self.power_with(0, &[]);
         let mut improved = false;
@@ -346,7 +349,7 @@ impl<'g> Schedule<'g> {
 
     /// The schedule's actions along its cheapest path (the first cheapest move on a tie).
     fn actions(&self) -> Vec<usize> {
-        let (n, k) = (self.grid.cells, self.world.devices());
+        let (n, k) = (self.grid.cells, self.world().devices());
         let next = &self.grid.next;
         let mut c = self.grid.start;
         let mut actions = Vec::with_capacity(self.devices.len());
