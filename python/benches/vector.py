@@ -4,9 +4,10 @@ NumpyWorld, the same world written in a page of numpy, at N = 1, 64 and 4096 env
 
 With ``--mixed`` every env runs a task of its own: uavmeta.VectorEnv draws a new task at every
 reset from a TaskSampler (lambda in [0, 1000], rain on half the episodes, a third of those
-moving), SyncVectorEnv runs UavEnvs with the same sampler, and NumpyWorld holds a fixed mix of
-lambdas and rain zones, one per env (no redraws: the comparison is generous to it); the
-single-task VectorEnv runs beside them as the reference.
+moving; and the same with four device layouts drawn too), SyncVectorEnv runs UavEnvs with the
+same sampler, and NumpyWorld holds a fixed mix of lambdas, rain zones and layouts, one per env
+(no redraws: the comparison is generous to it); the single-task VectorEnv runs beside them as the
+reference.
 
 Run on one core, in the virtualenv where the package is installed:
 
@@ -33,24 +34,28 @@ class NumpyWorld:
     next-step autoreset: the comparison a Python user could write in an afternoon."""
 
     def __init__(self, n, device_cells, lam, rain=None, grid=10, horizon=100, aoi_max=100,
-                 start_cell=None, seed=0):
-        # lam: one lambda or one per env; rain: one zone, None, or an (n, 4) array of zones
-        # (x0 > x1 for an env without rain).
+                 start_cell=None, seed=0, layout_of=None):
+        # device_cells: one layout (K, 2), or (L, K, 2) with layout_of giving each env's; lam:
+        # one lambda or one per env; rain: one zone, None, or an (n, 4) array of zones (x0 > x1
+        # for an env without rain).
         self.n, self.grid, self.horizon, self.aoi_max = n, grid, horizon, aoi_max
-        self.cells = np.asarray(device_cells)
-        self.k = len(self.cells)
+        cells = np.asarray(device_cells).reshape(-1, *np.shape(device_cells)[-2:])
+        self.layout_of = np.zeros(n, np.int64) if layout_of is None else np.asarray(layout_of)
+        self.k = cells.shape[1]
         self.weight = np.asarray(lam, dtype=np.float64) / self.k
         self.rain = None if rain is None else np.asarray(rain).T
         self.start_cell = start_cell
         self.rng = np.random.default_rng(seed)
         # P = (2^(M/B) - 1) sigma^2 / g0 (h^2 + d^2) W, in mW; rain: * 10^(gamma_R d_km / 10).
         xs, ys = np.meshgrid(np.arange(grid), np.arange(grid), indexing="xy")
-        ux, uy = xs.reshape(-1, 1), ys.reshape(-1, 1)  # cell c = y * grid + x
-        slant2 = 100.0**2 + ((ux - self.cells[:, 0]) * 100.0) ** 2 + ((uy - self.cells[:, 1]) * 100.0) ** 2
+        ux, uy = xs.reshape(1, -1, 1), ys.reshape(1, -1, 1)  # cell c = y * grid + x
+        dx, dy = cells[:, None, :, 0], cells[:, None, :, 1]
+        slant2 = 100.0**2 + ((ux - dx) * 100.0) ** 2 + ((uy - dy) * 100.0) ** 2  # (L, cells, K)
         watts_per_m2 = (2.0**5 - 1) * 10 ** (-130 / 10) / 10 ** (-30 / 10)
         self.clear_mw = watts_per_m2 * slant2 * 1e3
         gamma = 0.2051 * 12.5**0.9679
         self.rain_mw = self.clear_mw * 10 ** (gamma * np.sqrt(slant2) / 1e3 / 10)
+        self.mw = np.stack([self.clear_mw, self.rain_mw])
         self.rows = np.arange(n)
         self.pending = np.zeros(n, bool)
         self.pos = np.zeros((n, 2), np.int64)
@@ -83,7 +88,8 @@ class NumpyWorld:
         if self.rain is not None:
             x0, y0, x1, y1 = self.rain
             outage = (x0 <= x) & (x <= x1) & (y0 <= y) & (y <= y1)
-        power = np.where(outage, self.rain_mw[cell, dev], self.clear_mw[cell, dev])
+        table = np.where(outage, 1, 0)  # one gather from the stacked clear and rain tables
+        power = self.mw[table, self.layout_of, cell, dev]
         np.minimum(self.aoi + 1, self.aoi_max, out=self.aoi)
         served = ~outage
         self.aoi[self.rows[served], dev[served]] = 1
@@ -99,10 +105,20 @@ class NumpyWorld:
         return self._obs(), reward, np.zeros(self.n, bool), truncated, {}
 
 
-def check_numpy_world_is_the_world():
-    """Same start, same actions: NumpyWorld's rewards are uavmeta's (so the race is fair)."""
+def check_numpy_world_is_the_world(layouts):
+    """Same start, same actions: NumpyWorld's rewards are uavmeta's (so the race is fair), with
+    one layout and with a layout per env."""
     ours = uavmeta.VectorEnv(3, lam=300.0, rain=(3, 3, 5, 5), start_cell=[4, 2])
     theirs = NumpyWorld(3, ours._worlds.device_cells, 300.0, rain=(3, 3, 5, 5), start_cell=(4, 2))
+    same_world(ours, theirs)
+    tasks = [dict(lam=300.0, rain=(3, 3, 5, 5), layout=seed) for seed in LAYOUTS[:3]]
+    ours = uavmeta.VectorEnv(3, tasks=tasks, start_cell=[4, 2])
+    theirs = NumpyWorld(3, layouts[:3], 300.0, rain=(3, 3, 5, 5), start_cell=(4, 2),
+                        layout_of=[0, 1, 2])
+    same_world(ours, theirs)
+
+
+def same_world(ours, theirs):
     a, _ = ours.reset(seed=0)
     np.testing.assert_array_equal(a, theirs.reset())
     rng = np.random.default_rng(1)
@@ -116,6 +132,9 @@ def check_numpy_world_is_the_world():
 
 MIXED = uavmeta.TaskSampler(lam=(0.0, 1000.0), rain_probability=0.5, rain_size=(1, 4),
                             rain_moves_every=(None, None, 10))
+LAYOUTS = (None, 1, 2, 3)
+MIXED_LAYOUTS = uavmeta.TaskSampler(lam=(0.0, 1000.0), rain_probability=0.5, rain_size=(1, 4),
+                                    rain_moves_every=(None, None, 10), layouts=LAYOUTS)
 
 
 def numpy_mix(n, seed=0):
@@ -149,8 +168,12 @@ def main():
     parser.add_argument("--rounds", type=int, default=7, help="loops per env, interleaved")
     parser.add_argument("--mixed", action="store_true", help="a task per env (module doc)")
     args = parser.parse_args()
-    check_numpy_world_is_the_world()
     cells = uavmeta.UavEnv(lam=300.0)._worlds.device_cells
+    layouts = [
+        uavmeta.VectorEnv(1, tasks=[dict(lam=0.0, layout=seed)]).task_of(0)["device_cells"]
+        for seed in LAYOUTS
+    ]
+    check_numpy_world_is_the_world(layouts)
     makers = {
         "uavmeta.VectorEnv": lambda n: uavmeta.VectorEnv(n, lam=300.0, rain=(3, 3, 5, 5)),
         "SyncVectorEnv(UavEnv)": lambda n: gymnasium.vector.SyncVectorEnv(
@@ -168,6 +191,12 @@ def main():
                 [lambda: uavmeta.UavEnv(tasks=MIXED) for _ in range(n)]
             ),
             "NumpyWorld, a task per env": lambda n: NumpyWorld(n, cells, *numpy_mix(n)),
+            "uavmeta.VectorEnv, TaskSampler, 4 layouts": lambda n: uavmeta.VectorEnv(
+                n, tasks=MIXED_LAYOUTS
+            ),
+            "NumpyWorld, a task and a layout per env": lambda n: NumpyWorld(
+                n, layouts, *numpy_mix(n), layout_of=np.arange(n) % len(LAYOUTS)
+            ),
         }
     results = {name: [] for name in makers}
     for n in args.sizes:

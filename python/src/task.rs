@@ -14,6 +14,8 @@ use pyo3::prelude::*;
 use pyo3::PyErr;
 use uavmeta_proto::config::{Config, ConfigError, RainZone, TaskConfig};
 
+use crate::tasks::Listed;
+
 /// The task of docs/MODEL.md section 2 that an env gets when no task is named: the paper's unseen one.
 pub const DEFAULT_LAMBDA: f64 = 300.0;
 
@@ -125,23 +127,89 @@ fn one_off_error(e: ConfigError, index: usize, args: &TaskArgs) -> PyErr {
     config_error(e)
 }
 
-/// One entry of a task list from Python: a task of the config by name, or a one-off.
+/// One entry of a task list from Python: a task of the config by name, or a one-off, and its
+/// device layout if not the config's.
 #[derive(Debug, Clone, Default)]
 pub struct TaskSpec {
     pub task: Option<String>,
     pub lam: Option<f64>,
     pub rain: Option<(u32, u32, u32, u32)>,
     pub rain_moves_every: Option<u32>,
+    pub layout: Option<Layout>,
+}
+
+/// A task's own device layout: a `world.layout_seed`, or one (x, y) cell per device.
+#[derive(Debug, Clone, PartialEq, FromPyObject)]
+pub enum Layout {
+    Seed(u64),
+    Cells(Vec<(u32, u32)>),
+}
+
+/// As Python writes it: the seed, or the list of cells.
+impl std::fmt::Display for Layout {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Layout::Seed(seed) => write!(f, "{seed}"),
+            Layout::Cells(cells) => {
+                let cells: Vec<String> = cells.iter().map(|(x, y)| format!("({x}, {y})")).collect();
+                write!(f, "[{}]", cells.join(", "))
+            }
+        }
+    }
+}
+
+/// The configs of an env's device layouts: the config's own at index 0, then one per distinct
+/// layout the tasks name, each validated as a whole config.
+pub struct Layouts {
+    pub configs: Vec<Config>,
+    named: Vec<Option<Layout>>,
+}
+
+impl Layouts {
+    pub fn new(base: Config) -> Self {
+        Self {
+            configs: vec![base],
+            named: vec![None],
+        }
+    }
+
+    /// The index of `layout` (None: the config's), added if new; an error names `argument`
+    /// and what the world expects.
+    pub fn index(&mut self, layout: Option<&Layout>, argument: &str) -> PyResult<usize> {
+        if let Some(i) = self.named.iter().position(|l| l.as_ref() == layout) {
+            return Ok(i);
+        }
+        let layout = layout.expect("the config's layout is index 0");
+        let mut config = self.configs[0].clone();
+        match layout {
+            Layout::Seed(seed) => {
+                config.world.layout_seed = *seed;
+                config.world.device_cells = None;
+            }
+            Layout::Cells(cells) => {
+                config.world.device_cells = Some(cells.iter().map(|&(x, y)| [x, y]).collect());
+            }
+        }
+        config.validate().map_err(|e| {
+            PyValueError::new_err(format!(
+                "{argument} = {layout}: {e} (a layout is a world.layout_seed or one (x, y) \
+                 cell per device)"
+            ))
+        })?;
+        self.configs.push(config);
+        self.named.push(Some(layout.clone()));
+        Ok(self.configs.len() - 1)
+    }
 }
 
 /// The config of `args` and the task of every entry of `specs` (`tasks[i]` of the Python
 /// argument `argument`), each resolved as [`resolve`] resolves one, its errors prefixed with the
-/// entry's place.
+/// entry's place; with each task, its layout's index among the returned layouts.
 pub fn resolve_list(
     args: &TaskArgs,
     specs: &[TaskSpec],
     argument: &str,
-) -> Result<(Config, Vec<TaskConfig>), PyErr> {
+) -> Result<(Layouts, Vec<Listed>), PyErr> {
     if specs.is_empty() {
         return Err(PyValueError::new_err(format!(
             "{argument} = []: expected at least one task"
@@ -163,8 +231,10 @@ pub fn resolve_list(
                 PyErr::from_type(e.get_type(py), message)
             })
         })?;
-        config.get_or_insert(c);
-        tasks.push(task);
+        let layouts = config.get_or_insert_with(|| Layouts::new(c));
+        let key = format!("{argument}[{i}]['layout']");
+        let layout = layouts.index(spec.layout.as_ref(), &key)?;
+        tasks.push(Listed { task, layout });
     }
     Ok((config.expect("at least one task"), tasks))
 }

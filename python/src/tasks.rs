@@ -1,6 +1,7 @@
 //! Where each env of a [`crate::worlds::Worlds`] takes its task from: one task for all (the
 //! default), a list of tasks, one per env, or a sampler that draws a new task at every reset, as
-//! meta-RL training asks.
+//! meta-RL training asks. A task may bring its own device layout (same K): its envs then step
+//! a world of that layout, built once per layout and shared.
 //!
 //! A draw depends only on the world seed of the episode it starts
 //! ([`uavmeta_world::rollout::episode_seed`]), never on the order envs reset in, so N envs of one
@@ -13,15 +14,22 @@ use pyo3::PyErr;
 use uavmeta_proto::config::{RainZone, TaskConfig, TaskRole};
 use uavmeta_world::rollout::episode_seed;
 
+/// A task and the index of its device layout among the env's layouts (0: the config's).
+#[derive(Debug, Clone)]
+pub struct Listed {
+    pub task: TaskConfig,
+    pub layout: usize,
+}
+
 /// Where the tasks come from.
 #[derive(Debug, Clone)]
 pub enum TaskSource {
     /// Env i runs `tasks[i % len]` in every episode; its task id is that index.
-    Fixed(Vec<TaskConfig>),
+    Fixed(Vec<Listed>),
     /// Every reset draws one of `tasks` uniformly; the task id is its index.
-    Draw(Vec<TaskConfig>),
-    /// Every reset draws lambda, a rain zone and how often it moves from [`Ranges`]; the task
-    /// is what the envs hold before their first reset.
+    Draw(Vec<Listed>),
+    /// Every reset draws lambda, a rain zone, how often it moves and a layout from [`Ranges`];
+    /// the task is what the envs hold before their first reset.
     Ranges(Ranges, TaskConfig),
 }
 
@@ -36,6 +44,9 @@ pub struct Ranges {
     pub rain_size: (u32, u32),
     /// How often the zone moves, one of these uniformly (None: it stays).
     pub rain_moves_every: Vec<Option<u32>>,
+    /// The device layouts to draw from uniformly, as indices among the env's layouts (one
+    /// alone is not drawn).
+    pub layouts: Vec<usize>,
 }
 
 /// One env's task in its current episode, as `info` and `VectorEnv.tasks` report it.
@@ -45,15 +56,18 @@ pub struct Current {
     pub lambda: f64,
     pub rain: Option<RainZone>,
     pub rain_moves_every: Option<u32>,
+    /// Its device layout's index among the env's layouts (0: the config's).
+    pub layout: usize,
 }
 
 impl Current {
-    pub fn of(id: i64, task: &TaskConfig) -> Self {
+    pub fn of(id: i64, task: &TaskConfig, layout: usize) -> Self {
         Self {
             id,
             lambda: task.lambda,
             rain: task.rain,
             rain_moves_every: task.rain_moves_every,
+            layout,
         }
     }
 }
@@ -91,7 +105,7 @@ impl TaskSource {
     }
 
     /// The named tasks, if the source has a list.
-    pub fn list(&self) -> &[TaskConfig] {
+    pub fn list(&self) -> &[Listed] {
         match self {
             TaskSource::Fixed(tasks) | TaskSource::Draw(tasks) => tasks,
             TaskSource::Ranges(..) => &[],
@@ -101,14 +115,14 @@ impl TaskSource {
     /// The first task of the list, or the task before the first draw.
     pub fn first(&self) -> &TaskConfig {
         match self {
-            TaskSource::Fixed(tasks) | TaskSource::Draw(tasks) => &tasks[0],
+            TaskSource::Fixed(tasks) | TaskSource::Draw(tasks) => &tasks[0].task,
             TaskSource::Ranges(_, task) => task,
         }
     }
 
     /// The task of env `i` in the episode run in the world seeded `world_seed` on a grid of
-    /// `grid` cells a side, and its id.
-    pub fn task(&self, i: usize, world_seed: u64, grid: u32) -> (i64, Cow<'_, TaskConfig>) {
+    /// `grid` cells a side, its id and its layout's index.
+    pub fn task(&self, i: usize, world_seed: u64, grid: u32) -> (i64, Cow<'_, TaskConfig>, usize) {
         let mut draws = Draws {
             seed: world_seed ^ TASK_SALT,
             k: 0,
@@ -116,11 +130,11 @@ impl TaskSource {
         match self {
             TaskSource::Fixed(tasks) => {
                 let j = i % tasks.len();
-                (j as i64, Cow::Borrowed(&tasks[j]))
+                (j as i64, Cow::Borrowed(&tasks[j].task), tasks[j].layout)
             }
             TaskSource::Draw(tasks) => {
                 let j = draws.below(tasks.len() as u64) as usize;
-                (j as i64, Cow::Borrowed(&tasks[j]))
+                (j as i64, Cow::Borrowed(&tasks[j].task), tasks[j].layout)
             }
             TaskSource::Ranges(r, _) => {
                 let lambda = r.lam.0 + (r.lam.1 - r.lam.0) * draws.unit();
@@ -146,8 +160,14 @@ impl TaskSource {
                     rain,
                     rain_moves_every: rain.and(moves),
                 };
+                // Drawn last, and only among several, so a sampler without layouts draws as
+                // it did before layouts existed.
+                let layout = match r.layouts[..] {
+                    [one] => one,
+                    ref several => several[draws.below(several.len() as u64) as usize],
+                };
                 // The id: the draw's own seed, 63 bits, the same for the same env seed and episode.
-                ((world_seed >> 1) as i64, Cow::Owned(task))
+                ((world_seed >> 1) as i64, Cow::Owned(task), layout)
             }
         }
     }
@@ -161,6 +181,7 @@ impl Ranges {
         rain_probability: f64,
         rain_size: (u32, u32),
         rain_moves_every: Vec<Option<u32>>,
+        layouts: Vec<usize>,
         grid: u32,
     ) -> Result<Self, PyErr> {
         let bad = |s: String| Err(PyValueError::new_err(s));
@@ -186,6 +207,9 @@ impl Ranges {
                 "rain_moves_every = []: expected at least one choice (None: the rain stays)".into(),
             );
         }
+        if layouts.is_empty() {
+            return bad("layouts = []: expected at least one layout (None: the config's)".into());
+        }
         if let Some(Some(0)) = rain_moves_every.iter().find(|m| **m == Some(0)) {
             return bad("rain_moves_every = 0: expected at least 1 step, or None".into());
         }
@@ -194,6 +218,7 @@ impl Ranges {
             rain_probability,
             rain_size,
             rain_moves_every,
+            layouts,
         })
     }
 }

@@ -4,7 +4,9 @@
 //! **Tasks** come from a [`TaskSource`]: one task for all envs, a list (env i runs task
 //! `i % len`), or a sampler that draws env i's task afresh at each of its resets from the world
 //! seed of the episode it starts (so the draw is reproducible and independent of the order envs
-//! reset in). Every step reports each env's task id and lambda.
+//! reset in). Every step reports each env's task id and lambda. A task may bring its own device
+//! layout (the same number of devices): its envs step a world of that layout, cloned from one
+//! built per layout, so the power tables are shared.
 //!
 //! **Seeds.** Env i keeps a base seed and an episode counter. `reset` with a seed S starts
 //! episode 0 of S; every later reset without a seed (including an autoreset) starts the next
@@ -24,8 +26,8 @@ use uavmeta_proto::config::{Config, TaskConfig};
 use uavmeta_world::rollout;
 use uavmeta_world::world::World;
 
-use crate::task::{resolve, resolve_list, TaskArgs, TaskSpec};
-use crate::tasks::{Current, Ranges, TaskSource};
+use crate::task::{resolve, resolve_list, Layout, Layouts, TaskArgs, TaskSpec};
+use crate::tasks::{Current, Listed, Ranges, TaskSource};
 
 /// The world seed of episode `episode` of base seed `seed`: the one `uavmeta env rollout --seed`
 /// gives its episode `episode`.
@@ -53,22 +55,31 @@ pub struct Worlds {
     current: Vec<Current>,
     /// Observations as the networks see them (x/(L-1), y/(L-1), A/aoi_max) instead of raw.
     normalised: bool,
-    config: Config,
+    /// The config of each device layout the tasks use (the config's own first) and a world of
+    /// it that envs of that layout are cloned from.
+    layouts: Vec<(Config, World)>,
     /// The first task: the one of every env unless a list or a sampler gives others.
     task: TaskConfig,
 }
 
-/// Python's form of a task list entry: (task name, lam, rain, rain_moves_every).
+/// Python's form of a task list entry: (task name, lam, rain, rain_moves_every, layout).
 type TaskTuple = (
     Option<String>,
     Option<f64>,
     Option<(u32, u32, u32, u32)>,
     Option<u32>,
+    Option<Layout>,
 );
 
 /// Python's form of a parametric sampler: (lam range, rain probability, rain side range, the
-/// choices of rain_moves_every).
-type RangesTuple = ((f64, f64), f64, (u32, u32), Vec<Option<u32>>);
+/// choices of rain_moves_every, the choices of layout).
+type RangesTuple = (
+    (f64, f64),
+    f64,
+    (u32, u32),
+    Vec<Option<u32>>,
+    Vec<Option<Layout>>,
+);
 
 /// What one batched step returns, one entry per env.
 #[derive(Default)]
@@ -82,17 +93,23 @@ struct StepOut {
     device: Vec<i64>,
     task_id: Vec<i64>,
     lam: Vec<f64>,
+    layout: Vec<i64>,
     /// Env i stepped (false where it was autoreset instead): the mask of every info key.
     stepped: Vec<bool>,
 }
 
 impl Worlds {
+    /// The config of the arguments, with the config's own layout.
+    fn config(&self) -> &Config {
+        &self.layouts[0].0
+    }
+
     fn obs_len(&self) -> usize {
-        self.config.world.observation_len()
+        self.config().world.observation_len()
     }
 
     fn action_count(&self) -> usize {
-        self.config.world.action_count()
+        self.config().world.action_count()
     }
 
     /// Starts env i's next episode: episode 0 of `seed` if given, else the episode after its
@@ -112,12 +129,16 @@ impl Worlds {
     /// tasks are sampled.
     fn start_episode(&mut self, i: usize) {
         let world_seed = rollout::episode_seed(self.base_seeds[i], self.episodes[i]);
-        let world = &mut self.worlds[i];
         if self.source.resamples() {
-            let (id, task) = self.source.task(i, world_seed, world.grid_cells());
-            world.set_task(&task);
-            self.current[i] = Current::of(id, &task);
+            let grid = self.config().world.grid_cells;
+            let (id, task, layout) = self.source.task(i, world_seed, grid);
+            if layout != self.current[i].layout {
+                self.worlds[i].set_layout(&self.layouts[layout].1);
+            }
+            self.worlds[i].set_task(&task);
+            self.current[i] = Current::of(id, &task, layout);
         }
+        let world = &mut self.worlds[i];
         world.reseed(world_seed);
         world.reset();
         self.pending_reset[i] = false;
@@ -131,7 +152,7 @@ impl Worlds {
     fn task_of(&self, i: usize) -> TaskConfig {
         let c = self.current[i];
         match &self.source {
-            TaskSource::Fixed(tasks) | TaskSource::Draw(tasks) => tasks[c.id as usize].clone(),
+            TaskSource::Fixed(tasks) | TaskSource::Draw(tasks) => tasks[c.id as usize].task.clone(),
             TaskSource::Ranges(..) => {
                 let mut task = TaskConfig::one_off(c.lambda, c.rain);
                 if let Some(every) = c.rain_moves_every {
@@ -168,6 +189,7 @@ impl Worlds {
             device: vec![0; n],
             task_id: vec![0; n],
             lam: vec![0.0; n],
+            layout: vec![0; n],
             stepped: vec![false; n],
         };
         for (i, &action) in actions.iter().enumerate() {
@@ -187,6 +209,7 @@ impl Worlds {
             self.write_obs(i, &mut out.obs[i * d..(i + 1) * d]);
             out.task_id[i] = self.current[i].id;
             out.lam[i] = self.current[i].lambda;
+            out.layout[i] = self.current[i].layout as i64;
         }
         out
     }
@@ -209,7 +232,7 @@ impl Worlds {
         } else {
             Err(PyValueError::new_err(format!(
                 "{key} = {action}: expected an action index in 0..{count} (a = move * K + device, K = {})",
-                self.config.world.devices
+                self.config().world.devices
             )))
         }
     }
@@ -228,7 +251,7 @@ type StepOne<'py> = (
 );
 
 /// A batched step: obs, reward, terminated, truncated, aoi, power_mw, outage, device, stepped,
-/// task_id, lam.
+/// task_id, lam, layout.
 type StepBatch<'py> = (
     Bound<'py, PyArray2<f32>>,
     Bound<'py, PyArray1<f64>>,
@@ -241,15 +264,17 @@ type StepBatch<'py> = (
     Bound<'py, PyArray1<bool>>,
     Bound<'py, PyArray1<i64>>,
     Bound<'py, PyArray1<f64>>,
+    Bound<'py, PyArray1<i64>>,
 );
 
 #[pymethods]
 impl Worlds {
     /// `num_envs` worlds of the task that `config`, `task`, `lam`, `rain`, `rain_moves_every`
     /// and the `KEY=VALUE` `overrides` name (see `uavmeta.UavEnv`); or, given `tasks` (a list
-    /// of (task name, lam, rain, rain_moves_every)), env i runs `tasks[i % len]`, or with
-    /// `draw=True` draws one of them at each reset; or, given `ranges`, draws a task from those
-    /// ranges at each reset. Call `reset` before stepping.
+    /// of (task name, lam, rain, rain_moves_every, layout)), env i runs `tasks[i % len]`, or
+    /// with `draw=True` draws one of them at each reset; or, given `ranges`, draws a task from
+    /// those ranges at each reset. A layout is a `world.layout_seed` or one (x, y) cell per
+    /// device; None is the config's. Call `reset` before stepping.
     #[new]
     #[pyo3(signature = (num_envs, *, normalised=false, config=None, task=None, lam=None, rain=None, rain_moves_every=None, overrides=Vec::new(), tasks=None, draw=false, ranges=None))]
     #[allow(clippy::too_many_arguments)]
@@ -279,7 +304,7 @@ impl Worlds {
             rain_moves_every,
             overrides,
         };
-        let (config, source) = match (tasks, ranges) {
+        let (layouts, source) = match (tasks, ranges) {
             (Some(_), Some(_)) => {
                 return Err(PyValueError::new_err(
                     "tasks and a sampler's ranges: expected one source of tasks, not both",
@@ -288,41 +313,55 @@ impl Worlds {
             (Some(list), None) => {
                 let specs: Vec<TaskSpec> = list
                     .into_iter()
-                    .map(|(task, lam, rain, rain_moves_every)| TaskSpec {
+                    .map(|(task, lam, rain, rain_moves_every, layout)| TaskSpec {
                         task,
                         lam,
                         rain,
                         rain_moves_every,
+                        layout,
                     })
                     .collect();
-                let (config, tasks) = resolve_list(&args, &specs, "tasks")?;
+                let (layouts, tasks) = resolve_list(&args, &specs, "tasks")?;
                 let source = match draw {
                     true => TaskSource::Draw(tasks),
                     false => TaskSource::Fixed(tasks),
                 };
-                (config, source)
+                (layouts, source)
             }
-            (None, Some((lam, rain_probability, rain_size, moves))) => {
+            (None, Some((lam, rain_probability, rain_size, moves, choices))) => {
                 // Until its first reset every env holds the base task of the other arguments.
                 let (config, task) = resolve(&args)?;
                 let grid = config.world.grid_cells;
-                let ranges = Ranges::new(lam, rain_probability, rain_size, moves, grid)?;
-                (config, TaskSource::Ranges(ranges, task))
+                let mut layouts = Layouts::new(config);
+                let choices = choices
+                    .iter()
+                    .enumerate()
+                    .map(|(i, l)| layouts.index(l.as_ref(), &format!("layouts[{i}]")))
+                    .collect::<PyResult<_>>()?;
+                let ranges = Ranges::new(lam, rain_probability, rain_size, moves, choices, grid)?;
+                (layouts, TaskSource::Ranges(ranges, task))
             }
             (None, None) => {
                 let (config, task) = resolve(&args)?;
-                (config, TaskSource::Fixed(vec![task]))
+                let listed = Listed { task, layout: 0 };
+                (Layouts::new(config), TaskSource::Fixed(vec![listed]))
             }
         };
         let task = source.first().clone();
-        let template = World::new(&config.world, &task, 0);
-        let mut worlds = vec![template; num_envs];
-        let mut current = vec![Current::of(0, &task); num_envs];
+        let layouts: Vec<(Config, World)> = (layouts.configs.into_iter())
+            .map(|config| {
+                let world = World::new(&config.world, &task, 0);
+                (config, world)
+            })
+            .collect();
+        let mut worlds = vec![layouts[0].1.clone(); num_envs];
+        let mut current = vec![Current::of(0, &task, 0); num_envs];
         if let TaskSource::Fixed(tasks) = &source {
             for (i, (world, now)) in worlds.iter_mut().zip(&mut current).enumerate() {
-                let j = i % tasks.len();
-                world.set_task(&tasks[j]);
-                *now = Current::of(j as i64, &tasks[j]);
+                let Listed { task, layout } = &tasks[i % tasks.len()];
+                world.set_layout(&layouts[*layout].1);
+                world.set_task(task);
+                *now = Current::of((i % tasks.len()) as i64, task, *layout);
             }
         }
         Ok(Self {
@@ -336,7 +375,7 @@ impl Worlds {
             source,
             current,
             normalised,
-            config,
+            layouts,
             task,
         })
     }
@@ -450,15 +489,25 @@ impl Worlds {
             out.stepped.into_pyarray(py),
             out.task_id.into_pyarray(py),
             out.lam.into_pyarray(py),
+            out.layout.into_pyarray(py),
         ))
     }
 
-    /// Env i's task now: (task id, lambda, rain zone or None, rain_moves_every or None, name).
+    /// Env i's task now: (task id, lambda, rain zone or None, rain_moves_every or None, name,
+    /// layout index, device cells).
     #[allow(clippy::type_complexity)]
     fn task_now(
         &self,
         i: usize,
-    ) -> PyResult<(i64, f64, Option<(u32, u32, u32, u32)>, Option<u32>, String)> {
+    ) -> PyResult<(
+        i64,
+        f64,
+        Option<(u32, u32, u32, u32)>,
+        Option<u32>,
+        String,
+        usize,
+        Vec<(u32, u32)>,
+    )> {
         self.check_env(i)?;
         let c = self.current[i];
         let rain = c.rain.map(|z| (z.x0, z.y0, z.x1, z.y1));
@@ -468,17 +517,35 @@ impl Worlds {
             rain,
             c.rain_moves_every,
             self.task_of(i).name,
+            c.layout,
+            self.worlds[i].device_cells().to_vec(),
         ))
     }
 
-    /// Every env's task id and lambda now: two arrays of N.
-    fn task_ids_and_lams<'py>(
+    /// Every env's task id, lambda and layout index now: three arrays of N.
+    #[allow(clippy::type_complexity)]
+    fn task_arrays<'py>(
         &self,
         py: Python<'py>,
-    ) -> (Bound<'py, PyArray1<i64>>, Bound<'py, PyArray1<f64>>) {
+    ) -> (
+        Bound<'py, PyArray1<i64>>,
+        Bound<'py, PyArray1<f64>>,
+        Bound<'py, PyArray1<i64>>,
+    ) {
         let ids: Vec<i64> = self.current.iter().map(|c| c.id).collect();
         let lams: Vec<f64> = self.current.iter().map(|c| c.lambda).collect();
-        (ids.into_pyarray(py), lams.into_pyarray(py))
+        let layouts: Vec<i64> = self.current.iter().map(|c| c.layout as i64).collect();
+        (
+            ids.into_pyarray(py),
+            lams.into_pyarray(py),
+            layouts.into_pyarray(py),
+        )
+    }
+
+    /// How many device layouts the envs' tasks use (1: the config's alone).
+    #[getter]
+    fn layout_count(&self) -> usize {
+        self.layouts.len()
     }
 
     /// Whether env i's task changes at its resets (a sampler).
@@ -538,40 +605,40 @@ impl Worlds {
 
     #[getter]
     fn devices(&self) -> usize {
-        self.config.world.devices
+        self.config().world.devices
     }
 
     #[getter]
     fn grid_cells(&self) -> u32 {
-        self.config.world.grid_cells
+        self.config().world.grid_cells
     }
 
     #[getter]
     fn horizon(&self) -> u32 {
-        self.config.world.horizon
+        self.config().world.horizon
     }
 
     #[getter]
     fn aoi_max(&self) -> u32 {
-        self.config.world.aoi_max
+        self.config().world.aoi_max
     }
 
     /// The world's hash, as a checkpoint or dataset header records it: equal hashes, equal worlds.
     #[getter]
     fn world_hash(&self) -> u64 {
-        self.config.world_hash()
+        self.config().world_hash()
     }
 
     /// Episodes of `uavmeta eval` and of the tables' evaluations (`learner.eval_episodes`).
     #[getter]
     fn eval_episodes(&self) -> usize {
-        self.config.learner.eval_episodes
+        self.config().learner.eval_episodes
     }
 
     /// Their seed (`learner.eval_seed`).
     #[getter]
     fn eval_seed(&self) -> u64 {
-        self.config.learner.eval_seed
+        self.config().learner.eval_seed
     }
 
     #[getter]
@@ -600,6 +667,7 @@ impl Worlds {
         self.task.rain_moves_every
     }
 
+    /// Env 0's device cells now (`task_now(i)` has env i's).
     #[getter]
     fn device_cells(&self) -> Vec<(u32, u32)> {
         self.worlds[0].device_cells().to_vec()
@@ -613,19 +681,19 @@ impl Worlds {
     /// Divisors from a raw observation to the normalised one: L-1, L-1, aoi_max, ...
     #[getter]
     fn observation_scale(&self) -> Vec<f32> {
-        self.config.world.observation_scale()
+        self.config().world.observation_scale()
     }
 
     /// The whole config, every key written out, with the task among its `[[tasks]]`.
     #[getter]
     fn config_toml(&self) -> String {
-        self.config.to_toml_string()
+        self.config().to_toml_string()
     }
 
     /// Where the config came from (a file, with its overrides).
     #[getter]
     fn config_origin(&self) -> String {
-        self.config.origin.clone()
+        self.config().origin.clone()
     }
 }
 
@@ -633,7 +701,7 @@ impl Worlds {
     /// The resolved config and the task env 0 runs now, for the policies and evaluations built
     /// on an env.
     pub fn config_and_task(&self) -> (&Config, TaskConfig) {
-        (&self.config, self.task_of(0))
+        (&self.layouts[self.current[0].layout].0, self.task_of(0))
     }
 
     /// Whether the observations are normalised.
@@ -641,9 +709,10 @@ impl Worlds {
         self.normalised
     }
 
-    /// The resolved config and the task env `i` runs now.
+    /// The resolved config of env `i`'s layout and the task it runs now.
     pub fn config_and_task_of(&self, i: usize) -> PyResult<(&Config, TaskConfig)> {
         self.check_env(i)?;
-        Ok((&self.config, self.task_of(i)))
+        let layout = self.current[i].layout;
+        Ok((&self.layouts[layout].0, self.task_of(i)))
     }
 }

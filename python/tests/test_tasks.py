@@ -36,8 +36,9 @@ def test_a_task_list_gives_env_i_the_task_i_mod_len_as_single_envs_do():
     assert same_steps(ours, theirs, np.random.default_rng(1), 230, N, ignore=("task_id",)) >= N
     assert ours.task_of(4) == dict(
         task_id=1, lam=300.0, rain=(3, 3, 5, 5), rain_moves_every=None,
-        name="lambda-300-rain-3-3-5-5",
+        name="lambda-300-rain-3-3-5-5", layout_id=0, device_cells=ours.device_cells,
     )
+    assert "layout_id" not in info  # one layout: no such info
     assert [t["lam"] for t in ours.tasks] == [100.0, 300.0, 700.0] * 2
 
 
@@ -92,6 +93,50 @@ def test_sampled_rain_fits_the_grid_and_lambda_its_range():
         assert 2 <= x1 - x0 + 1 <= 3 and 2 <= y1 - y0 + 1 <= 3
 
 
+DIAGONAL = [(i, i) for i in range(10)]
+LAYOUTS = [dict(lam=300.0), dict(lam=300.0, layout=7), dict(lam=800.0, layout=DIAGONAL)]
+
+
+def test_a_task_with_a_layout_of_its_own_steps_as_a_world_of_that_layout():
+    ours = uavmeta.VectorEnv(N, tasks=LAYOUTS)
+    worlds = [dict(), dict(layout_seed=7), dict(device_cells=[list(c) for c in DIAGONAL])]
+    theirs = gymnasium.vector.SyncVectorEnv(
+        [lambda j=i % 3: uavmeta.UavEnv(lam=LAYOUTS[j]["lam"], **worlds[j]) for i in range(N)]
+    )
+    a, info = ours.reset(seed=5)
+    b, _ = theirs.reset(seed=5)
+    np.testing.assert_array_equal(a, b)
+    assert info["layout_id"].tolist() == [0, 1, 2] * 2
+    ignore = ("task_id", "layout_id", "_layout_id")  # the single envs have one task, one layout
+    assert same_steps(ours, theirs, np.random.default_rng(4), 230, N, ignore=ignore) >= N
+    cells = [ours.task_of(i)["device_cells"] for i in range(3)]
+    assert cells[0] == ours.device_cells and cells[2] == DIAGONAL
+    assert cells[1] == uavmeta.UavEnv(layout_seed=7).device_cells != cells[0]
+
+
+def test_a_sampler_draws_layouts_and_a_task_of_a_layout_scores_as_its_world():
+    sampler = uavmeta.TaskSampler(lam=(100.0, 900.0), layouts=(None, 7, DIAGONAL))
+    env = uavmeta.VectorEnv(16, tasks=sampler, horizon=10)
+    _, info = env.reset(seed=2)
+    seen = set(info["layout_id"].tolist())
+    for _ in range(4):  # the layout is redrawn at every autoreset, with the rest of the task
+        for _ in range(11):
+            _, _, _, _, info = env.step(np.zeros(16, np.int64))
+        seen |= set(info["layout_id"].tolist())
+    assert seen == {0, 1, 2}
+    cells = [uavmeta.UavEnv().device_cells, uavmeta.UavEnv(layout_seed=7).device_cells, DIAGONAL]
+    for i in range(16):
+        task = env.task_of(i)
+        assert info["layout_id"][i] == task["layout_id"]
+        assert task["device_cells"] == cells[task["layout_id"]]
+    # A task dict with its layout is scored on that layout's world, as the CLI scores it.
+    task = dict(lam=300.0, layout=7)
+    want = uavmeta.evaluate("greedy", uavmeta.UavEnv(lam=300.0, layout_seed=7), exact=True)
+    assert uavmeta.evaluate("greedy", task, exact=True).ret.mean == want.ret.mean
+    listed = uavmeta.VectorEnv(2, tasks=[300.0, task])
+    assert uavmeta.evaluate("greedy", listed.tasks[1], exact=True).ret.mean == want.ret.mean
+
+
 @pytest.mark.parametrize(
     "kwargs, error, needle",
     [
@@ -107,6 +152,17 @@ def test_sampled_rain_fits_the_grid_and_lambda_its_range():
          "rain_size = (2, 11)"),
         (dict(tasks=uavmeta.TaskSampler(lam=(1.0, 5.0), rain_probability=2.0)), ValueError,
          "rain_probability = 2.0"),
+        (dict(tasks=[dict(lam=1.0, layout="near")]), TypeError, "tasks[0]['layout'] = 'near'"),
+        (dict(tasks=[dict(lam=1.0, layout=-3)]), ValueError, "tasks[0]['layout'] = -3"),
+        (dict(tasks=[dict(lam=1.0, layout=[(0, 0)])]), ValueError,
+         "tasks[0]['layout'] = [(0, 0)]: the default config: key `world.device_cells`"),
+        (dict(tasks=[1.0, dict(lam=1.0, layout=[(0, 0)] * 10)]), ValueError,
+         "a cell no other device occupies"),
+        (dict(tasks=[dict(lam=1.0, layout=[(0, 10)] + DIAGONAL[1:])]), ValueError,
+         "key `world.device_cells[0]` = [0, 10]: expected a cell inside the grid"),
+        (dict(tasks=[dict(lam=1.0, layout=7, device_cells=DIAGONAL)]), ValueError,
+         "layout and device_cells"),
+        (dict(tasks=uavmeta.TaskSampler(lam=(1.0, 5.0), layouts=())), ValueError, "layouts = []"),
     ],
 )
 def test_bad_task_lists_and_samplers_name_the_argument(kwargs, error, needle):
@@ -124,6 +180,10 @@ def test_bad_sampler_arguments_name_the_argument():
         uavmeta.TaskSampler(lam=(0, 1), rain_moves_every=[None, -2])
     with pytest.raises(TypeError, match="a list of tasks, one per sub-env, is for VectorEnv"):
         uavmeta.UavEnv(tasks=[100.0, 300.0])
+    with pytest.raises(TypeError, match=r"layouts\[1\]\[0\] = \(1, 2, 3\): expected an \(x, y\)"):
+        uavmeta.TaskSampler(lam=(0, 1), layouts=(None, [(1, 2, 3)]))
+    with pytest.raises(TypeError, match="layouts = 7: expected a list of layouts"):
+        uavmeta.TaskSampler(lam=(0, 1), layouts=7)
 
 
 @pytest.mark.parametrize("tasks", [None, uavmeta.TaskSampler(lam=(0.0, 900.0), rain_probability=0.5,

@@ -120,19 +120,48 @@ def path(value, key):
     return value
 
 
+def layout(value, key="layout"):
+    """A device layout: None (the config's), a ``world.layout_seed``, or one (x, y) cell per
+    device."""
+    if value is None or isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        return None if value is None else seed(value, key)
+    if isinstance(value, (str, bytes, bool)) or not hasattr(value, "__len__"):
+        raise TypeError(
+            f"{key} = {value!r}: expected a layout seed or a list of (x, y) device cells"
+        )
+    cells = []
+    for j, cell in enumerate(value):
+        if isinstance(cell, (str, bytes)) or not hasattr(cell, "__len__") or len(cell) != 2:
+            raise TypeError(f"{key}[{j}] = {cell!r}: expected an (x, y) cell")
+        cells.append(tuple(natural(f"{key}[{j}]", c, upper=2**32) for c in cell))
+    return cells
+
+
+# What ``task_of`` reports beside a task's parameters, so that its dict is a task entry too.
+_REPORTED = {"task_id", "name", "layout_id"}
+
+
 def task_entry(entry, i):
-    """Entry ``i`` of a task list as (task name, lam, rain, rain_moves_every): a task name of
-    the config, a lambda, or a dict of ``lam``, ``rain``, ``rain_moves_every`` (or ``task``)."""
+    """Entry ``i`` of a task list as (task name, lam, rain, rain_moves_every, layout): a task
+    name of the config, a lambda, or a dict of ``lam``, ``rain``, ``rain_moves_every`` (or
+    ``task``) and ``layout`` (or ``device_cells``), such as ``env.task_of(i)`` returns."""
     key = f"tasks[{i}]"
     if isinstance(entry, str):
-        return (entry, None, None, None)
+        return (entry, None, None, None, None)
     if isinstance(entry, (int, float, np.integer, np.floating)) and not isinstance(entry, bool):
-        return (None, lam(entry, key), None, None)
+        return (None, lam(entry, key), None, None, None)
     if isinstance(entry, dict):
-        unknown = set(entry) - {"task", "lam", "rain", "rain_moves_every"}
+        known = {"task", "lam", "rain", "rain_moves_every", "layout", "device_cells"}
+        unknown = set(entry) - known - _REPORTED
         if unknown:
             raise ValueError(
-                f"{key} has {sorted(unknown)}: expected the keys task, lam, rain, rain_moves_every"
+                f"{key} has {sorted(unknown)}: expected the keys task, lam, rain, "
+                "rain_moves_every, layout"
+            )
+        if "layout" in entry and "device_cells" in entry:
+            raise ValueError(
+                f"{key} has layout and device_cells: expected one of them (device_cells is "
+                "a layout)"
             )
         name = entry.get("task")
         if name is not None and not isinstance(name, str):
@@ -142,9 +171,11 @@ def task_entry(entry, i):
             lam(entry.get("lam"), f"{key}['lam']"),
             rain(entry.get("rain"), f"{key}['rain']"),
             moves_every(entry.get("rain_moves_every"), f"{key}['rain_moves_every']"),
+            layout(entry.get("layout", entry.get("device_cells")), f"{key}['layout']"),
         )
     raise TypeError(
-        f"{key} = {entry!r}: expected a task name, a lambda or a dict of lam, rain, rain_moves_every"
+        f"{key} = {entry!r}: expected a task name, a lambda or a dict of lam, rain, "
+        "rain_moves_every, layout"
     )
 
 

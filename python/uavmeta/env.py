@@ -47,6 +47,16 @@ def action_index(action, count):
     return a
 
 
+def task_info(worlds, i):
+    """The ``info`` keys of env ``i``'s task: ``task_id``, ``lam``, and ``layout_id`` where the
+    tasks have device layouts of their own."""
+    task_id, lam, _, _, _, layout, _ = worlds.task_now(i)
+    info = {"task_id": task_id, "lam": lam}
+    if worlds.layout_count > 1:
+        info["layout_id"] = layout
+    return info
+
+
 class WorldProperties:
     """What the task's world is, for drawing, policies and users; ``_worlds`` is the native
     ``Worlds``."""
@@ -82,10 +92,13 @@ class WorldProperties:
 
     def task_of(self, i=0):
         """Sub-env ``i``'s task now, as a dict: ``task_id``, ``lam``, ``rain`` (x0, y0, x1, y1)
-        or None, ``rain_moves_every`` or None, and ``name`` (the config's, or the one-off
-        name ``uavmeta env rollout --lambda ... --rain ...`` gives it)."""
-        task_id, lam, rain, moves, name = self._worlds.task_now(i)
-        return dict(task_id=task_id, lam=lam, rain=rain, rain_moves_every=moves, name=name)
+        or None, ``rain_moves_every`` or None, ``name`` (the config's, or the one-off name
+        ``uavmeta env rollout --lambda ... --rain ...`` gives it), ``layout_id`` (its device
+        layout's index, 0 for the config's) and ``device_cells``. ``uavmeta.evaluate`` takes
+        this dict as its task."""
+        task_id, lam, rain, moves, name, layout, cells = self._worlds.task_now(i)
+        return dict(task_id=task_id, lam=lam, rain=rain, rain_moves_every=moves, name=name,
+                    layout_id=layout, device_cells=cells)
 
 
 class UavEnv(WorldProperties, gymnasium.Env):
@@ -205,8 +218,7 @@ class UavEnv(WorldProperties, gymnasium.Env):
         return obs, self._task_info()
 
     def _task_info(self):
-        task_id, lam, *_ = self._worlds.task_now(0)
-        return {"task_id": task_id, "lam": lam}
+        return task_info(self._worlds, 0)
 
     def step(self, action):
         a = action_index(action, self.action_space.n)

@@ -82,8 +82,9 @@ def _score(raw, env, exact, seed, trapped=None):
 def task_env(task=None, **kwargs):
     """The env a task argument means: an env as it is (``UavEnv``, ``VectorEnv`` of one task,
     or a ``gymnasium.make`` of them), a task name of ``config=``, a lambda, or a dict of
-    ``lam``, ``rain``, ``rain_moves_every``; ``kwargs`` go to ``UavEnv`` as its task and world
-    arguments (``config=``, ``normalised=``, world keys)."""
+    ``lam``, ``rain``, ``rain_moves_every``, ``layout`` (as ``env.task_of(i)`` returns one);
+    ``kwargs`` go to ``UavEnv`` as its task and world arguments (``config=``, ``normalised=``,
+    world keys)."""
     from .env import UavEnv
 
     for e in (task, getattr(task, "unwrapped", None)):
@@ -107,11 +108,16 @@ def task_env(task=None, **kwargs):
     if isinstance(task, numbers.Real) and not isinstance(task, bool):
         return UavEnv(lam=task, **kwargs)
     if isinstance(task, dict):
-        name, lam, rain, moves = _args.task_entry(task, 0)
+        entry = _args.task_entry(task, 0)
+        if entry[4] is not None:  # a layout of its own: a task list takes it
+            from .vector import VectorEnv
+
+            return VectorEnv(1, tasks=[task], **kwargs)
+        name, lam, rain, moves, _ = entry
         return UavEnv(task=name, lam=lam, rain=rain, rain_moves_every=moves, **kwargs)
     raise TypeError(
         f"task = {task!r}: expected an env, a task name, a lambda or a dict of lam, rain, "
-        "rain_moves_every"
+        "rain_moves_every, layout"
     )
 
 

@@ -20,6 +20,7 @@ import numpy as np
 from stable_baselines3.common.vec_env import VecEnv
 
 from .vector import VectorEnv
+from .env import task_info
 
 
 class SB3VecEnv(VecEnv):
@@ -57,8 +58,7 @@ class SB3VecEnv(VecEnv):
         for i in np.flatnonzero(done):
             infos[i]["terminal_observation"] = obs[i].copy()
             obs[i] = worlds.reset_one(int(i))  # the next episode, as the autoreset would start
-            task_id, lam, *_ = worlds.task_now(int(i))
-            self.reset_infos[i] = {"task_id": task_id, "lam": lam}
+            self.reset_infos[i] = task_info(worlds, int(i))
         return obs, reward.astype(np.float32), done, infos
 
     def close(self):

@@ -11,11 +11,15 @@ class TaskSampler:
     """A new task at every reset of every sub-env.
 
     - ``TaskSampler(tasks)``: one of ``tasks`` uniformly (names of the config's tasks, lambdas,
-      or dicts of ``lam``, ``rain``, ``rain_moves_every``); ``info["task_id"]`` is its index.
+      or dicts of ``lam``, ``rain``, ``rain_moves_every``, ``layout``); ``info["task_id"]`` is
+      its index.
     - ``TaskSampler(lam=(lo, hi), rain_probability=p, rain_size=(a, b),
-      rain_moves_every=(None, 10))``: lambda uniform in [lo, hi]; with probability p a rain
-      zone of sides uniform in a..=b cells placed uniformly on the grid, moving every one of
-      ``rain_moves_every`` steps (None: it stays); ``info["task_id"]`` identifies the draw.
+      rain_moves_every=(None, 10), layouts=(None, 7))``: lambda uniform in [lo, hi]; with
+      probability p a rain zone of sides uniform in a..=b cells placed uniformly on the grid,
+      moving every one of ``rain_moves_every`` steps (None: it stays); the device layout one of
+      ``layouts`` (None: the config's; a ``world.layout_seed``; or one (x, y) cell per device);
+      ``info["task_id"]`` identifies the draw, ``info["layout_id"]`` the layout's index where
+      there are several.
 
     A draw depends only on the world seed of the episode it starts, so ``reset(seed=S)``
     reproduces every env's sequence of tasks, and a ``VectorEnv`` equals a ``SyncVectorEnv``
@@ -23,7 +27,7 @@ class TaskSampler:
     """
 
     def __init__(self, tasks=None, *, lam=None, rain_probability=0.0, rain_size=(1, 3),
-                 rain_moves_every=(None,)):
+                 rain_moves_every=(None,), layouts=(None,)):
         if (tasks is None) == (lam is None):
             raise ValueError(
                 "TaskSampler: expected either a list of tasks or lam=(lo, hi) ranges, "
@@ -42,6 +46,7 @@ class TaskSampler:
             _probability(rain_probability),
             _pair(rain_size, "rain_size", lambda v: _args.natural("rain_size", v, upper=2**32)),
             _choices(rain_moves_every),
+            _layouts(layouts),
         )
 
     def _native(self):
@@ -52,10 +57,10 @@ class TaskSampler:
     def __repr__(self):
         if self.tasks is not None:
             return f"TaskSampler({self._list!r})"
-        lam, p, size, moves = self.ranges
+        lam, p, size, moves, layouts = self.ranges
         return (
             f"TaskSampler(lam={lam}, rain_probability={p}, rain_size={size}, "
-            f"rain_moves_every={moves})"
+            f"rain_moves_every={moves}, layouts={layouts})"
         )
 
 
@@ -84,3 +89,12 @@ def _choices(moves):
             f"rain_moves_every = {moves!r}: expected a list of step counts (None: the rain stays)"
         )
     return [_args.moves_every(m, f"rain_moves_every[{i}]") for i, m in enumerate(moves)]
+
+
+def _layouts(layouts):
+    if isinstance(layouts, (str, bytes)) or not isinstance(layouts, (list, tuple)):
+        raise TypeError(
+            f"layouts = {layouts!r}: expected a list of layouts (None: the config's; a layout "
+            "seed; or a list of (x, y) device cells)"
+        )
+    return [_args.layout(v, f"layouts[{i}]") for i, v in enumerate(layouts)]

@@ -29,11 +29,14 @@ class VectorEnv(WorldProperties, _GymVectorEnv):
     mode: the step after env i is truncated ignores its action, resets it and returns its first
     observation with reward 0. ``infos`` has ``aoi``, ``power_mw``, ``outage`` and ``device``
     with the masks ``_aoi``, ... that say which envs stepped, and every env's ``task_id`` and
-    ``lam`` (``reset``'s infos too).
+    ``lam`` (``reset``'s infos too), and ``layout_id`` where tasks have device layouts of
+    their own.
 
     A task per sub-env: ``tasks=[...]`` gives env i the task ``tasks[i % len(tasks)]`` (a
-    task name of the config, a lambda, or a dict of ``lam``, ``rain``, ``rain_moves_every``);
-    ``tasks=uavmeta.TaskSampler(...)`` draws env i a new task at each of its resets.
+    task name of the config, a lambda, or a dict of ``task`` or ``lam``, ``rain``,
+    ``rain_moves_every`` and ``layout``: a ``world.layout_seed`` or one (x, y) cell per device,
+    so tasks differ in where the devices are); ``tasks=uavmeta.TaskSampler(...)`` draws env i a
+    new task at each of its resets.
     ``task_of(i)`` says which task env i runs now.
 
     Returned arrays are new each step: observations (N, 2 + K) float32, rewards float64.
@@ -103,22 +106,24 @@ class VectorEnv(WorldProperties, _GymVectorEnv):
             super().reset(seed=base)
         self._started = True
         obs = self._worlds.reset(seeds)
-        task_id, lam = self._worlds.task_ids_and_lams()
-        return obs, self._task_infos(task_id, lam)
+        return obs, self._task_infos(*self._worlds.task_arrays())
 
-    def _task_infos(self, task_id, lam):
+    def _task_infos(self, task_id, lam, layout):
         every = getattr(self, "_every", None)
         if every is None:  # one read-only mask of all envs, shared by every step's infos
             every = self._every = np.ones(self.num_envs, dtype=bool)
             every.flags.writeable = False
-        return {"task_id": task_id, "_task_id": every, "lam": lam, "_lam": every}
+        infos = {"task_id": task_id, "_task_id": every, "lam": lam, "_lam": every}
+        if self._worlds.layout_count > 1:
+            infos.update(layout_id=layout, _layout_id=every)
+        return infos
 
     def step(self, actions):
         actions = check_actions(actions, self.num_envs, self.single_action_space.n)
         if not self._started:
             raise ResetNeeded("step() before reset(): call reset() first")
         (obs, reward, terminated, truncated, aoi, power_mw, outage, device, stepped, task_id,
-         lam) = self._worlds.step(actions)
+         lam, layout) = self._worlds.step(actions)
         infos = {}
         if stepped.any():
             infos = {
@@ -131,7 +136,7 @@ class VectorEnv(WorldProperties, _GymVectorEnv):
                 "device": device,
                 "_device": stepped,
             }
-        infos.update(self._task_infos(task_id, lam))
+        infos.update(self._task_infos(task_id, lam, layout))
         return obs, reward, terminated, truncated, infos
 
     @property

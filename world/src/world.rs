@@ -210,6 +210,15 @@ impl World {
         self.rain_moves_every = task.rain_moves_every;
     }
 
+    /// Puts this world on the device layout of `other`, a world of the same config but for its
+    /// device cells, in place: the power tables are shared, not computed again.
+    pub fn set_layout(&mut self, other: &World) {
+        debug_assert_eq!((self.grid, self.devices), (other.grid, other.devices));
+        self.device_cells.clone_from(&other.device_cells);
+        self.clear_mw = Arc::clone(&other.clear_mw);
+        self.rain_mw = Arc::clone(&other.rain_mw);
+    }
+
     /// Restarts the world's random stream, so the next episodes are those of `seed`.
     pub fn reseed(&mut self, seed: u64) {
         self.rng = ChaCha8Rng::seed_from_u64(seed);
