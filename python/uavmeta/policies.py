@@ -2,9 +2,10 @@
 
 Each is built for an env (a ``UavEnv``, a ``VectorEnv`` or a ``gymnasium.make`` of them), whose
 task it knows (device cells, deltas, powers, the configured rain zone; on an env of several
-tasks, the one its first sub-env runs when the policy is built), and maps observations as
-that env returns them (raw or normalised), one (2 + K,) row or an (N, 2 + K) batch, to action
-indices. They are the Rust policies of ``uavmeta env rollout --policy NAME``, so both choose the
+tasks, the one its first sub-env runs when the policy is built, layout included: to act on
+another task, build one on ``uavmeta.VectorEnv(1, tasks=[env.task_of(i)])``), and maps
+observations as that env returns them (raw or normalised), one (2 + K,) row or an (N, 2 + K)
+batch, to action indices. They are the Rust policies of ``uavmeta env rollout --policy NAME``, so both choose the
 same actions:
 
 - ``random(env, seed)``: uniform over the 5K actions, one draw per row from a stream seeded by
