@@ -5,8 +5,8 @@
 //! `i % len`), or a sampler that draws env i's task afresh at each of its resets from the world
 //! seed of the episode it starts (so the draw is reproducible and independent of the order envs
 //! reset in). Every step reports each env's task id and lambda. A task may bring its own device
-//! layout (the same number of devices): its envs step a world of that layout, cloned from one
-//! built per layout, so the power tables are shared.
+//! layout (the same number of devices): its envs step that layout's power tables, built once
+//! per layout and shared (`World::set_layout`).
 //!
 //! **Seeds.** Env i keeps a base seed and an episode counter. `reset` with a seed S starts
 //! episode 0 of S; every later reset without a seed (including an autoreset) starts the next
@@ -56,7 +56,7 @@ pub struct Worlds {
     /// Observations as the networks see them (x/(L-1), y/(L-1), A/aoi_max) instead of raw.
     normalised: bool,
     /// The config of each device layout the tasks use (the config's own first) and a world of
-    /// it that envs of that layout are cloned from.
+    /// it whose power tables the envs of that layout share.
     layouts: Vec<(Config, World)>,
     /// The first task: the one of every env unless a list or a sampler gives others.
     task: TaskConfig,
