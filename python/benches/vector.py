@@ -109,7 +109,7 @@ def check_numpy_world_is_the_world(layouts):
     """Same start, same actions: NumpyWorld's rewards are uavmeta's (so the race is fair), with
     one layout and with a layout per env."""
     ours = uavmeta.VectorEnv(3, lam=300.0, rain=(3, 3, 5, 5), start_cell=[4, 2])
-    theirs = NumpyWorld(3, ours._worlds.device_cells, 300.0, rain=(3, 3, 5, 5), start_cell=(4, 2))
+    theirs = NumpyWorld(3, ours.device_cells, 300.0, rain=(3, 3, 5, 5), start_cell=(4, 2))
     same_world(ours, theirs)
     tasks = [dict(lam=300.0, rain=(3, 3, 5, 5), layout=seed) for seed in LAYOUTS[:3]]
     ours = uavmeta.VectorEnv(3, tasks=tasks, start_cell=[4, 2])
@@ -168,7 +168,7 @@ def main():
     parser.add_argument("--rounds", type=int, default=7, help="loops per env, interleaved")
     parser.add_argument("--mixed", action="store_true", help="a task per env (module doc)")
     args = parser.parse_args()
-    cells = uavmeta.UavEnv(lam=300.0)._worlds.device_cells
+    cells = uavmeta.UavEnv(lam=300.0).device_cells
     layouts = [
         uavmeta.VectorEnv(1, tasks=[dict(lam=0.0, layout=seed)]).task_of(0)["device_cells"]
         for seed in LAYOUTS
@@ -180,7 +180,7 @@ def main():
             [lambda: uavmeta.UavEnv(lam=300.0, rain=(3, 3, 5, 5)) for _ in range(n)]
         ),
         "NumpyWorld": lambda n: NumpyWorld(
-            n, uavmeta.UavEnv(lam=300.0)._worlds.device_cells, 300.0, rain=(3, 3, 5, 5)
+            n, uavmeta.UavEnv(lam=300.0).device_cells, 300.0, rain=(3, 3, 5, 5)
         ),
     }
     if args.mixed:

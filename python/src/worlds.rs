@@ -494,7 +494,7 @@ impl Worlds {
     }
 
     /// Env i's task now: (task id, lambda, rain zone or None, rain_moves_every or None, name,
-    /// layout index, device cells).
+    /// layout index).
     #[allow(clippy::type_complexity)]
     fn task_now(
         &self,
@@ -506,7 +506,6 @@ impl Worlds {
         Option<u32>,
         String,
         usize,
-        Vec<(u32, u32)>,
     )> {
         self.check_env(i)?;
         let c = self.current[i];
@@ -518,7 +517,6 @@ impl Worlds {
             c.rain_moves_every,
             self.task_of(i).name,
             c.layout,
-            self.worlds[i].device_cells().to_vec(),
         ))
     }
 
@@ -667,10 +665,10 @@ impl Worlds {
         self.task.rain_moves_every
     }
 
-    /// Env 0's device cells now (`task_now(i)` has env i's).
-    #[getter]
-    fn device_cells(&self) -> Vec<(u32, u32)> {
-        self.worlds[0].device_cells().to_vec()
+    /// Env i's device cells now (its task's layout).
+    fn device_cells(&self, i: usize) -> PyResult<Vec<(u32, u32)>> {
+        self.check_env(i)?;
+        Ok(self.worlds[i].device_cells().to_vec())
     }
 
     #[getter]

@@ -50,7 +50,7 @@ def action_index(action, count):
 def task_info(worlds, i):
     """The ``info`` keys of env ``i``'s task: ``task_id``, ``lam``, and ``layout_id`` where the
     tasks have device layouts of their own."""
-    task_id, lam, _, _, _, layout, _ = worlds.task_now(i)
+    task_id, lam, _, _, _, layout = worlds.task_now(i)
     info = {"task_id": task_id, "lam": lam}
     if worlds.layout_count > 1:
         info["layout_id"] = layout
@@ -63,7 +63,7 @@ class WorldProperties:
 
     @property
     def device_cells(self):
-        return self._worlds.device_cells
+        return self._worlds.device_cells(0)
 
     @property
     def devices(self):
@@ -96,7 +96,8 @@ class WorldProperties:
         ``uavmeta env rollout --lambda ... --rain ...`` gives it), ``layout_id`` (its device
         layout's index, 0 for the config's) and ``device_cells``. ``uavmeta.evaluate`` takes
         this dict as its task."""
-        task_id, lam, rain, moves, name, layout, cells = self._worlds.task_now(i)
+        task_id, lam, rain, moves, name, layout = self._worlds.task_now(i)
+        cells = self._worlds.device_cells(i)
         return dict(task_id=task_id, lam=lam, rain=rain, rain_moves_every=moves, name=name,
                     layout_id=layout, device_cells=cells)
 

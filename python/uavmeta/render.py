@@ -35,7 +35,7 @@ def frame(worlds, i=0, trajectory=None):
         img[rows, cols] = RAIN
     img[::px, :] = GRID
     img[:, ::px] = GRID
-    for k, (dx, dy) in enumerate(worlds.task_now(i)[6]):
+    for k, (dx, dy) in enumerate(worlds.device_cells(i)):
         inset = max(1, px // 4)
         rows, cols = _cells(n, px, dx, dy, dx, dy)
         img[rows.start + inset : rows.stop - inset, cols.start + inset : cols.stop - inset] = (
