@@ -46,9 +46,6 @@ enum Command {
     Reproduce(cmd::reproduce::ReproduceArgs),
     /// Run everything (store, actors, meta-learner, evaluator) as one supervised run.
     Launch(cmd::launch::LaunchArgs),
-    /// Draw the Grafana dashboard's panels as PNG files from a Prometheus server's data.
-    #[command(subcommand)]
-    Dashboard(cmd::dashboard::DashboardCommand),
     /// One actor of a run: roll out a behaviour policy and publish its transitions.
     Actor(cmd::actor::ActorArgs),
     /// The dataset store of a run: append every task's transitions to its dataset file.
@@ -135,7 +132,6 @@ fn main() -> ExitCode {
         Command::MetaTest(c) => cmd::meta::run_test(c),
         Command::Reproduce(c) => cmd::reproduce::run(c),
         Command::Launch(c) => cmd::launch::run(c, terminal),
-        Command::Dashboard(c) => cmd::dashboard::run(c),
         Command::Actor(c) => cmd::actor::run(c),
         Command::Store(c) => cmd::store::run(c),
         Command::MetaLearner(c) => cmd::meta_learner::run(c),

@@ -1,12 +1,9 @@
-//! PNG charts in one style: uavmeta reproduce's figures and the time-series panels of
-//! `uavmeta dashboard render`.
+//! PNG charts in one style: uavmeta reproduce's figures.
 //!
 //! - [`line_chart`]: curves over epochs with shaded 95% confidence bands and dashed reference
 //!   levels; [`bar_chart`]: grouped bars with confidence whiskers; [`trajectory_chart`]: UAV paths
 //!   on the grid with the rain zone. They take summary statistics from `uavmeta_proto::stats` and
 //!   the rain zone from `uavmeta_proto::config`.
-//! - [`timeseries`]: series over clock time as a Grafana panel draws them, one panel to a PNG or
-//!   a grid of panels under headings.
 //!
 //! Every chart is written to a PNG file on a white canvas in the [`PALETTE`]'s colours. Text is
 //! set in DejaVu Sans compiled into the binary (`plot/assets/`, licence beside it), so a figure
@@ -34,8 +31,6 @@
 //! };
 //! line_chart(&dir.path().join("reward.png"), &chart).unwrap();
 //! ```
-
-pub mod timeseries;
 
 use std::ops::Range;
 use std::path::{Path, PathBuf};

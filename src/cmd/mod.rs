@@ -3,7 +3,6 @@
 pub mod actor;
 pub mod collect;
 pub mod common;
-pub mod dashboard;
 pub mod dataset;
 pub mod env;
 pub mod eval;
