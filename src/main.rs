@@ -49,11 +49,11 @@ enum Command {
     /// One actor of a run: roll out a behaviour policy and publish its transitions.
     Actor(cmd::actor::ActorArgs),
     /// The dataset store of a run: append every task's transitions to its dataset file.
-    Store(cmd::store::StoreArgs),
+    Store(cmd::launch::RunArgs),
     /// The meta-learner of a run: MAML over the run's datasets, then meta-test.
-    MetaLearner(cmd::meta_learner::MetaLearnerArgs),
+    MetaLearner(cmd::launch::RunArgs),
     /// The evaluator of a run: score every announced checkpoint in the true world.
-    Evaluator(cmd::evaluator::EvaluatorArgs),
+    Evaluator(cmd::launch::RunArgs),
     /// Remote actor hosts: serve a run through iceoryx2's tunnel over Zenoh, or join one.
     #[command(subcommand)]
     Tunnel(cmd::tunnel::TunnelCommand),
@@ -133,9 +133,9 @@ fn main() -> ExitCode {
         Command::Reproduce(c) => cmd::reproduce::run(c),
         Command::Launch(c) => cmd::launch::run(c, terminal),
         Command::Actor(c) => cmd::actor::run(c),
-        Command::Store(c) => cmd::store::run(c),
-        Command::MetaLearner(c) => cmd::meta_learner::run(c),
-        Command::Evaluator(c) => cmd::evaluator::run(c),
+        Command::Store(c) => c.serve(uavmeta_runtime::store::run),
+        Command::MetaLearner(c) => c.serve(uavmeta_runtime::meta_learner::run),
+        Command::Evaluator(c) => c.serve(uavmeta_runtime::evaluator::run),
         Command::Tunnel(c) => cmd::tunnel::run(c),
     };
     match result {

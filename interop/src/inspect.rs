@@ -12,6 +12,7 @@ use std::path::PathBuf;
 
 use uavmeta_proto::config::{Config, TaskConfig, MOVES};
 use uavmeta_proto::dataset::{DatasetHeader, DatasetReader, SCHEMA_VERSION};
+use uavmeta_proto::fs::FileError;
 use uavmeta_proto::stats::Estimate;
 use uavmeta_world::validate::{Rejection, Validator};
 
@@ -98,7 +99,7 @@ impl Summary {
         };
         let path = reader.path().to_path_buf();
         let bytes = std::fs::metadata(&path)
-            .map_err(InteropError::io(&path, "stat"))?
+            .map_err(FileError::at(&path, "stat"))?
             .len();
         let transitions = reader.transitions();
         let mut actions = vec![0; header.action_count()];

@@ -69,14 +69,6 @@ pub enum InteropError {
     UnknownFormat { found: String },
 }
 
-impl InteropError {
-    /// The error of `action` on `path`, for `map_err`.
-    fn io(path: &Path, action: &'static str) -> impl FnOnce(std::io::Error) -> Self {
-        let at = FileError::at(path, action);
-        move |source| Self::from(at(source))
-    }
-}
-
 /// The formats `uavmeta dataset export --format` writes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Format {
@@ -155,6 +147,6 @@ fn prepare_output(path: &Path) -> Result<&Path, InteropError> {
         Some(dir) if !dir.as_os_str().is_empty() => dir,
         _ => Path::new("."),
     };
-    std::fs::create_dir_all(parent).map_err(InteropError::io(parent, "create the directory"))?;
+    std::fs::create_dir_all(parent).map_err(FileError::at(parent, "create the directory"))?;
     Ok(parent)
 }

@@ -37,6 +37,7 @@ use arrow_schema::{ArrowError, DataType, Field};
 use serde_json::{json, Value};
 use uavmeta_proto::config::WorldConfig;
 use uavmeta_proto::dataset::Transition;
+use uavmeta_proto::fs::FileError;
 
 use crate::{prepare_output, Export, InteropError, Shots};
 
@@ -102,14 +103,10 @@ fn check_id(id: &str) -> Result<(), InteropError> {
     }
 }
 
-/// Writes `export` as Minari dataset `id` under `root`. The dataset appears whole or not at all:
-/// it is written beside its place under a hidden name, which Minari's listing skips, and renamed.
-pub fn write(export: &Export, root: &Path, id: &str) -> Result<MinariSummary, InteropError> {
-    write_observations(export, root, id, Observations::Raw)
-}
-
-/// As [`write`], the observations written as `observations` says.
-pub fn write_observations(
+/// Writes `export` as Minari dataset `id` under `root`, the observations as `observations` says.
+/// The dataset appears whole or not at all: it is written beside its place under a hidden name,
+/// which Minari's listing skips, and renamed.
+pub fn write(
     export: &Export,
     root: &Path,
     id: &str,
@@ -121,7 +118,7 @@ pub fn write_observations(
     let staging = tempfile::Builder::new()
         .prefix(".uavmeta-export")
         .tempdir_in(parent)
-        .map_err(InteropError::io(parent, "create a directory in"))?;
+        .map_err(FileError::at(parent, "create a directory in"))?;
     let data = staging.path().join("data");
     let mut bytes = 0;
     for (i, run) in export.runs.iter().enumerate() {
@@ -136,7 +133,7 @@ pub fn write_observations(
     let metadata = dataset_metadata(export, id, bytes, observations);
     write_json(&data.join("metadata.json"), &metadata)?;
     // Dropping `staging` after the rename finds nothing left to remove.
-    std::fs::rename(staging.path(), &dir).map_err(InteropError::io(&dir, "create"))?;
+    std::fs::rename(staging.path(), &dir).map_err(FileError::at(&dir, "create"))?;
     Ok(MinariSummary {
         dir,
         episodes: export.runs.len(),
@@ -152,14 +149,14 @@ fn write_episode(
     world: &WorldConfig,
     observations: Observations,
 ) -> Result<u64, InteropError> {
-    std::fs::create_dir_all(dir).map_err(InteropError::io(dir, "create the directory"))?;
+    std::fs::create_dir_all(dir).map_err(FileError::at(dir, "create the directory"))?;
     let path = dir.join(EPISODE_FILE);
     let arrow = |source| InteropError::Arrow {
         path: path.clone(),
         source,
     };
     let batch = episode_batch(run, &scale_of(world, observations)).map_err(arrow)?;
-    let file = File::create(&path).map_err(InteropError::io(&path, "create"))?;
+    let file = File::create(&path).map_err(FileError::at(&path, "create"))?;
     let mut writer = FileWriter::try_new(BufWriter::new(file), &batch.schema()).map_err(arrow)?;
     writer.write(&batch).map_err(arrow)?;
     writer.finish().map_err(arrow)?;
@@ -167,7 +164,7 @@ fn write_episode(
         .into_inner()
         .map_err(arrow)?
         .flush()
-        .map_err(InteropError::io(&path, "write"))?;
+        .map_err(FileError::at(&path, "write"))?;
     let first = &run[0];
     write_json(
         &dir.join("metadata.json"),
@@ -179,7 +176,7 @@ fn write_episode(
             "first_step": first.step,
         }),
     )?;
-    let size = std::fs::metadata(&path).map_err(InteropError::io(&path, "stat"))?;
+    let size = std::fs::metadata(&path).map_err(FileError::at(&path, "stat"))?;
     Ok(size.len())
 }
 
@@ -284,7 +281,8 @@ fn observation_space(world: &WorldConfig, observations: Observations) -> Value {
 }
 
 fn write_json(path: &Path, value: &Value) -> Result<(), InteropError> {
-    std::fs::write(path, value.to_string()).map_err(InteropError::io(path, "write"))
+    std::fs::write(path, value.to_string()).map_err(FileError::at(path, "write"))?;
+    Ok(())
 }
 
 #[cfg(test)]

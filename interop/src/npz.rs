@@ -30,6 +30,7 @@ use std::path::Path;
 use npyz::npz::NpzWriter;
 use npyz::{AutoSerialize, WriterBuilder};
 use uavmeta_proto::dataset::Transition;
+use uavmeta_proto::fs::FileError;
 
 use crate::{prepare_output, Export, InteropError};
 
@@ -87,7 +88,7 @@ pub fn write(export: &Export, out: &Path) -> Result<NpzSummary, InteropError> {
     let vector = [rows as u64];
 
     let mut file = tempfile::NamedTempFile::new_in(dir)
-        .map_err(InteropError::io(dir, "create a file in the directory"))?;
+        .map_err(FileError::at(dir, "create a file in the directory"))?;
     let write_all = |file: &mut File| -> std::io::Result<()> {
         let mut npz = NpzWriter::new(BufWriter::new(file));
         array(&mut npz, "observations", &matrix, &columns.observations)?;
@@ -103,9 +104,9 @@ pub fn write(export: &Export, out: &Path) -> Result<NpzSummary, InteropError> {
         )?;
         npz.zip_writer().finish()?.flush()
     };
-    write_all(file.as_file_mut()).map_err(InteropError::io(out, "write the .npz"))?;
+    write_all(file.as_file_mut()).map_err(FileError::at(out, "write the .npz"))?;
     file.persist_noclobber(out)
-        .map_err(|e| InteropError::io(out, "create")(e.error))?;
+        .map_err(|e| FileError::at(out, "create")(e.error))?;
     Ok(NpzSummary {
         transitions: export.transitions(),
         runs: export.runs.len(),

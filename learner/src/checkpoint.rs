@@ -21,7 +21,7 @@ use std::path::{Path, PathBuf};
 
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
-use tch::Tensor;
+use tch::{TchError, Tensor};
 use uavmeta_proto::config::Config;
 use uavmeta_proto::method::Method;
 
@@ -87,7 +87,7 @@ pub enum CheckpointError {
         path: PathBuf,
         /// "load" or "save": a full disk on save must not read as a damaged file.
         action: &'static str,
-        source: tch::TchError,
+        source: TchError,
     },
     #[error("{}: `heads` = {found}, but a `{algorithm}` network has {expected} block(s) of outputs", path.display())]
     Heads {
@@ -135,16 +135,7 @@ pub fn save(
     let paths = CheckpointPaths::new(path);
     let dir = create_parent(&paths.weights)?;
 
-    // VarStore::save picks the format from the extension, so the temporary name keeps it.
-    let tmp_weights = temp_name(&paths.weights, "safetensors");
-    q.vs.save(&tmp_weights)
-        .map_err(|source| CheckpointError::Weights {
-            path: tmp_weights.clone(),
-            action: "save",
-            source,
-        })?;
-    let bytes = read(&tmp_weights, "read back")?;
-    sync_file(&tmp_weights)?;
+    let (tmp_weights, bytes) = write_temp(&paths.weights, |tmp| q.vs.save(tmp))?;
 
     let meta = CheckpointMeta {
         format_version: FORMAT_VERSION,
@@ -198,14 +189,7 @@ pub fn save_state<S: Serialize>(
 ) -> Result<(), CheckpointError> {
     let (tensors_path, meta_path) = state_paths(path);
     let dir = create_parent(&tensors_path)?;
-    let tmp = temp_name(&tensors_path, "safetensors");
-    Tensor::write_safetensors(tensors, &tmp).map_err(|source| CheckpointError::Weights {
-        path: tmp.clone(),
-        action: "save",
-        source,
-    })?;
-    let bytes = read(&tmp, "read back")?;
-    sync_file(&tmp)?;
+    let (tmp, bytes) = write_temp(&tensors_path, |tmp| Tensor::write_safetensors(tensors, tmp))?;
     let meta = StateMeta {
         format_version: FORMAT_VERSION,
         tensors_len: bytes.len() as u64,
@@ -230,11 +214,7 @@ pub fn load_state<S: DeserializeOwned>(
     let meta: StateMeta<S> = read_json(&meta_path, |m: &StateMeta<S>| m.format_version)?;
     verify(&tensors_path, meta.tensors_len, meta.tensors_crc32)?;
     let tensors =
-        Tensor::read_safetensors(&tensors_path).map_err(|source| CheckpointError::Weights {
-            path: tensors_path,
-            action: "load",
-            source,
-        })?;
+        Tensor::read_safetensors(&tensors_path).map_err(weights_error(&tensors_path, "load"))?;
     Ok((tensors, meta.state))
 }
 
@@ -345,11 +325,7 @@ pub fn load(path: &Path, config: &Config) -> Result<(QNetwork, CheckpointMeta), 
     }
     .init(0);
     q.vs.load(&paths.weights)
-        .map_err(|source| CheckpointError::Weights {
-            path: paths.weights.clone(),
-            action: "load",
-            source,
-        })?;
+        .map_err(weights_error(&paths.weights, "load"))?;
     // It acts as the algorithm that trained it does.
     if let Some(algorithm) = algorithm {
         q.set_acting(algorithm.acting(&config.learner));
@@ -379,6 +355,29 @@ fn verify(path: &Path, expected_len: u64, expected_crc: u32) -> Result<(), Check
         });
     }
     Ok(())
+}
+
+/// Writes tensors with `write` to a synced temporary file beside `path`: its name and its bytes.
+fn write_temp(
+    path: &Path,
+    write: impl FnOnce(&Path) -> Result<(), TchError>,
+) -> Result<(PathBuf, Vec<u8>), CheckpointError> {
+    // VarStore::save picks the format from the extension, so the temporary name keeps it.
+    let tmp = temp_name(path, "safetensors");
+    write(&tmp).map_err(weights_error(&tmp, "save"))?;
+    let bytes = read(&tmp, "read back")?;
+    sync_file(&tmp)?;
+    Ok((tmp, bytes))
+}
+
+/// The error of `action` ("load" or "save") on the weights file `path`, for `map_err`.
+fn weights_error(path: &Path, action: &'static str) -> impl FnOnce(TchError) -> CheckpointError {
+    let path = path.to_path_buf();
+    move |source| CheckpointError::Weights {
+        path,
+        action,
+        source,
+    }
 }
 
 fn read(path: &Path, action: &'static str) -> Result<Vec<u8>, CheckpointError> {

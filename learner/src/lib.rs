@@ -27,36 +27,8 @@
 //! section. Evaluating a policy needs the world (`uavmeta-world`); `uavmeta-actors`
 //! implements the evaluation hook and the online DQN agent on top of these types.
 //!
-//! One CQL gradient step by hand (offline training, [`train::train`], loops this):
-//!
-//! ```
-//! use tch::nn::OptimizerConfig;
-//! use uavmeta_learner::transitions::Transitions;
-//! use uavmeta_learner::cql::{conservative_term, cql_loss};
-//! use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
-//! use uavmeta_proto::{config::WorldConfig, dataset::Transition};
-//!
-//! // K = 2 devices: observations [x, y, A_1, A_2], 2 + K = 4 inputs, 5K = 10 actions.
-//! let world = WorldConfig { devices: 2, ..WorldConfig::default() };
-//! let t = Transition {
-//!     task: 0, actor: 0, episode: 0, step: 0, seq: 0,
-//!     obs: vec![4, 5, 1, 1], action: 3, reward: -2.0, next_obs: vec![4, 6, 2, 1], truncated: false,
-//! };
-//! let batch = Transitions::new(&[t], &world, 0.01).unwrap();
-//! let q = QNetworkConfig::for_world(&world, &[16, 16]).init(7);
-//! let target = q.duplicate();
-//! let mut adam = tch::nn::Adam::default().build(&q.vs, 1e-3).unwrap();
-//!
-//! let next_q_target = tch::no_grad(|| target.forward(&batch.next_obs)); // [1, 10]
-//! let q_all = q.forward(&batch.obs); // Q_w(s, .) [1, 10]
-//! let loss = cql_loss(&q_all, &next_q_target, &batch, 0.99, 1.0); // eq. 8
-//! // The conservative term is never negative: logsumexp over actions bounds every Q(s, a).
-//! assert!(conservative_term(&q_all, &batch).double_value(&[]) >= 0.0);
-//! adam.backward_step(&loss);
-//! // MAML's fast weights run through the same network function.
-//! let same = QNetwork::forward_with(&q.parameters(), &batch.obs);
-//! assert!(same.equal(&q.forward(&batch.obs)));
-//! ```
+//! The losses, worked by hand: learner/tests/losses.rs; the network and its functional forward
+//! pass for MAML's fast weights: learner/tests/network.rs.
 
 pub mod algorithm;
 pub mod bc;

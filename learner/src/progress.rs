@@ -8,15 +8,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
-
-/// A CSV log that cannot be created or written.
-#[derive(Debug, thiserror::Error)]
-#[error("{}: cannot {action}", path.display())]
-pub struct CsvError {
-    pub path: PathBuf,
-    pub action: &'static str,
-    pub source: std::io::Error,
-}
+use uavmeta_proto::fs::FileError;
 
 /// A CSV file written line by line, each line flushed as it is written so an interrupted run
 /// keeps its rows.
@@ -27,7 +19,7 @@ pub struct CsvLog {
 
 impl CsvLog {
     /// A new log at `path` (its directory created if need be) that starts with `header`.
-    pub fn create(path: &Path, header: &str) -> Result<Self, CsvError> {
+    pub fn create(path: &Path, header: &str) -> Result<Self, FileError> {
         Self::resume(path, header, |_| false)
     }
 
@@ -37,17 +29,12 @@ impl CsvLog {
         path: &Path,
         header: &str,
         keep: impl Fn(&str) -> bool,
-    ) -> Result<Self, CsvError> {
-        let error = |action, source| CsvError {
-            path: path.to_path_buf(),
-            action,
-            source,
-        };
+    ) -> Result<Self, FileError> {
         let old = std::fs::read_to_string(path).unwrap_or_default();
         if let Some(dir) = path.parent() {
-            std::fs::create_dir_all(dir).map_err(|e| error("create the directory of", e))?;
+            std::fs::create_dir_all(dir).map_err(FileError::at(path, "create the directory of"))?;
         }
-        let file = File::create(path).map_err(|e| error("create", e))?;
+        let file = File::create(path).map_err(FileError::at(path, "create"))?;
         let mut log = Self {
             path: path.to_path_buf(),
             file: BufWriter::new(file),
@@ -60,14 +47,10 @@ impl CsvLog {
     }
 
     /// Appends `line` and flushes it.
-    pub fn line(&mut self, line: &str) -> Result<(), CsvError> {
+    pub fn line(&mut self, line: &str) -> Result<(), FileError> {
         writeln!(self.file, "{line}")
             .and_then(|()| self.file.flush())
-            .map_err(|source| CsvError {
-                path: self.path.clone(),
-                action: "write",
-                source,
-            })
+            .map_err(FileError::at(&self.path, "write"))
     }
 }
 

@@ -26,7 +26,7 @@ use crate::checkpoint::{self, CheckpointError};
 use crate::cql::conservative_term;
 use crate::dqn::{q_taken, TdConfig};
 use crate::optim::FusedAdam;
-use crate::progress::{progress_bar, CsvError, CsvLog, OnStep};
+use crate::progress::{progress_bar, CsvLog, OnStep};
 use crate::qnet::{q_values, QNetwork};
 use crate::transitions::Transitions;
 
@@ -41,7 +41,7 @@ pub trait EvaluatePolicy {
 #[derive(Debug, thiserror::Error)]
 pub enum TrainError {
     #[error(transparent)]
-    Csv(#[from] CsvError),
+    Csv(#[from] uavmeta_proto::fs::FileError),
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
 }
@@ -86,23 +86,11 @@ const CSV_HEADER: &str = "epoch,steps,td_loss,conservative_loss,mean_q,return,re
 
 impl EpochRow {
     fn csv(&self) -> String {
-        let p = &self.policy;
+        let (epoch, steps, td_loss) = (self.epoch, self.steps, self.td_loss);
+        let (conservative_loss, mean_q) = (self.conservative_loss, self.mean_q);
+        let (policy, episodes) = (self.policy.csv(), self.policy.episodes);
         format!(
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{:.3}",
-            self.epoch,
-            self.steps,
-            self.td_loss,
-            self.conservative_loss,
-            self.mean_q,
-            p.ret.mean,
-            p.ret.ci95,
-            p.aoi.mean,
-            p.aoi.ci95,
-            p.power_mw.mean,
-            p.power_mw.ci95,
-            p.outages.mean,
-            p.outages.ci95,
-            p.episodes,
+            "{epoch},{steps},{td_loss},{conservative_loss},{mean_q},{policy},{episodes},{:.3}",
             self.seconds
         )
     }

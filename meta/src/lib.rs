@@ -51,7 +51,6 @@ pub mod pretrain;
 use std::path::{Path, PathBuf};
 
 use uavmeta_learner::checkpoint::CheckpointError;
-use uavmeta_learner::progress::CsvError;
 use uavmeta_learner::train::TrainError;
 use uavmeta_learner::transitions::{ShotsError, TransitionsError};
 use uavmeta_proto::config::ConfigError;
@@ -83,8 +82,6 @@ pub enum MetaError {
     Checkpoint(#[from] CheckpointError),
     #[error(transparent)]
     Train(#[from] TrainError),
-    #[error(transparent)]
-    Csv(#[from] CsvError),
     #[error(transparent)]
     Torch(#[from] tch::TchError),
 }

@@ -1,24 +1,6 @@
-//! MAML over a CQL or DQN inner loop: the paper's Algorithm 4 with eqs. 14-16.
-//!
-//! ```text
-//! for each meta-epoch:
-//!     shuffle each task's support set
-//!     repeat outer_steps times                   (meta.outer_steps_per_meta_epoch, 0 = one pass)
-//!         sample tasks tau_1..tau_T                              (meta.tasks_per_meta_epoch, 0 = all)
-//!         for each task tau_i:
-//!             the next k shots of its shuffled support set       (meta.support_shots)
-//!             w_i = w0;  repeat inner_steps:  w_i <- w_i - eta_inner * grad L(w_i; shots)  (eq. 14)
-//!                                 (Meta-SGD: eta_inner is a learned vector, one step per weight)
-//!         L_meta = sum_i L(w_i; query shots of tau_i)                                       (eq. 15)
-//!         w0 <- Adam(eta_outer) step on grad_w0 L_meta, through the inner steps             (eq. 16)
-//! ```
-//!
-//! Algorithm 4 writes one outer update per meta-epoch. Read literally, the paper's 150
-//! meta-epochs are 150 Adam steps, which leave `w0` next to its random init (Q-values two orders
-//! of magnitude short of the returns' scale); docs/MODEL.md section 5 reads a meta-epoch as an
-//! epoch is read everywhere else, one pass over the data: with 250 support shots per task and k =
-//! 64, four outer steps, after which every support shot has been adapted to once. `outer_steps = 1`
-//! is the literal reading.
+//! MAML over a CQL or DQN inner loop: the paper's Algorithm 4 with eqs. 14-16, a meta-epoch being
+//! one pass over the support shots (`meta.outer_steps_per_meta_epoch` = 1 is the literal reading).
+//! The loop, its keys and why: docs/MODEL.md, section 5, "MAML over CQL" and "Epochs".
 //!
 //! With `meta.learn_inner_lr` (Meta-SGD, Li et al. 2017) eq. 14's step size is learned too: one
 //! per weight, initialised to `eta_inner`, updated by the same outer Adam as `w0`. One shared
@@ -28,14 +10,12 @@
 //! moves. The learned steps serve the adaptation (eq. 14, figure 4); meta-test fine-tunes `w0`
 //! with CQL's Adam as before.
 //!
-//! `L` is the CQL loss of eq. 8 (CQL-MAML, the paper's method) or the DQN loss of eq. 7 (DQN-MAML,
-//! its baseline), with the learner's TD options (`learner.double_dqn`, `learner.huber`) so that
-//! MAML and plain offline training optimise the same loss. `meta.huber` gives MAML alone the Huber
-//! TD form: on a task whose values `w0` misjudges by far (lambda-0), squared TD errors otherwise
-//! decide where the few inner steps go (docs/EXPERIMENTS.md, C6). Second-order MAML differentiates
-//! the query loss through every inner step (the inner gradients are built with `create_graph`);
-//! first-order MAML (`meta.first_order`) treats the inner gradients as constants, so the
-//! meta-gradient of a task is the gradient of its query loss at `w_i`.
+//! `L` is eq. 8 (CQL-MAML) or eq. 7 (DQN-MAML) with the learner's TD options, so that MAML and
+//! plain offline training optimise the same loss. `meta.huber` gives MAML alone the Huber TD
+//! form: on a task whose values `w0` misjudges by far (lambda-0), squared TD errors otherwise
+//! decide where the few inner steps go (docs/EXPERIMENTS.md, C6). Second-order MAML builds the
+//! inner gradients with `create_graph`; first-order MAML (`meta.first_order`) treats them as
+//! constants.
 //!
 //! # The target network Qhat
 //!

@@ -325,12 +325,7 @@ impl DatasetWriter {
     pub fn open_append(path: impl AsRef<Path>) -> Result<(Self, Option<Recovery>), DatasetError> {
         let path = path.as_ref().to_path_buf();
         let (bytes, header, header_len) = read_with_header(&path)?;
-        let mut scan = Scan {
-            path: &path,
-            bytes: &bytes,
-            header: &header,
-            offset: header_len,
-        };
+        let mut scan = Scan::new(&path, &bytes, &header, header_len);
         let mut transitions = 0u64;
         let recovery = loop {
             match scan.next_chunk() {
@@ -511,12 +506,7 @@ impl DatasetReader {
     pub fn open(path: impl AsRef<Path>) -> Result<Self, DatasetError> {
         let path = path.as_ref().to_path_buf();
         let (bytes, header, header_len) = read_with_header(&path)?;
-        let mut scan = Scan {
-            path: &path,
-            bytes: &bytes,
-            header: &header,
-            offset: header_len,
-        };
+        let mut scan = Scan::new(&path, &bytes, &header, header_len);
         let (mut transitions, mut chunks) = (Vec::new(), 0);
         while let Some(chunk) = scan.next_chunk()? {
             transitions.extend(chunk);
@@ -607,7 +597,16 @@ struct Scan<'a> {
     offset: usize,
 }
 
-impl Scan<'_> {
+impl<'a> Scan<'a> {
+    fn new(path: &'a Path, bytes: &'a [u8], header: &'a DatasetHeader, offset: usize) -> Self {
+        Self {
+            path,
+            bytes,
+            header,
+            offset,
+        }
+    }
+
     /// The next chunk's transitions, `None` at a clean end of file. On error `offset` stays at
     /// the bad chunk.
     fn next_chunk(&mut self) -> Result<Option<Vec<Transition>>, DatasetError> {
@@ -722,13 +721,9 @@ impl Scan<'_> {
         (start..self.bytes.len().saturating_sub(CHUNK_MAGIC.len() - 1))
             .filter(|&at| &self.bytes[at..at + CHUNK_MAGIC.len()] == CHUNK_MAGIC)
             .any(|at| {
-                let mut candidate = Scan {
-                    path: self.path,
-                    bytes: self.bytes,
-                    header: self.header,
-                    offset: at,
-                };
-                candidate.next_chunk().is_ok()
+                Scan::new(self.path, self.bytes, self.header, at)
+                    .next_chunk()
+                    .is_ok()
             })
     }
 }

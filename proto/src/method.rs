@@ -25,27 +25,12 @@ pub struct AlgoInfo {
 
 /// Every offline algorithm, in wire order: one line each. Adding one here and its loss to
 /// `uavmeta_learner::algorithm::ALGORITHMS` (same name, same order) is the whole registration.
+#[rustfmt::skip]
 pub const ALGORITHMS: &[AlgoInfo] = &[
-    AlgoInfo {
-        name: "cql",
-        label: "CQL",
-        baseline: false,
-    },
-    AlgoInfo {
-        name: "dqn",
-        label: "DQN",
-        baseline: false,
-    },
-    AlgoInfo {
-        name: "bc",
-        label: "BC",
-        baseline: true,
-    },
-    AlgoInfo {
-        name: "bcq",
-        label: "BCQ",
-        baseline: false,
-    },
+    AlgoInfo { name: "cql", label: "CQL", baseline: false },
+    AlgoInfo { name: "dqn", label: "DQN", baseline: false },
+    AlgoInfo { name: "bc", label: "BC", baseline: true },
+    AlgoInfo { name: "bcq", label: "BCQ", baseline: false },
 ];
 
 /// An offline algorithm of [`ALGORITHMS`] (its index); written as its name.
@@ -133,22 +118,13 @@ pub enum Start {
 impl Start {
     const ALL: [Start; 4] = [Start::Random, Start::Maml, Start::Pretrain, Start::W0];
 
-    /// What its name adds to the algorithm's: `cql`, `cql-maml`, `cql-pretrain`.
-    fn suffix(self) -> &'static str {
+    /// What it adds to the algorithm's name (`cql`, `cql-maml`, `cql-pretrain`) and label.
+    fn suffixes(self) -> (&'static str, &'static str) {
         match self {
-            Start::Random => "",
-            Start::Maml => "-maml",
-            Start::Pretrain => "-pretrain",
-            Start::W0 => "-w0",
-        }
-    }
-
-    fn label_suffix(self) -> &'static str {
-        match self {
-            Start::Random => "",
-            Start::Maml => "-MAML",
-            Start::Pretrain => "-pretrain",
-            Start::W0 => " from w0",
+            Start::Random => ("", ""),
+            Start::Maml => ("-maml", "-MAML"),
+            Start::Pretrain => ("-pretrain", "-pretrain"),
+            Start::W0 => ("-w0", " from w0"),
         }
     }
 }
@@ -208,7 +184,7 @@ impl Method {
         match self {
             Method::MetaInit => "maml-init".into(),
             Method::OnlineDqn => "online-dqn".into(),
-            Method::FineTuned { algo, start } => format!("{algo}{}", start.suffix()),
+            Method::FineTuned { algo, start } => format!("{algo}{}", start.suffixes().0),
         }
     }
 
@@ -218,7 +194,7 @@ impl Method {
             Method::MetaInit => "maml-init".into(),
             Method::OnlineDqn => "online DQN".into(),
             Method::FineTuned { algo, start } => {
-                format!("{}{}", algo.label(), start.label_suffix())
+                format!("{}{}", algo.label(), start.suffixes().1)
             }
         }
     }

@@ -85,6 +85,32 @@ pub struct PolicyMetrics {
 }
 
 impl PolicyMetrics {
+    /// The four estimates as CSV cells, each mean beside its interval, as every log writes them:
+    /// `return,return_ci95,aoi,aoi_ci95,power_mw,power_mw_ci95,outages,outages_ci95`.
+    pub fn csv(&self) -> String {
+        let cells = [self.ret, self.aoi, self.power_mw, self.outages];
+        let cells = cells.map(|e| format!("{},{}", e.mean, e.ci95));
+        cells.join(",")
+    }
+
+    /// The estimates from the eight cells [`PolicyMetrics::csv`] writes, with `episodes`.
+    pub fn parse_csv(cells: &[&str], episodes: usize) -> Option<Self> {
+        let num = |i: usize| cells.get(i)?.parse::<f64>().ok();
+        let estimate = |i: usize| {
+            Some(Estimate {
+                mean: num(i)?,
+                ci95: num(i + 1)?,
+            })
+        };
+        Some(Self {
+            episodes,
+            ret: estimate(0)?,
+            aoi: estimate(2)?,
+            power_mw: estimate(4)?,
+            outages: estimate(6)?,
+        })
+    }
+
     pub fn from_episodes(episodes: &[EpisodeMetrics]) -> Self {
         Self {
             episodes: episodes.len(),

@@ -16,6 +16,7 @@ use uavmeta_proto::config::Config;
 use uavmeta_proto::dataset::{DatasetError as ReadError, DatasetReader, Transition};
 
 use crate::task::config_error;
+use crate::value_error;
 
 pyo3::create_exception!(
     _uavmeta,
@@ -43,10 +44,8 @@ pub fn load_dataset<'py>(
         .detach(|| DatasetReader::open(&path))
         .map_err(dataset_error)?;
     let config_path = config.or_else(|| Some(saved_config(&path)).filter(|p| p.exists()));
-    let loaded = match &config_path {
-        Some(p) => Some(Config::load(p, &[]).map_err(config_error)?),
-        None => None,
-    };
+    let loaded = config_path.as_ref().map(|p| Config::load(p, &[]));
+    let loaded = loaded.transpose().map_err(config_error)?;
     let scale = match (&loaded, normalised) {
         (Some(c), true) => Some(c.world.observation_scale()),
         (None, true) => {
@@ -86,7 +85,6 @@ fn saved_config(path: &Path) -> PathBuf {
     PathBuf::from(name)
 }
 
-/// The transitions as columns.
 /// The transitions as columns; the observations raw (uint16), or divided by `scale` (float32).
 fn arrays(
     py: Python<'_>,
@@ -96,28 +94,18 @@ fn arrays(
     scale: Option<&[f32]>,
 ) -> PyResult<()> {
     let shape = (transitions.len(), obs_len);
-    let bad_shape = |e: numpy::ndarray::ShapeError| PyValueError::new_err(e.to_string());
-    let rows = |f: fn(&Transition) -> &[u16]| -> PyResult<Bound<'_, PyAny>> {
+    let rows = |f: fn(&Transition) -> &[u16]| {
         let raw = transitions.iter().flat_map(|t| f(t).iter().copied());
-        Ok(match scale {
-            None => Array2::from_shape_vec(shape, raw.collect())
-                .map_err(bad_shape)?
-                .into_pyarray(py)
-                .into_any(),
+        match scale {
+            None => matrix(py, shape, raw.collect()),
             Some(scale) => {
                 // As `World::write_normalised`: times the f32 reciprocal, so the values equal
                 // the env's bit for bit.
                 let inv: Vec<f32> = scale.iter().map(|s| 1.0 / s).collect();
-                let flat: Vec<f32> = raw
-                    .zip(inv.iter().cycle())
-                    .map(|(v, inv)| v as f32 * inv)
-                    .collect();
-                Array2::from_shape_vec(shape, flat)
-                    .map_err(bad_shape)?
-                    .into_pyarray(py)
-                    .into_any()
+                let flat = raw.zip(inv.iter().cycle()).map(|(v, inv)| v as f32 * inv);
+                matrix(py, shape, flat.collect())
             }
-        })
+        }
     };
     out.set_item("obs", rows(|t| &t.obs)?)?;
     out.set_item("next_obs", rows(|t| &t.next_obs)?)?;
@@ -133,6 +121,16 @@ fn arrays(
     out.set_item("step", column(py, transitions, |t| t.step))?;
     out.set_item("seq", column(py, transitions, |t| t.seq))?;
     Ok(())
+}
+
+/// `flat` as an array of `shape`.
+fn matrix<T: numpy::Element>(
+    py: Python<'_>,
+    shape: (usize, usize),
+    flat: Vec<T>,
+) -> PyResult<Bound<'_, PyAny>> {
+    let array = Array2::from_shape_vec(shape, flat).map_err(value_error)?;
+    Ok(array.into_pyarray(py).into_any())
 }
 
 fn column<'py, T: numpy::Element>(

@@ -22,7 +22,8 @@ use uavmeta_world::heuristics::PolicySpec;
 use uavmeta_world::rollout::{episode_worlds, evaluation_worlds, run_episode, EpisodeTally};
 use uavmeta_world::world::World;
 
-use crate::worlds::Worlds;
+use crate::value_error;
+use crate::worlds::{write_observation, Worlds};
 
 /// The worlds of one evaluation: `exact` as `--exact` asks, else `episodes` Monte-Carlo ones.
 fn worlds_of(
@@ -63,11 +64,7 @@ pub fn evaluate_spec<'py>(
 ) -> PyResult<Bound<'py, PyDict>> {
     check_episodes(episodes)?;
     let (config, task) = worlds.config_and_task_of(env)?;
-    let parsed: PolicySpec =
-        spec.parse()
-            .map_err(|e: uavmeta_world::heuristics::PolicyError| {
-                PyValueError::new_err(e.to_string())
-            })?;
+    let parsed: PolicySpec = spec.parse().map_err(value_error)?;
     let mut evaluation = worlds_of(config, &task, episodes, seed, exact);
     let steps = evaluation.len() * config.world.horizon as usize;
     let (starts, runs) = py
@@ -159,7 +156,7 @@ impl Evaluation {
             tallies: vec![EpisodeTally::default(); evaluation.len()],
             worlds: evaluation,
             starts,
-            normalised: worlds.normalised_obs(),
+            normalised: worlds.normalised(),
             t: 0,
             horizon: config.world.horizon,
             action_count: config.world.action_count(),
@@ -171,13 +168,7 @@ impl Evaluation {
         let (e, d) = (self.worlds.len(), self.worlds[0].observation().len());
         let mut obs = vec![0f32; e * d];
         for (world, row) in self.worlds.iter().zip(obs.chunks_exact_mut(d)) {
-            if self.normalised {
-                world.write_normalised(row);
-            } else {
-                for (o, &v) in row.iter_mut().zip(world.observation()) {
-                    *o = v as f32;
-                }
-            }
+            write_observation(world, self.normalised, row);
         }
         obs.into_pyarray(py).reshape([e, d])
     }
@@ -226,11 +217,6 @@ impl Evaluation {
         self.horizon
     }
 
-    /// How many episodes the evaluation runs.
-    fn __len__(&self) -> usize {
-        self.worlds.len()
-    }
-
     /// The dict of per-episode figures and summaries, once every episode reached the horizon.
     fn results<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
         if self.t < self.horizon {
@@ -241,12 +227,6 @@ impl Evaluation {
         }
         let runs: Vec<EpisodeMetrics> = self.tallies.iter().map(|t| t.finish()).collect();
         results(py, &self.starts, &runs)
-    }
-
-    /// The evaluation's episodes in numbers, for checks: 1 here means one world.
-    #[getter]
-    fn episodes(&self) -> usize {
-        self.worlds.len()
     }
 }
 

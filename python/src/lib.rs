@@ -20,6 +20,7 @@
 //! obs = worlds.reset([0, 1, 2, 3])          # (4, 12) float32
 //! ```
 
+use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
 pub mod dataset;
@@ -28,6 +29,11 @@ pub mod policies;
 pub mod task;
 pub mod tasks;
 pub mod worlds;
+
+/// A `ValueError` with `e`'s message.
+pub(crate) fn value_error(e: impl ToString) -> PyErr {
+    PyValueError::new_err(e.to_string())
+}
 
 #[pymodule]
 fn _uavmeta(m: &Bound<'_, PyModule>) -> PyResult<()> {

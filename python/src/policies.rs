@@ -17,32 +17,14 @@ use uavmeta_world::planner::PlannerPolicy;
 use uavmeta_world::rollout::Policy;
 use uavmeta_world::world::World;
 
+use crate::value_error;
 use crate::worlds::Worlds;
-
-/// The policies by name.
-enum Kind {
-    Random(Box<RandomPolicy>),
-    Stalest(StalestPolicy),
-    Greedy(GreedyPolicy),
-    Planner(Box<PlannerPolicy>),
-}
-
-impl Kind {
-    fn act(&mut self, world: &World) -> usize {
-        match self {
-            Kind::Random(p) => p.act(world),
-            Kind::Stalest(p) => p.act(world),
-            Kind::Greedy(p) => p.act(world),
-            Kind::Planner(p) => p.act(world),
-        }
-    }
-}
 
 /// A heuristic policy for the worlds of one env's task.
 #[pyclass(module = "uavmeta._uavmeta")]
 pub struct Heuristic {
     name: String,
-    kind: Kind,
+    policy: Box<dyn Policy + Send + Sync>,
     /// A world of the task in which each observation is set before the policy acts.
     world: World,
     /// Multiplies an observation entry back to its raw value: 1, or L-1 and aoi_max.
@@ -60,21 +42,18 @@ impl Heuristic {
     #[new]
     #[pyo3(signature = (name, worlds, *, normalised, seed=0))]
     fn new(name: &str, worlds: PyRef<'_, Worlds>, normalised: bool, seed: u64) -> PyResult<Self> {
-        let kind = match name {
-            "random" => Kind::Random(Box::new(RandomPolicy::new(seed))),
-            "stalest" => Kind::Stalest(StalestPolicy),
-            "greedy" => Kind::Greedy(GreedyPolicy),
-            "planner" => {
-                let (config, _) = worlds.config_and_task();
-                Kind::Planner(Box::new(PlannerPolicy::new(&config.planner)))
-            }
+        let (config, task) = worlds.config_and_task();
+        let policy: Box<dyn Policy + Send + Sync> = match name {
+            "random" => Box::new(RandomPolicy::new(seed)),
+            "stalest" => Box::new(StalestPolicy),
+            "greedy" => Box::new(GreedyPolicy),
+            "planner" => Box::new(PlannerPolicy::new(&config.planner)),
             _ => {
                 return Err(PyValueError::new_err(format!(
                     "policy = {name:?}: expected random, stalest, greedy or planner"
                 )))
             }
         };
-        let (config, task) = worlds.config_and_task();
         let scale = config.world.observation_scale();
         let to_raw = if normalised {
             scale
@@ -86,7 +65,7 @@ impl Heuristic {
         max_raw.resize(config.world.observation_len(), config.world.aoi_max as u16);
         Ok(Self {
             name: name.to_string(),
-            kind,
+            policy,
             world: World::new(&config.world, &task, 0),
             to_raw,
             max_raw,
@@ -125,7 +104,7 @@ impl Heuristic {
             }
             self.world.set_observation(&raw);
             self.world.set_t(t);
-            actions.push(self.kind.act(&self.world) as i64);
+            actions.push(self.policy.act(&self.world) as i64);
         }
         Ok(actions.into_pyarray(py))
     }
@@ -170,6 +149,6 @@ pub fn checkpoint_spec(spec: &str) -> PyResult<(f64, String)> {
         Ok(other) => Err(PyValueError::new_err(format!(
             "policy `{spec}` is `{other}`, not a saved Q-network's q:P:CHECKPOINT"
         ))),
-        Err(e) => Err(PyValueError::new_err(e.to_string())),
+        Err(e) => Err(value_error(e)),
     }
 }

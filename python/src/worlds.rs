@@ -165,14 +165,7 @@ impl Worlds {
     }
 
     fn write_obs(&self, i: usize, out: &mut [f32]) {
-        let world = &self.worlds[i];
-        if self.normalised {
-            world.write_normalised(out);
-        } else {
-            for (o, &v) in out.iter_mut().zip(world.observation()) {
-                *o = v as f32;
-            }
-        }
+        write_observation(&self.worlds[i], self.normalised, out);
     }
 
     /// Steps every env with its action (already checked), autoresetting those that reached
@@ -597,11 +590,6 @@ impl Worlds {
     }
 
     #[getter]
-    fn num_envs(&self) -> usize {
-        self.worlds.len()
-    }
-
-    #[getter]
     fn devices(&self) -> usize {
         self.config().world.devices
     }
@@ -640,7 +628,7 @@ impl Worlds {
     }
 
     #[getter]
-    fn normalised(&self) -> bool {
+    pub fn normalised(&self) -> bool {
         self.normalised
     }
 
@@ -654,26 +642,10 @@ impl Worlds {
         self.task.name.clone()
     }
 
-    /// The task's configured rain zone (x0, y0, x1, y1), or None.
-    #[getter]
-    fn task_rain(&self) -> Option<(u32, u32, u32, u32)> {
-        self.task.rain.map(|z| (z.x0, z.y0, z.x1, z.y1))
-    }
-
-    #[getter]
-    fn rain_moves_every(&self) -> Option<u32> {
-        self.task.rain_moves_every
-    }
-
     /// Env i's device cells now (its task's layout).
     fn device_cells(&self, i: usize) -> PyResult<Vec<(u32, u32)>> {
         self.check_env(i)?;
         Ok(self.worlds[i].device_cells().to_vec())
-    }
-
-    #[getter]
-    fn delta(&self) -> Vec<f64> {
-        self.worlds[0].delta().to_vec()
     }
 
     /// Divisors from a raw observation to the normalised one: L-1, L-1, aoi_max, ...
@@ -687,12 +659,6 @@ impl Worlds {
     fn config_toml(&self) -> String {
         self.config().to_toml_string()
     }
-
-    /// Where the config came from (a file, with its overrides).
-    #[getter]
-    fn config_origin(&self) -> String {
-        self.config().origin.clone()
-    }
 }
 
 impl Worlds {
@@ -702,15 +668,21 @@ impl Worlds {
         (&self.layouts[self.current[0].layout].0, self.task_of(0))
     }
 
-    /// Whether the observations are normalised.
-    pub fn normalised_obs(&self) -> bool {
-        self.normalised
-    }
-
     /// The resolved config of env `i`'s layout and the task it runs now.
     pub fn config_and_task_of(&self, i: usize) -> PyResult<(&Config, TaskConfig)> {
         self.check_env(i)?;
         let layout = self.current[i].layout;
         Ok((&self.layouts[layout].0, self.task_of(i)))
+    }
+}
+
+/// `world`'s observation into `out`, normalised or raw.
+pub fn write_observation(world: &World, normalised: bool, out: &mut [f32]) {
+    if normalised {
+        world.write_normalised(out);
+    } else {
+        for (o, &v) in out.iter_mut().zip(world.observation()) {
+            *o = v as f32;
+        }
     }
 }

@@ -38,8 +38,21 @@ mod runs;
 
 pub use config::ReproduceConfig;
 
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
+use rayon::prelude::*;
 use uavmeta_actors::collect::CollectError;
-use uavmeta_meta::MetaError;
+use uavmeta_meta::{create_dir, write_file, MetaError};
+use uavmeta_proto::config::{Config, ConfigError, TaskConfig, TaskRole};
+use uavmeta_proto::method::Method;
+use uavmeta_proto::stats::PolicyMetrics;
+use uavmeta_world::heuristics::reference_metrics;
+
+use claims::Claim;
+use runs::{meta_train_tasks, InitKey, Plan, SeedResult};
 
 /// Everything a reproduction can fail on.
 #[derive(Debug, thiserror::Error)]
@@ -57,21 +70,6 @@ pub enum ReproduceError {
     #[error(transparent)]
     Collect(#[from] CollectError),
 }
-
-use std::fmt::Write as _;
-use std::path::{Path, PathBuf};
-use std::time::{Duration, Instant};
-
-use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
-use rayon::prelude::*;
-use uavmeta_proto::config::{Config, ConfigError, TaskConfig, TaskRole};
-use uavmeta_proto::stats::PolicyMetrics;
-use uavmeta_world::heuristics::reference_metrics;
-
-use claims::Claim;
-use runs::{meta_train_tasks, InitKey, Plan, SeedResult};
-use uavmeta_meta::{create_dir, write_file};
-use uavmeta_proto::method::Method;
 
 /// One of the paper's experiments.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -121,15 +119,16 @@ impl Experiment {
         Self::CHOICES[1 + self as usize]
     }
 
-    pub fn figure(self) -> &'static str {
+    /// The title of its summary, which names its figure of the paper.
+    pub fn title(self) -> &'static str {
         match self {
-            Experiment::OnlineDqn => "B",
-            Experiment::MetaTraining => "4",
-            Experiment::Convergence => "5",
-            Experiment::Shots => "6",
-            Experiment::Tasks => "7",
-            Experiment::AoiPower => "8",
-            Experiment::Resilience => "9",
+            Experiment::MetaTraining => "Figure 4: meta-training",
+            Experiment::Convergence => "Figure 5: convergence on the unseen task",
+            Experiment::Shots => "Figure 6: number of shots",
+            Experiment::Tasks => "Figure 7: number of meta-training tasks",
+            Experiment::AoiPower => "Figure 8: AoI and power",
+            Experiment::Resilience => "Figure 9: resilience to rain",
+            Experiment::OnlineDqn => "The behaviour agents: online DQN against the heuristics",
         }
     }
 
@@ -228,6 +227,14 @@ pub struct HeuristicRef {
     pub policies: Vec<(&'static str, PolicyMetrics)>,
 }
 
+impl HeuristicRef {
+    /// The mean return of policy `name`, if it is one of them.
+    fn ret(&self, name: &str) -> Option<f64> {
+        let found = self.policies.iter().find(|(n, _)| *n == name);
+        found.map(|(_, m)| m.ret.mean)
+    }
+}
+
 /// Runs the selected experiments; see the module doc.
 pub fn run(opts: &ReproduceOptions) -> Result<ReproduceReport, ReproduceError> {
     let started = Instant::now();
@@ -262,7 +269,7 @@ pub fn run(opts: &ReproduceOptions) -> Result<ReproduceReport, ReproduceError> {
         let section = figures::write(&ctx, experiment, &dir)?;
         let text = format!(
             "{}\n{}",
-            header(opts, r, experiment_title(experiment), started.elapsed()),
+            header(opts, r, experiment.title(), started.elapsed()),
             section.body
         );
         write_file(&dir.join("summary.md"), &text)?;
@@ -280,7 +287,7 @@ pub fn run(opts: &ReproduceOptions) -> Result<ReproduceReport, ReproduceError> {
         let _ = write!(
             summary,
             "\n- {}: [`{name}/summary.md`]({name}/summary.md)",
-            experiment_title(*experiment),
+            experiment.title(),
             name = experiment.name()
         );
     }
@@ -292,18 +299,6 @@ pub fn run(opts: &ReproduceOptions) -> Result<ReproduceReport, ReproduceError> {
         summary_path,
         wall,
     })
-}
-
-fn experiment_title(experiment: Experiment) -> &'static str {
-    match experiment {
-        Experiment::MetaTraining => "Figure 4: meta-training",
-        Experiment::Convergence => "Figure 5: convergence on the unseen task",
-        Experiment::Shots => "Figure 6: number of shots",
-        Experiment::Tasks => "Figure 7: number of meta-training tasks",
-        Experiment::AoiPower => "Figure 8: AoI and power",
-        Experiment::Resilience => "Figure 9: resilience to rain",
-        Experiment::OnlineDqn => "The behaviour agents: online DQN against the heuristics",
-    }
 }
 
 /// The header of every summary: how it was made.
@@ -468,11 +463,8 @@ fn run_seeds(
     let seeds: Vec<u64> = (0..r.seeds as u64).collect();
     let bars = progress_bars(opts, plan, seeds.len());
     let done = |users: &[Experiment]| {
-        for (e, bar) in &bars {
-            if users.contains(e) {
-                bar.inc(1);
-            }
-        }
+        let used = bars.iter().filter(|(e, _)| users.contains(e));
+        used.for_each(|(_, bar)| bar.inc(1));
     };
 
     let results = stages(opts, r, plan, &seeds, &done);
@@ -497,17 +489,31 @@ fn stages(
         done(&need.users);
         Ok((need.key.clone(), metrics))
     })?;
-    let inits = inits(config, out, seeds, plan, r, done)?;
-    let w0 = |seed: u64, run: &runs::RunNeed| {
-        run.need.key.init().map(|key| {
+    // Only figure 4 draws a meta-training curve; every other init is evaluated once, at its last
+    // meta-epoch. Evaluating never changes w0 (meta_train.rs), and the other inits' evaluations
+    // were a quarter of meta-training's time.
+    let inits = for_each_seed(seeds, &plan.inits, |seed, need| {
+        let eval_every = match need.users.contains(&Experiment::MetaTraining) {
+            true => r.meta_eval_every,
+            false => 0,
+        };
+        let init = runs::init(config, out, seed, need.key, eval_every)?;
+        done(&need.users);
+        Ok((need.key, init))
+    })?;
+    // Each run from the init `Plan::run` added for it, if any.
+    let runs = for_each_seed(seeds, &plan.runs, |seed, run| {
+        let w0 = run.need.key.init().map(|key| {
             let (_, (w0, _)) = inits[seed as usize]
                 .iter()
                 .find(|(k, _)| *k == key)
                 .expect("Plan::run adds the init of every meta-trained run");
             w0.as_path()
-        })
-    };
-    let runs = fine_tune_runs(config, out, seeds, plan, w0, done)?;
+        });
+        let result = runs::fine_tune_run(config, out, seed, run, w0)?;
+        done(&run.need.users);
+        Ok((run.need.key.clone(), result))
+    })?;
     Ok(seeds
         .iter()
         .zip(references)
@@ -575,50 +581,6 @@ fn collect_datasets(
             done(users);
             Ok(())
         })
-}
-
-/// A trained init: its checkpoint and meta-train curve.
-type Trained = (PathBuf, runs::MetaCurve);
-
-/// Every seed's inits of the plan, grouped by seed in plan order.
-fn inits(
-    config: &Config,
-    out: &Path,
-    seeds: &[u64],
-    plan: &Plan,
-    r: &ReproduceConfig,
-    done: &(impl Fn(&[Experiment]) + Sync),
-) -> Result<Vec<Vec<(runs::InitKey, Trained)>>, ReproduceError> {
-    // Only figure 4 draws a meta-training curve; every other init is evaluated once, at its last
-    // meta-epoch. Evaluating never changes w0 (meta_train.rs), and the other inits' evaluations
-    // were a quarter of meta-training's time.
-    let eval_every =
-        |need: &runs::Need<runs::InitKey>| match need.users.contains(&Experiment::MetaTraining) {
-            true => r.meta_eval_every,
-            false => 0,
-        };
-    for_each_seed(seeds, &plan.inits, |seed, need| {
-        let init = runs::init(config, out, seed, need.key, eval_every(need))?;
-        done(&need.users);
-        Ok((need.key, init))
-    })
-}
-
-/// Every seed's fine-tuning runs of the plan, from the inits `w0` gives, grouped by seed in plan
-/// order.
-fn fine_tune_runs<'a>(
-    config: &Config,
-    out: &Path,
-    seeds: &[u64],
-    plan: &Plan,
-    w0: impl Fn(u64, &runs::RunNeed) -> Option<&'a Path> + Sync,
-    done: &(impl Fn(&[Experiment]) + Sync),
-) -> Result<Vec<Vec<(runs::RunKey, runs::RunResult)>>, ReproduceError> {
-    for_each_seed(seeds, &plan.runs, |seed, run| {
-        let result = runs::fine_tune_run(config, out, seed, run, w0(seed, run))?;
-        done(&run.need.users);
-        Ok((run.need.key.clone(), result))
-    })
 }
 
 /// `work(seed, item)` for every seed and item, on the current pool, one pair per task; the

@@ -17,24 +17,20 @@ use uavmeta_learner::checkpoint::{self, CheckpointPaths};
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::{EpochRow, EvaluatePolicy};
-use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
-use uavmeta_proto::dataset::DatasetReader;
-use uavmeta_proto::stats::PolicyMetrics;
-use uavmeta_world::heuristics::PolicySpec;
-use uavmeta_world::rollout::{record_trajectory, Trajectory};
-
-use super::Experiment;
-use uavmeta_learner::qnet::QNetwork;
 use uavmeta_learner::transitions::load_shots;
-use uavmeta_learner::transitions::Transitions;
 use uavmeta_meta::fine_tune::{fine_tune, FineTune};
 use uavmeta_meta::meta_train::{
     dataset_path, load_tasks, meta_train, Evaluation, MetaRow, MetaTrainOptions,
 };
 use uavmeta_meta::{create_dir, pretrain, MetaError};
+use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
+use uavmeta_proto::dataset::DatasetReader;
 use uavmeta_proto::method::{Algo, Method, Start};
+use uavmeta_proto::stats::PolicyMetrics;
+use uavmeta_world::heuristics::PolicySpec;
+use uavmeta_world::rollout::{record_trajectory, Trajectory};
 
-use crate::ReproduceError;
+use crate::{Experiment, ReproduceError};
 
 /// How a trained init is made.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -146,21 +142,24 @@ pub struct Plan {
     pub runs: Vec<RunNeed>,
 }
 
-fn add<K: PartialEq>(needs: &mut Vec<Need<K>>, key: K, user: Experiment) -> usize {
-    match needs.iter().position(|n| n.key == key) {
-        Some(i) => {
-            if !needs[i].users.contains(&user) {
-                needs[i].users.push(user);
-            }
-            i
+impl<K> Need<K> {
+    fn new(key: K, user: Experiment) -> Self {
+        let users = vec![user];
+        Self { key, users }
+    }
+
+    fn add_user(&mut self, user: Experiment) {
+        if !self.users.contains(&user) {
+            self.users.push(user);
         }
-        None => {
-            needs.push(Need {
-                key,
-                users: vec![user],
-            });
-            needs.len() - 1
-        }
+    }
+}
+
+/// `key` in `needs`, used by `user`.
+fn add<K: PartialEq>(needs: &mut Vec<Need<K>>, key: K, user: Experiment) {
+    match needs.iter_mut().find(|n| n.key == key) {
+        Some(need) => need.add_user(user),
+        None => needs.push(Need::new(key, user)),
     }
 }
 
@@ -202,15 +201,10 @@ impl Plan {
             Some(run) => {
                 run.epochs = run.epochs.max(epochs);
                 run.trajectory |= trajectory;
-                if !run.need.users.contains(&user) {
-                    run.need.users.push(user);
-                }
+                run.need.add_user(user);
             }
             None => self.runs.push(RunNeed {
-                need: Need {
-                    key,
-                    users: vec![user],
-                },
+                need: Need::new(key, user),
                 epochs,
                 trajectory,
             }),
@@ -271,28 +265,23 @@ pub struct SeedResult {
 
 impl SeedResult {
     pub fn run(&self, key: &RunKey) -> &RunResult {
-        self.runs
-            .iter()
-            .find(|(k, _)| k == key)
-            .map(|(_, r)| r)
-            .expect("every run an experiment reads is in the plan it built")
+        lookup(&self.runs, |k| k == key, "run")
     }
 
     pub fn reference(&self, task: &str, episodes: usize) -> &PolicyMetrics {
-        self.references
-            .iter()
-            .find(|(k, _)| k.task == task && k.episodes == episodes)
-            .map(|(_, m)| m)
-            .expect("every reference an experiment reads is in the plan it built")
+        let of = |k: &RefKey| k.task == task && k.episodes == episodes;
+        lookup(&self.references, of, "reference")
     }
 
     pub fn meta_curve(&self, key: InitKey) -> &MetaCurve {
-        self.inits
-            .iter()
-            .find(|(k, _)| *k == key)
-            .map(|(_, c)| c)
-            .expect("every init an experiment reads is in the plan it built")
+        lookup(&self.inits, |k| *k == key, "init")
     }
+}
+
+/// The value of the first key `of` picks; `what` names the item in the panic when none does.
+fn lookup<'a, K, V>(pairs: &'a [(K, V)], of: impl Fn(&K) -> bool, what: &str) -> &'a V {
+    let found = pairs.iter().find(|(k, _)| of(k)).map(|(_, v)| v);
+    found.unwrap_or_else(|| panic!("every {what} an experiment reads is in the plan it built"))
 }
 
 /// The config that collects seed `seed`'s datasets and trains its online DQN agents: the
@@ -389,12 +378,8 @@ impl DatasetJob {
 
 /// Collects `job` (not cached) as `uavmeta collect` does.
 pub fn collect_dataset(job: &DatasetJob) -> Result<(), ReproduceError> {
-    collect(
-        &job.collection,
-        &job.task,
-        &job.path,
-        &ProgressBar::hidden(),
-    )?;
+    let progress = ProgressBar::hidden();
+    collect(&job.collection, &job.task, &job.path, &progress)?;
     Ok(())
 }
 
@@ -415,8 +400,10 @@ pub fn reference(
     Ok(metrics)
 }
 
-/// Seed `seed`'s init of `key`, trained unless cached: its checkpoint and meta-train curve, with
-/// the adapted policies evaluated every `eval_every` meta-epochs (`reproduce.meta_eval_every`).
+/// Seed `seed`'s init of `key`, trained into `SEED_DIR/<cql-maml|dqn-maml|cql-pretrain|..>-tasks-N/`
+/// unless that directory holds one made with the same config: its checkpoint and meta-train curve
+/// (empty for a pretrained init), with the adapted policies evaluated every `eval_every`
+/// meta-epochs (`reproduce.meta_eval_every`).
 pub fn init(
     config: &Config,
     out: &Path,
@@ -424,134 +411,9 @@ pub fn init(
     key: InitKey,
     eval_every: usize,
 ) -> Result<(PathBuf, MetaCurve), ReproduceError> {
-    ensure_w0(
-        meta_config(config, key, seed, eval_every),
-        key,
-        &datasets_dir(out, seed),
-        &seed_dir(out, seed),
-        seed,
-    )
-}
-
-/// Seed `seed`'s fine-tuning run `run`, from the checkpoint `w0` (its init, `None` for a random
-/// one), evaluated after every epoch.
-pub fn fine_tune_run(
-    config: &Config,
-    out: &Path,
-    seed: u64,
-    run: &RunNeed,
-    w0: Option<&Path>,
-) -> Result<RunResult, ReproduceError> {
-    let (start, mut q) = FineTuneStart::new(config, out, seed, run, w0)?;
-    let rows = fine_tune(
-        &mut q,
-        &start.shots,
-        run.algo(),
-        &start.settings(run),
-        &mut Evaluator::from_config(&start.eval_config, start.task),
-    )?;
-    Ok(start.finish(config, run, &q, rows))
-}
-
-/// What one fine-tuning run starts from besides its init: its task, its seed's shots and the
-/// config that evaluates it.
-struct FineTuneStart<'a> {
-    task: &'a TaskConfig,
-    seed: u64,
-    shots: Transitions,
-    eval_config: Config,
-}
-
-impl<'a> FineTuneStart<'a> {
-    fn new(
-        config: &'a Config,
-        out: &Path,
-        seed: u64,
-        run: &RunNeed,
-        w0: Option<&Path>,
-    ) -> Result<(Self, QNetwork), ReproduceError> {
-        let key = &run.need.key;
-        let task = config.task(&key.task).map_err(MetaError::from)?;
-        let dataset = dataset_path(&datasets_dir(out, seed), &task.name);
-        let shots = load_shots(config, task, &dataset, key.shots, seed).map_err(MetaError::from)?;
-        let q = match w0 {
-            Some(w0) => checkpoint::load(w0, config).map_err(MetaError::from)?.0,
-            None => QNetworkConfig::for_world(&config.world, &config.learner.hidden).init(seed),
-        };
-        let mut eval_config = config.clone();
-        eval_config.learner.eval_episodes = key.eval_episodes;
-        let start = Self {
-            task,
-            seed,
-            shots,
-            eval_config,
-        };
-        Ok((start, q))
-    }
-
-    fn settings(&self, run: &RunNeed) -> FineTune<'_> {
-        FineTune {
-            config: &self.eval_config,
-            task: self.task,
-            epochs: run.epochs,
-            seed: self.seed,
-            out_dir: None,
-            progress: false,
-            on_step: OnStep::default(),
-        }
-    }
-
-    /// The run's result from its rows: its trajectory when the plan asks for one.
-    fn finish(
-        self,
-        config: &Config,
-        run: &RunNeed,
-        q: &QNetwork,
-        rows: Vec<EpochRow>,
-    ) -> RunResult {
-        let key = &run.need.key;
-        let trajectory = run.trajectory.then(|| {
-            record_trajectory(
-                &config.world,
-                self.task,
-                &mut QPolicy::new(q),
-                config.learner.eval_seed,
-            )
-        });
-        if let Some(last) = rows.last() {
-            tracing::info!(seed = self.seed, task = %self.task.name, method = key.method.name(), shots = key.shots, meta_tasks = key.meta_tasks, epochs = run.epochs, ret = %last.policy.ret, "fine-tuned");
-        }
-        RunResult { rows, trajectory }
-    }
-}
-
-/// Whether the dataset at `path` is complete and was collected with `collection`'s world, tasks,
-/// collection and learner.
-fn dataset_cached(collection: &Config, path: &Path) -> bool {
-    if !saved_collection_matches(&config_path(path), collection) {
-        return false;
-    }
-    let complete = DatasetReader::open(path).is_ok_and(|reader| {
-        reader.check_world(collection).is_ok()
-            && reader.transitions().len() == collection.collect.transitions
-    });
-    // The online DQN agent, the reference line, is saved last.
-    complete
-        && (collection.collect.policy != PolicySpec::DqnOnline.to_string()
-            || checkpoint::read_meta(&agent_path(path)).is_ok())
-}
-
-/// Trains the init of `key` into `DIR/<cql-maml|dqn-maml|cql-pretrain|..>-tasks-N/`, unless that
-/// directory holds one made with the same config; returns its checkpoint and meta-train curve
-/// (empty for a pretrained init).
-fn ensure_w0(
-    meta: Config,
-    key: InitKey,
-    datasets: &Path,
-    dir: &Path,
-    seed: u64,
-) -> Result<(PathBuf, MetaCurve), ReproduceError> {
-    let out = init_dir(dir, key);
+    let meta = meta_config(config, key, seed, eval_every);
+    let datasets = &datasets_dir(out, seed);
+    let out = seed_dir(out, seed).join(format!("{}-tasks-{}", key.kind.name(), key.tasks));
     let w0 = out.join("w0");
     if let Init::Pretrain(_) = key.kind {
         if !saved_config_matches(&CheckpointPaths::new(&w0).config, &meta) {
@@ -580,9 +442,61 @@ fn ensure_w0(
     Ok((result.w0, MetaCurve::of(&result.rows)))
 }
 
-/// The directory of `key`'s init in a seed's directory.
-fn init_dir(seed_dir: &Path, key: InitKey) -> PathBuf {
-    seed_dir.join(format!("{}-tasks-{}", key.kind.name(), key.tasks))
+/// Seed `seed`'s fine-tuning run `run`, from the checkpoint `w0` (its init, `None` for a random
+/// one), evaluated after every epoch.
+pub fn fine_tune_run(
+    config: &Config,
+    out: &Path,
+    seed: u64,
+    run: &RunNeed,
+    w0: Option<&Path>,
+) -> Result<RunResult, ReproduceError> {
+    let key = &run.need.key;
+    let task = config.task(&key.task).map_err(MetaError::from)?;
+    let dataset = dataset_path(&datasets_dir(out, seed), &task.name);
+    let shots = load_shots(config, task, &dataset, key.shots, seed).map_err(MetaError::from)?;
+    let mut q = match w0 {
+        Some(w0) => checkpoint::load(w0, config).map_err(MetaError::from)?.0,
+        None => QNetworkConfig::for_world(&config.world, &config.learner.hidden).init(seed),
+    };
+    let mut eval_config = config.clone();
+    eval_config.learner.eval_episodes = key.eval_episodes;
+    let settings = FineTune {
+        config: &eval_config,
+        task,
+        epochs: run.epochs,
+        seed,
+        out_dir: None,
+        progress: false,
+        on_step: OnStep::default(),
+    };
+    let mut evaluator = Evaluator::from_config(&eval_config, task);
+    let rows = fine_tune(&mut q, &shots, run.algo(), &settings, &mut evaluator)?;
+    // The final greedy policy's path, when the plan asks for it.
+    let trajectory = run.trajectory.then(|| {
+        let mut policy = QPolicy::new(&q);
+        record_trajectory(&config.world, task, &mut policy, config.learner.eval_seed)
+    });
+    if let Some(last) = rows.last() {
+        tracing::info!(seed, task = %task.name, method = key.method.name(), shots = key.shots, meta_tasks = key.meta_tasks, epochs = run.epochs, ret = %last.policy.ret, "fine-tuned");
+    }
+    Ok(RunResult { rows, trajectory })
+}
+
+/// Whether the dataset at `path` is complete and was collected with `collection`'s world, tasks,
+/// collection and learner.
+fn dataset_cached(collection: &Config, path: &Path) -> bool {
+    if !saved_collection_matches(&config_path(path), collection) {
+        return false;
+    }
+    let complete = DatasetReader::open(path).is_ok_and(|reader| {
+        reader.check_world(collection).is_ok()
+            && reader.transitions().len() == collection.collect.transitions
+    });
+    // The online DQN agent, the reference line, is saved last.
+    complete
+        && (collection.collect.policy != PolicySpec::DqnOnline.to_string()
+            || checkpoint::read_meta(&agent_path(path)).is_ok())
 }
 
 /// The meta-trained w0 in `out` and its curve, if `out` holds one made with `meta` and its whole

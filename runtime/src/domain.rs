@@ -12,7 +12,7 @@ use iceoryx2::prelude::*;
 use uavmeta_proto::config::RunConfig;
 
 use crate::run_dir::FileError;
-use crate::transport::TransportError;
+use crate::transport::{service_error, TransportError};
 
 /// The iceoryx2 config of `run.domain`: iceoryx2's defaults, with the domain's own prefix and
 /// root path, so that nodes, services and shared memory of two domains never meet. This is how
@@ -44,18 +44,12 @@ pub fn remove_domain(run: &RunConfig) -> Result<(), TransportError> {
         return Ok(());
     }
     let config = iceoryx_config(run)?;
-    let gone = |path: PathBuf, removed: std::io::Result<()>| match removed {
-        Err(source) if source.kind() != std::io::ErrorKind::NotFound => {
-            Err(TransportError::from(FileError {
-                path,
-                action: "remove",
-                source,
-            }))
-        }
-        _ => Ok(()),
+    let gone = |path: &std::path::Path, removed: std::io::Result<()>| match removed {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
+        removed => removed.map_err(FileError::at(path, "remove")),
     };
     let root = PathBuf::from(config.global.root_path().to_string());
-    gone(root.clone(), std::fs::remove_dir_all(&root))?;
+    gone(&root, std::fs::remove_dir_all(&root))?;
     let prefix = config.global.prefix.to_string();
     for entry in std::fs::read_dir("/dev/shm")
         .into_iter()
@@ -63,7 +57,7 @@ pub fn remove_domain(run: &RunConfig) -> Result<(), TransportError> {
         .flatten()
     {
         if entry.file_name().to_string_lossy().starts_with(&prefix) {
-            gone(entry.path(), std::fs::remove_file(entry.path()))?;
+            gone(&entry.path(), std::fs::remove_file(entry.path()))?;
         }
     }
     Ok(())
@@ -75,12 +69,9 @@ pub fn node(process: &str, run: &RunConfig) -> Result<Node<ipc::Service>, Transp
     // iceoryx2 warns on every start that it runs on its built-in defaults, which uavmeta means
     // to; its own errors still show (IOX2_LOG_LEVEL overrides).
     set_log_level_from_env_or(LogLevel::Error);
-    let service_error = |message: String| TransportError::Service {
-        service: process.into(),
-        action: "create the node",
-        message,
-    };
-    let name = NodeName::new(process).map_err(|e| service_error(format!("{e:?}")))?;
+    let action = "create the node";
+    let name =
+        NodeName::new(process).map_err(|e| service_error(process, action)(format!("{e:?}")))?;
     let config = iceoryx_config(run)?;
     // Creating a node sweeps dead nodes' resources.
     remove_unfinished_segments(&config);
@@ -88,7 +79,7 @@ pub fn node(process: &str, run: &RunConfig) -> Result<Node<ipc::Service>, Transp
         .name(&name)
         .config(&config)
         .create::<ipc::Service>()
-        .map_err(|e| service_error(e.to_string()))?;
+        .map_err(service_error(process, action))?;
     // The first wait registers iceoryx2's SIGINT/SIGTERM handler, so a termination request that
     // arrives while a publisher is blocked on backpressure is seen by `termination_requested`.
     let _ = node.wait(Duration::ZERO);

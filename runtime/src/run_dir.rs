@@ -29,19 +29,11 @@ impl RunDir {
     /// directory's name plus a hash of its absolute path: readable in service names, and
     /// distinct for two runs whose directories share a name.
     pub fn create(path: &Path) -> Result<Self, FileError> {
-        std::fs::create_dir_all(path).map_err(|source| FileError {
-            path: path.to_path_buf(),
-            action: "create the run directory",
-            source,
-        })?;
+        std::fs::create_dir_all(path).map_err(FileError::at(path, "create the run directory"))?;
         let run = Self::open(path)?;
         for sub in ["datasets", "checkpoints", "ports", "metrics", "logs"] {
             let dir = run.root.join(sub);
-            std::fs::create_dir_all(&dir).map_err(|source| FileError {
-                path: dir.clone(),
-                action: "create",
-                source,
-            })?;
+            std::fs::create_dir_all(&dir).map_err(FileError::at(&dir, "create"))?;
         }
         Ok(run)
     }
@@ -49,11 +41,9 @@ impl RunDir {
     /// The existing run directory `path`, with the id [`RunDir::create`] gives it; nothing is
     /// created.
     pub fn open(path: &Path) -> Result<Self, FileError> {
-        let root = path.canonicalize().map_err(|source| FileError {
-            path: path.to_path_buf(),
-            action: "resolve the run directory",
-            source,
-        })?;
+        let root = path
+            .canonicalize()
+            .map_err(FileError::at(path, "resolve the run directory"))?;
         let hash = fnv1a(root.to_string_lossy().as_bytes());
         let name: String = root
             .file_name()
@@ -95,24 +85,17 @@ impl RunDir {
         let text = match std::fs::read_to_string(&file) {
             Ok(text) => text,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-            Err(source) => {
-                return Err(FileError {
-                    path: file,
-                    action: "read",
-                    source,
-                })
-            }
+            Err(e) => return Err(FileError::at(&file, "read")(e)),
         };
         let mut lines = text.lines();
         let parsed = lines
             .next()
             .zip(lines.next().and_then(|h| u64::from_str_radix(h, 16).ok()));
+        let parse = "parse (expected a run id and a hexadecimal hash)";
         let Some((id, hash)) = parsed else {
-            return Err(FileError {
-                path: file,
-                action: "parse (expected a run id and a hexadecimal hash)",
-                source: std::io::ErrorKind::InvalidData.into(),
-            });
+            return Err(FileError::at(&file, parse)(
+                std::io::ErrorKind::InvalidData.into(),
+            ));
         };
         Ok(Some(Self {
             root: self.root.clone(),

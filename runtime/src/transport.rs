@@ -16,14 +16,10 @@
 //! and a batch sent into its full queue before that is dropped. So an actor keeps a copy of what
 //! it sent and sends it again under the same numbers when a send reaches nobody.
 //!
-//! **Acknowledgements.** A store that goes away loses the batches its queue held unwritten. So the
-//! store acknowledges what it has appended ([`StoreAck`], one service per task): per actor, every
-//! sequence number below `next_seq` is in the dataset file. An actor keeps what is not yet
-//! acknowledged and, when the store is replaced, sends it again from the acknowledged number, in
-//! order; the new store drops what the dead one had written as duplicates (see `crate::actor`).
-//! Acknowledgements are cumulative, so
-//! their service overwrites the oldest when an actor's buffer is full rather than ever blocking
-//! the store.
+//! **Acknowledgements** ([`StoreAck`], one service per task) let an actor send again what a
+//! replaced store lost (docs/ARCHITECTURE.md, "The multi-process run"; `crate::actor`): per
+//! actor, every sequence number below `next_seq` is in the dataset file. They are cumulative, so
+//! their service overwrites the oldest when an actor's buffer is full rather than block the store.
 //!
 //! Transition services keep no history: in iceoryx2 0.10 a subscriber that joins a publisher with
 //! history gets that history into its buffer and afterwards the blocking publisher silently loses
@@ -102,35 +98,47 @@ pub enum TransportError {
     File(#[from] FileError),
 }
 
-fn service_name(name: &str) -> Result<ServiceName, TransportError> {
-    ServiceName::new(name).map_err(|e| TransportError::ServiceName {
-        name: name.into(),
+/// The error of `action` on service `service`, for `map_err`.
+pub(crate) fn service_error<E: fmt::Display>(
+    service: impl Into<String>,
+    action: &'static str,
+) -> impl FnOnce(E) -> TransportError {
+    let service = service.into();
+    move |e| TransportError::Service {
+        service,
+        action,
+        message: e.to_string(),
+    }
+}
+
+/// [`service_error`] on the service named `name`.
+fn port_error<E: fmt::Display>(
+    name: &ServiceName,
+    action: &'static str,
+) -> impl FnOnce(E) -> TransportError {
+    service_error(format!("{name:?}"), action)
+}
+
+/// The error of `name` (or a part of its service) that iceoryx2 refuses, for `map_err`.
+fn invalid_name<E: fmt::Debug>(name: &str) -> impl FnOnce(E) -> TransportError {
+    let name = name.to_string();
+    move |e| TransportError::ServiceName {
+        name,
         message: format!("{e:?}"),
-    })
+    }
+}
+
+fn service_name(name: &str) -> Result<ServiceName, TransportError> {
+    ServiceName::new(name).map_err(invalid_name(name))
 }
 
 fn schema_verifier(service: &str) -> Result<AttributeVerifier, TransportError> {
-    let key = SCHEMA_ATTRIBUTE
-        .try_into()
-        .map_err(|e| TransportError::ServiceName {
-            name: service.into(),
-            message: format!("{e:?}"),
-        })?;
+    let key = SCHEMA_ATTRIBUTE.try_into().map_err(invalid_name(service))?;
     let value = SCHEMA_VERSION.to_string();
-    let value = value
-        .as_str()
-        .try_into()
-        .map_err(|e| TransportError::ServiceName {
-            name: service.into(),
-            message: format!("{e:?}"),
-        })?;
+    let value = value.as_str().try_into().map_err(invalid_name(service))?;
     AttributeVerifier::new()
         .require(&key, &value)
-        .map_err(|e| TransportError::Service {
-            service: service.into(),
-            action: "require the schema attribute",
-            message: format!("{e:?}"),
-        })
+        .map_err(|e| service_error(service, "require the schema attribute")(format!("{e:?}")))
 }
 
 /// Turns an open-or-create failure into an error, reading the existing service's schema version
@@ -163,11 +171,7 @@ fn open_error(
             theirs,
         };
     }
-    TransportError::Service {
-        service: service.into(),
-        action: "open or create",
-        message: error.to_string(),
-    }
+    service_error(service, "open or create")(error)
 }
 
 /// Samples a subscriber may hold borrowed at once: iceoryx2 0.10's default, which the transition
@@ -292,11 +296,7 @@ pub fn control_subscriber<T: fmt::Debug + ZeroCopySend>(
         .subscriber_builder()
         .history_request(CONTROL_HISTORY)
         .create()
-        .map_err(|e| TransportError::Service {
-            service: format!("{:?}", service.name()),
-            action: "create a subscriber",
-            message: e.to_string(),
-        })
+        .map_err(port_error(service.name(), "create a subscriber"))
 }
 
 /// A control publisher that skips a subscriber stuck for [`CONTROL_DELIVERY_TIMEOUT`].
@@ -314,11 +314,7 @@ pub fn control_publisher<T: fmt::Debug + ZeroCopySend>(
             }
         })
         .create()
-        .map_err(|e| TransportError::Service {
-            service: format!("{:?}", service.name()),
-            action: "create a publisher",
-            message: e.to_string(),
-        })
+        .map_err(port_error(service.name(), "create a publisher"))
 }
 
 /// Connects subscribers that joined since the last send and hands them the service's history.
@@ -330,11 +326,7 @@ pub fn serve_history<T: fmt::Debug + ZeroCopySend>(
     use iceoryx2::port::update_connections::UpdateConnections;
     publisher
         .update_connections()
-        .map_err(|e| TransportError::Service {
-            service: "control".into(),
-            action: "connect new subscribers",
-            message: e.to_string(),
-        })
+        .map_err(service_error("control", "connect new subscribers"))
 }
 
 /// Sends one control message by copy (they are a few bytes).
@@ -344,11 +336,7 @@ pub fn announce<T: fmt::Debug + ZeroCopySend>(
 ) -> Result<usize, TransportError> {
     publisher
         .send_copy(message)
-        .map_err(|e| TransportError::Service {
-            service: "control".into(),
-            action: "send",
-            message: e.to_string(),
-        })
+        .map_err(service_error("control", "send"))
 }
 
 /// The store's subscriber on a task's transition service.
@@ -360,11 +348,7 @@ pub fn transition_subscriber(
         .subscriber_builder()
         .buffer_size(run.subscriber_buffer)
         .create()
-        .map_err(|e| TransportError::Service {
-            service: format!("{:?}", service.name()),
-            action: "create a subscriber",
-            message: e.to_string(),
-        })
+        .map_err(port_error(service.name(), "create a subscriber"))
 }
 
 /// A task's acknowledgement service ([`StoreAck`]).
@@ -408,11 +392,7 @@ pub fn ack_publisher(
     service
         .publisher_builder()
         .create()
-        .map_err(|e| TransportError::Service {
-            service: format!("{:?}", service.name()),
-            action: "create a publisher",
-            message: e.to_string(),
-        })
+        .map_err(port_error(service.name(), "create a publisher"))
 }
 
 /// An actor's subscriber to its task's acknowledgements.
@@ -423,11 +403,7 @@ pub fn ack_subscriber(
         .subscriber_builder()
         .buffer_size(ACK_BUFFER)
         .create()
-        .map_err(|e| TransportError::Service {
-            service: format!("{:?}", service.name()),
-            action: "create a subscriber",
-            message: e.to_string(),
-        })
+        .map_err(port_error(service.name(), "create a subscriber"))
 }
 
 /// Publishes one acknowledgement; never blocks (the service overwrites the oldest).
@@ -438,11 +414,7 @@ pub fn acknowledge(
     publisher
         .send_copy(ack)
         .map(drop)
-        .map_err(|e| TransportError::Service {
-            service: "acks".into(),
-            action: "send an acknowledgement",
-            message: e.to_string(),
-        })
+        .map_err(service_error("acks", "send an acknowledgement"))
 }
 
 /// The highest acknowledged `next_seq` of `actor` among the acknowledgements waiting, if any.
@@ -534,11 +506,7 @@ impl<'s> TransitionPublisher<'s> {
                 }
             })
             .create()
-            .map_err(|e| TransportError::Service {
-                service: format!("{:?}", service.name()),
-                action: "create a publisher",
-                message: e.to_string(),
-            })?;
+            .map_err(port_error(service.name(), "create a publisher"))?;
         let header = BatchHeader {
             task,
             run: run_dir.hash(),
@@ -596,7 +564,7 @@ impl<'s> TransitionPublisher<'s> {
         let sample = self
             .publisher
             .loan_slice_uninit(count)
-            .map_err(|e| self.error("loan a batch", e.to_string()))?;
+            .map_err(port_error(self.service.name(), "loan a batch"))?;
         // SAFETY: every byte of the loaned memory is initialised: iceoryx2 zero-fills a data
         // segment when it creates it, and its chunks only ever hold earlier batches' slots.
         // TransitionSlot is plain integers and a float, for which every bit pattern is valid, so
@@ -611,14 +579,6 @@ impl<'s> TransitionPublisher<'s> {
             sample,
             publisher: self,
         })
-    }
-
-    fn error(&self, action: &'static str, message: String) -> TransportError {
-        TransportError::Service {
-            service: format!("{:?}", self.service.name()),
-            action,
-            message,
-        }
     }
 }
 
@@ -654,7 +614,7 @@ impl LoanedBatch<'_, '_> {
         let recipients = self
             .sample
             .send()
-            .map_err(|e| self.publisher.error("send a batch", e.to_string()))?;
+            .map_err(port_error(self.publisher.service.name(), "send a batch"))?;
         Ok(Delivery {
             recipients,
             backpressure: Duration::from_nanos(blocked.swap(0, Ordering::Relaxed)),

@@ -18,11 +18,11 @@ pub struct CollectArgs {
     task: TaskArgs,
     /// Behaviour policy: dqn-online | random | stalest | greedy | eps:P | q:P:CHECKPOINT |
     /// actions:FILE [default: collect.policy].
-    #[arg(long, value_parser = |s: &str| s.parse::<PolicySpec>().map_err(|e| e.to_string()))]
+    #[arg(long)]
     policy: Option<PolicySpec>,
     /// Transitions to write [default: collect.transitions].
-    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
-    transitions: Option<u64>,
+    #[arg(long, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
+    transitions: Option<usize>,
     /// Seed of the episodes and the policy [default: collect.seed].
     #[arg(long)]
     seed: Option<u64>,
@@ -39,8 +39,7 @@ pub fn run(args: CollectArgs) -> Result<()> {
         config.collect.policy = policy.to_string();
     }
     if let Some(transitions) = args.transitions {
-        config.collect.transitions =
-            usize::try_from(transitions).context("--transitions does not fit in memory")?;
+        config.collect.transitions = transitions;
     }
     if let Some(seed) = args.seed {
         config.collect.seed = seed;

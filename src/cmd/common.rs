@@ -2,7 +2,7 @@
 
 use std::path::PathBuf;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use clap::Args;
 use uavmeta_proto::config::{Config, RainZone, TaskConfig};
 
@@ -31,18 +31,11 @@ pub struct ShotsArgs {
     #[arg(long)]
     pub dataset: PathBuf,
     /// N: transitions drawn from the dataset to train (or fine-tune) on.
-    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
-    pub shots: u64,
+    #[arg(long, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
+    pub shots: usize,
     /// Training epochs [default: learner.epochs].
     #[arg(long)]
     pub epochs: Option<usize>,
-}
-
-impl ShotsArgs {
-    /// `--shots` as a count of transitions in memory.
-    pub fn count(&self) -> Result<usize> {
-        usize::try_from(self.shots).context("--shots does not fit in memory")
-    }
 }
 
 /// `--task NAME`, or a one-off task from `--lambda X [--rain x0,y0,x1,y1 [--rain-moves-every N]]`.
@@ -55,21 +48,11 @@ pub struct TaskArgs {
     #[arg(long)]
     pub lambda: Option<f64>,
     /// The rain zone of a one-off task, cells x0,y0,x1,y1 inclusive.
-    #[arg(long, requires = "lambda", value_parser = clap::value_parser!(RainZoneArg))]
-    pub rain: Option<RainZoneArg>,
+    #[arg(long, requires = "lambda")]
+    pub rain: Option<RainZone>,
     /// Relocate the one-off task's rain zone uniformly at random every N steps.
     #[arg(long, requires = "rain", value_name = "N")]
     pub rain_moves_every: Option<u32>,
-}
-
-#[derive(Debug, Clone)]
-pub struct RainZoneArg(pub RainZone);
-
-impl std::str::FromStr for RainZoneArg {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        s.parse().map(RainZoneArg)
-    }
 }
 
 impl TaskArgs {
@@ -78,7 +61,7 @@ impl TaskArgs {
         match (&self.task, self.lambda) {
             (Some(name), _) => Ok(config.task(name)?.clone()),
             (None, Some(lambda)) => {
-                let rain = self.rain.as_ref().map(|r| r.0);
+                let rain = self.rain;
                 let task = match (rain, self.rain_moves_every) {
                     (Some(zone), Some(every)) => TaskConfig::one_off_moving(lambda, zone, every),
                     _ => TaskConfig::one_off(lambda, rain),

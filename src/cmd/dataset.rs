@@ -40,8 +40,8 @@ pub struct ExportArgs {
     #[arg(long)]
     id: Option<String>,
     /// Export N shots instead of the whole file: the draw `uavmeta train --shots N` makes.
-    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
-    shots: Option<u64>,
+    #[arg(long, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
+    shots: Option<usize>,
     /// Seed of the shot draw [default: run.seeds[0], as for train].
     #[arg(long, requires = "shots")]
     seed: Option<u64>,
@@ -87,7 +87,7 @@ fn export(args: ExportArgs) -> Result<()> {
     })?;
     let shots = match args.shots {
         Some(n) => Some(Shots {
-            n: usize::try_from(n).context("--shots does not fit in memory")?,
+            n,
             seed: args.seed.unwrap_or(config.run.seeds[0]),
         }),
         None => None,
@@ -113,7 +113,7 @@ fn export(args: ExportArgs) -> Result<()> {
                 true => minari::Observations::Normalised,
                 false => minari::Observations::Raw,
             };
-            let written = minari::write_observations(&export, &args.out, &id, observations)?;
+            let written = minari::write(&export, &args.out, &id, observations)?;
             println!(
                 "{}: Minari dataset `{id}`, {} steps of task `{}` in {} episodes; load it with MINARI_DATASETS_PATH={}",
                 written.dir.display(),

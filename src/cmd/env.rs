@@ -26,8 +26,8 @@ pub struct RolloutArgs {
     /// random | stalest | greedy | planner | eps:P | q:P:CHECKPOINT (a saved Q-network's greedy
     /// policy, uniform random with probability P) | actions:FILE (one action index per line,
     /// replayed across episodes).
-    #[arg(long, default_value = "stalest", value_parser = clap::value_parser!(PolicySpecArg))]
-    policy: PolicySpecArg,
+    #[arg(long, default_value = "stalest")]
+    policy: PolicySpec,
     /// Monte-Carlo episodes.
     #[arg(long, default_value_t = 20)]
     episodes: usize,
@@ -44,16 +44,6 @@ pub struct RolloutArgs {
     /// Print the summary as JSON on stdout instead of a table.
     #[arg(long)]
     json: bool,
-}
-
-#[derive(Clone)]
-struct PolicySpecArg(PolicySpec);
-
-impl std::str::FromStr for PolicySpecArg {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        s.parse().map(PolicySpecArg).map_err(|e| e.to_string())
-    }
 }
 
 pub fn run(command: EnvCommand) -> Result<()> {
@@ -90,7 +80,7 @@ fn run_rollout(args: RolloutArgs) -> Result<()> {
     );
     let mut config = args.config.load()?;
     let task = args.task.resolve(&mut config)?;
-    let spec = &args.policy.0;
+    let spec = &args.policy;
     let steps = args.episodes * config.world.horizon as usize;
     let mut policy = uavmeta_actors::policy::build(spec, &config, args.seed, Some(steps))?;
 

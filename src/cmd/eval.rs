@@ -24,8 +24,8 @@ pub struct EvalArgs {
     #[arg(long)]
     checkpoint: PathBuf,
     /// Episodes [default: learner.eval_episodes].
-    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
-    episodes: Option<u64>,
+    #[arg(long, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
+    episodes: Option<usize>,
     /// Seed of the episodes [default: learner.eval_seed].
     #[arg(long)]
     seed: Option<u64>,
@@ -39,10 +39,7 @@ pub fn run(args: EvalArgs) -> Result<()> {
     let mut config = args.config.load()?;
     let task = args.task.resolve(&mut config)?;
     let (q, meta) = checkpoint::load(&args.checkpoint, &config)?;
-    let episodes = match args.episodes {
-        Some(n) => usize::try_from(n)?,
-        None => config.learner.eval_episodes,
-    };
+    let episodes = args.episodes.unwrap_or(config.learner.eval_episodes);
     let seed = args.seed.unwrap_or(config.learner.eval_seed);
     // Every episode once: the summary below and, with --per-episode, the listing.
     let runs = Evaluator::new(&config.world, &task, episodes, seed).episodes(&q);

@@ -39,6 +39,16 @@ impl RunArgs {
             run.load_or_init_config(|| Config::load(&self.config.config, &self.config.overrides))?;
         Ok((run, config))
     }
+
+    /// `process` (the store, the meta-learner, the evaluator) on the run directory and its config.
+    pub fn serve<T, E>(&self, process: fn(&RunDir, &Config) -> Result<T, E>) -> Result<()>
+    where
+        E: std::error::Error + Send + Sync + 'static,
+    {
+        let (run, config) = self.open()?;
+        process(&run, &config)?;
+        Ok(())
+    }
 }
 
 #[derive(Args, Debug)]

@@ -100,7 +100,7 @@ pub fn run_test(args: MetaTestArgs) -> Result<()> {
         },
         init: &args.init,
         dataset: &args.shots.dataset,
-        shots: args.shots.count()?,
+        shots: args.shots.shots,
     })?;
     if let Some(last) = rows.last() {
         println!(

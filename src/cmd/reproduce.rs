@@ -26,8 +26,8 @@ pub struct ReproduceArgs {
     #[arg(long, default_value = "all", value_parser = PossibleValuesParser::new(Experiment::CHOICES))]
     experiment: String,
     /// Seeds 0..N-1 [default: reproduce.seeds].
-    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..=1000))]
-    seeds: Option<u64>,
+    #[arg(long, value_name = "N", value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=1000))]
+    seeds: Option<usize>,
     /// The whole pipeline at tiny sizes (about 20 s on two cores): checks plumbing, not the claims.
     #[arg(long)]
     quick: bool,
@@ -38,8 +38,8 @@ pub struct ReproduceArgs {
     out: Option<PathBuf>,
     /// Worker threads: datasets, inits and fine-tuning runs of any seed run this many at a time,
     /// one libtorch thread each [default: the available cores].
-    #[arg(long, value_name = "J", value_parser = clap::value_parser!(u64).range(1..=256))]
-    jobs: Option<u64>,
+    #[arg(long, value_name = "J", value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=256))]
+    jobs: Option<usize>,
 }
 
 pub fn run(args: ReproduceArgs) -> Result<()> {
@@ -53,7 +53,7 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
     }
     if let Some(seeds) = args.seeds {
         let mut r: ReproduceConfig = config.reproduce.read(&config.origin)?;
-        r.seeds = usize::try_from(seeds)?;
+        r.seeds = seeds;
         r.write_into(&mut config);
     }
     let experiments =
@@ -65,10 +65,9 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
             "runs/reproduce"
         })
     });
-    let jobs = match args.jobs {
-        Some(j) => usize::try_from(j)?,
-        None => std::thread::available_parallelism().map_or(1, |n| n.get()),
-    };
+    let jobs = args
+        .jobs
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     let command = std::env::args()
         .map(|a| {
             if a.contains(char::is_whitespace) {

@@ -49,7 +49,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
         config.learner.epochs = epochs;
     }
     let seed = args.seed.unwrap_or(config.run.seeds[0]);
-    let shots = args.shots.count()?;
+    let shots = args.shots.shots;
     let mut q = match (args.init.as_str(), args.init_seed) {
         ("random", init_seed) => QNetworkConfig::for_world(&config.world, &config.learner.hidden)
             .init(init_seed.unwrap_or(seed)),

@@ -13,7 +13,7 @@ use super::launch::RunArgs;
 pub enum TunnelCommand {
     /// On the learner's host: serve the run to remote actor hosts on `tunnel.listen` (the
     /// launcher starts this when the key is set).
-    Serve(ServeArgs),
+    Serve(RunArgs),
     /// On an actor host: join a run served at ENDPOINT, then start actors with
     /// `uavmeta actor --run DIR --task T --seed S`.
     Join(JoinArgs),
@@ -34,12 +34,6 @@ pub struct CertsArgs {
     /// include the one remote hosts connect to.
     #[arg(long = "address", value_name = "ADDRESS")]
     pub addresses: Vec<String>,
-}
-
-#[derive(Args, Debug)]
-pub struct ServeArgs {
-    #[command(flatten)]
-    pub run: RunArgs,
 }
 
 #[derive(Args, Debug)]
@@ -84,7 +78,7 @@ pub struct JoinArgs {
 pub fn run(command: TunnelCommand) -> Result<()> {
     match command {
         TunnelCommand::Serve(args) => {
-            let (run, config) = args.run.open()?;
+            let (run, config) = args.open()?;
             if config.tunnel.listen.is_empty() {
                 bail!(
                     "{}: tunnel.listen is empty; set it to the Zenoh endpoint to serve on, such as \

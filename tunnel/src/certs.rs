@@ -46,7 +46,7 @@ pub fn make(dir: &Path, host: &str, addresses: &[String]) -> Result<Made, CertsE
     if host.is_empty() || !host.chars().all(valid) || host == "ca" {
         return Err(CertsError::BadName(host.into()));
     }
-    std::fs::create_dir_all(dir).map_err(io(dir, "create"))?;
+    std::fs::create_dir_all(dir).map_err(FileError::at(dir, "create"))?;
     let (certificate, private_key) = (
         dir.join(format!("{host}.pem")),
         dir.join(format!("{host}.key")),
@@ -102,7 +102,7 @@ fn make_ca(pem: &Path, key_path: &Path) -> Result<(), CertsError> {
 }
 
 fn load_ca(pem: &Path, key_path: &Path) -> Result<Issuer<'static, KeyPair>, CertsError> {
-    let read = |path: &Path| std::fs::read_to_string(path).map_err(io(path, "read"));
+    let read = |path: &Path| std::fs::read_to_string(path).map_err(FileError::at(path, "read"));
     let key = KeyPair::from_pem(&read(key_path)?).map_err(invalid(key_path))?;
     Issuer::from_ca_cert_pem(&read(pem)?, key).map_err(invalid(pem))
 }
@@ -114,13 +114,10 @@ fn write(path: &Path, bytes: &[u8], mode: u32) -> Result<(), CertsError> {
         .create_new(true)
         .mode(mode)
         .open(path)
-        .map_err(io(path, "create"))?;
-    file.write_all(bytes).map_err(io(path, "write"))
-}
-
-fn io(path: &Path, action: &'static str) -> impl FnOnce(std::io::Error) -> CertsError {
-    let at = FileError::at(path, action);
-    move |source| CertsError::from(at(source))
+        .map_err(FileError::at(path, "create"))?;
+    file.write_all(bytes)
+        .map_err(FileError::at(path, "write"))?;
+    Ok(())
 }
 
 fn invalid(path: &Path) -> impl FnOnce(rcgen::Error) -> CertsError {

@@ -114,16 +114,12 @@ pub(crate) fn ask(
     run_id: &str,
     hello: &Hello,
 ) -> Result<Outcome, TunnelError> {
-    let zenoh_error = |e: zenoh::Error| TunnelError::Zenoh {
-        endpoint: endpoint.into(),
-        message: e.to_string(),
-    };
     let replies = session
         .get(run_key(run_id))
         .payload(serde_json::to_vec(hello).expect("serialises"))
         .timeout(ANSWER_TIMEOUT)
         .wait()
-        .map_err(zenoh_error)?;
+        .map_err(TunnelError::zenoh(endpoint))?;
     if let Ok(reply) = replies.recv() {
         let answer = match reply.result() {
             Ok(sample) => serde_json::from_slice::<RunInfo>(&sample.payload().to_bytes())

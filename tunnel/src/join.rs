@@ -205,10 +205,7 @@ fn watch_presence(
         .history(true)
         .callback(move |sample| present.store(sample.kind() == SampleKind::Put, Ordering::SeqCst))
         .wait()
-        .map_err(|e| TunnelError::Zenoh {
-            endpoint: options.endpoint.clone(),
-            message: e.to_string(),
-        })
+        .map_err(TunnelError::zenoh(&options.endpoint))
 }
 
 /// The bridge to keep: none while the learner host's tunnel is away, so that the actors see their

@@ -21,14 +21,9 @@
 //! and (3) tell the learner's host which remote actors it carries. The CLI can do none of these,
 //! and the library costs the same Zenoh build.
 //!
-//! **Who may join** ([`session::Security`]): Zenoh's own mutual TLS on a `tls/` endpoint (the
-//! run's CA signs the learner host's and every remote host's certificate; `uavmeta tunnel certs`
-//! makes them with rcgen) and, on top, Zenoh's user-password authentication (`tunnel.credentials`,
-//! a dictionary file; `join --credentials FILE`). An endpoint beyond loopback without TLS is
-//! refused by `Config::validate` (learner) and by `join` (remote). A remote host that is refused,
-//! asks for a run id that is not served, or cannot connect gets the same error
-//! ([`TunnelError::NotAdmitted`]): nothing about the runs served leaks. docs/SECURITY.md has the
-//! threat model.
+//! **Who may join** ([`session::Security`]): Zenoh's mutual TLS against the run's CA, and its
+//! user-password authentication on top; every refusal is the one [`TunnelError::NotAdmitted`]
+//! (docs/SECURITY.md, "Threat model"; the set-up: docs/REMOTE.md).
 //!
 //! **Handshake** ([`handshake`]): before bridging, `join` asks the learner's host, by Zenoh query
 //! on `uavmeta/runs/<run id>`, for the run; the answer carries the run's hash, config (without
@@ -36,11 +31,8 @@
 //! and schema version. Each side refuses the other's mismatching schema version with an error
 //! naming both.
 //!
-//! **Losing the other side**: the learner's tunnel holds a Zenoh liveliness token; when it goes
-//! (killed, restarted), `join` drops its link, so remote actors see their store's subscriber go
-//! and hold their batches; when the token is back it shakes hands again and builds a new link,
-//! whose new subscriber the actors take for a new store: they send everything the store has not
-//! acknowledged again (`uavmeta_runtime::actor`), and the store drops what it already has.
+//! **Losing the other side**: `join` drops its link when the learner tunnel's Zenoh liveliness
+//! token goes, and shakes hands again and builds a new one when it is back (then: docs/REMOTE.md).
 //!
 //! **Known costs** of relaying whole services: the tunnel carries a service both ways, so the
 //! learner host's own actors' batches travel to every remote host too (and are dropped there),

@@ -38,10 +38,7 @@ pub fn serve(run: &RunDir, config: &Config) -> Result<(), TunnelError> {
     ];
     security.check_files(endpoint, keys)?;
     let session = session::listen(endpoint, &security)?;
-    let zenoh_error = |e: zenoh::Error| TunnelError::Zenoh {
-        endpoint: endpoint.clone(),
-        message: e.to_string(),
-    };
+    let zenoh_error = TunnelError::zenoh(endpoint);
     let info = RunInfo::new(run, config);
     let _handshake = session
         .declare_queryable(run_key(run.id()))
@@ -49,11 +46,7 @@ pub fn serve(run: &RunDir, config: &Config) -> Result<(), TunnelError> {
         .wait()
         .map_err(zenoh_error)?;
     let hosts_dir = run.remote_hosts_dir();
-    std::fs::create_dir_all(&hosts_dir).map_err(|source| FileError {
-        path: hosts_dir.clone(),
-        action: "create",
-        source,
-    })?;
+    std::fs::create_dir_all(&hosts_dir).map_err(FileError::at(&hosts_dir, "create"))?;
     let announcements = Arc::new(Mutex::new(Announcements::new(config.tunnel.max_hosts)));
     let heard = announcements.clone();
     let _hosts = session

@@ -9,6 +9,16 @@ use zenoh::{Session, Wait};
 
 use crate::TunnelError;
 
+impl TunnelError {
+    /// The error of Zenoh at `endpoint`, for `map_err`.
+    pub(crate) fn zenoh<E: std::fmt::Display>(endpoint: &str) -> impl Fn(E) -> Self + Copy + '_ {
+        move |e| Self::Zenoh {
+            endpoint: endpoint.into(),
+            message: e.to_string(),
+        }
+    }
+}
+
 /// The key the learner host's tunnel answers the handshake on, and holds its liveliness token on.
 pub fn run_key(run_id: &str) -> String {
     format!("uavmeta/runs/{run_id}")
@@ -48,6 +58,7 @@ impl Security {
     /// Each file set, with the key or flag that names it, must be readable now: Zenoh would only
     /// say that a link failed.
     pub fn check_files(&self, endpoint: &str, names: [&str; 4]) -> Result<(), TunnelError> {
+        let error = TunnelError::zenoh(endpoint);
         let files = [
             &self.ca,
             &self.certificate,
@@ -56,9 +67,8 @@ impl Security {
         ];
         for (name, file) in names.into_iter().zip(files) {
             if let Some(path) = file {
-                std::fs::File::open(path).map_err(|e| TunnelError::Zenoh {
-                    endpoint: endpoint.into(),
-                    message: format!("{name} = {}: cannot read it: {e}", path.display()),
+                std::fs::File::open(path).map_err(|e| {
+                    error(format!("{name} = {}: cannot read it: {e}", path.display()))
                 })?;
             }
         }
@@ -69,12 +79,9 @@ impl Security {
             .find(|(file, _)| file.is_none())
             .map(|(_, name)| name);
         match (tls, missing) {
-            (true, Some(name)) => Err(TunnelError::Zenoh {
-                endpoint: endpoint.into(),
-                message: format!(
-                    "a tls/ endpoint needs {name} (`uavmeta tunnel certs` makes the files)"
-                ),
-            }),
+            (true, Some(name)) => Err(error(format!(
+                "a tls/ endpoint needs {name} (`uavmeta tunnel certs` makes the files)"
+            ))),
             _ => Ok(()),
         }
     }
@@ -159,10 +166,7 @@ fn open(
     endpoints_key: &str,
     security: &Security,
 ) -> Result<Session, TunnelError> {
-    let error = |message: String| TunnelError::Zenoh {
-        endpoint: endpoint.into(),
-        message,
-    };
+    let error = TunnelError::zenoh(endpoint);
     let mut config = zenoh::Config::default();
     let json = |value: &str| serde_json::to_string(value).expect("strings serialise");
     let settings = [

@@ -1,40 +1,12 @@
-//! The planner reference (docs/MODEL.md section 5, "Planner reference"): a search that knows the
-//! world — its dynamics, its rewards and the rain zone as it will stand at every step — for the
-//! best action sequence from the episode's current state. It is not a learner: it is the measure of
-//! what is achievable, the row every method's gap is read against.
-//!
-//! **The search.** A beam search over the remaining horizon with duplicate detection. A node is
-//! a state (the UAV's cell, A_1..A_K) at step t with g, the cost sum_t -r(t) of the best path to
-//! it. Each step expands every node by all 5K actions, merges children that reach the same state
-//! (keeping the cheaper path: the future depends only on the state and t, since the rain
-//! schedule is fixed), ranks them by g + h and keeps the `beam_width` best. h estimates the cost
-//! of the next K steps if the devices were served stalest first (by delta A), the order that
-//! minimises their AoI (the rearrangement inequality):
-//! - AoI: sum_i i delta A_(i), i = 0 for the stalest: of two states with the same cost so far,
-//!   the one whose devices are fresher ranks first;
-//! - power: b sum_i (lambda / K) P_min(i), P_min(i) the least power of serving the i-th stalest
-//!   device from any cell within i moves of the UAV's: of two states with the same AoI, the one
-//!   nearer the devices due next ranks first. It relaxes the path (each device's cell is chosen
-//!   apart) but assumes the stalest-first order, which the best policy leaves more often the
-//!   more power weighs; b discounts it. Without the power part the search lost the round robin
-//!   on lambda-300 (-6388); at full weight it kept it but fell 3% short on lambda-1000 and 11%
-//!   on a small world where serving out of order pays (docs/EXPERIMENTS.md, P).
-//!
-//! No one b suits every lambda (0.5 ranks best on lambda-300, 0.125 on lambda-1000), so the
-//! search runs once per weight of `planner.h_power_weights` (0.5, 0.25, 0.125, 0.0625) and keeps
-//! the cheapest plan: each is a plan the world will score as planned, so the portfolio is never
-//! worse than its best member (docs/EXPERIMENTS.md, P2).
-//!
-//! When twice `beam_width` holds every child of every step, nothing is pruned and the search is
-//! exact dynamic programming: it returns the optimal sequence
-//! (world/tests/planner.rs checks this against exhaustive enumeration on small worlds). On the
-//! default world it is a heuristic search whose quality grows with the width (docs/EXPERIMENTS.md,
-//! P). It draws no random numbers: ties are broken by the state's key, so a plan is a function of
-//! the world's state alone.
+//! The planner reference: a beam search, knowing the world's dynamics, rewards and rain ahead, for
+//! the best action sequence from the current state; the row every method's gap is read against.
+//! The search, its cost-to-go h and when it is exact: docs/MODEL.md, section 9; its width and
+//! weights b: docs/EXPERIMENTS.md, P and P2 (at b = 1 it fell 3% short on lambda-1000 and 11% on a
+//! small world where serving out of order pays).
 //!
 //! **Cost.** Per step: width x 5K children of O(K) each plus a hash-map merge; memory:
 //! width x (K + 2) u16 for the beam and width x T back-pointers. [`PlannerConfig::validate`]
-//! refuses a width and horizon whose search would not fit in `planner.max_memory_mb`.
+//! refuses a width and horizon whose search would not fit in `planner.max_memory_mib`.
 
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
@@ -53,7 +25,7 @@ pub struct Plan {
     pub cost: f64,
 }
 
-/// The beam searches of the module doc, one per weight b of h's power part.
+/// The beam searches of docs/MODEL.md section 9, one per weight b of h's power part.
 #[derive(Debug, Clone)]
 pub struct Planner {
     beam_width: usize,

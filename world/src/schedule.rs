@@ -1,26 +1,9 @@
-//! Local improvement of a plan (docs/MODEL.md section 9): its device schedule changed one step at
-//! a time, each schedule flown by its exact cheapest path.
-//!
-//! Without rain a plan's cost splits in two. The AoI part depends on the schedule alone (which
-//! device is served at each step); the power part is `lambda / K * sum_t P(c_t, s_t)`, the power
-//! of serving s_t from the UAV's cell c_t, and for a fixed schedule its cheapest path is a
-//! shortest path over (step, cell): dynamic programming, exact. Where power weighs much the beam
-//! search's stalest-first guide leaves good schedules unseen (docs/EXPERIMENTS.md, P3); this
-//! searches them from its best plan:
-//!
-//! - `F[t][c]`, the least power cost of steps 0..t arriving at cell c at step t, and `B[t][c]`, the
-//!   least from cell c at step t to the end, price a change of one step's device, or a swap of
-//!   two neighbouring steps', in O(cells) against the whole schedule's O(T x cells);
-//! - a sweep tries every step with every other device and every neighbouring swap, and keeps
-//!   each change that lowers the total; sweeps repeat until one finds nothing, at most
-//!   [`MAX_SWEEPS`]; the AoI part of a change is priced from the two devices' service steps;
-//! - then `beam_width / `[`BEAM_PER_KICK`] times a window of the best schedule is redrawn and
-//!   the descent repeated
-//!   (iterated local search), keeping what is cheaper. The draws are seeded by the world's
-//!   state, so a plan is still a function of the state alone.
-//!
-//! The improved plan is scored by the world itself and kept only if cheaper than the one it
-//! started from, so the planner never gets worse.
+//! Local improvement of a plan's device schedule, each schedule flown by its exact cheapest path
+//! (the search: docs/MODEL.md, section 9, "Schedule search"). `F[t][c]`, the least power cost of
+//! steps 0..t arriving at cell c at step t, and `B[t][c]`, the least from cell c at step t to the
+//! end, price a change of one step's device, or a swap of two neighbouring steps', in O(cells)
+//! against the whole schedule's O(T x cells); the AoI part of a change is priced from the two
+//! devices' service steps.
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -51,8 +34,8 @@ fn state_key(world: &World) -> u64 {
     )
 }
 
-/// `plan` improved as the module doc says with `kicks` kicks, if `world` (at its current state)
-/// has no rain ahead; otherwise, or if nothing improves, `plan` itself.
+/// `plan` improved by the schedule search (docs/MODEL.md section 9) with `kicks` kicks, if `world`
+/// (at its current state) has no rain ahead; otherwise, or if nothing improves, `plan` itself.
 pub fn improve(world: &World, plan: Plan, kicks: usize) -> Plan {
     if world.rain_schedule().iter().any(Option::is_some) || plan.actions.is_empty() {
         return plan;

@@ -223,6 +223,13 @@ impl Config {
         self.tasks.iter().filter(move |t| t.role == role)
     }
 
+    /// The meta-test tasks, each with its id (its index in `tasks`).
+    pub fn meta_test_tasks(&self) -> impl Iterator<Item = (u32, &TaskConfig)> {
+        (0u32..)
+            .zip(&self.tasks)
+            .filter(|(_, t)| t.role == TaskRole::MetaTest)
+    }
+
     /// Checks every constraint a config must meet beyond its types: the rules its sections
     /// declare on their fields, then the checks across fields. The error is the first broken.
     pub fn validate(&self) -> Result<(), ConfigError> {

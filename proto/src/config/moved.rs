@@ -14,6 +14,7 @@ pub enum Fate {
 }
 
 /// Every key that no longer exists, dotted as in a file; a `tasks.` key applies to every task.
+#[rustfmt::skip]
 pub const MOVED: &[(&str, Fate)] = &[
     ("collect.dqn_steps", Fate::Renamed("collect.dqn.steps")),
     ("collect.replay_capacity", Fate::Renamed("collect.dqn.replay_capacity")),
@@ -37,36 +38,18 @@ pub const MOVED: &[(&str, Fate)] = &[
     ("learner.fqe_target_update_every", Fate::Removed(FQE)),
     ("learner.fqe_lr", Fate::Removed(FQE)),
     ("learner.fqe_alpha", Fate::Removed(FQE)),
-    (
-        "learner.init_penalty",
-        Fate::Removed("L2-SP toward the init did not hold on held-out tasks (docs/EXPERIMENTS.md, D5)"),
-    ),
-    (
-        "meta.eta_outer_final_fraction",
-        Fate::Removed("a falling meta step size did no better than a constant one (docs/EXPERIMENTS.md, C7 and C13)"),
-    ),
-    (
-        "collect.dqn_n_step",
-        Fate::Removed("n-step returns trapped the agents on start cells here (docs/EXPERIMENTS.md, A3)"),
-    ),
+    ("learner.init_penalty", Fate::Removed("L2-SP toward the init did not hold on held-out tasks (docs/EXPERIMENTS.md, D5)")),
+    ("meta.eta_outer_final_fraction", Fate::Removed("a falling meta step size did no better than a constant one (docs/EXPERIMENTS.md, C7 and C13)")),
+    ("collect.dqn_n_step", Fate::Removed("n-step returns trapped the agents on start cells here (docs/EXPERIMENTS.md, A3)")),
     ("learner.population", Fate::Removed(STACKING)),
     ("collect.population", Fate::Removed(STACKING)),
     ("meta.population", Fate::Removed(STACKING)),
     ("run.device", Fate::Removed(STACKING)),
-    (
-        "run.control_buffer",
-        Fate::Removed("the announcements a control subscriber buffers and a late joiner receives are a constant of the transport (256)"),
-    ),
-    (
-        "run.keep_until_stored",
-        Fate::Removed("an actor always keeps its batches until the store acknowledges them; keeping them only until the store is proven connected saved 3 ns a transition (docs/EXPERIMENTS.md, T1)"),
-    ),
+    ("run.control_buffer", Fate::Removed("the announcements a control subscriber buffers and a late joiner receives are a constant of the transport (256)")),
+    ("run.keep_until_stored", Fate::Removed("an actor always keeps its batches until the store acknowledges them; keeping them only until the store is proven connected saved 3 ns a transition (docs/EXPERIMENTS.md, T1)")),
     ("run.batch_size", Fate::Renamed("run.transitions_per_message")),
     ("learner.batch", Fate::Renamed("learner.batch_size")),
-    (
-        "collect.sample_newest",
-        Fate::Removed("shots from the newest part of the buffer did worse than from all of it (docs/EXPERIMENTS.md, B and B4)"),
-    ),
+    ("collect.sample_newest", Fate::Removed("shots from the newest part of the buffer did worse than from all of it (docs/EXPERIMENTS.md, B and B4)")),
 ];
 
 /// Why the lockstep populations went, with `run.device` that placed them.

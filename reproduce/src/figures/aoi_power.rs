@@ -15,6 +15,17 @@ const PAPER_NOISE_DBM: f64 = -90.0;
 /// (name, AoI, power) of a method over seeds.
 type Measured<'a> = (&'a str, Estimate, Estimate);
 
+/// Each method measured, then the heuristics, with the paper's (AoI, mW) where it has them.
+fn rows<'a>(
+    measured: &'a [Measured],
+    heuristics: &'a [(&str, PolicyMetrics)],
+) -> impl Iterator<Item = (&'a str, Estimate, Estimate, Option<(f64, f64)>)> {
+    let paper = |i: usize| PAPER_FIG8.get(i).map(|&(_, aoi, mw)| (aoi, mw));
+    (measured.iter().enumerate())
+        .map(move |(i, &(name, aoi, power))| (name, aoi, power, paper(i)))
+        .chain((heuristics.iter()).map(|(name, m)| (*name, m.aoi, m.power_mw, None)))
+}
+
 /// Figure 8: AoI and power at epoch `aoi_power_epoch`.
 pub(super) fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let c = ctx.config;
@@ -109,25 +120,15 @@ fn bars(
         value,
     };
     let paper = |mean| Estimate { mean, ci95: 0.0 };
-    let mut aoi_bars = Vec::new();
-    let mut power_bars = Vec::new();
-    for ((name, aoi, power), (_, paper_aoi, paper_mw)) in measured.iter().zip(PAPER_FIG8) {
-        aoi_bars.push(bar(name, "measured", *aoi));
-        aoi_bars.push(bar(name, "paper", paper(paper_aoi)));
-        power_bars.push(bar(name, "measured", *power));
-        power_bars.push(bar(
-            name,
-            "paper, on our noise floor",
-            paper(paper_mw / paper_scale),
-        ));
-    }
-    for (name, aoi, power) in measured.iter().skip(PAPER_FIG8.len()) {
-        aoi_bars.push(bar(name, "measured", *aoi));
-        power_bars.push(bar(name, "measured", *power));
-    }
-    for (name, m) in heuristics {
-        aoi_bars.push(bar(name, "measured", m.aoi));
-        power_bars.push(bar(name, "measured", m.power_mw));
+    let (mut aoi_bars, mut power_bars) = (Vec::new(), Vec::new());
+    for (name, aoi, power, paper_values) in rows(measured, heuristics) {
+        aoi_bars.push(bar(name, "measured", aoi));
+        power_bars.push(bar(name, "measured", power));
+        if let Some((paper_aoi, paper_mw)) = paper_values {
+            aoi_bars.push(bar(name, "paper", paper(paper_aoi)));
+            let rescaled = paper(paper_mw / paper_scale);
+            power_bars.push(bar(name, "paper, on our noise floor", rescaled));
+        }
     }
     (aoi_bars, power_bars)
 }
@@ -153,18 +154,15 @@ fn summary_table(
         ctx.seeds_note(),
         c.world.noise_dbm
     );
-    for ((name, aoi, power), (_, paper_aoi, paper_mw)) in measured.iter().zip(PAPER_FIG8) {
-        let _ = writeln!(
-            body,
-            "| {name} | {aoi:.2} | {paper_aoi} | {power:.3} | {:.3} |",
-            paper_mw / paper_scale
-        );
-    }
-    for (name, aoi, power) in measured.iter().skip(PAPER_FIG8.len()) {
-        let _ = writeln!(body, "| {name} | {aoi:.2} | | {power:.3} | |");
-    }
-    for (name, m) in heuristics {
-        let _ = writeln!(body, "| {name} | {:.2} | | {:.3} | |", m.aoi, m.power_mw);
+    for (name, aoi, power, paper) in rows(measured, heuristics) {
+        let _ = match paper {
+            Some((paper_aoi, paper_mw)) => writeln!(
+                body,
+                "| {name} | {aoi:.2} | {paper_aoi} | {power:.3} | {:.3} |",
+                paper_mw / paper_scale
+            ),
+            None => writeln!(body, "| {name} | {aoi:.2} | | {power:.3} | |"),
+        };
     }
     body
 }
@@ -185,11 +183,7 @@ fn order_claim(measured: &[Measured]) -> Claim {
     Claim::new(
         "8",
         "lambda = 300 after 50 epochs: CQL-MAML AoI 6 / 1.6 mW, online DQN 7 / 2.2 mW, CQL 28 / 6 mW (CQL-MAML best, CQL worst in both)",
-        measured
-            .iter()
-            .map(|(n, a, p)| format!("{n} AoI {a:.2}, {p:.3} mW"))
-            .collect::<Vec<_>>()
-            .join("; "),
+        joined(measured.iter().map(|(n, a, p)| format!("{n} AoI {a:.2}, {p:.3} mW")), "; "),
         Verdict::share(held, orders.len()),
         || {
             let broken: Vec<String> = orders

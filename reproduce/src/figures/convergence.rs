@@ -2,20 +2,17 @@
 
 use super::*;
 
-/// Per run: whether it converged and at which epoch (see [`claims::converged_at`]).
-fn convergence_cells(runs: &[Vec<f64>], floor: f64) -> (usize, String) {
+/// How many runs converged, and at which epoch (see [`claims::converged_at`]).
+fn convergence_cells(runs: &[Vec<f64>], floor: f64) -> String {
     let epochs: Vec<usize> = runs.iter().filter_map(|r| converged_at(r, floor)).collect();
-    let cell = if epochs.is_empty() {
-        format!("0/{}", runs.len())
-    } else {
-        format!(
-            "{}/{} (epoch {:.1})",
-            epochs.len(),
+    match epochs.len() {
+        0 => format!("0/{}", runs.len()),
+        n => format!(
+            "{n}/{} (epoch {:.1})",
             runs.len(),
             est(epochs.iter().map(|&e| e as f64))
-        )
-    };
-    (epochs.len(), cell)
+        ),
+    }
 }
 
 /// Figure 5: the four methods on the unseen task.
@@ -44,7 +41,6 @@ pub(super) fn convergence(ctx: &Context, dir: &Path) -> Result<Section, Reproduc
             "Figure 5: fine-tuning on `{}` ({} shots)",
             r.unseen_task, r.main_shots
         ),
-        "greedy return / 100",
         &series,
         &refs.lines(),
     )?;
@@ -96,7 +92,7 @@ fn summary_table(ctx: &Context, runs: &[(Method, Vec<Vec<f64>>)], refs: &Refs) -
     );
     for (method, runs) in runs {
         let (at40, last, swing) = curve_stats(runs);
-        let (_, converged) = convergence_cells(runs, refs.random);
+        let converged = convergence_cells(runs, refs.random);
         let _ = writeln!(
             body,
             "| {} | {converged} | {at40:.0} | {last:.0} | {swing:.0} |",
@@ -119,22 +115,18 @@ fn dqn_claim(dqn: &[Vec<f64>], dqn_maml: &[Vec<f64>], refs: &Refs) -> Claim {
         .iter()
         .filter(|r| converged_at(r, refs.random).is_none())
         .count();
-    let measured = [(Method::DQN, dqn), (Method::DQN_MAML, dqn_maml)]
-        .iter()
-        .map(|&(m, runs)| {
-            let (_, cell) = convergence_cells(runs, refs.random);
-            format!(
-                "{} converged in {cell}, final {:.0}",
-                m.label(),
-                finals(runs)
-            )
-        })
-        .collect::<Vec<_>>()
-        .join("; ");
+    let measured = [(Method::DQN, dqn), (Method::DQN_MAML, dqn_maml)].map(|(m, runs)| {
+        let cell = convergence_cells(runs, refs.random);
+        format!(
+            "{} converged in {cell}, final {:.0}",
+            m.label(),
+            finals(runs)
+        )
+    });
     Claim::new(
         "5",
         "DQN and DQN-MAML trained offline fail to converge",
-        measured,
+        measured.join("; "),
         Verdict::share(failed, all.len()),
         || {
             format!(
@@ -154,7 +146,7 @@ fn cql_claim(cql: &[Vec<f64>], refs: &Refs, epochs: usize) -> Claim {
         None if r.len() < EPOCH_100 => Verdict::Untested,
         _ => Verdict::Yes,
     });
-    let (_, cell) = convergence_cells(cql, refs.random);
+    let cell = convergence_cells(cql, refs.random);
     Claim::new(
         "5",
         "CQL from a random init needs more than 100 epochs",
@@ -180,7 +172,7 @@ fn maml_claim(maml: &[Vec<f64>], refs: &Refs) -> Claim {
         None if r.len() < EPOCH_40 => Verdict::Untested,
         _ => Verdict::No,
     });
-    let (_, cell) = convergence_cells(maml, refs.random);
+    let cell = convergence_cells(maml, refs.random);
     let (_, maml_final, maml_swing) = curve_stats(maml);
     Claim::new(
         "5",
@@ -265,11 +257,7 @@ fn seed_claims(
         format!(
             "{faster} of {} seeds; settle epochs CQL-MAML / CQL: {}",
             settles.len(),
-            settles
-                .iter()
-                .map(|(m, c)| format!("{m}/{c}"))
-                .collect::<Vec<_>>()
-                .join(", ")
+            joined(settles.iter().map(|(m, c)| format!("{m}/{c}")), ", ")
         ),
         Verdict::share(faster, settles.len()),
         || "in some seeds CQL settles as early as CQL-MAML, or CQL-MAML keeps moving".into(),

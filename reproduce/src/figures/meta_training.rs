@@ -90,29 +90,21 @@ fn write_csvs(
         }
     }
     write_file(&dir.join("fig4a_meta_loss.csv"), &loss_csv)?;
-    write_file(&dir.join("fig4b_returns.csv"), &ret_csv)?;
-    Ok(())
+    Ok(write_file(&dir.join("fig4b_returns.csv"), &ret_csv)?)
 }
 
 /// Figure 4a: the meta-loss per meta-epoch, one run per seed.
 fn plot_loss(losses: &[Vec<f64>], dir: &Path) -> Result<(), ReproduceError> {
-    let meta_epochs = losses.iter().map(Vec::len).max().unwrap_or(0);
-    plot::line_chart(
-        &dir.join("fig4a_meta_loss.png"),
-        &LineChart {
-            title: "Figure 4a: CQL-MAML meta-training loss",
-            x_label: "meta-epoch",
-            y_label: "meta-loss (eq. 15)",
-            series: &[Series {
-                label: "meta-loss".into(),
-                band: Band::from_runs(epochs_x(meta_epochs), losses),
-            }],
-            references: &[],
-            // TD errors squared plus eq. 8's log-sum-exp gap: never negative.
-            floor: Some(0.0),
-        },
-    )?;
-    Ok(())
+    let chart = LineChart {
+        title: "Figure 4a: CQL-MAML meta-training loss",
+        x_label: "meta-epoch",
+        y_label: "meta-loss (eq. 15)",
+        series: &[series("meta-loss".into(), losses)],
+        references: &[],
+        // TD errors squared plus eq. 8's log-sum-exp gap: never negative.
+        floor: Some(0.0),
+    };
+    Ok(plot::line_chart(&dir.join("fig4a_meta_loss.png"), &chart)?)
 }
 
 /// Figure 4b or 4c: each meta-train task's return at the evaluated meta-epochs.
@@ -134,18 +126,15 @@ fn plot_returns(
             band: Band::from_runs(evaluated.clone(), &per_task(curves, i, panel.pick)),
         })
         .collect();
-    plot::line_chart(
-        &dir.join(panel.file),
-        &LineChart {
-            title: panel.title,
-            x_label: "meta-epoch",
-            y_label: "return / 100",
-            series: &series,
-            references: &[],
-            floor: None,
-        },
-    )?;
-    Ok(())
+    let chart = LineChart {
+        title: panel.title,
+        x_label: "meta-epoch",
+        y_label: "return / 100",
+        series: &series,
+        references: &[],
+        floor: None,
+    };
+    Ok(plot::line_chart(&dir.join(panel.file), &chart)?)
 }
 
 /// The summary's body: the run, the meta-loss's first and last values, and a table of each

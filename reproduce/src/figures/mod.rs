@@ -8,8 +8,10 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 use uavmeta_learner::train::EpochRow;
+use uavmeta_meta::write_file;
 use uavmeta_plot::{self as plot, Band, Bar, LineChart, Reference, Series, TrajectoryChart};
 use uavmeta_proto::config::{Config, RainZone, TaskConfig};
+use uavmeta_proto::method::{Algo, Method, Start};
 use uavmeta_proto::stats::{Estimate, PolicyMetrics};
 use uavmeta_world::world::World;
 
@@ -17,11 +19,7 @@ use crate::claims::{
     self, converged_at, final_return, mean_swing, return_at, settle_epoch, Claim, Verdict,
 };
 use crate::runs::{Init, InitKey, MetaCurve, RunKey, SeedResult, W0};
-use crate::{agent_tasks, rain_tasks, Experiment, HeuristicRef, ReproduceConfig};
-use uavmeta_meta::write_file;
-use uavmeta_proto::method::{Algo, Method, Start};
-
-use crate::ReproduceError;
+use crate::{agent_tasks, rain_tasks, Experiment, HeuristicRef, ReproduceConfig, ReproduceError};
 
 mod aoi_power;
 mod convergence;
@@ -96,11 +94,7 @@ pub fn unseen_key(
         task: r.unseen_task.clone(),
         method,
         shots,
-        meta_tasks: if Init::of(method).is_some() {
-            meta_tasks
-        } else {
-            0
-        },
+        meta_tasks: Init::of(method).map_or(0, |_| meta_tasks),
         eval_episodes: config.learner.eval_episodes,
     }
 }
@@ -201,16 +195,8 @@ struct Refs {
 impl Refs {
     fn new(config: &Config, online: &[PolicyMetrics], heuristics: &[&HeuristicRef]) -> Refs {
         let mean_over = |name: &str| {
-            heuristics
-                .iter()
-                .map(|h| {
-                    h.policies
-                        .iter()
-                        .find(|(n, _)| *n == name)
-                        .map_or(f64::NAN, |(_, m)| m.ret.mean)
-                })
-                .sum::<f64>()
-                / heuristics.len() as f64
+            let rets = heuristics.iter().map(|h| h.ret(name).unwrap_or(f64::NAN));
+            rets.sum::<f64>() / heuristics.len() as f64
         };
         let names: Vec<&str> = heuristics
             .first()
@@ -228,15 +214,13 @@ impl Refs {
 
     /// Dashed lines of the returns / 100.
     fn lines(&self) -> Vec<Reference> {
-        let mut lines = vec![Reference {
-            label: "online DQN".into(),
-            value: self.online.mean / 100.0,
-        }];
-        lines.extend(self.heuristics.iter().map(|(n, v)| Reference {
-            label: (*n).into(),
-            value: v / 100.0,
-        }));
-        lines
+        let online = ("online DQN", self.online.mean);
+        (std::iter::once(online).chain(self.heuristics.iter().copied()))
+            .map(|(n, v)| Reference {
+                label: n.into(),
+                value: v / 100.0,
+            })
+            .collect()
     }
 
     /// Why methods that should end above the online agent (or learn at all) do not, from their
@@ -297,6 +281,12 @@ fn exploratory_share(config: &Config) -> f64 {
     decaying_until.saturating_sub(first_held).min(held) as f64 / held as f64
 }
 
+/// `items` written out, `sep` between them.
+fn joined<T: std::fmt::Display>(items: impl IntoIterator<Item = T>, sep: &str) -> String {
+    let items: Vec<String> = items.into_iter().map(|i| i.to_string()).collect();
+    items.join(sep)
+}
+
 fn est(samples: impl IntoIterator<Item = f64>) -> Estimate {
     Estimate::from_samples(samples)
 }
@@ -306,43 +296,41 @@ fn finals(runs: &[Vec<f64>]) -> Estimate {
     est(runs.iter().map(|r| final_return(r)))
 }
 
-fn epochs_x(epochs: usize) -> Vec<f64> {
-    (1..=epochs).map(|e| e as f64).collect()
+/// A series over seeds of `runs`, one point per epoch (from 1).
+fn series(label: String, runs: &[Vec<f64>]) -> Series {
+    let epochs = runs.iter().map(Vec::len).max().unwrap_or(0);
+    let x = (1..=epochs).map(|e| e as f64).collect();
+    Series {
+        label,
+        band: Band::from_runs(x, runs),
+    }
 }
 
 /// A series of returns / 100 over seeds.
 fn return_series(label: String, runs: &[Vec<f64>]) -> Series {
-    let epochs = runs.iter().map(Vec::len).max().unwrap_or(0);
     let scaled: Vec<Vec<f64>> = runs
         .iter()
         .map(|r| r.iter().map(|v| v / 100.0).collect())
         .collect();
-    Series {
-        label,
-        band: Band::from_runs(epochs_x(epochs), &scaled),
-    }
+    series(label, &scaled)
 }
 
-/// A chart of returns per epoch.
+/// A chart of greedy returns / 100 per epoch.
 fn line_chart(
     path: &Path,
     title: &str,
-    y_label: &str,
     series: &[Series],
     references: &[Reference],
 ) -> Result<(), ReproduceError> {
-    plot::line_chart(
-        path,
-        &LineChart {
-            title,
-            x_label: "epoch",
-            y_label,
-            series,
-            references,
-            floor: None,
-        },
-    )?;
-    Ok(())
+    let chart = LineChart {
+        title,
+        x_label: "epoch",
+        y_label: "greedy return / 100",
+        series,
+        references,
+        floor: None,
+    };
+    Ok(plot::line_chart(path, &chart)?)
 }
 
 /// One line per method, seed and epoch of `rows`, after `prefix` columns.

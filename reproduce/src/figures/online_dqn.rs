@@ -43,10 +43,7 @@ pub(super) fn online_dqn(ctx: &Context, dir: &Path) -> Result<Section, Reproduce
         }
         let h = ctx.heuristics(&task.name, episodes);
         let ret = |name: &str| {
-            h.policies
-                .iter()
-                .find(|(n, _)| *n == name)
-                .map(|(_, m)| m.ret.mean)
+            h.ret(name)
                 .expect("every reference has random, stalest, greedy and the planner")
         };
         let (stalest, greedy, planner) = (ret("stalest"), ret("greedy"), ret("planner"));

@@ -132,39 +132,28 @@ fn plot_curves(
     line_chart(
         &dir.join("fig9a_return.png"),
         &format!("Figure 9a: {tasks} rain tasks, mean over tasks"),
-        "greedy return / 100",
         &returns,
         &refs.lines(),
     )?;
     let outages: Vec<Series> = per_method
         .iter()
-        .map(|(m, runs)| {
-            let curves = mean_over_tasks(runs, seeds, |r| &r.outages);
-            let len = curves.iter().map(Vec::len).max().unwrap_or(0);
-            Series {
-                label: m.label(),
-                band: Band::from_runs(epochs_x(len), &curves),
-            }
-        })
+        .map(|(m, runs)| series(m.label(), &mean_over_tasks(runs, seeds, |r| &r.outages)))
         .collect();
-    plot::line_chart(
-        &dir.join("fig9b_outages.png"),
-        &LineChart {
-            title: &format!(
-                "Figure 9b: outages per episode ({} episodes per point)",
-                tasks * seeds * ctx.reproduce.resilience_eval_episodes
-            ),
-            x_label: "epoch",
-            y_label: "outages per episode",
-            series: &outages,
-            references: &[Reference {
-                label: "online DQN".into(),
-                value: refs.online_outages.mean,
-            }],
-            floor: Some(0.0),
-        },
-    )?;
-    Ok(())
+    let chart = LineChart {
+        title: &format!(
+            "Figure 9b: outages per episode ({} episodes per point)",
+            tasks * seeds * ctx.reproduce.resilience_eval_episodes
+        ),
+        x_label: "epoch",
+        y_label: "outages per episode",
+        series: &outages,
+        references: &[Reference {
+            label: "online DQN".into(),
+            value: refs.online_outages.mean,
+        }],
+        floor: Some(0.0),
+    };
+    Ok(plot::line_chart(&dir.join("fig9b_outages.png"), &chart)?)
 }
 
 /// Figure 9c: the first seed's final greedy paths on the first rain task, CQL-MAML's then CQL's.
@@ -234,13 +223,10 @@ impl RainSummary {
         }
     }
 
-    /// "converged in n/m runs".
-    fn converged_runs(&self) -> String {
-        format!(
-            "converged in {}/{} runs",
-            self.converged.iter().flatten().count(),
-            self.converged.len()
-        )
+    /// "n/m": of the m runs, n converged.
+    fn converged_share(&self) -> String {
+        let n = self.converged.iter().flatten().count();
+        format!("{n}/{}", self.converged.len())
     }
 }
 
@@ -263,7 +249,7 @@ fn summary_table(
          {total} Monte-Carlo episodes. Convergence as in figure 5, against each task's random policy.\n\n\
          | method | converged (task x seed runs) | final return | final outages per episode |\n| --- | --- | --- | --- |\n",
         tasks.len(),
-        tasks.iter().map(|t| t.name.as_str()).collect::<Vec<_>>().join(", "),
+        joined(tasks.iter().map(|t| &t.name), ", "),
         r.meta_tasks,
         r.main_shots,
         ctx.seeds_note(),
@@ -272,10 +258,9 @@ fn summary_table(
     for ((method, _), s) in per_method.iter().zip(summaries) {
         let _ = writeln!(
             body,
-            "| {} | {}/{} | {:.0} | {:.1} |",
+            "| {} | {} | {:.0} | {:.1} |",
             method.label(),
-            s.converged.iter().flatten().count(),
-            s.converged.len(),
+            s.converged_share(),
             s.finals,
             s.outages
         );
@@ -302,8 +287,8 @@ fn maml_claim(maml: &RainSummary, lens: &[usize], refs: &Refs) -> Claim {
         "9",
         "On 5 unseen rain tasks CQL-MAML converges within 100 epochs and reaches about zero outages",
         format!(
-            "{}; final outages {outages:.1} per episode; final return {finals:.0}",
-            maml.converged_runs()
+            "converged in {} runs; final outages {outages:.1} per episode; final return {finals:.0}",
+            maml.converged_share()
         ),
         Verdict::all_of([converged, quiet]),
         || {
@@ -339,8 +324,8 @@ fn cql_claim(cql: &RainSummary, lens: &[usize], refs: &Refs) -> Claim {
         "9",
         "CQL does not converge in 200 epochs and has about 20 outages per episode",
         format!(
-            "{}; final outages {outages:.1} per episode; final return {finals:.0}",
-            cql.converged_runs()
+            "converged in {} runs; final outages {outages:.1} per episode; final return {finals:.0}",
+            cql.converged_share()
         ),
         Verdict::all_of([stuck, about_20]),
         || {

@@ -44,7 +44,6 @@ pub(super) fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
     line_chart(
         &dir.join("fig6.png"),
         &format!("Figure 6: shots of `{}`", r.unseen_task),
-        "greedy return / 100",
         &series,
         &[],
     )?;
@@ -80,14 +79,11 @@ fn beats_claim(finals: &[Finals]) -> Claim {
         .filter(|f| f.maml.mean <= f.cql.mean)
         .map(|f| format!("{} shots: {:.0} vs {:.0}", f.shots, f.maml.mean, f.cql.mean))
         .collect();
+    let measured = (finals.iter()).map(|f| format!("{}: {:.0} vs {:.0}", f.shots, f.maml, f.cql));
     Claim::new(
         "6",
         "CQL-MAML beats CQL at every number of shots (100, 300, 500)",
-        finals
-            .iter()
-            .map(|f| format!("{}: {:.0} vs {:.0}", f.shots, f.maml, f.cql))
-            .collect::<Vec<_>>()
-            .join("; "),
+        joined(measured, "; "),
         Verdict::all_of(finals.iter().map(|f| Verdict::beats(f.maml, f.cql))),
         || {
             if losing.is_empty() {
@@ -105,9 +101,8 @@ fn beats_claim(finals: &[Finals]) -> Claim {
 /// CQL depends on the number of shots far more than CQL-MAML.
 fn spread_claim(finals: &[Finals]) -> Claim {
     let spread = |pick: fn(&Finals) -> f64| {
-        let values: Vec<f64> = finals.iter().map(pick).collect();
-        values.iter().cloned().fold(f64::NEG_INFINITY, f64::max)
-            - values.iter().cloned().fold(f64::INFINITY, f64::min)
+        let values = || finals.iter().map(pick);
+        values().fold(f64::NEG_INFINITY, f64::max) - values().fold(f64::INFINITY, f64::min)
     };
     let (maml_spread, cql_spread) = (spread(|f| f.maml.mean), spread(|f| f.cql.mean));
     let verdict = if finals.len() < 2 {

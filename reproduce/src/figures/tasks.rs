@@ -26,7 +26,6 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
     line_chart(
         &dir.join("fig7.png"),
         &format!("Figure 7: meta-training tasks, `{}`", r.unseen_task),
-        "greedy return / 100",
         &series,
         &refs.lines()[..1],
     )?;
@@ -35,10 +34,7 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
         "CQL-MAML meta-trained on the first n meta-train tasks (config order: {}), fine-tuned for \
          {epochs} epochs on {} shots of `{}`, {}; \"return at epoch {at}\" is the mean of epochs {}..{at}.\n\n\
          | meta-train tasks | return at epoch {at} |\n| --- | --- |\n",
-        crate::runs::meta_train_tasks(c, usize::MAX)
-            .map(|t| t.name.as_str())
-            .collect::<Vec<_>>()
-            .join(", "),
+        joined(crate::runs::meta_train_tasks(c, usize::MAX).map(|t| &t.name), ", "),
         r.main_shots,
         r.unseen_task,
         ctx.seeds_note(),
@@ -59,11 +55,7 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
 
 /// "n: return; ..." for every task count.
 fn listed(values: &[(usize, Estimate)]) -> String {
-    values
-        .iter()
-        .map(|(n, v)| format!("{n}: {v:.0}"))
-        .collect::<Vec<_>>()
-        .join("; ")
+    joined(values.iter().map(|(n, v)| format!("{n}: {v:.0}")), "; ")
 }
 
 /// More meta-training tasks, better: `values` is (tasks, return at epoch 40) in task order.
@@ -87,18 +79,19 @@ fn rising_claim(values: &[(usize, Estimate)]) -> Claim {
             Verdict::No
         },
         || {
-            let falls: Vec<String> = values
-                .windows(2)
+            let falls: Vec<_> = (values.windows(2))
                 .filter(|w| w[1].1.mean <= w[0].1.mean)
-                .map(|w| format!("{} -> {} tasks", w[0].0, w[1].0))
                 .collect();
-            let overlap = values
-                .windows(2)
-                .filter(|w| w[1].1.mean <= w[0].1.mean)
-                .all(|w| w[0].1.mean - w[0].1.ci95 <= w[1].1.mean + w[1].1.ci95);
+            let overlap =
+                (falls.iter()).all(|w| w[0].1.mean - w[0].1.ci95 <= w[1].1.mean + w[1].1.ci95);
             format!(
                 "the return does not rise from {}{}",
-                falls.join(", "),
+                joined(
+                    falls
+                        .iter()
+                        .map(|w| format!("{} -> {} tasks", w[0].0, w[1].0)),
+                    ", "
+                ),
                 if overlap {
                     " (within the seeds' 95% intervals: the differences are noise at this seed count)"
                 } else {

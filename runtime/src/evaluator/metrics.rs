@@ -38,13 +38,13 @@ impl EvaluatorMetrics {
 
     /// One evaluated checkpoint's figures, which took `duration` to load and evaluate.
     pub fn observe(&self, row: &EvaluationRow, duration: Duration) {
-        let labels = [row.task.as_str(), row.method.as_str()];
-        self.ret.with_label_values(&labels).set(row.ret);
-        self.aoi.with_label_values(&labels).set(row.aoi);
+        let (labels, p) = ([row.task.as_str(), row.method.as_str()], &row.policy);
+        self.ret.with_label_values(&labels).set(p.ret.mean);
+        self.aoi.with_label_values(&labels).set(p.aoi.mean);
         self.power
             .with_label_values(&labels)
-            .set(row.power_mw * 1e-3);
-        self.outages.with_label_values(&labels).set(row.outages);
+            .set(p.power_mw.mean * 1e-3);
+        self.outages.with_label_values(&labels).set(p.outages.mean);
         self.epoch.with_label_values(&labels).set(row.epoch as f64);
         self.evaluated.inc();
         self.duration.observe(duration.as_secs_f64());

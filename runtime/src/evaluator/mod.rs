@@ -21,7 +21,7 @@ use std::time::{Duration, Instant};
 use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_learner::train::EvaluatePolicy;
-use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
+use uavmeta_proto::config::Config;
 use uavmeta_proto::method::Method;
 use uavmeta_proto::payload::{CheckpointReady, SCHEMA_VERSION};
 use uavmeta_proto::stats::PolicyMetrics;
@@ -60,15 +60,7 @@ pub struct EvaluationRow {
     pub task: String,
     pub method: String,
     pub epoch: u32,
-    pub episodes: usize,
-    pub ret: f64,
-    pub ret_ci95: f64,
-    pub aoi: f64,
-    pub aoi_ci95: f64,
-    pub power_mw: f64,
-    pub power_mw_ci95: f64,
-    pub outages: f64,
-    pub outages_ci95: f64,
+    pub policy: PolicyMetrics,
 }
 
 const CSV_HEADER: &str = "task,method,epoch,episodes,return,return_ci95,aoi,aoi_ci95,power_mw,power_mw_ci95,outages,outages_ci95";
@@ -80,34 +72,14 @@ impl EvaluationRow {
             task: task.to_string(),
             method: method.to_string(),
             epoch,
-            episodes: m.episodes,
-            ret: m.ret.mean,
-            ret_ci95: m.ret.ci95,
-            aoi: m.aoi.mean,
-            aoi_ci95: m.aoi.ci95,
-            power_mw: m.power_mw.mean,
-            power_mw_ci95: m.power_mw.ci95,
-            outages: m.outages.mean,
-            outages_ci95: m.outages.ci95,
+            policy: *m,
         }
     }
 
     fn to_csv(&self) -> String {
-        format!(
-            "{},{},{},{},{},{},{},{},{},{},{},{}",
-            self.task,
-            self.method,
-            self.epoch,
-            self.episodes,
-            self.ret,
-            self.ret_ci95,
-            self.aoi,
-            self.aoi_ci95,
-            self.power_mw,
-            self.power_mw_ci95,
-            self.outages,
-            self.outages_ci95
-        )
+        let (task, method, epoch) = (&self.task, &self.method, self.epoch);
+        let (episodes, cells) = (self.policy.episodes, self.policy.csv());
+        format!("{task},{method},{epoch},{episodes},{cells}")
     }
 
     fn parse(line: &str) -> Option<Self> {
@@ -115,20 +87,11 @@ impl EvaluationRow {
         if f.len() != 12 {
             return None;
         }
-        let num = |i: usize| f[i].parse::<f64>().ok();
         Some(Self {
             task: f[0].to_string(),
             method: f[1].to_string(),
             epoch: f[2].parse().ok()?,
-            episodes: f[3].parse().ok()?,
-            ret: num(4)?,
-            ret_ci95: num(5)?,
-            aoi: num(6)?,
-            aoi_ci95: num(7)?,
-            power_mw: num(8)?,
-            power_mw_ci95: num(9)?,
-            outages: num(10)?,
-            outages_ci95: num(11)?,
+            policy: PolicyMetrics::parse_csv(&f[4..], f[3].parse().ok()?)?,
         })
     }
 }
@@ -162,14 +125,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
     )?)?;
 
     let csv_path = run.evaluations_csv();
-    let io = |action, source| {
-        EvaluatorError::from(FileError {
-            path: csv_path.clone(),
-            action,
-            source,
-        })
-    };
-    let (mut csv, mut done) = open_csv(&csv_path).map_err(|(action, e)| io(action, e))?;
+    let (mut csv, mut done) = open_csv(&csv_path)?;
 
     let mut queue: VecDeque<CheckpointReady> = checkpoints_on_disk(run, config).into();
     if !queue.is_empty() {
@@ -221,11 +177,11 @@ pub fn run(run: &RunDir, config: &Config) -> Result<u64, EvaluatorError> {
         let (q, _) = checkpoint::load(&path, config)?;
         let result = Evaluator::from_config(config, task).evaluate(&q);
         let row = EvaluationRow::new(&task.name, &method.name(), next.epoch, &result);
-        writeln!(csv, "{}", row.to_csv()).map_err(|e| io("append a row", e))?;
-        csv.flush().map_err(|e| io("flush", e))?;
+        writeln!(csv, "{}", row.to_csv()).map_err(FileError::at(&csv_path, "append a row"))?;
+        csv.flush().map_err(FileError::at(&csv_path, "flush"))?;
         metrics.observe(&row, start.elapsed());
         evaluated += 1;
-        tracing::info!(task = %task.name, %method, epoch = next.epoch, ret = row.ret, aoi = row.aoi, power_mw = row.power_mw, outages = row.outages, "evaluated");
+        tracing::info!(task = %task.name, %method, epoch = next.epoch, ret = row.policy.ret.mean, aoi = row.policy.aoi.mean, power_mw = row.policy.power_mw.mean, outages = row.policy.outages.mean, "evaluated");
     }
     Ok(evaluated)
 }
@@ -235,10 +191,10 @@ type Evaluated = BTreeSet<(String, String, u32)>;
 
 /// The evaluations CSV at `path`, opened for appending (with its header when new), and the
 /// checkpoints its rows already hold. An error says what failed.
-fn open_csv(path: &Path) -> Result<(File, Evaluated), (&'static str, std::io::Error)> {
+fn open_csv(path: &Path) -> Result<(File, Evaluated), FileError> {
     let mut done = BTreeSet::new();
     if path.exists() {
-        for row in read_rows(path).map_err(|e| ("read", e))? {
+        for row in read_rows(path).map_err(FileError::at(path, "read"))? {
             done.insert((row.task, row.method, row.epoch));
         }
     }
@@ -247,9 +203,9 @@ fn open_csv(path: &Path) -> Result<(File, Evaluated), (&'static str, std::io::Er
         .create(true)
         .append(true)
         .open(path)
-        .map_err(|e| ("open", e))?;
+        .map_err(FileError::at(path, "open"))?;
     if fresh {
-        writeln!(csv, "{CSV_HEADER}").map_err(|e| ("write", e))?;
+        writeln!(csv, "{CSV_HEADER}").map_err(FileError::at(path, "write"))?;
     }
     Ok((csv, done))
 }
@@ -258,13 +214,7 @@ fn open_csv(path: &Path) -> Result<(File, Evaluated), (&'static str, std::io::Er
 /// checkpoint for each meta-test task, then each meta-test task's online DQN agent and the epochs
 /// of its fine-tuned methods.
 fn checkpoints_on_disk(run: &RunDir, config: &Config) -> Vec<CheckpointReady> {
-    let test_tasks: Vec<(u32, &TaskConfig)> = config
-        .tasks
-        .iter()
-        .enumerate()
-        .filter(|(_, t)| t.role == TaskRole::MetaTest)
-        .map(|(i, t)| (i as u32, t))
-        .collect();
+    let test_tasks: Vec<_> = config.meta_test_tasks().collect();
     let message = |method: Method, task: u32, epoch: u32| CheckpointReady {
         schema_version: SCHEMA_VERSION,
         method: method.code(),
@@ -298,24 +248,23 @@ fn checkpoints_on_disk(run: &RunDir, config: &Config) -> Vec<CheckpointReady> {
 
 #[cfg(test)]
 mod tests {
+    use uavmeta_proto::stats::Estimate;
+
     use super::*;
 
     #[test]
     fn rows_round_trip_and_torn_lines_are_skipped() {
-        let row = EvaluationRow {
-            task: "lambda-300".into(),
-            method: "cql-maml".into(),
-            epoch: 7,
+        let estimate = |mean, ci95| Estimate { mean, ci95 };
+        let policy = PolicyMetrics {
             episodes: 10,
-            ret: -1234.5,
-            ret_ci95: 12.0,
-            aoi: 6.25,
-            aoi_ci95: 0.5,
-            power_mw: 1.6,
-            power_mw_ci95: 0.1,
-            outages: 0.0,
-            outages_ci95: 0.0,
+            ret: estimate(-1234.5, 12.0),
+            aoi: estimate(6.25, 0.5),
+            power_mw: estimate(1.6, 0.1),
+            outages: estimate(0.0, 0.0),
         };
+        let row = EvaluationRow::new("lambda-300", "cql-maml", 7, &policy);
+        let line = "lambda-300,cql-maml,7,10,-1234.5,12,6.25,0.5,1.6,0.1,0,0";
+        assert_eq!(row.to_csv(), line);
         let dir = tempfile::tempdir().expect("temp dir");
         let path = dir.path().join("e.csv");
         std::fs::write(

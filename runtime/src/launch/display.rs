@@ -273,8 +273,8 @@ impl View {
                 .iter()
                 .filter(|r| r.task == *task)
                 .map(|r| match super::report::is_reference(&r.method) {
-                    true => format!("{} {:.1}", r.method, r.ret),
-                    false => format!("{}@{} {:.1}", r.method, r.epoch, r.ret),
+                    true => format!("{} {:.1}", r.method, r.policy.ret.mean),
+                    false => format!("{}@{} {:.1}", r.method, r.epoch, r.policy.ret.mean),
                 })
                 .collect();
             if !returns.is_empty() {

@@ -86,7 +86,6 @@ pub const SCRAPE_INTERVAL_SECONDS: u64 = 5;
 /// `prometheus.yml`; embedded so that the binary writes it from any working directory.
 const DASHBOARD: &str = include_str!("../../../docs/grafana/uavmeta.json");
 
-/// How often the supervisor looks at its children and the run's announcements.
 /// The launcher's process name: node, port file, metrics snapshot.
 pub const PROCESS: &str = "launcher";
 #[derive(Debug, thiserror::Error)]

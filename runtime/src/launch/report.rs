@@ -108,10 +108,13 @@ pub fn results_table(report: &LaunchReport) -> String {
         let mut rows: Vec<&EvaluationRow> = rows.filter(|r| r.task == task).collect();
         rows.sort_by_key(|r| row_rank(&r.method));
         let planner = PolicySpec::Planner.to_string();
-        let planner = rows.iter().find(|r| r.method == planner).map(|r| r.ret);
+        let planner = rows
+            .iter()
+            .find(|r| r.method == planner)
+            .map(|r| r.policy.ret.mean);
         // Rows above the planner: there it is not the best achievable, and the column then
         // says how far below the best row found, not below the optimum.
-        let above = |r: &EvaluationRow| planner.is_some_and(|p| r.ret > p);
+        let above = |r: &EvaluationRow| planner.is_some_and(|p| r.policy.ret.mean > p);
         for (i, r) in rows.iter().enumerate() {
             let reference = is_reference(&r.method);
             if i > 0 && !reference && is_reference(&rows[i - 1].method) {
@@ -126,16 +129,16 @@ pub fn results_table(report: &LaunchReport) -> String {
                 } else {
                     r.epoch.to_string()
                 },
-                format!("{:.1} ± {:.1}", r.ret, r.ret_ci95),
+                format!("{:.1}", r.policy.ret),
                 // Returns are costs: a row 3% below the planner reads -3.0%.
                 planner.map_or("-".to_string(), |p| format!(
                     "{:+.1}%{}",
-                    stats::percent_from(r.ret, p),
+                    stats::percent_from(r.policy.ret.mean, p),
                     if above(r) { ABOVE_PLANNER } else { "" }
                 )),
-                format!("{:.2} ± {:.2}", r.aoi, r.aoi_ci95),
-                format!("{:.3} ± {:.3}", r.power_mw, r.power_mw_ci95),
-                format!("{:.1} ± {:.1}", r.outages, r.outages_ci95),
+                format!("{:.2}", r.policy.aoi),
+                format!("{:.3}", r.policy.power_mw),
+                format!("{:.1}", r.policy.outages),
             ));
         }
         if let (Some(p), Some((_, bound))) =
@@ -150,7 +153,7 @@ pub fn results_table(report: &LaunchReport) -> String {
             planner,
             rows.iter()
                 .filter(|r| above(r))
-                .map(|r| r.ret)
+                .map(|r| r.policy.ret.mean)
                 .reduce(f64::max),
         ) {
             out.push_str(&format!(

@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 
 use indicatif::MultiProgress;
 use uavmeta_proto::config::Config;
-use uavmeta_proto::stats::Estimate;
+use uavmeta_proto::stats::{Estimate, PolicyMetrics};
 
 use super::{launch, LaunchError, LaunchReport, Reuse};
 use crate::evaluator::EvaluationRow;
@@ -100,23 +100,20 @@ fn aggregate(dir: &Path, seeds: &[(u64, LaunchReport)]) -> LaunchReport {
 
 /// One row whose figures are the rows' means, each with the 95% interval over the rows.
 fn mean_row(rows: &[&EvaluationRow]) -> EvaluationRow {
-    let over =
-        |pick: fn(&EvaluationRow) -> f64| Estimate::from_samples(rows.iter().map(|r| pick(r)));
-    let (ret, aoi) = (over(|r| r.ret), over(|r| r.aoi));
-    let (power, outages) = (over(|r| r.power_mw), over(|r| r.outages));
+    let over = |pick: fn(&PolicyMetrics) -> Estimate| {
+        Estimate::from_samples(rows.iter().map(|r| pick(&r.policy).mean))
+    };
     EvaluationRow {
         task: rows[0].task.clone(),
         method: rows[0].method.clone(),
         epoch: rows[0].epoch,
-        episodes: rows.iter().map(|r| r.episodes).sum(),
-        ret: ret.mean,
-        ret_ci95: ret.ci95,
-        aoi: aoi.mean,
-        aoi_ci95: aoi.ci95,
-        power_mw: power.mean,
-        power_mw_ci95: power.ci95,
-        outages: outages.mean,
-        outages_ci95: outages.ci95,
+        policy: PolicyMetrics {
+            episodes: rows.iter().map(|r| r.policy.episodes).sum(),
+            ret: over(|p| p.ret),
+            aoi: over(|p| p.aoi),
+            power_mw: over(|p| p.power_mw),
+            outages: over(|p| p.outages),
+        },
     }
 }
 
@@ -125,20 +122,15 @@ mod tests {
     use super::*;
 
     fn row(method: &str, ret: f64) -> EvaluationRow {
-        EvaluationRow {
-            task: "lambda-300".into(),
-            method: method.into(),
-            epoch: 100,
+        let estimate = |mean, ci95| Estimate { mean, ci95 };
+        let policy = PolicyMetrics {
             episodes: 100,
-            ret,
-            ret_ci95: 1.0,
-            aoi: 5.0,
-            aoi_ci95: 0.0,
-            power_mw: 0.4,
-            power_mw_ci95: 0.0,
-            outages: 0.0,
-            outages_ci95: 0.0,
-        }
+            ret: estimate(ret, 1.0),
+            aoi: estimate(5.0, 0.0),
+            power_mw: estimate(0.4, 0.0),
+            outages: estimate(0.0, 0.0),
+        };
+        EvaluationRow::new("lambda-300", method, 100, &policy)
     }
 
     fn report(rows: Vec<EvaluationRow>) -> LaunchReport {
@@ -169,10 +161,11 @@ mod tests {
         assert_eq!(a.results.len(), 1);
         let cql = &a.results[0];
         assert_eq!(cql.method, "cql");
-        assert!((cql.ret - -7100.0).abs() < 1e-9);
+        assert!((cql.policy.ret.mean - -7100.0).abs() < 1e-9);
         // t(0.975, 2) * sd 100 / sqrt(3) = 248.4
-        assert!((cql.ret_ci95 - 248.4).abs() < 0.1, "{}", cql.ret_ci95);
-        assert_eq!((cql.episodes, a.restarts), (300, 3));
+        let ci95 = cql.policy.ret.ci95;
+        assert!((ci95 - 248.4).abs() < 0.1, "{ci95}");
+        assert_eq!((cql.policy.episodes, a.restarts), (300, 3));
         assert_eq!(a.references.len(), 1);
     }
 

@@ -47,7 +47,7 @@ use uavmeta_meta::meta_train::{
     load_tasks, meta_train_with, MetaRow, MetaTrainHook, MetaTrainOptions,
 };
 use uavmeta_meta::{pretrain, MetaError};
-use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
+use uavmeta_proto::config::{Config, TaskConfig};
 use uavmeta_proto::method::{Method, Start};
 use uavmeta_proto::payload::{CheckpointReady, DatasetReady, SCHEMA_VERSION};
 use uavmeta_proto::stats::PolicyMetrics;
@@ -105,11 +105,8 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
         return Ok(Outcome::Stopped);
     }
     let test_tasks: Vec<(u32, TaskConfig)> = config
-        .tasks
-        .iter()
-        .enumerate()
-        .filter(|(_, t)| t.role == TaskRole::MetaTest)
-        .map(|(i, t)| (i as u32, t.clone()))
+        .meta_test_tasks()
+        .map(|(i, t)| (i, t.clone()))
         .collect();
     let anchor = test_tasks
         .first()

@@ -18,13 +18,10 @@
 //! as surplus. With one actor per task the file is therefore the same bytes for the same config
 //! and seed, whatever the timing.
 //!
-//! **Validation.** Nothing a publisher sends is trusted: before a batch's transitions are
-//! selected, every one of them is checked against the task's world (`uavmeta_world::validate`:
-//! finite, in range, and the world's own step from s(t) under a), and its first sequence number
-//! must lie within [`sequence_window`] of what the store holds of that actor, so a forged number
-//! far ahead cannot make every later batch of a real actor a duplicate. A batch that fails is
-//! dropped whole, unacknowledged, and counted per actor and reason
-//! (`store_transitions_rejected_total`) with a rate-limited log line; the store keeps running.
+//! **Validation.** Nothing a publisher sends is trusted: every batch is checked against the task's
+//! world before its transitions are selected, its first sequence number within
+//! [`sequence_window`] of what the store holds of that actor, and a batch that fails is dropped
+//! whole (the checks and what a failure does: docs/SECURITY.md, "What is checked, where").
 //!
 //! Accounting, checked by the end-to-end tests: transitions the actors published = stored +
 //! dropped (duplicate, surplus, foreign, invalid), and missing counts transitions that never
