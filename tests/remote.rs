@@ -9,8 +9,11 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use uavmeta_proto::config::Config;
 use uavmeta_proto::config::RunConfig;
+use uavmeta_proto::dataset::DatasetReader;
 use uavmeta_proto::metrics;
+use uavmeta_proto::payload::ServiceNames;
 use uavmeta_runtime::actor::ActorOptions;
 use uavmeta_runtime::metrics::{parse, scrape, sum, Sample};
 use uavmeta_runtime::run_dir::RunDir;
@@ -41,6 +44,9 @@ actors_per_task = 1
 
 [run]
 transitions_per_message = 16
+
+[tunnel.hosts]
+hostb = ["*"]
 "#;
 
 /// The two hosts of one test: domains, directories, the Zenoh endpoint, and A's run. The tunnel
@@ -83,7 +89,14 @@ impl Hosts {
         let tls = dir.path().join("tls");
         certs(&tls, "learner");
         certs(&tls, "hostb");
-        std::fs::write(tls.join("passwords"), "hostb:correct-horse\n").expect("dictionary");
+        certs(&tls, "hostc");
+        std::fs::write(
+            tls.join("passwords"),
+            "hostb:correct-horse\nhostc:battery-staple\n",
+        )
+        .expect("dictionary");
+        std::fs::write(tls.join("hostc.credentials"), "hostc:battery-staple\n")
+            .expect("credentials");
         std::fs::write(tls.join("hostb.credentials"), "hostb:correct-horse\n")
             .expect("credentials");
         Hosts {
@@ -319,6 +332,16 @@ fn a_launch_with_two_local_and_two_remote_actors_stores_the_remote_transitions()
     let seqs = dataset_seqs(hosts.run_a.root());
     let store = final_metrics(hosts.run_a.root(), "store");
     for task in tasks {
+        let reader = dataset_a(&hosts, task);
+        let made: Vec<(&str, u64)> = reader.provenance().into_iter().collect();
+        let remote = made
+            .iter()
+            .find(|(host, _)| *host == "hostb")
+            .map_or(0, |m| m.1);
+        assert!(
+            made.len() == 2 && remote > 0 && remote <= 150_000,
+            "{task}: made by {made:?}: both hosts, host B at most tunnel.max_host_share"
+        );
         let per_actor = &seqs[task];
         let remote = per_actor.get(&b_actor_id(task)).map_or(0, Vec::len);
         assert!(
@@ -606,8 +629,7 @@ fn forge<T: std::fmt::Debug + iceoryx2::prelude::ZeroCopySend + Copy + 'static>(
 /// learner's host, whose store keeps storing what the remote actor sends.
 #[test]
 fn a_remote_hosts_forged_shutdown_and_dataset_ready_reach_nothing_on_the_learners_host() {
-    use uavmeta_proto::config::Config;
-    use uavmeta_proto::payload::{DatasetReady, ServiceNames, Shutdown, SCHEMA_VERSION};
+    use uavmeta_proto::payload::{DatasetReady, Shutdown, SCHEMA_VERSION};
     let hosts = Hosts::new("forge");
     let (mut store, mut tunnel) = start_host_a(&hosts, &["collect.transitions=10000000".into()]);
     let mut join = hosts.join(hosts.run_a.id());
@@ -670,11 +692,17 @@ fn a_remote_hosts_forged_shutdown_and_dataset_ready_reach_nothing_on_the_learner
 /// A Zenoh session admitted as host B (its certificate and password), as a hostile or buggy
 /// remote host holds one: the project's own `session::connect`.
 fn rogue_session(hosts: &Hosts) -> zenoh::Session {
+    session_as(hosts, "hostb")
+}
+
+/// A Zenoh session admitted as `host`.
+fn session_as(hosts: &Hosts, host: &str) -> zenoh::Session {
+    let file = |ext: &str| Some(hosts.tls(&format!("{host}.{ext}")).into());
     let security = uavmeta_tunnel::Security {
         ca: Some(hosts.tls("ca.pem").into()),
-        certificate: Some(hosts.tls("hostb.pem").into()),
-        private_key: Some(hosts.tls("hostb.key").into()),
-        credentials: Some(hosts.tls("hostb.credentials").into()),
+        certificate: file("pem"),
+        private_key: file("key"),
+        credentials: file("credentials"),
     };
     let mut session = None;
     // The tunnel may still be starting: a client's session fails to open until it listens.
@@ -700,9 +728,8 @@ fn handshake_answers(session: &zenoh::Session, key: &str) -> usize {
 
 /// Issue #61: `--run-id '*'` admits nothing. `join` refuses a run id that is not one (a Zenoh
 /// wildcard above all) before it connects, and the learner host's tunnel answers only a
-/// handshake that names its run: an admitted session's wildcard query gets no answer. What an
-/// admitted host can still see, docs/SECURITY.md says: the run ids in the tunnels' liveliness
-/// tokens.
+/// handshake that names its run: an admitted session's wildcard query gets no answer, and its
+/// wildcard liveliness query lists no run (docs/SECURITY.md).
 #[test]
 fn a_wildcard_run_id_admits_nothing_and_learns_no_run() {
     use zenoh::Wait;
@@ -728,20 +755,27 @@ fn a_wildcard_run_id_admits_nothing_and_learns_no_run() {
             "{wildcard} was answered"
         );
     }
-    // docs/SECURITY.md: an admitted host sees the run ids in the liveliness tokens' keys.
-    let tokens = rogue
-        .liveliness()
-        .get("uavmeta/runs/*")
-        .timeout(Duration::from_secs(3))
-        .wait()
-        .expect("liveliness query");
-    let keys: Vec<String> = std::iter::from_fn(|| tokens.recv().ok())
-        .filter_map(|reply| reply.result().ok().map(|s| s.key_expr().to_string()))
-        .collect();
+    // docs/SECURITY.md: the tunnel's access control lets an admitted host ask only for its run's
+    // own keys, so a wildcard query of the liveliness tokens lists no run, while the run's own
+    // key finds its token (the check is not blind).
+    let tokens = |key: &str| -> Vec<String> {
+        let replies = (rogue.liveliness().get(key))
+            .timeout(Duration::from_secs(3))
+            .wait()
+            .expect("liveliness query");
+        std::iter::from_fn(|| replies.recv().ok())
+            .filter_map(|reply| reply.result().ok().map(|s| s.key_expr().to_string()))
+            .collect()
+    };
     assert_eq!(
-        keys,
-        [run_key],
-        "what SECURITY.md says an admitted host sees"
+        tokens(&run_key),
+        std::slice::from_ref(&run_key),
+        "the run's own token"
+    );
+    let keys = tokens("uavmeta/runs/*");
+    assert!(
+        keys.is_empty(),
+        "an admitted host listed the runs: {keys:?}"
     );
 }
 
@@ -825,4 +859,168 @@ fn a_remote_hosts_announcements_cannot_redirect_the_scrapes_or_flood_the_log() {
         .filter(|l| l.contains("remote actor host host="))
         .count();
     assert_eq!(lines, 1, "{log}");
+}
+
+/// A task's dataset file on host A, read.
+fn dataset_a(hosts: &Hosts, task: &str) -> DatasetReader {
+    let file = hosts
+        .run_a
+        .root()
+        .join("datasets")
+        .join(format!("{task}.uavds"));
+    DatasetReader::open(&file).unwrap_or_else(|e| panic!("{e}"))
+}
+
+/// The Zenoh key of the frames of `task`'s transitions under `names` (opened in host A's
+/// domain, where the store made them): what the tunnel's access control lets one host put on.
+fn channel_of(hosts: &Hosts, names: &ServiceNames, task: &str) -> String {
+    use iceoryx2::prelude::PortFactory;
+    let config = Config::load(&hosts.run_a.config_file(), &[]).expect("A's config");
+    let node = domain::node("hasher", &config.run).expect("a node in A's domain");
+    let service = transport::transition_service(&node, names, task, &config.run).expect("service");
+    format!(
+        "iox2/v1/channel/{}/fingerprint",
+        service.service_hash().as_str()
+    )
+}
+
+/// Issue #61: a remote host publishes only under its own name. Host B may serve `lambda-0`,
+/// host C `lambda-100`.
+/// - Over Zenoh, B's admitted session puts on the channels of A's own actors, of C's services
+///   and on C's announcement key: a session of C that subscribes to everything hears none of it,
+///   only what B puts on its own channel and key (so the check is not blind).
+/// - B's actor of `lambda-100` is refused, naming tunnel.hosts.
+/// - B's actor of `lambda-0` publishes 2000 transitions under the id of an actor of A (same
+///   task, policy and seed) before A's own starts: both are stored, B's only up to
+///   tunnel.max_host_share (half of 3000), and the dataset records who made what.
+#[test]
+fn a_remote_host_publishes_only_under_its_own_name_and_never_completes_a_dataset_alone() {
+    use zenoh::Wait;
+    let hosts = Hosts::new("own");
+    let served = r#"tunnel.hosts={hostb=["lambda-0"], hostc=["lambda-100"]}"#;
+    let (store, _tunnel) =
+        start_host_a(&hosts, &["collect.transitions=3000".into(), served.into()]);
+    let names = ServiceNames::new(hosts.run_a.id());
+    let own = channel_of(&hosts, &names.for_host("hostb"), "lambda-0");
+    let forbidden = [
+        channel_of(&hosts, &names, "lambda-0"),
+        channel_of(&hosts, &names, "lambda-100"),
+        channel_of(&hosts, &names.for_host("hostc"), "lambda-100"),
+    ];
+    let announce = |host: &str| format!("uavmeta/runs/{}/hosts/{host}", hosts.run_a.id());
+    let observer = session_as(&hosts, "hostc");
+    let heard = Arc::new(Mutex::new(Vec::<String>::new()));
+    let mut subscribers = Vec::new();
+    for key in ["iox2/v1/channel/**".to_string(), announce("*")] {
+        let heard = heard.clone();
+        let subscriber = observer
+            .declare_subscriber(key)
+            .callback(move |sample| {
+                heard
+                    .lock()
+                    .expect("heard")
+                    .push(sample.key_expr().to_string())
+            })
+            .wait()
+            .expect("subscriber");
+        subscribers.push(subscriber);
+    }
+    let rogue = rogue_session(&hosts);
+    let heard_own = || heard.lock().expect("heard").contains(&own);
+    wait_until("C to hear B on B's own channel", within(60), || {
+        rogue.put(&own, "frame").wait().expect("put");
+        std::thread::sleep(Duration::from_millis(50));
+        heard_own()
+    });
+    for key in forbidden.iter().cloned().chain([announce("hostc")]) {
+        // Refused on arrival at A's tunnel; a wildcard key may be refused by the API itself.
+        let _ = rogue.put(key, "forged").wait();
+    }
+    let _ = rogue.put("iox2/v1/channel/**", "forged").wait();
+    heard.lock().expect("heard").clear();
+    // The same session's later puts arrive after the earlier ones: once these are heard, the
+    // forged ones had their chance.
+    rogue.put(announce("hostb"), "{}").wait().expect("put");
+    wait_until("C to hear B's later puts", within(60), || {
+        rogue.put(&own, "frame").wait().expect("put");
+        std::thread::sleep(Duration::from_millis(50));
+        heard_own()
+    });
+    let heard_keys = heard.lock().expect("heard").clone();
+    assert!(
+        heard_keys.contains(&announce("hostb")),
+        "B's own announcement key: {heard_keys:?}"
+    );
+    for key in forbidden.iter().chain([&announce("hostc")]) {
+        assert!(!heard_keys.contains(key), "B put on {key}: {heard_keys:?}");
+    }
+    assert!(
+        heard_keys
+            .iter()
+            .all(|k| *k == own || *k == announce("hostb")),
+        "{heard_keys:?}"
+    );
+    drop((subscribers, rogue, observer));
+
+    // `join` refuses a --host other than its certificate's name before it connects.
+    let mut args = strings(&["tunnel", "join", "--connect", &hosts.endpoint, "--run-id"]);
+    args.extend(strings(&[
+        hosts.run_a.id(),
+        "--dir",
+        "unused",
+        "--host",
+        "hostc",
+    ]));
+    args.extend(hosts.b_credentials());
+    let posing = Proc::spawn("posing", &args).wait(within(60));
+    assert!(
+        !posing.status.success() && posing.stderr.contains("names hostb"),
+        "{}",
+        posing.stderr
+    );
+
+    let join = hosts.join(hosts.run_a.id());
+    let refused = hosts.actor_b("lambda-100", &[]).wait(within(60));
+    assert!(
+        !refused.status.success() && refused.stderr.contains("may not serve it"),
+        "{}",
+        refused.stderr
+    );
+    hosts
+        .actor_b("lambda-0", &["--transitions", "2000"])
+        .succeeds(within(120));
+    wait_until("B's share in A's store", within(60), || {
+        stored(&hosts.run_a) >= 1500.0
+    });
+    let run = hosts.run_a.root().display().to_string();
+    let local = strings(&[
+        "actor", "--run", &run, "--task", "lambda-0", "--seed", "100", "--policy", "random",
+    ]);
+    Proc::spawn("actor-a", &local).succeeds(within(120));
+    store.signal(libc::SIGTERM);
+    store.succeeds(within(60));
+    drop(join);
+    let reader = dataset_a(&hosts, "lambda-0");
+    let made: Vec<(&str, u64)> = reader.provenance().into_iter().collect();
+    assert_eq!(
+        made,
+        [("", 1500), ("hostb", 1500)],
+        "who made lambda-0's dataset"
+    );
+    let ids: std::collections::BTreeSet<u32> =
+        reader.transitions().iter().map(|t| t.actor).collect();
+    assert_eq!(ids.len(), 1, "A's actor and B's share one id: {ids:?}");
+    let file = hosts.run_a.root().join("datasets").join("lambda-0.uavds");
+    let inspect = Proc::spawn(
+        "inspect",
+        &strings(&["dataset", "inspect", &file.display().to_string()]),
+    )
+    .succeeds(within(60));
+    assert!(
+        inspect
+            .stdout
+            .contains("made by      learner host 1500, hostb 1500"),
+        "{}",
+        inspect.stdout
+    );
 }

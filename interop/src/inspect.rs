@@ -11,7 +11,7 @@ use std::fmt;
 use std::path::PathBuf;
 
 use uavmeta_proto::config::{Config, TaskConfig, MOVES};
-use uavmeta_proto::dataset::{DatasetHeader, DatasetReader, SCHEMA_VERSION};
+use uavmeta_proto::dataset::{DatasetHeader, DatasetReader, LEARNER_HOST, SCHEMA_VERSION};
 use uavmeta_proto::fs::FileError;
 use uavmeta_proto::stats::Estimate;
 use uavmeta_world::validate::{Rejection, Validator};
@@ -29,6 +29,8 @@ pub struct Summary {
     /// The task as the config defines it, with the config's origin, when one was given.
     pub task: Option<(TaskConfig, String)>,
     pub transitions: usize,
+    /// Transitions per host that made them: its name, `LEARNER_HOST` for the learner's own.
+    pub hosts: Vec<(String, u64)>,
     pub actors: usize,
     /// Distinct (actor, episode) pairs with at least one step in the file.
     pub episodes: usize,
@@ -117,8 +119,11 @@ impl Summary {
             bytes,
             chunks: reader.chunks(),
             transitions: transitions.len(),
-            actors: distinct(transitions.iter().map(|t| t.actor)),
-            episodes: distinct(transitions.iter().map(|t| (t.actor, t.episode))),
+            hosts: (reader.provenance().into_iter())
+                .map(|(host, n)| (host.to_string(), n))
+                .collect(),
+            actors: distinct(reader.with_hosts().map(|(h, t)| (h, t.actor))),
+            episodes: distinct(reader.with_hosts().map(|(h, t)| (h, t.actor, t.episode))),
             runs: runs.len(),
             episode_returns: runs
                 .iter()
@@ -220,6 +225,13 @@ impl fmt::Display for Summary {
             self.runs,
             self.episode_returns.len()
         )?;
+        let hosts: Vec<String> = (self.hosts.iter())
+            .map(|(host, n)| match host.as_str() {
+                LEARNER_HOST => format!("learner host {n}"),
+                remote => format!("{remote} {n}"),
+            })
+            .collect();
+        writeln!(f, "made by      {}", hosts.join(", "))?;
         self.write_statistics(f)?;
         self.write_actions(f)?;
         self.write_validation(f)

@@ -27,8 +27,13 @@
 //! | o + 8       | 4    | task id, u32 (must equal the file header's)            |
 //! | o + 12      | 4    | transition count c, u32                                |
 //! | o + 16      | 4    | payload length p in bytes, u32                         |
-//! | o + 20      | p    | payload: c [`Transition`]s, postcard-encoded back to back |
+//! | o + 20      | p    | payload: the host tag, then c [`Transition`]s          |
 //! | o + 20 + p  | 4    | CRC32 (IEEE) of bytes o .. o + 20 + p                  |
+//!
+//! The payload starts with the **host tag**, the host whose actors made the chunk's transitions:
+//! its length h (1 byte) and h bytes of UTF-8, empty for the learner's own host and a remote
+//! host's certificate name otherwise (written by the store, docs/REMOTE.md). The transitions
+//! follow, postcard-encoded back to back. [`DatasetReader::provenance`] counts them per host.
 //!
 //! Postcard writes integers as varints and `reward` as 4 raw bytes, so a transition of the default
 //! world (K = 10, coordinates and AoI below 128) takes about 40 bytes. Observations are the raw
@@ -57,7 +62,7 @@ use crate::fs::FileError;
 
 /// The format version this build reads and writes; bump it on any change to the layout above or
 /// to [`Transition`].
-pub const SCHEMA_VERSION: u16 = 1;
+pub const SCHEMA_VERSION: u16 = 2;
 
 /// The extension of a dataset file. A directory of meta-train datasets (`uavmeta meta-train
 /// --datasets DIR`) holds one file per task named `<task-name>.uavds`.
@@ -69,6 +74,9 @@ const CHUNK_MAGIC: &[u8; 4] = b"UMCH";
 const FILE_FIXED_LEN: usize = 26;
 const CHUNK_HEADER_LEN: usize = 20;
 const CRC_LEN: usize = 4;
+
+/// The host tag of the learner's own host: empty.
+pub const LEARNER_HOST: &str = "";
 
 /// One environment step (s, a, r, s', truncated) with where it came from.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -330,7 +338,7 @@ impl DatasetWriter {
         let recovery = loop {
             match scan.next_chunk() {
                 Ok(None) => break None,
-                Ok(Some(chunk)) => transitions += chunk.len() as u64,
+                Ok(Some((_, chunk))) => transitions += chunk.len() as u64,
                 Err(error) if scan.good_chunk_after_bad() => return Err(error),
                 Err(error) => {
                     let cut = Recovery {
@@ -394,9 +402,19 @@ impl DatasetWriter {
         Ok((writer, recovery))
     }
 
-    /// Writes `transitions` as one chunk (nothing for an empty slice). Each is checked against
-    /// the header first, so a file never holds a transition its reader would reject.
+    /// Writes `transitions`, made on the learner's own host, as one chunk ([`Self::append_from`]).
     pub fn append(&mut self, transitions: &[Transition]) -> Result<(), DatasetError> {
+        self.append_from(LEARNER_HOST, transitions)
+    }
+
+    /// Writes `transitions`, made by `host`'s actors, as one chunk tagged with `host` (nothing
+    /// for an empty slice). Each is checked against the header first, so a file never holds a
+    /// transition its reader would reject.
+    pub fn append_from(
+        &mut self,
+        host: &str,
+        transitions: &[Transition],
+    ) -> Result<(), DatasetError> {
         if transitions.is_empty() {
             return Ok(());
         }
@@ -425,6 +443,10 @@ impl DatasetWriter {
         self.chunk.extend_from_slice(&count.to_le_bytes());
         // The payload length is patched in once the payload is encoded.
         self.chunk.extend_from_slice(&0u32.to_le_bytes());
+        let tag = u8::try_from(host.len())
+            .map_err(|_| invalid(0, format!("host tag `{host}` is longer than 255 bytes")))?;
+        self.chunk.push(tag);
+        self.chunk.extend_from_slice(host.as_bytes());
         for (index, t) in transitions.iter().enumerate() {
             postcard::to_io(t, &mut self.chunk)
                 .map_err(|e| invalid(index, format!("postcard cannot encode it: {e}")))?;
@@ -491,6 +513,8 @@ pub struct DatasetReader {
     /// Chunks read, each with its CRC32 checked.
     chunks: usize,
     transitions: Vec<Transition>,
+    /// Per chunk in file order, its host tag and how many transitions it holds.
+    hosts: Vec<(String, usize)>,
 }
 
 /// The whole file with its decoded header and the header's length: where every scan starts.
@@ -507,16 +531,17 @@ impl DatasetReader {
         let path = path.as_ref().to_path_buf();
         let (bytes, header, header_len) = read_with_header(&path)?;
         let mut scan = Scan::new(&path, &bytes, &header, header_len);
-        let (mut transitions, mut chunks) = (Vec::new(), 0);
-        while let Some(chunk) = scan.next_chunk()? {
+        let (mut transitions, mut hosts) = (Vec::new(), Vec::new());
+        while let Some((host, chunk)) = scan.next_chunk()? {
+            hosts.push((host, chunk.len()));
             transitions.extend(chunk);
-            chunks += 1;
         }
         Ok(Self {
             path,
             header,
-            chunks,
+            chunks: hosts.len(),
             transitions,
+            hosts,
         })
     }
 
@@ -586,6 +611,21 @@ impl DatasetReader {
     pub fn into_transitions(self) -> Vec<Transition> {
         self.transitions
     }
+
+    /// Every transition with the host tag of its chunk ([`LEARNER_HOST`] for the learner's own).
+    pub fn with_hosts(&self) -> impl Iterator<Item = (&str, &Transition)> {
+        let tags = (self.hosts.iter()).flat_map(|(host, n)| std::iter::repeat_n(host.as_str(), *n));
+        tags.zip(&self.transitions)
+    }
+
+    /// How many of the file's transitions each host made, by host tag.
+    pub fn provenance(&self) -> std::collections::BTreeMap<&str, u64> {
+        let mut counts = std::collections::BTreeMap::new();
+        for (host, n) in &self.hosts {
+            *counts.entry(host.as_str()).or_default() += *n as u64;
+        }
+        counts
+    }
 }
 
 /// Walks the chunks of a file held in memory.
@@ -607,9 +647,9 @@ impl<'a> Scan<'a> {
         }
     }
 
-    /// The next chunk's transitions, `None` at a clean end of file. On error `offset` stays at
-    /// the bad chunk.
-    fn next_chunk(&mut self) -> Result<Option<Vec<Transition>>, DatasetError> {
+    /// The next chunk's host tag and transitions, `None` at a clean end of file. On error
+    /// `offset` stays at the bad chunk.
+    fn next_chunk(&mut self) -> Result<Option<(String, Vec<Transition>)>, DatasetError> {
         let rest = &self.bytes[self.offset..];
         if rest.is_empty() {
             return Ok(None);
@@ -617,12 +657,28 @@ impl<'a> Scan<'a> {
         let payload_len = self.check_frame(rest)?;
         self.check_fields(rest)?;
         let count = u32_at(rest, 12) as usize;
-        let transitions = self.decode(
-            &rest[CHUNK_HEADER_LEN..CHUNK_HEADER_LEN + payload_len],
-            count,
-        )?;
+        let payload = &rest[CHUNK_HEADER_LEN..CHUNK_HEADER_LEN + payload_len];
+        let (host, payload) = self.host_tag(payload)?;
+        let transitions = self.decode(payload, count)?;
         self.offset += CHUNK_HEADER_LEN + payload_len + CRC_LEN;
-        Ok(Some(transitions))
+        Ok(Some((host, transitions)))
+    }
+
+    /// The host tag that starts a chunk's payload, and the rest of the payload.
+    fn host_tag<'p>(&self, payload: &'p [u8]) -> Result<(String, &'p [u8]), DatasetError> {
+        let len = *payload
+            .first()
+            .ok_or_else(|| self.corrupt("the payload has no host tag".into()))?
+            as usize;
+        let (tag, rest) = payload[1..].split_at_checked(len).ok_or_else(|| {
+            self.corrupt(format!(
+                "host tag of {len} bytes in a payload of {}",
+                payload.len()
+            ))
+        })?;
+        let host = std::str::from_utf8(tag)
+            .map_err(|_| self.corrupt(format!("host tag {tag:02x?} is not UTF-8")))?;
+        Ok((host.to_string(), rest))
     }
 
     /// The bad chunk at `offset`, and why.

@@ -344,25 +344,44 @@ pub struct Shutdown {
 }
 
 /// The iceoryx2 service names of one run; the run id makes two runs on a host disjoint.
+///
+/// A remote host's actors publish their transitions and read their acknowledgements under names
+/// of their own, `uavmeta/<run>/hosts/<host>/...` ([`ServiceNames::for_host`]): the learner
+/// host's tunnel lets each host put only on its own (docs/SECURITY.md), so no remote host can
+/// publish as the learner host's actors or another host's.
 #[derive(Debug, Clone)]
 pub struct ServiceNames {
     prefix: String,
+    /// Where a task's transitions and acknowledgements are: the run's own services on the learner
+    /// host, `hosts/<host>` under them for a remote host's.
+    actors: String,
 }
 
 impl ServiceNames {
-    /// The services of the run whose id is `run_id` (`uavmeta_runtime::run_dir::RunDir::id`).
+    /// The services of the run whose id is `run_id` (`uavmeta_runtime::run_dir::RunDir::id`),
+    /// as the learner host's actors use them.
     pub fn new(run_id: &str) -> Self {
+        let prefix = format!("uavmeta/{run_id}");
         Self {
-            prefix: format!("uavmeta/{run_id}"),
+            actors: prefix.clone(),
+            prefix,
+        }
+    }
+
+    /// The same run's services as remote host `host`'s actors use them.
+    pub fn for_host(&self, host: &str) -> Self {
+        Self {
+            actors: format!("{}/hosts/{host}", self.prefix),
+            prefix: self.prefix.clone(),
         }
     }
 
     pub fn transitions(&self, task: &str) -> String {
-        format!("{}/transitions/{task}", self.prefix)
+        format!("{}/transitions/{task}", self.actors)
     }
 
     pub fn acks(&self, task: &str) -> String {
-        format!("{}/acks/{task}", self.prefix)
+        format!("{}/acks/{task}", self.actors)
     }
 
     pub fn dataset_ready(&self) -> String {
@@ -377,9 +396,10 @@ impl ServiceNames {
         format!("{}/control/shutdown", self.prefix)
     }
 
-    /// The services a remote actor uses and which way each crosses a tunnel: the one
-    /// declaration of what a remote host may send (its transitions) and what only the learner's
-    /// host sends (acknowledgements, dataset announcements, the shutdown).
+    /// The services a remote host's actors use (names of [`Self::for_host`]) and which way each
+    /// crosses a tunnel: the one declaration of what a remote host may send (its transitions of
+    /// the tasks it serves) and what only the learner's host sends (acknowledgements, dataset
+    /// announcements, the shutdown).
     pub fn tunnel_routes<'t>(
         &self,
         tasks: impl IntoIterator<Item = &'t TaskConfig>,
@@ -508,6 +528,21 @@ mod tests {
         assert_ne!(
             ServiceNames::new("run-a-00000001").transitions("t"),
             ServiceNames::new("run-b-00000002").transitions("t")
+        );
+    }
+
+    #[test]
+    fn each_remote_host_has_its_own_transitions_and_acks_and_shares_the_rest() {
+        let run = ServiceNames::new("run-a-00000001");
+        let (b, c) = (run.for_host("b"), run.for_host("c"));
+        let names = [&run, &b, &c].map(|n| (n.transitions("t"), n.acks("t")));
+        assert_eq!(names[1].0, "uavmeta/run-a-00000001/hosts/b/transitions/t");
+        assert!(names[0] != names[1] && names[1] != names[2] && names[0] != names[2]);
+        assert_eq!(b.shutdown(), run.shutdown());
+        assert_eq!(b.dataset_ready(), run.dataset_ready());
+        assert_eq!(
+            b.to_remote(&b.acks("t")),
+            "uavmeta/run-a-00000001/to-remote/hosts/b/acks/t"
         );
     }
 }

@@ -526,3 +526,38 @@ fn every_shipped_config_loads_and_the_paper_floors_differ_only_in_the_noise() {
     let louder = Config::load(&configs.join("paper-90dbm.toml"), &[]).expect("paper-90dbm");
     assert_eq!(louder.world.noise_dbm, -90.0);
 }
+
+#[test]
+fn a_tunnel_names_the_hosts_that_may_serve_and_each_hosts_tasks_exist() {
+    let listen = "tunnel.listen=\"tcp/127.0.0.1:7447\"";
+    error_of("", &[listen], &["tunnel.hosts", "at least one remote host"]);
+    let unknown = "tunnel.hosts={b=[\"lambda-9\"]}";
+    error_of(
+        "",
+        &[listen, unknown],
+        &["tunnel.hosts.b", "lambda-9", "a task of [[tasks]]"],
+    );
+    let bad_name = "tunnel.hosts={\"a/b\"=[\"*\"]}";
+    error_of(
+        "",
+        &[listen, bad_name],
+        &["tunnel.hosts.a/b", "certificate"],
+    );
+    let waits = "tunnel.wait_for_hosts=[\"c\"]";
+    let served = "tunnel.hosts={b=[\"*\"]}";
+    error_of(
+        "",
+        &[listen, served, waits],
+        &["tunnel.wait_for_hosts", "\"c\""],
+    );
+    error_of(
+        "",
+        &[listen, served, "tunnel.max_host_share=0.0"],
+        &["tunnel.max_host_share"],
+    );
+    let (_, config) = load("", &[listen, served]);
+    let config = config.expect("a valid tunnel");
+    let all = config.tunnel.tasks_of("b", &config.tasks);
+    assert_eq!(all.len(), config.tasks.len());
+    assert!(config.tunnel.tasks_of("c", &config.tasks).is_empty());
+}

@@ -273,7 +273,8 @@ fn observation_length_mismatch_is_refused_on_write() {
 
 /// A chunk built by hand from the module doc's layout, bypassing the writer's checks.
 fn raw_chunk(devices: u16, task: u32, transitions: &[Transition]) -> Vec<u8> {
-    let mut payload = Vec::new();
+    // The learner host's (empty) host tag.
+    let mut payload = vec![0u8];
     for t in transitions {
         payload.extend(postcard::to_stdvec(t).unwrap());
     }
@@ -487,4 +488,25 @@ proptest! {
         let reader = DatasetReader::open(&path).unwrap();
         prop_assert_eq!(reader.transitions(), data.as_slice());
     }
+}
+
+#[test]
+fn every_chunk_records_the_host_that_made_it_and_the_reader_counts_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("d.uavds");
+    let mut writer = DatasetWriter::create(&path, header()).unwrap();
+    writer.append(&transitions(0..3)).unwrap();
+    writer.append_from("actors-1", &transitions(3..5)).unwrap();
+    writer.sync().unwrap();
+    let (mut writer, recovery) = DatasetWriter::open_append(&path).unwrap();
+    assert!(recovery.is_none());
+    writer.append_from("actors-1", &transitions(5..6)).unwrap();
+    writer.sync().unwrap();
+    let reader = DatasetReader::open(&path).unwrap();
+    let counts: Vec<(&str, u64)> = reader.provenance().into_iter().collect();
+    assert_eq!(counts, [("", 3), ("actors-1", 3)]);
+    let hosts: Vec<&str> = reader.with_hosts().map(|(host, _)| host).collect();
+    assert_eq!(hosts, ["", "", "", "actors-1", "actors-1", "actors-1"]);
+    let long = "h".repeat(256);
+    assert!(writer.append_from(&long, &transitions(6..7)).is_err());
 }

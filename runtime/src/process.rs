@@ -49,7 +49,7 @@ impl Process {
     /// SIGINT/SIGTERM handler), the run's service names and the shutdown subscription.
     pub fn start(run: &RunDir, config: &Config, name: &str) -> Result<Self, TransportError> {
         let node = domain::node(&format!("{}-{name}", run.id()), &config.run)?;
-        let names = ServiceNames::new(run.id());
+        let names = run.service_names();
         let shutdown =
             transport::control_subscriber(&transport::shutdown_service(&node, &names, config)?)?;
         Ok(Self {

@@ -22,6 +22,8 @@ pub struct RunDir {
     root: PathBuf,
     id: String,
     hash: u64,
+    /// On a remote actor host, the host's name (its certificate's): its actors publish under it.
+    host: Option<String>,
 }
 
 impl RunDir {
@@ -63,19 +65,20 @@ impl RunDir {
             id: format!("{name}-{:08x}", hash as u32),
             root,
             hash,
+            host: None,
         };
         local
             .remote_identity()
             .map(|remote| remote.unwrap_or(local))
     }
 
-    /// Makes `path` the directory of run `id` (hash `hash`) of another host, on a remote actor
-    /// host (`uavmeta tunnel join`): the processes started in it join that run, since id and
-    /// hash, which come from the learner host's path, are read from [`REMOTE_RUN_FILE`].
-    pub fn create_remote(path: &Path, id: &str, hash: u64) -> Result<Self, FileError> {
+    /// Makes `path` remote host `host`'s directory of run `id` (hash `hash`) of another host
+    /// (`uavmeta tunnel join`): the processes started in it join that run as `host`'s, since id,
+    /// hash (which come from the learner host's path) and host are read from [`REMOTE_RUN_FILE`].
+    pub fn create_remote(path: &Path, id: &str, hash: u64, host: &str) -> Result<Self, FileError> {
         let local = Self::create(path)?;
         let file = local.root.join(REMOTE_RUN_FILE);
-        write_atomic(&file, format!("{id}\n{hash:016x}\n").as_bytes())?;
+        write_atomic(&file, format!("{id}\n{hash:016x}\n{host}\n").as_bytes())?;
         Self::create(path)
     }
 
@@ -88,11 +91,11 @@ impl RunDir {
             Err(e) => return Err(FileError::at(&file, "read")(e)),
         };
         let mut lines = text.lines();
-        let parsed = lines
-            .next()
-            .zip(lines.next().and_then(|h| u64::from_str_radix(h, 16).ok()));
-        let parse = "parse (expected a run id and a hexadecimal hash)";
-        let Some((id, hash)) = parsed else {
+        let parsed = (lines.next())
+            .zip(lines.next().and_then(|h| u64::from_str_radix(h, 16).ok()))
+            .zip(lines.next().filter(|h| !h.is_empty()));
+        let parse = "parse (expected a run id, a hexadecimal hash and a host name)";
+        let Some(((id, hash), host)) = parsed else {
             return Err(FileError::at(&file, parse)(
                 std::io::ErrorKind::InvalidData.into(),
             ));
@@ -101,6 +104,7 @@ impl RunDir {
             root: self.root.clone(),
             id: id.to_string(),
             hash,
+            host: Some(host.to_string()),
         }))
     }
 
@@ -135,6 +139,20 @@ impl RunDir {
     /// The run's name in service names: `<dir name>-<hash>`.
     pub fn id(&self) -> &str {
         &self.id
+    }
+
+    /// On a remote actor host, the host's name; `None` on the learner's host.
+    pub fn host(&self) -> Option<&str> {
+        self.host.as_deref()
+    }
+
+    /// The run's service names as this host's actors use them.
+    pub fn service_names(&self) -> uavmeta_proto::payload::ServiceNames {
+        let names = uavmeta_proto::payload::ServiceNames::new(&self.id);
+        match &self.host {
+            Some(host) => names.for_host(host),
+            None => names,
+        }
     }
 
     /// A 64-bit fingerprint of the run's absolute path, carried by every batch.

@@ -13,7 +13,7 @@ use iceoryx2::prelude::*;
 use iceoryx2_integrations_zenoh_link_carrier::ZenohCarrier;
 use iceoryx2_link::Link;
 use iceoryx2_link_tunnel::Tunnel;
-use uavmeta_proto::config::{Config, TaskConfig};
+use uavmeta_proto::config::Config;
 use uavmeta_proto::payload::{Crossing, DatasetReady, ServiceNames, Shutdown, StoreAck};
 use uavmeta_runtime::domain;
 use uavmeta_runtime::run_dir::RunDir;
@@ -22,16 +22,19 @@ use zenoh::Session;
 
 use crate::{TunnelError, DISCOVER_EVERY};
 
-/// The services a remote actor uses, opened (or created) by the tunnel's process with uavmeta's
+/// The services remote actors use, opened (or created) by the tunnel's process with uavmeta's
 /// settings and schema attribute before any link exists. Without them, the link would create a
 /// service the other side offers as a mirror with iceoryx2's defaults, which uavmeta's openers
 /// then refuse; held open, they are the local side the link exports and relays into.
 ///
-/// Only the services of [`ServiceNames::tunnel_routes`] cross, and each only its way: a task's
-/// transitions under their own name, everything the learner's host alone announces through its
+/// Only the services of [`ServiceNames::tunnel_routes`] cross, and each only its way: the
+/// transitions of each remote host's own services (`ServiceNames::for_host`) for the tasks
+/// `tunnel.hosts` lets it serve, and everything the learner's host alone announces through its
 /// `to-remote/` copy, which [`Forwarders`] fill on the learner's host and empty on a remote one.
+/// The learner host's tunnel opens every listed host's services, a remote host's its own.
 pub(crate) struct RunServices {
-    _transitions: Vec<TransitionService>,
+    /// Per host, its transition services: the keys its access-control rules let it put on.
+    transitions: Vec<(String, Vec<TransitionService>)>,
     acks: Vec<(AckService, AckService)>,
     dataset_ready: (ControlService<DatasetReady>, ControlService<DatasetReady>),
     /// The run's own shutdown service, and its copy that crosses.
@@ -47,21 +50,41 @@ impl RunServices {
         config: &Config,
     ) -> Result<Self, TunnelError> {
         let names = ServiceNames::new(run.id());
-        let tasks = &config.tasks;
         let crossing = |service: String| names.to_remote(&service);
-        let acks = |t: &TaskConfig| -> Result<_, TunnelError> {
-            Ok((
-                transport::ack_service(node, &names, &t.name, &config.run)?,
-                transport::ack_service_at(node, crossing(names.acks(&t.name)), &config.run)?,
-            ))
+        let hosts: Vec<&str> = match run.host() {
+            Some(host) => vec![host],
+            None => config.tunnel.hosts.keys().map(String::as_str).collect(),
         };
-        let routes = names.tunnel_routes(tasks);
+        let (mut transitions, mut acks, mut routes) = (Vec::new(), Vec::new(), BTreeSet::new());
+        for host in hosts {
+            let own = names.for_host(host);
+            let tasks = config.tunnel.tasks_of(host, &config.tasks);
+            let mut services = Vec::new();
+            for t in &tasks {
+                services.push(transport::transition_service(
+                    node,
+                    &own,
+                    &t.name,
+                    &config.run,
+                )?);
+                acks.push((
+                    transport::ack_service(node, &own, &t.name, &config.run)?,
+                    transport::ack_service_at(node, crossing(own.acks(&t.name)), &config.run)?,
+                ));
+            }
+            transitions.push((host.to_string(), services));
+            routes.extend(
+                own.tunnel_routes(tasks)
+                    .into_iter()
+                    .map(|(service, way)| match way {
+                        Crossing::ToLearner => service,
+                        Crossing::ToRemote => crossing(service),
+                    }),
+            );
+        }
         Ok(Self {
-            _transitions: tasks
-                .iter()
-                .map(|t| transport::transition_service(node, &names, &t.name, &config.run))
-                .collect::<Result<_, _>>()?,
-            acks: tasks.iter().map(acks).collect::<Result<_, _>>()?,
+            transitions,
+            acks,
             dataset_ready: (
                 transport::control_service(node, names.dataset_ready(), config)?,
                 transport::control_service(node, crossing(names.dataset_ready()), config)?,
@@ -70,19 +93,26 @@ impl RunServices {
                 transport::control_service(node, names.shutdown(), config)?,
                 transport::control_service(node, crossing(names.shutdown()), config)?,
             ),
-            names: routes
-                .into_iter()
-                .map(|(service, way)| match way {
-                    Crossing::ToLearner => service,
-                    Crossing::ToRemote => crossing(service),
-                })
-                .collect(),
+            names: routes,
         })
     }
 
     /// The run's own shutdown service on this host.
     pub fn shutdown(&self) -> &ControlService<Shutdown> {
         &self.shutdown.0
+    }
+
+    /// Per host, the iceoryx2 service hashes of its transition services: what its frames cross
+    /// the tunnel under (`iox2/v1/channel/<hash>/...`).
+    pub fn transition_hashes(&self) -> Vec<(String, Vec<String>)> {
+        (self.transitions.iter())
+            .map(|(host, services)| {
+                let hashes = services
+                    .iter()
+                    .map(|s| s.service_hash().as_str().to_string());
+                (host.clone(), hashes.collect())
+            })
+            .collect()
     }
 }
 

@@ -1,6 +1,7 @@
 //! The handshake before any bridging: a remote host asks the learner's host for a run by Zenoh
 //! query, and each side checks the other's schema version.
 
+use std::collections::BTreeMap;
 use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
@@ -33,6 +34,8 @@ pub struct RunInfo {
     pub run_hash: u64,
     /// The run's config.toml.
     pub config: String,
+    /// The tasks the asking host may serve (`tunnel.hosts`).
+    pub tasks: Vec<String>,
 }
 
 impl RunInfo {
@@ -46,12 +49,28 @@ impl RunInfo {
             run_id: run.id().into(),
             run_hash: run.hash(),
             config: shared.to_toml_string(),
+            tasks: Vec::new(),
         }
     }
 }
 
-/// The learner host's side: the answer to `hello`, or the refusal to send back (and log).
-pub fn answer(info: &RunInfo, hello: &Hello) -> Result<RunInfo, String> {
+/// The tasks each remote host of `config.tunnel.hosts` may serve, by name.
+pub fn served(config: &Config) -> BTreeMap<String, Vec<String>> {
+    (config.tunnel.hosts.keys())
+        .map(|host| {
+            let tasks = config.tunnel.tasks_of(host, &config.tasks);
+            (host.clone(), tasks.iter().map(|t| t.name.clone()).collect())
+        })
+        .collect()
+}
+
+/// The learner host's side: the answer to `hello`, with the tasks the host may serve (`served`),
+/// or the refusal to send back (and log).
+pub fn answer(
+    info: &RunInfo,
+    served: &BTreeMap<String, Vec<String>>,
+    hello: &Hello,
+) -> Result<RunInfo, String> {
     if hello.schema_version != info.schema_version {
         return Err(format!(
             "host `{}` speaks schema version {}, but run `{}` speaks version {}; run the same \
@@ -59,13 +78,22 @@ pub fn answer(info: &RunInfo, hello: &Hello) -> Result<RunInfo, String> {
             hello.host, hello.schema_version, info.run_id, info.schema_version
         ));
     }
-    Ok(info.clone())
+    let tasks = served.get(&hello.host).ok_or_else(|| {
+        format!(
+            "host `{}` is not in tunnel.hosts of run `{}`: it may serve no task",
+            hello.host, info.run_id
+        )
+    })?;
+    Ok(RunInfo {
+        tasks: tasks.clone(),
+        ..info.clone()
+    })
 }
 
 /// Answers one query on the run's key, logging every refusal. A query of any other key that
 /// the run's matches (a wildcard such as `uavmeta/runs/*`) gets no answer, as a run id that is
 /// not served: the run id is told only to a host that names it.
-pub(crate) fn reply(query: &Query, info: &RunInfo) {
+pub(crate) fn reply(query: &Query, info: &RunInfo, served: &BTreeMap<String, Vec<String>>) {
     if query.key_expr().as_str() != run_key(&info.run_id) {
         tracing::debug!(key = %query.key_expr(), "ignored a handshake that does not name the run");
         return;
@@ -77,7 +105,7 @@ pub(crate) fn reply(query: &Query, info: &RunInfo) {
             serde_json::from_slice::<Hello>(&bytes.to_bytes()).map_err(|e| e.to_string())
         });
     let answer = hello.and_then(|hello| {
-        let answer = answer(info, &hello);
+        let answer = answer(info, served, &hello);
         match &answer {
             Ok(_) => tracing::info!(host = %hello.host, "a remote actor host joined the run"),
             Err(refusal) => tracing::error!("refused a remote actor host: {refusal}"),
@@ -156,7 +184,13 @@ mod tests {
             run_id: "r-0000".into(),
             run_hash: 7,
             config: String::new(),
+            tasks: Vec::new(),
         }
+    }
+
+    /// Host `b` may serve task `t`.
+    fn served_b() -> BTreeMap<String, Vec<String>> {
+        BTreeMap::from([("b".to_string(), vec!["t".to_string()])])
     }
 
     #[test]
@@ -165,7 +199,7 @@ mod tests {
             schema_version: SCHEMA_VERSION + 1,
             host: "b".into(),
         };
-        let refusal = answer(&info(), &hello).expect_err("refused");
+        let refusal = answer(&info(), &served_b(), &hello).expect_err("refused");
         assert!(refusal.contains(&format!("schema version {}", SCHEMA_VERSION + 1)));
         assert!(refusal.contains(&format!("speaks version {SCHEMA_VERSION}")));
         assert!(refusal.contains("`b`"));
@@ -173,7 +207,14 @@ mod tests {
             schema_version: SCHEMA_VERSION,
             host: "b".into(),
         };
-        assert_eq!(answer(&info(), &hello).expect("joined").run_hash, 7);
+        let joined = answer(&info(), &served_b(), &hello).expect("joined");
+        assert_eq!((joined.run_hash, joined.tasks), (7, vec!["t".to_string()]));
+        let stranger = Hello {
+            host: "c".into(),
+            ..hello
+        };
+        let refusal = answer(&info(), &served_b(), &stranger).expect_err("refused");
+        assert!(refusal.contains("`c` is not in tunnel.hosts"), "{refusal}");
     }
 
     /// `ask` until it gets an answer: a fresh client learns the server's declarations shortly
@@ -212,11 +253,11 @@ mod tests {
             .expect("a free port")
             .port();
         let endpoint = format!("tcp/127.0.0.1:{port}");
-        let server = session::listen(&endpoint, &Default::default()).expect("listen");
+        let server = session::listen(&endpoint, &Default::default(), None).expect("listen");
         let ours = info();
         let _current = server
             .declare_queryable(run_key("r-0000"))
-            .callback(move |query| reply(&query, &ours))
+            .callback(move |query| reply(&query, &ours, &served_b()))
             .wait()
             .expect("queryable");
         // A learner host of an older build that does not check: only the remote side can refuse.

@@ -137,7 +137,53 @@ fn check_endpoint(options: &JoinOptions) -> Result<(), TunnelError> {
                 .into(),
         });
     }
-    options.security.check_files(endpoint, SECURITY_FLAGS)
+    options.security.check_files(endpoint, SECURITY_FLAGS)?;
+    match &options.security.certificate {
+        Some(file) if endpoint.starts_with("tls/") => check_certificate_name(options, file),
+        _ => Ok(()),
+    }
+}
+
+/// The common name of the PEM certificate `pem`, if it has one.
+fn common_name(pem: &[u8]) -> Result<Option<String>, String> {
+    let (_, pem) = x509_parser::pem::parse_x509_pem(pem).map_err(|e| e.to_string())?;
+    let certificate = pem.parse_x509().map_err(|e| e.to_string())?;
+    let name = certificate.subject().iter_common_name().next();
+    Ok(name.and_then(|n| n.as_str().ok()).map(str::to_string))
+}
+
+/// Over TLS the learner's host knows this host by its certificate's name: `--host` must be it,
+/// or nothing this host publishes would be let in.
+fn check_certificate_name(
+    options: &JoinOptions,
+    file: &std::path::Path,
+) -> Result<(), TunnelError> {
+    let refused = |message: String| TunnelError::Refused {
+        endpoint: options.endpoint.clone(),
+        message,
+    };
+    let pem = std::fs::read_to_string(file).map_err(|e| {
+        refused(format!(
+            "--certificate {}: cannot read it: {e}",
+            file.display()
+        ))
+    })?;
+    let name = common_name(pem.as_bytes()).map_err(|e| {
+        refused(format!(
+            "--certificate {}: not a PEM certificate: {e}",
+            file.display()
+        ))
+    })?;
+    match name {
+        Some(name) if name == options.host => Ok(()),
+        name => Err(refused(format!(
+            "--host {} but --certificate {} names {}: the learner's host knows this host by \
+             its certificate's name; pass --host {0}",
+            options.host,
+            file.display(),
+            name.as_deref().unwrap_or("no common name"),
+        ))),
+    }
 }
 
 /// Connects to the endpoint and shakes hands, retrying with backoff (and saying so) while the
@@ -186,9 +232,13 @@ fn make_run_dir(options: &JoinOptions, info: &RunInfo) -> Result<(RunDir, Config
     // tunnel they queue in the Zenoh carrier's inbox (64 frames, `CARRIER_INBOX`) and the store's
     // buffer, which drop what does not fit: keep the window within them.
     config.run.subscriber_buffer = config.run.subscriber_buffer.min(CARRIER_INBOX / 2 - 1);
-    config.tunnel = TunnelConfig::default();
+    // What this host may serve, which its actors check before they publish.
+    config.tunnel = TunnelConfig {
+        hosts: [(options.host.clone(), info.tasks.clone())].into(),
+        ..TunnelConfig::default()
+    };
     config.validate()?;
-    let run = RunDir::create_remote(&options.dir, &info.run_id, info.run_hash)?;
+    let run = RunDir::create_remote(&options.dir, &info.run_id, info.run_hash, &options.host)?;
     write_atomic(&run.config_file(), config.to_toml_string().as_bytes())?;
     Ok((run, config))
 }

@@ -8,8 +8,8 @@
 //!
 //! Both sides run an [`iceoryx2_link::Link`] over the [`iceoryx2_link_tunnel::Tunnel`] with the
 //! Zenoh carrier, restricted to the services a remote actor uses, each only its way
-//! (`ServiceNames::tunnel_routes`, declared once in `uavmeta_proto::payload`): transitions cross
-//! under their own name; acknowledgements, dataset announcements and the shutdown cross only as
+//! (`ServiceNames::tunnel_routes`, declared once in `uavmeta_proto::payload`): a remote host's
+//! transitions cross under their own name; acknowledgements, dataset announcements and the shutdown cross only as
 //! `to-remote/` copies that the learner host's tunnel fills and a remote host's tunnel empties
 //! into its own services, so nothing a remote host publishes reaches a learner-host process but
 //! its transitions, which the store validates. The same payload types and service names from
@@ -34,16 +34,18 @@
 //! **Losing the other side**: `join` drops its link when the learner tunnel's Zenoh liveliness
 //! token goes, and shakes hands again and builds a new one when it is back (then: docs/REMOTE.md).
 //!
-//! **Known costs** of relaying whole services: the tunnel carries a service both ways, so the
-//! learner host's own actors' batches travel to every remote host too (and are dropped there),
-//! and the learner's local actors wait for the tunnel's subscriber like for the store's: a link
-//! slower than they are slows them. The Zenoh carrier's receiving inbox holds 64 frames and
-//! drops beyond, and the link's publishers skip a full subscriber (waiting on its own full one
-//! would deadlock it), so a frame dropped there or skipped by a store that fell behind is a gap
-//! the store counts as missing: every published transition is stored or counted, but not every
-//! one is stored. `join` narrows a remote actor's window of unacknowledged batches to fit the
-//! inbox, which makes such drops rare. Giving remote actors services of their own, which the
-//! store also reads, with flow control end to end, would remove all of these.
+//! **Who may publish what**: a remote host's actors publish on services of their own
+//! (`ServiceNames::for_host`), for the tasks `tunnel.hosts` lets it serve, and the learner host's
+//! session runs Zenoh's access control ([`session::Access`]), by the name on each link's
+//! certificate: a host puts only on its own services' channels and its own announcement key. The
+//! learner host's own actors' services do not cross at all.
+//!
+//! **Known costs**: the Zenoh carrier's receiving inbox holds 64 frames and drops beyond, and the
+//! link's publishers skip a full subscriber (waiting on its own full one would deadlock it), so a
+//! frame dropped there or skipped by a store that fell behind is a gap the store counts as
+//! missing: every published transition is stored or counted, but not every one is stored. `join`
+//! narrows a remote actor's window of unacknowledged batches to fit the inbox, which makes such
+//! drops rare.
 
 use std::time::Duration;
 

@@ -6,7 +6,7 @@ use std::path::Path;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
-use uavmeta_proto::config::Config;
+use uavmeta_proto::config::{is_host_name, Config};
 use uavmeta_runtime::run_dir::{write_atomic, FileError, RemoteHost, RemoteProcess, RunDir};
 use uavmeta_runtime::{domain, liveness, transport};
 use zenoh::{Session, Wait};
@@ -37,12 +37,20 @@ pub fn serve(run: &RunDir, config: &Config) -> Result<(), TunnelError> {
         "tunnel.credentials",
     ];
     security.check_files(endpoint, keys)?;
-    let session = session::listen(endpoint, &security)?;
+    let tls = endpoint.starts_with("tls/");
+    // Only a TLS link names its host (its certificate's name); a loopback endpoint without TLS
+    // authenticates no one, so there is no one to bind (docs/SECURITY.md).
+    let access = tls.then(|| session::Access {
+        run_id: run.id().to_string(),
+        hosts: services.transition_hashes(),
+    });
+    let session = session::listen(endpoint, &security, access.as_ref())?;
     let zenoh_error = TunnelError::zenoh(endpoint);
     let info = RunInfo::new(run, config);
+    let served = handshake::served(config);
     let _handshake = session
         .declare_queryable(run_key(run.id()))
-        .callback(move |query| handshake::reply(&query, &info))
+        .callback(move |query| handshake::reply(&query, &info, &served))
         .wait()
         .map_err(zenoh_error)?;
     let hosts_dir = run.remote_hosts_dir();
@@ -57,7 +65,6 @@ pub fn serve(run: &RunDir, config: &Config) -> Result<(), TunnelError> {
         })
         .wait()
         .map_err(zenoh_error)?;
-    let tls = endpoint.starts_with("tls/");
     let mut bridge = Bridge::new(
         &format!("{}-{PROCESS}", run.id()),
         config,
@@ -196,14 +203,6 @@ fn tunnel_address(session: &Session, host: &str, tls: bool) -> Option<IpAddr> {
         })
 }
 
-fn plain_name(name: &str) -> bool {
-    (1..=64).contains(&name.len())
-        && !name.starts_with('.')
-        && name
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'))
-}
-
 fn well_formed(host: &str, announced: &RemoteHost) -> bool {
     let address = |p: &RemoteProcess| {
         let (address, port) = p.metrics.rsplit_once(':')?;
@@ -216,11 +215,11 @@ fn well_formed(host: &str, announced: &RemoteHost) -> bool {
         .iter()
         .map(|p| p.name.as_str())
         .collect();
-    plain_name(host)
+    is_host_name(host)
         && announced.host == host
         && announced.processes.len() <= MAX_PROCESSES
         && names.len() == announced.processes.len()
-        && names.iter().all(|n| plain_name(n))
+        && names.iter().all(|n| is_host_name(n))
         && addresses.len() <= 1
         && !addresses.contains(&None)
 }

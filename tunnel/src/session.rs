@@ -87,15 +87,78 @@ impl Security {
     }
 }
 
-/// The learner's host: a peer listening on `endpoint`.
-pub(crate) fn listen(endpoint: &str, security: &Security) -> Result<Session, TunnelError> {
-    open(endpoint, "peer", "listen/endpoints", security)
+/// The learner's host: a peer listening on `endpoint`, under `access` if given.
+pub(crate) fn listen(
+    endpoint: &str,
+    security: &Security,
+    access: Option<&Access>,
+) -> Result<Session, TunnelError> {
+    let access = access.map(|a| ("access_control", a.to_json()));
+    open(endpoint, "peer", "listen/endpoints", security, access)
+}
+
+/// Who may put what on the learner host's session, enforced by Zenoh's access control: each
+/// remote host, known by the name its certificate was made for (the TLS link's authenticated
+/// name, not what the host says), may put only on the channels of its own transition services
+/// and on its own announcement key; it may subscribe, query and offer within the run's keys;
+/// anything else it sends, and everything from a host not listed, is dropped on arrival.
+#[derive(Debug, Clone)]
+pub(crate) struct Access {
+    pub run_id: String,
+    /// Per host, the iceoryx2 service hashes of its transition services.
+    pub hosts: Vec<(String, Vec<String>)>,
+}
+
+impl Access {
+    /// Zenoh's `access_control` settings.
+    fn to_json(&self) -> String {
+        let run = run_key(&self.run_id);
+        let everything = [
+            "put",
+            "delete",
+            "declare_subscriber",
+            "query",
+            "declare_queryable",
+            "reply",
+            "liveliness_token",
+            "declare_liveliness_subscriber",
+            "liveliness_query",
+        ];
+        let mut rules = vec![
+            serde_json::json!({"id": "to-hosts", "messages": everything, "flows": ["egress"],
+                "permission": "allow", "key_exprs": ["**"]}),
+            serde_json::json!({"id": "from-hosts", "messages": &everything[2..],
+                "flows": ["ingress"], "permission": "allow",
+                "key_exprs": ["iox2/**", run.clone(), format!("{run}/**")]}),
+        ];
+        let mut subjects = vec![serde_json::json!({"id": "hosts",
+            "cert_common_names": self.hosts.iter().map(|(h, _)| h).collect::<Vec<_>>()})];
+        let mut policies = vec![serde_json::json!({"rules": ["to-hosts", "from-hosts"],
+            "subjects": ["hosts"]})];
+        for (i, (host, hashes)) in self.hosts.iter().enumerate() {
+            let mut keys: Vec<String> = (hashes.iter())
+                .map(|hash| format!("iox2/v1/channel/{hash}/*"))
+                .collect();
+            keys.push(hosts_key(&self.run_id, host));
+            rules.push(
+                serde_json::json!({"id": format!("puts-{i}"), "messages": ["put"],
+                "flows": ["ingress"], "permission": "allow", "key_exprs": keys}),
+            );
+            subjects.push(serde_json::json!({"id": format!("host-{i}"),
+                "cert_common_names": [host]}));
+            policies.push(serde_json::json!({"rules": [format!("puts-{i}")],
+                "subjects": [format!("host-{i}")]}));
+        }
+        serde_json::json!({"enabled": true, "default_permission": "deny", "rules": rules,
+            "subjects": subjects, "policies": policies})
+        .to_string()
+    }
 }
 
 /// A remote host: a client of the learner host's peer at `endpoint`. A client's session fails to
 /// open while it cannot connect (or is refused), so that is an error to report, not a wait.
 pub fn connect(endpoint: &str, security: &Security) -> Result<Session, TunnelError> {
-    open(endpoint, "client", "connect/endpoints", security)
+    open(endpoint, "client", "connect/endpoints", security, None)
 }
 
 /// Zenoh's settings for `security`, as (key, JSON value) pairs; `listening` picks the TLS keys of
@@ -165,6 +228,7 @@ fn open(
     mode: &str,
     endpoints_key: &str,
     security: &Security,
+    access: Option<(&str, String)>,
 ) -> Result<Session, TunnelError> {
     let error = TunnelError::zenoh(endpoint);
     let mut config = zenoh::Config::default();
@@ -184,7 +248,7 @@ fn open(
                 .into(),
         ),
     ];
-    for (key, value) in settings {
+    for (key, value) in settings.into_iter().chain(access) {
         config
             .insert_json5(key, &value)
             .map_err(|e| error(format!("config {key} = {value}: {e}")))?;

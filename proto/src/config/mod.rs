@@ -37,7 +37,7 @@ pub use planner::PlannerConfig;
 pub use run::{RunConfig, MAX_DOMAIN_LEN, MAX_SUBSCRIBER_BUFFER, MAX_TRANSITIONS_PER_MESSAGE};
 pub use section::{OwnedSection, Section};
 pub use task::{RainZone, TaskConfig, TaskRole};
-pub use tunnel::{is_loopback_endpoint, TunnelConfig, MAX_HOSTS};
+pub use tunnel::{is_host_name, is_loopback_endpoint, TunnelConfig, ALL_TASKS, MAX_HOSTS};
 pub use world::{Delta, PowerTerm, WorldConfig, MAX_DEVICES, MAX_GRID_CELLS, MOVES};
 
 use rules::{first_broken, non_empty, Broken};
@@ -241,7 +241,7 @@ impl Config {
         garde::Validate::validate(self).map_err(first_broken)?;
         self.world.check_layout()?;
         self.check_tasks()?;
-        self.tunnel.check_hosts()?;
+        self.tunnel.check_hosts(&self.tasks)?;
         self.tunnel.check_security()?;
         self.check_limits()?;
         self.planner.check_memory(&self.world)

@@ -1,6 +1,7 @@
 //! `[tunnel]`: remote actor hosts reaching the run through iceoryx2's tunnel over Zenoh. Read by
 //! `uavmeta_tunnel` and by the launcher, which waits for the hosts (`uavmeta_runtime::launch`).
 
+use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use garde::Validate;
@@ -8,6 +9,7 @@ use serde::{Deserialize, Serialize};
 use smart_default::SmartDefault;
 
 use super::rules::{positive, satisfies, within, Broken};
+use super::TaskConfig;
 
 /// Most remote hosts a run lists (`tunnel.max_hosts`).
 pub const MAX_HOSTS: usize = 64;
@@ -28,6 +30,17 @@ pub struct TunnelConfig {
     /// starts the local ones: until each has joined and the store has stored a transition, so
     /// that a run's data comes from every host it was planned with.
     pub wait_for_hosts: Vec<String>,
+    /// Who may serve what: each remote host, by its certificate's name (`uavmeta tunnel certs
+    /// --host NAME`, `uavmeta tunnel join --host NAME`), with the tasks its actors may publish
+    /// for (`"*"`: every task), such as `{ actors-1 = ["lambda-0", "lambda-100"] }`. A host not
+    /// listed publishes nothing; the tunnel's access control enforces it (docs/SECURITY.md).
+    pub hosts: BTreeMap<String, Vec<String>>,
+    /// The largest fraction of a task's dataset that one remote host's transitions may fill;
+    /// beyond it they are dropped as surplus, so that no remote host completes a dataset alone
+    /// while the learner host's actors serve the task.
+    #[default(0.5)]
+    #[garde(custom(satisfies(|s: &f64| *s > 0.0 && *s <= 1.0, "a fraction in (0, 1]")))]
+    pub max_host_share: f64,
     /// Remote hosts whose processes the launcher lists (Prometheus targets, log); later ones are
     /// ignored.
     #[default(8)]
@@ -48,6 +61,17 @@ pub struct TunnelConfig {
     /// A file of `user:password` lines (Zenoh's user-password dictionary): a remote host must also
     /// present one of them (`uavmeta tunnel join --credentials FILE`). Empty: certificates only.
     pub credentials: PathBuf,
+}
+
+/// In `tunnel.hosts`, every task.
+pub const ALL_TASKS: &str = "*";
+
+/// A remote host's name as `uavmeta tunnel certs` accepts it, within Zenoh's and iceoryx2's
+/// limits: 1 to 64 letters, digits, `-`, `_` and `.`, not starting with `.`.
+pub fn is_host_name(name: &str) -> bool {
+    (1..=64).contains(&name.len())
+        && !name.starts_with('.')
+        && (name.chars()).all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'))
 }
 
 /// A Zenoh endpoint `PROTOCOL/ADDRESS`, or empty (no tunnel).
@@ -75,16 +99,66 @@ pub fn is_loopback_endpoint(endpoint: &str) -> bool {
 
 // The tunnel's security (issue #31): secure by default.
 impl TunnelConfig {
-    /// Hosts to wait for need a tunnel to come through.
-    pub(super) fn check_hosts(&self) -> Result<(), Broken> {
-        match self.wait_for_hosts.is_empty() || !self.listen.is_empty() {
-            true => Ok(()),
-            false => Err(Broken::new(
+    /// Hosts to wait for need a tunnel to come through and must be allowed to serve; a tunnel
+    /// needs a host that may serve; every host is a certificate name allowed tasks of `tasks`.
+    pub(super) fn check_hosts(&self, tasks: &[TaskConfig]) -> Result<(), Broken> {
+        if !self.wait_for_hosts.is_empty() && self.listen.is_empty() {
+            return Err(Broken::new(
                 "tunnel.wait_for_hosts",
                 &self.wait_for_hosts,
                 "no hosts while tunnel.listen is empty (no tunnel to wait through)",
-            )),
+            ));
         }
+        if let Some(host) = (self.wait_for_hosts.iter()).find(|h| !self.hosts.contains_key(*h)) {
+            return Err(Broken::new(
+                "tunnel.wait_for_hosts",
+                host,
+                "a host of tunnel.hosts (the hosts allowed to serve tasks)",
+            ));
+        }
+        if !self.listen.is_empty() && self.hosts.is_empty() {
+            return Err(Broken::new(
+                "tunnel.hosts",
+                &self.hosts,
+                "at least one remote host with the tasks it may serve while tunnel.listen is set, \
+                 such as { actors-1 = [\"*\"] } (the name its certificate was made for)",
+            ));
+        }
+        if self.hosts.len() > self.max_hosts {
+            return Err(Broken::new(
+                "tunnel.hosts",
+                &self.hosts.len(),
+                format!("at most tunnel.max_hosts = {} hosts", self.max_hosts),
+            ));
+        }
+        for (host, served) in &self.hosts {
+            let key = format!("tunnel.hosts.{host}");
+            if !is_host_name(host) {
+                return Err(Broken::new(
+                    key,
+                    host,
+                    "a host name of 1 to 64 letters, digits, `-`, `_` and `.` (a certificate's)",
+                ));
+            }
+            let known = |t: &String| t == ALL_TASKS || tasks.iter().any(|c| &c.name == t);
+            if let Some(task) = served.iter().find(|t| !known(t)) {
+                return Err(Broken::new(
+                    key,
+                    task,
+                    "a task of [[tasks]], or \"*\" for all",
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// The tasks of `tasks` that remote host `host` may serve (none if it is not listed).
+    pub fn tasks_of<'t>(&self, host: &str, tasks: &'t [TaskConfig]) -> Vec<&'t TaskConfig> {
+        let served = self.hosts.get(host).map_or(&[][..], Vec::as_slice);
+        let all = served.iter().any(|t| t == ALL_TASKS);
+        (tasks.iter())
+            .filter(|t| all || served.contains(&t.name))
+            .collect()
     }
 
     /// A `tls/` endpoint needs the CA, certificate and key; any other beyond loopback is refused,

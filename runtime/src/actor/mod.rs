@@ -77,6 +77,15 @@ pub enum ActorError {
         acknowledged: u64,
         sent: u64,
     },
+    #[error(
+        "--task {task}: host `{host}` may not serve it; the learner host's tunnel.hosts lets it \
+         serve {served:?}"
+    )]
+    NotServed {
+        task: String,
+        host: String,
+        served: Vec<String>,
+    },
 }
 
 /// What to run: the flags of `uavmeta actor`.
@@ -219,6 +228,25 @@ fn transition_limit(options: &ActorOptions, config: &Config) -> u64 {
     }
 }
 
+/// On a remote host, `task` must be one the learner host lets it serve (`tunnel.hosts`, which
+/// `uavmeta tunnel join` copies from the handshake): its transitions would reach no one.
+fn check_served(run: &RunDir, config: &Config, task: &str) -> Result<(), ActorError> {
+    let Some(host) = run.host() else {
+        return Ok(());
+    };
+    let served: Vec<String> = (config.tunnel.tasks_of(host, &config.tasks).iter())
+        .map(|t| t.name.clone())
+        .collect();
+    match served.iter().any(|t| t == task) {
+        true => Ok(()),
+        false => Err(ActorError::NotServed {
+            task: task.into(),
+            host: host.into(),
+            served,
+        }),
+    }
+}
+
 /// Runs an actor of `run` until its task's dataset is complete, a shutdown, its transition limit,
 /// or SIGINT/SIGTERM.
 pub fn run(
@@ -228,6 +256,7 @@ pub fn run(
 ) -> Result<ActorSummary, ActorError> {
     let task = config.task(&options.task)?.clone();
     let task_id = config.task_id(&task.name)? as u32;
+    check_served(run, config, &task.name)?;
     let actor = options.actor_id();
     let process = Process::start(run, config, &options.process_name())?;
     let (node, names) = (&process.node, &process.names);

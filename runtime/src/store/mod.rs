@@ -2,7 +2,7 @@
 //! appends each task's dataset file, and announces a task's dataset once it is complete.
 //!
 //! **Exactly once, or counted.** Every actor numbers its transitions 0, 1, 2, ... and the store
-//! remembers, per task and actor, the next number it expects. A transition below it is a
+//! remembers, per task, host and actor, the next number it expects. A transition below it is a
 //! duplicate (an actor restarted with the same seed replays its episodes) and is dropped; a jump
 //! above it is a gap, counted as missing. On start the store rebuilds these numbers from its own
 //! files, so a store killed and restarted keeps one copy of everything and counts whatever the
@@ -17,6 +17,12 @@
 //! **Size.** A task's file holds exactly `collect.transitions` transitions; later ones are dropped
 //! as surplus. With one actor per task the file is therefore the same bytes for the same config
 //! and seed, whatever the timing.
+//!
+//! **Hosts.** The learner host's actors publish on a task's own service, each remote host's on
+//! services of its own (`ServiceNames::for_host`), which only that host can reach through the
+//! tunnel; the store keeps sequence numbers per host, acknowledges each host on its own service,
+//! tags every chunk with the host that made it (`uavmeta dataset inspect` counts them), and stores
+//! at most `tunnel.max_host_share` of a dataset from any one remote host (the rest is surplus).
 //!
 //! **Validation.** Nothing a publisher sends is trusted: every batch is checked against the task's
 //! world before its transitions are selected, its first sequence number within
@@ -36,13 +42,15 @@ use iceoryx2::prelude::*;
 use iceoryx2::sample::Sample;
 use uavmeta_proto::config::{Config, ConfigError, RunConfig};
 use uavmeta_proto::dataset::{
-    DatasetError, DatasetHeader, DatasetReader, DatasetWriter, Transition,
+    DatasetError, DatasetHeader, DatasetReader, DatasetWriter, Transition, LEARNER_HOST,
 };
 use uavmeta_proto::metrics::store::{
     DROPPED_REASONS, DUPLICATE, FOREIGN, INVALID, OTHER_ACTORS, REJECTION_ACTORS, SEQUENCE_WINDOW,
     SURPLUS,
 };
-use uavmeta_proto::payload::{BatchHeader, DatasetReady, StoreAck, TransitionSlot, SCHEMA_VERSION};
+use uavmeta_proto::payload::{
+    BatchHeader, DatasetReady, ServiceNames, StoreAck, TransitionSlot, SCHEMA_VERSION,
+};
 use uavmeta_world::validate::{Claimed, Rejection, Validator};
 
 use crate::metrics::MetricsError;
@@ -92,39 +100,56 @@ pub enum StoreError {
     Metrics(#[from] MetricsError),
 }
 
-/// One task's file and the sequence numbers it holds.
+/// One task's file and where its transitions come from.
 struct TaskStore {
     name: String,
     id: u32,
     writer: DatasetWriter,
-    /// Per actor, the next sequence number not yet stored.
-    next_seq: HashMap<u32, u64>,
-    /// Tells the task's actors what is stored, so that they send it again only if it is not.
-    acks: Publisher<ipc::Service, StoreAck, ()>,
+    /// The learner host's actors first, then each remote host that may serve the task.
+    sources: Vec<Source>,
     announced: bool,
 }
 
-impl TaskStore {
-    /// Tells `actor` that every number below `next_seq` is stored.
-    fn acknowledge(&self, actor: u32, next_seq: u64) -> Result<(), TransportError> {
+/// One host's actors of a task: their services and what the file holds of them.
+struct Source {
+    /// The chunks' host tag: `LEARNER_HOST`, or the remote host's name.
+    host: String,
+    subscriber: BatchSubscriber,
+    /// Tells the host's actors what is stored, so that they send it again only if it is not.
+    acks: Publisher<ipc::Service, StoreAck, ()>,
+    /// Per actor, the next sequence number not yet stored.
+    next_seq: HashMap<u32, u64>,
+    /// The host's transitions in the file.
+    stored: u64,
+    /// The most of them the file may hold: the whole dataset for the learner's host,
+    /// `tunnel.max_host_share` of it for a remote one.
+    most: u64,
+}
+
+impl Source {
+    /// Tells `actor` of task `task` that every number below `next_seq` is stored.
+    fn acknowledge(&self, task: u32, actor: u32, next_seq: u64) -> Result<(), TransportError> {
         transport::acknowledge(
             &self.acks,
             StoreAck {
                 schema_version: SCHEMA_VERSION,
-                task: self.id,
+                task,
                 actor,
                 reserved: 0,
                 next_seq,
             },
         )
     }
+}
 
+impl TaskStore {
     /// Repeats every actor's acknowledgement: one an actor missed (its buffer overflowed) is
     /// made good, and a restarted store tells actors what its file already holds.
     fn acknowledge_all(&self) -> Result<(), TransportError> {
-        self.next_seq
-            .iter()
-            .try_for_each(|(&actor, &next)| self.acknowledge(actor, next))
+        self.sources.iter().try_for_each(|source| {
+            (source.next_seq.iter())
+                .try_for_each(|(&actor, &next)| source.acknowledge(self.id, actor, next))
+        })
     }
 }
 
@@ -204,9 +229,8 @@ struct Store<'a> {
     world_hash: u64,
     metrics: metrics::StoreMetrics,
     ready: Publisher<ipc::Service, DatasetReady, ()>,
-    /// In task order, as `subscribers`.
+    /// In task order.
     tasks: Vec<TaskStore>,
-    subscribers: Vec<BatchSubscriber>,
     /// The transitions of the batch being stored, kept to reuse its allocation.
     buffer: Vec<Transition>,
     /// In task order: every transition is checked against its task's world.
@@ -245,14 +269,11 @@ impl<'a> Store<'a> {
         let (node, names) = (&process.node, &process.names);
         let metrics = metrics::StoreMetrics::new();
         let mut tasks = Vec::with_capacity(config.tasks.len());
-        let mut subscribers = Vec::with_capacity(config.tasks.len());
         for (id, task) in config.tasks.iter().enumerate() {
-            let acks = transport::ack_service(node, names, &task.name, &config.run)?;
-            let acks = transport::ack_publisher(&acks)?;
-            let store = open_task(run, config, &task.name, id as u32, acks, &metrics)?;
-            let service = transport::transition_service(node, names, &task.name, &config.run)?;
-            subscribers.push(transport::transition_subscriber(&service, &config.run)?);
-            tasks.push(store);
+            let sources = sources(node, names, config, &task.name)?;
+            tasks.push(open_task(
+                run, config, &task.name, id as u32, sources, &metrics,
+            )?);
         }
         let ready =
             transport::control_publisher(&transport::dataset_ready_service(node, names, config)?)?;
@@ -264,7 +285,6 @@ impl<'a> Store<'a> {
             metrics,
             ready,
             tasks,
-            subscribers,
             buffer: Vec::with_capacity(config.run.transitions_per_message),
             validators: Validator::for_tasks(&config.world, &config.tasks),
             seq_window: sequence_window(&config.run),
@@ -279,24 +299,28 @@ impl<'a> Store<'a> {
         Ok(store)
     }
 
-    /// Receives and stores everything waiting on every task's service; returns the batches
+    /// Receives and stores everything waiting on every task's services; returns the batches
     /// handled.
     fn drain(&mut self) -> Result<usize, StoreError> {
         let mut batches = 0;
         for i in 0..self.tasks.len() {
-            while let Some(sample) = self.subscribers[i]
-                .receive()
-                .map_err(transport::receive_failed("receive a batch"))?
-            {
-                batches += 1;
-                self.store_batch(i, sample)?;
+            for s in 0..self.tasks[i].sources.len() {
+                while let Some(sample) = self.tasks[i].sources[s]
+                    .subscriber
+                    .receive()
+                    .map_err(transport::receive_failed("receive a batch"))?
+                {
+                    batches += 1;
+                    self.store_batch(i, s, sample)?;
+                }
             }
         }
         Ok(batches)
     }
 
-    /// Checks a batch of task `i`, appends what its file lacks, and acknowledges it.
-    fn store_batch(&mut self, i: usize, sample: BatchSample) -> Result<(), StoreError> {
+    /// Checks a batch of task `i` from source `s`, appends what its file lacks, and
+    /// acknowledges it.
+    fn store_batch(&mut self, i: usize, s: usize, sample: BatchSample) -> Result<(), StoreError> {
         let name = self.tasks[i].name.clone();
         let name = name.as_str();
         let header = *sample.user_header();
@@ -326,26 +350,28 @@ impl<'a> Store<'a> {
             self.summary.dropped += slots.len() as u64;
             return Ok(());
         }
-        if let Err(rejection) = self.validate(i, &header, slots) {
+        if let Err(rejection) = self.validate(i, s, &header, slots) {
             self.reject(i, &header, slots.len() as u64, &rejection);
             return Ok(());
         }
-        let acknowledged = self.select(i, &header, slots);
+        let acknowledged = self.select(i, s, &header, slots);
         drop(sample);
-        self.append(i)?;
-        self.tasks[i].acknowledge(header.actor, acknowledged)?;
+        self.append(i, s)?;
+        let task = &self.tasks[i];
+        task.sources[s].acknowledge(task.id, header.actor, acknowledged)?;
         self.announce_if_complete(i)
     }
 
-    /// Checks a batch of task `i` whose header passed: its first sequence number within the
-    /// actor's window, and every transition one the task's world makes.
+    /// Checks a batch of task `i` from source `s` whose header passed: its first sequence
+    /// number within the actor's window, and every transition one the task's world makes.
     fn validate(
         &mut self,
         i: usize,
+        s: usize,
         header: &BatchHeader,
         slots: &[TransitionSlot],
     ) -> Result<(), Rejection> {
-        let next = self.tasks[i]
+        let next = self.tasks[i].sources[s]
             .next_seq
             .get(&header.actor)
             .copied()
@@ -409,12 +435,22 @@ impl<'a> Store<'a> {
         }
     }
 
-    /// Fills the buffer with the batch's transitions that task `i`'s file lacks, counting
-    /// duplicates, surplus and gaps; returns the actor's next sequence number.
-    fn select(&mut self, i: usize, header: &BatchHeader, slots: &[TransitionSlot]) -> u64 {
+    /// Fills the buffer with the batch's transitions that task `i`'s file lacks of source `s`,
+    /// counting duplicates, surplus (beyond the file's size or the source's share) and gaps;
+    /// returns the actor's next sequence number.
+    fn select(
+        &mut self,
+        i: usize,
+        s: usize,
+        header: &BatchHeader,
+        slots: &[TransitionSlot],
+    ) -> u64 {
         let task = &mut self.tasks[i];
         let name = task.name.as_str();
-        let next = task.next_seq.entry(header.actor).or_default();
+        let source = &mut task.sources[s];
+        let room = (self.target.saturating_sub(task.writer.transitions()))
+            .min(source.most.saturating_sub(source.stored));
+        let next = source.next_seq.entry(header.actor).or_default();
         self.buffer.clear();
         let (mut duplicates, mut surplus) = (0u64, 0u64);
         for (index, slot) in slots.iter().enumerate() {
@@ -439,7 +475,7 @@ impl<'a> Store<'a> {
                 self.summary.missing += gap;
             }
             *next = seq + 1;
-            if task.writer.transitions() + self.buffer.len() as u64 >= self.target {
+            if self.buffer.len() as u64 >= room {
                 surplus += 1;
             } else {
                 self.buffer.push(slot.to_transition(header, index));
@@ -454,15 +490,17 @@ impl<'a> Store<'a> {
         *next
     }
 
-    /// Appends the buffer to task `i`'s file and flushes it.
-    fn append(&mut self, i: usize) -> Result<(), StoreError> {
+    /// Appends the buffer, made by source `s`, to task `i`'s file and flushes it.
+    fn append(&mut self, i: usize, s: usize) -> Result<(), StoreError> {
         if self.buffer.is_empty() {
             return Ok(());
         }
         let task = &mut self.tasks[i];
+        let source = &mut task.sources[s];
         let start = Instant::now();
-        task.writer.append(&self.buffer)?;
+        task.writer.append_from(&source.host, &self.buffer)?;
         task.writer.flush()?;
+        source.stored += self.buffer.len() as u64;
         let metrics = &self.metrics;
         metrics
             .append_duration
@@ -504,13 +542,46 @@ impl<'a> Store<'a> {
     }
 }
 
-/// Opens (or creates) a task's file and rebuilds its per-actor sequence numbers from it.
+/// The services of task `task`'s sources, in the order [`TaskStore::sources`] keeps them: the
+/// learner host's, then those of every remote host `tunnel.hosts` lets serve it, with no
+/// transition counted yet.
+fn sources(
+    node: &Node<ipc::Service>,
+    names: &ServiceNames,
+    config: &Config,
+    task: &str,
+) -> Result<Vec<Source>, StoreError> {
+    let target = config.collect.transitions as u64;
+    let share = (target as f64 * config.tunnel.max_host_share).floor() as u64;
+    let remote = (config.tunnel.hosts.keys())
+        .filter(|host| (config.tunnel.tasks_of(host, &config.tasks).iter()).any(|t| t.name == task))
+        .map(|host| (host.as_str(), names.for_host(host), share));
+    let learner = std::iter::once((LEARNER_HOST, names.clone(), target));
+    learner
+        .chain(remote)
+        .map(|(host, names, most)| {
+            let service = transport::transition_service(node, &names, task, &config.run)?;
+            let acks = transport::ack_service(node, &names, task, &config.run)?;
+            Ok(Source {
+                host: host.to_string(),
+                subscriber: transport::transition_subscriber(&service, &config.run)?,
+                acks: transport::ack_publisher(&acks)?,
+                next_seq: HashMap::new(),
+                stored: 0,
+                most,
+            })
+        })
+        .collect()
+}
+
+/// Opens (or creates) a task's file and rebuilds its sources' sequence numbers and counts from
+/// it.
 fn open_task(
     run: &RunDir,
     config: &Config,
     name: &str,
     id: u32,
-    acks: Publisher<ipc::Service, StoreAck, ()>,
+    mut sources: Vec<Source>,
     metrics: &metrics::StoreMetrics,
 ) -> Result<TaskStore, StoreError> {
     let path = run.dataset(config.task(name)?);
@@ -519,19 +590,24 @@ fn open_task(
     if let Some(r) = recovery {
         tracing::warn!(file = %path.display(), cut_bytes = r.cut_bytes, offset = r.offset, reason = %r.reason, "cut a torn tail left by a crash");
     }
-    let mut next_seq: HashMap<u32, u64> = HashMap::new();
-    let mut held: HashMap<u32, u64> = HashMap::new();
+    let mut held: HashMap<(usize, u32), u64> = HashMap::new();
     if writer.transitions() > 0 {
-        for t in DatasetReader::open(&path)?.transitions() {
-            let next = next_seq.entry(t.actor).or_default();
+        let reader = DatasetReader::open(&path)?;
+        for (host, t) in reader.with_hosts() {
+            // A host no longer allowed to serve the task keeps its transitions, not its numbers.
+            let Some(s) = sources.iter().position(|s| s.host == host) else {
+                continue;
+            };
+            let next = sources[s].next_seq.entry(t.actor).or_default();
             *next = (*next).max(t.seq + 1);
-            *held.entry(t.actor).or_default() += 1;
+            sources[s].stored += 1;
+            *held.entry((s, t.actor)).or_default() += 1;
         }
     }
     // Sequence numbers start at 0, so what an actor's file lacks below its highest is missing.
-    let missing: u64 = next_seq
-        .iter()
-        .map(|(actor, next)| next - held[actor])
+    let missing: u64 = (sources.iter().enumerate())
+        .flat_map(|(s, source)| source.next_seq.iter().map(move |(a, next)| (s, *a, *next)))
+        .map(|(s, actor, next)| next - held[&(s, actor)])
         .sum();
     metrics
         .transitions_missing
@@ -558,7 +634,7 @@ fn open_task(
         tracing::info!(
             task = name,
             transitions = writer.transitions(),
-            actors = next_seq.len(),
+            actors = sources.iter().map(|s| s.next_seq.len()).sum::<usize>(),
             missing,
             "resuming the dataset"
         );
@@ -567,8 +643,7 @@ fn open_task(
         name: name.to_string(),
         id,
         writer,
-        next_seq,
-        acks,
+        sources,
         announced: false,
     })
 }
