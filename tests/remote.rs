@@ -90,13 +90,16 @@ impl Hosts {
         certs(&tls, "learner");
         certs(&tls, "hostb");
         certs(&tls, "hostc");
+        certs(&tls, "hostd");
         std::fs::write(
             tls.join("passwords"),
-            "hostb:correct-horse\nhostc:battery-staple\n",
+            "hostb:correct-horse\nhostc:battery-staple\nhostd:tr0ub4dor\n",
         )
         .expect("dictionary");
-        std::fs::write(tls.join("hostc.credentials"), "hostc:battery-staple\n")
-            .expect("credentials");
+        for (host, password) in [("hostc", "battery-staple"), ("hostd", "tr0ub4dor")] {
+            let line = format!("{host}:{password}\n");
+            std::fs::write(tls.join(format!("{host}.credentials")), line).expect("credentials");
+        }
         std::fs::write(tls.join("hostb.credentials"), "hostb:correct-horse\n")
             .expect("credentials");
         Hosts {
@@ -885,7 +888,8 @@ fn channel_of(hosts: &Hosts, names: &ServiceNames, task: &str) -> String {
 }
 
 /// Issue #61: a remote host publishes only under its own name. Host B may serve `lambda-0`,
-/// host C `lambda-100`.
+/// host C `lambda-100`; host D has a certificate of the run's CA and a password, but is not in
+/// `tunnel.hosts`: its handshake is not even answered.
 /// - Over Zenoh, B's admitted session puts on the channels of A's own actors, of C's services
 ///   and on C's announcement key: a session of C that subscribes to everything hears none of it,
 ///   only what B puts on its own channel and key (so the check is not blind).
@@ -926,6 +930,15 @@ fn a_remote_host_publishes_only_under_its_own_name_and_never_completes_a_dataset
         subscribers.push(subscriber);
     }
     let rogue = rogue_session(&hosts);
+    let run_key = uavmeta_tunnel::session::run_key(hosts.run_a.id());
+    wait_until("the tunnel to answer B", within(60), || {
+        handshake_answers(&rogue, &run_key) > 0
+    });
+    assert_eq!(
+        handshake_answers(&session_as(&hosts, "hostd"), &run_key),
+        0,
+        "a host not in tunnel.hosts was answered"
+    );
     let heard_own = || heard.lock().expect("heard").contains(&own);
     wait_until("C to hear B on B's own channel", within(60), || {
         rogue.put(&own, "frame").wait().expect("put");
