@@ -15,6 +15,7 @@ use rcgen::{
     BasicConstraints, CertificateParams, DnType, ExtendedKeyUsagePurpose, IsCa, Issuer, KeyPair,
     KeyUsagePurpose,
 };
+use uavmeta_proto::config::is_host_name;
 use uavmeta_proto::fs::FileError;
 
 #[derive(Debug, thiserror::Error)]
@@ -25,7 +26,7 @@ pub enum CertsError {
     Invalid { path: PathBuf, message: String },
     #[error("{}: already exists; remove it (and its key) to make a new one", path.display())]
     Exists { path: PathBuf },
-    #[error("host name `{0}`: expected letters, digits, `-`, `_` and `.`")]
+    #[error("host name `{0}`: expected 1 to 64 letters, digits, `-`, `_` and `.`, not `ca`")]
     BadName(String),
 }
 
@@ -42,8 +43,7 @@ pub struct Made {
 /// Makes (or reuses) `dir`'s CA and signs a certificate for `host`, valid for `host` and
 /// `addresses` (IP addresses or DNS names).
 pub fn make(dir: &Path, host: &str, addresses: &[String]) -> Result<Made, CertsError> {
-    let valid = |c: char| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.');
-    if host.is_empty() || !host.chars().all(valid) || host == "ca" {
+    if !is_host_name(host) || host == "ca" {
         return Err(CertsError::BadName(host.into()));
     }
     std::fs::create_dir_all(dir).map_err(FileError::at(dir, "create"))?;

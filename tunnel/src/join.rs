@@ -5,7 +5,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use uavmeta_proto::config::{Config, TunnelConfig};
+use uavmeta_proto::config::{is_host_name, Config, TunnelConfig};
 use uavmeta_proto::payload::SCHEMA_VERSION;
 use uavmeta_runtime::run_dir::{write_atomic, RemoteHost, RemoteProcess, RunDir};
 use uavmeta_runtime::{domain, liveness, transport};
@@ -57,11 +57,12 @@ const SECURITY_FLAGS: [&str; 4] = ["--ca", "--certificate", "--private-key", "--
 
 /// Joins the run, then relays its services until SIGINT/SIGTERM or shortly after its shutdown.
 pub fn join(options: &JoinOptions) -> Result<(), TunnelError> {
-    if options.host.is_empty() || options.host.contains(['/', '*', '$', '?', '#']) {
+    if !is_host_name(&options.host) {
         return Err(TunnelError::Refused {
             endpoint: options.endpoint.clone(),
             message: format!(
-                "host name `{}` is empty or has one of / * $ ? #",
+                "host name `{}`: expected 1 to 64 letters, digits, `-`, `_` and `.`, as \
+                 `uavmeta tunnel certs --host` makes them",
                 options.host
             ),
         });
