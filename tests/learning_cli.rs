@@ -320,6 +320,91 @@ fn train_init_seed_draws_the_random_init_apart_from_the_shots() {
     assert!(!d.join("runs/refused").exists(), "{stderr}");
 }
 
+/// The context learner as a user runs it: `meta-train --learner context` writes `OUT/context`
+/// and each meta-train task's zero-shot return; `meta-test` reads the unseen task's code from its
+/// shots, prints that policy's zero-shot return, fine-tunes it with CQL, and the same command
+/// gives the same network to the byte.
+#[test]
+fn meta_train_writes_a_context_model_that_meta_test_reads_and_fine_tunes() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let d = dir.path();
+    for task in ["lambda-0", "lambda-100", "lambda-300"] {
+        collect(d, SMALL, task, "random", 1, &format!("data/{task}.uavds"));
+    }
+    let meta: Vec<&str> = [SMALL, TWO_META_TRAIN_TASKS]
+        .concat()
+        .into_iter()
+        .chain(["meta.meta_epochs=4", "context.encoder_steps=20"])
+        .collect();
+    let out = [
+        "--datasets",
+        "data",
+        "--out",
+        "runs/context",
+        "--learner",
+        "context",
+    ];
+    let text = stdout(&uavmeta(d, "meta-train", &meta, &out));
+    assert!(text.contains("lambda-100: zero-shot return -"), "{text}");
+    assert!(
+        text.contains("context model: runs/context/context"),
+        "{text}"
+    );
+    let model = String::from_utf8(read(d, "runs/context/context.json")).expect("utf-8");
+    assert!(model.contains("cql-context"), "{model}");
+
+    let test = |out: &str| {
+        stdout(&uavmeta(
+            d,
+            "meta-test",
+            &meta,
+            &[
+                "--task",
+                "lambda-300",
+                "--init",
+                "runs/context/context",
+                "--dataset",
+                "data/lambda-300.uavds",
+                "--shots",
+                "64",
+                "--epochs",
+                "2",
+                "--out",
+                out,
+            ],
+        ))
+    };
+    let text = test("runs/test-a");
+    assert!(text.contains("init, zero-shot: return -"), "{text}");
+    assert!(text.contains("epoch 2: return "), "{text}");
+    test("runs/test-b");
+    assert!(
+        read(d, "runs/test-a/final.safetensors") == read(d, "runs/test-b/final.safetensors"),
+        "the same meta-test gave another network"
+    );
+
+    // The model's Q-network reads a task code after the observation: as a plain policy it is
+    // refused, saying what it is and where it is used.
+    let mut rollout = Command::new(env!("CARGO_BIN_EXE_uavmeta"));
+    rollout
+        .current_dir(d)
+        .args(["env", "rollout", "--config", CONFIG]);
+    for set in &meta {
+        rollout.args(["--set", set]);
+    }
+    rollout.args([
+        "--task",
+        "lambda-300",
+        "--policy",
+        "q:0:runs/context/context",
+    ]);
+    let stderr = failure(&rollout.output().expect("run uavmeta"));
+    assert!(
+        stderr.contains("runs/context/context.json: a context learner's model (`cql-context`)"),
+        "{stderr}"
+    );
+}
+
 #[test]
 fn meta_train_writes_w0_that_meta_test_fine_tunes() {
     let dir = tempfile::tempdir().expect("temp dir");

@@ -23,7 +23,7 @@ use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 use tch::{TchError, Tensor};
 use uavmeta_proto::config::Config;
-use uavmeta_proto::method::Method;
+use uavmeta_proto::method::{Method, Start};
 
 use crate::algorithm;
 use crate::qnet::{QNetwork, QNetworkConfig};
@@ -96,6 +96,8 @@ pub enum CheckpointError {
         found: usize,
         expected: usize,
     },
+    #[error("{}: a context learner's model (`{algorithm}`): its network reads a task code after the observation, read from a task's shots; use it as `uavmeta meta-test --init`", path.display())]
+    ContextModel { path: PathBuf, algorithm: String },
     /// `key` is the config key whose value differs from the checkpoint's; `detail` says how.
     #[error("{}: {detail}", path.display())]
     SizeMismatch {
@@ -250,6 +252,16 @@ fn read_json<T: DeserializeOwned>(
 /// checkpoint's, a truncated or corrupt weights file, or unreadable metadata are errors naming the
 /// file.
 pub fn load(path: &Path, config: &Config) -> Result<(QNetwork, CheckpointMeta), CheckpointError> {
+    load_conditioned(path, config, 0)
+}
+
+/// [`load`] for a network that reads `code_len` values after the observation (the context
+/// learner's task-conditioned Q-network, `uavmeta_meta::context`).
+pub fn load_conditioned(
+    path: &Path,
+    config: &Config,
+    code_len: usize,
+) -> Result<(QNetwork, CheckpointMeta), CheckpointError> {
     let paths = CheckpointPaths::new(path);
     let meta = read_meta(path)?;
     let mismatch = |what: &str, checkpoint: String, config_value: String, key| {
@@ -264,10 +276,22 @@ pub fn load(path: &Path, config: &Config) -> Result<(QNetwork, CheckpointMeta), 
         ),
     }
     };
-    let (obs_len, actions) = (config.world.observation_len(), config.world.action_count());
+    let method = Method::from_name(&meta.algorithm);
+    if code_len == 0 && method.and_then(Method::start) == Some(Start::Context) {
+        return Err(CheckpointError::ContextModel {
+            path: paths.meta.clone(),
+            algorithm: meta.algorithm.clone(),
+        });
+    }
+    let obs_len = config.world.observation_len() + code_len;
+    let actions = config.world.action_count();
     if meta.obs_len != obs_len {
+        let what = match code_len {
+            0 => "input size (2 + K)".to_string(),
+            n => format!("input size (2 + K + a task code of {n})"),
+        };
         return Err(mismatch(
-            "input size (2 + K)",
+            &what,
             meta.obs_len.to_string(),
             obs_len.to_string(),
             "world.devices",

@@ -237,6 +237,33 @@ impl QNetwork {
         copy
     }
 
+    /// The network with its last inputs fixed to `values` [n]: an MLP on the first
+    /// `obs_len - n` inputs that gives the same outputs, the fixed inputs' share of the first
+    /// layer, `W[:, obs_len - n..] values`, folded into its bias. It acts as this one does.
+    pub fn conditioned_on(&self, values: &Tensor) -> QNetwork {
+        let n = values.size()[0];
+        let kept = self.config.obs_len as i64 - n;
+        assert!(
+            kept >= 1,
+            "conditioned_on fixes fewer inputs than the network has"
+        );
+        let mut net = QNetworkConfig {
+            obs_len: kept as usize,
+            ..self.config.clone()
+        }
+        .init(0);
+        tch::no_grad(|| {
+            let (w, b) = (&self.params[0], &self.params[1]);
+            net.params[0].copy_(&w.narrow(1, 0, kept));
+            net.params[1].copy_(&(b + w.narrow(1, kept, n).mv(values)));
+            for (dst, src) in net.params.iter_mut().zip(&self.params).skip(2) {
+                dst.copy_(src);
+            }
+        });
+        net.acting = self.acting.clone();
+        net
+    }
+
     /// Its architecture.
     pub fn config(&self) -> &QNetworkConfig {
         &self.config

@@ -278,3 +278,20 @@ fn checkpoint_heads_other_than_the_algorithms_are_refused_by_name() {
         );
     }
 }
+
+/// A network with its last inputs fixed (the context learner's policy for one task code) gives
+/// the outputs of the full network on the observation with the code appended.
+#[test]
+fn a_network_conditioned_on_fixed_inputs_matches_the_full_network() {
+    let full = QNetworkConfig::new(5, 4, &[16, 16]).init(3);
+    let code = Tensor::from_slice(&[0.3f32, -1.2]);
+    let obs = Tensor::from_slice(&[0.1f32, 0.9, 0.5, 0.2, 0.7, 0.4]).view([2, 3]);
+    let appended = Tensor::cat(&[obs.shallow_clone(), code.unsqueeze(0).repeat([2, 1])], 1);
+    let conditioned = full.conditioned_on(&code);
+    assert_eq!(conditioned.obs_len(), 3);
+    let gap = (conditioned.forward(&obs) - full.forward(&appended))
+        .abs()
+        .max()
+        .double_value(&[]);
+    assert!(gap < 1e-5, "{gap}");
+}

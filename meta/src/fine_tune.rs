@@ -19,6 +19,7 @@ use uavmeta_learner::transitions::{load_shots, Transitions};
 use uavmeta_proto::config::{Config, TaskConfig};
 use uavmeta_proto::method::{Algo, Method, Start};
 
+use crate::context::ContextModel;
 use crate::MetaError;
 
 /// The settings of one fine-tuning run, shared by meta-test and the baselines it is compared to.
@@ -56,11 +57,17 @@ pub struct MetaTestOptions<'a> {
     pub shots: usize,
 }
 
-/// The algorithm that fine-tunes an init written by meta-train or by multi-task pretraining:
-/// that of the method its checkpoint names (`cql-maml`, `cql-pretrain`, ..).
+/// The algorithm that fine-tunes an init written by meta-train, by multi-task pretraining or by
+/// the context learner: that of the method its checkpoint names (`cql-maml`, `cql-pretrain`,
+/// `cql-context`, ..).
 pub fn fine_tune_algorithm(init: &Path, algorithm: &str) -> Result<Algo, MetaError> {
     Method::from_name(algorithm)
-        .filter(|m| matches!(m.start(), Some(Start::Maml | Start::Pretrain)))
+        .filter(|m| {
+            matches!(
+                m.start(),
+                Some(Start::Maml | Start::Pretrain | Start::Context)
+            )
+        })
         .and_then(Method::algo)
         .ok_or_else(|| MetaError::NotMetaTrained {
             path: init.to_path_buf(),
@@ -103,8 +110,24 @@ pub fn meta_test_with(
     evaluator: &mut dyn EvaluatePolicy,
 ) -> Result<Vec<EpochRow>, MetaError> {
     let run = &opts.fine_tune;
-    let (mut q, meta) = checkpoint::load(opts.init, run.config)?;
-    let algorithm = fine_tune_algorithm(opts.init, &meta.algorithm)?;
     let shots = load_shots(run.config, run.task, opts.dataset, opts.shots, run.seed)?;
+    let (mut q, algorithm) = init_network(opts.init, run.config, &shots)?;
     fine_tune(&mut q, &shots, algorithm, run, evaluator)
+}
+
+/// The network meta-test starts from with the init `path`, and the algorithm that fine-tunes
+/// it: w0 or a pretrained network as saved, or the context learner's policy for the task code
+/// of `shots` (its zero-shot policy).
+pub fn init_network(
+    path: &Path,
+    config: &Config,
+    shots: &Transitions,
+) -> Result<(QNetwork, Algo), MetaError> {
+    let meta = checkpoint::read_meta(path)?;
+    let algorithm = fine_tune_algorithm(path, &meta.algorithm)?;
+    let q = match Method::from_name(&meta.algorithm).and_then(Method::start) {
+        Some(Start::Context) => ContextModel::load(path, config)?.policy(shots),
+        _ => checkpoint::load(path, config)?.0,
+    };
+    Ok((q, algorithm))
 }

@@ -9,6 +9,9 @@
 //!   (`<task-name>.uavds`), with a per-meta-epoch CSV, adapted-policy returns and `w0` checkpoints.
 //! - [`pretrain`]: CQL-pretrain, one CQL network on the union of the meta-train tasks' shots,
 //!   the multi-task baseline that shows what MAML adds.
+//! - [`context`]: the task-inferring learner (FOCAL-style): a task encoder over a set of
+//!   transitions and a task-conditioned Q-network, trained offline on the meta-train tasks; at
+//!   meta-test it reads the unseen task's shots and acts with no gradient step.
 //! - [`fine_tune`]: meta-test, fine-tuning a `w0` checkpoint on N shots of an unseen task, through
 //!   the learner's offline training so every method shares its settings and CSV columns.
 //!
@@ -43,6 +46,7 @@
 //! assert_eq!(adapted.forward(&tasks[0].query.obs).size(), [2, 5]);
 //! ```
 
+pub mod context;
 pub mod fine_tune;
 pub mod maml;
 pub mod meta_train;
@@ -70,7 +74,7 @@ pub enum MetaError {
         path: PathBuf,
         source: TransitionsError,
     },
-    #[error("{}: trained by `{algorithm}`, expected a meta-trained or pretrained init (`cql-maml`, `dqn-maml` or `cql-pretrain`)", path.display())]
+    #[error("{}: trained by `{algorithm}`, expected a meta-trained, pretrained or context init (`cql-maml`, `dqn-maml`, `cql-pretrain` or `cql-context`)", path.display())]
     NotMetaTrained { path: PathBuf, algorithm: String },
     #[error(transparent)]
     File(#[from] FileError),

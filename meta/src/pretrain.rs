@@ -27,21 +27,34 @@ pub fn pretrain<E>(
     tasks: &[MetaTask],
     seed: u64,
     on_step: OnStep,
-    mut keep_going: impl FnMut(usize) -> Result<bool, E>,
+    keep_going: impl FnMut(usize) -> Result<bool, E>,
 ) -> Result<Option<QNetwork>, E> {
     let union = Transitions::concat(tasks.iter().flat_map(|t| [&t.support, &t.query]));
+    let q = QNetworkConfig::for_world(&config.world, &config.learner.hidden).init(seed);
+    train_multi_task(q, &union, config, tasks, seed, on_step, keep_going)
+}
+
+/// `q` trained with `meta.inner_loss` on `union`, the rows of `tasks` (as they are, or with
+/// something appended to each observation), with MAML's budget for `tasks`; see [`pretrain`].
+pub fn train_multi_task<E>(
+    mut q: QNetwork,
+    union: &Transitions,
+    config: &Config,
+    tasks: &[MetaTask],
+    seed: u64,
+    on_step: OnStep,
+    mut keep_going: impl FnMut(usize) -> Result<bool, E>,
+) -> Result<Option<QNetwork>, E> {
     let maml = MamlConfig::from_config(config);
     let mut budget = config.clone();
     budget.learner.batch_size = tasks.len() * (maml.meta.support_shots + maml.meta.query_shots);
     budget.learner.alpha = maml.meta.alpha;
-    let w = &config.world;
-    let mut q = QNetworkConfig::for_world(w, &config.learner.hidden).init(seed);
     algorithm::prepare(&mut q, config.meta.inner_loss, &config.learner);
     let mut trainer = OfflineTrainer::new(&q, union.len(), config.meta.inner_loss, &budget, seed)
         .with_on_step(on_step);
     for epoch in 1..=config.meta.meta_epochs {
         for _ in 0..maml.outer_steps(tasks) {
-            trainer.step(&mut q, &union);
+            trainer.step(&mut q, union);
         }
         if !keep_going(epoch)? {
             return Ok(None);

@@ -113,10 +113,19 @@ pub enum Start {
     /// The run's w0, meta-trained with another algorithm (`meta.inner_loss`): a baseline
     /// fine-tuned from the paper's init.
     W0,
+    /// The context learner's task-conditioned network (`uavmeta_meta::context`), its task code
+    /// read from the unseen task's shots: FOCAL-style context-based meta-RL, fine-tuned like w0.
+    Context,
 }
 
 impl Start {
-    const ALL: [Start; 4] = [Start::Random, Start::Maml, Start::Pretrain, Start::W0];
+    const ALL: [Start; 5] = [
+        Start::Random,
+        Start::Maml,
+        Start::Pretrain,
+        Start::W0,
+        Start::Context,
+    ];
 
     /// What it adds to the algorithm's name (`cql`, `cql-maml`, `cql-pretrain`) and label.
     fn suffixes(self) -> (&'static str, &'static str) {
@@ -125,6 +134,7 @@ impl Start {
             Start::Maml => ("-maml", "-MAML"),
             Start::Pretrain => ("-pretrain", "-pretrain"),
             Start::W0 => ("-w0", " from w0"),
+            Start::Context => ("-context", "-context"),
         }
     }
 }
@@ -280,7 +290,7 @@ mod tests {
     #[test]
     fn every_method_has_its_own_name_and_code_and_both_read_back() {
         let all: Vec<Method> = Method::all().collect();
-        assert_eq!(all.len(), 2 + 4 * ALGORITHMS.len());
+        assert_eq!(all.len(), 2 + 5 * ALGORITHMS.len());
         for m in &all {
             assert_eq!(Method::from_code(m.code()), Some(*m), "{m}");
             assert_eq!(Method::from_name(&m.name()), Some(*m), "{m}");
@@ -290,7 +300,7 @@ mod tests {
                 "{m}"
             );
         }
-        assert_eq!(Method::from_code(2 + 4 * 64), None);
+        assert_eq!(Method::from_code(2 + 5 * 64), None);
         assert_eq!(Method::from_code(2 + ALGORITHMS.len() as u32), None);
         assert_eq!(Method::CQL_MAML.name(), "cql-maml");
         assert_eq!(Method::CQL_PRETRAIN.label(), "CQL-pretrain");

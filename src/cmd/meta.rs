@@ -3,9 +3,13 @@
 use std::path::PathBuf;
 
 use anyhow::Result;
-use clap::Args;
+use clap::{Args, ValueEnum};
+use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::progress::OnStep;
-use uavmeta_meta::fine_tune::{meta_test, FineTune, MetaTestOptions};
+use uavmeta_learner::train::EvaluatePolicy;
+use uavmeta_learner::transitions::load_shots;
+use uavmeta_meta::context;
+use uavmeta_meta::fine_tune::{init_network, meta_test, FineTune, MetaTestOptions};
 use uavmeta_meta::meta_train::{meta_train, MetaTrainOptions};
 
 use super::common::{ConfigArgs, ShotsArgs, TaskArgs};
@@ -28,6 +32,16 @@ pub struct MetaTrainArgs {
     /// starting again; an interrupted run continued this way ends where an uninterrupted one does.
     #[arg(long)]
     resume: bool,
+    /// What to meta-train: MAML's w0 (Algorithm 4), or the task-inferring context learner
+    /// (`[context]`, written as OUT/context).
+    #[arg(long, value_enum, default_value_t = Learner::Maml)]
+    learner: Learner,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum Learner {
+    Maml,
+    Context,
 }
 
 #[derive(Args)]
@@ -36,7 +50,7 @@ pub struct MetaTestArgs {
     config: ConfigArgs,
     #[command(flatten)]
     task: TaskArgs,
-    /// The w0 checkpoint meta-train wrote (`OUT/w0`; any extension is ignored).
+    /// The init meta-train wrote (`OUT/w0`, or `OUT/context`; any extension is ignored).
     #[arg(long)]
     init: PathBuf,
     #[command(flatten)]
@@ -52,7 +66,7 @@ pub struct MetaTestArgs {
 pub fn run_train(args: MetaTrainArgs) -> Result<()> {
     let config = args.config.load()?;
     let seed = args.seed.unwrap_or(config.run.seeds[0]);
-    let result = meta_train(&MetaTrainOptions {
+    let opts = MetaTrainOptions {
         config: &config,
         datasets: &args.datasets,
         out_dir: &args.out,
@@ -60,7 +74,20 @@ pub fn run_train(args: MetaTrainArgs) -> Result<()> {
         progress: true,
         resume: args.resume,
         on_step: OnStep::default(),
-    })?;
+    };
+    if args.learner == Learner::Context {
+        anyhow::ensure!(
+            !args.resume,
+            "--resume: the context learner trains in one go; run it again without --resume"
+        );
+        let run = context::meta_train_to_dir(&opts)?;
+        for (task, ret) in &run.zero_shot {
+            println!("  {task}: zero-shot return {ret:.1} (code read from its query set)");
+        }
+        println!("context model: {}", run.model.display());
+        return Ok(());
+    }
+    let result = meta_train(&opts)?;
     if let Some(last) = result.rows.last() {
         println!(
             "meta-epoch {}: meta-loss {:.4}",
@@ -88,6 +115,13 @@ pub fn run_test(args: MetaTestArgs) -> Result<()> {
     let mut config = args.config.load()?;
     let task = args.task.resolve(&mut config)?;
     let seed = args.seed.unwrap_or(config.run.seeds[0]);
+    let shots = load_shots(&config, &task, &args.shots.dataset, args.shots.shots, seed)?;
+    let (init, _) = init_network(&args.init, &config, &shots)?;
+    let zero_shot = Evaluator::from_config(&config, &task).evaluate(&init);
+    println!(
+        "init, zero-shot: return {:.1}, AoI {:.2}, power {:.3} mW",
+        zero_shot.ret, zero_shot.aoi, zero_shot.power_mw
+    );
     let rows = meta_test(&MetaTestOptions {
         fine_tune: FineTune {
             config: &config,

@@ -18,6 +18,7 @@ use serde::{Deserialize, Serialize};
 use smart_default::SmartDefault;
 
 mod collect;
+mod context;
 mod learner;
 mod meta;
 mod moved;
@@ -30,6 +31,7 @@ mod tunnel;
 mod world;
 
 pub use collect::{CollectConfig, OnlineDqnConfig};
+pub use context::ContextConfig;
 pub use learner::LearnerConfig;
 pub use meta::MetaConfig;
 pub use moved::{Fate, MOVED};
@@ -95,6 +97,9 @@ pub struct Config {
     #[serde(default)]
     #[garde(dive)]
     pub meta: MetaConfig,
+    #[serde(default)]
+    #[garde(dive)]
+    pub context: ContextConfig,
     #[serde(default)]
     #[garde(dive)]
     pub run: RunConfig,
