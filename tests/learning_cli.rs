@@ -320,6 +320,15 @@ fn train_init_seed_draws_the_random_init_apart_from_the_shots() {
     assert!(!d.join("runs/refused").exists(), "{stderr}");
 }
 
+/// Random data of the two meta-train tasks and of lambda-300 in `dir/data`, and the overrides
+/// that meta-train on the two, followed by `more`.
+fn meta_data<'a>(dir: &Path, more: &[&'a str]) -> Vec<&'a str> {
+    for task in ["lambda-0", "lambda-100", "lambda-300"] {
+        collect(dir, SMALL, task, "random", 1, &format!("data/{task}.uavds"));
+    }
+    [SMALL, TWO_META_TRAIN_TASKS, more].concat()
+}
+
 /// The context learner as a user runs it: `meta-train --learner context` writes `OUT/context`
 /// and each meta-train task's zero-shot return; `meta-test` reads the unseen task's code from its
 /// shots, prints that policy's zero-shot return, fine-tunes it with CQL, and the same command
@@ -328,14 +337,7 @@ fn train_init_seed_draws_the_random_init_apart_from_the_shots() {
 fn meta_train_writes_a_context_model_that_meta_test_reads_and_fine_tunes() {
     let dir = tempfile::tempdir().expect("temp dir");
     let d = dir.path();
-    for task in ["lambda-0", "lambda-100", "lambda-300"] {
-        collect(d, SMALL, task, "random", 1, &format!("data/{task}.uavds"));
-    }
-    let meta: Vec<&str> = [SMALL, TWO_META_TRAIN_TASKS]
-        .concat()
-        .into_iter()
-        .chain(["meta.meta_epochs=4", "context.encoder_steps=20"])
-        .collect();
+    let meta = meta_data(d, &["meta.meta_epochs=4", "context.encoder_steps=20"]);
     let out = [
         "--datasets",
         "data",
@@ -409,20 +411,16 @@ fn meta_train_writes_a_context_model_that_meta_test_reads_and_fine_tunes() {
 fn meta_train_writes_w0_that_meta_test_fine_tunes() {
     let dir = tempfile::tempdir().expect("temp dir");
     let d = dir.path();
-    for task in ["lambda-0", "lambda-100", "lambda-300"] {
-        collect(d, SMALL, task, "random", 1, &format!("data/{task}.uavds"));
-    }
-    let meta: Vec<&str> = [SMALL, TWO_META_TRAIN_TASKS]
-        .concat()
-        .into_iter()
-        .chain([
+    let meta = meta_data(
+        d,
+        &[
             "meta.meta_epochs=4",
             "meta.support_shots=16",
             "meta.query_shots=16",
             "meta.eval_every=2",
             "meta.checkpoint_every=2",
-        ])
-        .collect();
+        ],
+    );
     let text = stdout(&uavmeta(
         d,
         "meta-train",

@@ -4,18 +4,19 @@
 //! transitions, its zero-shot policy on an unseen lambda (no gradient step) beats the random
 //! policy, and a saved model acts as the one that was saved.
 
+mod support;
+
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
+use support::{encode, meta_task, transitions};
 use tch::Tensor;
-use uavmeta_actors::collect::Collector;
 use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_learner::transitions::Transitions;
 use uavmeta_meta::context::{self, encoder_input, ContextModel};
 use uavmeta_meta::maml::MetaTask;
 use uavmeta_proto::config::Config;
-use uavmeta_proto::dataset::split;
-use uavmeta_world::heuristics::{EpsilonPolicy, RandomPolicy};
+use uavmeta_world::heuristics::RandomPolicy;
 use uavmeta_world::rollout::evaluate;
 
 const DEFAULT_CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../configs/default.toml");
@@ -25,35 +26,6 @@ const EVAL_SEED: u64 = 4242;
 fn config() -> Config {
     let sets = ["collect.transitions=500".to_string()];
     Config::load(DEFAULT_CONFIG.as_ref(), &sets).unwrap()
-}
-
-fn transitions(config: &Config, name: &str, seed: u64) -> Vec<uavmeta_proto::dataset::Transition> {
-    let task = config.task(name).unwrap();
-    let mut data = Vec::new();
-    Collector::new(
-        &config.world,
-        task,
-        0,
-        0,
-        Box::new(EpsilonPolicy::new(0.1, seed)),
-        seed,
-    )
-    .fill(config.collect.transitions, &mut data);
-    data
-}
-
-fn encode(config: &Config, set: &[uavmeta_proto::dataset::Transition]) -> Transitions {
-    Transitions::new(set, &config.world, config.learner.reward_scale).unwrap()
-}
-
-fn meta_task(config: &Config, name: &str, seed: u64) -> MetaTask {
-    let data = transitions(config, name, seed);
-    let (support, query) = split(&data, config.meta.support_fraction, seed).unwrap();
-    MetaTask {
-        name: name.to_string(),
-        support: encode(config, &support),
-        query: encode(config, &query),
-    }
 }
 
 fn meta_tasks(config: &Config, names: &[&str]) -> Vec<MetaTask> {

@@ -8,42 +8,20 @@
 //! checked is MAML's part: the pass-per-meta-epoch budget of docs/MODEL.md section 5 moves `w0`
 //! from random to a policy of the data's quality.
 
-use uavmeta_actors::collect::Collector;
+mod support;
+
+use support::meta_task;
 use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::EvaluatePolicy;
-use uavmeta_learner::transitions::Transitions;
 use uavmeta_meta::maml::{Maml, MamlConfig, MetaTask};
 use uavmeta_proto::config::Config;
-use uavmeta_proto::dataset::split;
-use uavmeta_world::heuristics::{EpsilonPolicy, RandomPolicy};
+use uavmeta_world::heuristics::RandomPolicy;
 use uavmeta_world::rollout::evaluate;
 
 const DEFAULT_CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../configs/default.toml");
 const EVAL_EPISODES: usize = 20;
 const EVAL_SEED: u64 = 4242;
-
-fn meta_task(config: &Config, name: &str, seed: u64) -> MetaTask {
-    let task = config.task(name).unwrap();
-    let mut data = Vec::new();
-    Collector::new(
-        &config.world,
-        task,
-        0,
-        0,
-        Box::new(EpsilonPolicy::new(0.1, seed)),
-        seed,
-    )
-    .fill(config.collect.transitions, &mut data);
-    let (support, query) = split(&data, config.meta.support_fraction, seed).unwrap();
-    let encode =
-        |set: &[_]| Transitions::new(set, &config.world, config.learner.reward_scale).unwrap();
-    MetaTask {
-        name: name.to_string(),
-        support: encode(&support),
-        query: encode(&query),
-    }
-}
 
 /// configs/default.toml with 500 transitions per task, the size these tests were measured at:
 /// with the default's 2 000 of this data (and `meta.alpha = 1`, the default then) w0 swung by
