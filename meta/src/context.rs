@@ -8,20 +8,22 @@
 //! ```text
 //! e_phi(s, a, r, s')  an MLP over one transition (a one-hot, r scaled)           [d]
 //! z = E_phi(c)        = mean over the transitions of a context c of e_phi         the task code
-//! L_DML(phi)          = mean over pairs i < j of the contexts of one step:
-//!                         1[tau_i = tau_j] ||z_i - z_j||^2
-//!                       + 1[tau_i != tau_j] beta / (||z_i - z_j||^n + eps)        beta = 1, n = 2
+//! L_enc(phi, V)       = mean over contexts c of || V z(c) - p(tau_c) ||^2         p: the task's
+//!                       parameters (lambda / max |lambda|, rain, the rain zone's corners)
 //! L(w)                = eq. 8 on ([s, z], a, r, [s', z]), z = E_phi(c) of a context of the
 //!                       transition's own task, phi held fixed
 //! pi(s)               = argmax_a Q_w([s, z*], a),  z* = E_phi(every shot of the unseen task)
 //! ```
 //!
-//! As in FOCAL, the encoder learns from the distance-metric loss alone (codes of one task close,
-//! of two tasks apart) and the Q-network from its own loss with the codes as fixed inputs; so the
-//! encoder trains first (`context.encoder_steps` Adam steps, each on two contexts of
-//! `context.context_shots` transitions per meta-train task), then the Q-network. The Q-network
-//! trains exactly as CQL-pretrain's does ([`crate::pretrain::train_multi_task`]: the same
-//! algorithm, budget and minibatches on the union of the meta-train tasks' shots), each
+//! The encoder learns to read the task's known parameters through a linear head V (the
+//! supervised variant the FOCAL family compares its metric losses with); FOCAL's own
+//! distance-metric loss, which only pushes different tasks' codes apart, gave codes that place an
+//! unseen lambda less well: its zero-shot policy on lambda-300 scored 0.9% lower
+//! (docs/EXPERIMENTS.md, F2). As in FOCAL, the Q-network learns from its own loss with the codes
+//! as fixed inputs; so the encoder trains first (`context.encoder_steps` Adam steps, each on two
+//! contexts of `context.context_shots` transitions per meta-train task), then the Q-network. The
+//! Q-network trains exactly as CQL-pretrain's does ([`crate::pretrain::train_multi_task`]: the
+//! same algorithm, budget and minibatches on the union of the meta-train tasks' shots), each
 //! transition carrying the code of one of [`CODES_PER_TASK`] contexts of its task: the two inits
 //! differ only in what the code tells the network.
 //!
@@ -44,7 +46,7 @@ use uavmeta_learner::progress::{progress_bar, OnStep};
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_learner::transitions::Transitions;
-use uavmeta_proto::config::Config;
+use uavmeta_proto::config::{Config, TaskConfig, WorldConfig};
 use uavmeta_proto::method::{Method, Start};
 
 use crate::maml::MetaTask;
@@ -52,12 +54,6 @@ use crate::meta_train::{load_tasks, MetaTrainOptions};
 use crate::pretrain::train_multi_task;
 use crate::{create_dir, write_file, MetaError};
 
-/// FOCAL's distance-metric loss: the weight beta of the term that pushes two tasks' codes apart.
-pub const BETA: f64 = 1.0;
-/// The power n of the distance in that term.
-pub const POWER: f64 = 2.0;
-/// eps, which bounds that term where two codes meet.
-pub const EPS: f64 = 0.1;
 /// Contexts per meta-train task whose codes the Q-network's training rows carry, one each.
 pub const CODES_PER_TASK: usize = 16;
 
@@ -169,22 +165,25 @@ pub fn encoder_input(batch: &Transitions, actions: usize) -> Tensor {
     )
 }
 
-/// FOCAL's distance-metric loss over the codes `z` [M, d] of contexts of tasks `tasks` [M]:
-/// pulls each pair of one task together and pushes each pair of two apart; a scalar with the
-/// codes' graph.
-pub fn distance_metric_loss(z: &Tensor, tasks: &[usize]) -> Tensor {
-    let m = tasks.len() as i64;
-    let squared =
-        (z.unsqueeze(1) - z.unsqueeze(0))
-            .square()
-            .sum_dim_intlist([-1i64].as_slice(), false, None);
-    let labels = Tensor::from_slice(&tasks.iter().map(|&t| t as i64).collect::<Vec<_>>());
-    let same = labels.unsqueeze(1).eq_tensor(&labels.unsqueeze(0));
-    let apart = (squared.pow_tensor_scalar(POWER / 2.0) + EPS).reciprocal() * BETA;
-    let pairs = squared.where_self(&same, &apart);
-    // Each unordered pair once: the strict upper triangle.
-    let upper = Tensor::ones([m, m], (Kind::Bool, tch::Device::Cpu)).triu(1);
-    pairs.masked_select(&upper).mean(None)
+/// What the encoder's head learns to read from a context of each task: lambda over the largest
+/// |lambda| of `tasks`, then 1 where it rains and the rain zone's corners over the grid's last
+/// cell (0 without rain): [T, 6].
+pub fn task_parameters(tasks: &[&TaskConfig], world: &WorldConfig) -> Tensor {
+    let scale = (tasks.iter().map(|t| t.lambda.abs()).fold(0.0, f64::max)).max(f64::MIN_POSITIVE);
+    let span = f64::from(world.grid_cells.max(2) - 1);
+    let rows: Vec<f32> = tasks
+        .iter()
+        .flat_map(|t| {
+            let rain = t.rain.map_or([0.0; 5], |z| {
+                let corner = |c: u32| f64::from(c) / span;
+                [1.0, corner(z.x0), corner(z.y0), corner(z.x1), corner(z.y1)]
+            });
+            std::iter::once(t.lambda / scale)
+                .chain(rain)
+                .map(|v| v as f32)
+        })
+        .collect();
+    Tensor::from_slice(&rows).view([tasks.len() as i64, 6])
 }
 
 /// `count` contexts of `context_shots` rows of `data` each, drawn without replacement within a
@@ -208,16 +207,27 @@ fn contexts(
     encoder_input(&picked, actions).view([count as i64, c as i64, -1])
 }
 
-/// The encoder trained on the tasks' data with the distance-metric loss, from the init of
-/// `seed`: each step draws two contexts per task.
-pub fn train_encoder(config: &Config, data: &[Transitions], seed: u64) -> QNetwork {
+/// The encoder trained to read `parameters` [T, P] (one row per task of `data`) from contexts of
+/// each task's data, through a linear head, from the inits of `seed`: each step draws two
+/// contexts per task.
+pub fn train_encoder(
+    config: &Config,
+    data: &[Transitions],
+    parameters: &Tensor,
+    seed: u64,
+) -> QNetwork {
     let ctx = &config.context;
     let (obs_len, actions) = (config.world.observation_len(), config.world.action_count());
     let input = encoder_input_len(obs_len, actions);
     let encoder = QNetworkConfig::new(input, ctx.latent, &ctx.encoder_hidden).init(seed);
+    let head = QNetworkConfig::new(ctx.latent, parameters.size()[1] as usize, &[])
+        .init(seed.wrapping_add(1));
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let mut opt = FusedAdam::new(encoder.parameters(), config.learner.lr);
-    let tasks: Vec<usize> = (0..data.len()).flat_map(|t| [t, t]).collect();
+    let mut params = encoder.parameters();
+    params.extend(head.parameters());
+    let mut opt = FusedAdam::new(params, config.learner.lr);
+    let tasks: Vec<i64> = (0..data.len() as i64).flat_map(|t| [t, t]).collect();
+    let targets = parameters.index_select(0, &Tensor::from_slice(&tasks));
     for _ in 0..ctx.encoder_steps {
         let codes: Vec<Tensor> = data
             .iter()
@@ -228,7 +238,8 @@ pub fn train_encoder(config: &Config, data: &[Transitions], seed: u64) -> QNetwo
                     .mean_dim([1i64].as_slice(), false, None)
             })
             .collect();
-        opt.backward_step(&distance_metric_loss(&Tensor::cat(&codes, 0), &tasks));
+        let read = head.forward(&Tensor::cat(&codes, 0));
+        opt.backward_step(&(read - &targets).square().mean(None));
     }
     encoder
 }
@@ -280,7 +291,16 @@ pub fn meta_train<E>(
         .iter()
         .map(|t| Transitions::concat([&t.support, &t.query]))
         .collect();
-    let encoder = train_encoder(config, &data, seed);
+    let named: Vec<&TaskConfig> = tasks
+        .iter()
+        .map(|t| {
+            config
+                .task(&t.name)
+                .expect("meta-train tasks are the config's")
+        })
+        .collect();
+    let parameters = task_parameters(&named, &config.world);
+    let encoder = train_encoder(config, &data, &parameters, seed);
     let mut rng = ChaCha8Rng::seed_from_u64(seed.wrapping_add(1));
     let coded: Vec<Transitions> = data
         .iter()

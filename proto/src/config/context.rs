@@ -1,5 +1,5 @@
-//! `[context]`: the task-inferring learner of docs/MODEL.md section 5 (FOCAL-style context-based
-//! offline meta-RL). Read by `uavmeta_meta::context`.
+//! `[context]`: the task-inferring learner of docs/MODEL.md section 5 (context-based offline
+//! meta-RL after FOCAL). Read by `uavmeta_meta::context`.
 
 use garde::Validate;
 use serde::{Deserialize, Serialize};
@@ -27,8 +27,8 @@ pub struct ContextConfig {
     #[default(64)]
     #[garde(custom(at_least(1)))]
     pub context_shots: usize,
-    /// Adam steps (`learner.lr`) of the encoder on FOCAL's distance-metric loss, before the
-    /// Q-network trains.
+    /// Adam steps (`learner.lr`) of the encoder, learning to read the meta-train tasks'
+    /// parameters from their contexts, before the Q-network trains.
     #[default(2000)]
     #[garde(custom(at_least(1)))]
     pub encoder_steps: usize,
