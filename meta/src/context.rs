@@ -15,8 +15,7 @@
 //! pi(s)               = argmax_a Q_w([s, z*], a),  z* = E_phi(every shot of the unseen task)
 //! ```
 //!
-//! The encoder learns to read the task's known parameters through a linear head V (the
-//! supervised variant the FOCAL family compares its metric losses with); FOCAL's own
+//! The encoder learns to read the task's known parameters through a linear head V. FOCAL's own
 //! distance-metric loss, which only pushes different tasks' codes apart, gave codes that place an
 //! unseen lambda less well: its zero-shot policy on lambda-300 scored 0.9% lower
 //! (docs/EXPERIMENTS.md, F2). As in FOCAL, the Q-network learns from its own loss with the codes
