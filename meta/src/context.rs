@@ -81,8 +81,7 @@ impl ContextModel {
     /// The code of each context: `contexts` [M, C, input] rows of [`encoder_input`] ->
     /// [M, d], or [C, input] -> [d].
     pub fn encode(&self, contexts: &Tensor) -> Tensor {
-        let codes = self.encoder.forward(contexts);
-        codes.mean_dim([-2i64].as_slice(), false, None)
+        encode(&self.encoder, contexts)
     }
 
     /// The zero-shot policy for the task whose shots are `shots`: `Q_w(., z*)`, z* the code of
@@ -143,6 +142,14 @@ impl ContextModel {
         }
         Ok(ContextModel { encoder, q })
     }
+}
+
+/// `encoder`'s code of each context, the mean of its transitions' codes: [M, C, input] ->
+/// [M, d], or [C, input] -> [d].
+fn encode(encoder: &QNetwork, contexts: &Tensor) -> Tensor {
+    encoder
+        .forward(contexts)
+        .mean_dim([-2i64].as_slice(), false, None)
 }
 
 /// Values the encoder reads per transition: s, onehot(a), r, s'.
@@ -231,10 +238,10 @@ pub fn train_encoder(
         let codes: Vec<Tensor> = data
             .iter()
             .map(|d| {
-                let batch = contexts(d, ctx.context_shots, 2, actions, &mut rng);
-                encoder
-                    .forward(&batch)
-                    .mean_dim([1i64].as_slice(), false, None)
+                encode(
+                    &encoder,
+                    &contexts(d, ctx.context_shots, 2, actions, &mut rng),
+                )
             })
             .collect();
         let read = head.forward(&Tensor::cat(&codes, 0));
@@ -259,11 +266,7 @@ fn with_codes(
         actions,
         rng,
     );
-    let codes = tch::no_grad(|| {
-        model_encoder
-            .forward(&batch)
-            .mean_dim([1i64].as_slice(), false, None)
-    });
+    let codes = tch::no_grad(|| encode(model_encoder, &batch));
     let picks: Vec<i64> = (0..data.len())
         .map(|_| rand::Rng::random_range(rng, 0..CODES_PER_TASK as i64))
         .collect();

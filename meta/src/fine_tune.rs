@@ -18,6 +18,7 @@ use uavmeta_learner::train::{train, EpochRow, EvaluatePolicy, TrainOptions};
 use uavmeta_learner::transitions::{load_shots, Transitions};
 use uavmeta_proto::config::{Config, TaskConfig};
 use uavmeta_proto::method::{Algo, Method, Start};
+use uavmeta_proto::stats::PolicyMetrics;
 
 use crate::context::ContextModel;
 use crate::MetaError;
@@ -97,22 +98,23 @@ pub fn fine_tune(
     Ok(train(q, shots, &train_opts, evaluator)?)
 }
 
-/// Loads `w0` from `opts.init` and fine-tunes it, scored on the task's true environment; returns
-/// one row per epoch (also in `<out_dir>/train.csv`).
-pub fn meta_test(opts: &MetaTestOptions) -> Result<Vec<EpochRow>, MetaError> {
-    let run = &opts.fine_tune;
-    meta_test_with(opts, &mut Evaluator::from_config(run.config, run.task))
+/// What a meta-test run scored: its init before any gradient step (the context learner's
+/// zero-shot policy, w0's own) and one row per epoch.
+pub struct MetaTestResult {
+    pub init: PolicyMetrics,
+    pub rows: Vec<EpochRow>,
 }
 
-/// [`meta_test`] scored by `evaluator`, which sees the network after every epoch.
-pub fn meta_test_with(
-    opts: &MetaTestOptions,
-    evaluator: &mut dyn EvaluatePolicy,
-) -> Result<Vec<EpochRow>, MetaError> {
+/// Loads the init `opts.init` and fine-tunes it, scored on the task's true environment before
+/// the first step and after every epoch (the rows also in `<out_dir>/train.csv`).
+pub fn meta_test(opts: &MetaTestOptions) -> Result<MetaTestResult, MetaError> {
     let run = &opts.fine_tune;
+    let evaluator = &mut Evaluator::from_config(run.config, run.task);
     let shots = load_shots(run.config, run.task, opts.dataset, opts.shots, run.seed)?;
     let (mut q, algorithm) = init_network(opts.init, run.config, &shots)?;
-    fine_tune(&mut q, &shots, algorithm, run, evaluator)
+    let init = evaluator.evaluate(&q);
+    let rows = fine_tune(&mut q, &shots, algorithm, run, evaluator)?;
+    Ok(MetaTestResult { init, rows })
 }
 
 /// The network meta-test starts from with the init `path`, and the algorithm that fine-tunes

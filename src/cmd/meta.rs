@@ -4,12 +4,9 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use clap::{Args, ValueEnum};
-use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::progress::OnStep;
-use uavmeta_learner::train::EvaluatePolicy;
-use uavmeta_learner::transitions::load_shots;
 use uavmeta_meta::context;
-use uavmeta_meta::fine_tune::{init_network, meta_test, FineTune, MetaTestOptions};
+use uavmeta_meta::fine_tune::{meta_test, FineTune, MetaTestOptions};
 use uavmeta_meta::meta_train::{meta_train, MetaTrainOptions};
 
 use super::common::{ConfigArgs, ShotsArgs, TaskArgs};
@@ -115,14 +112,7 @@ pub fn run_test(args: MetaTestArgs) -> Result<()> {
     let mut config = args.config.load()?;
     let task = args.task.resolve(&mut config)?;
     let seed = args.seed.unwrap_or(config.run.seeds[0]);
-    let shots = load_shots(&config, &task, &args.shots.dataset, args.shots.shots, seed)?;
-    let (init, _) = init_network(&args.init, &config, &shots)?;
-    let zero_shot = Evaluator::from_config(&config, &task).evaluate(&init);
-    println!(
-        "init, zero-shot: return {:.1}, AoI {:.2}, power {:.3} mW",
-        zero_shot.ret, zero_shot.aoi, zero_shot.power_mw
-    );
-    let rows = meta_test(&MetaTestOptions {
+    let result = meta_test(&MetaTestOptions {
         fine_tune: FineTune {
             config: &config,
             task: &task,
@@ -136,7 +126,12 @@ pub fn run_test(args: MetaTestArgs) -> Result<()> {
         dataset: &args.shots.dataset,
         shots: args.shots.shots,
     })?;
-    if let Some(last) = rows.last() {
+    let init = &result.init;
+    println!(
+        "init, zero-shot: return {:.1}, AoI {:.2}, power {:.3} mW",
+        init.ret, init.aoi, init.power_mw
+    );
+    if let Some(last) = result.rows.last() {
         println!(
             "epoch {}: return {:.1}, AoI {:.2}, power {:.3} mW",
             last.epoch, last.policy.ret, last.policy.aoi, last.policy.power_mw

@@ -1,6 +1,6 @@
 //! The meta-learner process (`uavmeta meta-learner --run R`): MAML over the run's datasets as
 //! soon as the store announces them, then meta-test on the unseen task(s). It runs the library's
-//! meta-training and meta-test (`meta_train_with`, `meta_test_with`) with hooks that write into
+//! meta-training and fine-tuning (`meta_train_with`, `fine_tune`) with hooks that write into
 //! the run directory and announce what they wrote.
 //!
 //! 1. Waits until the store has announced the dataset of every task (meta-train tasks for MAML,
@@ -141,7 +141,7 @@ pub fn run(run: &RunDir, config: &Config) -> Result<Outcome, MetaProcessError> {
     let (w0, meta) = checkpoint::load(&trained.w0, config)?;
     save_init(run, config, "w0", &w0, &meta.algorithm, meta.epoch)?;
 
-    // 3. Meta-test on each unseen task (`fine_tune::meta_test_with`): the MAML init fine-tuned
+    // 3. Meta-test on each unseen task (`fine_tune::fine_tune`): the MAML init fine-tuned
     //    with the loss its checkpoint names, and its baselines on the same shots.
     let meta_test = MetaTest {
         run,
