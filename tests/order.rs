@@ -3,7 +3,7 @@
 //! the planner's tests, with three of its eight meta-train tasks, agents of 8 000 steps, datasets
 //! of 500 transitions and networks of 64 units a layer.
 //! On every one of the three seeds the online agents and the fine-tuned learners (CQL,
-//! CQL-pretrain, CQL-MAML) beat both heuristics, and over the seeds the agents' mean stays within
+//! CQL-pretrain, CQL-context, CQL-MAML) beat both heuristics, and over the seeds the agents' mean stays within
 //! 5% of the planner and the learners' within 35%. The claim is about every seed and the mean
 //! over seeds, never one lucky draw.
 //!
@@ -12,7 +12,8 @@
 //! short, with a spread between seeds (one seed's CQL -28%, another's CQL-MAML -2.8%) that puts
 //! the 95% interval of three seeds below the greedy heuristic in some builds; and the
 //! meta-learned init alone (maml-init) is below the greedy heuristic; it is held only above the
-//! random policy.
+//! random policy, as is the context learner's zero-shot policy (context-init), above the
+//! heuristics on every seed measured but by 21 on its worst.
 
 use std::path::Path;
 
@@ -68,14 +69,16 @@ fn small_default(dir: &Path, run: &Path) -> std::path::PathBuf {
 
 /// Each learned row, the reference it must clear on every seed, and the largest gap to the
 /// planner its mean over the seeds may have, as a fraction of the planner's return. Measured here
-/// (three seeds, mean): online-dqn 3.4%, cql 26.4%, cql-pretrain 17.3%, cql-maml 16.8%,
-/// maml-init 70%.
-const LEARNED: [(&str, Clears, f64); 5] = [
+/// (three seeds, mean): online-dqn 3.4%, cql 26.4%, cql-pretrain 17.3%, cql-context 17.5%,
+/// cql-maml 16.8%, maml-init 70%, context-init 36%.
+const LEARNED: [(&str, Clears, f64); 7] = [
     ("online-dqn", Clears::Heuristics, 0.05),
     ("cql-maml", Clears::Heuristics, 0.35),
     ("cql-pretrain", Clears::Heuristics, 0.35),
+    ("cql-context", Clears::Heuristics, 0.35),
     ("cql", Clears::Heuristics, 0.35),
     ("maml-init", Clears::Random, f64::INFINITY),
+    ("context-init", Clears::Random, f64::INFINITY),
 ];
 
 /// What a row must be above on every seed.

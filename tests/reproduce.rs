@@ -139,8 +139,8 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     check_csv(
         &out.join("convergence/curves.csv"),
         &format!("method,{curve}"),
-        // CQL-MAML, CQL-pretrain, CQL, DQN, DQN-MAML, then the baselines.
-        (5 + 2 * baselines) * seeds * r.convergence_epochs,
+        // CQL-MAML, CQL-pretrain, CQL-context, CQL, DQN, DQN-MAML, then the baselines.
+        (6 + 2 * baselines) * seeds * r.convergence_epochs,
     );
     check_csv(
         &out.join("convergence/references.csv"),
@@ -151,22 +151,23 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     check_csv(
         &out.join("shots/curves.csv"),
         &format!("method,shots,{curve}"),
-        r.shots.len() * (3 + 2 * baselines) * seeds * r.convergence_epochs,
+        r.shots.len() * (4 + 2 * baselines) * seeds * r.convergence_epochs,
     );
     check_csv(
         &out.join("tasks/curves.csv"),
         &format!("method,tasks,{curve}"),
-        (r.task_counts.len() + 1) * seeds * r.tasks_epochs,
+        // CQL-MAML and CQL-context per task count, then CQL.
+        (2 * r.task_counts.len() + 1) * seeds * r.tasks_epochs,
     );
     check_csv(
         &out.join("aoi-power/bars.csv"),
         "method,seed,aoi,power_mw",
-        4 * seeds + 4,
+        5 * seeds + 4,
     );
     check_csv(
         &out.join("resilience/curves.csv"),
         &format!("method,task,{curve}"),
-        3 * rain * seeds * r.resilience_epochs,
+        4 * rain * seeds * r.resilience_epochs,
     );
     let meta_train = config
         .tasks

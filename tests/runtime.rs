@@ -133,7 +133,13 @@ fn a_small_launch_accounts_for_every_transition_and_its_rows_rerun_from_the_cli(
     let out = launch(dir.path(), &run, &[]).wait(within(240));
     assert!(out.status.success(), "launch failed:\n{}", stderr(&out));
     let table = out.stdout.clone();
-    for method in ["maml-init", "cql-maml", "cql"] {
+    for method in [
+        "maml-init",
+        "context-init",
+        "cql-maml",
+        "cql-context",
+        "cql",
+    ] {
         assert!(
             table
                 .lines()
@@ -182,13 +188,15 @@ fn a_small_launch_accounts_for_every_transition_and_its_rows_rerun_from_the_cli(
     assert_rows_rerun_from_the_cli(dir.path(), &run);
 }
 
-/// The launch's `cql` and `cql-maml` rows (seed 0, 300 shots: the whole dataset, 2 epochs) re-run
-/// by hand as docs/TOUR.md says, `uavmeta train --init random --seed 0 --init-seed 1` and
-/// `uavmeta meta-test --init RUN/inits/w0 --seed 0`, end on the launch's checkpoints byte for byte.
+/// The launch's `cql`, `cql-maml` and `cql-context` rows (seed 0, 300 shots: the whole dataset,
+/// 2 epochs) re-run by hand as docs/TOUR.md says, `uavmeta train --init random --seed 0
+/// --init-seed 1`, `uavmeta meta-test --init RUN/inits/w0 --seed 0` and `uavmeta meta-test
+/// --init RUN/inits/cql-context --seed 0`, end on the launch's checkpoints byte for byte.
 fn assert_rows_rerun_from_the_cli(dir: &Path, run: &Path) {
     let config = run.join("config.toml").display().to_string();
     let dataset = run.join("datasets/lambda-300.uavds").display().to_string();
     let w0 = run.join("inits/w0").display().to_string();
+    let context = run.join("inits/cql-context").display().to_string();
     let cql = [
         "train",
         "--algo",
@@ -199,7 +207,12 @@ fn assert_rows_rerun_from_the_cli(dir: &Path, run: &Path) {
         "1",
     ];
     let cql_maml = ["meta-test", "--init", &w0];
-    for (method, command) in [("cql", &cql[..]), ("cql-maml", &cql_maml[..])] {
+    let cql_context = ["meta-test", "--init", &context];
+    for (method, command) in [
+        ("cql", &cql[..]),
+        ("cql-maml", &cql_maml[..]),
+        ("cql-context", &cql_context[..]),
+    ] {
         let out = dir.join(format!("cli-{method}"));
         let rerun = Command::new(BIN)
             .args(command)
@@ -864,10 +877,11 @@ fn an_evaluator_restarted_after_the_meta_learner_exited_catches_up_from_the_run_
     let csv = run.join("evaluations.csv");
     let complete = std::fs::read_to_string(&csv).expect("evaluations.csv");
     let lines: Vec<&str> = complete.lines().collect();
-    // Two w0 checkpoints, and two epochs of each fine-tuned method.
+    // Two w0 checkpoints, the context learner's zero-shot policy, and two epochs of each
+    // fine-tuned method.
     assert_eq!(
         lines.len(),
-        1 + 2 + Method::fine_tuned(Algo::CQL, &Algo::baselines()).len() * 2,
+        1 + 2 + 1 + Method::fine_tuned(Algo::CQL, &Algo::baselines()).len() * 2,
         "{complete}"
     );
 
@@ -921,13 +935,16 @@ fn a_launch_with_the_dqn_inner_loss_fine_tunes_and_reports_dqn_maml() {
                 .or_default() += 1;
             n
         });
-    // Two w0 checkpoints, then two epochs each of DQN-MAML, its random-init and pretrained
-    // baselines, and each of `learner.baselines` from w0 and from a random init.
+    // Two w0 checkpoints, the context learner's zero-shot policy, then two epochs each of
+    // DQN-MAML, its random-init, pretrained and context baselines, and each of
+    // `learner.baselines` from w0 and from a random init.
     let mut expected = BTreeMap::from([
         ("maml-init".to_string(), 2),
+        ("context-init".to_string(), 1),
         ("dqn-maml".to_string(), 2),
         ("dqn".to_string(), 2),
         ("dqn-pretrain".to_string(), 2),
+        ("dqn-context".to_string(), 2),
     ]);
     for algo in Algo::baselines() {
         expected.insert(format!("{algo}-w0"), 2);

@@ -247,6 +247,15 @@ fn read_json<T: DeserializeOwned>(
     Ok(meta)
 }
 
+/// Whether a checkpoint is the context learner's task-conditioned network, which reads a task
+/// code after the observation (`uavmeta_meta::context`), rather than a network on the
+/// observation alone (w0, or `cql-context`'s network after an epoch on a task's shots).
+pub fn is_context_model(meta: &CheckpointMeta, config: &Config) -> bool {
+    let method = Method::from_name(&meta.algorithm);
+    method.and_then(Method::start) == Some(Start::Context)
+        && meta.obs_len != config.world.observation_len()
+}
+
 /// Loads checkpoint `path` into a new network sized by `config` (`world.devices`, and
 /// `learner.hidden`, or `collect.dqn.hidden` for an online DQN agent's). Sizes that differ from the
 /// checkpoint's, a truncated or corrupt weights file, or unreadable metadata are errors naming the
@@ -276,14 +285,13 @@ pub fn load_conditioned(
         ),
     }
     };
-    let method = Method::from_name(&meta.algorithm);
-    if code_len == 0 && method.and_then(Method::start) == Some(Start::Context) {
+    let obs_len = config.world.observation_len() + code_len;
+    if code_len == 0 && is_context_model(&meta, config) {
         return Err(CheckpointError::ContextModel {
             path: paths.meta.clone(),
             algorithm: meta.algorithm.clone(),
         });
     }
-    let obs_len = config.world.observation_len() + code_len;
     let actions = config.world.action_count();
     if meta.obs_len != obs_len {
         let what = match code_len {

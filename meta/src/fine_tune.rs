@@ -127,9 +127,9 @@ pub fn init_network(
 ) -> Result<(QNetwork, Algo), MetaError> {
     let meta = checkpoint::read_meta(path)?;
     let algorithm = fine_tune_algorithm(path, &meta.algorithm)?;
-    let q = match Method::from_name(&meta.algorithm).and_then(Method::start) {
-        Some(Start::Context) => ContextModel::load(path, config)?.policy(shots),
-        _ => checkpoint::load(path, config)?.0,
+    let q = match checkpoint::is_context_model(&meta, config) {
+        true => ContextModel::load(path, config)?.policy(shots),
+        false => checkpoint::load(path, config)?.0,
     };
     Ok((q, algorithm))
 }

@@ -4,8 +4,9 @@
 //! An [`Algo`] is an offline learning algorithm, registered by name in [`ALGORITHMS`] (its loss
 //! is `uavmeta_learner::algorithm`'s of the same name). A [`Method`] is what a table row shows:
 //! an algorithm fine-tuned on an unseen task's shots from a [`Start`] (`cql` from a random init,
-//! `cql-maml` from the meta-learned w0, `cql-pretrain` from multi-task pretraining), or one of
-//! the two references that are not fine-tuned (w0 alone, the online agent).
+//! `cql-maml` from the meta-learned w0, `cql-pretrain` from multi-task pretraining, `cql-context`
+//! from the context learner's zero-shot policy), or one of the three rows that are not
+//! fine-tuned (w0 alone, the context learner's zero-shot policy, the online agent).
 
 use std::fmt;
 
@@ -147,6 +148,10 @@ pub enum Method {
     /// The online DQN agent that made a task's dataset (one checkpoint, epoch 1): the paper's
     /// "online" reference line.
     OnlineDqn,
+    /// The context learner's task-conditioned network (`uavmeta_meta::context`), its task code
+    /// read from an unseen task's shots, before any gradient step (one checkpoint per task,
+    /// epoch 1): its zero-shot policy, where `cql-context` starts.
+    ContextInit,
     /// `algo` fine-tuned on the few shots of an unseen task from `start`.
     FineTuned { algo: Algo, start: Start },
 }
@@ -158,6 +163,8 @@ impl Method {
     pub const CQL: Method = Method::tuned(Algo::CQL, Start::Random);
     /// CQL pretrained on the meta-train tasks' shots, fine-tuned like CQL-MAML.
     pub const CQL_PRETRAIN: Method = Method::tuned(Algo::CQL, Start::Pretrain);
+    /// CQL from the context learner's zero-shot policy, fine-tuned like CQL-MAML.
+    pub const CQL_CONTEXT: Method = Method::tuned(Algo::CQL, Start::Context);
     /// DQN-MAML, the paper's ablation without the conservative term.
     pub const DQN_MAML: Method = Method::tuned(Algo::DQN, Start::Maml);
     /// Offline DQN from a random initialisation: DQN-MAML's baseline.
@@ -174,13 +181,15 @@ impl Method {
     }
 
     /// The methods a meta-learner fine-tunes on each meta-test task, in order: the inner loss
-    /// from w0, from a random init and from its pretrained init, then each of `baselines`
+    /// from w0, from a random init, from its pretrained init and from the context learner's
+    /// zero-shot policy, then each of `baselines`
     /// (`learner.baselines`; the inner loss is skipped there) from w0 and from a random init.
     pub fn fine_tuned(inner_loss: Algo, baselines: &[Algo]) -> Vec<Method> {
         let mut methods = vec![
             Method::tuned(inner_loss, Start::Maml),
             Method::tuned(inner_loss, Start::Random),
             Method::tuned(inner_loss, Start::Pretrain),
+            Method::tuned(inner_loss, Start::Context),
         ];
         for &algo in baselines.iter().filter(|&&a| a != inner_loss) {
             methods.push(Method::tuned(algo, Start::W0));
@@ -194,6 +203,7 @@ impl Method {
         match self {
             Method::MetaInit => "maml-init".into(),
             Method::OnlineDqn => "online-dqn".into(),
+            Method::ContextInit => "context-init".into(),
             Method::FineTuned { algo, start } => format!("{algo}{}", start.suffixes().0),
         }
     }
@@ -203,37 +213,40 @@ impl Method {
         match self {
             Method::MetaInit => "maml-init".into(),
             Method::OnlineDqn => "online DQN".into(),
+            Method::ContextInit => "context-init".into(),
             Method::FineTuned { algo, start } => {
                 format!("{}{}", algo.label(), start.suffixes().1)
             }
         }
     }
 
-    /// The algorithm it is fine-tuned with on an unseen task's shots; `None` for the two that
-    /// are not fine-tuned (w0 alone, the online agent).
+    /// The algorithm it is fine-tuned with on an unseen task's shots; `None` for the three that
+    /// are not fine-tuned (w0 alone, the context learner's zero-shot policy, the online agent).
     pub fn algo(self) -> Option<Algo> {
         match self {
             Method::FineTuned { algo, .. } => Some(algo),
-            Method::MetaInit | Method::OnlineDqn => None,
+            Method::MetaInit | Method::OnlineDqn | Method::ContextInit => None,
         }
     }
 
-    /// Where it starts; `None` for the two that are not fine-tuned.
+    /// Where it starts; `None` for the three that are not fine-tuned.
     pub fn start(self) -> Option<Start> {
         match self {
             Method::FineTuned { start, .. } => Some(start),
-            Method::MetaInit | Method::OnlineDqn => None,
+            Method::MetaInit | Method::OnlineDqn | Method::ContextInit => None,
         }
     }
 
-    /// Its number on the wire: 0 and 1 for the references, then 2 + start x 64 + algorithm.
+    /// Its number on the wire: 0 to 2 for the three that are not fine-tuned, then
+    /// 3 + start x 64 + algorithm.
     /// (`Start::Maml` and `Start::W0` of one algorithm load the same w0; the name tells which
     /// algorithm meta-trained it.)
     pub fn code(self) -> u32 {
         match self {
             Method::MetaInit => 0,
             Method::OnlineDqn => 1,
-            Method::FineTuned { algo, start } => 2 + start as u32 * 64 + algo.index() as u32,
+            Method::ContextInit => 2,
+            Method::FineTuned { algo, start } => 3 + start as u32 * 64 + algo.index() as u32,
         }
     }
 
@@ -241,8 +254,9 @@ impl Method {
         match code {
             0 => Some(Method::MetaInit),
             1 => Some(Method::OnlineDqn),
+            2 => Some(Method::ContextInit),
             _ => {
-                let (start, algo) = ((code - 2) / 64, (code - 2) % 64);
+                let (start, algo) = ((code - 3) / 64, (code - 3) % 64);
                 let start = *Start::ALL.get(start as usize)?;
                 let algo = Algo::all().nth(algo as usize)?;
                 Some(Method::tuned(algo, start))
@@ -256,12 +270,20 @@ impl Method {
     }
 
     /// The learned rows of a results table, in its order: every algorithm from a random init,
-    /// then from pretraining, from its own MAML w0 and from another's, then w0 alone.
+    /// then from pretraining, from its own MAML w0, from the context learner and from another's
+    /// w0, then w0 alone and the context learner's zero-shot policy.
     pub fn learners() -> impl Iterator<Item = Method> {
-        [Start::Random, Start::Pretrain, Start::Maml, Start::W0]
+        let starts = [
+            Start::Random,
+            Start::Pretrain,
+            Start::Maml,
+            Start::Context,
+            Start::W0,
+        ];
+        starts
             .into_iter()
             .flat_map(|start| Algo::all().map(move |algo| Method::tuned(algo, start)))
-            .chain([Method::MetaInit])
+            .chain([Method::MetaInit, Method::ContextInit])
     }
 
     /// Every method: the references, then each algorithm from each start.
@@ -271,7 +293,7 @@ impl Method {
                 .into_iter()
                 .map(move |start| Method::tuned(algo, start))
         });
-        [Method::MetaInit, Method::OnlineDqn]
+        [Method::MetaInit, Method::OnlineDqn, Method::ContextInit]
             .into_iter()
             .chain(tuned)
     }
@@ -290,7 +312,7 @@ mod tests {
     #[test]
     fn every_method_has_its_own_name_and_code_and_both_read_back() {
         let all: Vec<Method> = Method::all().collect();
-        assert_eq!(all.len(), 2 + 5 * ALGORITHMS.len());
+        assert_eq!(all.len(), 3 + 5 * ALGORITHMS.len());
         for m in &all {
             assert_eq!(Method::from_code(m.code()), Some(*m), "{m}");
             assert_eq!(Method::from_name(&m.name()), Some(*m), "{m}");
@@ -300,8 +322,8 @@ mod tests {
                 "{m}"
             );
         }
-        assert_eq!(Method::from_code(2 + 5 * 64), None);
-        assert_eq!(Method::from_code(2 + ALGORITHMS.len() as u32), None);
+        assert_eq!(Method::from_code(3 + 5 * 64), None);
+        assert_eq!(Method::from_code(3 + ALGORITHMS.len() as u32), None);
         assert_eq!(Method::CQL_MAML.name(), "cql-maml");
         assert_eq!(Method::CQL_PRETRAIN.label(), "CQL-pretrain");
     }

@@ -38,7 +38,7 @@ use crate::config::{TaskConfig, MAX_DEVICES};
 use crate::dataset::Transition;
 
 /// The version of every payload below and of the service settings; bump it on any change.
-pub const SCHEMA_VERSION: u32 = 4;
+pub const SCHEMA_VERSION: u32 = 5;
 
 /// The service attribute that carries [`SCHEMA_VERSION`].
 pub const SCHEMA_ATTRIBUTE: &str = "uavmeta.schema_version";

@@ -377,8 +377,10 @@ fn plan(config: &Config, r: &ReproduceConfig, experiments: &[Experiment]) -> Pla
             }
             Experiment::Tasks => {
                 for &n in &r.task_counts {
-                    let key = unseen(Method::CQL_MAML, r.main_shots, n);
-                    plan.run(config, key, r.tasks_epochs, false, e);
+                    for method in [Method::CQL_MAML, Method::CQL_CONTEXT] {
+                        let key = unseen(method, r.main_shots, n);
+                        plan.run(config, key, r.tasks_epochs, false, e);
+                    }
                 }
                 let key = unseen(Method::CQL, r.main_shots, 0);
                 plan.run(config, key, r.tasks_epochs, false, e);
@@ -637,8 +639,8 @@ mod tests {
             }),
         ));
         let plan = plan(&config, &r, &Experiment::ALL);
-        // CQL-MAML on 2 and 8 tasks, DQN-MAML and CQL-pretrain on 8.
-        assert_eq!(plan.inits.len(), 4);
+        // CQL-MAML and CQL-context on 2 and 8 tasks, DQN-MAML and CQL-pretrain on 8.
+        assert_eq!(plan.inits.len(), 6);
         let main = plan
             .runs
             .iter()
@@ -659,11 +661,12 @@ mod tests {
                 Experiment::AoiPower
             ]
         );
-        // 5 methods and each baseline from w0 and from a random init, the CQL inits and the
-        // baselines at 2 more shot counts, CQL-MAML on 2 tasks, 3 on the rain task.
+        // 6 methods and each baseline from w0 and from a random init, the CQL inits and the
+        // baselines at 2 more shot counts, CQL-MAML and CQL-context on 2 tasks, 4 on the rain
+        // task.
         let b = config.learner.baselines.len();
-        assert_eq!(plan.runs.len(), (5 + 2 * b) + (3 + 2 * b) * 2 + 1 + 3);
-        assert_eq!(plan.runs.iter().filter(|r| r.trajectory).count(), 3);
+        assert_eq!(plan.runs.len(), (6 + 2 * b) + (4 + 2 * b) * 2 + 2 + 4);
+        assert_eq!(plan.runs.iter().filter(|r| r.trajectory).count(), 4);
     }
 
     #[test]

@@ -18,7 +18,8 @@ use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::{EpochRow, EvaluatePolicy};
 use uavmeta_learner::transitions::load_shots;
-use uavmeta_meta::fine_tune::{fine_tune, FineTune};
+use uavmeta_meta::context;
+use uavmeta_meta::fine_tune::{fine_tune, init_network, FineTune};
 use uavmeta_meta::meta_train::{
     dataset_path, load_tasks, meta_train, Evaluation, MetaRow, MetaTrainOptions,
 };
@@ -39,6 +40,9 @@ pub enum Init {
     Maml(Algo),
     /// This algorithm on the union of the meta-train tasks' shots (`uavmeta_meta::pretrain`).
     Pretrain(Algo),
+    /// The context learner trained with this algorithm on the meta-train tasks' shots
+    /// (`uavmeta_meta::context`); a run starts from its policy for the run's shots.
+    Context(Algo),
 }
 
 /// The reproduction's w0: CQL-MAML's, which the `-w0` baselines start from too.
@@ -51,6 +55,7 @@ impl Init {
             (Method::MetaInit, _) | (_, Some(Start::W0)) => Some(W0),
             (Method::FineTuned { algo, .. }, Some(Start::Maml)) => Some(Init::Maml(algo)),
             (Method::FineTuned { algo, .. }, Some(Start::Pretrain)) => Some(Init::Pretrain(algo)),
+            (Method::FineTuned { algo, .. }, Some(Start::Context)) => Some(Init::Context(algo)),
             _ => None,
         }
     }
@@ -58,7 +63,7 @@ impl Init {
     /// The algorithm it trains with.
     pub fn algo(self) -> Algo {
         match self {
-            Init::Maml(algo) | Init::Pretrain(algo) => algo,
+            Init::Maml(algo) | Init::Pretrain(algo) | Init::Context(algo) => algo,
         }
     }
 
@@ -67,6 +72,7 @@ impl Init {
         match self {
             Init::Maml(algo) => Method::tuned(algo, Start::Maml).name(),
             Init::Pretrain(algo) => Method::tuned(algo, Start::Pretrain).name(),
+            Init::Context(algo) => Method::tuned(algo, Start::Context).name(),
         }
     }
 }
@@ -300,13 +306,14 @@ fn collection_config(config: &Config, seed: u64) -> Config {
     c
 }
 
-/// The config of one meta-training: the run's, with its tasks cut to the first `key.tasks`
-/// meta-train tasks, the inner loss of `key`, figure 4's evaluation interval `eval_every`
+/// The config of one meta-training: the run's `[meta]` and `[context]`, with its tasks cut to the
+/// first `key.tasks` meta-train tasks, the inner loss of `key`, figure 4's evaluation interval `eval_every`
 /// (evaluating does not change training, so every w0 shares it and one w0 serves every figure)
 /// and no `[reproduce]`, which meta-training does not read.
 fn meta_config(config: &Config, key: InitKey, seed: u64, eval_every: usize) -> Config {
     let mut c = collection_config(config, seed);
     c.meta = config.meta.clone();
+    c.context = config.context.clone();
     c.meta.inner_loss = key.kind.algo();
     c.meta.eval_every = eval_every;
     c.tasks = meta_train_tasks(config, key.tasks).cloned().collect();
@@ -415,15 +422,9 @@ pub fn init(
     let datasets = &datasets_dir(out, seed);
     let out = seed_dir(out, seed).join(format!("{}-tasks-{}", key.kind.name(), key.tasks));
     let w0 = out.join("w0");
-    if let Init::Pretrain(_) = key.kind {
+    if let Init::Pretrain(_) | Init::Context(_) = key.kind {
         if !saved_config_matches(&CheckpointPaths::new(&w0).config, &meta) {
-            let (_, tasks) = load_tasks(&meta, datasets, seed)?;
-            let q = pretrain::pretrain(&meta, &tasks, seed, OnStep::default(), |_| {
-                Ok::<_, ReproduceError>(true)
-            })?
-            .expect("a pretraining never told to stop finishes");
-            checkpoint::save(&w0, &q, &key.kind.name(), meta.meta.meta_epochs, &meta)
-                .map_err(MetaError::from)?;
+            multi_task_init(&meta, datasets, seed, key.kind, &w0)?;
         }
         return Ok((w0, MetaCurve::default()));
     }
@@ -442,6 +443,31 @@ pub fn init(
     Ok((result.w0, MetaCurve::of(&result.rows)))
 }
 
+/// Trains the pretrained or context init `kind` on `meta`'s tasks and saves it as `path`.
+fn multi_task_init(
+    meta: &Config,
+    datasets: &Path,
+    seed: u64,
+    kind: Init,
+    path: &Path,
+) -> Result<(), ReproduceError> {
+    let (_, tasks) = load_tasks(meta, datasets, seed)?;
+    let always = |_| Ok::<_, ReproduceError>(true);
+    let finished = "a training never told to stop finishes";
+    match kind {
+        Init::Context(_) => context::meta_train(meta, &tasks, seed, OnStep::default(), always)?
+            .expect(finished)
+            .save(path, meta),
+        _ => {
+            let q =
+                pretrain::pretrain(meta, &tasks, seed, OnStep::default(), always)?.expect(finished);
+            checkpoint::save(path, &q, &kind.name(), meta.meta.meta_epochs, meta).map(|_| ())
+        }
+    }
+    .map_err(MetaError::from)?;
+    Ok(())
+}
+
 /// Seed `seed`'s fine-tuning run `run`, from the checkpoint `w0` (its init, `None` for a random
 /// one), evaluated after every epoch.
 pub fn fine_tune_run(
@@ -456,7 +482,7 @@ pub fn fine_tune_run(
     let dataset = dataset_path(&datasets_dir(out, seed), &task.name);
     let shots = load_shots(config, task, &dataset, key.shots, seed).map_err(MetaError::from)?;
     let mut q = match w0 {
-        Some(w0) => checkpoint::load(w0, config).map_err(MetaError::from)?.0,
+        Some(w0) => init_network(w0, config, &shots)?.0,
         None => QNetworkConfig::for_world(&config.world, &config.learner.hidden).init(seed),
     };
     let mut eval_config = config.clone();

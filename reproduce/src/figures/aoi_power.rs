@@ -44,8 +44,9 @@ pub(super) fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, ReproduceE
             ctx.online(&r.unseen_task, c.learner.eval_episodes),
         ),
         ("CQL", at_epoch(Method::CQL)),
-        // Not in the paper: after its three, with no paper figures beside it.
+        // Not in the paper: after its three, with no paper figures beside them.
         ("CQL-pretrain", at_epoch(Method::CQL_PRETRAIN)),
+        ("CQL-context", at_epoch(Method::CQL_CONTEXT)),
     ];
     let heuristics = &ctx
         .heuristics(&r.unseen_task, c.learner.eval_episodes)

@@ -33,8 +33,13 @@ mod tasks;
 const EPOCH_40: usize = 40;
 const EPOCH_100: usize = 100;
 
-/// The CQL fine-tunings from the three inits: what figures 8 and 9 compare.
-pub const CQL_INITS: [Method; 3] = [Method::CQL_MAML, Method::CQL_PRETRAIN, Method::CQL];
+/// The CQL fine-tunings from the four inits: what figures 8 and 9 compare.
+pub const CQL_INITS: [Method; 4] = [
+    Method::CQL_MAML,
+    Method::CQL_PRETRAIN,
+    Method::CQL_CONTEXT,
+    Method::CQL,
+];
 
 /// [`CQL_INITS`], then each of `learner.baselines` from w0 and from a random init: what figure
 /// 6 (shots) compares.

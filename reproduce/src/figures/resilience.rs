@@ -64,7 +64,7 @@ pub(super) fn resilience(ctx: &Context, dir: &Path) -> Result<Section, Reproduce
 }
 
 /// Every method's runs on every rain task, written to `curves.csv`. CQL-MAML and CQL first: the
-/// claims compare those two, CQL-pretrain is shown beside them.
+/// claims compare those two, CQL-pretrain and CQL-context are shown beside them.
 fn rain_runs(
     ctx: &Context,
     tasks: &[&TaskConfig],
@@ -74,7 +74,12 @@ fn rain_runs(
     let c = ctx.config;
     let mut csv = format!("method,task,{CURVE_COLUMNS}\n");
     let mut per_method = Vec::new();
-    for method in [Method::CQL_MAML, Method::CQL, Method::CQL_PRETRAIN] {
+    for method in [
+        Method::CQL_MAML,
+        Method::CQL,
+        Method::CQL_PRETRAIN,
+        Method::CQL_CONTEXT,
+    ] {
         let mut runs = Vec::new();
         for (task, h) in tasks.iter().zip(heuristics) {
             let key = rain_key(c, ctx.reproduce, task, method);

@@ -1,4 +1,4 @@
-//! Figure 6: CQL and CQL-MAML on 100, 300 and 500 shots.
+//! Figure 6: CQL, CQL-MAML and the other inits on 100, 300 and 500 shots.
 
 use super::*;
 
@@ -10,10 +10,11 @@ struct Finals {
     shots: usize,
     maml: Estimate,
     pretrain: Estimate,
+    context: Estimate,
     cql: Estimate,
 }
 
-/// Figure 6: CQL, CQL-pretrain and CQL-MAML at each shot count.
+/// Figure 6: CQL, CQL-pretrain, CQL-context and CQL-MAML at each shot count.
 pub(super) fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let c = ctx.config;
     let r = ctx.reproduce;
@@ -37,7 +38,8 @@ pub(super) fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
             shots,
             maml: each[0],
             pretrain: each[1],
-            cql: each[2],
+            context: each[2],
+            cql: each[3],
         });
     }
     write_file(&dir.join("curves.csv"), &csv)?;
@@ -49,9 +51,9 @@ pub(super) fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
     )?;
 
     let mut body = format!(
-        "CQL-MAML (w0 of the first {} meta-train tasks), CQL-pretrain and CQL fine-tuned for {epochs} epochs on {:?} \
+        "CQL-MAML (w0 of the first {} meta-train tasks), CQL-pretrain, CQL-context and CQL fine-tuned for {epochs} epochs on {:?} \
          shots of `{}`, {}. Final return = mean of the last {} epochs.\n\n\
-         | shots | CQL-MAML final | CQL-pretrain final | CQL final |\n| --- | --- | --- | --- |\n",
+         | shots | CQL-MAML final | CQL-pretrain final | CQL-context final | CQL final |\n| --- | --- | --- | --- | --- |\n",
         r.meta_tasks,
         r.shots,
         r.unseen_task,
@@ -61,8 +63,8 @@ pub(super) fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
     for f in &finals_per_size {
         let _ = writeln!(
             body,
-            "| {} | {:.0} | {:.0} | {:.0} |",
-            f.shots, f.maml, f.pretrain, f.cql
+            "| {} | {:.0} | {:.0} | {:.0} | {:.0} |",
+            f.shots, f.maml, f.pretrain, f.context, f.cql
         );
     }
     let found = vec![

@@ -1,8 +1,8 @@
-//! Figure 7: CQL-MAML meta-trained on 2 to 10 tasks.
+//! Figure 7: CQL-MAML meta-trained on 2 to 10 tasks, and CQL-context trained on as many.
 
 use super::*;
 
-/// Figure 7: CQL-MAML meta-trained on the first n tasks.
+/// Figure 7: CQL-MAML meta-trained on the first n tasks, and CQL-context trained on them.
 pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let c = ctx.config;
     let r = ctx.reproduce;
@@ -12,11 +12,20 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
     let mut csv = format!("method,tasks,{CURVE_COLUMNS}\n");
     let mut series = Vec::new();
     let mut values = Vec::new();
+    let mut context = Vec::new();
     for &n in &r.task_counts {
-        let key = unseen_key(c, r, Method::CQL_MAML, r.main_shots, n);
-        let runs = ctx.curves(&mut csv, &format!("cql-maml,{n}"), &key, epochs);
-        series.push(return_series(format!("CQL-MAML {n} tasks"), &runs));
-        values.push((n, est(runs.iter().map(|r| return_at(r, at)))));
+        for (method, at_n) in [
+            (Method::CQL_MAML, &mut values),
+            (Method::CQL_CONTEXT, &mut context),
+        ] {
+            let key = unseen_key(c, r, method, r.main_shots, n);
+            let runs = ctx.curves(&mut csv, &format!("{method},{n}"), &key, epochs);
+            series.push(return_series(
+                format!("{} {n} tasks", method.label()),
+                &runs,
+            ));
+            at_n.push((n, est(runs.iter().map(|r| return_at(r, at)))));
+        }
     }
     let cql_key = unseen_key(c, r, Method::CQL, r.main_shots, 0);
     let cql_runs = ctx.curves(&mut csv, "cql,0", &cql_key, epochs);
@@ -32,20 +41,21 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
 
     let mut body = format!(
         "CQL-MAML meta-trained on the first n meta-train tasks (config order: {}), fine-tuned for \
-         {epochs} epochs on {} shots of `{}`, {}; \"return at epoch {at}\" is the mean of epochs {}..{at}.\n\n\
-         | meta-train tasks | return at epoch {at} |\n| --- | --- |\n",
+         {epochs} epochs on {} shots of `{}`, {}; \"return at epoch {at}\" is the mean of epochs {}..{at}. \
+         CQL-context's encoder and Q-network are trained on the same tasks.\n\n\
+         | meta-train tasks | CQL-MAML at epoch {at} | CQL-context at epoch {at} |\n| --- | --- | --- |\n",
         joined(crate::runs::meta_train_tasks(c, usize::MAX).map(|t| &t.name), ", "),
         r.main_shots,
         r.unseen_task,
         ctx.seeds_note(),
         at.saturating_sub(claims::FINAL_EPOCHS) + 1
     );
-    for (n, v) in &values {
-        let _ = writeln!(body, "| {n} | {v:.0} |");
+    for ((n, v), (_, x)) in values.iter().zip(&context) {
+        let _ = writeln!(body, "| {n} | {v:.0} | {x:.0} |");
     }
     let _ = writeln!(
         body,
-        "| CQL (random init) | {cql:.0} |\n| online DQN | {:.0} |",
+        "| CQL (random init) | {cql:.0} | |\n| online DQN | {:.0} | |",
         refs.online
     );
     let mut found = vec![rising_claim(&values), eight_claim(&values, &refs)];

@@ -211,8 +211,8 @@ fn open_csv(path: &Path) -> Result<(File, Evaluated), FileError> {
 }
 
 /// The complete checkpoints in `run`'s directory, as the meta-learner announces them: every w0
-/// checkpoint for each meta-test task, then each meta-test task's online DQN agent and the epochs
-/// of its fine-tuned methods.
+/// checkpoint for each meta-test task, then each meta-test task's online DQN agent, the context
+/// learner's zero-shot policy and the epochs of its fine-tuned methods.
 fn checkpoints_on_disk(run: &RunDir, config: &Config) -> Vec<CheckpointReady> {
     let test_tasks: Vec<_> = config.meta_test_tasks().collect();
     let message = |method: Method, task: u32, epoch: u32| CheckpointReady {
@@ -232,8 +232,10 @@ fn checkpoints_on_disk(run: &RunDir, config: &Config) -> Vec<CheckpointReady> {
         }
     }
     for &(id, task) in &test_tasks {
-        if complete(Method::OnlineDqn, task, 1) {
-            found.push(message(Method::OnlineDqn, id, 1));
+        for method in [Method::OnlineDqn, Method::ContextInit] {
+            if complete(method, task, 1) {
+                found.push(message(method, id, 1));
+            }
         }
         for method in Method::fine_tuned(config.meta.inner_loss, &config.learner.baselines) {
             for epoch in 1..=config.learner.epochs as u32 {

@@ -13,13 +13,16 @@
 //!    directory holds the per-meta-epoch figures, as `uavmeta meta-train` writes them.
 //! 3. Meta-tests: per meta-test task, fine-tunes w0 on `learner.shots` shots with the loss
 //!    its checkpoint names (CQL-MAML or, with `meta.inner_loss = "dqn"`, DQN-MAML) and, as
-//!    baselines, the same loss from a random init (CQL or DQN) and, for CQL, from a network
-//!    pretrained on the union of the meta-train tasks' shots (CQL-pretrain,
-//!    `uavmeta_meta::pretrain`), each for `learner.epochs` epochs, checkpointing and announcing
-//!    every epoch.
+//!    baselines, the same loss from a random init (CQL or DQN), from a network pretrained on
+//!    the union of the meta-train tasks' shots (CQL-pretrain, `uavmeta_meta::pretrain`) and
+//!    from the context learner's policy for the task's shots (CQL-context,
+//!    `uavmeta_meta::context`), each for `learner.epochs` epochs, checkpointing and announcing
+//!    every epoch. The context learner's policy before any step is announced too, as
+//!    `context-init` epoch 1: its zero-shot row.
 //!
-//! The two inits of the run are also saved where a user looks for them, to fine-tune on another
-//! task afterwards: `inits/w0` (the final meta-learned init) and `inits/cql-pretrain`.
+//! The inits of the run are also saved where a user looks for them, to fine-tune on another
+//! task afterwards: `inits/w0` (the final meta-learned init), `inits/cql-pretrain` and
+//! `inits/cql-context` (the context learner's model, for `uavmeta meta-test --init`).
 //!
 //! **Restart.** Every w0 checkpoint carries MAML's training state (the outer Adam moments, the
 //! target network, the sampling stream: [`Maml::save_state`]), so a restarted meta-learner resumes
@@ -42,6 +45,7 @@ use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{EpochRow, EvaluatePolicy};
 use uavmeta_learner::transitions::{load_shots, Transitions};
+use uavmeta_meta::context::{self, ContextModel};
 use uavmeta_meta::fine_tune::{fine_tune, FineTune};
 use uavmeta_meta::meta_train::{
     load_tasks, meta_train_with, MetaRow, MetaTrainHook, MetaTrainOptions,
@@ -204,20 +208,48 @@ impl MetaTest<'_> {
             })
             .filter(|&(_, task, method)| latest_epoch(run, method, task, epochs) != epochs)
             .collect();
-        let mut pretrained: Option<QNetwork> = None;
+        let mut inits = Inits::default();
         for (id, task, method) in pending {
             if stop()? {
                 return Ok(Outcome::Stopped);
             }
-            if method.start() == Some(Start::Pretrain) && pretrained.is_none() {
+            if method.start() == Some(Start::Pretrain) && inits.pretrained.is_none() {
                 match self.pretrain(datasets, stop)? {
-                    Some(q) => pretrained = Some(q),
+                    Some(q) => inits.pretrained = Some(q),
                     None => return Ok(Outcome::Stopped),
                 }
             }
-            self.fine_tune(id, task, method, pretrained.as_ref())?;
+            if method.start() == Some(Start::Context) && inits.context.is_none() {
+                match self.context(datasets, stop)? {
+                    Some(model) => inits.context = Some(model),
+                    None => return Ok(Outcome::Stopped),
+                }
+            }
+            self.fine_tune(id, task, method, &inits)?;
         }
         Ok(Outcome::Finished)
+    }
+
+    /// The context learner meta-trained on the meta-train shots, saved as `inits/cql-context`;
+    /// `None` if told to stop (requests are honoured between its meta-epochs of budget).
+    fn context(
+        &self,
+        datasets: &Path,
+        stop: &impl Fn() -> Result<bool, MetaProcessError>,
+    ) -> Result<Option<ContextModel>, MetaProcessError> {
+        let (run, config, seed) = (self.run, self.config, self.seed);
+        tracing::info!("meta-training the context learner on the meta-train shots");
+        let (_, tasks) = load_tasks(config, datasets, seed)?;
+        let Some(model) =
+            context::meta_train(config, &tasks, seed, beat(), |_| stop().map(|stop| !stop))?
+        else {
+            return Ok(None);
+        };
+        let name = Method::tuned(config.meta.inner_loss, Start::Context).name();
+        let path = run.root().join("inits").join(name);
+        model.save(&path, config)?;
+        tracing::info!(init = %path.display(), "saved");
+        Ok(Some(model))
     }
 
     /// CQL pretrained on the union of the meta-train shots, saved as `inits/cql-pretrain`;
@@ -299,6 +331,13 @@ struct MetaTest<'a> {
 /// One fine-tuning of step 3: the meta-test task's number, the task, the method.
 type Job<'t> = (u32, &'t TaskConfig, Method);
 
+/// The inits step 3 trains on the meta-train shots, each once, when a method first needs it.
+#[derive(Default)]
+struct Inits {
+    pretrained: Option<QNetwork>,
+    context: Option<ContextModel>,
+}
+
 impl MetaTest<'_> {
     /// Fine-tunes `method`'s init on the shots of meta-test task `task` (number `task_id`),
     /// announcing every epoch's checkpoint.
@@ -307,34 +346,74 @@ impl MetaTest<'_> {
         task_id: u32,
         task: &TaskConfig,
         method: Method,
-        pretrained: Option<&QNetwork>,
+        inits: &Inits,
     ) -> Result<(), MetaProcessError> {
         let mut hook = self.hook(task_id, task, method);
-        let mut q = self.init(method, pretrained)?;
-        let algorithm = method.algo().expect("a fine-tuned method has an algorithm");
         let shots = self.shots(task)?;
+        let mut q = self.init(method, &shots, inits)?;
+        if method.start() == Some(Start::Context) {
+            self.announce_context_init(task_id, task, &q)?;
+        }
+        let algorithm = method.algo().expect("a fine-tuned method has an algorithm");
         let rows = fine_tune(&mut q, &shots, algorithm, &self.settings(task), &mut hook)?;
         self.finished(&mut hook, task, method, &rows)
     }
 
-    /// The network `method` fine-tunes: w0, the `pretrained` network, or a random init.
+    /// The network `method` fine-tunes on `shots`: w0, the pretrained network, the context
+    /// learner's policy for the shots' task code, or a random init.
     fn init(
         &self,
         method: Method,
-        pretrained: Option<&QNetwork>,
+        shots: &Transitions,
+        inits: &Inits,
     ) -> Result<QNetwork, MetaProcessError> {
         let config = self.config;
-        Ok(match (method.start(), pretrained) {
+        Ok(match (method.start(), inits) {
             (Some(Start::Maml | Start::W0), _) => {
                 check_init(self.w0, Method::maml(config.meta.inner_loss))?;
                 checkpoint::load(self.w0, config)?.0
             }
-            (Some(Start::Pretrain), Some(pretrained)) => pretrained.duplicate(),
+            (
+                Some(Start::Pretrain),
+                Inits {
+                    pretrained: Some(q),
+                    ..
+                },
+            ) => q.duplicate(),
+            (
+                Some(Start::Context),
+                Inits {
+                    context: Some(model),
+                    ..
+                },
+            ) => model.policy(shots),
             // The init's seed is the run's + 1, the shots' the run's: `uavmeta train --seed S
             // --init-seed S+1` is this run (kept so that earlier tables stay reproducible).
             _ => QNetworkConfig::for_world(&config.world, &config.learner.hidden)
                 .init(self.seed.wrapping_add(1)),
         })
+    }
+
+    /// Checkpoints and announces the context learner's policy for task `task_id` before any
+    /// gradient step: the `context-init` row, the zero-shot return of context-based meta-RL.
+    fn announce_context_init(
+        &self,
+        task_id: u32,
+        task: &TaskConfig,
+        q: &QNetwork,
+    ) -> Result<(), MetaProcessError> {
+        let method = Method::ContextInit;
+        let path = self.run.checkpoint(method, task, 1);
+        checkpoint::save(&path, q, &method.name(), 1, self.config)?;
+        self.metrics.checkpoints.inc();
+        let message = CheckpointReady {
+            schema_version: SCHEMA_VERSION,
+            method: method.code(),
+            task: task_id,
+            epoch: 1,
+        };
+        transport::announce(self.publisher, message)?;
+        Ok(())
     }
 
     /// The task's `learner.shots` shots (all of its dataset by default), drawn with the run's seed.
