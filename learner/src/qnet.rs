@@ -173,9 +173,12 @@ impl QNetwork {
         self.acting = acting;
     }
 
-    /// This network with `heads` blocks of outputs: its Q-value block repeated (or the others
-    /// dropped), so a network trained by one algorithm starts another's training with its
-    /// Q-values and its hidden layers unchanged.
+    /// This network with `heads` blocks of outputs: its Q-value block first and, in every other
+    /// block, that block scaled to a freshly initialised layer's size (or the others dropped), so
+    /// a network trained by one algorithm starts another's training with its Q-values and its
+    /// hidden layers unchanged. The other heads (BCQ's imitation logits) start ordered as the
+    /// Q-values but at a new layer's scale: copied at the Q-values' own, hundreds where lambda is
+    /// large, they made BCQ from w0 collapse (docs/EXPERIMENTS.md B8).
     pub fn with_heads(&self, heads: usize) -> QNetwork {
         let config = QNetworkConfig {
             heads,
@@ -184,13 +187,18 @@ impl QNetwork {
         let mut q = config.init(0);
         let last = self.params.len() - 2;
         let actions = self.config.actions as i64;
+        // The output weights' RMS of the new network's own init over that of this one's.
+        let scale = rms(&q.params[last].narrow(0, 0, actions))
+            / rms(&self.params[last].narrow(0, 0, actions)).max(f64::MIN_POSITIVE);
         tch::no_grad(|| {
             for (i, (dst, src)) in q.params.iter_mut().zip(&self.params).enumerate() {
                 if i < last {
                     dst.copy_(src);
                 } else {
                     let block = src.narrow(0, 0, actions);
-                    let blocks: Vec<&Tensor> = std::iter::repeat_n(&block, heads).collect();
+                    let scaled = &block * scale;
+                    let mut blocks: Vec<&Tensor> = vec![&block];
+                    blocks.extend(std::iter::repeat_n(&scaled, heads - 1));
                     dst.copy_(&Tensor::cat(&blocks, 0));
                 }
             }
@@ -299,6 +307,10 @@ impl QNetwork {
     }
 }
 
+/// The root mean square of a tensor's values.
+fn rms(t: &Tensor) -> f64 {
+    t.square().mean(tch::Kind::Double).sqrt().double_value(&[])
+}
 #[cfg(test)]
 impl QNetworkConfig {
     /// A network of this architecture whose Q-values are `bias` in every state: zero weights, the

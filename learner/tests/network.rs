@@ -295,3 +295,35 @@ fn a_network_conditioned_on_fixed_inputs_matches_the_full_network() {
         .double_value(&[]);
     assert!(gap < 1e-5, "{gap}");
 }
+
+/// A network gaining a head (BCQ's imitation logits) keeps its Q-values, and the new head starts
+/// ordered as they are but at a fresh layer's scale, whatever the Q-values' own: copied at the
+/// scale of a w0 meta-trained where lambda is large (hundreds), it made BCQ from w0 collapse.
+#[test]
+fn a_new_head_starts_ordered_as_the_q_values_at_a_fresh_layers_scale() {
+    let x = obs(16, 6, 3);
+    for factor in [1.0, 30.0] {
+        let q = QNetworkConfig::new(6, 10, &[8]).init(1);
+        tch::no_grad(|| {
+            for (_, mut v) in q.vs.variables() {
+                let _ = v.g_mul_scalar_(factor);
+            }
+        });
+        let values = q.forward(&x);
+        let two = q.with_heads(2).forward(&x);
+        assert!(two.narrow(-1, 0, 10).equal(&values), "factor {factor}");
+        let logits = two.narrow(-1, 10, 10);
+        assert!(
+            logits.argmax(-1, false).equal(&values.argmax(-1, false)),
+            "factor {factor}"
+        );
+        // Scaled by the ratio of weight sizes: as large as the Q-values for a fresh network,
+        // a small fraction of them for large ones (the old copy kept them equal).
+        let size = |t: &Tensor| t.abs().max().double_value(&[]);
+        let ratio = size(&logits) / size(&values);
+        match factor == 1.0 {
+            true => assert!((0.3..3.0).contains(&ratio), "factor {factor}: {ratio}"),
+            false => assert!(ratio < 0.1, "factor {factor}: {ratio}"),
+        }
+    }
+}

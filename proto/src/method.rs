@@ -31,7 +31,7 @@ pub const ALGORITHMS: &[AlgoInfo] = &[
     AlgoInfo { name: "cql", label: "CQL", baseline: false },
     AlgoInfo { name: "dqn", label: "DQN", baseline: false },
     AlgoInfo { name: "bc", label: "BC", baseline: true },
-    AlgoInfo { name: "bcq", label: "BCQ", baseline: false },
+    AlgoInfo { name: "bcq", label: "BCQ", baseline: true },
 ];
 
 /// An offline algorithm of [`ALGORITHMS`] (its index); written as its name.
