@@ -15,7 +15,7 @@ use rcgen::{
     BasicConstraints, CertificateParams, DnType, ExtendedKeyUsagePurpose, IsCa, Issuer, KeyPair,
     KeyUsagePurpose,
 };
-use uavmeta_proto::config::is_host_name;
+use uavmeta_proto::config::{is_host_name, HOST_NAME_RULE};
 use uavmeta_proto::fs::FileError;
 
 #[derive(Debug, thiserror::Error)]
@@ -26,7 +26,7 @@ pub enum CertsError {
     Invalid { path: PathBuf, message: String },
     #[error("{}: already exists; remove it (and its key) to make a new one", path.display())]
     Exists { path: PathBuf },
-    #[error("host name `{0}`: expected 1 to 64 letters, digits, `-`, `_` and `.`, not `ca`")]
+    #[error("host name `{0}`: expected {HOST_NAME_RULE}, and not `ca`")]
     BadName(String),
 }
 

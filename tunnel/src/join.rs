@@ -5,7 +5,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use uavmeta_proto::config::{is_host_name, Config, TunnelConfig};
+use uavmeta_proto::config::{is_host_name, Config, TunnelConfig, HOST_NAME_RULE};
 use uavmeta_proto::payload::SCHEMA_VERSION;
 use uavmeta_runtime::run_dir::{write_atomic, RemoteHost, RemoteProcess, RunDir};
 use uavmeta_runtime::{domain, liveness, transport};
@@ -61,8 +61,8 @@ pub fn join(options: &JoinOptions) -> Result<(), TunnelError> {
         return Err(TunnelError::Refused {
             endpoint: options.endpoint.clone(),
             message: format!(
-                "host name `{}`: expected 1 to 64 letters, digits, `-`, `_` and `.`, as \
-                 `uavmeta tunnel certs --host` makes them",
+                "host name `{}`: expected {HOST_NAME_RULE}, as `uavmeta tunnel certs --host` \
+                 makes them",
                 options.host
             ),
         });

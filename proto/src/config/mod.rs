@@ -39,7 +39,9 @@ pub use planner::PlannerConfig;
 pub use run::{RunConfig, MAX_DOMAIN_LEN, MAX_SUBSCRIBER_BUFFER, MAX_TRANSITIONS_PER_MESSAGE};
 pub use section::{OwnedSection, Section};
 pub use task::{RainZone, TaskConfig, TaskRole};
-pub use tunnel::{is_host_name, is_loopback_endpoint, TunnelConfig, ALL_TASKS, MAX_HOSTS};
+pub use tunnel::{
+    is_host_name, is_loopback_endpoint, TunnelConfig, ALL_TASKS, HOST_NAME_RULE, MAX_HOSTS,
+};
 pub use world::{Delta, PowerTerm, WorldConfig, MAX_DEVICES, MAX_GRID_CELLS, MOVES};
 
 use rules::{first_broken, non_empty, Broken};

@@ -66,8 +66,11 @@ pub struct TunnelConfig {
 /// In `tunnel.hosts`, every task.
 pub const ALL_TASKS: &str = "*";
 
+/// What [`is_host_name`] accepts, for error messages.
+pub const HOST_NAME_RULE: &str = "1 to 64 letters, digits, `-`, `_` and `.`, not starting with `.`";
+
 /// A remote host's name as `uavmeta tunnel certs` accepts it, within Zenoh's and iceoryx2's
-/// limits: 1 to 64 letters, digits, `-`, `_` and `.`, not starting with `.`.
+/// limits: [`HOST_NAME_RULE`].
 pub fn is_host_name(name: &str) -> bool {
     (1..=64).contains(&name.len())
         && !name.starts_with('.')
@@ -137,7 +140,7 @@ impl TunnelConfig {
                 return Err(Broken::new(
                     key,
                     host,
-                    "a host name of 1 to 64 letters, digits, `-`, `_` and `.` (a certificate's)",
+                    format!("a certificate's host name: {HOST_NAME_RULE}"),
                 ));
             }
             let known = |t: &String| t == ALL_TASKS || tasks.iter().any(|c| &c.name == t);

@@ -26,6 +26,7 @@ mod convergence;
 mod meta_training;
 mod online_dqn;
 mod resilience;
+pub use resilience::PATHS;
 mod shots;
 mod tasks;
 

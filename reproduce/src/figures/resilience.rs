@@ -5,6 +5,9 @@ use super::*;
 /// Figure 9 reads the returns off at epochs 100 and 200.
 const EPOCH_200: usize = 200;
 
+/// The methods whose final greedy paths on the first rain task figure 9c draws.
+pub const PATHS: [Method; 2] = [Method::CQL_MAML, Method::CQL];
+
 /// "About zero" outages per 100-step episode.
 const ABOUT_ZERO_OUTAGES: f64 = 1.0;
 
@@ -173,7 +176,7 @@ fn trajectories(
     let mut paths = Vec::new();
     let mut in_rain = Vec::new();
     if let Some(seed) = ctx.seeds.first() {
-        for method in [Method::CQL_MAML, Method::CQL] {
+        for method in PATHS {
             let trajectory = seed
                 .run(&rain_key(c, ctx.reproduce, first, method))
                 .trajectory

@@ -173,17 +173,27 @@ fn announce_online_agents(
 ) -> Result<(), TransportError> {
     for (id, task) in test_tasks {
         if checkpoint::read_meta(&run.checkpoint(Method::OnlineDqn, task, 1)).is_ok() {
-            transport::announce(
-                announce,
-                CheckpointReady {
-                    schema_version: SCHEMA_VERSION,
-                    method: Method::OnlineDqn.code(),
-                    task: *id,
-                    epoch: 1,
-                },
-            )?;
+            announce_checkpoint(announce, Method::OnlineDqn, *id, 1)?;
         }
     }
+    Ok(())
+}
+
+/// Announces `method`'s checkpoint of epoch `epoch` for meta-test task number `task`: the one
+/// message the evaluator scores a checkpoint on.
+fn announce_checkpoint(
+    publisher: &Publisher<ipc::Service, CheckpointReady, ()>,
+    method: Method,
+    task: u32,
+    epoch: u32,
+) -> Result<(), TransportError> {
+    let message = CheckpointReady {
+        schema_version: SCHEMA_VERSION,
+        method: method.code(),
+        task,
+        epoch,
+    };
+    transport::announce(publisher, message)?;
     Ok(())
 }
 
@@ -208,21 +218,17 @@ impl MetaTest<'_> {
             })
             .filter(|&(_, task, method)| latest_epoch(run, method, task, epochs) != epochs)
             .collect();
-        let mut inits = Inits::default();
+        let mut inits: Vec<MultiTaskInit> = Vec::new();
         for (id, task, method) in pending {
             if stop()? {
                 return Ok(Outcome::Stopped);
             }
-            if method.start() == Some(Start::Pretrain) && inits.pretrained.is_none() {
-                match self.pretrain(datasets, stop)? {
-                    Some(q) => inits.pretrained = Some(q),
-                    None => return Ok(Outcome::Stopped),
-                }
-            }
-            if method.start() == Some(Start::Context) && inits.context.is_none() {
-                match self.context(datasets, stop)? {
-                    Some(model) => inits.context = Some(model),
-                    None => return Ok(Outcome::Stopped),
+            if let Some(start @ (Start::Pretrain | Start::Context)) = method.start() {
+                if !inits.iter().any(|init| init.start() == start) {
+                    match self.multi_task_init(start, datasets, stop)? {
+                        Some(init) => inits.push(init),
+                        None => return Ok(Outcome::Stopped),
+                    }
                 }
             }
             self.fine_tune(id, task, method, &inits)?;
@@ -230,46 +236,38 @@ impl MetaTest<'_> {
         Ok(Outcome::Finished)
     }
 
-    /// The context learner meta-trained on the meta-train shots, saved as `inits/cql-context`;
-    /// `None` if told to stop (requests are honoured between its meta-epochs of budget).
-    fn context(
-        &self,
-        datasets: &Path,
-        stop: &impl Fn() -> Result<bool, MetaProcessError>,
-    ) -> Result<Option<ContextModel>, MetaProcessError> {
-        let (run, config, seed) = (self.run, self.config, self.seed);
-        tracing::info!("meta-training the context learner on the meta-train shots");
-        let (_, tasks) = load_tasks(config, datasets, seed)?;
-        let Some(model) =
-            context::meta_train(config, &tasks, seed, beat(), |_| stop().map(|stop| !stop))?
-        else {
-            return Ok(None);
-        };
-        let name = Method::tuned(config.meta.inner_loss, Start::Context).name();
-        let path = run.root().join("inits").join(name);
-        model.save(&path, config)?;
-        tracing::info!(init = %path.display(), "saved");
-        Ok(Some(model))
-    }
-
-    /// CQL pretrained on the union of the meta-train shots, saved as `inits/cql-pretrain`;
+    /// The init `start` names, trained on the meta-train shots (CQL on their union, or the
+    /// context learner) and saved as `inits/NAME` (`inits/cql-pretrain`, `inits/cql-context`);
     /// `None` if told to stop (requests are honoured between its meta-epochs).
-    fn pretrain(
+    fn multi_task_init(
         &self,
+        start: Start,
         datasets: &Path,
         stop: &impl Fn() -> Result<bool, MetaProcessError>,
-    ) -> Result<Option<QNetwork>, MetaProcessError> {
+    ) -> Result<Option<MultiTaskInit>, MetaProcessError> {
         let (run, config, seed) = (self.run, self.config, self.seed);
-        tracing::info!("pretraining CQL on the union of the meta-train shots");
+        let name = Method::tuned(config.meta.inner_loss, start).name();
+        tracing::info!(init = %name, "training on the meta-train shots");
         let (_, tasks) = load_tasks(config, datasets, seed)?;
-        let Some(q) =
-            pretrain::pretrain(config, &tasks, seed, beat(), |_| stop().map(|stop| !stop))?
-        else {
-            return Ok(None);
+        let keep_going = |_| stop().map(|stop| !stop);
+        let init = match start {
+            Start::Context => context::meta_train(config, &tasks, seed, beat(), keep_going)?
+                .map(MultiTaskInit::Context),
+            _ => pretrain::pretrain(config, &tasks, seed, beat(), keep_going)?
+                .map(MultiTaskInit::Pretrained),
         };
-        let name = Method::tuned(config.meta.inner_loss, Start::Pretrain).name();
-        save_init(run, config, &name, &q, &name, config.meta.meta_epochs)?;
-        Ok(Some(q))
+        match &init {
+            Some(MultiTaskInit::Context(model)) => {
+                let path = run.root().join("inits").join(&name);
+                model.save(&path, config)?;
+                tracing::info!(init = %path.display(), "saved");
+            }
+            Some(MultiTaskInit::Pretrained(q)) => {
+                save_init(run, config, &name, q, &name, config.meta.meta_epochs)?
+            }
+            None => {}
+        }
+        Ok(init)
     }
 }
 
@@ -331,11 +329,19 @@ struct MetaTest<'a> {
 /// One fine-tuning of step 3: the meta-test task's number, the task, the method.
 type Job<'t> = (u32, &'t TaskConfig, Method);
 
-/// The inits step 3 trains on the meta-train shots, each once, when a method first needs it.
-#[derive(Default)]
-struct Inits {
-    pretrained: Option<QNetwork>,
-    context: Option<ContextModel>,
+/// An init step 3 trains on the meta-train shots, once, when a method first needs it.
+enum MultiTaskInit {
+    Pretrained(QNetwork),
+    Context(ContextModel),
+}
+
+impl MultiTaskInit {
+    fn start(&self) -> Start {
+        match self {
+            MultiTaskInit::Pretrained(_) => Start::Pretrain,
+            MultiTaskInit::Context(_) => Start::Context,
+        }
+    }
 }
 
 impl MetaTest<'_> {
@@ -346,13 +352,14 @@ impl MetaTest<'_> {
         task_id: u32,
         task: &TaskConfig,
         method: Method,
-        inits: &Inits,
+        inits: &[MultiTaskInit],
     ) -> Result<(), MetaProcessError> {
         let mut hook = self.hook(task_id, task, method);
         let shots = self.shots(task)?;
         let mut q = self.init(method, &shots, inits)?;
         if method.start() == Some(Start::Context) {
-            self.announce_context_init(task_id, task, &q)?;
+            // The context learner's policy before any step: its zero-shot row.
+            self.publish(task_id, task, Method::ContextInit, 1, &q)?;
         }
         let algorithm = method.algo().expect("a fine-tuned method has an algorithm");
         let rows = fine_tune(&mut q, &shots, algorithm, &self.settings(task), &mut hook)?;
@@ -365,28 +372,19 @@ impl MetaTest<'_> {
         &self,
         method: Method,
         shots: &Transitions,
-        inits: &Inits,
+        inits: &[MultiTaskInit],
     ) -> Result<QNetwork, MetaProcessError> {
         let config = self.config;
-        Ok(match (method.start(), inits) {
+        let trained = inits
+            .iter()
+            .find(|init| Some(init.start()) == method.start());
+        Ok(match (method.start(), trained) {
             (Some(Start::Maml | Start::W0), _) => {
                 check_init(self.w0, Method::maml(config.meta.inner_loss))?;
                 checkpoint::load(self.w0, config)?.0
             }
-            (
-                Some(Start::Pretrain),
-                Inits {
-                    pretrained: Some(q),
-                    ..
-                },
-            ) => q.duplicate(),
-            (
-                Some(Start::Context),
-                Inits {
-                    context: Some(model),
-                    ..
-                },
-            ) => model.policy(shots),
+            (_, Some(MultiTaskInit::Pretrained(q))) => q.duplicate(),
+            (_, Some(MultiTaskInit::Context(model))) => model.policy(shots),
             // The init's seed is the run's + 1, the shots' the run's: `uavmeta train --seed S
             // --init-seed S+1` is this run (kept so that earlier tables stay reproducible).
             _ => QNetworkConfig::for_world(&config.world, &config.learner.hidden)
@@ -394,25 +392,20 @@ impl MetaTest<'_> {
         })
     }
 
-    /// Checkpoints and announces the context learner's policy for task `task_id` before any
-    /// gradient step: the `context-init` row, the zero-shot return of context-based meta-RL.
-    fn announce_context_init(
+    /// Saves `q` as `method`'s checkpoint of epoch `epoch` on meta-test task `task` (number
+    /// `task_id`) and announces it.
+    fn publish(
         &self,
         task_id: u32,
         task: &TaskConfig,
+        method: Method,
+        epoch: u32,
         q: &QNetwork,
     ) -> Result<(), MetaProcessError> {
-        let method = Method::ContextInit;
-        let path = self.run.checkpoint(method, task, 1);
-        checkpoint::save(&path, q, &method.name(), 1, self.config)?;
+        let path = self.run.checkpoint(method, task, epoch);
+        checkpoint::save(&path, q, &method.name(), epoch as usize, self.config)?;
+        announce_checkpoint(self.publisher, method, task_id, epoch)?;
         self.metrics.checkpoints.inc();
-        let message = CheckpointReady {
-            schema_version: SCHEMA_VERSION,
-            method: method.code(),
-            task: task_id,
-            epoch: 1,
-        };
-        transport::announce(self.publisher, message)?;
         Ok(())
     }
 
@@ -442,15 +435,12 @@ impl MetaTest<'_> {
     fn hook<'t>(&'t self, task_id: u32, task: &'t TaskConfig, method: Method) -> Announcing<'t> {
         Announcing {
             inner: Evaluator::from_config(self.config, task),
-            run: self.run,
-            config: self.config,
+            meta_test: self,
             task,
             task_id,
             method,
-            publisher: self.publisher,
             epoch: 0,
             error: None,
-            metrics: self.metrics,
         }
     }
 
@@ -522,13 +512,7 @@ impl<S: Fn() -> Result<bool, MetaProcessError>> MetaTrainHook for AnnounceW0<'_,
         if checkpoint.is_some() {
             self.metrics.checkpoints.inc();
             for (id, _) in self.test_tasks {
-                let message = CheckpointReady {
-                    schema_version: SCHEMA_VERSION,
-                    method: Method::MetaInit.code(),
-                    task: *id,
-                    epoch,
-                };
-                transport::announce(self.publisher, message)?;
+                announce_checkpoint(self.publisher, Method::MetaInit, *id, epoch)?;
             }
             tracing::info!(epoch, meta_loss = row.epoch.meta_loss, "w0 checkpoint");
         }
@@ -547,46 +531,25 @@ fn latest_epoch(run: &RunDir, method: Method, task: &TaskConfig, max: u32) -> u3
 /// The fine-tuning hook: after every epoch, checkpoint and announce the network, then score it.
 struct Announcing<'a> {
     inner: Evaluator,
-    run: &'a RunDir,
-    config: &'a Config,
+    meta_test: &'a MetaTest<'a>,
     task: &'a TaskConfig,
     task_id: u32,
     method: Method,
-    publisher: &'a Publisher<ipc::Service, CheckpointReady, ()>,
     epoch: u32,
     /// The first failure; training cannot be interrupted from inside the hook.
     error: Option<MetaProcessError>,
-    metrics: &'a metrics::MetaLearnerMetrics,
 }
 
 impl EvaluatePolicy for Announcing<'_> {
     fn evaluate(&mut self, q: &QNetwork) -> PolicyMetrics {
         liveness::heartbeat();
         self.epoch += 1;
-        self.metrics.fine_tune_epochs.inc();
+        self.meta_test.metrics.fine_tune_epochs.inc();
         if self.error.is_none() {
-            let path = self.run.checkpoint(self.method, self.task, self.epoch);
-            let saved = checkpoint::save(
-                &path,
-                q,
-                &self.method.name(),
-                self.epoch as usize,
-                self.config,
-            )
-            .map_err(MetaProcessError::from)
-            .and_then(|_| {
-                let message = CheckpointReady {
-                    schema_version: SCHEMA_VERSION,
-                    method: self.method.code(),
-                    task: self.task_id,
-                    epoch: self.epoch,
-                };
-                Ok(transport::announce(self.publisher, message)?)
-            });
-            match saved {
-                Ok(_) => self.metrics.checkpoints.inc(),
-                Err(error) => self.error = Some(error),
-            }
+            let published =
+                self.meta_test
+                    .publish(self.task_id, self.task, self.method, self.epoch, q);
+            self.error = published.err();
         }
         self.inner.evaluate(q)
     }
