@@ -311,6 +311,7 @@ impl QNetwork {
 fn rms(t: &Tensor) -> f64 {
     t.square().mean(tch::Kind::Double).sqrt().double_value(&[])
 }
+
 #[cfg(test)]
 impl QNetworkConfig {
     /// A network of this architecture whose Q-values are `bias` in every state: zero weights, the

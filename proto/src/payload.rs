@@ -330,6 +330,19 @@ pub struct CheckpointReady {
     pub epoch: u32,
 }
 
+impl CheckpointReady {
+    /// The announcement of `method`'s checkpoint of epoch `epoch` for task number `task`, at this
+    /// build's schema.
+    pub fn new(method: crate::method::Method, task: u32, epoch: u32) -> Self {
+        Self {
+            schema_version: SCHEMA_VERSION,
+            method: method.code(),
+            task,
+            epoch,
+        }
+    }
+}
+
 /// Every process of the run finishes what it is doing and exits.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[cfg_attr(

@@ -215,12 +215,7 @@ fn open_csv(path: &Path) -> Result<(File, Evaluated), FileError> {
 /// learner's zero-shot policy and the epochs of its fine-tuned methods.
 fn checkpoints_on_disk(run: &RunDir, config: &Config) -> Vec<CheckpointReady> {
     let test_tasks: Vec<_> = config.meta_test_tasks().collect();
-    let message = |method: Method, task: u32, epoch: u32| CheckpointReady {
-        schema_version: SCHEMA_VERSION,
-        method: method.code(),
-        task,
-        epoch,
-    };
+    let message = CheckpointReady::new;
     let complete =
         |method, task, epoch| checkpoint::read_meta(&run.checkpoint(method, task, epoch)).is_ok();
     let mut found = Vec::new();

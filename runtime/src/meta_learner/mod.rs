@@ -173,27 +173,9 @@ fn announce_online_agents(
 ) -> Result<(), TransportError> {
     for (id, task) in test_tasks {
         if checkpoint::read_meta(&run.checkpoint(Method::OnlineDqn, task, 1)).is_ok() {
-            announce_checkpoint(announce, Method::OnlineDqn, *id, 1)?;
+            transport::announce(announce, CheckpointReady::new(Method::OnlineDqn, *id, 1))?;
         }
     }
-    Ok(())
-}
-
-/// Announces `method`'s checkpoint of epoch `epoch` for meta-test task number `task`: the one
-/// message the evaluator scores a checkpoint on.
-fn announce_checkpoint(
-    publisher: &Publisher<ipc::Service, CheckpointReady, ()>,
-    method: Method,
-    task: u32,
-    epoch: u32,
-) -> Result<(), TransportError> {
-    let message = CheckpointReady {
-        schema_version: SCHEMA_VERSION,
-        method: method.code(),
-        task,
-        epoch,
-    };
-    transport::announce(publisher, message)?;
     Ok(())
 }
 
@@ -256,17 +238,15 @@ impl MetaTest<'_> {
             _ => pretrain::pretrain(config, &tasks, seed, beat(), keep_going)?
                 .map(MultiTaskInit::Pretrained),
         };
+        let path = run.root().join("inits").join(&name);
         match &init {
-            Some(MultiTaskInit::Context(model)) => {
-                let path = run.root().join("inits").join(&name);
-                model.save(&path, config)?;
-                tracing::info!(init = %path.display(), "saved");
-            }
+            Some(MultiTaskInit::Context(model)) => model.save(&path, config)?,
             Some(MultiTaskInit::Pretrained(q)) => {
-                save_init(run, config, &name, q, &name, config.meta.meta_epochs)?
+                checkpoint::save(&path, q, &name, config.meta.meta_epochs, config)?;
             }
-            None => {}
+            None => return Ok(None),
         }
+        tracing::info!(init = %path.display(), "saved");
         Ok(init)
     }
 }
@@ -404,7 +384,7 @@ impl MetaTest<'_> {
     ) -> Result<(), MetaProcessError> {
         let path = self.run.checkpoint(method, task, epoch);
         checkpoint::save(&path, q, &method.name(), epoch as usize, self.config)?;
-        announce_checkpoint(self.publisher, method, task_id, epoch)?;
+        transport::announce(self.publisher, CheckpointReady::new(method, task_id, epoch))?;
         self.metrics.checkpoints.inc();
         Ok(())
     }
@@ -512,7 +492,8 @@ impl<S: Fn() -> Result<bool, MetaProcessError>> MetaTrainHook for AnnounceW0<'_,
         if checkpoint.is_some() {
             self.metrics.checkpoints.inc();
             for (id, _) in self.test_tasks {
-                announce_checkpoint(self.publisher, Method::MetaInit, *id, epoch)?;
+                let message = CheckpointReady::new(Method::MetaInit, *id, epoch);
+                transport::announce(self.publisher, message)?;
             }
             tracing::info!(epoch, meta_loss = row.epoch.meta_loss, "w0 checkpoint");
         }
