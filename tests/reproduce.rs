@@ -122,7 +122,7 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     let meta_tasks = r.meta_tasks;
     let curve = "seed,epoch,return,return_ci95,aoi,power_mw,outages";
     // Each of `learner.baselines` adds two methods (from w0 and from a random init) to figures 5
-    // and 6.
+    // to 9.
     let baselines = config.learner.baselines.len();
 
     let meta = out.join("meta-training");
@@ -156,18 +156,21 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     check_csv(
         &out.join("tasks/curves.csv"),
         &format!("method,tasks,{curve}"),
-        // CQL-MAML and CQL-context per task count, then CQL.
-        (2 * r.task_counts.len() + 1) * seeds * r.tasks_epochs,
+        // The 3 CQL inits and the baselines from w0 per task count, then CQL and the baselines
+        // from a random init once.
+        ((3 + baselines) * r.task_counts.len() + 1 + baselines) * seeds * r.tasks_epochs,
     );
     check_csv(
         &out.join("aoi-power/bars.csv"),
         "method,seed,aoi,power_mw",
-        5 * seeds + 4,
+        // The online agent and the 4 CQL inits, the baselines from w0 and from a random init;
+        // the 4 heuristics once.
+        (5 + 2 * baselines) * seeds + 4,
     );
     check_csv(
         &out.join("resilience/curves.csv"),
         &format!("method,task,{curve}"),
-        4 * rain * seeds * r.resilience_epochs,
+        (4 + 2 * baselines) * rain * seeds * r.resilience_epochs,
     );
     let meta_train = config
         .tasks
@@ -190,6 +193,7 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
         "convergence/fig5.png",
         "shots/fig6.png",
         "tasks/fig7.png",
+        "tasks/fig7b_by_tasks.png",
         "aoi-power/fig8a_aoi.png",
         "aoi-power/fig8b_power.png",
         "resilience/fig9a_return.png",

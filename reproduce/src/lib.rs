@@ -47,7 +47,6 @@ use rayon::prelude::*;
 use uavmeta_actors::collect::CollectError;
 use uavmeta_meta::{create_dir, write_file, MetaError};
 use uavmeta_proto::config::{Config, ConfigError, TaskConfig, TaskRole};
-use uavmeta_proto::method::Method;
 use uavmeta_proto::stats::PolicyMetrics;
 use uavmeta_world::heuristics::reference_metrics;
 
@@ -376,18 +375,17 @@ fn plan(config: &Config, r: &ReproduceConfig, experiments: &[Experiment]) -> Pla
                 }
             }
             Experiment::Tasks => {
+                // A method from a random init has one key for every task count.
                 for &n in &r.task_counts {
-                    for method in [Method::CQL_MAML, Method::CQL_CONTEXT] {
+                    for method in figures::compared(config) {
                         let key = unseen(method, r.main_shots, n);
                         plan.run(config, key, r.tasks_epochs, false, e);
                     }
                 }
-                let key = unseen(Method::CQL, r.main_shots, 0);
-                plan.run(config, key, r.tasks_epochs, false, e);
                 plan.reference(&r.unseen_task, episodes, e);
             }
             Experiment::AoiPower => {
-                for method in figures::CQL_INITS {
+                for method in figures::compared(config) {
                     let key = unseen(method, r.main_shots, r.meta_tasks);
                     plan.run(config, key, r.aoi_power_epoch, false, e);
                 }
@@ -400,7 +398,7 @@ fn plan(config: &Config, r: &ReproduceConfig, experiments: &[Experiment]) -> Pla
             }
             Experiment::Resilience => {
                 for (i, task) in rain_tasks(config).enumerate() {
-                    for method in figures::CQL_INITS {
+                    for method in figures::compared(config) {
                         let key = figures::rain_key(config, r, task, method);
                         let path = i == 0 && figures::PATHS.contains(&method);
                         plan.run(config, key, r.resilience_epochs, path, e);
@@ -611,6 +609,7 @@ fn for_each_seed<I: Sync, R: Send>(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use uavmeta_proto::method::Method;
 
     #[test]
     fn choices_select_their_experiments() {
@@ -639,8 +638,8 @@ mod tests {
             }),
         ));
         let plan = plan(&config, &r, &Experiment::ALL);
-        // CQL-MAML and CQL-context on 2 and 8 tasks, DQN-MAML and CQL-pretrain on 8.
-        assert_eq!(plan.inits.len(), 6);
+        // CQL-MAML (w0), CQL-pretrain and CQL-context on 2 and 8 tasks, DQN-MAML on 8.
+        assert_eq!(plan.inits.len(), 7);
         let main = plan
             .runs
             .iter()
@@ -661,11 +660,14 @@ mod tests {
                 Experiment::AoiPower
             ]
         );
-        // 6 methods and each baseline from w0 and from a random init, the CQL inits and the
-        // baselines at 2 more shot counts, CQL-MAML and CQL-context on 2 tasks, 4 on the rain
-        // task.
+        // 6 methods and each baseline from w0 and from a random init; the 4 CQL inits and the
+        // baselines at 2 more shot counts and on the rain task; on 2 tasks, the methods with an
+        // init (3 CQL inits and the baselines from w0).
         let b = config.learner.baselines.len();
-        assert_eq!(plan.runs.len(), (6 + 2 * b) + (4 + 2 * b) * 2 + 2 + 4);
+        assert_eq!(
+            plan.runs.len(),
+            (6 + 2 * b) + (4 + 2 * b) * 2 + (4 + 2 * b) + (3 + b)
+        );
         assert_eq!(plan.runs.iter().filter(|r| r.trajectory).count(), 2);
     }
 

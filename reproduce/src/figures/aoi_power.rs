@@ -37,17 +37,18 @@ pub(super) fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, ReproduceE
             .filter_map(|rows| rows.last().map(|row| row.policy))
             .collect()
     };
-    let learned = [
-        ("CQL-MAML", at_epoch(Method::CQL_MAML)),
-        (
-            "online DQN",
-            ctx.online(&r.unseen_task, c.learner.eval_episodes),
-        ),
-        ("CQL", at_epoch(Method::CQL)),
-        // Not in the paper: after its three, with no paper figures beside them.
-        ("CQL-pretrain", at_epoch(Method::CQL_PRETRAIN)),
-        ("CQL-context", at_epoch(Method::CQL_CONTEXT)),
+    let online = ctx.online(&r.unseen_task, c.learner.eval_episodes);
+    let paper_three = [
+        (Method::CQL_MAML.label(), at_epoch(Method::CQL_MAML)),
+        (Method::OnlineDqn.label(), online),
+        (Method::CQL.label(), at_epoch(Method::CQL)),
     ];
+    // Not in the paper: the other compared methods after its three, with no paper figures.
+    let others = (compared(c).into_iter())
+        .filter(|m| ![Method::CQL_MAML, Method::CQL].contains(m))
+        .map(|m| (m.label(), at_epoch(m)));
+    let learned: Vec<(String, Vec<PolicyMetrics>)> =
+        paper_three.into_iter().chain(others).collect();
     let heuristics = &ctx
         .heuristics(&r.unseen_task, c.learner.eval_episodes)
         .policies;
@@ -59,7 +60,7 @@ pub(super) fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, ReproduceE
         .iter()
         .map(|(name, per_seed)| {
             (
-                *name,
+                name.as_str(),
                 est(per_seed.iter().map(|m| m.aoi.mean)),
                 est(per_seed.iter().map(|m| m.power_mw.mean)),
             )
@@ -88,7 +89,7 @@ pub(super) fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, ReproduceE
 /// `bars.csv`: AoI and power per method and seed, then the heuristics'.
 fn write_bars_csv(
     ctx: &Context,
-    learned: &[(&str, Vec<PolicyMetrics>)],
+    learned: &[(String, Vec<PolicyMetrics>)],
     heuristics: &[(&str, PolicyMetrics)],
     dir: &Path,
 ) -> Result<(), ReproduceError> {

@@ -34,16 +34,16 @@ mod tasks;
 const EPOCH_40: usize = 40;
 const EPOCH_100: usize = 100;
 
-/// The CQL fine-tunings from the four inits: what figures 8 and 9 compare.
-pub const CQL_INITS: [Method; 4] = [
+/// The CQL fine-tunings from the four inits.
+const CQL_INITS: [Method; 4] = [
     Method::CQL_MAML,
     Method::CQL_PRETRAIN,
     Method::CQL_CONTEXT,
     Method::CQL,
 ];
 
-/// [`CQL_INITS`], then each of `learner.baselines` from w0 and from a random init: what figure
-/// 6 (shots) compares.
+/// [`CQL_INITS`], then each of `learner.baselines` from w0 and from a random init: what figures
+/// 6 to 9 compare (figure 7 each method with an init at every task count).
 pub fn compared(config: &Config) -> Vec<Method> {
     let mut methods = CQL_INITS.to_vec();
     add_baselines(config, &mut methods);
@@ -291,6 +291,30 @@ fn exploratory_share(config: &Config) -> f64 {
 fn joined<T: std::fmt::Display>(items: impl IntoIterator<Item = T>, sep: &str) -> String {
     let items: Vec<String> = items.into_iter().map(|i| i.to_string()).collect();
     items.join(sep)
+}
+
+/// Per method, one estimate per column of a figure's table (shot counts, task counts).
+type MethodValues = Vec<(Method, Vec<Estimate>)>;
+
+/// `method`'s values in `rows`; every figure's rows hold the methods its claims read.
+fn values_of(rows: &MethodValues, method: Method) -> &[Estimate] {
+    let row = rows.iter().find(|(m, _)| *m == method);
+    &row.expect("a figure's rows hold the methods its claims read")
+        .1
+}
+
+/// A markdown table: one row per method, one column per entry of `columns`.
+fn method_table(columns: &[String], rows: &MethodValues) -> String {
+    let mut table = format!(
+        "| method | {} |\n| --- |{}\n",
+        columns.join(" | "),
+        " --- |".repeat(columns.len())
+    );
+    for (method, values) in rows {
+        let cells = joined(values.iter().map(|v| format!("{v:.0}")), " | ");
+        let _ = writeln!(table, "| {} | {cells} |", method.label());
+    }
+    table
 }
 
 fn est(samples: impl IntoIterator<Item = f64>) -> Estimate {

@@ -54,11 +54,16 @@ pub(super) fn resilience(ctx: &Context, dir: &Path) -> Result<Section, Reproduce
         .map(|(_, runs)| RainSummary::new(runs, seeds))
         .collect();
     let body = summary_table(ctx, &tasks, &per_method, &summaries, &refs);
+    let of = |method: Method| {
+        let i = per_method.iter().position(|(m, _)| *m == method);
+        i.expect("figure 9 compares CQL-MAML and CQL")
+    };
+    let (maml, cql) = (of(Method::CQL_MAML), of(Method::CQL));
     // Both claims read the run lengths off CQL-MAML's runs.
-    let lens: Vec<usize> = per_method[0].1.iter().map(|r| r.returns.len()).collect();
+    let lens: Vec<usize> = per_method[maml].1.iter().map(|r| r.returns.len()).collect();
     let mut found = vec![
-        maml_claim(&summaries[0], &lens, &refs),
-        cql_claim(&summaries[1], &lens, &refs),
+        maml_claim(&summaries[maml], &lens, &refs),
+        cql_claim(&summaries[cql], &lens, &refs),
     ];
     if let (&[maml, cql], Some(zone)) = (&in_rain[..], first.rain) {
         found.push(detour_claim(c, first, zone, &path, (maml, cql)));
@@ -66,8 +71,8 @@ pub(super) fn resilience(ctx: &Context, dir: &Path) -> Result<Section, Reproduce
     finish(body, found)
 }
 
-/// Every method's runs on every rain task, written to `curves.csv`. CQL-MAML and CQL first: the
-/// claims compare those two, CQL-pretrain and CQL-context are shown beside them.
+/// Every compared method's runs on every rain task, written to `curves.csv`. The claims compare
+/// CQL-MAML and CQL; the others are shown beside them.
 fn rain_runs(
     ctx: &Context,
     tasks: &[&TaskConfig],
@@ -77,12 +82,7 @@ fn rain_runs(
     let c = ctx.config;
     let mut csv = format!("method,task,{CURVE_COLUMNS}\n");
     let mut per_method = Vec::new();
-    for method in [
-        Method::CQL_MAML,
-        Method::CQL,
-        Method::CQL_PRETRAIN,
-        Method::CQL_CONTEXT,
-    ] {
+    for method in compared(c) {
         let mut runs = Vec::new();
         for (task, h) in tasks.iter().zip(heuristics) {
             let key = rain_key(c, ctx.reproduce, task, method);
@@ -251,8 +251,8 @@ fn summary_table(
     let seeds = ctx.seeds.len();
     let total = tasks.len() * seeds * episodes;
     let mut body = format!(
-        "{} rain tasks ({}), CQL-MAML from the w0 meta-trained on the first {} rain-free tasks and CQL \
-         from a random init, fine-tuned for {epochs} epochs on {} shots of each, {}; every evaluation runs \
+        "{} rain tasks ({}), every compared method (its init trained on the first {} rain-free \
+         tasks, or random), fine-tuned for {epochs} epochs on {} shots of each, {}; every evaluation runs \
          {episodes} episodes, so each point of figure 9b averages {} tasks x {seeds} seeds x {episodes} = \
          {total} Monte-Carlo episodes. Convergence as in figure 5, against each task's random policy.\n\n\
          | method | converged (task x seed runs) | final return | final outages per episode |\n| --- | --- | --- | --- |\n",

@@ -1,46 +1,36 @@
-//! Figure 6: CQL, CQL-MAML and the other inits on 100, 300 and 500 shots.
+//! Figure 6: every compared method on 100, 300 and 500 shots.
 
 use super::*;
 
 /// "Far more" dependence on the shot count: at least this ratio of spreads.
 const FAR_MORE: f64 = 2.0;
 
-/// One shot count's final returns.
+/// One shot count's final returns of the two methods the claims compare.
 struct Finals {
     shots: usize,
     maml: Estimate,
-    pretrain: Estimate,
-    context: Estimate,
     cql: Estimate,
 }
 
-/// Figure 6: CQL, CQL-pretrain, CQL-context and CQL-MAML at each shot count.
+/// Figure 6: every compared method at each shot count.
 pub(super) fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let c = ctx.config;
     let r = ctx.reproduce;
     let epochs = r.convergence_epochs;
     let mut csv = format!("method,shots,{CURVE_COLUMNS}\n");
     let mut series = Vec::new();
-    let mut finals_per_size = Vec::new();
+    let mut rows: MethodValues = compared(c).into_iter().map(|m| (m, vec![])).collect();
     for &shots in &r.shots {
-        let mut each = Vec::new();
-        for method in compared(c) {
-            let key = unseen_key(c, r, method, shots, r.meta_tasks);
+        for (method, values) in &mut rows {
+            let key = unseen_key(c, r, *method, shots, r.meta_tasks);
             let prefix = format!("{},{shots}", method.name());
             let runs = ctx.curves(&mut csv, &prefix, &key, epochs);
             series.push(return_series(
                 format!("{} {shots} shots", method.label()),
                 &runs,
             ));
-            each.push(finals(&runs));
+            values.push(finals(&runs));
         }
-        finals_per_size.push(Finals {
-            shots,
-            maml: each[0],
-            pretrain: each[1],
-            context: each[2],
-            cql: each[3],
-        });
     }
     write_file(&dir.join("curves.csv"), &csv)?;
     line_chart(
@@ -51,22 +41,23 @@ pub(super) fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
     )?;
 
     let mut body = format!(
-        "CQL-MAML (w0 of the first {} meta-train tasks), CQL-pretrain, CQL-context and CQL fine-tuned for {epochs} epochs on {:?} \
-         shots of `{}`, {}. Final return = mean of the last {} epochs.\n\n\
-         | shots | CQL-MAML final | CQL-pretrain final | CQL-context final | CQL final |\n| --- | --- | --- | --- | --- |\n",
-        r.meta_tasks,
+        "Each method fine-tuned for {epochs} epochs on {:?} shots of `{}` (the inits trained on the \
+         first {} meta-train tasks), {}. Final return = mean of the last {} epochs.\n\n",
         r.shots,
         r.unseen_task,
+        r.meta_tasks,
         ctx.seeds_note(),
         claims::FINAL_EPOCHS
     );
-    for f in &finals_per_size {
-        let _ = writeln!(
-            body,
-            "| {} | {:.0} | {:.0} | {:.0} | {:.0} |",
-            f.shots, f.maml, f.pretrain, f.context, f.cql
-        );
-    }
+    let columns: Vec<String> = r.shots.iter().map(|s| format!("{s} shots")).collect();
+    body.push_str(&method_table(&columns, &rows));
+    let (maml, cql) = (
+        values_of(&rows, Method::CQL_MAML),
+        values_of(&rows, Method::CQL),
+    );
+    let finals_per_size: Vec<Finals> = (r.shots.iter().zip(maml.iter().zip(cql)))
+        .map(|(&shots, (&maml, &cql))| Finals { shots, maml, cql })
+        .collect();
     let found = vec![
         beats_claim(&finals_per_size),
         spread_claim(&finals_per_size),

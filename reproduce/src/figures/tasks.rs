@@ -1,8 +1,9 @@
-//! Figure 7: CQL-MAML meta-trained on 2 to 10 tasks, and CQL-context trained on as many.
+//! Figure 7: every compared method with an init trained on 2 to 10 meta-train tasks.
 
 use super::*;
 
-/// Figure 7: CQL-MAML meta-trained on the first n tasks, and CQL-context trained on them.
+/// Figure 7: each compared method whose init is trained on the meta-train tasks (w0, CQL-pretrain,
+/// CQL-context), trained on the first n of them; the methods from a random init once.
 pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError> {
     let c = ctx.config;
     let r = ctx.reproduce;
@@ -10,56 +11,101 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
     let at = EPOCH_40.min(epochs);
     let refs = ctx.unseen_refs();
     let mut csv = format!("method,tasks,{CURVE_COLUMNS}\n");
-    let mut series = Vec::new();
-    let mut values = Vec::new();
-    let mut context = Vec::new();
-    for &n in &r.task_counts {
-        for (method, at_n) in [
-            (Method::CQL_MAML, &mut values),
-            (Method::CQL_CONTEXT, &mut context),
-        ] {
+    // Figure 7 as the paper draws it: CQL-MAML's curves per task count beside CQL's.
+    let mut curves = Vec::new();
+    // Figure 7b: every method's return at epoch `at` against the task count.
+    let mut by_tasks = Vec::new();
+    let (mut rows, mut from_random): (MethodValues, MethodValues) = (vec![], vec![]);
+    for method in compared(c) {
+        let counts = match Init::of(method) {
+            Some(_) => r.task_counts.clone(),
+            None => vec![0],
+        };
+        let mut values = Vec::new();
+        let mut seeds_at: Vec<Vec<f64>> = vec![vec![]; ctx.seeds.len()];
+        for &n in &counts {
             let key = unseen_key(c, r, method, r.main_shots, n);
             let runs = ctx.curves(&mut csv, &format!("{method},{n}"), &key, epochs);
-            series.push(return_series(
-                format!("{} {n} tasks", method.label()),
-                &runs,
-            ));
-            at_n.push((n, est(runs.iter().map(|r| return_at(r, at)))));
+            if method == Method::CQL_MAML || method == Method::CQL {
+                let label = match n {
+                    0 => method.label(),
+                    n => format!("{} {n} tasks", method.label()),
+                };
+                curves.push(return_series(label, &runs));
+            }
+            for (seed, run) in seeds_at.iter_mut().zip(&runs) {
+                seed.push(return_at(run, at) / 100.0);
+            }
+            values.push(est(runs.iter().map(|r| return_at(r, at))));
+        }
+        if Init::of(method).is_some() {
+            let x = counts.iter().map(|&n| n as f64).collect();
+            by_tasks.push(Series {
+                label: method.label(),
+                band: Band::from_runs(x, &seeds_at),
+            });
+            rows.push((method, values));
+        } else {
+            from_random.push((method, values));
         }
     }
-    let cql_key = unseen_key(c, r, Method::CQL, r.main_shots, 0);
-    let cql_runs = ctx.curves(&mut csv, "cql,0", &cql_key, epochs);
-    series.push(return_series("CQL".into(), &cql_runs));
-    let cql = est(cql_runs.iter().map(|r| return_at(r, at)));
     write_file(&dir.join("curves.csv"), &csv)?;
     line_chart(
         &dir.join("fig7.png"),
         &format!("Figure 7: meta-training tasks, `{}`", r.unseen_task),
-        &series,
+        &curves,
         &refs.lines()[..1],
+    )?;
+    let random_lines = from_random.iter().map(|(m, v)| Reference {
+        label: format!("{} (random init)", m.label()),
+        value: v[0].mean / 100.0,
+    });
+    let references: Vec<Reference> = (refs.lines().into_iter().take(1))
+        .chain(random_lines)
+        .collect();
+    plot::line_chart(
+        &dir.join("fig7b_by_tasks.png"),
+        &LineChart {
+            title: &format!("Figure 7b: return at epoch {at} by meta-training tasks"),
+            x_label: "meta-train tasks",
+            y_label: &format!("greedy return / 100 at epoch {at}"),
+            series: &by_tasks,
+            references: &references,
+            floor: None,
+        },
     )?;
 
     let mut body = format!(
-        "CQL-MAML meta-trained on the first n meta-train tasks (config order: {}), fine-tuned for \
-         {epochs} epochs on {} shots of `{}`, {}; \"return at epoch {at}\" is the mean of epochs {}..{at}. \
-         CQL-context's encoder and Q-network are trained on the same tasks.\n\n\
-         | meta-train tasks | CQL-MAML at epoch {at} | CQL-context at epoch {at} |\n| --- | --- | --- |\n",
+        "Each method's init (w0, CQL-pretrain's network, CQL-context's encoder and Q-network) trained \
+         on the first n meta-train tasks (config order: {}), then fine-tuned for {epochs} epochs on {} \
+         shots of `{}`, {}; \"return at epoch {at}\" is the mean of epochs {}..{at}. Figure 7 draws \
+         CQL-MAML's curves beside CQL's, as the paper does; figure 7b every method's return at epoch \
+         {at} against the number of tasks.\n\n",
         joined(crate::runs::meta_train_tasks(c, usize::MAX).map(|t| &t.name), ", "),
         r.main_shots,
         r.unseen_task,
         ctx.seeds_note(),
         at.saturating_sub(claims::FINAL_EPOCHS) + 1
     );
-    for ((n, v), (_, x)) in values.iter().zip(&context) {
-        let _ = writeln!(body, "| {n} | {v:.0} | {x:.0} |");
-    }
+    let columns: Vec<String> = r.task_counts.iter().map(|n| format!("{n} tasks")).collect();
+    body.push_str(&method_table(&columns, &rows));
     let _ = writeln!(
         body,
-        "| CQL (random init) | {cql:.0} | |\n| online DQN | {:.0} | |",
+        "\nFrom a random init (no meta-train tasks), at epoch {at}: {}; online DQN {:.0}.",
+        joined(
+            from_random
+                .iter()
+                .map(|(m, v)| format!("{} {:.0}", m.label(), v[0])),
+            "; "
+        ),
         refs.online
     );
-    let mut found = vec![rising_claim(&values), eight_claim(&values, &refs)];
-    found.extend(two_claim(&values, cql, at));
+    let maml: Vec<(usize, Estimate)> = (r.task_counts.iter().copied())
+        .zip(values_of(&rows, Method::CQL_MAML).iter().copied())
+        .collect();
+    let cql = values_of(&from_random, Method::CQL)[0];
+    let mut found = vec![rising_claim(&maml), eight_claim(&maml, &refs)];
+    found.extend(two_claim(&maml, cql, at));
     finish(body, found)
 }
 
