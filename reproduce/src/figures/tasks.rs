@@ -17,9 +17,11 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
     let mut by_tasks = Vec::new();
     let (mut rows, mut from_random): (MethodValues, MethodValues) = (vec![], vec![]);
     for method in compared(c) {
-        let counts = match Init::of(method) {
-            Some(_) => r.task_counts.clone(),
-            None => vec![0],
+        let trained = Init::of(method).is_some();
+        let counts = if trained {
+            r.task_counts.clone()
+        } else {
+            vec![0]
         };
         let mut values = Vec::new();
         let mut seeds_at: Vec<Vec<f64>> = vec![vec![]; ctx.seeds.len()];
@@ -38,7 +40,7 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
             }
             values.push(est(runs.iter().map(|r| return_at(r, at))));
         }
-        if Init::of(method).is_some() {
+        if trained {
             let x = counts.iter().map(|&n| n as f64).collect();
             by_tasks.push(Series {
                 label: method.label(),
@@ -56,23 +58,12 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
         &curves,
         &refs.lines()[..1],
     )?;
-    let random_lines = from_random.iter().map(|(m, v)| Reference {
-        label: format!("{} (random init)", m.label()),
-        value: v[0].mean / 100.0,
-    });
-    let references: Vec<Reference> = (refs.lines().into_iter().take(1))
-        .chain(random_lines)
-        .collect();
-    plot::line_chart(
+    plot_by_tasks(
         &dir.join("fig7b_by_tasks.png"),
-        &LineChart {
-            title: &format!("Figure 7b: return at epoch {at} by meta-training tasks"),
-            x_label: "meta-train tasks",
-            y_label: &format!("greedy return / 100 at epoch {at}"),
-            series: &by_tasks,
-            references: &references,
-            floor: None,
-        },
+        at,
+        &by_tasks,
+        &from_random,
+        &refs,
     )?;
 
     let mut body = format!(
@@ -107,6 +98,33 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
     let mut found = vec![rising_claim(&maml), eight_claim(&maml, &refs)];
     found.extend(two_claim(&maml, cql, at));
     finish(body, found)
+}
+
+/// Figure 7b: each method's return at epoch `at` against the task count, the methods from a
+/// random init and online DQN as dashed lines.
+fn plot_by_tasks(
+    path: &Path,
+    at: usize,
+    by_tasks: &[Series],
+    from_random: &MethodValues,
+    refs: &Refs,
+) -> Result<(), ReproduceError> {
+    let random_lines = from_random.iter().map(|(m, v)| Reference {
+        label: format!("{} (random init)", m.label()),
+        value: v[0].mean / 100.0,
+    });
+    let references: Vec<Reference> = (refs.lines().into_iter().take(1))
+        .chain(random_lines)
+        .collect();
+    let chart = LineChart {
+        title: &format!("Figure 7b: return at epoch {at} by meta-training tasks"),
+        x_label: "meta-train tasks",
+        y_label: &format!("greedy return / 100 at epoch {at}"),
+        series: by_tasks,
+        references: &references,
+        floor: None,
+    };
+    Ok(plot::line_chart(path, &chart)?)
 }
 
 /// "n: return; ..." for every task count.
