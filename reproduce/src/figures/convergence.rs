@@ -88,15 +88,16 @@ fn summary_table(ctx: &Context, runs: &[(Method, Vec<Vec<f64>>)], refs: &Refs) -
     );
     let _ = writeln!(
         body,
-        "| method | converged (seeds) | return at epoch {EPOCH_40} | final return | mean swing between epochs |\n| --- | --- | --- | --- | --- |"
+        "| method | converged (seeds) | return at epoch {EPOCH_40} | final return (vs planner) | mean swing between epochs |\n| --- | --- | --- | --- | --- |"
     );
     for (method, runs) in runs {
         let (at40, last, swing) = curve_stats(runs);
         let converged = convergence_cells(runs, refs.random);
         let _ = writeln!(
             body,
-            "| {} | {converged} | {at40:.0} | {last:.0} | {swing:.0} |",
-            method.label()
+            "| {} | {converged} | {at40:.0} | {} | {swing:.0} |",
+            method.label(),
+            refs.with_gap(last)
         );
     }
     body.push('\n');

@@ -12,7 +12,8 @@ use uavmeta_meta::write_file;
 use uavmeta_plot::{self as plot, Band, Bar, LineChart, Reference, Series, TrajectoryChart};
 use uavmeta_proto::config::{Config, RainZone, TaskConfig};
 use uavmeta_proto::method::{Algo, Method, Start};
-use uavmeta_proto::stats::{Estimate, PolicyMetrics};
+use uavmeta_proto::stats::{self, Estimate, PolicyMetrics};
+use uavmeta_world::heuristics::PolicySpec;
 use uavmeta_world::world::World;
 
 use crate::claims::{
@@ -218,6 +219,22 @@ impl Refs {
         }
     }
 
+    /// `value` with its gap to the planner (`stats::percent_from`), marked `*` where above it:
+    /// there the planner is a search, not the optimum (docs/MODEL.md section 9).
+    fn with_gap(&self, value: Estimate) -> String {
+        let planner = PolicySpec::Planner.to_string();
+        match self.heuristics.iter().find(|(n, _)| *n == planner) {
+            Some(&(_, p)) if p.is_finite() => {
+                let mark = if value.mean > p { "*" } else { "" };
+                format!(
+                    "{value:.0} ({:+.1}%{mark})",
+                    stats::percent_from(value.mean, p)
+                )
+            }
+            _ => format!("{value:.0}"),
+        }
+    }
+
     /// Dashed lines of the returns / 100.
     fn lines(&self) -> Vec<Reference> {
         let online = ("online DQN", self.online.mean);
@@ -303,15 +320,16 @@ fn values_of(rows: &MethodValues, method: Method) -> &[Estimate] {
         .1
 }
 
-/// A markdown table: one row per method, one column per entry of `columns`.
-fn method_table(columns: &[String], rows: &MethodValues) -> String {
+/// A markdown table: one row per method, one column per entry of `columns`, each return with its
+/// gap to the planner.
+fn method_table(columns: &[String], rows: &MethodValues, refs: &Refs) -> String {
     let mut table = format!(
         "| method | {} |\n| --- |{}\n",
         columns.join(" | "),
         " --- |".repeat(columns.len())
     );
     for (method, values) in rows {
-        let cells = joined(values.iter().map(|v| format!("{v:.0}")), " | ");
+        let cells = joined(values.iter().map(|&v| refs.with_gap(v)), " | ");
         let _ = writeln!(table, "| {} | {cells} |", method.label());
     }
     table

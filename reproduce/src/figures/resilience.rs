@@ -255,7 +255,7 @@ fn summary_table(
          tasks, or random), fine-tuned for {epochs} epochs on {} shots of each, {}; every evaluation runs \
          {episodes} episodes, so each point of figure 9b averages {} tasks x {seeds} seeds x {episodes} = \
          {total} Monte-Carlo episodes. Convergence as in figure 5, against each task's random policy.\n\n\
-         | method | converged (task x seed runs) | final return | final outages per episode |\n| --- | --- | --- | --- |\n",
+         | method | converged (task x seed runs) | final return (vs the tasks' mean planner) | final outages per episode |\n| --- | --- | --- | --- |\n",
         tasks.len(),
         joined(tasks.iter().map(|t| &t.name), ", "),
         r.meta_tasks,
@@ -266,17 +266,18 @@ fn summary_table(
     for ((method, _), s) in per_method.iter().zip(summaries) {
         let _ = writeln!(
             body,
-            "| {} | {} | {:.0} | {:.1} |",
+            "| {} | {} | {} | {:.1} |",
             method.label(),
             s.converged_share(),
-            s.finals,
+            refs.with_gap(s.finals),
             s.outages
         );
     }
     let _ = writeln!(
         body,
-        "| online DQN | | {:.0} | {:.1} |",
-        refs.online, refs.online_outages
+        "| online DQN | | {} | {:.1} |",
+        refs.with_gap(refs.online),
+        refs.online_outages
     );
     body
 }

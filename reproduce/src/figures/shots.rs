@@ -42,7 +42,7 @@ pub(super) fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
 
     let mut body = format!(
         "Each method fine-tuned for {epochs} epochs on {:?} shots of `{}` (the inits trained on the \
-         first {} meta-train tasks), {}. Final return = mean of the last {} epochs.\n\n",
+         first {} meta-train tasks), {}. Final return = mean of the last {} epochs; in brackets, its gap to the planner.\n\n",
         r.shots,
         r.unseen_task,
         r.meta_tasks,
@@ -50,7 +50,7 @@ pub(super) fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
         claims::FINAL_EPOCHS
     );
     let columns: Vec<String> = r.shots.iter().map(|s| format!("{s} shots")).collect();
-    body.push_str(&method_table(&columns, &rows));
+    body.push_str(&method_table(&columns, &rows, &ctx.unseen_refs()));
     let (maml, cql) = (
         values_of(&rows, Method::CQL_MAML),
         values_of(&rows, Method::CQL),

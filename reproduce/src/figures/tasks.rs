@@ -69,7 +69,8 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
     let mut body = format!(
         "Each method's init (w0, CQL-pretrain's network, CQL-context's encoder and Q-network) trained \
          on the first n meta-train tasks (config order: {}), then fine-tuned for {epochs} epochs on {} \
-         shots of `{}`, {}; \"return at epoch {at}\" is the mean of epochs {}..{at}. Figure 7 draws \
+         shots of `{}`, {}; \"return at epoch {at}\" is the mean of epochs {}..{at}, in brackets its gap to the \
+         planner. Figure 7 draws \
          CQL-MAML's curves beside CQL's, as the paper does; figure 7b every method's return at epoch \
          {at} against the number of tasks.\n\n",
         joined(crate::runs::meta_train_tasks(c, usize::MAX).map(|t| &t.name), ", "),
@@ -79,17 +80,17 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
         at.saturating_sub(claims::FINAL_EPOCHS) + 1
     );
     let columns: Vec<String> = r.task_counts.iter().map(|n| format!("{n} tasks")).collect();
-    body.push_str(&method_table(&columns, &rows));
+    body.push_str(&method_table(&columns, &rows, &refs));
     let _ = writeln!(
         body,
-        "\nFrom a random init (no meta-train tasks), at epoch {at}: {}; online DQN {:.0}.",
+        "\nFrom a random init (no meta-train tasks), at epoch {at}: {}; online DQN {}.",
         joined(
             from_random
                 .iter()
-                .map(|(m, v)| format!("{} {:.0}", m.label(), v[0])),
+                .map(|(m, v)| format!("{} {}", m.label(), refs.with_gap(v[0]))),
             "; "
         ),
-        refs.online
+        refs.with_gap(refs.online)
     );
     let maml: Vec<(usize, Estimate)> = (r.task_counts.iter().copied())
         .zip(values_of(&rows, Method::CQL_MAML).iter().copied())
