@@ -747,7 +747,8 @@ fn stopped_actor_store_and_meta_learner_are_taken_for_hung_and_restarted() {
                 &[("process", process)]
             ),
             1.0,
-            "{process}: restarted once, after its hang"
+            "{process}: restarted once, after its hang\n{}",
+            stderr(&out)
         );
     }
     assert_every_transition_accounted(&run, 600_000);

@@ -74,7 +74,7 @@ pub fn node(process: &str, run: &RunConfig) -> Result<Node<ipc::Service>, Transp
         NodeName::new(process).map_err(|e| service_error(process, action)(format!("{e:?}")))?;
     let config = iceoryx_config(run)?;
     // Creating a node sweeps dead nodes' resources.
-    remove_unfinished_segments(&config);
+    remove_unfinished(&config);
     let node = NodeBuilder::new()
         .name(&name)
         .config(&config)
@@ -89,92 +89,90 @@ pub fn node(process: &str, run: &RunConfig) -> Result<Node<ipc::Service>, Transp
 /// Removes the resources of dead processes from every service (their ports would otherwise block
 /// the living on full buffers); the number of dead nodes cleaned up.
 pub fn cleanup_dead_nodes(node: &Node<ipc::Service>) -> u64 {
-    remove_unfinished_segments(node.config());
+    remove_unfinished(node.config());
     node.try_cleanup_dead_nodes().cleanups
 }
 
-/// A segment at size zero older than this is no creation in progress (that takes microseconds).
-const UNFINISHED_SEGMENT_AGE: Duration = Duration::from_secs(10);
+/// A leftover younger than this may be a creation in progress (that takes microseconds); an older
+/// one is what a killed process left.
+const UNFINISHED_AGE: Duration = Duration::from_secs(10);
 
-/// Longest that [`remove_unfinished_segments`] waits in all, however many segments it meets: a
-/// segment that keeps being truncated to size zero (by another user: iceoryx2's files are
-/// world-writable) would otherwise stay young, and waited for, for ever.
-const UNFINISHED_SEGMENTS_BOUND: Duration = Duration::from_secs(12);
-
-/// Removes iceoryx2 shared-memory segments that a process killed between creating and sizing them
-/// left at size zero. iceoryx2 0.10's dead-node sweep waits, without a timeout, for such a segment
-/// to be initialised (`posix_shared_memory::open_impl` on `MappingSizeIsZero`), so one such
-/// leftover would hang every later sweep in the domain. Found by the chaos test. A zero-size
-/// segment younger than [`UNFINISHED_SEGMENT_AGE`] may be a creation in progress, or the leftover
-/// of a process killed a moment ago and restarted at once (a tunnel restarted after kill -9 hung
-/// here in tests/remote.rs), so it is waited for: sized, gone, or old enough to remove; all of it
-/// within [`UNFINISHED_SEGMENTS_BOUND`], after which what is left is given up on with a warning.
-fn remove_unfinished_segments(config: &iceoryx2::config::Config) {
-    remove_unfinished_service_files(config);
-    let prefix = config.global.prefix.to_string();
-    let Ok(entries) = std::fs::read_dir("/dev/shm") else {
-        return;
-    };
-    let zero_sized = entries
-        .flatten()
-        .filter(|e| e.file_name().to_string_lossy().starts_with(&prefix))
-        .filter(|e| e.metadata().is_ok_and(|m| m.len() == 0))
-        .map(|e| e.path());
-    let start = std::time::Instant::now();
-    for path in zero_sized.collect::<Vec<_>>() {
-        while let Ok(metadata) = std::fs::metadata(&path) {
-            if metadata.len() > 0 {
-                break;
-            }
-            let age = metadata.modified().ok().and_then(|at| at.elapsed().ok());
-            if age.is_some_and(|age| age > UNFINISHED_SEGMENT_AGE) {
-                if std::fs::remove_file(&path).is_ok() {
-                    tracing::warn!(path = %path.display(), "removed an iceoryx2 segment a killed process left unfinished");
-                }
-                break;
-            }
-            if start.elapsed() > UNFINISHED_SEGMENTS_BOUND {
-                tracing::warn!(path = %path.display(), waited = ?start.elapsed(), "gave up on an iceoryx2 segment that stays at size zero (truncated again and again?)");
-                return;
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        }
-    }
-}
+/// Longest that [`remove_unfinished`] waits in all, however many leftovers it meets: a file that
+/// keeps being made unfinished again (by another user: iceoryx2's files are world-writable) would
+/// otherwise stay young, and waited for, for ever.
+const UNFINISHED_BOUND: Duration = Duration::from_secs(12);
 
 /// The permission iceoryx2's file-based static storage (a service's static config) keeps while
 /// its creator writes it; the creator makes it read-only once complete.
 const UNFINISHED_SERVICE_FILE_MODE: u32 = 0o600;
 
-/// Removes a service's static config file that a process killed while creating the service left
-/// unfinished (still at [`UNFINISHED_SERVICE_FILE_MODE`]) and older than
-/// [`UNFINISHED_SEGMENT_AGE`]: iceoryx2 0.10 takes such a file for a creation in progress for
-/// ever, so every later open or create of that service fails with `HangsInCreation`, and a store
-/// killed at that moment could never be restarted (found by the chaos test: the launcher
-/// restarted it every 11 s until it gave up). A younger one may be a creation in progress and is
-/// left for a later sweep.
-fn remove_unfinished_service_files(config: &iceoryx2::config::Config) {
-    use std::os::unix::fs::PermissionsExt;
+/// Removes what a process killed in the middle of creating something in the domain leaves
+/// unfinished, which iceoryx2 0.10 takes for a creation in progress for ever:
+/// - a shared-memory segment at size zero (killed between creating and sizing it): the dead-node
+///   sweep waits on it without a timeout (`posix_shared_memory::open_impl` on
+///   `MappingSizeIsZero`), so every later sweep in the domain would hang;
+/// - a service's static config file still writable: every later open of that service fails with
+///   `HangsInCreation`, so a store killed at that moment could not be restarted.
+///
+/// A leftover younger than [`UNFINISHED_AGE`] may be a creation in progress, or what a process
+/// killed a moment ago left before its successor started (both found by the chaos test), so it is
+/// waited for: finished, gone, or old enough to remove, all within [`UNFINISHED_BOUND`], after
+/// which what is left is given up on with a warning. The wait beats the heartbeat, so a restarted
+/// child that waits here is not taken for hung.
+fn remove_unfinished(config: &iceoryx2::config::Config) {
     let prefix = config.global.prefix.to_string();
-    let dir = PathBuf::from(config.global.service_dir().to_string());
-    let Ok(entries) = std::fs::read_dir(&dir) else {
-        return;
-    };
-    for entry in entries.flatten() {
-        let Ok(metadata) = entry.metadata() else {
-            continue;
-        };
-        let unfinished = metadata.is_file()
-            && entry.file_name().to_string_lossy().starts_with(&prefix)
-            && metadata.permissions().mode() & 0o777 == UNFINISHED_SERVICE_FILE_MODE;
-        let age = metadata.modified().ok().and_then(|at| at.elapsed().ok());
-        if unfinished
-            && age.is_some_and(|age| age > UNFINISHED_SEGMENT_AGE)
-            && std::fs::remove_file(entry.path()).is_ok()
-        {
-            tracing::warn!(path = %entry.path().display(), "removed an iceoryx2 service file a killed process left unfinished");
+    let ours = |e: &std::fs::DirEntry| e.file_name().to_string_lossy().starts_with(&prefix);
+    let entries = |dir: &std::path::Path| std::fs::read_dir(dir).into_iter().flatten().flatten();
+    let segments = entries("/dev/shm".as_ref())
+        .filter(|e| ours(e) && is_unfinished_segment(&e.path()))
+        .map(|e| {
+            (
+                e.path(),
+                is_unfinished_segment as fn(&std::path::Path) -> bool,
+            )
+        });
+    let service_dir = PathBuf::from(config.global.service_dir().to_string());
+    let services = entries(&service_dir)
+        .filter(|e| ours(e) && is_unfinished_service_file(&e.path()))
+        .map(|e| {
+            (
+                e.path(),
+                is_unfinished_service_file as fn(&std::path::Path) -> bool,
+            )
+        });
+    let start = std::time::Instant::now();
+    for (path, unfinished) in services.chain(segments).collect::<Vec<_>>() {
+        while unfinished(&path) {
+            let age = (std::fs::metadata(&path).and_then(|m| m.modified()).ok())
+                .and_then(|at| at.elapsed().ok());
+            if age.is_some_and(|age| age > UNFINISHED_AGE) {
+                if std::fs::remove_file(&path).is_ok() {
+                    tracing::warn!(path = %path.display(), "removed an iceoryx2 file a killed process left unfinished");
+                }
+                break;
+            }
+            if start.elapsed() > UNFINISHED_BOUND {
+                tracing::warn!(path = %path.display(), waited = ?start.elapsed(), "gave up on an iceoryx2 file that stays unfinished (made so again and again?)");
+                return;
+            }
+            crate::liveness::heartbeat();
+            std::thread::sleep(Duration::from_millis(50));
         }
     }
+}
+
+/// A shared-memory segment not yet sized (false once gone).
+fn is_unfinished_segment(path: &std::path::Path) -> bool {
+    std::fs::metadata(path).is_ok_and(|m| m.is_file() && m.len() == 0)
+}
+
+/// A service's static config file still writable, as while its creator writes it (false once
+/// gone).
+fn is_unfinished_service_file(path: &std::path::Path) -> bool {
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::metadata(path).is_ok_and(|m| {
+        m.is_file() && m.permissions().mode() & 0o777 == UNFINISHED_SERVICE_FILE_MODE
+    })
 }
 
 /// Sweeps for dead processes' iceoryx2 resources on a thread of its own, with a node of its own,

@@ -178,10 +178,11 @@ fn service_file(domain: &Domain, service: &str) -> PathBuf {
 /// What a process killed while creating a service leaves: its static config file empty and still
 /// writable (iceoryx2 makes it read-only once written). iceoryx2 0.10 takes that for a creation in
 /// progress for ever, so every later open fails with `HangsInCreation`; a store killed at that
-/// moment could never be restarted (the chaos test). Once the file is older than any creation
-/// takes, starting a node removes it and the service opens again.
+/// moment could never be restarted, and one restarted a moment later failed once (the chaos
+/// test). Starting a node waits until the file is older than any creation takes, removes it, and
+/// the service opens again.
 #[test]
-fn a_service_left_half_created_by_a_killed_process_opens_again() {
+fn a_service_left_half_created_by_a_killed_process_a_moment_ago_opens_again() {
     use iceoryx2::prelude::*;
     use std::os::unix::fs::PermissionsExt;
     let domain = Domain::new("halfcreated");
@@ -193,7 +194,7 @@ fn a_service_left_half_created_by_a_killed_process_opens_again() {
         .set_permissions(std::fs::Permissions::from_mode(0o600))
         .expect("writable, as during creation");
     leftover
-        .set_modified(SystemTime::now() - Duration::from_secs(60))
+        .set_modified(SystemTime::now() - Duration::from_secs(8))
         .expect("age the leftover");
     drop(leftover);
 
@@ -217,7 +218,13 @@ fn a_service_left_half_created_by_a_killed_process_opens_again() {
     );
     drop(plain);
 
+    let start = Instant::now();
     let node = domain::node("restarted", &domain.0).expect("a node");
     assert!(!file.exists(), "the leftover is still there");
+    assert!(
+        start.elapsed() >= Duration::from_secs(1),
+        "removed after {:?}, before it was 10 s old: it could have been a creation in progress",
+        start.elapsed()
+    );
     open(&node).expect("the service opens again");
 }

@@ -196,15 +196,9 @@ pub(super) fn wait_for_store(run: &RunDir, store: &mut Supervised) -> Result<(),
             .and_then(|c| c.try_wait().ok().flatten());
         if let Some(status) = exited {
             let log = run.log_file(&store.name);
-            let text = std::fs::read_to_string(&log).unwrap_or_default();
             return Err(LaunchError::StoreFailed {
                 status: describe(status),
-                cause: text
-                    .lines()
-                    .rev()
-                    .find(|l| !l.trim().is_empty())
-                    .unwrap_or("")
-                    .to_string(),
+                cause: last_line(&log),
                 log,
             });
         }
@@ -373,7 +367,15 @@ impl Supervisor<'_> {
                 });
             }
             let backoff = (BACKOFF_FIRST * 2u32.saturating_pow(c.failures - 1)).min(BACKOFF_MAX);
-            tracing::warn!(name = %c.name, status = %describe(status), ?backoff, "child failed");
+            let name = &c.name;
+            // A child that returned an error said why as its last words; one killed said nothing.
+            match status.code() {
+                Some(_) => {
+                    let cause = last_line(&self.run.log_file(name));
+                    tracing::warn!(%name, status = %describe(status), %cause, ?backoff, "child failed");
+                }
+                None => tracing::warn!(%name, status = %describe(status), ?backoff, "child failed"),
+            }
             c.restart_at = Some(Instant::now() + backoff);
         }
         Ok(())
@@ -407,6 +409,13 @@ impl Supervisor<'_> {
         let silent = SystemTime::now().duration_since(beat).ok()?;
         (silent > self.hang_timeout).then_some(silent)
     }
+}
+
+/// The last non-empty line of the log at `path` (a child's error), or nothing.
+fn last_line(path: &std::path::Path) -> String {
+    let text = std::fs::read_to_string(path).unwrap_or_default();
+    let line = text.lines().rev().find(|l| !l.trim().is_empty());
+    line.unwrap_or("").to_string()
 }
 
 pub(super) fn describe(status: ExitStatus) -> String {
