@@ -74,6 +74,10 @@ pub fn percent_from(ret: f64, reference: f64) -> f64 {
     100.0 * (ret - reference) / reference.abs()
 }
 
+/// How a table marks a return above the planner's, beside its [`percent_from`]: there the planner
+/// is a search, not the optimum (docs/MODEL.md section 9), and the table's note says by how much.
+pub const ABOVE_PLANNER: &str = "*";
+
 /// A policy's Monte-Carlo figures over a set of episodes.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 pub struct PolicyMetrics {

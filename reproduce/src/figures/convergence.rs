@@ -46,7 +46,7 @@ pub(super) fn convergence(ctx: &Context, dir: &Path) -> Result<Section, Reproduc
     )?;
 
     let body = summary_table(ctx, &runs, &refs);
-    let runs_of = |m: Method| &runs.iter().find(|(x, _)| *x == m).expect("all methods").1;
+    let runs_of = |m: Method| of_method(&runs, m);
     let (maml, cql) = (runs_of(Method::CQL_MAML), runs_of(Method::CQL));
     let mut found = vec![
         dqn_claim(runs_of(Method::DQN), runs_of(Method::DQN_MAML), &refs),

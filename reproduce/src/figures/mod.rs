@@ -225,7 +225,11 @@ impl Refs {
         let planner = PolicySpec::Planner.to_string();
         match self.heuristics.iter().find(|(n, _)| *n == planner) {
             Some(&(_, p)) if p.is_finite() => {
-                let mark = if value.mean > p { "*" } else { "" };
+                let mark = if value.mean > p {
+                    stats::ABOVE_PLANNER
+                } else {
+                    ""
+                };
                 format!(
                     "{value:.0} ({:+.1}%{mark})",
                     stats::percent_from(value.mean, p)
@@ -314,7 +318,7 @@ fn joined<T: std::fmt::Display>(items: impl IntoIterator<Item = T>, sep: &str) -
 type MethodValues = Vec<(Method, Vec<Estimate>)>;
 
 /// `method`'s values in `rows`; every figure's rows hold the methods its claims read.
-fn values_of(rows: &MethodValues, method: Method) -> &[Estimate] {
+fn of_method<T>(rows: &[(Method, T)], method: Method) -> &T {
     let row = rows.iter().find(|(m, _)| *m == method);
     &row.expect("a figure's rows hold the methods its claims read")
         .1
@@ -403,8 +407,17 @@ fn curve_lines(csv: &mut String, prefix: &str, seeds: &[SeedResult], rows: &[&[E
 
 const CURVE_COLUMNS: &str = "seed,epoch,return,return_ci95,aoi,power_mw,outages";
 
-/// The body's claims section, and the section.
+/// A figure's section: its body, the footnote of the `*` mark if any return carries it, and its
+/// claims' table.
 fn finish(mut body: String, claims: Vec<Claim>) -> Result<Section, ReproduceError> {
+    let above = stats::ABOVE_PLANNER;
+    if body.contains(&format!("%{above})")) {
+        let _ = writeln!(
+            body,
+            "\n{above} above the planner: there the planner is a search, not the optimum \
+             (docs/MODEL.md section 9)."
+        );
+    }
     let _ = writeln!(body, "\n## Claims\n");
     body.push_str(&claims::table(&claims));
     Ok(Section { body, claims })
@@ -413,6 +426,30 @@ fn finish(mut body: String, claims: Vec<Claim>) -> Result<Section, ReproduceErro
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_return_above_the_planner_is_marked_and_its_mark_explained() {
+        let estimate = |mean| Estimate { mean, ci95: 0.0 };
+        let refs = Refs {
+            online: estimate(-9000.0),
+            online_outages: estimate(0.0),
+            random: -13000.0,
+            heuristics: vec![(PolicySpec::Planner.to_string().leak(), -7000.0)],
+            exploratory: 0.55,
+            eps_start: 1.0,
+        };
+        assert_eq!(refs.with_gap(estimate(-7700.0)), "-7700 ± 0 (-10.0%)");
+        let above = refs.with_gap(estimate(-6930.0));
+        assert_eq!(above, "-6930 ± 0 (+1.0%*)");
+        let footnote = "* above the planner: there the planner is a search";
+        let below = finish(
+            format!("| CQL | {} |\n", refs.with_gap(estimate(-7700.0))),
+            vec![],
+        );
+        assert!(!below.unwrap().body.contains(footnote));
+        let marked = finish(format!("| CQL | {above} |\n"), vec![]).unwrap().body;
+        assert!(marked.contains(footnote), "{marked}");
+    }
 
     #[test]
     fn shortfalls_of_the_same_kind_share_one_sentence() {

@@ -52,8 +52,8 @@ pub(super) fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
     let columns: Vec<String> = r.shots.iter().map(|s| format!("{s} shots")).collect();
     body.push_str(&method_table(&columns, &rows, &ctx.unseen_refs()));
     let (maml, cql) = (
-        values_of(&rows, Method::CQL_MAML),
-        values_of(&rows, Method::CQL),
+        of_method(&rows, Method::CQL_MAML),
+        of_method(&rows, Method::CQL),
     );
     let finals_per_size: Vec<Finals> = (r.shots.iter().zip(maml.iter().zip(cql)))
         .map(|(&shots, (&maml, &cql))| Finals { shots, maml, cql })

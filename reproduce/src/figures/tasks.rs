@@ -93,9 +93,9 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
         refs.with_gap(refs.online)
     );
     let maml: Vec<(usize, Estimate)> = (r.task_counts.iter().copied())
-        .zip(values_of(&rows, Method::CQL_MAML).iter().copied())
+        .zip(of_method(&rows, Method::CQL_MAML).iter().copied())
         .collect();
-    let cql = values_of(&from_random, Method::CQL)[0];
+    let cql = of_method(&from_random, Method::CQL)[0];
     let mut found = vec![rising_claim(&maml), eight_claim(&maml, &refs)];
     found.extend(two_claim(&maml, cql, at));
     finish(body, found)

@@ -215,27 +215,26 @@ fn open_csv(path: &Path) -> Result<(File, Evaluated), FileError> {
 /// learner's zero-shot policy and the epochs of its fine-tuned methods.
 fn checkpoints_on_disk(run: &RunDir, config: &Config) -> Vec<CheckpointReady> {
     let test_tasks: Vec<_> = config.meta_test_tasks().collect();
-    let message = CheckpointReady::new;
     let complete =
         |method, task, epoch| checkpoint::read_meta(&run.checkpoint(method, task, epoch)).is_ok();
     let mut found = Vec::new();
     for epoch in 1..=config.meta.meta_epochs as u32 {
         for &(id, task) in &test_tasks {
             if complete(Method::MetaInit, task, epoch) {
-                found.push(message(Method::MetaInit, id, epoch));
+                found.push(CheckpointReady::new(Method::MetaInit, id, epoch));
             }
         }
     }
     for &(id, task) in &test_tasks {
         for method in [Method::OnlineDqn, Method::ContextInit] {
             if complete(method, task, 1) {
-                found.push(message(method, id, 1));
+                found.push(CheckpointReady::new(method, id, 1));
             }
         }
         for method in Method::fine_tuned(config.meta.inner_loss, &config.learner.baselines) {
             for epoch in 1..=config.learner.epochs as u32 {
                 if complete(method, task, epoch) {
-                    found.push(message(method, id, epoch));
+                    found.push(CheckpointReady::new(method, id, epoch));
                 }
             }
         }

@@ -134,7 +134,7 @@ pub fn results_table(report: &LaunchReport) -> String {
                 planner.map_or("-".to_string(), |p| format!(
                     "{:+.1}%{}",
                     stats::percent_from(r.policy.ret.mean, p),
-                    if above(r) { ABOVE_PLANNER } else { "" }
+                    if above(r) { stats::ABOVE_PLANNER } else { "" }
                 )),
                 format!("{:.2}", r.policy.aoi),
                 format!("{:.3}", r.policy.power_mw),
@@ -157,16 +157,14 @@ pub fn results_table(report: &LaunchReport) -> String {
                 .reduce(f64::max),
         ) {
             out.push_str(&format!(
-                "{ABOVE_PLANNER} above the planner: on {task} the planner is a search, not the optimum, and the best row beats it by {:.1}% (docs/MODEL.md section 9)\n",
+                "{} above the planner: on {task} the planner is a search, not the optimum, and the best row beats it by {:.1}% (docs/MODEL.md section 9)\n",
+                stats::ABOVE_PLANNER,
                 stats::percent_from(best, p)
             ));
         }
     }
     out
 }
-
-/// The mark of a row whose return is above the planner's.
-const ABOVE_PLANNER: &str = "*";
 
 #[cfg(test)]
 mod tests {
@@ -235,7 +233,7 @@ mod tests {
         }
         assert!(table.contains("power (mW)"), "{table}");
         // Nothing beats the planner here, so nothing is marked; the bound is said.
-        assert!(!table.contains(ABOVE_PLANNER), "{table}");
+        assert!(!table.contains(stats::ABOVE_PLANNER), "{table}");
         assert!(
             table.contains("lambda-300: no policy can score above -5473.0, +15.8% vs planner"),
             "{table}"
