@@ -427,17 +427,25 @@ fn finish(mut body: String, claims: Vec<Claim>) -> Result<Section, ReproduceErro
 mod tests {
     use super::*;
 
-    #[test]
-    fn a_return_above_the_planner_is_marked_and_its_mark_explained() {
-        let estimate = |mean| Estimate { mean, ci95: 0.0 };
-        let refs = Refs {
+    fn estimate(mean: f64) -> Estimate {
+        Estimate { mean, ci95: 0.0 }
+    }
+
+    /// References of an online agent at -9000, the random policy at -13000 and `heuristics`.
+    fn refs(heuristics: Vec<(&'static str, f64)>) -> Refs {
+        Refs {
             online: estimate(-9000.0),
             online_outages: estimate(0.0),
             random: -13000.0,
-            heuristics: vec![(PolicySpec::Planner.to_string().leak(), -7000.0)],
+            heuristics,
             exploratory: 0.55,
             eps_start: 1.0,
-        };
+        }
+    }
+
+    #[test]
+    fn a_return_above_the_planner_is_marked_and_its_mark_explained() {
+        let refs = refs(vec![(PolicySpec::Planner.to_string().leak(), -7000.0)]);
         assert_eq!(refs.with_gap(estimate(-7700.0)), "-7700 ± 0 (-10.0%)");
         let above = refs.with_gap(estimate(-6930.0));
         assert_eq!(above, "-6930 ± 0 (+1.0%*)");
@@ -453,15 +461,7 @@ mod tests {
 
     #[test]
     fn shortfalls_of_the_same_kind_share_one_sentence() {
-        let estimate = |mean| Estimate { mean, ci95: 0.0 };
-        let refs = Refs {
-            online: estimate(-9000.0),
-            online_outages: estimate(0.0),
-            random: -13000.0,
-            heuristics: vec![],
-            exploratory: 0.55,
-            eps_start: 1.0,
-        };
+        let refs = refs(vec![]);
         let both = refs.shortfall(&[("CQL-MAML", -36000.0), ("CQL", -32000.0)]);
         assert_eq!(
             both.matches("below the uniform random policy").count(),
