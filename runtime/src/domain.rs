@@ -121,44 +121,57 @@ const UNFINISHED_SERVICE_FILE_MODE: u32 = 0o600;
 /// child that waits here is not taken for hung.
 fn remove_unfinished(config: &iceoryx2::config::Config) {
     let prefix = config.global.prefix.to_string();
-    let ours = |e: &std::fs::DirEntry| e.file_name().to_string_lossy().starts_with(&prefix);
-    let entries = |dir: &std::path::Path| std::fs::read_dir(dir).into_iter().flatten().flatten();
-    let segments = entries("/dev/shm".as_ref())
-        .filter(|e| ours(e) && is_unfinished_segment(&e.path()))
-        .map(|e| {
-            (
-                e.path(),
-                is_unfinished_segment as fn(&std::path::Path) -> bool,
-            )
-        });
     let service_dir = PathBuf::from(config.global.service_dir().to_string());
-    let services = entries(&service_dir)
-        .filter(|e| ours(e) && is_unfinished_service_file(&e.path()))
-        .map(|e| {
-            (
-                e.path(),
-                is_unfinished_service_file as fn(&std::path::Path) -> bool,
-            )
-        });
+    let places: [(PathBuf, Unfinished); 2] = [
+        (service_dir, is_unfinished_service_file),
+        ("/dev/shm".into(), is_unfinished_segment),
+    ];
+    let leftovers: Vec<(PathBuf, Unfinished)> = places
+        .iter()
+        .flat_map(|(dir, unfinished)| {
+            let entries = std::fs::read_dir(dir).into_iter().flatten().flatten();
+            entries
+                .filter(|e| e.file_name().to_string_lossy().starts_with(&prefix))
+                .map(|e| e.path())
+                .filter(|path| unfinished(path))
+                .map(|path| (path, *unfinished))
+        })
+        .collect();
     let start = std::time::Instant::now();
-    for (path, unfinished) in services.chain(segments).collect::<Vec<_>>() {
-        while unfinished(&path) {
-            let age = (std::fs::metadata(&path).and_then(|m| m.modified()).ok())
-                .and_then(|at| at.elapsed().ok());
-            if age.is_some_and(|age| age > UNFINISHED_AGE) {
-                if std::fs::remove_file(&path).is_ok() {
-                    tracing::warn!(path = %path.display(), "removed an iceoryx2 file a killed process left unfinished");
-                }
-                break;
-            }
-            if start.elapsed() > UNFINISHED_BOUND {
-                tracing::warn!(path = %path.display(), waited = ?start.elapsed(), "gave up on an iceoryx2 file that stays unfinished (made so again and again?)");
-                return;
-            }
-            crate::liveness::heartbeat();
-            std::thread::sleep(Duration::from_millis(50));
+    for (path, unfinished) in leftovers {
+        if !wait_for_leftover(&path, unfinished, start) {
+            return;
         }
     }
+}
+
+/// Whether a file is what a creator leaves before it finishes (false once gone).
+type Unfinished = fn(&std::path::Path) -> bool;
+
+/// Waits while `path` is unfinished, removing it once older than [`UNFINISHED_AGE`]; false if
+/// the sweep that began at `start` has passed [`UNFINISHED_BOUND`] and gives up.
+fn wait_for_leftover(
+    path: &std::path::Path,
+    unfinished: Unfinished,
+    start: std::time::Instant,
+) -> bool {
+    while unfinished(path) {
+        let age = (std::fs::metadata(path).and_then(|m| m.modified()).ok())
+            .and_then(|at| at.elapsed().ok());
+        if age.is_some_and(|age| age > UNFINISHED_AGE) {
+            if std::fs::remove_file(path).is_ok() {
+                tracing::warn!(path = %path.display(), "removed an iceoryx2 file a killed process left unfinished");
+            }
+            return true;
+        }
+        if start.elapsed() > UNFINISHED_BOUND {
+            tracing::warn!(path = %path.display(), waited = ?start.elapsed(), "gave up on an iceoryx2 file that stays unfinished (made so again and again?)");
+            return false;
+        }
+        crate::liveness::heartbeat();
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    true
 }
 
 /// A shared-memory segment not yet sized (false once gone).

@@ -187,6 +187,14 @@ impl Context<'_> {
     }
 }
 
+/// The planner's return among `heuristics`, if it was measured.
+fn planner_of(heuristics: &[(&str, f64)]) -> Option<f64> {
+    let planner = PolicySpec::Planner.to_string();
+    (heuristics.iter().find(|(n, _)| *n == planner))
+        .map(|&(_, p)| p)
+        .filter(|p| p.is_finite())
+}
+
 /// Reference levels of a figure, averaged over seeds (and over tasks for figure 9).
 struct Refs {
     online: Estimate,
@@ -194,6 +202,8 @@ struct Refs {
     random: f64,
     /// (name, return) of each heuristic.
     heuristics: Vec<(&'static str, f64)>,
+    /// The planner's return, where it was measured: what every gap is taken from.
+    planner: Option<f64>,
     /// Share of each dataset the online agent collected while still exploring.
     exploratory: f64,
     eps_start: f64,
@@ -209,11 +219,13 @@ impl Refs {
             .first()
             .map(|h| h.policies.iter().map(|(n, _)| *n).collect())
             .unwrap_or_default();
+        let heuristics: Vec<_> = names.into_iter().map(|n| (n, mean_over(n))).collect();
         Refs {
             online: Estimate::from_samples(online.iter().map(|m| m.ret.mean)),
             online_outages: Estimate::from_samples(online.iter().map(|m| m.outages.mean)),
             random: mean_over("random"),
-            heuristics: names.into_iter().map(|n| (n, mean_over(n))).collect(),
+            planner: planner_of(&heuristics),
+            heuristics,
             exploratory: exploratory_share(config),
             eps_start: config.collect.dqn.eps_start,
         }
@@ -222,9 +234,8 @@ impl Refs {
     /// `value` with its gap to the planner (`stats::percent_from`), marked `*` where above it:
     /// there the planner is a search, not the optimum (docs/MODEL.md section 9).
     fn with_gap(&self, value: Estimate) -> String {
-        let planner = PolicySpec::Planner.to_string();
-        match self.heuristics.iter().find(|(n, _)| *n == planner) {
-            Some(&(_, p)) if p.is_finite() => {
+        match self.planner {
+            Some(p) => {
                 let mark = if value.mean > p {
                     stats::ABOVE_PLANNER
                 } else {
@@ -235,7 +246,7 @@ impl Refs {
                     stats::percent_from(value.mean, p)
                 )
             }
-            _ => format!("{value:.0}"),
+            None => format!("{value:.0}"),
         }
     }
 
@@ -437,6 +448,7 @@ mod tests {
             online: estimate(-9000.0),
             online_outages: estimate(0.0),
             random: -13000.0,
+            planner: planner_of(&heuristics),
             heuristics,
             exploratory: 0.55,
             eps_start: 1.0,
