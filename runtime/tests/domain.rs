@@ -74,10 +74,12 @@ fn a_segment_sized_while_waited_for_is_a_finished_creation_and_kept() {
     std::fs::remove_file(&segment).expect("remove the test's segment");
 }
 
-/// Another user's process truncating a segment again and again, as iceoryx2's files are
-/// world-writable: the segment never gets old enough to remove, and must not be waited for ever.
-fn truncate_again_and_again(
-    segment: PathBuf,
+/// Another user's process redoing `touch` on the file at `path` every 20 ms until stopped, as
+/// iceoryx2's files are world-writable: a leftover kept so never gets old enough to remove, and
+/// must not be waited for ever.
+fn again_and_again(
+    path: PathBuf,
+    touch: fn(&File),
 ) -> (
     std::sync::Arc<std::sync::atomic::AtomicBool>,
     std::thread::JoinHandle<()>,
@@ -87,8 +89,8 @@ fn truncate_again_and_again(
     let flag = stop.clone();
     let handle = std::thread::spawn(move || {
         while !flag.load(Ordering::Relaxed) {
-            if let Ok(file) = File::options().write(true).open(&segment) {
-                let _ = file.set_len(0);
+            if let Ok(file) = File::options().write(true).open(&path) {
+                touch(&file);
                 let _ = file.set_modified(SystemTime::now());
             }
             std::thread::sleep(Duration::from_millis(20));
@@ -102,7 +104,9 @@ fn a_segment_truncated_again_and_again_is_given_up_on_and_the_cleaner_never_bloc
     use std::sync::atomic::Ordering;
     let domain = Domain::new("truncated");
     let segment = domain.zero_sized_segment("hostile", Duration::ZERO);
-    let (stop, truncating) = truncate_again_and_again(segment.clone());
+    let (stop, truncating) = again_and_again(segment.clone(), |file| {
+        let _ = file.set_len(0);
+    });
     // Node creation sweeps: it gives up on the segment instead of waiting for it to age.
     let node = domain::node("starting", &domain.0).expect("a node despite the truncation");
     assert!(segment.exists(), "a young segment was removed");
@@ -227,4 +231,26 @@ fn a_service_left_half_created_by_a_killed_process_a_moment_ago_opens_again() {
         start.elapsed()
     );
     open(&node).expect("the service opens again");
+}
+
+#[test]
+fn a_service_file_kept_unfinished_again_and_again_is_given_up_on() {
+    use std::os::unix::fs::PermissionsExt;
+    use std::sync::atomic::Ordering;
+    let domain = Domain::new("keptunfinished");
+    let file = service_file(&domain, "uavmeta/test/hostile");
+    File::create(&file)
+        .and_then(|f| f.set_permissions(std::fs::Permissions::from_mode(0o600)))
+        .expect("a writable service file, as during creation");
+    let (stop, refreshing) = again_and_again(file.clone(), |_| {});
+    // Node creation sweeps: it gives up on the file at its bound instead of waiting for ever.
+    let node = domain::node("starting", &domain.0).expect("a node despite the hostile file");
+    assert!(
+        file.exists(),
+        "a service file modified a moment ago was removed"
+    );
+    stop.store(true, Ordering::Relaxed);
+    refreshing.join().expect("the refreshing thread");
+    drop(node);
+    std::fs::remove_file(&file).expect("remove the test's service file");
 }
