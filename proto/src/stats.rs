@@ -78,6 +78,13 @@ pub fn percent_from(ret: f64, reference: f64) -> f64 {
 /// is a search, not the optimum (docs/MODEL.md section 9), and the table's note says by how much.
 pub const ABOVE_PLANNER: &str = "*";
 
+/// A return's gap to the planner as every table writes it: `-3.0%`, or `+1.0%*` where it is
+/// above the planner ([`ABOVE_PLANNER`]).
+pub fn gap_to_planner(ret: f64, planner: f64) -> String {
+    let mark = if ret > planner { ABOVE_PLANNER } else { "" };
+    format!("{:+.1}%{mark}", percent_from(ret, planner))
+}
+
 /// A policy's Monte-Carlo figures over a set of episodes.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 pub struct PolicyMetrics {

@@ -231,21 +231,11 @@ impl Refs {
         }
     }
 
-    /// `value` with its gap to the planner (`stats::percent_from`), marked `*` where above it:
+    /// `value` with its gap to the planner (`stats::gap_to_planner`), marked `*` where above it:
     /// there the planner is a search, not the optimum (docs/MODEL.md section 9).
     fn with_gap(&self, value: Estimate) -> String {
         match self.planner {
-            Some(p) => {
-                let mark = if value.mean > p {
-                    stats::ABOVE_PLANNER
-                } else {
-                    ""
-                };
-                format!(
-                    "{value:.0} ({:+.1}%{mark})",
-                    stats::percent_from(value.mean, p)
-                )
-            }
+            Some(p) => format!("{value:.0} ({})", stats::gap_to_planner(value.mean, p)),
             None => format!("{value:.0}"),
         }
     }

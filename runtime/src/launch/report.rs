@@ -131,10 +131,9 @@ pub fn results_table(report: &LaunchReport) -> String {
                 },
                 format!("{:.1}", r.policy.ret),
                 // Returns are costs: a row 3% below the planner reads -3.0%.
-                planner.map_or("-".to_string(), |p| format!(
-                    "{:+.1}%{}",
-                    stats::percent_from(r.policy.ret.mean, p),
-                    if above(r) { stats::ABOVE_PLANNER } else { "" }
+                planner.map_or("-".to_string(), |p| stats::gap_to_planner(
+                    r.policy.ret.mean,
+                    p
                 )),
                 format!("{:.2}", r.policy.aoi),
                 format!("{:.3}", r.policy.power_mw),

@@ -367,15 +367,11 @@ impl Supervisor<'_> {
                 });
             }
             let backoff = (BACKOFF_FIRST * 2u32.saturating_pow(c.failures - 1)).min(BACKOFF_MAX);
-            let name = &c.name;
             // A child that returned an error said why as its last words; one killed said nothing.
-            match status.code() {
-                Some(_) => {
-                    let cause = last_line(&self.run.log_file(name));
-                    tracing::warn!(%name, status = %describe(status), %cause, ?backoff, "child failed");
-                }
-                None => tracing::warn!(%name, status = %describe(status), ?backoff, "child failed"),
-            }
+            let cause = (status.code())
+                .map(|_| last_line(&self.run.log_file(&c.name)))
+                .unwrap_or_default();
+            tracing::warn!(name = %c.name, status = %describe(status), %cause, ?backoff, "child failed");
             c.restart_at = Some(Instant::now() + backoff);
         }
         Ok(())
