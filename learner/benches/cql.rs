@@ -33,6 +33,10 @@ impl EvaluatePolicy for NoEvaluation {
     fn evaluate(&mut self, _q: &QNetwork) -> PolicyMetrics {
         PolicyMetrics::default()
     }
+
+    fn judge(&mut self, _q: &QNetwork) -> Option<f64> {
+        None
+    }
 }
 
 fn dataset() -> Transitions {

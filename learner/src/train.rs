@@ -7,7 +7,9 @@
 //! training once Q drifts past the value scale the data supports. After every epoch the greedy
 //! policy is evaluated through [`EvaluatePolicy`] (the world lives in `uavmeta-actors`, which
 //! implements it) and one row is written: to a table on stderr, to `train.csv` in the output
-//! directory, and to the returned list.
+//! directory, and to the returned list. The network a run keeps (`learner.select_every`,
+//! [`Selection`]) is the one of its start and every tenth epoch's that does best in the world
+//! its shots identify; the last row scores it.
 
 use std::path::Path;
 use std::time::Instant;
@@ -36,6 +38,12 @@ use crate::transitions::Transitions;
 /// after it, so an evaluator may count epochs or checkpoint what it is given (the launch's does).
 pub trait EvaluatePolicy {
     fn evaluate(&mut self, q: &QNetwork) -> PolicyMetrics;
+
+    /// The return of `q`'s greedy policy in the world as the run's own shots identify it, never
+    /// the true world: what picks the network a run keeps ([`Selection`]). `None` where the
+    /// shots do not identify the world: the run keeps its last network. Required, so that a
+    /// wrapper cannot drop its inner evaluator's judgement by forgetting it.
+    fn judge(&mut self, q: &QNetwork) -> Option<f64>;
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -80,18 +88,39 @@ pub struct EpochRow {
     pub policy: PolicyMetrics,
     /// Wall-clock seconds since training started.
     pub seconds: f64,
+    /// The return in the world the shots identify ([`EvaluatePolicy::judge`]), at the epochs
+    /// [`Selection`] scores.
+    pub model_return: Option<f64>,
+    /// The epoch whose network `policy` scores (0 = the start): `epoch` itself, but for the rows
+    /// after a value-guard stop and the last row, which scores the network the run keeps.
+    pub network_epoch: usize,
 }
 
-const CSV_HEADER: &str = "epoch,steps,td_loss,conservative_loss,mean_q,return,return_ci95,aoi,aoi_ci95,power_mw,power_mw_ci95,outages,outages_ci95,episodes,seconds";
+const CSV_HEADER: &str = "epoch,steps,td_loss,conservative_loss,mean_q,return,return_ci95,aoi,aoi_ci95,power_mw,power_mw_ci95,outages,outages_ci95,episodes,seconds,model_return,network_epoch";
 
 impl EpochRow {
+    /// Which network the row scores, in words: "epoch 100", or "epoch 100, keeping epoch 10's
+    /// network" (the start's is epoch 0's).
+    pub fn kept(&self) -> String {
+        match self.network_epoch == self.epoch {
+            true => format!("epoch {}", self.epoch),
+            false => format!(
+                "epoch {}, keeping epoch {}'s network",
+                self.epoch, self.network_epoch
+            ),
+        }
+    }
+
     fn csv(&self) -> String {
         let (epoch, steps, td_loss) = (self.epoch, self.steps, self.td_loss);
         let (conservative_loss, mean_q) = (self.conservative_loss, self.mean_q);
         let (policy, episodes) = (self.policy.csv(), self.policy.episodes);
+        let model_return = self
+            .model_return
+            .map_or(String::new(), |r| format!("{r:.3}"));
         format!(
-            "{epoch},{steps},{td_loss},{conservative_loss},{mean_q},{policy},{episodes},{:.3}",
-            self.seconds
+            "{epoch},{steps},{td_loss},{conservative_loss},{mean_q},{policy},{episodes},{:.3},{model_return},{}",
+            self.seconds, self.network_epoch
         )
     }
 
@@ -278,49 +307,75 @@ pub fn train(
         ValueGuard::new(cfg, q, data).filter(|_| algorithm::of(opts.algorithm).learns_values());
     let mut last_good = guard.as_ref().map(|_| q.duplicate());
     let mut average = Average::new(cfg);
-    let mut stopped = false;
+    let mut selection = Selection::new(cfg.select_every, q, evaluator);
+    let (mut stopped, mut selected) = (false, false);
     for epoch in 1..=cfg.epochs {
-        if let (true, Some(last)) = (stopped, rows.last()) {
+        let seconds = || started.elapsed().as_secs_f64();
+        let (mut row, evaluated) = match (stopped, rows.last()) {
             // Stopped by the value guard: the kept network stays as it is.
-            let row = EpochRow {
-                epoch,
-                seconds: started.elapsed().as_secs_f64(),
-                ..*last
-            };
-            bar.inc(steps_per_epoch as u64);
-            finish_epoch(&row, opts.progress, &bar, csv.as_mut())?;
-            rows.push(row);
-            continue;
-        }
-        let means = trainer.epoch(q, data, steps_per_epoch, &bar);
-        if let (Some(guard), Some(last_good)) = (&guard, last_good.as_mut()) {
-            if guard.restore_if_tripped(q, last_good, data) {
-                stopped = true;
-                tracing::info!(
-                    epoch,
-                    v_data = guard.v_data / cfg.reward_scale,
-                    "the value guard stopped training; the previous epoch's network is kept"
-                );
+            (true, Some(last)) => {
+                bar.inc(steps_per_epoch as u64);
+                (
+                    EpochRow {
+                        epoch,
+                        model_return: None,
+                        ..*last
+                    },
+                    true,
+                )
             }
-        }
-        if !stopped {
-            average.update(q);
-        }
-        let published = average.published(q);
-        let row = EpochRow {
-            epoch,
-            steps: trainer.steps(),
-            td_loss: means.td_loss,
-            conservative_loss: means.conservative_loss,
-            mean_q: means.max_q / cfg.reward_scale,
-            policy: evaluator.evaluate(published),
-            seconds: started.elapsed().as_secs_f64(),
+            _ => {
+                let means = trainer.epoch(q, data, steps_per_epoch, &bar);
+                if let (Some(guard), Some(last_good)) = (&guard, last_good.as_mut()) {
+                    if guard.restore_if_tripped(q, last_good, data) {
+                        stopped = true;
+                        tracing::info!(
+                            epoch,
+                            v_data = guard.v_data / cfg.reward_scale,
+                            "the value guard stopped training; the previous epoch's network is kept"
+                        );
+                    }
+                }
+                if !stopped {
+                    average.update(q);
+                }
+                let row = EpochRow {
+                    epoch,
+                    steps: trainer.steps(),
+                    td_loss: means.td_loss,
+                    conservative_loss: means.conservative_loss,
+                    mean_q: means.max_q / cfg.reward_scale,
+                    policy: PolicyMetrics::default(),
+                    seconds: 0.0,
+                    model_return: None,
+                    network_epoch: epoch - usize::from(stopped),
+                };
+                (row, false)
+            }
         };
+        let published = average.published(q);
+        if selection.due(epoch, cfg.epochs) {
+            row.model_return = selection.offer(row.network_epoch, published, evaluator);
+        }
+        // The last row scores the network the run keeps.
+        let kept = (epoch == cfg.epochs)
+            .then(|| selection.kept_instead_of(row.network_epoch))
+            .flatten();
+        if let Some(kept) = kept {
+            (row.policy, row.network_epoch) = (evaluator.evaluate(&kept.q), kept.epoch);
+            selected = true;
+        } else if !evaluated {
+            row.policy = evaluator.evaluate(published);
+        }
+        row.seconds = seconds();
         finish_epoch(&row, opts.progress, &bar, csv.as_mut())?;
         rows.push(row);
     }
     bar.finish_and_clear();
     average.publish_into(q);
+    if selected {
+        selection.publish_into(q);
+    }
     if let Some(dir) = opts.out_dir {
         checkpoint::save(
             &dir.join("final"),
@@ -346,6 +401,78 @@ fn finish_epoch(
     match csv {
         Some(csv) => Ok(csv.line(&row.csv())?),
         None => Ok(()),
+    }
+}
+
+/// The network a run keeps (`learner.select_every`, docs/MODEL.md section 5): of its start, the
+/// network it publishes every `select_every` epochs and its last, the one whose greedy policy
+/// has the best return in the world its shots identify ([`EvaluatePolicy::judge`]); the true
+/// world never enters the choice. Fine-tuning on few shots can first improve and then fall below
+/// its start, and where power dominates the reward the model, exact wherever the shots determine
+/// every device, tells which (docs/EXPERIMENTS.md, D19). Off, the last network kept, with
+/// `select_every = 0` or where the shots do not identify the world (a task with rain).
+struct Selection {
+    every: usize,
+    /// The best candidate so far.
+    best: Option<Candidate>,
+}
+
+struct Candidate {
+    /// The epoch after which it was published, 0 = the start.
+    epoch: usize,
+    model_return: f64,
+    q: QNetwork,
+}
+
+impl Selection {
+    /// The selection of a run starting from `q`, its first candidate.
+    fn new(every: usize, q: &QNetwork, evaluator: &mut dyn EvaluatePolicy) -> Self {
+        let start = (every > 0).then(|| evaluator.judge(q)).flatten();
+        Self {
+            every: if start.is_some() { every } else { 0 },
+            best: start.map(|model_return| Candidate {
+                epoch: 0,
+                model_return,
+                q: q.duplicate(),
+            }),
+        }
+    }
+
+    /// Whether epoch `epoch` of `epochs` publishes a candidate.
+    fn due(&self, epoch: usize, epochs: usize) -> bool {
+        self.every > 0 && (epoch.is_multiple_of(self.every) || epoch == epochs)
+    }
+
+    /// Scores `q`, the network of epoch `epoch`, and keeps it if it does better than every
+    /// candidate before it (a tie keeps the earlier); returns its model return.
+    fn offer(
+        &mut self,
+        epoch: usize,
+        q: &QNetwork,
+        evaluator: &mut dyn EvaluatePolicy,
+    ) -> Option<f64> {
+        let model_return = evaluator.judge(q)?;
+        match &mut self.best {
+            Some(best) if best.model_return >= model_return => {}
+            Some(best) => {
+                best.q.copy_from(q);
+                (best.epoch, best.model_return) = (epoch, model_return);
+            }
+            None => {}
+        }
+        Some(model_return)
+    }
+
+    /// The kept candidate, if it is not the network of epoch `epoch`.
+    fn kept_instead_of(&self, epoch: usize) -> Option<&Candidate> {
+        self.best.as_ref().filter(|best| best.epoch != epoch)
+    }
+
+    /// Puts the kept candidate into `q`.
+    fn publish_into(&self, q: &mut QNetwork) {
+        if let Some(best) = &self.best {
+            q.copy_from(&best.q);
+        }
     }
 }
 

@@ -53,6 +53,14 @@ pub enum ShotsError {
     },
 }
 
+/// A task's shots: as the dataset holds them, and encoded for the networks.
+pub struct Shots {
+    /// The raw transitions, from which the world is identified (`uavmeta_world::identify`).
+    pub rows: Vec<Transition>,
+    /// What the losses read.
+    pub data: Transitions,
+}
+
 /// `shots` transitions of `task` drawn (seeded) from the dataset file `path`, encoded for the
 /// config's world: what every offline learner trains on. The file must come from this world and
 /// this task.
@@ -62,14 +70,16 @@ pub fn load_shots(
     path: &Path,
     shots: usize,
     seed: u64,
-) -> Result<Transitions, ShotsError> {
-    let picked = DatasetReader::open_task(path, config, &task.name)?.shots(shots, seed)?;
-    Transitions::new(&picked, &config.world, config.learner.reward_scale).map_err(|source| {
-        ShotsError::Transitions {
-            path: path.to_path_buf(),
-            source,
-        }
-    })
+) -> Result<Shots, ShotsError> {
+    let rows = DatasetReader::open_task(path, config, &task.name)?.shots(shots, seed)?;
+    let data =
+        Transitions::new(&rows, &config.world, config.learner.reward_scale).map_err(|source| {
+            ShotsError::Transitions {
+                path: path.to_path_buf(),
+                source,
+            }
+        })?;
+    Ok(Shots { rows, data })
 }
 
 /// Transitions as tensors on the CPU, one row each.

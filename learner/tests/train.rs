@@ -71,6 +71,11 @@ impl EvaluatePolicy for Exact {
             .collect();
         PolicyMetrics::from_episodes(&episodes)
     }
+
+    /// No shots identify this world: runs keep their last network.
+    fn judge(&mut self, _q: &QNetwork) -> Option<f64> {
+        None
+    }
 }
 
 fn config() -> Config {
@@ -197,6 +202,10 @@ impl EvaluatePolicy for Recorder {
     fn evaluate(&mut self, q: &QNetwork) -> PolicyMetrics {
         self.0.push(q.duplicate());
         Exact.evaluate(q)
+    }
+
+    fn judge(&mut self, _q: &QNetwork) -> Option<f64> {
+        None
     }
 }
 
@@ -346,5 +355,98 @@ fn behaviour_cloning_takes_the_data_s_most_frequent_action_whatever_the_rewards(
         rows.last().unwrap().steps,
         cfg.learner.epochs * 13,
         "BC was stopped"
+    );
+}
+
+/// The bandit's exact evaluation, and a judge that scores a network by `judge` of its exact
+/// return: the world a run's shots identify, here as right (identity) or as wrong as can be.
+struct Judged(fn(f64) -> f64);
+
+impl EvaluatePolicy for Judged {
+    fn evaluate(&mut self, q: &QNetwork) -> PolicyMetrics {
+        Exact.evaluate(q)
+    }
+
+    fn judge(&mut self, q: &QNetwork) -> Option<f64> {
+        Some(self.0(Exact.evaluate(q).ret.mean))
+    }
+}
+
+#[test]
+fn a_run_keeps_the_candidate_its_judge_scores_best_and_only_with_a_judge() {
+    tch::set_num_threads(1);
+    let mut cfg = config();
+    cfg.learner.select_every = 10;
+    let data = Transitions::new(&dataset(400), &cfg.world, cfg.learner.reward_scale).unwrap();
+    let start = QNetworkConfig::new(3, 5, &cfg.learner.hidden).init(0);
+    let run = |cfg: &Config, evaluator: &mut dyn EvaluatePolicy| {
+        let dir = tempfile::tempdir().unwrap();
+        let mut q = start.duplicate();
+        let opts = TrainOptions {
+            algorithm: Algo::CQL,
+            config: cfg,
+            seed: 4,
+            out_dir: Some(dir.path()),
+            progress: false,
+            on_step: OnStep::default(),
+        };
+        let rows = train(&mut q, &data, &opts, evaluator).unwrap();
+        let csv = std::fs::read_to_string(dir.path().join("train.csv")).unwrap();
+        let kept = checkpoint::load(&dir.path().join("final"), cfg).unwrap().0;
+        assert_eq!(
+            Exact.evaluate(&kept),
+            rows[29].policy,
+            "the checkpoint is the kept network"
+        );
+        (rows, csv, q)
+    };
+    // The candidates: the start and epochs 10, 20, 30, as the run without selection scores them.
+    let (plain, _, _) = run(&cfg, &mut Exact);
+    let start_return = Exact.evaluate(&start).ret.mean;
+    let returns = [
+        start_return,
+        plain[9].policy.ret.mean,
+        plain[19].policy.ret.mean,
+        plain[29].policy.ret.mean,
+    ];
+    assert!(start_return < 1.0 && returns[3] == 1.0, "{returns:?}");
+
+    // A judge that is right keeps a best candidate; one that is wrong keeps the worst, the
+    // earliest of equals, and the last row scores it.
+    let (right, csv, _) = run(&cfg, &mut Judged(|r| r));
+    assert_eq!(right[29].policy.ret.mean, 1.0);
+    let (wrong, _, q) = run(&cfg, &mut Judged(|r| -r));
+    let worst = returns.iter().copied().fold(f64::INFINITY, f64::min);
+    let earliest = returns.iter().position(|&r| r == worst).unwrap() * 10;
+    assert_eq!(wrong[29].network_epoch, earliest);
+    assert_eq!(wrong[29].policy.ret.mean, worst);
+    assert_eq!(
+        Exact.evaluate(&q).ret.mean,
+        worst,
+        "the returned network is the kept one"
+    );
+    // Training itself is the same run: only the last row and the kept network differ.
+    assert_eq!(wrong[28].policy, plain[28].policy);
+    assert_eq!(wrong[29].td_loss, plain[29].td_loss);
+
+    // train.csv: the model's return at the candidates' epochs only.
+    let header: Vec<&str> = csv.lines().next().unwrap().split(',').collect();
+    let column = header.iter().position(|&c| c == "model_return").unwrap();
+    let scored: Vec<usize> = csv
+        .lines()
+        .skip(1)
+        .enumerate()
+        .filter(|(_, line)| !line.split(',').nth(column).unwrap().is_empty())
+        .map(|(i, _)| i + 1)
+        .collect();
+    assert_eq!(scored, [10, 20, 30]);
+
+    // Without a judge (`Exact`), or with `select_every = 0`, the run keeps its last network.
+    assert_eq!(plain[29].network_epoch, 30);
+    cfg.learner.select_every = 0;
+    let (off, _, _) = run(&cfg, &mut Judged(|r| -r));
+    assert_eq!(
+        (off[29].network_epoch, off[29].policy),
+        (30, plain[29].policy)
     );
 }

@@ -106,14 +106,15 @@ pub struct MetaTestResult {
 }
 
 /// Loads the init `opts.init` and fine-tunes it, scored on the task's true environment before
-/// the first step and after every epoch (the rows also in `<out_dir>/train.csv`).
+/// the first step and after every epoch (the rows also in `<out_dir>/train.csv`), keeping the
+/// network that does best in the world the shots identify.
 pub fn meta_test(opts: &MetaTestOptions) -> Result<MetaTestResult, MetaError> {
     let run = &opts.fine_tune;
-    let evaluator = &mut Evaluator::from_config(run.config, run.task);
     let shots = load_shots(run.config, run.task, opts.dataset, opts.shots, run.seed)?;
-    let (mut q, algorithm) = init_network(opts.init, run.config, &shots)?;
+    let evaluator = &mut Evaluator::from_config(run.config, run.task).judging_by(&shots.rows);
+    let (mut q, algorithm) = init_network(opts.init, run.config, &shots.data)?;
     let init = evaluator.evaluate(&q);
-    let rows = fine_tune(&mut q, &shots, algorithm, run, evaluator)?;
+    let rows = fine_tune(&mut q, &shots.data, algorithm, run, evaluator)?;
     Ok(MetaTestResult { init, rows })
 }
 

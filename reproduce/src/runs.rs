@@ -482,7 +482,7 @@ pub fn fine_tune_run(
     let dataset = dataset_path(&datasets_dir(out, seed), &task.name);
     let shots = load_shots(config, task, &dataset, key.shots, seed).map_err(MetaError::from)?;
     let mut q = match w0 {
-        Some(w0) => init_network(w0, config, &shots)?.0,
+        Some(w0) => init_network(w0, config, &shots.data)?.0,
         None => QNetworkConfig::for_world(&config.world, &config.learner.hidden).init(seed),
     };
     let mut eval_config = config.clone();
@@ -496,8 +496,8 @@ pub fn fine_tune_run(
         progress: false,
         on_step: OnStep::default(),
     };
-    let mut evaluator = Evaluator::from_config(&eval_config, task);
-    let rows = fine_tune(&mut q, &shots, run.algo(), &settings, &mut evaluator)?;
+    let mut evaluator = Evaluator::from_config(&eval_config, task).judging_by(&shots.rows);
+    let rows = fine_tune(&mut q, &shots.data, run.algo(), &settings, &mut evaluator)?;
     // The final greedy policy's path, when the plan asks for it.
     let trajectory = run.trajectory.then(|| {
         let mut policy = QPolicy::new(&q);

@@ -133,8 +133,11 @@ pub fn run_test(args: MetaTestArgs) -> Result<()> {
     );
     if let Some(last) = result.rows.last() {
         println!(
-            "epoch {}: return {:.1}, AoI {:.2}, power {:.3} mW",
-            last.epoch, last.policy.ret, last.policy.aoi, last.policy.power_mw
+            "{}: return {:.1}, AoI {:.2}, power {:.3} mW",
+            last.kept(),
+            last.policy.ret,
+            last.policy.aoi,
+            last.policy.power_mw
         );
     }
     println!(

@@ -73,14 +73,14 @@ pub fn run(args: TrainArgs) -> Result<()> {
     };
     let rows = train(
         &mut q,
-        &data,
+        &data.data,
         &opts,
-        &mut Evaluator::from_config(&config, &task),
+        &mut Evaluator::from_config(&config, &task).judging_by(&data.rows),
     )?;
     if let Some(last) = rows.last() {
         println!(
-            "{} on {} shots of `{}`, epoch {}: return {:.1}, AoI {:.2}, power {:.3} mW, outages {:.1}, mean Q {:.1}",
-            args.algo, shots, task.name, last.epoch, last.policy.ret, last.policy.aoi, last.policy.power_mw, last.policy.outages, last.mean_q
+            "{} on {} shots of `{}`, {}: return {:.1}, AoI {:.2}, power {:.3} mW, outages {:.1}, mean Q {:.1}",
+            args.algo, shots, task.name, last.kept(), last.policy.ret, last.policy.aoi, last.policy.power_mw, last.policy.outages, last.mean_q
         );
     }
     println!(

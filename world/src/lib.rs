@@ -11,10 +11,13 @@
 //!   the device schedule, each schedule flown by its exact cheapest path.
 //! - [`heuristics`]: random, stalest-first, greedy, epsilon-mixed and replayed policies, and the
 //!   `PolicySpec` parser behind `--policy` and `collect.policy`.
+//! - [`identify`]: the world as a fine-tuning run's own shots identify it, where the run scores
+//!   the networks it may keep (docs/MODEL.md section 5).
 //! - [`validate`]: whether a transition is one the world makes ([`validate::Validator`]), which
 //!   the store checks before it appends a batch and `uavmeta dataset inspect` checks in a file.
 
 pub mod heuristics;
+pub mod identify;
 pub mod planner;
 pub mod rollout;
 pub mod schedule;

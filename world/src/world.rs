@@ -219,6 +219,18 @@ impl World {
         self.rain_mw = Arc::clone(&other.rain_mw);
     }
 
+    /// This world with the milliwatts of scheduling device k above cell c at `table[c * K + k]`,
+    /// rain or not: the world a run's shots identify (`crate::identify`), which has no rain.
+    pub(crate) fn with_power_table(&self, table: Vec<f64>) -> World {
+        debug_assert_eq!(table.len(), self.clear_mw.len());
+        let table: Arc<[f64]> = table.into();
+        World {
+            clear_mw: Arc::clone(&table),
+            rain_mw: table,
+            ..self.clone()
+        }
+    }
+
     /// Restarts the world's random stream, so the next episodes are those of `seed`.
     pub fn reseed(&mut self, seed: u64) {
         self.rng = ChaCha8Rng::seed_from_u64(seed);
@@ -251,6 +263,11 @@ impl World {
         self.start_cell = Some(cell);
         self.reset();
         self
+    }
+
+    /// Whether the task has rain, moving or not.
+    pub fn has_rain(&self) -> bool {
+        self.task_rain.is_some()
     }
 
     /// Whether every episode from a given start cell is the same: no rain that moves. Exact

@@ -1,5 +1,6 @@
 //! A Q-network acting in the world: its greedy policy, and the evaluator that scores it on the true
-//! environment for `uavmeta_learner::train` (docs/MODEL.md section 5, "Evaluation").
+//! environment for `uavmeta_learner::train` (docs/MODEL.md section 5, "Evaluation") and judges it
+//! in the world the run's shots identify (`uavmeta_world::identify`).
 //!
 //! The evaluator runs the same episodes as [`uavmeta_world::rollout::evaluate`] with a [`QPolicy`]
 //! (every start cell of a deterministic world, Monte-Carlo episodes where the rain moves), but
@@ -18,8 +19,10 @@ use tch::Tensor;
 use uavmeta_learner::qnet::QNetwork;
 use uavmeta_learner::train::EvaluatePolicy;
 use uavmeta_proto::config::{Config, TaskConfig, WorldConfig};
+use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 
+use uavmeta_world::identify::identify;
 use uavmeta_world::rollout::{evaluation_worlds, EpisodeTally, Policy};
 use uavmeta_world::world::{Step, World};
 
@@ -49,13 +52,16 @@ impl<Q: Borrow<QNetwork>> Policy for QPolicy<Q> {
 pub type StartEpisodes = Vec<((u16, u16), EpisodeMetrics)>;
 
 /// Evaluation of greedy Q-policies on one task, always over the same episodes
-/// ([`uavmeta_world::rollout::evaluation_worlds`]).
+/// ([`uavmeta_world::rollout::evaluation_worlds`]), and, once given the run's shots
+/// ([`Evaluator::judging_by`]), their judgement in the world the shots identify.
 #[derive(Debug, Clone)]
 pub struct Evaluator {
     world: WorldConfig,
     task: TaskConfig,
     episodes: usize,
     seed: u64,
+    /// The identified world from every start cell.
+    model: Option<Vec<World>>,
 }
 
 impl Evaluator {
@@ -65,7 +71,30 @@ impl Evaluator {
             task: task.clone(),
             episodes,
             seed,
+            model: None,
         }
+    }
+
+    /// This evaluator judging policies ([`EvaluatePolicy::judge`]) in the world `shots`
+    /// identify, from the same start cells as it evaluates them in the true world. Where the
+    /// shots identify nothing (rain, or shots of another world) it judges nothing.
+    pub fn judging_by(self, shots: &[Transition]) -> Self {
+        let template = World::new(&self.world, &self.task, self.seed);
+        let model = identify(&template, shots).map(|identified| {
+            tracing::debug!(
+                task = %self.task.name,
+                devices_fitted = identified.devices_fitted,
+                "the shots identify the world"
+            );
+            evaluation_worlds(&self.world, &self.task, self.episodes, self.seed)
+                .iter()
+                .map(|w| match w.start_cell() {
+                    Some(cell) => identified.world.clone().with_start(cell),
+                    None => identified.world.clone(),
+                })
+                .collect()
+        });
+        Self { model, ..self }
     }
 
     /// The evaluator a config asks for: `learner.eval_episodes` episodes seeded
@@ -91,45 +120,53 @@ impl Evaluator {
     /// horizon: episodes that meet in one state of a deterministic world share their remaining
     /// steps, so the batch shrinks as the greedy policy's paths join).
     fn run(&self, q: &QNetwork) -> (StartEpisodes, usize) {
-        let mut worlds = evaluation_worlds(&self.world, &self.task, self.episodes, self.seed);
-        if worlds.is_empty() {
-            return (Vec::new(), 0);
-        }
-        worlds.iter_mut().for_each(World::reset);
-        let starts: Vec<(u16, u16)> = worlds
-            .iter()
-            .map(|w| (w.observation()[0], w.observation()[1]))
-            .collect();
-        let (e, d) = (worlds.len(), q.obs_len());
-        let horizon = self.world.horizon as usize;
-        let mut paths = Paths::new(e, horizon, worlds[0].is_deterministic());
-        let mut obs = vec![0f32; e * d];
-        let mut actions = vec![0i64; e];
-        let mut rows = 0;
-        for t in 0..horizon {
-            paths.join(&worlds, t);
-            let live = paths.live().to_vec();
-            rows += live.len();
-            for (&w, row) in live.iter().zip(obs.chunks_exact_mut(d)) {
-                worlds[w].write_normalised(row);
-            }
-            let n = live.len();
-            if n > 0 {
-                let batch = Tensor::from_slice(&obs[..n * d]).view([n as i64, d as i64]); // [n, D]
-                q.greedy(&batch).copy_data(&mut actions, n); // [n]
-            }
-            for (&w, &action) in live.iter().zip(&actions) {
-                paths.record(w, t, worlds[w].step(action as usize));
-            }
-        }
-        let tallies = (0..e).map(|w| {
-            let mut tally = EpisodeTally::default();
-            (0..horizon).for_each(|t| tally.add(paths.step(w, t)));
-            tally.finish()
-        });
-        let episodes = starts.into_iter().zip(tallies).collect();
-        (episodes, rows)
+        lockstep(
+            evaluation_worlds(&self.world, &self.task, self.episodes, self.seed),
+            q,
+        )
     }
+}
+
+/// Each episode of `worlds` (each reset first) under `q`'s greedy policy, stepped in lockstep to
+/// the horizon: its start cell and metrics, and how many observations went through `q`.
+fn lockstep(mut worlds: Vec<World>, q: &QNetwork) -> (StartEpisodes, usize) {
+    if worlds.is_empty() {
+        return (Vec::new(), 0);
+    }
+    worlds.iter_mut().for_each(World::reset);
+    let starts: Vec<(u16, u16)> = worlds
+        .iter()
+        .map(|w| (w.observation()[0], w.observation()[1]))
+        .collect();
+    let (e, d) = (worlds.len(), q.obs_len());
+    let horizon = worlds[0].horizon() as usize;
+    let mut paths = Paths::new(e, horizon, worlds[0].is_deterministic());
+    let mut obs = vec![0f32; e * d];
+    let mut actions = vec![0i64; e];
+    let mut rows = 0;
+    for t in 0..horizon {
+        paths.join(&worlds, t);
+        let live = paths.live().to_vec();
+        rows += live.len();
+        for (&w, row) in live.iter().zip(obs.chunks_exact_mut(d)) {
+            worlds[w].write_normalised(row);
+        }
+        let n = live.len();
+        if n > 0 {
+            let batch = Tensor::from_slice(&obs[..n * d]).view([n as i64, d as i64]); // [n, D]
+            q.greedy(&batch).copy_data(&mut actions, n); // [n]
+        }
+        for (&w, &action) in live.iter().zip(&actions) {
+            paths.record(w, t, worlds[w].step(action as usize));
+        }
+    }
+    let tallies = (0..e).map(|w| {
+        let mut tally = EpisodeTally::default();
+        (0..horizon).for_each(|t| tally.add(paths.step(w, t)));
+        tally.finish()
+    });
+    let episodes = starts.into_iter().zip(tallies).collect();
+    (episodes, rows)
 }
 
 /// The episodes of one lockstep evaluation and the step each took at each t. On a deterministic
@@ -208,6 +245,12 @@ impl EvaluatePolicy for Evaluator {
     fn evaluate(&mut self, q: &QNetwork) -> PolicyMetrics {
         let episodes: Vec<EpisodeMetrics> = self.episodes(q).into_iter().map(|(_, m)| m).collect();
         PolicyMetrics::from_episodes(&episodes)
+    }
+
+    fn judge(&mut self, q: &QNetwork) -> Option<f64> {
+        let (episodes, _) = lockstep(self.model.clone()?, q);
+        let returns = episodes.iter().map(|(_, m)| m.ret);
+        Some(returns.sum::<f64>() / episodes.len().max(1) as f64)
     }
 }
 
@@ -322,5 +365,74 @@ mod tests {
             "{rows} rows of {}",
             episodes * horizon
         );
+    }
+
+    /// `steps` transitions of uniformly random actions from random start cells, as an actor
+    /// records them.
+    fn random_shots(config: &Config, task: &TaskConfig, steps: usize) -> Vec<Transition> {
+        use rand::{Rng, SeedableRng};
+        let mut world = World::new(&config.world, task, 5);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(6);
+        (0..steps)
+            .map(|i| {
+                if world.t() == world.horizon() {
+                    world.reset();
+                }
+                let obs = world.observation().to_vec();
+                let action = rng.random_range(0..world.action_count());
+                let step = world.step(action);
+                Transition {
+                    task: 0,
+                    actor: 0,
+                    episode: 0,
+                    step: i as u32,
+                    seq: i as u64,
+                    obs,
+                    action: action as u16,
+                    reward: step.reward as f32,
+                    next_obs: world.observation().to_vec(),
+                    truncated: step.truncated,
+                }
+            })
+            .collect()
+    }
+
+    /// Shots that determine every device identify the world: the judge scores a policy as the
+    /// true world does, from every start cell. Where the task has rain it judges nothing.
+    #[test]
+    fn shots_that_determine_every_device_judge_as_the_true_world_scores() {
+        tch::set_num_threads(1);
+        let mut config = Config::default();
+        config.world.noise_dbm = -90.0;
+        let task = TaskConfig::one_off(2000.0, None);
+        let (obs_len, actions) = (config.world.observation_len(), config.world.action_count());
+        let mut evaluator =
+            Evaluator::from_config(&config, &task).judging_by(&random_shots(&config, &task, 2000));
+        for seed in 0..3 {
+            let q = QNetworkConfig::new(obs_len, actions, &config.learner.hidden).init(seed);
+            let truth = evaluator.evaluate(&q).ret.mean;
+            let judged = evaluator.judge(&q).unwrap();
+            assert!(
+                (judged - truth).abs() < 1e-4 * truth.abs(),
+                "judged {judged}, true {truth}"
+            );
+        }
+        let rain = TaskConfig::one_off(
+            2000.0,
+            Some(RainZone {
+                x0: 3,
+                y0: 3,
+                x1: 6,
+                y1: 6,
+            }),
+        );
+        let shots = random_shots(&config, &rain, 2000);
+        let q = QNetworkConfig::new(obs_len, actions, &config.learner.hidden).init(0);
+        assert!(Evaluator::from_config(&config, &rain)
+            .judging_by(&shots)
+            .judge(&q)
+            .is_none());
+        // Without shots, nothing is judged either.
+        assert!(Evaluator::from_config(&config, &task).judge(&q).is_none());
     }
 }

@@ -95,6 +95,14 @@ pub struct LearnerConfig {
     #[default(0.0)]
     #[garde(custom(within(0.0..1.0, "a decay in [0, 1): 0 = no averaging")))]
     pub average_decay: f64,
+    /// Epochs between the candidates of the network a run keeps: its start, the network it
+    /// publishes every that many epochs and its last, scored by their greedy return in the world
+    /// the shots identify (the moves, the AoI update and the reward's form known, each device's
+    /// power fitted to the shots; `learner/src/train.rs`, `Selection`). The true world never
+    /// enters the choice. Keeps fine-tuning at or above its start where it first improves and
+    /// then falls (docs/EXPERIMENTS.md, D19). 0 = keep the last network; tasks with rain always do.
+    #[default(10)]
+    pub select_every: usize,
     /// Monte-Carlo episodes of each evaluation of a greedy policy.
     #[default(20)]
     pub eval_episodes: usize,

@@ -33,7 +33,6 @@ pub const MOVED: &[(&str, Fate)] = &[
     ("collect.dqn_select_every", Fate::Renamed("collect.dqn.select_every")),
     ("meta.shots", Fate::Renamed("meta.support_shots")),
     ("meta.w0_average_decay", Fate::Renamed("meta.average_decay")),
-    ("learner.select_every", Fate::Removed(FQE)),
     ("learner.fqe_steps", Fate::Removed(FQE)),
     ("learner.fqe_target_update_every", Fate::Removed(FQE)),
     ("learner.fqe_lr", Fate::Removed(FQE)),

@@ -44,7 +44,7 @@ use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{EpochRow, EvaluatePolicy};
-use uavmeta_learner::transitions::{load_shots, Transitions};
+use uavmeta_learner::transitions::{load_shots, Shots, Transitions};
 use uavmeta_meta::context::{self, ContextModel};
 use uavmeta_meta::fine_tune::{fine_tune, FineTune};
 use uavmeta_meta::meta_train::{
@@ -334,15 +334,21 @@ impl MetaTest<'_> {
         method: Method,
         inits: &[MultiTaskInit],
     ) -> Result<(), MetaProcessError> {
-        let mut hook = self.hook(task_id, task, method);
         let shots = self.shots(task)?;
-        let mut q = self.init(method, &shots, inits)?;
+        let mut hook = self.hook(task_id, task, method, &shots);
+        let mut q = self.init(method, &shots.data, inits)?;
         if method.start() == Some(Start::Context) {
             // The context learner's policy before any step: its zero-shot row.
             self.publish(task_id, task, Method::ContextInit, 1, &q)?;
         }
         let algorithm = method.algo().expect("a fine-tuned method has an algorithm");
-        let rows = fine_tune(&mut q, &shots, algorithm, &self.settings(task), &mut hook)?;
+        let rows = fine_tune(
+            &mut q,
+            &shots.data,
+            algorithm,
+            &self.settings(task),
+            &mut hook,
+        )?;
         self.finished(&mut hook, task, method, &rows)
     }
 
@@ -390,7 +396,7 @@ impl MetaTest<'_> {
     }
 
     /// The task's `learner.shots` shots (all of its dataset by default), drawn with the run's seed.
-    fn shots(&self, task: &TaskConfig) -> Result<Transitions, MetaProcessError> {
+    fn shots(&self, task: &TaskConfig) -> Result<Shots, MetaProcessError> {
         let config = self.config;
         let dataset = self.run.dataset(task);
         Ok(
@@ -411,10 +417,16 @@ impl MetaTest<'_> {
         }
     }
 
-    /// The evaluator of a fine-tuning, which checkpoints and announces each epoch.
-    fn hook<'t>(&'t self, task_id: u32, task: &'t TaskConfig, method: Method) -> Announcing<'t> {
+    /// The evaluator of a fine-tuning on `shots`, which checkpoints and announces each epoch.
+    fn hook<'t>(
+        &'t self,
+        task_id: u32,
+        task: &'t TaskConfig,
+        method: Method,
+        shots: &Shots,
+    ) -> Announcing<'t> {
         Announcing {
-            inner: Evaluator::from_config(self.config, task),
+            inner: Evaluator::from_config(self.config, task).judging_by(&shots.rows),
             meta_test: self,
             task,
             task_id,
@@ -533,5 +545,9 @@ impl EvaluatePolicy for Announcing<'_> {
             self.error = published.err();
         }
         self.inner.evaluate(q)
+    }
+
+    fn judge(&mut self, q: &QNetwork) -> Option<f64> {
+        self.inner.judge(q)
     }
 }
