@@ -14,6 +14,7 @@ use uavmeta_runtime::domain;
 use uavmeta_runtime::metrics::{parse, sum, Sample};
 use uavmeta_runtime::run_dir::RunDir;
 use uavmeta_runtime::transport::{self, TransitionPublisher};
+use uavmeta_world::rollout::record_step;
 use uavmeta_world::world::World;
 
 mod support;
@@ -92,22 +93,13 @@ fn real_steps(config: &Config, task: usize, count: usize) -> Vec<Transition> {
     world.reset();
     (0..count)
         .map(|i| {
-            let (obs, step) = (world.observation().to_vec(), world.t());
             let action = i % world.action_count();
-            let outcome = world.step(action);
             let t = Transition {
                 task: task as u32,
-                actor: 0,
-                episode: 0,
-                step,
                 seq: i as u64,
-                obs,
-                action: action as u16,
-                reward: outcome.reward as f32,
-                next_obs: world.observation().to_vec(),
-                truncated: outcome.truncated,
+                ..record_step(&mut world, action)
             };
-            if outcome.truncated {
+            if t.truncated {
                 world.reset();
             }
             t

@@ -27,7 +27,7 @@ use uavmeta_proto::method::Method;
 
 use crate::policy::dqn_online::OnlineDqn;
 use uavmeta_world::heuristics::{PolicyError, PolicySpec};
-use uavmeta_world::rollout::{episode_seed, Policy};
+use uavmeta_world::rollout::{episode_seed, record_step, Policy};
 use uavmeta_world::world::World;
 
 /// Why a dataset could not be collected.
@@ -109,28 +109,20 @@ impl Collector {
                 self.world.reset();
                 self.in_episode = true;
             }
-            let step = self.world.t();
-            let obs = self.world.observation().to_vec();
             let action = self.policy.act(&self.world);
-            let outcome = self.world.step(action);
-            out.push(Transition {
+            let t = Transition {
                 task: self.task,
                 actor: self.actor,
                 episode: self.episode,
-                step,
                 seq: self.seq,
-                obs,
-                // Below 5K <= 5 * MAX_DEVICES, checked by the world's step.
-                action: action as u16,
-                reward: outcome.reward as f32,
-                next_obs: self.world.observation().to_vec(),
-                truncated: outcome.truncated,
-            });
+                ..record_step(&mut self.world, action)
+            };
             self.seq += 1;
-            if outcome.truncated {
+            if t.truncated {
                 self.episode += 1;
                 self.in_episode = false;
             }
+            out.push(t);
         }
     }
 }

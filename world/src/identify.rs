@@ -148,6 +148,7 @@ mod tests {
     use uavmeta_proto::config::{Config, TaskConfig};
 
     use super::*;
+    use crate::rollout::record_step;
     use crate::world::Move;
 
     fn world(noise_dbm: f64, lambda: f64) -> (World, Config) {
@@ -163,26 +164,7 @@ mod tests {
     /// The transitions of `actions` from `start`, as an actor records them.
     fn shots(world: &World, start: (u32, u32), actions: &[usize]) -> Vec<Transition> {
         let mut w = world.clone().with_start(start);
-        actions
-            .iter()
-            .enumerate()
-            .map(|(i, &action)| {
-                let obs = w.observation().to_vec();
-                let step = w.step(action);
-                Transition {
-                    task: 0,
-                    actor: 0,
-                    episode: 0,
-                    step: i as u32,
-                    seq: i as u64,
-                    obs,
-                    action: action as u16,
-                    reward: step.reward as f32,
-                    next_obs: w.observation().to_vec(),
-                    truncated: false,
-                }
-            })
-            .collect()
+        actions.iter().map(|&a| record_step(&mut w, a)).collect()
     }
 
     /// A snake over the whole grid, row by row, serving device t mod K at step t: every device

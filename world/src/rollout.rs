@@ -11,6 +11,7 @@
 
 use serde::Serialize;
 use uavmeta_proto::config::{TaskConfig, WorldConfig};
+use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 
 use crate::world::{Move, Step, World};
@@ -99,6 +100,27 @@ impl EpisodeTally {
             power_mw: self.sums.power_mw / self.steps as f64,
             ..self.sums
         }
+    }
+}
+
+/// Takes `action` in `world` and returns the transition an actor records: s(t), a, r, s(t+1),
+/// t, and whether the horizon truncates the episode. Its ids (task, actor, episode, seq) are 0,
+/// for the caller to set.
+pub fn record_step(world: &mut World, action: usize) -> Transition {
+    let (step, obs) = (world.t(), world.observation().to_vec());
+    let outcome = world.step(action);
+    Transition {
+        task: 0,
+        actor: 0,
+        episode: 0,
+        step,
+        seq: 0,
+        obs,
+        // Below 5K <= 5 * MAX_DEVICES, checked by the world's step.
+        action: action as u16,
+        reward: outcome.reward as f32,
+        next_obs: world.observation().to_vec(),
+        truncated: outcome.truncated,
     }
 }
 

@@ -370,31 +370,11 @@ mod tests {
     /// `steps` transitions of uniformly random actions from random start cells, as an actor
     /// records them.
     fn random_shots(config: &Config, task: &TaskConfig, steps: usize) -> Vec<Transition> {
-        use rand::{Rng, SeedableRng};
-        let mut world = World::new(&config.world, task, 5);
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(6);
-        (0..steps)
-            .map(|i| {
-                if world.t() == world.horizon() {
-                    world.reset();
-                }
-                let obs = world.observation().to_vec();
-                let action = rng.random_range(0..world.action_count());
-                let step = world.step(action);
-                Transition {
-                    task: 0,
-                    actor: 0,
-                    episode: 0,
-                    step: i as u32,
-                    seq: i as u64,
-                    obs,
-                    action: action as u16,
-                    reward: step.reward as f32,
-                    next_obs: world.observation().to_vec(),
-                    truncated: step.truncated,
-                }
-            })
-            .collect()
+        let policy = Box::new(uavmeta_world::heuristics::RandomPolicy::new(6));
+        let mut shots = Vec::new();
+        crate::collect::Collector::new(&config.world, task, 0, 0, policy, 5)
+            .fill(steps, &mut shots);
+        shots
     }
 
     /// Shots that determine every device identify the world: the judge scores a policy as the
