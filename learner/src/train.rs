@@ -99,6 +99,27 @@ pub struct EpochRow {
 const CSV_HEADER: &str = "epoch,steps,td_loss,conservative_loss,mean_q,return,return_ci95,aoi,aoi_ci95,power_mw,power_mw_ci95,outages,outages_ci95,episodes,seconds,model_return,network_epoch";
 
 impl EpochRow {
+    /// The row of a trained epoch, its policy not yet scored.
+    fn trained(
+        epoch: usize,
+        network_epoch: usize,
+        steps: usize,
+        means: &StepFigures,
+        cfg: &LearnerConfig,
+    ) -> Self {
+        EpochRow {
+            epoch,
+            steps,
+            td_loss: means.td_loss,
+            conservative_loss: means.conservative_loss,
+            mean_q: means.max_q / cfg.reward_scale,
+            policy: PolicyMetrics::default(),
+            seconds: 0.0,
+            model_return: None,
+            network_epoch,
+        }
+    }
+
     /// Which network the row scores, in words: "epoch 100", or "epoch 100, keeping epoch 10's
     /// network" (the start's is epoch 0's).
     pub fn kept(&self) -> String {
@@ -303,79 +324,44 @@ pub fn train(
 
     let started = Instant::now();
     let mut rows: Vec<EpochRow> = Vec::with_capacity(cfg.epochs);
-    let guard =
-        ValueGuard::new(cfg, q, data).filter(|_| algorithm::of(opts.algorithm).learns_values());
-    let mut last_good = guard.as_ref().map(|_| q.duplicate());
+    let mut guard = Guarded::new(cfg, q, data, opts.algorithm);
     let mut average = Average::new(cfg);
     let mut selection = Selection::new(cfg.select_every, q, evaluator);
-    let (mut stopped, mut selected) = (false, false);
+    let mut stopped = false;
     for epoch in 1..=cfg.epochs {
-        let seconds = || started.elapsed().as_secs_f64();
         let (mut row, evaluated) = match (stopped, rows.last()) {
             // Stopped by the value guard: the kept network stays as it is.
             (true, Some(last)) => {
                 bar.inc(steps_per_epoch as u64);
-                (
-                    EpochRow {
-                        epoch,
-                        model_return: None,
-                        ..*last
-                    },
-                    true,
-                )
+                let row = EpochRow {
+                    epoch,
+                    model_return: None,
+                    ..*last
+                };
+                (row, true)
             }
             _ => {
                 let means = trainer.epoch(q, data, steps_per_epoch, &bar);
-                if let (Some(guard), Some(last_good)) = (&guard, last_good.as_mut()) {
-                    if guard.restore_if_tripped(q, last_good, data) {
-                        stopped = true;
-                        tracing::info!(
-                            epoch,
-                            v_data = guard.v_data / cfg.reward_scale,
-                            "the value guard stopped training; the previous epoch's network is kept"
-                        );
-                    }
-                }
+                stopped = guard
+                    .as_mut()
+                    .is_some_and(|g| g.tripped(epoch, q, data, cfg));
                 if !stopped {
                     average.update(q);
                 }
-                let row = EpochRow {
-                    epoch,
-                    steps: trainer.steps(),
-                    td_loss: means.td_loss,
-                    conservative_loss: means.conservative_loss,
-                    mean_q: means.max_q / cfg.reward_scale,
-                    policy: PolicyMetrics::default(),
-                    seconds: 0.0,
-                    model_return: None,
-                    network_epoch: epoch - usize::from(stopped),
-                };
+                let network_epoch = epoch - usize::from(stopped);
+                let row = EpochRow::trained(epoch, network_epoch, trainer.steps(), &means, cfg);
                 (row, false)
             }
         };
         let published = average.published(q);
-        if selection.due(epoch, cfg.epochs) {
-            row.model_return = selection.offer(row.network_epoch, published, evaluator);
-        }
-        // The last row scores the network the run keeps.
-        let kept = (epoch == cfg.epochs)
-            .then(|| selection.kept_instead_of(row.network_epoch))
-            .flatten();
-        if let Some(kept) = kept {
-            (row.policy, row.network_epoch) = (evaluator.evaluate(&kept.q), kept.epoch);
-            selected = true;
-        } else if !evaluated {
-            row.policy = evaluator.evaluate(published);
-        }
-        row.seconds = seconds();
+        selection.finish_row(&mut row, published, evaluated, cfg.epochs, evaluator);
+        row.seconds = started.elapsed().as_secs_f64();
         finish_epoch(&row, opts.progress, &bar, csv.as_mut())?;
         rows.push(row);
     }
     bar.finish_and_clear();
     average.publish_into(q);
-    if selected {
-        selection.publish_into(q);
-    }
+    selection.publish_into(q);
     if let Some(dir) = opts.out_dir {
         checkpoint::save(
             &dir.join("final"),
@@ -415,6 +401,8 @@ struct Selection {
     every: usize,
     /// The best candidate so far.
     best: Option<Candidate>,
+    /// Whether the kept network is not the last one.
+    replaces_last: bool,
 }
 
 struct Candidate {
@@ -435,6 +423,7 @@ impl Selection {
                 model_return,
                 q: q.duplicate(),
             }),
+            replaces_last: false,
         }
     }
 
@@ -463,16 +452,76 @@ impl Selection {
         Some(model_return)
     }
 
-    /// The kept candidate, if it is not the network of epoch `epoch`.
-    fn kept_instead_of(&self, epoch: usize) -> Option<&Candidate> {
-        self.best.as_ref().filter(|best| best.epoch != epoch)
+    /// Completes `row` (of `published`, scored already if `evaluated`) out of `epochs`: its
+    /// model return if the epoch is a candidate's, and its policy's score, which the last row
+    /// takes from the kept network.
+    fn finish_row(
+        &mut self,
+        row: &mut EpochRow,
+        published: &QNetwork,
+        evaluated: bool,
+        epochs: usize,
+        evaluator: &mut dyn EvaluatePolicy,
+    ) {
+        if self.due(row.epoch, epochs) {
+            row.model_return = self.offer(row.network_epoch, published, evaluator);
+        }
+        let kept = self
+            .best
+            .as_ref()
+            .filter(|best| best.epoch != row.network_epoch);
+        match kept {
+            Some(kept) if row.epoch == epochs => {
+                (row.policy, row.network_epoch) = (evaluator.evaluate(&kept.q), kept.epoch);
+                self.replaces_last = true;
+            }
+            _ if !evaluated => row.policy = evaluator.evaluate(published),
+            _ => {}
+        }
     }
 
-    /// Puts the kept candidate into `q`.
+    /// At the end: puts the kept network into `q` if it is not the last.
     fn publish_into(&self, q: &mut QNetwork) {
-        if let Some(best) = &self.best {
+        if let (true, Some(best)) = (self.replaces_last, &self.best) {
             q.copy_from(&best.q);
         }
+    }
+}
+
+/// The value guard of a run that has one, with the network it restores.
+struct Guarded {
+    guard: ValueGuard,
+    last_good: QNetwork,
+}
+
+impl Guarded {
+    /// The guard of a run of `algorithm` starting from `q`, if `learner.value_guard` asks for one
+    /// and the algorithm learns values.
+    fn new(cfg: &LearnerConfig, q: &QNetwork, data: &Transitions, algorithm: Algo) -> Option<Self> {
+        let guard = ValueGuard::new(cfg, q, data)?;
+        algorithm::of(algorithm).learns_values().then(|| Self {
+            guard,
+            last_good: q.duplicate(),
+        })
+    }
+
+    /// After epoch `epoch`: whether the guard tripped, `q` then back at the previous epoch's.
+    fn tripped(
+        &mut self,
+        epoch: usize,
+        q: &mut QNetwork,
+        data: &Transitions,
+        cfg: &LearnerConfig,
+    ) -> bool {
+        let tripped = self.guard.restore_if_tripped(q, &mut self.last_good, data);
+        if tripped {
+            tracing::info!(
+                epoch,
+                v_data = self.guard.v_data / cfg.reward_scale,
+                "the value guard stopped training; the previous epoch's network is kept"
+            );
+        }
+        tripped
     }
 }
 
