@@ -10,6 +10,8 @@
 //! of that form), is charged the largest power the shots show from every cell it was not seen at:
 //! a pessimistic model never favours a policy for going where the data has not been.
 
+use std::collections::BTreeMap;
+
 use nalgebra::{DMatrix, DVector};
 use uavmeta_proto::dataset::Transition;
 
@@ -18,6 +20,12 @@ use crate::world::World;
 /// Residual a fit may leave, as a share of the largest step cost in the shots: the rewards are
 /// f32, so a law that holds fits to about 1e-7 of the cost.
 const RESIDUAL_OF_COST: f64 = 1e-4;
+
+/// A grid cell, (x, y).
+type Cell = (u32, u32);
+
+/// The milliwatts of each (cell, device) pair the shots schedule.
+type Powers = BTreeMap<(Cell, usize), f64>;
 
 /// The identified world and how many devices the shots determine.
 #[derive(Debug, Clone)]
@@ -37,17 +45,17 @@ pub fn identify(world: &World, shots: &[Transition]) -> Option<Identified> {
     }
     let seen = observed_powers(world, shots)?;
     let k = world.devices();
-    let largest = seen.iter().map(|s| s.1).fold(0.0, f64::max);
+    let largest = seen.values().copied().fold(0.0, f64::max);
     let tolerance =
         RESIDUAL_OF_COST * largest_cost(shots) / world.power_weight().max(f64::MIN_POSITIVE);
     let grid = world.grid_cells();
     let mut table = vec![largest; (grid * grid) as usize * k];
     let mut devices_fitted = 0;
     for device in 0..k {
-        let points: Vec<((u32, u32), f64)> = seen
+        let points: Vec<(Cell, f64)> = seen
             .iter()
-            .filter(|s| s.0 .1 == device)
-            .map(|s| (s.0 .0, s.1))
+            .filter(|((_, d), _)| *d == device)
+            .map(|(&(cell, _), &mw)| (cell, mw))
             .collect();
         if let Some(law) = fit_law(&points, tolerance) {
             devices_fitted += 1;
@@ -56,7 +64,7 @@ pub fn identify(world: &World, shots: &[Transition]) -> Option<Identified> {
             }
         }
     }
-    for &((cell, device), power) in &seen {
+    for (&(cell, device), &power) in &seen {
         table[(cell.1 * grid + cell.0) as usize * k + device] = power;
     }
     Some(Identified {
@@ -65,12 +73,12 @@ pub fn identify(world: &World, shots: &[Transition]) -> Option<Identified> {
     })
 }
 
-/// Each (cell, device) pair the shots schedule and the milliwatts it cost, once per pair; `None`
-/// if a shot's next observation is not the one the world's moves and AoI update make.
-fn observed_powers(world: &World, shots: &[Transition]) -> Option<Vec<(((u32, u32), usize), f64)>> {
+/// Each (cell, device) pair the shots schedule and the milliwatts it cost (the first shot's);
+/// `None` if a shot's next observation is not the one the world's moves and AoI update make.
+fn observed_powers(world: &World, shots: &[Transition]) -> Option<Powers> {
     let weight = world.power_weight();
     let mut next = vec![0u16; 2 + world.devices()];
-    let mut seen = Vec::new();
+    let mut seen = Powers::new();
     for t in shots {
         let action = usize::from(t.action);
         world.outcome(&t.obs, action, false, &mut next)?;
@@ -91,9 +99,7 @@ fn observed_powers(world: &World, shots: &[Transition]) -> Option<Vec<(((u32, u3
             (u32::from(t.obs[0]), u32::from(t.obs[1])),
             action % world.devices(),
         );
-        if !seen.iter().any(|s: &(_, f64)| s.0 == key) {
-            seen.push((key, power));
-        }
+        seen.entry(key).or_insert(power);
     }
     Some(seen)
 }
@@ -109,12 +115,12 @@ fn largest_cost(shots: &[Transition]) -> f64 {
 struct Law(DVector<f64>);
 
 impl Law {
-    fn features((x, y): (u32, u32)) -> [f64; 4] {
+    fn features((x, y): Cell) -> [f64; 4] {
         let (x, y) = (f64::from(x), f64::from(y));
         [x * x + y * y, x, y, 1.0]
     }
 
-    fn at(&self, cell: (u32, u32)) -> f64 {
+    fn at(&self, cell: Cell) -> f64 {
         Self::features(cell)
             .iter()
             .zip(self.0.iter())
@@ -125,7 +131,7 @@ impl Law {
 
 /// The least-squares law through `points` (cell, milliwatts), if their cells determine it (rank
 /// 4) and it passes within `tolerance` of every point.
-fn fit_law(points: &[((u32, u32), f64)], tolerance: f64) -> Option<Law> {
+fn fit_law(points: &[(Cell, f64)], tolerance: f64) -> Option<Law> {
     if points.len() < 4 {
         return None;
     }
