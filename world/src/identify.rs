@@ -10,8 +10,6 @@
 //! of that form), is charged the largest power the shots show from every cell it was not seen at:
 //! a pessimistic model never favours a policy for going where the data has not been.
 
-use std::collections::BTreeMap;
-
 use nalgebra::{DMatrix, DVector};
 use uavmeta_proto::dataset::Transition;
 
@@ -24,8 +22,9 @@ const RESIDUAL_OF_COST: f64 = 1e-4;
 /// A grid cell, (x, y).
 type Cell = (u32, u32);
 
-/// The milliwatts of each (cell, device) pair the shots schedule.
-type Powers = BTreeMap<(Cell, usize), f64>;
+/// The milliwatts of each (cell, device) pair the shots schedule, in the order the shots first
+/// schedule it (the order of the least-squares rows).
+type Powers = Vec<((Cell, usize), f64)>;
 
 /// The identified world and how many devices the shots determine.
 #[derive(Debug, Clone)]
@@ -45,7 +44,7 @@ pub fn identify(world: &World, shots: &[Transition]) -> Option<Identified> {
     }
     let seen = observed_powers(world, shots)?;
     let k = world.devices();
-    let largest = seen.values().copied().fold(0.0, f64::max);
+    let largest = seen.iter().map(|&(_, mw)| mw).fold(0.0, f64::max);
     let tolerance =
         RESIDUAL_OF_COST * largest_cost(shots) / world.power_weight().max(f64::MIN_POSITIVE);
     let grid = world.grid_cells();
@@ -55,7 +54,7 @@ pub fn identify(world: &World, shots: &[Transition]) -> Option<Identified> {
         let points: Vec<(Cell, f64)> = seen
             .iter()
             .filter(|((_, d), _)| *d == device)
-            .map(|(&(cell, _), &mw)| (cell, mw))
+            .map(|&((cell, _), mw)| (cell, mw))
             .collect();
         if let Some(law) = fit_law(&points, tolerance) {
             devices_fitted += 1;
@@ -64,7 +63,7 @@ pub fn identify(world: &World, shots: &[Transition]) -> Option<Identified> {
             }
         }
     }
-    for (&(cell, device), &power) in &seen {
+    for &((cell, device), power) in &seen {
         table[(cell.1 * grid + cell.0) as usize * k + device] = power;
     }
     Some(Identified {
@@ -99,7 +98,9 @@ fn observed_powers(world: &World, shots: &[Transition]) -> Option<Powers> {
             (u32::from(t.obs[0]), u32::from(t.obs[1])),
             action % world.devices(),
         );
-        seen.entry(key).or_insert(power);
+        if !seen.iter().any(|(seen_key, _)| *seen_key == key) {
+            seen.push((key, power));
+        }
     }
     Some(seen)
 }
