@@ -196,8 +196,14 @@ pub fn evaluation_worlds(
     if !template.is_deterministic() {
         return episode_worlds(world_cfg, task, episodes, seed).collect();
     }
-    if world_cfg.start_cell.is_some() {
-        return vec![template];
+    start_worlds(&template)
+}
+
+/// A deterministic world `template` from each start cell: every cell of the grid, or its fixed
+/// start cell alone. Exact evaluation runs one episode in each.
+pub fn start_worlds(template: &World) -> Vec<World> {
+    if template.start_cell().is_some() {
+        return vec![template.clone()];
     }
     let grid = template.grid_cells();
     (0..grid * grid)

@@ -23,7 +23,7 @@ use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 
 use uavmeta_world::identify::identify;
-use uavmeta_world::rollout::{evaluation_worlds, EpisodeTally, Policy};
+use uavmeta_world::rollout::{evaluation_worlds, start_worlds, EpisodeTally, Policy};
 use uavmeta_world::world::{Step, World};
 
 /// `argmax_a Q(s, a)` on the normalised observation, of a network borrowed (`&QNetwork`) or owned.
@@ -86,13 +86,7 @@ impl Evaluator {
                 devices_fitted = identified.devices_fitted,
                 "the shots identify the world"
             );
-            evaluation_worlds(&self.world, &self.task, self.episodes, self.seed)
-                .iter()
-                .map(|w| match w.start_cell() {
-                    Some(cell) => identified.world.clone().with_start(cell),
-                    None => identified.world.clone(),
-                })
-                .collect()
+            start_worlds(&identified.world)
         });
         Self { model, ..self }
     }
