@@ -100,8 +100,9 @@ pub struct LearnerConfig {
     /// the shots identify (the moves, the AoI update and the reward's form known, each device's
     /// power fitted to the shots; `learner/src/train.rs`, `Selection`). The true world never
     /// enters the choice. Keeps fine-tuning at or above its start where it first improves and
-    /// then falls (docs/EXPERIMENTS.md, D19). 0 = keep the last network; tasks with rain always do.
-    #[default(10)]
+    /// then falls (docs/EXPERIMENTS.md, D19); every epoch a candidate brings more runs within 2%
+    /// of their agent than every tenth (D20). 0 = keep the last network; tasks with rain always do.
+    #[default(1)]
     pub select_every: usize,
     /// Monte-Carlo episodes of each evaluation of a greedy policy.
     #[default(20)]
