@@ -8,7 +8,7 @@
 //! policy is evaluated through [`EvaluatePolicy`] (the world lives in `uavmeta-actors`, which
 //! implements it) and one row is written: to a table on stderr, to `train.csv` in the output
 //! directory, and to the returned list. The network a run keeps (`learner.select_every`,
-//! [`Selection`]) is the one of its start and every tenth epoch's that does best in the world
+//! [`Selection`]) is the one of its start and every epoch's network that does best in the world
 //! its shots identify; the last row scores it.
 
 use std::path::Path;
