@@ -502,6 +502,47 @@ fn a_replay_sample_lost_with_a_killed_store_is_sent_again_to_its_successor() {
     );
 }
 
+/// An online DQN actor on a task whose dataset is already complete (a resumed launch, another
+/// actor's data) stops training once it hears so, instead of training its whole budget for
+/// transitions the store no longer takes. The budget here is far beyond the wait.
+#[test]
+fn an_online_dqn_actor_stops_training_once_its_dataset_is_complete() {
+    let dir = run_dir("e2e-complete-");
+    let run = dir.path().join("run");
+    let run_arg = run.display().to_string();
+    let store = start_store(
+        dir.path(),
+        &run,
+        &[
+            "collect.policy=dqn-online",
+            "collect.dqn.steps=10000000",
+            "collect.transitions=300",
+        ],
+    );
+    let actor = |policy: &[&str]| {
+        let mut args = vec!["actor".to_string(), "--run".into(), run_arg.clone()];
+        args.extend(
+            ["--task", "lambda-0"]
+                .iter()
+                .chain(policy)
+                .map(|a| a.to_string()),
+        );
+        Proc::spawn("actor", &args)
+    };
+    let random = actor(&["--policy", "random"]).wait(within(120));
+    assert!(random.status.success(), "{}", stderr(&random));
+    let dqn = actor(&[]).wait(within(300));
+    assert!(dqn.status.success(), "{}", stderr(&dqn));
+    assert!(
+        stderr(&dqn).contains("stopped while training the online DQN agent"),
+        "{}",
+        stderr(&dqn)
+    );
+    store.signal(libc::SIGTERM);
+    let store = store.wait(within(30));
+    assert!(store.status.success(), "{}", stderr(&store));
+}
+
 /// A rollout cannot be replayed, so an actor keeps every batch until the store acknowledges it
 /// appended it: batches a killed store held unwritten go to its successor, nothing is missing,
 /// and the actor ends only once its last transition is stored.

@@ -20,7 +20,6 @@
 
 use std::time::{Duration, Instant};
 
-use iceoryx2::node::Node;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use uavmeta_actors::collect::{online_dqn_dataset, CollectError};
@@ -272,16 +271,24 @@ pub fn run(
     };
     tracing::info!(task = %task.name, actor = format!("{actor:08x}"), policy = %options.policy, seed = options.seed, "actor started");
 
-    let Some(source) = start_source(run, config, options, &task, &metrics, node, &mut summary)?
-    else {
-        return Ok(summary);
-    };
-
     let control = Control {
         process: &process,
         ready,
         task: task_id,
     };
+    let Some(source) = start_source(
+        run,
+        config,
+        options,
+        &task,
+        &metrics,
+        &control,
+        &mut summary,
+    )?
+    else {
+        return Ok(summary);
+    };
+
     let acks = transport::ack_subscriber(&transport::ack_service(
         node,
         names,
@@ -440,7 +447,7 @@ fn start_source(
     options: &ActorOptions,
     task: &TaskConfig,
     metrics: &metrics::ActorMetrics,
-    node: &Node<ipc::Service>,
+    control: &Control,
     summary: &mut ActorSummary,
 ) -> Result<Option<Source>, ActorError> {
     let task_id = config.task_id(&task.name)? as u32;
@@ -449,12 +456,17 @@ fn start_source(
         PolicySpec::DqnOnline => {
             metrics.set_phase(Phase::Training);
             let dqn = metrics::OnlineDqnMetrics::new(&metrics.registry);
+            // A dataset already complete (a resumed launch, or another actor's) ends training
+            // too: the agent would only make transitions the store no longer takes.
+            let mut stop = Ok(false);
             let trained =
                 online_dqn_dataset(config, task, task_id, actor, options.seed, |n, agent| {
                     metrics.steps.inc_by(n as u64);
                     dqn.observe(agent);
-                    liveness::keep_running(node, Duration::ZERO)
+                    stop = control.stop_requested(Duration::ZERO);
+                    matches!(stop, Ok(false))
                 });
+            stop?;
             match trained {
                 Ok((sample, agent)) => {
                     summary.steps = agent.steps() as u64;
