@@ -297,6 +297,19 @@ fn start_store(dir: &Path, run: &Path, overrides: &[&str]) -> Proc {
     store
 }
 
+/// An actor started by hand on `run`'s `task`, with `extra` arguments.
+fn start_actor(run: &Path, task: &str, extra: &[&str]) -> Proc {
+    let mut args = vec![
+        "actor".to_string(),
+        "--run".into(),
+        run.display().to_string(),
+        "--task".into(),
+        task.into(),
+    ];
+    args.extend(extra.iter().map(|a| a.to_string()));
+    Proc::spawn("actor", &args)
+}
+
 #[test]
 fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
     let dir = run_dir("e2e-hand-");
@@ -445,16 +458,7 @@ fn a_replay_sample_lost_with_a_killed_store_is_sent_again_to_its_successor() {
     );
     // Stopped, the store takes batches into its queue but never writes them.
     first.signal(libc::SIGSTOP);
-    let actor = Proc::spawn(
-        "actor",
-        &[
-            "actor".into(),
-            "--run".into(),
-            run_arg.clone(),
-            "--task".into(),
-            "lambda-0".into(),
-        ],
-    );
+    let actor = start_actor(&run, "lambda-0", &[]);
     wait_until("the sample sent", within(120), || {
         actor_names_live(&run).first().is_some_and(|name| {
             sum(
@@ -509,7 +513,6 @@ fn a_replay_sample_lost_with_a_killed_store_is_sent_again_to_its_successor() {
 fn an_online_dqn_actor_stops_training_once_its_dataset_is_complete() {
     let dir = run_dir("e2e-complete-");
     let run = dir.path().join("run");
-    let run_arg = run.display().to_string();
     let store = start_store(
         dir.path(),
         &run,
@@ -519,19 +522,9 @@ fn an_online_dqn_actor_stops_training_once_its_dataset_is_complete() {
             "collect.transitions=300",
         ],
     );
-    let actor = |policy: &[&str]| {
-        let mut args = vec!["actor".to_string(), "--run".into(), run_arg.clone()];
-        args.extend(
-            ["--task", "lambda-0"]
-                .iter()
-                .chain(policy)
-                .map(|a| a.to_string()),
-        );
-        Proc::spawn("actor", &args)
-    };
-    let random = actor(&["--policy", "random"]).wait(within(120));
+    let random = start_actor(&run, "lambda-0", &["--policy", "random"]).wait(within(120));
     assert!(random.status.success(), "{}", stderr(&random));
-    let dqn = actor(&[]).wait(within(300));
+    let dqn = start_actor(&run, "lambda-0", &[]).wait(within(300));
     assert!(dqn.status.success(), "{}", stderr(&dqn));
     assert!(
         stderr(&dqn).contains("stopped while training the online DQN agent"),
@@ -555,18 +548,7 @@ fn a_rollout_held_by_a_killed_store_is_sent_again_to_its_successor() {
     // Stopped, the store takes batches into its queue (64 batches of 16) but never writes them.
     first.signal(libc::SIGSTOP);
     let sent = 800u64;
-    let actor = Proc::spawn(
-        "actor",
-        &[
-            "actor".into(),
-            "--run".into(),
-            run_arg.clone(),
-            "--task".into(),
-            "lambda-100".into(),
-            "--transitions".into(),
-            sent.to_string(),
-        ],
-    );
+    let actor = start_actor(&run, "lambda-100", &["--transitions", &sent.to_string()]);
     let live = |metric: Metric| {
         actor_names_live(&run)
             .first()
