@@ -317,22 +317,8 @@ fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
     let run_arg = run.display().to_string();
     let store = start_store(dir.path(), &run, &["collect.transitions=1000000"]);
 
-    let actor = |seed: &str, limit: Option<&str>| {
-        let mut args = vec![
-            "actor".to_string(),
-            "--run".into(),
-            run_arg.clone(),
-            "--task".into(),
-            "lambda-100".into(),
-            "--seed".into(),
-            seed.into(),
-        ];
-        if let Some(n) = limit {
-            args.extend(["--transitions".to_string(), n.to_string()]);
-        }
-        Proc::spawn(&format!("actor {seed}"), &args)
-    };
-    let first = actor("1", Some("400")).wait(within(60));
+    let first =
+        start_actor(&run, "lambda-100", &["--seed", "1", "--transitions", "400"]).wait(within(60));
     assert!(first.status.success(), "{}", stderr(&first));
     wait_until("400 stored", within(30), || {
         sum(
@@ -343,7 +329,7 @@ fn hand_started_actors_add_data_and_every_endpoint_is_scraped_live() {
     });
 
     // A second actor joins the running store, is scraped while it runs, and is stopped by hand.
-    let second = actor("2", None);
+    let second = start_actor(&run, "lambda-100", &["--seed", "2"]);
     let names = || actor_names_live(&run);
     wait_until("the second actor's port", within(60), || {
         !names().is_empty()
