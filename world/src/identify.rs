@@ -4,11 +4,17 @@
 //!
 //! Each shot gives the power of one (cell, device) pair: the reward is -(sum_j delta_j A_j +
 //! (lambda / K) P), with the AoI after the step in the next observation. By section 1's law a
-//! device's power from cell (x, y) is c (h^2 + r^2 ((x - x_k)^2 + (y - y_k)^2)), linear in
-//! (x^2 + y^2, x, y, 1), so four cells not on one circle or line determine a device everywhere.
-//! A device whose cells do not (rank below 4), or whose fit leaves a residual (its power is not
-//! of that form), is charged the largest power the shots show from every cell it was not seen at:
-//! a pessimistic model never favours a policy for going where the data has not been.
+//! device's power from cell (x, y) is c (h^2 + r^2 ((x - x_k)^2 + (y - y_k)^2)). Two fits, in turn:
+//! - the law is linear in (x^2 + y^2, x, y, 1), so four cells not on one circle or line determine
+//!   a device everywhere by least squares;
+//! - else, since a device sits at a cell, each of the grid's cells is tried as the device's: the
+//!   gain c is then the one unknown, and a cell whose law passes through every shot is a
+//!   candidate. One candidate determines the device; several charge, at each cell, the largest
+//!   power any of them gives.
+//!
+//! A device neither fit explains is charged the largest power the shots show from every cell it
+//! was not seen at: a pessimistic model never favours a policy for going where the data has not
+//! been.
 
 use nalgebra::{DMatrix, DVector};
 use uavmeta_proto::dataset::Transition;
@@ -56,8 +62,9 @@ pub fn identify(world: &World, shots: &[Transition]) -> Option<Identified> {
             .filter(|((_, d), _)| *d == device)
             .map(|&((cell, _), mw)| (cell, mw))
             .collect();
-        if let Some(law) = fit_law(&points, tolerance) {
-            devices_fitted += 1;
+        let law = fit_law(&points, tolerance).or_else(|| locate(world, &points, tolerance));
+        if let Some(law) = law {
+            devices_fitted += usize::from(law.determined());
             for c in 0..grid * grid {
                 table[c as usize * k + device] = law.at((c % grid, c / grid));
             }
@@ -112,8 +119,17 @@ fn largest_cost(shots: &[Transition]) -> f64 {
         .fold(0.0, f64::max)
 }
 
-/// A device's power as a function of the cell: w . (x^2 + y^2, x, y, 1).
-struct Law(DVector<f64>);
+/// A device's power as a function of the cell.
+enum Law {
+    /// w . (x^2 + y^2, x, y, 1).
+    Quadric(DVector<f64>),
+    /// The largest of c (1 + s d^2) over the candidates (device cell, c), with d the distance in
+    /// cells and s = (r / h)^2.
+    Located {
+        slant: f64,
+        candidates: Vec<(Cell, f64)>,
+    },
+}
 
 impl Law {
     fn features((x, y): Cell) -> [f64; 4] {
@@ -121,12 +137,39 @@ impl Law {
         [x * x + y * y, x, y, 1.0]
     }
 
+    /// c's multiplier from `cell` for a device at `device`: 1 + s d^2.
+    fn spread(slant: f64, cell: Cell, device: Cell) -> f64 {
+        let dx = f64::from(cell.0) - f64::from(device.0);
+        let dy = f64::from(cell.1) - f64::from(device.1);
+        1.0 + slant * (dx * dx + dy * dy)
+    }
+
     fn at(&self, cell: Cell) -> f64 {
-        Self::features(cell)
+        match self {
+            Law::Quadric(w) => Self::features(cell)
+                .iter()
+                .zip(w.iter())
+                .map(|(f, w)| f * w)
+                .sum(),
+            Law::Located { slant, candidates } => candidates
+                .iter()
+                .map(|&(device, c)| c * Self::spread(*slant, cell, device))
+                .fold(0.0, f64::max),
+        }
+    }
+
+    /// The shots leave one power for every cell.
+    fn determined(&self) -> bool {
+        match self {
+            Law::Quadric(_) => true,
+            Law::Located { candidates, .. } => candidates.len() == 1,
+        }
+    }
+
+    fn passes(&self, points: &[(Cell, f64)], tolerance: f64) -> bool {
+        points
             .iter()
-            .zip(self.0.iter())
-            .map(|(f, w)| f * w)
-            .sum()
+            .all(|&(cell, power)| (self.at(cell) - power).abs() <= tolerance)
     }
 }
 
@@ -143,11 +186,36 @@ fn fit_law(points: &[(Cell, f64)], tolerance: f64) -> Option<Law> {
     if svd.rank(eps) < 4 {
         return None;
     }
-    let law = Law(svd.solve(&y, eps).ok()?);
-    points
-        .iter()
-        .all(|&(cell, power)| (law.at(cell) - power).abs() <= tolerance)
-        .then_some(law)
+    let law = Law::Quadric(svd.solve(&y, eps).ok()?);
+    law.passes(points, tolerance).then_some(law)
+}
+
+/// The law of a device at one of the grid's cells through `points`: every cell whose
+/// least-squares gain passes within `tolerance` of every point is a candidate. `None` if no cell
+/// is, or the world's power term is not one device's law.
+fn locate(world: &World, points: &[(Cell, f64)], tolerance: f64) -> Option<Law> {
+    let slant = world.slant_per_cell2()?;
+    if points.is_empty() {
+        return None;
+    }
+    let grid = world.grid_cells();
+    let candidates: Vec<(Cell, f64)> = (0..grid * grid)
+        .map(|c| (c % grid, c / grid))
+        .filter_map(|device| {
+            let (mut fp, mut ff) = (0.0, 0.0);
+            for &(cell, power) in points {
+                let f = Law::spread(slant, cell, device);
+                fp += f * power;
+                ff += f * f;
+            }
+            let one = Law::Located {
+                slant,
+                candidates: vec![(device, fp / ff)],
+            };
+            one.passes(points, tolerance).then_some((device, fp / ff))
+        })
+        .collect();
+    (!candidates.is_empty()).then_some(Law::Located { slant, candidates })
 }
 
 #[cfg(test)]
@@ -217,29 +285,77 @@ mod tests {
         }
     }
 
+    /// Asserts that `model` charges `mw` for `device` above `cell` (the rewards are f32).
+    fn charges(model: &World, cell: (u32, u32), device: usize, mw: f64) {
+        let modelled = model.transmission_at(cell, device, None).0;
+        assert!(
+            (modelled - mw).abs() < 1e-5 * mw.max(1.0),
+            "{modelled} mW for {mw} mW above {cell:?}"
+        );
+    }
+
+    fn every_cell(world: &World) -> impl Iterator<Item = (u32, u32)> {
+        let grid = world.grid_cells();
+        (0..grid * grid).map(move |c| (c % grid, c / grid))
+    }
+
     #[test]
-    fn a_device_seen_from_too_few_cells_costs_the_largest_power_seen() {
+    fn a_device_seen_from_three_cells_of_a_line_is_located() {
+        for (noise, lambda) in [(-100.0, 300.0), (-90.0, 2000.0)] {
+            let (world, _) = world(noise, lambda);
+            let k = world.devices();
+            // Device 0 only, from three cells of a line: no quadric is determined, but only one
+            // cell of the grid puts a device at those three distances.
+            let east = Move::East.index() * k;
+            let identified = identify(&world, &shots(&world, (0, 0), &[east; 3])).unwrap();
+            assert_eq!(identified.devices_fitted, 1);
+            for cell in every_cell(&world) {
+                charges(
+                    &identified.world,
+                    cell,
+                    0,
+                    world.transmission_at(cell, 0, None).0,
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn a_device_seen_from_one_cell_is_charged_its_worst_place() {
         let (world, _) = world(-100.0, 300.0);
         let k = world.devices();
-        // Device 0 only, from three cells of a line: no law is determined.
+        let stay = Move::Hover.index() * k;
+        let identified = identify(&world, &shots(&world, (4, 4), &[stay])).unwrap();
+        assert_eq!(identified.devices_fitted, 0);
+        let truth = |cell| world.transmission_at(cell, 0, None).0;
+        charges(&identified.world, (4, 4), 0, truth((4, 4)));
+        // Wherever the device is, the model charges at least its power, and somewhere more.
+        let model = |cell| identified.world.transmission_at(cell, 0, None).0;
+        assert!(every_cell(&world).all(|c| model(c) >= truth(c) * (1.0 - 1e-6)));
+        assert!(every_cell(&world).any(|c| model(c) > truth(c) * 1.5));
+    }
+
+    #[test]
+    fn a_device_no_law_explains_costs_the_largest_power_seen() {
+        // Summed over the devices, the power is no single device's law: three cells of a line
+        // determine no quadric, and no cell of the grid is a device's.
+        let (_, mut config) = world(-100.0, 300.0);
+        config.world.power_term = uavmeta_proto::config::PowerTerm::AllDevices;
+        let task = TaskConfig {
+            lambda: 300.0,
+            ..config.tasks[0].clone()
+        };
+        let world = World::new(&config.world, &task, 0);
+        let k = world.devices();
         let east = Move::East.index() * k;
-        let identified = identify(&world, &shots(&world, (0, 0), &[east, east, east])).unwrap();
+        let identified = identify(&world, &shots(&world, (0, 0), &[east; 3])).unwrap();
         assert_eq!(identified.devices_fitted, 0);
         let seen = |cell| world.transmission_at(cell, 0, None).0;
         let largest = seen((0, 0)).max(seen((1, 0))).max(seen((2, 0)));
-        let model = &identified.world;
         // Where it was seen, its power as seen; everywhere else the largest.
-        // (The rewards are f32.)
-        let close = |cell, device, mw: f64| {
-            let modelled = model.transmission_at(cell, device, None).0;
-            assert!(
-                (modelled - mw).abs() < 1e-6 * mw.max(1.0),
-                "{modelled} for {mw}"
-            );
-        };
-        close((1, 0), 0, seen((1, 0)));
-        close((9, 9), 0, largest);
-        close((0, 0), 3, largest);
+        charges(&identified.world, (1, 0), 0, seen((1, 0)));
+        charges(&identified.world, (9, 9), 0, largest);
+        charges(&identified.world, (0, 0), 3, largest);
     }
 
     #[test]

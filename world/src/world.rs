@@ -96,6 +96,9 @@ pub struct World {
     /// lambda / K: the reward's weight of one milliwatt.
     power_weight: f64,
     device_cells: Vec<(u32, u32)>,
+    /// (r / h)^2: a device's power from d cells away is its power straight below it times
+    /// 1 + (r / h)^2 d^2 (docs/MODEL.md section 1). `None` where the power term sums the devices.
+    slant_per_cell2: Option<f64>,
     start_cell: Option<(u32, u32)>,
     /// Milliwatts charged when device k is scheduled with the UAV above cell c, at `[c * K + k]`;
     /// with `power_term = "all_devices"` every k of a cell holds the cell's total. Shared by
@@ -172,6 +175,8 @@ impl World {
             action_parts,
             power_weight: task.lambda / k as f64,
             device_cells,
+            slant_per_cell2: (world.power_term != PowerTerm::AllDevices)
+                .then(|| (world.cell_m / world.height_m).powi(2)),
             start_cell: world.start_cell.map(|c| (c[0], c[1])),
             clear_mw: clear_mw.into(),
             rain_mw: rain_mw.into(),
@@ -217,6 +222,12 @@ impl World {
         self.device_cells.clone_from(&other.device_cells);
         self.clear_mw = Arc::clone(&other.clear_mw);
         self.rain_mw = Arc::clone(&other.rain_mw);
+    }
+
+    /// (r / h)^2, where a device's power grows as 1 + (r / h)^2 d^2 with its distance d in cells
+    /// (`None` under `power_term = "all_devices"`).
+    pub(crate) fn slant_per_cell2(&self) -> Option<f64> {
+        self.slant_per_cell2
     }
 
     /// This world with the milliwatts of scheduling device k above cell c at `table[c * K + k]`,
