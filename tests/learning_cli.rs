@@ -32,7 +32,7 @@ const TWO_META_TRAIN_TASKS: &[&str] = &[
 ];
 
 /// The columns of `train.csv` that users' scripts read (learner/src/train.rs).
-const TRAIN_COLUMNS: &str = "epoch,steps,td_loss,conservative_loss,mean_q,return,return_ci95,aoi,aoi_ci95,power_mw,power_mw_ci95,outages,outages_ci95,episodes,seconds,model_return,network_epoch";
+const TRAIN_COLUMNS: &str = "epoch,steps,td_loss,conservative_loss,mean_q,return,return_ci95,aoi,aoi_ci95,power_mw,power_mw_ci95,outages,outages_ci95,episodes,seconds,model_return,network_epoch,network_twin";
 
 /// `uavmeta SUBCOMMAND --config CONFIG [--set KEY=VALUE].. ARGS` run in `dir`, so relative paths
 /// are the user's.

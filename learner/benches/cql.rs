@@ -20,6 +20,7 @@ use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
 use uavmeta_learner::train::{train, EvaluatePolicy, TrainOptions};
 use uavmeta_learner::transitions::Transitions;
 use uavmeta_proto::config::Config;
+use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::method::Algo;
 use uavmeta_proto::stats::PolicyMetrics;
 
@@ -35,6 +36,10 @@ impl EvaluatePolicy for NoEvaluation {
     }
 
     fn judge(&mut self, _q: &QNetwork) -> Option<f64> {
+        None
+    }
+
+    fn rollouts(&mut self, _q: &QNetwork, _eps: f64, _seed: u64) -> Option<Vec<Transition>> {
         None
     }
 }

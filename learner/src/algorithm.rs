@@ -29,8 +29,9 @@ pub struct Terms<'a> {
     /// Eq. 7 averaged over the transitions, with the run's TD options (target network, double
     /// DQN, Huber): a scalar, or [T], with its graph.
     pub td: &'a Tensor,
-    /// Averages a per-transition term [.., B] over the transitions the way `td` was: [..]. MAML
-    /// pads tasks to one length and weighs the padding 0.
+    /// Averages a per-transition term [.., B] over the transitions: [..]. MAML pads tasks to one
+    /// length and weighs the padding 0; model rows (`crate::model_rows`) weigh 0 too, so an
+    /// algorithm's own terms read only what the data did, while `td` reads every row.
     pub mean: &'a dyn Fn(Tensor) -> Tensor,
     /// The conservative weight alpha of eq. 8 for this run (`learner.alpha`, or `meta.alpha` in
     /// MAML and pretraining); algorithms without one ignore it.

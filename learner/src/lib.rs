@@ -16,6 +16,8 @@
 //! - [`transitions`]: [`transitions::Transitions`], `proto::dataset` transitions as normalised tensors.
 //! - [`train`]: offline training with any registered algorithm, evaluated each epoch through the
 //!   [`train::EvaluatePolicy`] hook; per-epoch table on stderr and `train.csv`.
+//! - [`model_rows`]: the model twin's rows, rollouts of its policy in the world its shots
+//!   identify, added to each epoch's shots.
 //! - [`progress`]: the CSV log and the progress bar of a training loop (offline and meta), and
 //!   [`progress::OnStep`], the hook a caller hears every training step through.
 //! - [`numerics`]: the environment that pins libtorch's kernels (MKL's branch, ATen's vector
@@ -36,6 +38,7 @@ pub mod bcq;
 pub mod checkpoint;
 pub mod cql;
 pub mod dqn;
+pub mod model_rows;
 pub mod numerics;
 pub mod optim;
 pub mod progress;

@@ -9,7 +9,9 @@
 //! implements it) and one row is written: to a table on stderr, to `train.csv` in the output
 //! directory, and to the returned list. The network a run keeps (`learner.select_every`,
 //! [`Selection`]) is the one of its start and every epoch's network that does best in the world
-//! its shots identify; the last row scores it.
+//! its shots identify; the last row scores it. Where that world is identified, a model twin
+//! (`learner.model_rows`, [`crate::model_rows`]) first trains the same way from the same start on
+//! the shots plus rollouts in that world, and its networks are candidates too.
 
 use std::path::Path;
 use std::time::Instant;
@@ -20,6 +22,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use tch::Tensor;
 use uavmeta_proto::config::{Config, LearnerConfig};
+use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::method::Algo;
 use uavmeta_proto::stats::PolicyMetrics;
 
@@ -27,6 +30,7 @@ use crate::algorithm::{self, OfflineAlgorithm, Terms};
 use crate::checkpoint::{self, CheckpointError};
 use crate::cql::conservative_term;
 use crate::dqn::{q_taken, TdConfig};
+use crate::model_rows::ModelRows;
 use crate::optim::FusedAdam;
 use crate::progress::{progress_bar, CsvLog, OnStep};
 use crate::qnet::{q_values, QNetwork};
@@ -44,6 +48,13 @@ pub trait EvaluatePolicy {
     /// shots do not identify the world: the run keeps its last network. Required, so that a
     /// wrapper cannot drop its inner evaluator's judgement by forgetting it.
     fn judge(&mut self, q: &QNetwork) -> Option<f64>;
+
+    /// One episode of `q`'s policy from every start cell, in the world the run's shots identify
+    /// (never the true world), acting uniformly at random with probability `epsilon` (draws
+    /// seeded `seed`) and greedily otherwise: every step as a transition, rewards from the
+    /// model. What `learner.model_rows` adds to the shots ([`crate::model_rows`]). `None` where
+    /// the shots do not identify the world. Required, like [`EvaluatePolicy::judge`].
+    fn rollouts(&mut self, q: &QNetwork, epsilon: f64, seed: u64) -> Option<Vec<Transition>>;
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -94,9 +105,12 @@ pub struct EpochRow {
     /// The epoch whose network `policy` scores (0 = the start): `epoch` itself, but for the rows
     /// after a value-guard stop and the last row, which scores the network the run keeps.
     pub network_epoch: usize,
+    /// `network_epoch` is an epoch of the model twin ([`crate::model_rows`]): the last row's
+    /// kept network may be the twin's.
+    pub network_twin: bool,
 }
 
-const CSV_HEADER: &str = "epoch,steps,td_loss,conservative_loss,mean_q,return,return_ci95,aoi,aoi_ci95,power_mw,power_mw_ci95,outages,outages_ci95,episodes,seconds,model_return,network_epoch";
+const CSV_HEADER: &str = "epoch,steps,td_loss,conservative_loss,mean_q,return,return_ci95,aoi,aoi_ci95,power_mw,power_mw_ci95,outages,outages_ci95,episodes,seconds,model_return,network_epoch,network_twin";
 
 impl EpochRow {
     /// The row of a trained epoch, its policy not yet scored.
@@ -117,16 +131,21 @@ impl EpochRow {
             seconds: 0.0,
             model_return: None,
             network_epoch,
+            network_twin: false,
         }
     }
 
-    /// Which network the row scores, in words: "epoch 100", or "epoch 100, keeping epoch 10's
-    /// network" (the start's is epoch 0's).
+    /// Which network the row scores, in words: "epoch 100", "epoch 100, keeping epoch 10's
+    /// network" (the start's is epoch 0's) or "epoch 100, keeping the model twin's epoch 10".
     pub fn kept(&self) -> String {
-        match self.network_epoch == self.epoch {
-            true => format!("epoch {}", self.epoch),
-            false => format!(
+        match (self.network_twin, self.network_epoch == self.epoch) {
+            (false, true) => format!("epoch {}", self.epoch),
+            (false, false) => format!(
                 "epoch {}, keeping epoch {}'s network",
+                self.epoch, self.network_epoch
+            ),
+            (true, _) => format!(
+                "epoch {}, keeping the model twin's epoch {}",
                 self.epoch, self.network_epoch
             ),
         }
@@ -140,8 +159,10 @@ impl EpochRow {
             .model_return
             .map_or(String::new(), |r| format!("{r:.3}"));
         format!(
-            "{epoch},{steps},{td_loss},{conservative_loss},{mean_q},{policy},{episodes},{:.3},{model_return},{}",
-            self.seconds, self.network_epoch
+            "{epoch},{steps},{td_loss},{conservative_loss},{mean_q},{policy},{episodes},{:.3},{model_return},{},{}",
+            self.seconds,
+            self.network_epoch,
+            u8::from(self.network_twin)
         )
     }
 
@@ -201,6 +222,9 @@ pub struct OfflineTrainer {
     order: MinibatchOrder,
     steps: usize,
     on_step: OnStep,
+    /// Rows from this index on are model rows ([`crate::model_rows`]): the algorithm's own
+    /// per-transition terms weigh them 0.
+    model_from: Option<usize>,
 }
 
 impl OfflineTrainer {
@@ -217,6 +241,15 @@ impl OfflineTrainer {
             order: MinibatchOrder::new(rows, cfg.batch_size.min(rows), seed),
             steps: 0,
             on_step: OnStep::default(),
+            model_from: None,
+        }
+    }
+
+    /// The trainer of data whose rows from `shots` on are model rows.
+    fn with_model_rows_from(self, shots: usize) -> Self {
+        Self {
+            model_from: Some(shots),
+            ..self
         }
     }
 
@@ -228,7 +261,12 @@ impl OfflineTrainer {
     /// ALGO: one Adam step on the algorithm's loss over the next minibatch of `data`.
     pub fn step(&mut self, q: &mut QNetwork, data: &Transitions) -> StepFigures {
         self.on_step.step();
-        let mb = data.select(&self.order.next_indices());
+        let index = self.order.next_indices();
+        let mb = data.select(&index);
+        // 1 for a logged row, 0 for a model row: [b].
+        let logged = self
+            .model_from
+            .map(|shots| index.lt(shots as i64).to_kind(tch::Kind::Float));
         // Q_w(s, .) with its graph; Qhat(s', .) from the frozen target network.
         let q_all = q.forward(&mb.obs); // [b, A]
         let td_loss = self
@@ -241,7 +279,10 @@ impl OfflineTrainer {
                 |s| q.forward(s),
             )
             .mean(None); // eq. 7
-        let mean = |rows: Tensor| rows.mean(None);
+        let mean = |rows: Tensor| match &logged {
+            Some(logged) => (rows * logged).sum(None) / logged.numel() as f64,
+            None => rows.mean(None),
+        };
         let loss = self.algorithm.loss(&Terms {
             q: &q_all,
             batch: &mb,
@@ -305,28 +346,37 @@ pub fn train(
 ) -> Result<Vec<EpochRow>, TrainError> {
     let cfg = &opts.config.learner;
     algorithm::prepare(q, opts.algorithm, cfg);
+    let mut selection = Selection::new(cfg.select_every, q, evaluator);
+    let twin = selection
+        .judges()
+        .then(|| ModelRows::new(opts, q, evaluator))
+        .flatten();
+    let twin_steps = twin
+        .as_ref()
+        .map_or(0, |m| steps_per_epoch(cfg, data.len() + m.rows()));
     let steps_per_epoch = steps_per_epoch(cfg, data.len());
-    let mut trainer = OfflineTrainer::new(q, data.len(), opts.algorithm, opts.config, opts.seed)
-        .with_on_step(opts.on_step.clone());
-
     let mut csv = match opts.out_dir {
         Some(dir) => Some(CsvLog::create(&dir.join("train.csv"), CSV_HEADER)?),
         None => None,
     };
     let bar = progress_bar(
         opts.progress,
-        (cfg.epochs * steps_per_epoch) as u64,
+        (cfg.epochs * (steps_per_epoch + twin_steps)) as u64,
         "{bar:40} {pos}/{len} steps {per_sec} eta {eta}",
     );
+    if let Some(twin) = twin {
+        train_twin(q, data, twin, opts, &mut selection, evaluator, &bar);
+    }
     if opts.progress {
         bar.suspend(|| eprintln!("{}", EpochRow::table_header()));
     }
 
+    let mut trainer = OfflineTrainer::new(q, data.len(), opts.algorithm, opts.config, opts.seed)
+        .with_on_step(opts.on_step.clone());
     let started = Instant::now();
     let mut rows: Vec<EpochRow> = Vec::with_capacity(cfg.epochs);
     let mut guard = Guarded::new(cfg, q, data, opts.algorithm);
     let mut average = Average::new(cfg);
-    let mut selection = Selection::new(cfg.select_every, q, evaluator);
     let mut stopped = false;
     for epoch in 1..=cfg.epochs {
         let (mut row, evaluated) = match (stopped, rows.last()) {
@@ -374,6 +424,48 @@ pub fn train(
     Ok(rows)
 }
 
+/// The model twin ([`crate::model_rows`]): the run again from `start`, on the shots and
+/// `model`'s rows, with the same seed, guard and averaging. Its networks are candidates of
+/// `selection` like the run's own; they are judged in the identified world only, never
+/// evaluated, and write no rows.
+fn train_twin(
+    start: &QNetwork,
+    data: &Transitions,
+    mut model: ModelRows,
+    opts: &TrainOptions,
+    selection: &mut Selection,
+    evaluator: &mut dyn EvaluatePolicy,
+    bar: &ProgressBar,
+) {
+    let cfg = &opts.config.learner;
+    let mut q = start.duplicate();
+    let rows = data.len() + model.rows();
+    let steps = steps_per_epoch(cfg, rows);
+    let mut trainer = OfflineTrainer::new(&q, rows, opts.algorithm, opts.config, opts.seed)
+        .with_on_step(opts.on_step.clone())
+        .with_model_rows_from(data.len());
+    let mut guard = Guarded::new(cfg, &q, data, opts.algorithm);
+    let mut average = Average::new(cfg);
+    for epoch in 1..=cfg.epochs {
+        let epoch_data = model.epoch_data(epoch, &q, data, evaluator);
+        trainer.epoch(&mut q, &epoch_data, steps, bar);
+        let stopped = guard
+            .as_mut()
+            .is_some_and(|g| g.tripped(epoch, &mut q, data, cfg));
+        if !stopped {
+            average.update(&q);
+        }
+        if selection.due(epoch, cfg.epochs) {
+            let network_epoch = epoch - usize::from(stopped);
+            selection.offer(network_epoch, true, average.published(&q), evaluator);
+        }
+        if stopped {
+            bar.inc(((cfg.epochs - epoch) * steps) as u64);
+            return;
+        }
+    }
+}
+
 /// Shows and logs one epoch's row.
 fn finish_epoch(
     row: &EpochRow,
@@ -408,6 +500,8 @@ struct Selection {
 struct Candidate {
     /// The epoch after which it was published, 0 = the start.
     epoch: usize,
+    /// Published by the model twin ([`train_twin`]).
+    twin: bool,
     model_return: f64,
     q: QNetwork,
 }
@@ -420,6 +514,7 @@ impl Selection {
             every: if start.is_some() { every } else { 0 },
             best: start.map(|model_return| Candidate {
                 epoch: 0,
+                twin: false,
                 model_return,
                 q: q.duplicate(),
             }),
@@ -427,16 +522,23 @@ impl Selection {
         }
     }
 
+    /// Whether the run chooses among candidates at all.
+    fn judges(&self) -> bool {
+        self.every > 0
+    }
+
     /// Whether epoch `epoch` of `epochs` publishes a candidate.
     fn due(&self, epoch: usize, epochs: usize) -> bool {
         self.every > 0 && (epoch.is_multiple_of(self.every) || epoch == epochs)
     }
 
-    /// Scores `q`, the network of epoch `epoch`, and keeps it if it does better than every
-    /// candidate before it (a tie keeps the earlier); returns its model return.
+    /// Scores `q`, the network of epoch `epoch` (of the model twin if `twin`), and keeps it if it
+    /// does better than every candidate before it (a tie keeps the earlier); returns its model
+    /// return.
     fn offer(
         &mut self,
         epoch: usize,
+        twin: bool,
         q: &QNetwork,
         evaluator: &mut dyn EvaluatePolicy,
     ) -> Option<f64> {
@@ -445,7 +547,7 @@ impl Selection {
             Some(best) if best.model_return >= model_return => {}
             Some(best) => {
                 best.q.copy_from(q);
-                (best.epoch, best.model_return) = (epoch, model_return);
+                (best.epoch, best.twin, best.model_return) = (epoch, twin, model_return);
             }
             None => {}
         }
@@ -464,15 +566,16 @@ impl Selection {
         evaluator: &mut dyn EvaluatePolicy,
     ) {
         if self.due(row.epoch, epochs) {
-            row.model_return = self.offer(row.network_epoch, published, evaluator);
+            row.model_return = self.offer(row.network_epoch, false, published, evaluator);
         }
         let kept = self
             .best
             .as_ref()
-            .filter(|best| best.epoch != row.network_epoch);
+            .filter(|best| best.twin || best.epoch != row.network_epoch);
         match kept {
             Some(kept) if row.epoch == epochs => {
-                (row.policy, row.network_epoch) = (evaluator.evaluate(&kept.q), kept.epoch);
+                row.policy = evaluator.evaluate(&kept.q);
+                (row.network_epoch, row.network_twin) = (kept.epoch, kept.twin);
                 self.replaces_last = true;
             }
             _ if !evaluated => row.policy = evaluator.evaluate(published),
@@ -710,5 +813,40 @@ mod tests {
         // 0 turns the guard off.
         cfg.value_guard = 0.0;
         assert!(ValueGuard::new(&cfg, &constant_q(0.0), &data).is_none());
+    }
+
+    /// Model rows weigh 0 in the algorithm's own terms: on rows whose TD error is 0, CQL's
+    /// conservative term alone would move Q, and it does not read model rows.
+    #[test]
+    fn the_conservative_term_reads_no_model_row() {
+        tch::set_num_threads(1);
+        // gamma 0 and rewards equal to every Q-value: the TD term is 0.
+        let data = Transitions {
+            obs: Tensor::zeros([4, 2], (tch::Kind::Float, tch::Device::Cpu)),
+            actions: Tensor::from_slice(&[0i64, 0, 0, 0]),
+            rewards: Tensor::from_slice(&[-1.0f32; 4]),
+            next_obs: Tensor::zeros([4, 2], (tch::Kind::Float, tch::Device::Cpu)),
+        };
+        let mut config = Config::default();
+        config.learner.gamma = 0.0;
+        config.learner.batch_size = 4;
+        config.learner.alpha = 10.0;
+        let probe = Tensor::zeros([1, 2], (tch::Kind::Float, tch::Device::Cpu));
+        let after_a_step = |model_from: Option<usize>| {
+            let mut q = constant_q(-1.0);
+            let mut trainer = OfflineTrainer::new(&q, 4, Algo::CQL, &config, 0);
+            if let Some(shots) = model_from {
+                trainer = trainer.with_model_rows_from(shots);
+            }
+            trainer.step(&mut q, &data);
+            q.forward(&probe)
+        };
+        let unmoved = constant_q(-1.0).forward(&probe);
+        // Every row a model row: nothing moves Q. Every row logged: the term lifts action 0.
+        assert!(after_a_step(Some(0)).allclose(&unmoved, 0.0, 0.0, false));
+        for logged in [None, Some(4), Some(2)] {
+            let moved = after_a_step(logged);
+            assert!(moved.double_value(&[0, 0]) > -1.0, "{logged:?}: {moved}");
+        }
     }
 }

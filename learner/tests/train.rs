@@ -76,6 +76,10 @@ impl EvaluatePolicy for Exact {
     fn judge(&mut self, _q: &QNetwork) -> Option<f64> {
         None
     }
+
+    fn rollouts(&mut self, _q: &QNetwork, _eps: f64, _seed: u64) -> Option<Vec<Transition>> {
+        None
+    }
 }
 
 fn config() -> Config {
@@ -205,6 +209,10 @@ impl EvaluatePolicy for Recorder {
     }
 
     fn judge(&mut self, _q: &QNetwork) -> Option<f64> {
+        None
+    }
+
+    fn rollouts(&mut self, _q: &QNetwork, _eps: f64, _seed: u64) -> Option<Vec<Transition>> {
         None
     }
 }
@@ -370,6 +378,10 @@ impl EvaluatePolicy for Judged {
     fn judge(&mut self, q: &QNetwork) -> Option<f64> {
         Some(self.0(Exact.evaluate(q).ret.mean))
     }
+
+    fn rollouts(&mut self, _q: &QNetwork, _eps: f64, _seed: u64) -> Option<Vec<Transition>> {
+        None
+    }
 }
 
 #[test]
@@ -381,16 +393,15 @@ fn a_run_keeps_the_candidate_its_judge_scores_best_and_only_with_a_judge() {
     let start = QNetworkConfig::new(3, 5, &cfg.learner.hidden).init(0);
     let run = |cfg: &Config, evaluator: &mut dyn EvaluatePolicy| {
         let dir = tempfile::tempdir().unwrap();
-        let mut q = start.duplicate();
-        let opts = TrainOptions {
-            algorithm: Algo::CQL,
-            config: cfg,
-            seed: 4,
-            out_dir: Some(dir.path()),
-            progress: false,
-            on_step: OnStep::default(),
-        };
-        let rows = train(&mut q, &data, &opts, evaluator).unwrap();
+        let (q, rows) = trained(
+            cfg,
+            Algo::CQL,
+            start.duplicate(),
+            &data,
+            4,
+            Some(dir.path()),
+            evaluator,
+        );
         let csv = std::fs::read_to_string(dir.path().join("train.csv")).unwrap();
         let kept = checkpoint::load(&dir.path().join("final"), cfg).unwrap().0;
         assert_eq!(
@@ -449,4 +460,89 @@ fn a_run_keeps_the_candidate_its_judge_scores_best_and_only_with_a_judge() {
         (off[29].network_epoch, off[29].policy),
         (30, plain[29].policy)
     );
+}
+
+/// A judge that scores its `peak`-th call best (the start's is call 0, then the candidates in
+/// the order they are offered), and a model whose rollouts are the bandit's transitions.
+struct Peaked {
+    calls: usize,
+    peak: usize,
+    rollouts: usize,
+}
+
+impl EvaluatePolicy for Peaked {
+    fn evaluate(&mut self, q: &QNetwork) -> PolicyMetrics {
+        Exact.evaluate(q)
+    }
+
+    fn judge(&mut self, _q: &QNetwork) -> Option<f64> {
+        self.calls += 1;
+        Some(-(self.calls as f64 - 1.0 - self.peak as f64).abs())
+    }
+
+    fn rollouts(&mut self, _q: &QNetwork, _eps: f64, seed: u64) -> Option<Vec<Transition>> {
+        self.rollouts += 1;
+        Some(dataset_seeded(300, seed))
+    }
+}
+
+#[test]
+fn the_model_twin_trains_on_model_rows_and_its_networks_are_candidates() {
+    tch::set_num_threads(1);
+    let mut cfg = config();
+    cfg.learner.select_every = 10;
+    cfg.learner.model_rows = 200;
+    let data = Transitions::new(&dataset(400), &cfg.world, cfg.learner.reward_scale).unwrap();
+    let start = QNetworkConfig::new(3, 5, &cfg.learner.hidden).init(0);
+    let probe = Tensor::from_slice(&[0.3f32, 0.5, 0.01, 0.8, 0.1, 0.01]).view([2, 3]);
+    let run = |cfg: &Config, peak: usize| {
+        let dir = tempfile::tempdir().unwrap();
+        let mut judge = Peaked {
+            calls: 0,
+            peak,
+            rollouts: 0,
+        };
+        let (q, rows) = trained(
+            cfg,
+            Algo::CQL,
+            start.duplicate(),
+            &data,
+            4,
+            Some(dir.path()),
+            &mut judge,
+        );
+        let csv = std::fs::read_to_string(dir.path().join("train.csv")).unwrap();
+        let last = csv.lines().last().unwrap().to_string();
+        (rows, last, q.forward(&probe), judge)
+    };
+    // Candidates: the start, the twin's epochs 10, 20, 30, then the run's own.
+    let (twin, last, twin_q, judge) = run(&cfg, 2);
+    assert_eq!(
+        (judge.calls, judge.rollouts),
+        (7, 30),
+        "one rollout per epoch"
+    );
+    assert_eq!((twin[29].network_epoch, twin[29].network_twin), (20, true));
+    assert!(last.ends_with(",20,1"), "train.csv says whose: {last}");
+    assert!(twin[29].kept().contains("model twin's epoch 20"));
+    let (own, last, own_q, _) = run(&cfg, 5);
+    assert_eq!((own[29].network_epoch, own[29].network_twin), (20, false));
+    assert!(last.ends_with(",20,0"), "{last}");
+    assert!(
+        !twin_q.allclose(&own_q, 1e-6, 1e-6, false),
+        "the twin's epoch 20 is another network"
+    );
+
+    // The twin leaves the run's own training as it was; without model rows there is none.
+    cfg.learner.model_rows = 0;
+    let (alone, _, alone_q, judge) = run(&cfg, 2);
+    assert_eq!((judge.calls, judge.rollouts), (4, 0));
+    assert_eq!(
+        (alone[29].network_epoch, alone[29].network_twin),
+        (20, false)
+    );
+    assert!(alone_q.allclose(&own_q, 0.0, 0.0, false));
+    for (a, b) in alone.iter().zip(&own).take(29) {
+        assert_eq!((a.td_loss, a.policy), (b.td_loss, b.policy));
+    }
 }

@@ -15,6 +15,8 @@
 use std::borrow::Borrow;
 use std::collections::HashMap;
 
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 use tch::Tensor;
 use uavmeta_learner::qnet::QNetwork;
 use uavmeta_learner::train::EvaluatePolicy;
@@ -246,6 +248,58 @@ impl EvaluatePolicy for Evaluator {
         let returns = episodes.iter().map(|(_, m)| m.ret);
         Some(returns.sum::<f64>() / episodes.len().max(1) as f64)
     }
+
+    fn rollouts(&mut self, q: &QNetwork, epsilon: f64, seed: u64) -> Option<Vec<Transition>> {
+        Some(epsilon_greedy_steps(self.model.clone()?, q, epsilon, seed))
+    }
+}
+
+/// Every step of one episode from each of `worlds` (each reset first) under `q`, acting
+/// uniformly at random with probability `epsilon` and greedily otherwise (draws seeded
+/// `seed`), stepped in lockstep: one forward pass per step.
+fn epsilon_greedy_steps(
+    mut worlds: Vec<World>,
+    q: &QNetwork,
+    epsilon: f64,
+    seed: u64,
+) -> Vec<Transition> {
+    let Some(horizon) = worlds.first().map(|w| w.horizon() as usize) else {
+        return Vec::new();
+    };
+    worlds.iter_mut().for_each(World::reset);
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let (e, d, actions) = (worlds.len(), q.obs_len(), q.actions());
+    let mut steps = Vec::with_capacity(e * horizon);
+    let mut obs = vec![0f32; e * d];
+    let mut greedy = vec![0i64; e];
+    for t in 0..horizon {
+        for (world, row) in worlds.iter().zip(obs.chunks_exact_mut(d)) {
+            world.write_normalised(row);
+        }
+        let batch = Tensor::from_slice(&obs).view([e as i64, d as i64]); // [e, D]
+        q.greedy(&batch).copy_data(&mut greedy, e); // [e]
+        for (w, (world, &g)) in worlds.iter_mut().zip(&greedy).enumerate() {
+            let action = match rng.random::<f64>() < epsilon {
+                true => rng.random_range(0..actions),
+                false => g as usize,
+            };
+            let s = world.observation().to_vec();
+            let step = world.step(action);
+            steps.push(Transition {
+                task: 0,
+                actor: 0,
+                episode: w as u64,
+                step: t as u32,
+                seq: steps.len() as u64,
+                obs: s,
+                action: action as u16,
+                reward: step.reward as f32,
+                next_obs: world.observation().to_vec(),
+                truncated: step.truncated,
+            });
+        }
+    }
+    steps
 }
 
 #[cfg(test)]
@@ -408,5 +462,53 @@ mod tests {
             .is_none());
         // Without shots, nothing is judged either.
         assert!(Evaluator::from_config(&config, &task).judge(&q).is_none());
+    }
+
+    /// The rollouts are episodes of the identified world from every start cell: greedy ones with
+    /// epsilon 0 score what the judge scores, and their rewards are the true world's where the
+    /// shots determine every device; epsilon 1 acts otherwise, and the seed fixes the draws.
+    #[test]
+    fn rollouts_are_steps_of_the_identified_world_from_every_start_cell() {
+        tch::set_num_threads(1);
+        let config = Config::default();
+        let task = TaskConfig::one_off(2000.0, None);
+        let (obs_len, actions) = (config.world.observation_len(), config.world.action_count());
+        let mut evaluator =
+            Evaluator::from_config(&config, &task).judging_by(&random_shots(&config, &task, 2000));
+        let q = QNetworkConfig::new(obs_len, actions, &config.learner.hidden).init(1);
+        let greedy = evaluator.rollouts(&q, 0.0, 7).unwrap();
+        let (cells, horizon) = (
+            config.world.grid_cells.pow(2) as usize,
+            config.world.horizon,
+        );
+        assert_eq!(greedy.len(), cells * horizon as usize);
+        let starts: std::collections::HashSet<_> = greedy
+            .iter()
+            .filter(|t| t.step == 0)
+            .map(|t| (t.obs[0], t.obs[1]))
+            .collect();
+        assert_eq!(starts.len(), cells, "one episode from every start cell");
+        let mean_return = greedy.iter().map(|t| f64::from(t.reward)).sum::<f64>() / cells as f64;
+        let judged = evaluator.judge(&q).unwrap();
+        assert!(
+            (mean_return - judged).abs() < 1e-3 * judged.abs(),
+            "{mean_return} {judged}"
+        );
+        let truth = World::new(&config.world, &task, 0);
+        let mut next = vec![0u16; obs_len];
+        for t in &greedy {
+            let reward = truth.outcome(&t.obs, usize::from(t.action), false, &mut next);
+            let reward = reward.unwrap();
+            assert_eq!(next, t.next_obs);
+            let logged = f64::from(t.reward);
+            assert!(
+                (reward - logged).abs() < 1e-5 * reward.abs(),
+                "{reward} {t:?}"
+            );
+        }
+        let random = evaluator.rollouts(&q, 1.0, 7).unwrap();
+        assert_ne!(random, greedy);
+        assert_eq!(random, evaluator.rollouts(&q, 1.0, 7).unwrap());
+        assert_ne!(random, evaluator.rollouts(&q, 1.0, 8).unwrap());
     }
 }

@@ -104,6 +104,18 @@ pub struct LearnerConfig {
     /// of their agent than every tenth (D20). 0 = keep the last network; tasks with rain always do.
     #[default(1)]
     pub select_every: usize,
+    /// The model twin's rows per epoch (`learner/src/model_rows.rs`): where the run chooses its
+    /// network (`select_every` > 0) and its shots identify the world, a second run from the same
+    /// start trains on the shots plus this many steps of its own policy rolled out in that world
+    /// before each epoch, read by the TD term alone; its networks are candidates too. Brings
+    /// every power-dominated run of D21/D22 within 2% of its agent (docs/EXPERIMENTS.md).
+    /// 0 = no twin; tasks with rain never have one.
+    #[default(2000)]
+    pub model_rows: usize,
+    /// How often the model rollouts act at random rather than greedily.
+    #[default(0.1)]
+    #[garde(custom(within(0.0..=1.0, "a probability in [0, 1]")))]
+    pub model_epsilon: f64,
     /// Monte-Carlo episodes of each evaluation of a greedy policy.
     #[default(20)]
     pub eval_episodes: usize,

@@ -52,6 +52,7 @@ use uavmeta_meta::meta_train::{
 };
 use uavmeta_meta::{pretrain, MetaError};
 use uavmeta_proto::config::{Config, TaskConfig};
+use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::method::{Method, Start};
 use uavmeta_proto::payload::{CheckpointReady, DatasetReady, SCHEMA_VERSION};
 use uavmeta_proto::stats::PolicyMetrics;
@@ -549,5 +550,9 @@ impl EvaluatePolicy for Announcing<'_> {
 
     fn judge(&mut self, q: &QNetwork) -> Option<f64> {
         self.inner.judge(q)
+    }
+
+    fn rollouts(&mut self, q: &QNetwork, epsilon: f64, seed: u64) -> Option<Vec<Transition>> {
+        self.inner.rollouts(q, epsilon, seed)
     }
 }

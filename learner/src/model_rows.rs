@@ -1,0 +1,117 @@
+//! The model twin's rows: transitions of the policy being trained, rolled out in the world its
+//! shots identify, added to each epoch's shots (`learner.model_rows`; docs/MODEL.md section 5,
+//! docs/EXPERIMENTS.md D21, D22).
+//!
+//! 500 shots cover a few hundred of the states a fine-tuned policy visits, and where the data
+//! lacks a state the conservative term holds the policy near the behaviour that made the shots,
+//! 1-4% below the agent where power dominates the reward (B5, D20). The shots also identify the
+//! world (`uavmeta_world::identify`: the moves, the AoI update and the reward's form are known,
+//! each device's power is fitted), so before each epoch the twin's network acts
+//! epsilon-greedily in that world from every start cell, and `learner.model_rows` of the steps,
+//! drawn at random, join the shots, as Dyna and MBPO add model rollouts to the real data. Their
+//! rewards come from the model, never the true world. They are read by the TD term alone: an
+//! algorithm's own per-transition terms (CQL's conservative term, an imitation head) average
+//! over the batch with the model rows weighing 0, so they still anchor only to what the data
+//! did, as COMBO's regulariser rewards the data's actions and not the model's.
+//!
+//! The rows help where power dominates and the model is exact, and mislead where it is not (a
+//! device the shots do not locate) or where the shots' own policy is already near the best (the
+//! AoI-dominated lambda-300): so they train a twin of the run ([`crate::train`]), and the model's
+//! judgement picks among both runs' networks. A task whose shots identify nothing (rain) has no
+//! twin.
+
+use rand::seq::SliceRandom;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use uavmeta_proto::config::WorldConfig;
+
+use crate::algorithm;
+use crate::qnet::QNetwork;
+use crate::train::{EvaluatePolicy, TrainOptions};
+use crate::transitions::Transitions;
+
+/// The model rows of one training run.
+pub struct ModelRows {
+    rows: usize,
+    epsilon: f64,
+    seed: u64,
+    world: WorldConfig,
+    reward_scale: f64,
+    /// The first epoch's rows, drawn when the run starts to learn whether the world is known.
+    first: Option<Transitions>,
+    /// The last epoch's rows.
+    last: Option<Transitions>,
+}
+
+impl ModelRows {
+    /// The model rows of a run with `opts` starting from `q`, or `None`: `learner.model_rows` is
+    /// 0, the algorithm does not learn values, or the shots identify no world.
+    pub fn new(
+        opts: &TrainOptions,
+        q: &QNetwork,
+        evaluator: &mut dyn EvaluatePolicy,
+    ) -> Option<Self> {
+        let cfg = &opts.config.learner;
+        if cfg.model_rows == 0 || !algorithm::of(opts.algorithm).learns_values() {
+            return None;
+        }
+        let mut model = Self {
+            rows: cfg.model_rows,
+            epsilon: cfg.model_epsilon,
+            seed: opts.seed,
+            world: opts.config.world.clone(),
+            reward_scale: cfg.reward_scale,
+            first: None,
+            last: None,
+        };
+        let first = model.draw(1, q, evaluator)?;
+        // Fewer steps than asked for where the rollouts hold fewer (start cells x horizon).
+        model.rows = first.len();
+        model.first = Some(first);
+        Some(model)
+    }
+
+    /// Rows per epoch.
+    pub fn rows(&self) -> usize {
+        self.rows
+    }
+
+    /// Epoch `epoch`'s data: `shots`, then `rows()` steps of `q` in the identified world (the
+    /// previous epoch's again should the evaluator stop answering, which none does).
+    pub fn epoch_data(
+        &mut self,
+        epoch: usize,
+        q: &QNetwork,
+        shots: &Transitions,
+        evaluator: &mut dyn EvaluatePolicy,
+    ) -> Transitions {
+        let drawn = match self.first.take() {
+            Some(first) => Some(first),
+            None => self.draw(epoch, q, evaluator),
+        };
+        if let Some(drawn) = drawn.filter(|d| d.len() == self.rows) {
+            self.last = Some(drawn);
+        }
+        let model = self
+            .last
+            .as_ref()
+            .expect("the first epoch's rows are drawn");
+        Transitions::concat([shots, model])
+    }
+
+    /// `rows` of epoch `epoch`'s rollouts of `q`, drawn without replacement.
+    fn draw(
+        &self,
+        epoch: usize,
+        q: &QNetwork,
+        evaluator: &mut dyn EvaluatePolicy,
+    ) -> Option<Transitions> {
+        let epoch = epoch as u64;
+        let rollout_seed = self.seed.wrapping_mul(1_000_003).wrapping_add(epoch);
+        let mut steps = evaluator.rollouts(q, self.epsilon, rollout_seed)?;
+        let order_seed = self.seed.wrapping_mul(7919).wrapping_add(epoch);
+        steps.shuffle(&mut ChaCha8Rng::seed_from_u64(order_seed));
+        steps.truncate(self.rows);
+        Transitions::new(&steps, &self.world, self.reward_scale).ok()
+    }
+}
