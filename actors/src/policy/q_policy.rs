@@ -25,7 +25,7 @@ use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 
 use uavmeta_world::identify::identify;
-use uavmeta_world::rollout::{evaluation_worlds, start_worlds, EpisodeTally, Policy};
+use uavmeta_world::rollout::{evaluation_worlds, record_step, start_worlds, EpisodeTally, Policy};
 use uavmeta_world::world::{Step, World};
 
 /// `argmax_a Q(s, a)` on the normalised observation, of a network borrowed (`&QNetwork`) or owned.
@@ -272,7 +272,7 @@ fn epsilon_greedy_steps(
     let mut steps = Vec::with_capacity(e * horizon);
     let mut obs = vec![0f32; e * d];
     let mut greedy = vec![0i64; e];
-    for t in 0..horizon {
+    for _ in 0..horizon {
         for (world, row) in worlds.iter().zip(obs.chunks_exact_mut(d)) {
             world.write_normalised(row);
         }
@@ -283,19 +283,11 @@ fn epsilon_greedy_steps(
                 true => rng.random_range(0..actions),
                 false => g as usize,
             };
-            let s = world.observation().to_vec();
-            let step = world.step(action);
+            let seq = steps.len() as u64;
             steps.push(Transition {
-                task: 0,
-                actor: 0,
                 episode: w as u64,
-                step: t as u32,
-                seq: steps.len() as u64,
-                obs: s,
-                action: action as u16,
-                reward: step.reward as f32,
-                next_obs: world.observation().to_vec(),
-                truncated: step.truncated,
+                seq,
+                ..record_step(world, action)
             });
         }
     }
