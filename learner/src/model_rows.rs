@@ -1,6 +1,6 @@
 //! The model twin's rows: transitions of the policy being trained, rolled out in the world its
 //! shots identify, added to each epoch's shots (`learner.model_rows`; docs/MODEL.md section 5,
-//! docs/EXPERIMENTS.md D21, D22).
+//! docs/EXPERIMENTS.md D21-D23).
 //!
 //! 500 shots cover a few hundred of the states a fine-tuned policy visits, and where the data
 //! lacks a state the conservative term holds the policy near the behaviour that made the shots,

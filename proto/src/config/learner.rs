@@ -108,8 +108,8 @@ pub struct LearnerConfig {
     /// network (`select_every` > 0) and its shots identify the world, a second run from the same
     /// start trains on the shots plus this many steps of its own policy rolled out in that world
     /// before each epoch, read by the TD term alone; its networks are candidates too. 10 000 is
-    /// every step of the default world's rollouts (100 start cells x 100 steps), and brings every
-    /// power-dominated run of D23 within 1% of its agent; 2 000 left 3 of 24 runs on unseen tasks
+    /// every step of the default world's rollouts (100 start cells x 100 steps); it brings every
+    /// CQL-MAML and CQL-pretrain run of D23 within 1.4% of its agent, where 2 000 left 3 of 24
     /// more than 2% short (docs/EXPERIMENTS.md). 0 = no twin; tasks with rain never have one.
     #[default(10000)]
     pub model_rows: usize,
