@@ -74,8 +74,8 @@ impl Planner {
     /// searches' best ([`Planner::beam`]), then improved by local search over its device
     /// schedule with the exact cheapest path of each ([`crate::schedule`]).
     pub fn plan(&self, world: &World) -> Plan {
-        let kicks = self.beam_width / crate::schedule::BEAM_PER_KICK;
-        crate::schedule::improve(world, self.beam(world), kicks)
+        let patience = self.beam_width / crate::schedule::BEAM_PER_KICK;
+        crate::schedule::improve(world, self.beam(world), patience)
     }
 
     /// The cheapest action sequence the beam searches find (the first weight's on a tie).

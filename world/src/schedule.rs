@@ -14,12 +14,18 @@ use crate::world::{Move, World};
 /// Sweeps over the schedule at most: each costs about (T x K) x cells operations.
 pub const MAX_SWEEPS: usize = 50;
 
-/// States of the beam per kick of the iterated local search: `planner.beam_width` sets the
-/// effort of both searches (32 kicks at the default 256, 2 for a quick run's 16). Each kick
-/// redraws [`KICK_WIDTH`] neighbouring steps' devices of the best schedule so far and descends
-/// again; 20 / 40 / 60 kicks reached -11 735 / -11 651 / -11 613 on lambda-300 at -90 dBm
-/// (docs/EXPERIMENTS.md, P3), about 0.3 s a start cell for 40.
-pub const BEAM_PER_KICK: usize = 8;
+/// States of the beam per kick of patience: `planner.beam_width` sets the effort of both
+/// searches. Each kick redraws [`KICK_WIDTH`] neighbouring steps' devices of the best schedule so
+/// far and descends again; the kicks stop once `planner.beam_width` / 4 of them in a row (64 at the
+/// default 256, 4 for a quick run's 16) have found nothing cheaper, or after
+/// [`MAX_KICKS_PER_PATIENCE`] times that many. Where power dominates a fixed 32 kicks stopped well
+/// short of where the search converges (docs/EXPERIMENTS.md, P6): on lambda-300 at -90 dBm 32 kicks
+/// reached -11 676, stopping on 64 in a row -11 562.
+pub const BEAM_PER_KICK: usize = 4;
+
+/// The most kicks of one improvement, as a multiple of its patience: a bound on its cost (on the
+/// measured tasks it stopped after 89 to 476 kicks at the default patience of 64).
+pub const MAX_KICKS_PER_PATIENCE: usize = 16;
 
 /// Steps whose devices a kick redraws.
 const KICK_WIDTH: usize = 8;
@@ -34,9 +40,10 @@ fn state_key(world: &World) -> u64 {
     )
 }
 
-/// `plan` improved by the schedule search (docs/MODEL.md section 9) with `kicks` kicks, if `world`
-/// (at its current state) has no rain ahead; otherwise, or if nothing improves, `plan` itself.
-pub fn improve(world: &World, plan: Plan, kicks: usize) -> Plan {
+/// `plan` improved by the schedule search (docs/MODEL.md section 9), kicking until `patience` kicks
+/// in a row find nothing cheaper, if `world` (at its current state) has no rain ahead; otherwise,
+/// or if nothing improves, `plan` itself.
+pub fn improve(world: &World, plan: Plan, patience: usize) -> Plan {
     if world.rain_schedule().iter().any(Option::is_some) || plan.actions.is_empty() {
         return plan;
     }
@@ -46,7 +53,11 @@ pub fn improve(world: &World, plan: Plan, kicks: usize) -> Plan {
     best.descend();
     let mut rng = ChaCha8Rng::seed_from_u64(state_key(world));
     let steps = best.devices.len();
-    for _ in 0..kicks {
+    let mut since_gain = 0;
+    for _ in 0..patience * MAX_KICKS_PER_PATIENCE {
+        if since_gain == patience {
+            break;
+        }
         let mut devices = best.devices.clone();
         let width = KICK_WIDTH.min(steps);
         let from = rng.random_range(0..=steps - width);
@@ -57,6 +68,9 @@ pub fn improve(world: &World, plan: Plan, kicks: usize) -> Plan {
         trial.descend();
         if trial.total() < best.total() - 1e-9 * best.total().abs() {
             best = trial;
+            since_gain = 0;
+        } else {
+            since_gain += 1;
         }
     }
     let actions = best.actions();

@@ -294,6 +294,39 @@ fn the_schedule_search_improves_the_beam_where_power_dominates() {
     }
 }
 
+/// The schedule search kicks until `patience` kicks in a row find nothing cheaper: its kicks are
+/// drawn from the state alone, so more patience replays the same kicks and goes on, and never ends
+/// costlier; where power dominates the default's patience (64) gains over none and over 8, and
+/// the planner's plan is that search's.
+#[test]
+fn the_schedule_search_kicks_until_it_stops_gaining() {
+    let cfg = config("layout_seed = 7\nnoise_dbm = -90.0");
+    let task = TaskConfig::one_off(300.0, None);
+    let planner = Planner::new(&cfg.planner);
+    let patience = cfg.planner.beam_width / uavmeta_world::schedule::BEAM_PER_KICK;
+    let mut sums = [0.0; 3];
+    for k in 0..4u32 {
+        let cell = 13 * k % 100;
+        let world = World::new(&cfg.world, &task, 0).with_start((cell % 10, cell / 10));
+        let beam = planner.beam(&world);
+        let costs = [0, 8, patience]
+            .map(|p| uavmeta_world::schedule::improve(&world, beam.clone(), p).cost);
+        assert!(
+            costs[0] <= beam.cost && costs[1] <= costs[0] && costs[2] <= costs[1],
+            "cell {cell}: patience 0 / 8 / {patience} cost {costs:?}, the beam {}",
+            beam.cost
+        );
+        assert_eq!(planner.plan(&world).cost, costs[2], "cell {cell}");
+        for (sum, cost) in sums.iter_mut().zip(costs) {
+            *sum += cost;
+        }
+    }
+    assert!(
+        sums[2] < sums[1] * (1.0 - 1e-3) && sums[1] < sums[0],
+        "patience 0 / 8 / {patience} cost {sums:?} over the cells: the kicks gained nothing"
+    );
+}
+
 /// A width of 0, and a width and horizon whose search cannot fit the memory bound, are refused
 /// naming the key, the value and what was expected.
 #[test]

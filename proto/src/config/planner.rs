@@ -14,8 +14,8 @@ use super::WorldConfig;
 #[serde(deny_unknown_fields, default)]
 #[garde(allow_unvalidated)]
 pub struct PlannerConfig {
-    /// The planner's effort: states kept per step of the beam search, and one kick of the
-    /// schedule search per 8 of them (world/src/schedule.rs). Exact (dynamic programming) once
+    /// The planner's effort: states kept per step of the beam search, and the schedule search's
+    /// patience, one kick per 4 of them (world/src/schedule.rs). Exact (dynamic programming) once
     /// the beam holds every distinct state; on the default world 4x wider (1024) gains under
     /// 0.2% at 4x the time (docs/EXPERIMENTS.md, P and P3).
     #[default(256)]
