@@ -138,7 +138,7 @@ section "C. MAML on the reproduction's datasets ($REPRO/cache), w0 zero-shot and
 declare -A META=(
     [pass]=""
     [one-outer-step]="--set meta.outer_steps_per_meta_epoch=1"
-    [target-every-10]="--set meta.target_update_every=10"
+    [target-every-10]="--set meta.target_update_meta_epochs=10"
     [first-order]="--set meta.first_order=true"
 )
 meta_one() {

@@ -32,7 +32,7 @@ const TWO_META_TRAIN_TASKS: &[&str] = &[
 ];
 
 /// The columns of `train.csv` that users' scripts read (learner/src/train.rs).
-const TRAIN_COLUMNS: &str = "epoch,steps,td_loss,conservative_loss,mean_q,return,return_ci95,aoi,aoi_ci95,power_mw,power_mw_ci95,outages,outages_ci95,episodes,seconds,model_return,network_epoch,network_twin";
+const TRAIN_COLUMNS: &str = "epoch,steps,td_loss,conservative_loss,mean_q,return,return_ci95,aoi,aoi_ci95,power_mw,power_mw_ci95,outages,outages_ci95,episodes,seconds,network_epoch";
 
 /// `uavmeta SUBCOMMAND --config CONFIG [--set KEY=VALUE].. ARGS` run in `dir`, so relative paths
 /// are the user's.
@@ -233,8 +233,8 @@ fn train_writes_a_row_per_epoch_and_a_checkpoint_that_eval_scores() {
         // The world is deterministic given the start cell: one episode from each of the 100
         // (learner.eval_episodes counts only where rain moves).
         assert_eq!(row[13], "100", "an exact evaluation's episodes");
-        // Every column is a number, the model's return too: each epoch's network is a candidate
-        // for the one the run keeps (`learner.select_every` = 1).
+        // Every column is a number, and each row scores its own epoch's network.
+        assert_eq!(row[15], (i + 1).to_string(), "network_epoch");
         for field in row {
             assert!(number(field).is_finite(), "{row:?}");
         }
@@ -293,11 +293,7 @@ fn train_init_seed_draws_the_random_init_apart_from_the_shots() {
     let dir = tempfile::tempdir().expect("temp dir");
     let d = dir.path();
     let data = agent_data(d);
-    // Each run keeps its last network: kept starts would make two runs of one init alike.
-    let train = |out: &str, seeds: &[&str]| {
-        let extra = [&["--set", "learner.select_every=0"][..], seeds].concat();
-        train_cql(d, data, "50", "1", out, &extra)
-    };
+    let train = |out: &str, seeds: &[&str]| train_cql(d, data, "50", "1", out, seeds);
     let weights = |out: &str| read(d, &format!("{out}/final.safetensors"));
     for (out, seeds) in [
         ("runs/s5", &["--seed", "5"][..]),

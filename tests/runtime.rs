@@ -884,6 +884,20 @@ fn an_evaluator_restarted_after_the_meta_learner_exited_catches_up_from_the_run_
     let run = dir.path().join("run");
     let out = launch(dir.path(), &run, &[]).wait(within(240));
     assert!(out.status.success(), "launch failed:\n{}", stderr(&out));
+    // The table's model-based section, under the line saying what it is told: Dyna-CQL's rows
+    // and the planner in the world the shots identify, the last rows of the task.
+    let table = &out.stdout;
+    let rows: Vec<&str> = table.lines().collect();
+    let section = rows
+        .iter()
+        .position(|l| l.starts_with(&format!("-- {}", uavmeta_proto::method::MODEL_BASED)))
+        .unwrap_or_else(|| panic!("no model-based section:\n{table}"));
+    let methods: Vec<&str> = rows[section + 1..]
+        .iter()
+        .filter_map(|l| l.split_whitespace().nth(1))
+        .take(3)
+        .collect();
+    assert_eq!(methods, ["dyna-cql", "dyna-cql-w0", "model-planner"], "{table}");
     let csv = run.join("evaluations.csv");
     let complete = std::fs::read_to_string(&csv).expect("evaluations.csv");
     let lines: Vec<&str> = complete.lines().collect();
@@ -969,8 +983,12 @@ fn a_launch_with_the_dqn_inner_loss_fine_tunes_and_reports_dqn_maml() {
     let meta = uavmeta_learner::checkpoint::read_meta(&w0).expect("the final w0 checkpoint");
     assert_eq!(meta.algorithm, "dqn-maml", "{}", w0.display());
     let table = out.stdout;
+    let methods: Vec<&str> = table
+        .lines()
+        .filter_map(|l| l.split_whitespace().nth(1))
+        .collect();
     assert!(
-        table.contains("dqn-maml") && !table.contains("cql"),
+        methods.contains(&"dqn-maml") && !methods.iter().any(|m| m.starts_with("cql")),
         "{table}"
     );
     let log =

@@ -17,7 +17,7 @@ use tch::nn::OptimizerConfig;
 use tch::{nn, Kind, Reduction, Tensor};
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
-use uavmeta_learner::train::{train, EvaluatePolicy, TrainOptions};
+use uavmeta_learner::train::{train, EvaluatePolicy, Rollouts, TrainOptions};
 use uavmeta_learner::transitions::Transitions;
 use uavmeta_proto::config::Config;
 use uavmeta_proto::dataset::Transition;
@@ -35,11 +35,8 @@ impl EvaluatePolicy for NoEvaluation {
         PolicyMetrics::default()
     }
 
-    fn judge(&mut self, _q: &QNetwork) -> Option<f64> {
-        None
-    }
 
-    fn rollouts(&mut self, _q: &QNetwork, _eps: f64, _seed: u64) -> Option<Vec<Transition>> {
+    fn rollouts(&mut self, _q: &QNetwork, _ask: Rollouts) -> Option<Vec<Transition>> {
         None
     }
 }

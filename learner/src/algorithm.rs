@@ -15,6 +15,7 @@ use crate::bc::Bc;
 use crate::bcq::Bcq;
 use crate::cql::Cql;
 use crate::dqn::{next_value, Dqn, TdConfig};
+use crate::dyna_cql::DynaCql;
 use crate::qnet::{q_values, Acting, QNetwork};
 use crate::transitions::Transitions;
 
@@ -30,8 +31,8 @@ pub struct Terms<'a> {
     /// DQN, Huber): a scalar, or [T], with its graph.
     pub td: &'a Tensor,
     /// Averages a per-transition term [.., B] over the transitions: [..]. MAML pads tasks to one
-    /// length and weighs the padding 0; model rows (`crate::model_rows`) weigh 0 too, so an
-    /// algorithm's own terms read only what the data did, while `td` reads every row.
+    /// length and weighs the padding 0; a model-based algorithm's model rows (`crate::model_rows`)
+    /// weigh 0 too, so its own terms read only what the data did, while `td` reads every row.
     pub mean: &'a dyn Fn(Tensor) -> Tensor,
     /// The conservative weight alpha of eq. 8 for this run (`learner.alpha`, or `meta.alpha` in
     /// MAML and pretraining); algorithms without one ignore it.
@@ -53,6 +54,12 @@ pub trait OfflineAlgorithm: Sync {
     /// says no.
     fn learns_values(&self) -> bool {
         true
+    }
+
+    /// Whether it also trains on rollouts in the world its shots identify (`learner.model_rows`
+    /// of them an epoch, [`crate::model_rows`]): a model-based algorithm.
+    fn model_rows(&self) -> bool {
+        false
     }
 
     /// Blocks of A outputs the network needs: the Q-values, then the algorithm's own.
@@ -84,7 +91,7 @@ pub trait OfflineAlgorithm: Sync {
 }
 
 /// Every algorithm's loss, in the order of `uavmeta_proto::method::ALGORITHMS`.
-pub const ALGORITHMS: &[&dyn OfflineAlgorithm] = &[&Cql, &Dqn, &Bc, &Bcq];
+pub const ALGORITHMS: &[&dyn OfflineAlgorithm] = &[&Cql, &Dqn, &Bc, &Bcq, &DynaCql];
 
 /// The loss of `algo`.
 pub fn of(algo: Algo) -> &'static dyn OfflineAlgorithm {
@@ -110,5 +117,8 @@ mod tests {
         let names: Vec<&str> = ALGORITHMS.iter().map(|a| a.name()).collect();
         let registered: Vec<&str> = Algo::all().map(Algo::name).collect();
         assert_eq!(names, registered);
+        for algo in Algo::all() {
+            assert_eq!(of(algo).model_rows(), algo.model_based(), "{algo}");
+        }
     }
 }

@@ -7,6 +7,8 @@
 //!   - [`bc`]: behaviour cloning (d3rlpy's DiscreteBC), the offline baseline;
 //!   - [`bcq`]: discrete batch-constrained Q-learning (d3rlpy's DiscreteBCQ): Q-learning over
 //!     the actions an imitation head says the data supports;
+//!   - [`dyna_cql`]: Dyna-CQL, the model-based learner: CQL on the shots plus rollouts in the
+//!     world the shots identify ([`model_rows`]);
 //!   - [`dqn`]: DQN, paper eq. 7, and the one TD-target computation every learner uses
 //!     ([`dqn::TdConfig::td_errors`]; double DQN and Huber as options, off by default).
 //! - [`qnet`]: [`qnet::QNetwork`], the MLP of docs/MODEL.md section 5, built by
@@ -16,7 +18,7 @@
 //! - [`transitions`]: [`transitions::Transitions`], `proto::dataset` transitions as normalised tensors.
 //! - [`train`]: offline training with any registered algorithm, evaluated each epoch through the
 //!   [`train::EvaluatePolicy`] hook; per-epoch table on stderr and `train.csv`.
-//! - [`model_rows`]: the model twin's rows, rollouts of its policy in the world its shots
+//! - [`model_rows`]: Dyna-CQL's model rows, rollouts of its policy in the world its shots
 //!   identify, added to each epoch's shots.
 //! - [`progress`]: the CSV log and the progress bar of a training loop (offline and meta), and
 //!   [`progress::OnStep`], the hook a caller hears every training step through.
@@ -38,6 +40,7 @@ pub mod bcq;
 pub mod checkpoint;
 pub mod cql;
 pub mod dqn;
+pub mod dyna_cql;
 pub mod model_rows;
 pub mod numerics;
 pub mod optim;

@@ -1,24 +1,17 @@
-//! The model twin's rows: transitions of the policy being trained, rolled out in the world its
-//! shots identify, added to each epoch's shots (`learner.model_rows`; docs/MODEL.md section 5,
-//! docs/EXPERIMENTS.md D21-D23).
+//! A model-based algorithm's model rows: transitions of the policy being trained, rolled out in
+//! the world its shots identify, added to each epoch's shots (`learner.model_rows`,
+//! `learner.model_epsilon`; `dyna-cql`, docs/MODEL.md section 5).
 //!
 //! 500 shots cover a few hundred of the states a fine-tuned policy visits, and where the data
-//! lacks a state the conservative term holds the policy near the behaviour that made the shots,
-//! 1-4% below the agent where power dominates the reward (B5, D20). The shots also identify the
-//! world (`uavmeta_world::identify`: the moves, the AoI update and the reward's form are known,
-//! each device's power is fitted), so before each epoch the twin's network acts
-//! epsilon-greedily in that world from every start cell, and `learner.model_rows` of the steps,
-//! drawn at random, join the shots, as Dyna and MBPO add model rollouts to the real data. Their
-//! rewards come from the model, never the true world. They are read by the TD term alone: an
-//! algorithm's own per-transition terms (CQL's conservative term, an imitation head) average
-//! over the batch with the model rows weighing 0, so they still anchor only to what the data
-//! did, as COMBO's regulariser rewards the data's actions and not the model's.
-//!
-//! The rows help where power dominates and the model is exact, and mislead where it is not (a
-//! device the shots do not locate) or where the shots' own policy is already near the best (the
-//! AoI-dominated lambda-300): so they train a twin of the run ([`crate::train`]), and the model's
-//! judgement picks among both runs' networks. A task whose shots identify nothing (rain) has no
-//! twin.
+//! lacks a state the conservative term holds the policy near the behaviour that made the shots.
+//! The shots also identify the world (`uavmeta_world::identify`: told the world's form, it fits
+//! each device's power cost), so before each epoch the network acts epsilon-greedily in that
+//! world from the shots' own states, and `learner.model_rows` of the steps, drawn at random, join
+//! the shots, as Dyna and MBPO add model rollouts to the real data. Their rewards come from the
+//! model, never the true world. The algorithm's own per-transition terms (CQL's conservative
+//! term) average over the batch with the model rows weighing 0, so they anchor only to what the
+//! data did. Where the shots identify no world (they show rain) there are no model rows and the
+//! run trains on the shots alone.
 
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
@@ -27,7 +20,7 @@ use uavmeta_proto::config::WorldConfig;
 
 use crate::algorithm;
 use crate::qnet::QNetwork;
-use crate::train::{EvaluatePolicy, TrainOptions};
+use crate::train::{EvaluatePolicy, Rollouts, TrainOptions};
 use crate::transitions::Transitions;
 
 /// The model rows of one training run.
@@ -44,15 +37,15 @@ pub struct ModelRows {
 }
 
 impl ModelRows {
-    /// The model rows of a run with `opts` starting from `q`, or `None`: `learner.model_rows` is
-    /// 0, the algorithm does not learn values, or the shots identify no world.
+    /// The model rows of a run with `opts` starting from `q`, or `None`: the algorithm is not
+    /// model-based, `learner.model_rows` is 0, or the shots identify no world.
     pub fn new(
         opts: &TrainOptions,
         q: &QNetwork,
         evaluator: &mut dyn EvaluatePolicy,
     ) -> Option<Self> {
         let cfg = &opts.config.learner;
-        if cfg.model_rows == 0 || !algorithm::of(opts.algorithm).learns_values() {
+        if cfg.model_rows == 0 || !algorithm::of(opts.algorithm).model_rows() {
             return None;
         }
         let mut model = Self {
@@ -64,8 +57,15 @@ impl ModelRows {
             first: None,
             last: None,
         };
-        let first = model.draw(1, q, evaluator)?;
-        // Fewer steps than asked for where the rollouts hold fewer (start cells x horizon).
+        let Some(first) = model.draw(1, q, evaluator) else {
+            tracing::warn!(
+                algorithm = %opts.algorithm,
+                "the shots identify no world (they show rain, or are not this world's steps): \
+                 no model rows, the run trains on the shots alone"
+            );
+            return None;
+        };
+        // Fewer steps than asked for where the rollouts hold fewer (the horizon ends branches).
         model.rows = first.len();
         model.first = Some(first);
         Some(model)
@@ -108,7 +108,12 @@ impl ModelRows {
     ) -> Option<Transitions> {
         let epoch = epoch as u64;
         let rollout_seed = self.seed.wrapping_mul(1_000_003).wrapping_add(epoch);
-        let mut steps = evaluator.rollouts(q, self.epsilon, rollout_seed)?;
+        let ask = Rollouts {
+            rows: self.rows,
+            epsilon: self.epsilon,
+            seed: rollout_seed,
+        };
+        let mut steps = evaluator.rollouts(q, ask)?;
         let order_seed = self.seed.wrapping_mul(7919).wrapping_add(epoch);
         steps.shuffle(&mut ChaCha8Rng::seed_from_u64(order_seed));
         steps.truncate(self.rows);

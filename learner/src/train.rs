@@ -1,17 +1,16 @@
-//! Offline training of a Q-network on a fixed set of transitions, with DQN (eq. 7) or CQL (eq. 8).
+//! Offline training of a Q-network on a fixed set of transitions, with any registered algorithm.
 //!
 //! One run: Adam(`learner.lr`) on the network, `learner.epochs` epochs of `learner.steps_per_epoch`
 //! gradient steps (0 = one pass, ceil(N / batch)), each on a minibatch drawn from the N shots by a
 //! seeded shuffle, and a hard target-network update every `learner.target_update_every` gradient
-//! steps. A guard that reads only the offline data (`learner.value_guard`, [`ValueGuard`]) stops
-//! training once Q drifts past the value scale the data supports. After every epoch the greedy
-//! policy is evaluated through [`EvaluatePolicy`] (the world lives in `uavmeta-actors`, which
-//! implements it) and one row is written: to a table on stderr, to `train.csv` in the output
-//! directory, and to the returned list. The network a run keeps (`learner.select_every`,
-//! [`Selection`]) is the one of its start and every epoch's network that does best in the world
-//! its shots identify; the last row scores it. Where that world is identified, a model twin
-//! (`learner.model_rows`, [`crate::model_rows`]) first trains the same way from the same start on
-//! the shots plus rollouts in that world, and its networks are candidates too.
+//! steps. After every epoch the greedy policy is evaluated through [`EvaluatePolicy`] (the world
+//! lives in `uavmeta-actors`, which implements it) and one row is written: to a table on stderr,
+//! to `train.csv` in the output directory, and to the returned list. The run reports its last
+//! epoch's network, as d3rlpy and CORL do; nothing that picks or trains it reads the evaluation.
+//! Two options that read only the shots: weight averaging (`learner.average_decay`, [`Average`])
+//! and a guard against late collapse (`learner.value_guard`, [`ValueGuard`]). A model-based
+//! algorithm (`dyna-cql`) adds rollouts in the world its shots identify to each epoch's shots
+//! ([`crate::model_rows`]).
 
 use std::path::Path;
 use std::time::Instant;
@@ -39,22 +38,29 @@ use crate::transitions::Transitions;
 /// Measures the greedy policy of a Q-network on the true environment.
 ///
 /// `train` calls [`EvaluatePolicy::evaluate`] once per epoch with the network the run publishes
-/// after it, so an evaluator may count epochs or checkpoint what it is given (the launch's does).
+/// after it, each a new network (after a value-guard stop no call is made), so an evaluator may
+/// count epochs or checkpoint what it is given (the launch's does).
 pub trait EvaluatePolicy {
     fn evaluate(&mut self, q: &QNetwork) -> PolicyMetrics;
 
-    /// The return of `q`'s greedy policy in the world as the run's own shots identify it, never
-    /// the true world: what picks the network a run keeps ([`Selection`]). `None` where the
-    /// shots do not identify the world: the run keeps its last network. Required, so that a
-    /// wrapper cannot drop its inner evaluator's judgement by forgetting it.
-    fn judge(&mut self, q: &QNetwork) -> Option<f64>;
+    /// About `ask.rows` steps of `q`'s policy in the world the run's shots identify (never the
+    /// true world), from the shots' own states, acting uniformly at random with probability
+    /// `ask.epsilon` (draws seeded `ask.seed`) and greedily otherwise: every step as a
+    /// transition, rewards from the model. What a model-based algorithm adds to the shots
+    /// ([`crate::model_rows`]). `None` where the shots identify no world. Required, so that a
+    /// wrapper cannot drop its inner evaluator's model by forgetting it.
+    fn rollouts(&mut self, q: &QNetwork, ask: Rollouts) -> Option<Vec<Transition>>;
+}
 
-    /// One episode of `q`'s policy from every start cell, in the world the run's shots identify
-    /// (never the true world), acting uniformly at random with probability `epsilon` (draws
-    /// seeded `seed`) and greedily otherwise: every step as a transition, rewards from the
-    /// model. What `learner.model_rows` adds to the shots ([`crate::model_rows`]). `None` where
-    /// the shots do not identify the world. Required, like [`EvaluatePolicy::judge`].
-    fn rollouts(&mut self, q: &QNetwork, epsilon: f64, seed: u64) -> Option<Vec<Transition>>;
+/// What [`EvaluatePolicy::rollouts`] is asked for.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Rollouts {
+    /// About how many steps.
+    pub rows: usize,
+    /// How often an action is uniformly random rather than greedy.
+    pub epsilon: f64,
+    /// Seed of those draws.
+    pub seed: u64,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -99,18 +105,12 @@ pub struct EpochRow {
     pub policy: PolicyMetrics,
     /// Wall-clock seconds since training started.
     pub seconds: f64,
-    /// The return in the world the shots identify ([`EvaluatePolicy::judge`]), at the epochs
-    /// [`Selection`] scores.
-    pub model_return: Option<f64>,
-    /// The epoch whose network `policy` scores (0 = the start): `epoch` itself, but for the rows
-    /// after a value-guard stop and the last row, which scores the network the run keeps.
+    /// The epoch whose network `policy` scores (0 = the start): `epoch` itself, but from a
+    /// value-guard stop on, where training stopped and the previous epoch's network stands.
     pub network_epoch: usize,
-    /// `network_epoch` is an epoch of the model twin ([`crate::model_rows`]): the last row's
-    /// kept network may be the twin's.
-    pub network_twin: bool,
 }
 
-const CSV_HEADER: &str = "epoch,steps,td_loss,conservative_loss,mean_q,return,return_ci95,aoi,aoi_ci95,power_mw,power_mw_ci95,outages,outages_ci95,episodes,seconds,model_return,network_epoch,network_twin";
+const CSV_HEADER: &str = "epoch,steps,td_loss,conservative_loss,mean_q,return,return_ci95,aoi,aoi_ci95,power_mw,power_mw_ci95,outages,outages_ci95,episodes,seconds,network_epoch";
 
 impl EpochRow {
     /// The row of a trained epoch, its policy not yet scored.
@@ -129,23 +129,17 @@ impl EpochRow {
             mean_q: means.max_q / cfg.reward_scale,
             policy: PolicyMetrics::default(),
             seconds: 0.0,
-            model_return: None,
             network_epoch,
-            network_twin: false,
         }
     }
 
-    /// Which network the row scores, in words: "epoch 100", "epoch 100, keeping epoch 10's
-    /// network" (the start's is epoch 0's) or "epoch 100, keeping the model twin's epoch 10".
+    /// Which network the row scores, in words: "epoch 100", or "epoch 100, keeping epoch 57's
+    /// network" after a value-guard stop (the start's is epoch 0's).
     pub fn kept(&self) -> String {
-        match (self.network_twin, self.network_epoch == self.epoch) {
-            (false, true) => format!("epoch {}", self.epoch),
-            (false, false) => format!(
-                "epoch {}, keeping epoch {}'s network",
-                self.epoch, self.network_epoch
-            ),
-            (true, _) => format!(
-                "epoch {}, keeping the model twin's epoch {}",
+        match self.network_epoch == self.epoch {
+            true => format!("epoch {}", self.epoch),
+            false => format!(
+                "epoch {}, keeping epoch {}'s network (the value guard stopped training)",
                 self.epoch, self.network_epoch
             ),
         }
@@ -155,14 +149,9 @@ impl EpochRow {
         let (epoch, steps, td_loss) = (self.epoch, self.steps, self.td_loss);
         let (conservative_loss, mean_q) = (self.conservative_loss, self.mean_q);
         let (policy, episodes) = (self.policy.csv(), self.policy.episodes);
-        let model_return = self
-            .model_return
-            .map_or(String::new(), |r| format!("{r:.3}"));
         format!(
-            "{epoch},{steps},{td_loss},{conservative_loss},{mean_q},{policy},{episodes},{:.3},{model_return},{},{}",
-            self.seconds,
-            self.network_epoch,
-            u8::from(self.network_twin)
+            "{epoch},{steps},{td_loss},{conservative_loss},{mean_q},{policy},{episodes},{:.3},{}",
+            self.seconds, self.network_epoch
         )
     }
 
@@ -222,8 +211,8 @@ pub struct OfflineTrainer {
     order: MinibatchOrder,
     steps: usize,
     on_step: OnStep,
-    /// Rows from this index on are model rows ([`crate::model_rows`]): the algorithm's own
-    /// per-transition terms weigh them 0.
+    /// Rows from this index on are a model-based algorithm's model rows
+    /// ([`crate::model_rows`]): its own per-transition terms weigh them 0.
     model_from: Option<usize>,
 }
 
@@ -346,52 +335,44 @@ pub fn train(
 ) -> Result<Vec<EpochRow>, TrainError> {
     let cfg = &opts.config.learner;
     algorithm::prepare(q, opts.algorithm, cfg);
-    let mut selection = Selection::new(cfg.select_every, q, evaluator);
-    let twin = selection
-        .judges()
-        .then(|| ModelRows::new(opts, q, evaluator))
-        .flatten();
-    let twin_steps = twin
-        .as_ref()
-        .map_or(0, |m| steps_per_epoch(cfg, data.len() + m.rows()));
-    let steps_per_epoch = steps_per_epoch(cfg, data.len());
+    let mut model = ModelRows::new(opts, q, evaluator);
+    let rows = data.len() + model.as_ref().map_or(0, ModelRows::rows);
+    let steps_per_epoch = steps_per_epoch(cfg, rows);
     let mut csv = match opts.out_dir {
         Some(dir) => Some(CsvLog::create(&dir.join("train.csv"), CSV_HEADER)?),
         None => None,
     };
     let bar = progress_bar(
         opts.progress,
-        (cfg.epochs * (steps_per_epoch + twin_steps)) as u64,
+        (cfg.epochs * steps_per_epoch) as u64,
         "{bar:40} {pos}/{len} steps {per_sec} eta {eta}",
     );
-    if let Some(twin) = twin {
-        train_twin(q, data, twin, opts, &mut selection, evaluator, &bar);
-    }
     if opts.progress {
         bar.suspend(|| eprintln!("{}", EpochRow::table_header()));
     }
-
-    let mut trainer = OfflineTrainer::new(q, data.len(), opts.algorithm, opts.config, opts.seed)
+    let mut trainer = OfflineTrainer::new(q, rows, opts.algorithm, opts.config, opts.seed)
         .with_on_step(opts.on_step.clone());
+    if model.is_some() {
+        trainer = trainer.with_model_rows_from(data.len());
+    }
     let started = Instant::now();
     let mut rows: Vec<EpochRow> = Vec::with_capacity(cfg.epochs);
     let mut guard = Guarded::new(cfg, q, data, opts.algorithm);
     let mut average = Average::new(cfg);
     let mut stopped = false;
     for epoch in 1..=cfg.epochs {
-        let (mut row, evaluated) = match (stopped, rows.last()) {
-            // Stopped by the value guard: the kept network stays as it is.
+        let mut row = match (stopped, rows.last()) {
+            // Stopped by the value guard: the network stays as it is.
             (true, Some(last)) => {
                 bar.inc(steps_per_epoch as u64);
-                let row = EpochRow {
-                    epoch,
-                    model_return: None,
-                    ..*last
-                };
-                (row, true)
+                EpochRow { epoch, ..*last }
             }
             _ => {
-                let means = trainer.epoch(q, data, steps_per_epoch, &bar);
+                let with_model = model
+                    .as_mut()
+                    .map(|model| model.epoch_data(epoch, q, data, evaluator));
+                let epoch_data = with_model.as_ref().unwrap_or(data);
+                let means = trainer.epoch(q, epoch_data, steps_per_epoch, &bar);
                 stopped = guard
                     .as_mut()
                     .is_some_and(|g| g.tripped(epoch, q, data, cfg));
@@ -399,19 +380,21 @@ pub fn train(
                     average.update(q);
                 }
                 let network_epoch = epoch - usize::from(stopped);
-                let row = EpochRow::trained(epoch, network_epoch, trainer.steps(), &means, cfg);
-                (row, false)
+                let mut row = EpochRow::trained(epoch, network_epoch, trainer.steps(), &means, cfg);
+                // The previous epoch's network, scored already, unless it is the start's.
+                row.policy = match (stopped, rows.last()) {
+                    (true, Some(last)) => last.policy,
+                    _ => evaluator.evaluate(average.published(q)),
+                };
+                row
             }
         };
-        let published = average.published(q);
-        selection.finish_row(&mut row, published, evaluated, cfg.epochs, evaluator);
         row.seconds = started.elapsed().as_secs_f64();
         finish_epoch(&row, opts.progress, &bar, csv.as_mut())?;
         rows.push(row);
     }
     bar.finish_and_clear();
     average.publish_into(q);
-    selection.publish_into(q);
     if let Some(dir) = opts.out_dir {
         checkpoint::save(
             &dir.join("final"),
@@ -422,48 +405,6 @@ pub fn train(
         )?;
     }
     Ok(rows)
-}
-
-/// The model twin ([`crate::model_rows`]): the run again from `start`, on the shots and
-/// `model`'s rows, with the same seed, guard and averaging. Its networks are candidates of
-/// `selection` like the run's own; they are judged in the identified world only, never
-/// evaluated, and write no rows.
-fn train_twin(
-    start: &QNetwork,
-    data: &Transitions,
-    mut model: ModelRows,
-    opts: &TrainOptions,
-    selection: &mut Selection,
-    evaluator: &mut dyn EvaluatePolicy,
-    bar: &ProgressBar,
-) {
-    let cfg = &opts.config.learner;
-    let mut q = start.duplicate();
-    let rows = data.len() + model.rows();
-    let steps = steps_per_epoch(cfg, rows);
-    let mut trainer = OfflineTrainer::new(&q, rows, opts.algorithm, opts.config, opts.seed)
-        .with_on_step(opts.on_step.clone())
-        .with_model_rows_from(data.len());
-    let mut guard = Guarded::new(cfg, &q, data, opts.algorithm);
-    let mut average = Average::new(cfg);
-    for epoch in 1..=cfg.epochs {
-        let epoch_data = model.epoch_data(epoch, &q, data, evaluator);
-        trainer.epoch(&mut q, &epoch_data, steps, bar);
-        let stopped = guard
-            .as_mut()
-            .is_some_and(|g| g.tripped(epoch, &mut q, data, cfg));
-        if !stopped {
-            average.update(&q);
-        }
-        if selection.due(epoch, cfg.epochs) {
-            let network_epoch = epoch - usize::from(stopped);
-            selection.offer(network_epoch, true, average.published(&q), evaluator);
-        }
-        if stopped {
-            bar.inc(((cfg.epochs - epoch) * steps) as u64);
-            return;
-        }
-    }
 }
 
 /// Shows and logs one epoch's row.
@@ -479,115 +420,6 @@ fn finish_epoch(
     match csv {
         Some(csv) => Ok(csv.line(&row.csv())?),
         None => Ok(()),
-    }
-}
-
-/// The network a run keeps (`learner.select_every`, docs/MODEL.md section 5): of its start, the
-/// network it publishes every `select_every` epochs and its last, the one whose greedy policy
-/// has the best return in the world its shots identify ([`EvaluatePolicy::judge`]); the true
-/// world never enters the choice. Fine-tuning on few shots can first improve and then fall below
-/// its start, and where power dominates the reward the model, exact wherever the shots determine
-/// every device, tells which (docs/EXPERIMENTS.md, D19). Off, the last network kept, with
-/// `select_every = 0` or where the shots do not identify the world (a task with rain).
-struct Selection {
-    every: usize,
-    /// The best candidate so far.
-    best: Option<Candidate>,
-    /// Whether the kept network is not the last one.
-    replaces_last: bool,
-}
-
-struct Candidate {
-    /// The epoch after which it was published, 0 = the start.
-    epoch: usize,
-    /// Published by the model twin ([`train_twin`]).
-    twin: bool,
-    model_return: f64,
-    q: QNetwork,
-}
-
-impl Selection {
-    /// The selection of a run starting from `q`, its first candidate.
-    fn new(every: usize, q: &QNetwork, evaluator: &mut dyn EvaluatePolicy) -> Self {
-        let start = (every > 0).then(|| evaluator.judge(q)).flatten();
-        Self {
-            every: if start.is_some() { every } else { 0 },
-            best: start.map(|model_return| Candidate {
-                epoch: 0,
-                twin: false,
-                model_return,
-                q: q.duplicate(),
-            }),
-            replaces_last: false,
-        }
-    }
-
-    /// Whether the run chooses among candidates at all.
-    fn judges(&self) -> bool {
-        self.every > 0
-    }
-
-    /// Whether epoch `epoch` of `epochs` publishes a candidate.
-    fn due(&self, epoch: usize, epochs: usize) -> bool {
-        self.every > 0 && (epoch.is_multiple_of(self.every) || epoch == epochs)
-    }
-
-    /// Scores `q`, the network of epoch `epoch` (of the model twin if `twin`), and keeps it if it
-    /// does better than every candidate before it (a tie keeps the earlier); returns its model
-    /// return.
-    fn offer(
-        &mut self,
-        epoch: usize,
-        twin: bool,
-        q: &QNetwork,
-        evaluator: &mut dyn EvaluatePolicy,
-    ) -> Option<f64> {
-        let model_return = evaluator.judge(q)?;
-        match &mut self.best {
-            Some(best) if best.model_return >= model_return => {}
-            Some(best) => {
-                best.q.copy_from(q);
-                (best.epoch, best.twin, best.model_return) = (epoch, twin, model_return);
-            }
-            None => {}
-        }
-        Some(model_return)
-    }
-
-    /// Completes `row` (of `published`, scored already if `evaluated`) out of `epochs`: its
-    /// model return if the epoch is a candidate's, and its policy's score, which the last row
-    /// takes from the kept network.
-    fn finish_row(
-        &mut self,
-        row: &mut EpochRow,
-        published: &QNetwork,
-        evaluated: bool,
-        epochs: usize,
-        evaluator: &mut dyn EvaluatePolicy,
-    ) {
-        if self.due(row.epoch, epochs) {
-            row.model_return = self.offer(row.network_epoch, false, published, evaluator);
-        }
-        let kept = self
-            .best
-            .as_ref()
-            .filter(|best| best.twin || best.epoch != row.network_epoch);
-        match kept {
-            Some(kept) if row.epoch == epochs => {
-                row.policy = evaluator.evaluate(&kept.q);
-                (row.network_epoch, row.network_twin) = (kept.epoch, kept.twin);
-                self.replaces_last = true;
-            }
-            _ if !evaluated => row.policy = evaluator.evaluate(published),
-            _ => {}
-        }
-    }
-
-    /// At the end: puts the kept network into `q` if it is not the last.
-    fn publish_into(&self, q: &mut QNetwork) {
-        if let (true, Some(best)) = (self.replaces_last, &self.best) {
-            q.copy_from(&best.q);
-        }
     }
 }
 

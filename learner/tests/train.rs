@@ -7,7 +7,7 @@ use tch::Tensor;
 use uavmeta_learner::checkpoint;
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
-use uavmeta_learner::train::{train, EpochRow, EvaluatePolicy, TrainOptions};
+use uavmeta_learner::train::{train, EpochRow, EvaluatePolicy, Rollouts, TrainOptions};
 use uavmeta_learner::transitions::Transitions;
 use uavmeta_proto::config::Config;
 use uavmeta_proto::dataset::Transition;
@@ -72,12 +72,8 @@ impl EvaluatePolicy for Exact {
         PolicyMetrics::from_episodes(&episodes)
     }
 
-    /// No shots identify this world: runs keep their last network.
-    fn judge(&mut self, _q: &QNetwork) -> Option<f64> {
-        None
-    }
 
-    fn rollouts(&mut self, _q: &QNetwork, _eps: f64, _seed: u64) -> Option<Vec<Transition>> {
+    fn rollouts(&mut self, _q: &QNetwork, _ask: Rollouts) -> Option<Vec<Transition>> {
         None
     }
 }
@@ -208,11 +204,8 @@ impl EvaluatePolicy for Recorder {
         Exact.evaluate(q)
     }
 
-    fn judge(&mut self, _q: &QNetwork) -> Option<f64> {
-        None
-    }
 
-    fn rollouts(&mut self, _q: &QNetwork, _eps: f64, _seed: u64) -> Option<Vec<Transition>> {
+    fn rollouts(&mut self, _q: &QNetwork, _ask: Rollouts) -> Option<Vec<Transition>> {
         None
     }
 }
@@ -275,8 +268,9 @@ fn averaging_publishes_the_bias_corrected_average_of_the_epochs_networks() {
     assert_eq!(last.max_abs_difference(&raw[4]), 0.0);
 }
 
-/// A run the value guard stops keeps training no more: its step count stops growing, its later
-/// rows repeat the last trained one, and it ends with the network of its last good epoch.
+/// A run the value guard stops keeps training no more: its step count stops growing, the epoch
+/// it trips at and every later row score the last good epoch's network (evaluated once, when it
+/// was trained: no evaluation follows the stop), and it ends with that network.
 #[test]
 fn the_value_guard_stops_a_run_and_keeps_its_last_good_network() {
     tch::set_num_threads(1);
@@ -300,12 +294,19 @@ fn the_value_guard_stops_a_run_and_keeps_its_last_good_network() {
         };
         stopped += 1;
         // Epoch `last` (0-based) is the first that did not train: it and every later row repeat
-        // the row before it, and the network is the one that row published.
+        // the steps of the row before it, which tripped the guard; from that row on each scores
+        // the network of the epoch before the trip, the last one evaluated.
+        let tripped = last - 1;
+        assert!(tripped > 0, "run {i} tripped at its first epoch");
         for row in &rows[last..] {
-            assert_eq!(row.steps, rows[last - 1].steps, "run {i}");
-            assert_eq!(row.policy, rows[last - 1].policy, "run {i}");
+            assert_eq!(row.steps, rows[tripped].steps, "run {i}");
         }
-        assert_eq!(q.max_abs_difference(&recorder.0[last - 1]), 0.0, "run {i}");
+        for row in &rows[tripped..] {
+            assert_eq!(row.network_epoch, tripped, "run {i}");
+            assert_eq!(row.policy, rows[tripped - 1].policy, "run {i}");
+        }
+        assert_eq!(recorder.0.len(), tripped, "run {i}: one evaluation per trained network");
+        assert_eq!(q.max_abs_difference(&recorder.0[tripped - 1]), 0.0, "run {i}");
     }
     assert!(
         stopped > 0,
@@ -366,183 +367,82 @@ fn behaviour_cloning_takes_the_data_s_most_frequent_action_whatever_the_rewards(
     );
 }
 
-/// The bandit's exact evaluation, and a judge that scores a network by `judge` of its exact
-/// return: the world a run's shots identify, here as right (identity) or as wrong as can be.
-struct Judged(fn(f64) -> f64);
-
-impl EvaluatePolicy for Judged {
-    fn evaluate(&mut self, q: &QNetwork) -> PolicyMetrics {
-        Exact.evaluate(q)
-    }
-
-    fn judge(&mut self, q: &QNetwork) -> Option<f64> {
-        Some(self.0(Exact.evaluate(q).ret.mean))
-    }
-
-    fn rollouts(&mut self, _q: &QNetwork, _eps: f64, _seed: u64) -> Option<Vec<Transition>> {
-        None
-    }
-}
-
-#[test]
-fn a_run_keeps_the_candidate_its_judge_scores_best_and_only_with_a_judge() {
-    tch::set_num_threads(1);
-    let mut cfg = config();
-    cfg.learner.select_every = 10;
-    let data = Transitions::new(&dataset(400), &cfg.world, cfg.learner.reward_scale).unwrap();
-    let start = QNetworkConfig::new(3, 5, &cfg.learner.hidden).init(0);
-    let run = |cfg: &Config, evaluator: &mut dyn EvaluatePolicy| {
-        let dir = tempfile::tempdir().unwrap();
-        let (q, rows) = trained(
-            cfg,
-            Algo::CQL,
-            start.duplicate(),
-            &data,
-            4,
-            Some(dir.path()),
-            evaluator,
-        );
-        let csv = std::fs::read_to_string(dir.path().join("train.csv")).unwrap();
-        let kept = checkpoint::load(&dir.path().join("final"), cfg).unwrap().0;
-        assert_eq!(
-            Exact.evaluate(&kept),
-            rows[29].policy,
-            "the checkpoint is the kept network"
-        );
-        (rows, csv, q)
-    };
-    // The candidates: the start and epochs 10, 20, 30, as the run without selection scores them.
-    let (plain, _, _) = run(&cfg, &mut Exact);
-    let start_return = Exact.evaluate(&start).ret.mean;
-    let returns = [
-        start_return,
-        plain[9].policy.ret.mean,
-        plain[19].policy.ret.mean,
-        plain[29].policy.ret.mean,
-    ];
-    assert!(start_return < 1.0 && returns[3] == 1.0, "{returns:?}");
-
-    // A judge that is right keeps a best candidate; one that is wrong keeps the worst, the
-    // earliest of equals, and the last row scores it.
-    let (right, csv, _) = run(&cfg, &mut Judged(|r| r));
-    assert_eq!(right[29].policy.ret.mean, 1.0);
-    let (wrong, _, q) = run(&cfg, &mut Judged(|r| -r));
-    let worst = returns.iter().copied().fold(f64::INFINITY, f64::min);
-    let earliest = returns.iter().position(|&r| r == worst).unwrap() * 10;
-    assert_eq!(wrong[29].network_epoch, earliest);
-    assert_eq!(wrong[29].policy.ret.mean, worst);
-    assert_eq!(
-        Exact.evaluate(&q).ret.mean,
-        worst,
-        "the returned network is the kept one"
-    );
-    // Training itself is the same run: only the last row and the kept network differ.
-    assert_eq!(wrong[28].policy, plain[28].policy);
-    assert_eq!(wrong[29].td_loss, plain[29].td_loss);
-
-    // train.csv: the model's return at the candidates' epochs only.
-    let header: Vec<&str> = csv.lines().next().unwrap().split(',').collect();
-    let column = header.iter().position(|&c| c == "model_return").unwrap();
-    let scored: Vec<usize> = csv
-        .lines()
-        .skip(1)
-        .enumerate()
-        .filter(|(_, line)| !line.split(',').nth(column).unwrap().is_empty())
-        .map(|(i, _)| i + 1)
-        .collect();
-    assert_eq!(scored, [10, 20, 30]);
-
-    // Without a judge (`Exact`), or with `select_every = 0`, the run keeps its last network.
-    assert_eq!(plain[29].network_epoch, 30);
-    cfg.learner.select_every = 0;
-    let (off, _, _) = run(&cfg, &mut Judged(|r| -r));
-    assert_eq!(
-        (off[29].network_epoch, off[29].policy),
-        (30, plain[29].policy)
-    );
-}
-
-/// A judge that scores its `peak`-th call best (the start's is call 0, then the candidates in
-/// the order they are offered), and a model whose rollouts are the bandit's transitions.
-struct Peaked {
-    calls: usize,
-    peak: usize,
+/// The bandit's exact evaluation, counting its calls, and a model whose rollouts are the
+/// bandit's transitions (or none).
+struct Modelled {
+    evaluations: usize,
     rollouts: usize,
+    model: bool,
 }
 
-impl EvaluatePolicy for Peaked {
+impl Modelled {
+    fn new(model: bool) -> Self {
+        Self {
+            evaluations: 0,
+            rollouts: 0,
+            model,
+        }
+    }
+}
+
+impl EvaluatePolicy for Modelled {
     fn evaluate(&mut self, q: &QNetwork) -> PolicyMetrics {
+        self.evaluations += 1;
         Exact.evaluate(q)
     }
 
-    fn judge(&mut self, _q: &QNetwork) -> Option<f64> {
-        self.calls += 1;
-        Some(-(self.calls as f64 - 1.0 - self.peak as f64).abs())
-    }
-
-    fn rollouts(&mut self, _q: &QNetwork, _eps: f64, seed: u64) -> Option<Vec<Transition>> {
+    fn rollouts(&mut self, _q: &QNetwork, ask: Rollouts) -> Option<Vec<Transition>> {
         self.rollouts += 1;
-        Some(dataset_seeded(300, seed))
+        self.model.then(|| dataset_seeded(ask.rows + 100, ask.seed))
     }
 }
 
+/// A named algorithm trains on the shots alone and reports its last epoch's network: it never
+/// asks for the model's rollouts, every epoch scores that epoch's network once, and the last
+/// row, the returned network and the `final` checkpoint are the last epoch's. `dyna-cql` draws
+/// model rows every epoch, and without a model it is `cql` to the bit.
 #[test]
-fn the_model_twin_trains_on_model_rows_and_its_networks_are_candidates() {
+fn named_algorithms_read_the_shots_alone_and_dyna_cql_adds_model_rows() {
     tch::set_num_threads(1);
     let mut cfg = config();
-    cfg.learner.select_every = 10;
     cfg.learner.model_rows = 200;
     let data = Transitions::new(&dataset(400), &cfg.world, cfg.learner.reward_scale).unwrap();
     let start = QNetworkConfig::new(3, 5, &cfg.learner.hidden).init(0);
     let probe = Tensor::from_slice(&[0.3f32, 0.5, 0.01, 0.8, 0.1, 0.01]).view([2, 3]);
-    let run = |cfg: &Config, peak: usize| {
+    let run = |algo: &str, model: bool| {
         let dir = tempfile::tempdir().unwrap();
-        let mut judge = Peaked {
-            calls: 0,
-            peak,
-            rollouts: 0,
-        };
+        let mut evaluator = Modelled::new(model);
         let (q, rows) = trained(
-            cfg,
-            Algo::CQL,
+            &cfg,
+            algo.parse::<Algo>().unwrap(),
             start.duplicate(),
             &data,
             4,
             Some(dir.path()),
-            &mut judge,
+            &mut evaluator,
         );
-        let csv = std::fs::read_to_string(dir.path().join("train.csv")).unwrap();
-        let last = csv.lines().last().unwrap().to_string();
-        (rows, last, q.forward(&probe), judge)
+        let kept = checkpoint::load(&dir.path().join("final"), &cfg).unwrap().0;
+        assert!(kept.forward(&probe).allclose(&q.forward(&probe), 0.0, 0.0, false));
+        (rows, q.forward(&probe), evaluator)
     };
-    // Candidates: the start, the twin's epochs 10, 20, 30, then the run's own.
-    let (twin, last, twin_q, judge) = run(&cfg, 2);
-    assert_eq!(
-        (judge.calls, judge.rollouts),
-        (7, 30),
-        "one rollout per epoch"
-    );
-    assert_eq!((twin[29].network_epoch, twin[29].network_twin), (20, true));
-    assert!(last.ends_with(",20,1"), "train.csv says whose: {last}");
-    assert!(twin[29].kept().contains("model twin's epoch 20"));
-    let (own, last, own_q, _) = run(&cfg, 5);
-    assert_eq!((own[29].network_epoch, own[29].network_twin), (20, false));
-    assert!(last.ends_with(",20,0"), "{last}");
-    assert!(
-        !twin_q.allclose(&own_q, 1e-6, 1e-6, false),
-        "the twin's epoch 20 is another network"
-    );
-
-    // The twin leaves the run's own training as it was; without model rows there is none.
-    cfg.learner.model_rows = 0;
-    let (alone, _, alone_q, judge) = run(&cfg, 2);
-    assert_eq!((judge.calls, judge.rollouts), (4, 0));
-    assert_eq!(
-        (alone[29].network_epoch, alone[29].network_twin),
-        (20, false)
-    );
-    assert!(alone_q.allclose(&own_q, 0.0, 0.0, false));
-    for (a, b) in alone.iter().zip(&own).take(29) {
-        assert_eq!((a.td_loss, a.policy), (b.td_loss, b.policy));
+    let epochs = cfg.learner.epochs;
+    for algo in ["cql", "dqn", "bc", "bcq"] {
+        let (rows, _, evaluator) = run(algo, true);
+        assert_eq!((evaluator.rollouts, evaluator.evaluations), (0, epochs), "{algo}");
+        for (i, row) in rows.iter().enumerate() {
+            assert_eq!((row.epoch, row.network_epoch), (i + 1, i + 1), "{algo}");
+        }
+        assert_eq!(rows.last().unwrap().kept(), format!("epoch {epochs}"));
+    }
+    let (cql, cql_q, _) = run("cql", true);
+    let (dyna, dyna_q, evaluator) = run("dyna-cql", true);
+    assert_eq!((evaluator.rollouts, evaluator.evaluations), (epochs, epochs));
+    assert!(dyna[0].steps > cql[0].steps, "model rows lengthen the epoch");
+    assert!(!dyna_q.allclose(&cql_q, 1e-6, 1e-6, false));
+    let (alone, alone_q, evaluator) = run("dyna-cql", false);
+    assert_eq!(evaluator.rollouts, 1, "asked once, then trained on the shots alone");
+    assert!(alone_q.allclose(&cql_q, 0.0, 0.0, false));
+    for (a, b) in alone.iter().zip(&cql) {
+        assert_eq!((a.td_loss, a.policy, a.steps), (b.td_loss, b.policy, b.steps));
     }
 }

@@ -111,7 +111,7 @@ pub struct MetaTestResult {
 pub fn meta_test(opts: &MetaTestOptions) -> Result<MetaTestResult, MetaError> {
     let run = &opts.fine_tune;
     let shots = load_shots(run.config, run.task, opts.dataset, opts.shots, run.seed)?;
-    let evaluator = &mut Evaluator::from_config(run.config, run.task).judging_by(&shots.rows);
+    let evaluator = &mut Evaluator::from_config(run.config, run.task).with_model(&shots.rows);
     let (mut q, algorithm) = init_network(opts.init, run.config, &shots.data)?;
     let init = evaluator.evaluate(&q);
     let rows = fine_tune(&mut q, &shots.data, algorithm, run, evaluator)?;

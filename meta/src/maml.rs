@@ -20,7 +20,7 @@
 //! # The target network Qhat
 //!
 //! Both losses bootstrap from a target network `Qhat` (eqs. 7-8). Here `Qhat` is a detached copy of
-//! `w0`, refreshed at the start of every `meta.target_update_every`-th meta-epoch, and one and the
+//! `w0`, refreshed at the start of every `meta.target_update_meta_epochs`-th meta-epoch, and one and the
 //! same `Qhat` serves the inner loss (eq. 14) and the query loss (eq. 15) of every task of the
 //! meta-epoch. Three reasons:
 //!
@@ -472,7 +472,7 @@ pub struct Maml {
     config: MamlConfig,
     /// The iterate eq. 16 updates.
     w0: QNetwork,
-    /// The moving average of `w0` published as the init, when `average_decay` > 0.
+    /// The moving average of `w0` published as the init, when `meta.average_decay_per_outer_step` > 0.
     average: Option<QNetwork>,
     /// Meta-SGD's per-weight step sizes (leaves that require grad), when `learn_inner_lr`.
     inner_lr: Option<Vec<Tensor>>,
@@ -525,7 +525,7 @@ impl Maml {
     pub fn new(w0: QNetwork, config: MamlConfig, seed: u64) -> Result<Self, MetaError> {
         let (inner_lr, optimizer) = outer_optimizer(w0.parameters(), &config);
         let target = w0.duplicate();
-        let average = (config.meta.average_decay > 0.0).then(|| w0.duplicate());
+        let average = (config.meta.average_decay_per_outer_step > 0.0).then(|| w0.duplicate());
         Ok(Self {
             config,
             w0,
@@ -613,7 +613,7 @@ impl Maml {
             let saved = take(format!("target.{i}"), p)?;
             tch::no_grad(|| t.copy_(&saved));
         }
-        let average = match config.meta.average_decay > 0.0 {
+        let average = match config.meta.average_decay_per_outer_step > 0.0 {
             true => {
                 let average = w0.duplicate();
                 for (i, (p, mut dst)) in params.iter().zip(w0.parameters()).enumerate() {
@@ -669,7 +669,7 @@ impl Maml {
     }
 
     /// The meta-learned initial weights: the moving average of the iterates when
-    /// `average_decay` > 0, else the last iterate.
+    /// `meta.average_decay_per_outer_step` > 0, else the last iterate.
     pub fn w0(&self) -> &QNetwork {
         self.average.as_ref().unwrap_or(&self.w0)
     }
@@ -677,7 +677,7 @@ impl Maml {
     /// Polyak averaging: init <- decay * init + (1 - decay) * w0.
     fn update_average(&mut self) {
         if let Some(average) = &mut self.average {
-            average.average_toward(&self.w0, self.config.meta.average_decay);
+            average.average_toward(&self.w0, self.config.meta.average_decay_per_outer_step);
         }
     }
 
@@ -693,7 +693,7 @@ impl Maml {
         }
         if self
             .epochs_done
-            .is_multiple_of(self.config.meta.target_update_every)
+            .is_multiple_of(self.config.meta.target_update_meta_epochs)
         {
             self.target.copy_from(&self.w0); // Qhat <- w0, constant until the next refresh
         }

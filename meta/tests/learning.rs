@@ -98,7 +98,7 @@ fn a_meta_trained_w0_beats_a_random_init_zero_shot_on_an_unseen_lambda() {
     );
 }
 
-/// With configs/default.toml's averaging of the meta-iterates (`meta.average_decay`) and w0's
+/// With configs/default.toml's averaging of the meta-iterates (`meta.average_decay_per_outer_step`) and w0's
 /// own loss in the meta-loss (`meta.w0_loss_weight`), w0's zero-shot return on the unseen
 /// lambda = 300, evaluated exactly over the 100 start cells after each of the last 30
 /// meta-epochs, varies by less than issue #30's 2% (max - min over mean). Measured here on an
@@ -109,7 +109,7 @@ fn w0_zero_shot_varies_by_under_2_percent_over_the_last_30_meta_epochs() {
     tch::set_num_threads(1);
     let config = default_config();
     assert!(
-        config.meta.average_decay > 0.0 && config.meta.w0_loss_weight > 0.0,
+        config.meta.average_decay_per_outer_step > 0.0 && config.meta.w0_loss_weight > 0.0,
         "the default config averages w0 and adds its own loss to the meta-loss"
     );
     let tasks = meta_tasks(&config);

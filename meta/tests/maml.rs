@@ -37,9 +37,9 @@ fn config(inner_loss: Algo, inner_steps: usize, first_order: bool) -> MamlConfig
             meta_epochs: 1,
             first_order,
             learn_inner_lr: false,
-            target_update_every: 1,
+            target_update_meta_epochs: 1,
             outer_steps_per_meta_epoch: 1,
-            average_decay: 0.0,
+            average_decay_per_outer_step: 0.0,
             ..MetaConfig::default()
         },
         td: TdConfig::eq7(0.9),
@@ -416,7 +416,7 @@ fn meta_training_lowers_the_meta_loss_on_held_out_query_data() {
         c.meta.eta_inner = 0.05;
         c.meta.eta_outer = 3e-3;
         // Qhat stays the initial w0, so before and after are the same objective.
-        c.meta.target_update_every = 1000;
+        c.meta.target_update_meta_epochs = 1000;
         let mut maml = Maml::new(QNetworkConfig::new(OBS, ACTIONS, &[32, 32]).init(12), c, 13)
             .expect("optimiser");
         let before = maml.meta_loss(&held_out);
@@ -500,10 +500,10 @@ fn resumed_ends_where_uninterrupted_ends(learn_inner_lr: bool, average: f64) {
     c.meta.eta_outer = 3e-3;
     // The target network (refreshed at epochs 0, 4, 8) and the task sampling (2 of 3 tasks) both
     // carry state across the interruption after epoch 6, besides Adam's moments.
-    c.meta.target_update_every = 4;
+    c.meta.target_update_meta_epochs = 4;
     c.meta.tasks_per_meta_epoch = 2;
     c.meta.learn_inner_lr = learn_inner_lr;
-    c.meta.average_decay = average;
+    c.meta.average_decay_per_outer_step = average;
     let hidden = [16];
     let network = || QNetworkConfig::new(OBS, ACTIONS, &hidden).init(21);
     let (seed, epochs, interrupted_at) = (22, 10, 6);
@@ -575,7 +575,7 @@ fn a_corrupt_training_state_is_refused_naming_the_file() {
     );
 }
 
-/// With `average_decay` = d the published init is the moving average of the iterates, which
+/// With `meta.average_decay_per_outer_step` = d the published init is the moving average of the iterates, which
 /// averaging leaves as they are: after two outer steps from w_0, d^2 w_0 + d (1 - d) w_1 +
 /// (1 - d) w_2, with w_1 and w_2 the iterates of the same run without averaging.
 #[test]
@@ -593,7 +593,7 @@ fn averaged_init_is_the_moving_average_of_the_iterates() {
     let plain = config(Algo::CQL, 1, false);
     let d = 0.5;
     let mut averaged = plain.clone();
-    averaged.meta.average_decay = d;
+    averaged.meta.average_decay_per_outer_step = d;
     let mut last = Maml::new(network(), plain, 32).expect("maml");
     let w_0 = weights(&last);
     last.meta_epoch(&tasks).expect("tasks");

@@ -22,16 +22,25 @@ pub struct AlgoInfo {
     /// Whether a launch and the reproduction fine-tune it beside `meta.inner_loss` by default
     /// (`learner.baselines`).
     pub baseline: bool,
+    /// Whether it learns from a model of the world too (its loss's `model_rows`): its rows stand
+    /// in the tables' model-based section ([`MODEL_BASED`]), apart from the learners that read
+    /// the shots alone.
+    pub model_based: bool,
 }
+
+/// What the model-based section of every table is told beyond the shots.
+pub const MODEL_BASED: &str = "model-based: told the moves, the AoI update, the reward's form and \
+     the channel law; each device's power cost and any rain learnt from the shots";
 
 /// Every offline algorithm, in wire order: one line each. Adding one here and its loss to
 /// `uavmeta_learner::algorithm::ALGORITHMS` (same name, same order) is the whole registration.
 #[rustfmt::skip]
 pub const ALGORITHMS: &[AlgoInfo] = &[
-    AlgoInfo { name: "cql", label: "CQL", baseline: false },
-    AlgoInfo { name: "dqn", label: "DQN", baseline: false },
-    AlgoInfo { name: "bc", label: "BC", baseline: true },
-    AlgoInfo { name: "bcq", label: "BCQ", baseline: true },
+    AlgoInfo { name: "cql", label: "CQL", baseline: false, model_based: false },
+    AlgoInfo { name: "dqn", label: "DQN", baseline: false, model_based: false },
+    AlgoInfo { name: "bc", label: "BC", baseline: true, model_based: false },
+    AlgoInfo { name: "bcq", label: "BCQ", baseline: true, model_based: false },
+    AlgoInfo { name: "dyna-cql", label: "Dyna-CQL", baseline: true, model_based: true },
 ];
 
 /// An offline algorithm of [`ALGORITHMS`] (its index); written as its name.
@@ -67,6 +76,11 @@ impl Algo {
 
     pub fn label(self) -> &'static str {
         ALGORITHMS[self.index()].label
+    }
+
+    /// Whether it learns from a model of the world as well as the shots.
+    pub fn model_based(self) -> bool {
+        ALGORITHMS[self.index()].model_based
     }
 }
 
@@ -269,9 +283,10 @@ impl Method {
         Method::all().find(|m| m.name() == name)
     }
 
-    /// The learned rows of a results table, in its order: every algorithm from a random init,
-    /// then from pretraining, from its own MAML w0, from the context learner and from another's
-    /// w0, then w0 alone and the context learner's zero-shot policy.
+    /// The learned rows of a results table, in its order: every algorithm that reads the shots
+    /// alone from a random init, then from pretraining, from its own MAML w0, from the context
+    /// learner and from another's w0, then w0 alone and the context learner's zero-shot policy,
+    /// then the model-based algorithms ([`Algo::model_based`]) in the same order of starts.
     pub fn learners() -> impl Iterator<Item = Method> {
         let starts = [
             Start::Random,
@@ -280,10 +295,34 @@ impl Method {
             Start::Context,
             Start::W0,
         ];
-        starts
-            .into_iter()
-            .flat_map(|start| Algo::all().map(move |algo| Method::tuned(algo, start)))
+        let tuned = move |model_based: bool| {
+            starts.into_iter().flat_map(move |start| {
+                Algo::all()
+                    .filter(move |a| a.model_based() == model_based)
+                    .map(move |algo| Method::tuned(algo, start))
+            })
+        };
+        tuned(false)
             .chain([Method::MetaInit, Method::ContextInit])
+            .chain(tuned(true))
+    }
+
+    /// Whether it learns from a model of the world as well as the shots: a row of the tables'
+    /// model-based section.
+    pub fn model_based(self) -> bool {
+        self.algo().is_some_and(Algo::model_based)
+    }
+
+    /// The epoch of its network as the tables print it, one word: a fine-tuning epoch ("100"),
+    /// a meta-epoch of w0 ("meta-150"), "zero-shot" for the context learner's policy before any
+    /// gradient step and "-" for the online agent, which have one network each.
+    pub fn network_label(self, epoch: u32) -> String {
+        match self {
+            Method::FineTuned { .. } => epoch.to_string(),
+            Method::MetaInit => format!("meta-{epoch}"),
+            Method::ContextInit => "zero-shot".into(),
+            Method::OnlineDqn => "-".into(),
+        }
     }
 
     /// Every method: the references, then each algorithm from each start.

@@ -496,7 +496,7 @@ pub fn fine_tune_run(
         progress: false,
         on_step: OnStep::default(),
     };
-    let mut evaluator = Evaluator::from_config(&eval_config, task).judging_by(&shots.rows);
+    let mut evaluator = Evaluator::from_config(&eval_config, task).with_model(&shots.rows);
     let rows = fine_tune(&mut q, &shots.data, run.algo(), &settings, &mut evaluator)?;
     // The final greedy policy's path, when the plan asks for it.
     let trajectory = run.trajectory.then(|| {

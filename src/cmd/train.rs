@@ -75,7 +75,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
         &mut q,
         &data.data,
         &opts,
-        &mut Evaluator::from_config(&config, &task).judging_by(&data.rows),
+        &mut Evaluator::from_config(&config, &task).with_model(&data.rows),
     )?;
     if let Some(last) = rows.last() {
         println!(

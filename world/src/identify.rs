@@ -1,22 +1,29 @@
-//! The world as a fine-tuning run's own shots identify it (docs/MODEL.md section 5, "Which network
-//! a run keeps"): the moves, the AoI update and the reward's form are the model's, the power table
-//! is fitted to the shots. Fine-tuning scores its candidate networks here, never in the true world.
+//! The world as a run's own shots identify it (docs/MODEL.md section 5, "Dyna-CQL"): what the
+//! fitted world is told is the world's form with no task in it (the grid and its moves, the AoI
+//! update, the reward's form and the channel law); what it learns from the shots is each step's
+//! power cost and whether the task has rain. It is what the model-based learner `dyna-cql` rolls
+//! out in; nothing else trains or picks a policy in it.
 //!
-//! Each shot gives the power of one (cell, device) pair: the reward is -(sum_j delta_j A_j +
-//! (lambda / K) P), with the AoI after the step in the next observation. By section 1's law a
-//! device's power from cell (x, y) is c (h^2 + r^2 ((x - x_k)^2 + (y - y_k)^2)). Two fits, in turn:
+//! Each shot gives the power cost of one (cell, device) pair: the reward is -(sum_j delta_j A_j +
+//! w P), with the AoI after the step in the next observation, so the cost w P is the reward less
+//! the weighted AoI. The power weight w = lambda / K is the task's and is not told: the fitted
+//! world charges the cost itself (its power weight is 1, so its "milliwatts" are w P). By section
+//! 1's law that cost from cell (x, y) is c (h^2 + r^2 ((x - x_k)^2 + (y - y_k)^2)) with an unknown
+//! c that absorbs w. Two fits, in turn:
 //! - the law is linear in (x^2 + y^2, x, y, 1), so four cells not on one circle or line determine
 //!   a device everywhere by least squares;
 //! - else, since a device sits at a cell, each of the grid's cells is tried as the device's: the
 //!   gain c is then the one unknown, and a cell whose law passes through every shot is a
 //!   candidate. One candidate determines the device; several charge, at each cell, the largest
-//!   power any of them gives.
+//!   cost any of them gives.
 //!
-//! A device neither fit explains is charged the largest power the shots show from every cell it
+//! A device neither fit explains is charged the largest cost the shots show from every cell it
 //! was not seen at: a pessimistic model never favours a policy for going where the data has not
-//! been.
+//! been. A shot whose transmission failed (its device's AoI not reset) says the task has rain,
+//! which the fitted world does not model: then nothing is identified.
 
 use nalgebra::{DMatrix, DVector};
+use uavmeta_proto::config::{TaskConfig, TaskRole, WorldConfig};
 use uavmeta_proto::dataset::Transition;
 
 use crate::world::World;
@@ -28,41 +35,66 @@ const RESIDUAL_OF_COST: f64 = 1e-4;
 /// A grid cell, (x, y).
 type Cell = (u32, u32);
 
-/// The milliwatts of each (cell, device) pair the shots schedule, in the order the shots first
+/// The power cost of each (cell, device) pair the shots schedule, in the order the shots first
 /// schedule it (the order of the least-squares rows).
-type Powers = Vec<((Cell, usize), f64)>;
+type Costs = Vec<((Cell, usize), f64)>;
 
 /// The identified world and how many devices the shots determine.
 #[derive(Debug, Clone)]
 pub struct Identified {
-    /// `world` with the fitted power table.
+    /// The world's form with the fitted power costs (power weight 1).
     pub world: World,
-    /// Devices whose power the shots determine everywhere (the others are pessimistic).
+    /// Devices whose cost the shots determine everywhere (the others are pessimistic).
     pub devices_fitted: usize,
 }
 
-/// `world` (the true world of the shots' task, of which only the moves, the AoI update and the
-/// reward's form are used) with its power table fitted to `shots`. `None` where the model cannot
-/// hold: a task with rain, or a shot the model's dynamics do not make (an outage, another world).
-pub fn identify(world: &World, shots: &[Transition]) -> Option<Identified> {
-    if world.has_rain() || shots.is_empty() {
-        return None;
+/// Why a run's shots identify no world.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum Unidentified {
+    #[error("there are no shots")]
+    NoShots,
+    #[error(
+        "{0} shots are transmissions in outage: the task has rain, which the fitted world does \
+         not model"
+    )]
+    Rain(usize),
+    #[error("shot {0} is not a step of this world's moves and AoI update")]
+    Foreign(usize),
+}
+
+/// The world's form under `world` with no task in it: no rain, and a power weight of 1.
+pub fn template(world: &WorldConfig) -> World {
+    let task = TaskConfig {
+        name: "fitted".into(),
+        lambda: world.devices as f64,
+        role: TaskRole::MetaTest,
+        rain: None,
+        rain_moves_every: None,
+    };
+    World::new(world, &task, 0)
+}
+
+/// The world `shots` identify under `world`'s form ([`template`]): its power costs fitted to
+/// them. Nothing of the shots' task but the shots is read.
+pub fn identify(world: &WorldConfig, shots: &[Transition]) -> Result<Identified, Unidentified> {
+    if shots.is_empty() {
+        return Err(Unidentified::NoShots);
     }
-    let seen = observed_powers(world, shots)?;
-    let k = world.devices();
-    let largest = seen.iter().map(|&(_, mw)| mw).fold(0.0, f64::max);
-    let tolerance =
-        RESIDUAL_OF_COST * largest_cost(shots) / world.power_weight().max(f64::MIN_POSITIVE);
-    let grid = world.grid_cells();
+    let form = template(world);
+    let seen = observed_costs(&form, shots)?;
+    let k = form.devices();
+    let largest = seen.iter().map(|&(_, cost)| cost).fold(0.0, f64::max);
+    let tolerance = RESIDUAL_OF_COST * largest_cost(shots);
+    let grid = form.grid_cells();
     let mut table = vec![largest; (grid * grid) as usize * k];
     let mut devices_fitted = 0;
     for device in 0..k {
         let points: Vec<(Cell, f64)> = seen
             .iter()
             .filter(|((_, d), _)| *d == device)
-            .map(|&((cell, _), mw)| (cell, mw))
+            .map(|&((cell, _), cost)| (cell, cost))
             .collect();
-        let law = fit_law(&points, tolerance).or_else(|| locate(world, &points, tolerance));
+        let law = fit_law(&points, tolerance).or_else(|| locate(&form, &points, tolerance));
         if let Some(law) = law {
             devices_fitted += usize::from(law.determined());
             for c in 0..grid * grid {
@@ -70,46 +102,51 @@ pub fn identify(world: &World, shots: &[Transition]) -> Option<Identified> {
             }
         }
     }
-    for &((cell, device), power) in &seen {
-        table[(cell.1 * grid + cell.0) as usize * k + device] = power;
+    for &((cell, device), cost) in &seen {
+        table[(cell.1 * grid + cell.0) as usize * k + device] = cost;
     }
-    Some(Identified {
-        world: world.with_power_table(table),
+    Ok(Identified {
+        world: form.with_power_table(table),
         devices_fitted,
     })
 }
 
-/// Each (cell, device) pair the shots schedule and the milliwatts it cost (the first shot's);
-/// `None` if a shot's next observation is not the one the world's moves and AoI update make.
-fn observed_powers(world: &World, shots: &[Transition]) -> Option<Powers> {
-    let weight = world.power_weight();
-    let mut next = vec![0u16; 2 + world.devices()];
-    let mut seen = Powers::new();
-    for t in shots {
+/// Each (cell, device) pair the shots schedule and the power cost it had (the first shot's).
+/// Refused if a shot's next observation is not the one the form's moves and AoI update make:
+/// with its transmission failed (rain), or at all.
+fn observed_costs(form: &World, shots: &[Transition]) -> Result<Costs, Unidentified> {
+    let mut next = vec![0u16; 2 + form.devices()];
+    let mut seen = Costs::new();
+    let mut outages = 0;
+    for (i, t) in shots.iter().enumerate() {
         let action = usize::from(t.action);
-        world.outcome(&t.obs, action, false, &mut next)?;
-        if next != t.next_obs {
-            return None;
+        let makes = |outage: bool, next: &mut Vec<u16>| {
+            form.outcome(&t.obs, action, outage, next).is_some() && *next == t.next_obs
+        };
+        if !makes(false, &mut next) {
+            match makes(true, &mut next) {
+                true => outages += 1,
+                false => return Err(Unidentified::Foreign(i)),
+            }
+            continue;
         }
         let weighted: f64 = next[2..]
             .iter()
-            .zip(world.delta())
+            .zip(form.delta())
             .map(|(&a, d)| d * f64::from(a))
             .sum();
-        let power = match weight > 0.0 {
-            true => (-f64::from(t.reward) - weighted) / weight,
-            // lambda = 0: power never enters the reward, any table models it.
-            false => 0.0,
-        };
         let key = (
             (u32::from(t.obs[0]), u32::from(t.obs[1])),
-            action % world.devices(),
+            action % form.devices(),
         );
         if !seen.iter().any(|(seen_key, _)| *seen_key == key) {
-            seen.push((key, power));
+            seen.push((key, -f64::from(t.reward) - weighted));
         }
     }
-    Some(seen)
+    match outages {
+        0 => Ok(seen),
+        n => Err(Unidentified::Rain(n)),
+    }
 }
 
 fn largest_cost(shots: &[Transition]) -> f64 {
@@ -119,7 +156,7 @@ fn largest_cost(shots: &[Transition]) -> f64 {
         .fold(0.0, f64::max)
 }
 
-/// A device's power as a function of the cell.
+/// A device's power cost as a function of the cell.
 enum Law {
     /// w . (x^2 + y^2, x, y, 1).
     Quadric(DVector<f64>),
@@ -173,7 +210,7 @@ impl Law {
     }
 }
 
-/// The least-squares law through `points` (cell, milliwatts), if their cells determine it (rank
+/// The least-squares law through `points` (cell, cost), if their cells determine it (rank
 /// 4) and it passes within `tolerance` of every point.
 fn fit_law(points: &[(Cell, f64)], tolerance: f64) -> Option<Law> {
     if points.len() < 4 {
@@ -193,12 +230,12 @@ fn fit_law(points: &[(Cell, f64)], tolerance: f64) -> Option<Law> {
 /// The law of a device at one of the grid's cells through `points`: every cell whose
 /// least-squares gain passes within `tolerance` of every point is a candidate. `None` if no cell
 /// is, or the world's power term is not one device's law.
-fn locate(world: &World, points: &[(Cell, f64)], tolerance: f64) -> Option<Law> {
-    let slant = world.slant_per_cell2()?;
+fn locate(form: &World, points: &[(Cell, f64)], tolerance: f64) -> Option<Law> {
+    let slant = form.slant_per_cell2()?;
     if points.is_empty() {
         return None;
     }
-    let grid = world.grid_cells();
+    let grid = form.grid_cells();
     let candidates: Vec<(Cell, f64)> = (0..grid * grid)
         .map(|c| (c % grid, c / grid))
         .filter_map(|device| {
@@ -220,7 +257,7 @@ fn locate(world: &World, points: &[(Cell, f64)], tolerance: f64) -> Option<Law> 
 
 #[cfg(test)]
 mod tests {
-    use uavmeta_proto::config::{Config, TaskConfig};
+    use uavmeta_proto::config::{Config, RainZone, TaskConfig};
 
     use super::*;
     use crate::rollout::record_step;
@@ -272,9 +309,9 @@ mod tests {
 
     #[test]
     fn shots_that_determine_every_device_identify_the_world_exactly() {
-        for (noise, lambda) in [(-100.0, 300.0), (-90.0, 2000.0)] {
-            let (world, _) = world(noise, lambda);
-            let identified = identify(&world, &lap(&world)).unwrap();
+        for (noise, lambda) in [(-100.0, 300.0), (-90.0, 2000.0), (-100.0, 0.0)] {
+            let (world, config) = world(noise, lambda);
+            let identified = identify(&config.world, &lap(&world)).unwrap();
             assert_eq!(identified.devices_fitted, world.devices());
             let plan: Vec<usize> = (0..100).map(|t| (t * 7) % world.action_count()).collect();
             let truth = returns_from_every_cell(&world, &plan);
@@ -285,12 +322,14 @@ mod tests {
         }
     }
 
-    /// Asserts that `model` charges `mw` for `device` above `cell` (the rewards are f32).
-    fn charges(model: &World, cell: (u32, u32), device: usize, mw: f64) {
+    /// Asserts that `model` charges `world`'s power cost for `device` above `cell` (the rewards
+    /// are f32).
+    fn charges(model: &World, world: &World, cell: (u32, u32), device: usize, mw: f64) {
         let modelled = model.transmission_at(cell, device, None).0;
+        let cost = world.power_weight() * mw;
         assert!(
-            (modelled - mw).abs() < 1e-5 * mw.max(1.0),
-            "{modelled} mW for {mw} mW above {cell:?}"
+            (modelled - cost).abs() < 1e-5 * cost.max(1.0),
+            "{modelled} charged for {cost} above {cell:?}"
         );
     }
 
@@ -302,34 +341,32 @@ mod tests {
     #[test]
     fn a_device_seen_from_three_cells_of_a_line_is_located() {
         for (noise, lambda) in [(-100.0, 300.0), (-90.0, 2000.0)] {
-            let (world, _) = world(noise, lambda);
+            let (world, config) = world(noise, lambda);
             let k = world.devices();
             // Device 0 only, from three cells of a line: no quadric is determined, but only one
             // cell of the grid puts a device at those three distances.
             let east = Move::East.index() * k;
-            let identified = identify(&world, &shots(&world, (0, 0), &[east; 3])).unwrap();
+            let shots = shots(&world, (0, 0), &[east; 3]);
+            let identified = identify(&config.world, &shots).unwrap();
             assert_eq!(identified.devices_fitted, 1);
             for cell in every_cell(&world) {
-                charges(
-                    &identified.world,
-                    cell,
-                    0,
-                    world.transmission_at(cell, 0, None).0,
-                );
+                let mw = world.transmission_at(cell, 0, None).0;
+                charges(&identified.world, &world, cell, 0, mw);
             }
         }
     }
 
     #[test]
     fn a_device_seen_from_one_cell_is_charged_its_worst_place() {
-        let (world, _) = world(-100.0, 300.0);
+        let (world, config) = world(-100.0, 300.0);
         let k = world.devices();
         let stay = Move::Hover.index() * k;
-        let identified = identify(&world, &shots(&world, (4, 4), &[stay])).unwrap();
+        let identified = identify(&config.world, &shots(&world, (4, 4), &[stay])).unwrap();
         assert_eq!(identified.devices_fitted, 0);
-        let truth = |cell| world.transmission_at(cell, 0, None).0;
-        charges(&identified.world, (4, 4), 0, truth((4, 4)));
-        // Wherever the device is, the model charges at least its power, and somewhere more.
+        let truth = |cell| world.power_weight() * world.transmission_at(cell, 0, None).0;
+        let mw = world.transmission_at((4, 4), 0, None).0;
+        charges(&identified.world, &world, (4, 4), 0, mw);
+        // Wherever the device is, the model charges at least its cost, and somewhere more.
         let model = |cell| identified.world.transmission_at(cell, 0, None).0;
         assert!(every_cell(&world).all(|c| model(c) >= truth(c) * (1.0 - 1e-6)));
         assert!(every_cell(&world).any(|c| model(c) > truth(c) * 1.5));
@@ -348,22 +385,46 @@ mod tests {
         let world = World::new(&config.world, &task, 0);
         let k = world.devices();
         let east = Move::East.index() * k;
-        let identified = identify(&world, &shots(&world, (0, 0), &[east; 3])).unwrap();
+        let identified = identify(&config.world, &shots(&world, (0, 0), &[east; 3])).unwrap();
         assert_eq!(identified.devices_fitted, 0);
         let seen = |cell| world.transmission_at(cell, 0, None).0;
         let largest = seen((0, 0)).max(seen((1, 0))).max(seen((2, 0)));
-        // Where it was seen, its power as seen; everywhere else the largest.
-        charges(&identified.world, (1, 0), 0, seen((1, 0)));
-        charges(&identified.world, (9, 9), 0, largest);
-        charges(&identified.world, (0, 0), 3, largest);
+        // Where it was seen, its cost as seen; everywhere else the largest.
+        charges(&identified.world, &world, (1, 0), 0, seen((1, 0)));
+        charges(&identified.world, &world, (9, 9), 0, largest);
+        charges(&identified.world, &world, (0, 0), 3, largest);
+    }
+
+    /// Rain is found from the shots alone: a lap through a rain zone has transmissions in
+    /// outage, and the fit says so; the same lap without rain is identified.
+    #[test]
+    fn shots_with_an_outage_say_the_task_has_rain() {
+        let (clear, config) = world(-100.0, 300.0);
+        let task = TaskConfig {
+            lambda: 300.0,
+            rain: Some(RainZone { x0: 0, y0: 0, x1: 9, y1: 1 }),
+            ..config.tasks[0].clone()
+        };
+        let rainy = World::new(&config.world, &task, 0);
+        match identify(&config.world, &lap(&rainy)) {
+            Err(Unidentified::Rain(n)) => assert!(n > 0),
+            other => panic!("expected rain, got {other:?}"),
+        }
+        assert!(identify(&config.world, &lap(&clear)).is_ok());
     }
 
     #[test]
     fn shots_the_model_does_not_make_identify_nothing() {
-        let (world, _) = world(-100.0, 300.0);
+        let (world, config) = world(-100.0, 300.0);
         let mut shots = lap(&world);
         shots[3].next_obs[2] += 1;
-        assert!(identify(&world, &shots).is_none());
-        assert!(identify(&world, &[]).is_none());
+        assert_eq!(
+            identify(&config.world, &shots).unwrap_err(),
+            Unidentified::Foreign(3)
+        );
+        assert_eq!(
+            identify(&config.world, &[]).unwrap_err(),
+            Unidentified::NoShots
+        );
     }
 }

@@ -368,10 +368,13 @@ fn mix(a: u64, b: u64) -> u64 {
 /// The planner as a policy: at the first step of an episode it plans to the horizon from the
 /// world's state (the world it is handed, which is the true one: it reads the rain schedule
 /// from it), then plays the plan. A world whose state leaves the plan (another policy stepped
-/// it) is planned for again from where it stands.
+/// it) is planned for again from where it stands. [`PlannerPolicy::in_model`] plans in a model
+/// of the world instead, from the state the true world shows.
 #[derive(Debug, Clone)]
 pub struct PlannerPolicy {
     planner: Planner,
+    /// The world it plans in, if not the one it acts in.
+    model: Option<World>,
     plan: Vec<usize>,
     /// The step of the episode `plan[0]` is for.
     from_t: u32,
@@ -383,9 +386,20 @@ impl PlannerPolicy {
     pub fn new(config: &PlannerConfig) -> PlannerPolicy {
         PlannerPolicy {
             planner: Planner::new(config),
+            model: None,
             plan: Vec::new(),
             from_t: 0,
             expected: Vec::new(),
+        }
+    }
+
+    /// The planner planning in `model` (the world a run's shots identify,
+    /// `crate::identify`): at each replan `model` is put in the state the true world shows, and
+    /// the plan and the observations it expects are the model's.
+    pub fn in_model(config: &PlannerConfig, model: World) -> PlannerPolicy {
+        PlannerPolicy {
+            model: Some(model),
+            ..PlannerPolicy::new(config)
         }
     }
 
@@ -395,10 +409,19 @@ impl PlannerPolicy {
         (i < self.plan.len()).then(|| &self.expected[i * len..(i + 1) * len])
     }
 
-    /// Plans from `world`'s state and records the observations the plan will meet.
+    /// Plans from `world`'s state (in the model, if it has one) and records the observations the
+    /// plan will meet.
     fn replan(&mut self, world: &World) {
-        let plan = self.planner.plan(world);
-        let mut ahead = world.clone();
+        let mut ahead = match &self.model {
+            Some(model) => {
+                let mut model = model.clone();
+                model.set_observation(world.observation());
+                model.set_t(world.t());
+                model
+            }
+            None => world.clone(),
+        };
+        let plan = self.planner.plan(&ahead);
         self.expected.clear();
         for &a in &plan.actions {
             self.expected.extend_from_slice(ahead.observation());

@@ -359,3 +359,41 @@ fn planner_keys_are_checked() {
         "{huge}"
     );
 }
+
+/// The planner in the world a run's shots identify (`PlannerPolicy::in_model`): where the shots
+/// show every (cell, device) pair the fitted world is the true one, and the plans it makes from
+/// the true world's states score what the planner's own do; fitted to shots from one cell, it
+/// plans in a pessimistic world and scores no better.
+#[test]
+fn the_planner_in_the_identified_world_plans_as_the_planner_where_the_shots_fit_every_device() {
+    use uavmeta_world::identify::identify;
+    use uavmeta_world::rollout::record_step;
+    use uavmeta_world::world::Move;
+    let config = config("grid_cells = 3\ndevices = 2\nhorizon = 6\ncell_m = 300.0");
+    let task = TaskConfig::one_off(2000.0, None);
+    let world = World::new(&config.world, &task, 0);
+    let (grid, k) = (world.grid_cells(), world.devices());
+    let hover = Move::Hover.index() * k;
+    let shots_from = |cells: &[(u32, u32)]| {
+        let mut shots = Vec::new();
+        for &cell in cells {
+            for device in 0..k {
+                shots.push(record_step(&mut world.clone().with_start(cell), hover + device));
+            }
+        }
+        shots
+    };
+    let every: Vec<(u32, u32)> = (0..grid * grid).map(|c| (c % grid, c / grid)).collect();
+    let planner = PlannerConfig::default();
+    let score = |policy: &mut dyn Policy| evaluate(&config.world, &task, policy, 1, 0).ret.mean;
+    let truth = score(&mut PlannerPolicy::new(&planner));
+    let fitted = identify(&config.world, &shots_from(&every)).unwrap();
+    let modelled = score(&mut PlannerPolicy::in_model(&planner, fitted.world));
+    assert!(
+        (modelled - truth).abs() < 1e-6 * truth.abs(),
+        "{modelled} in the fitted world, {truth} in the true one"
+    );
+    let partial = identify(&config.world, &shots_from(&[(1, 1)])).unwrap();
+    let partial = score(&mut PlannerPolicy::in_model(&planner, partial.world));
+    assert!(partial <= truth + 1e-9, "{partial} > {truth}");
+}

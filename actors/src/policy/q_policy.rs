@@ -1,6 +1,7 @@
 //! A Q-network acting in the world: its greedy policy, and the evaluator that scores it on the true
-//! environment for `uavmeta_learner::train` (docs/MODEL.md section 5, "Evaluation") and judges it
-//! in the world the run's shots identify (`uavmeta_world::identify`).
+//! environment for `uavmeta_learner::train` (docs/MODEL.md section 5, "Evaluation") and, for the
+//! model-based learner, rolls it out in the world the run's shots identify
+//! (`uavmeta_world::identify`) from the shots' own states.
 //!
 //! The evaluator runs the same episodes as [`uavmeta_world::rollout::evaluate`] with a [`QPolicy`]
 //! (every start cell of a deterministic world, Monte-Carlo episodes where the rain moves), but
@@ -19,13 +20,13 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use tch::Tensor;
 use uavmeta_learner::qnet::QNetwork;
-use uavmeta_learner::train::EvaluatePolicy;
+use uavmeta_learner::train::{EvaluatePolicy, Rollouts};
 use uavmeta_proto::config::{Config, TaskConfig, WorldConfig};
 use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 
-use uavmeta_world::identify::identify;
-use uavmeta_world::rollout::{evaluation_worlds, record_step, start_worlds, EpisodeTally, Policy};
+use uavmeta_world::identify::{identify, Unidentified};
+use uavmeta_world::rollout::{evaluation_worlds, record_step, EpisodeTally, Policy};
 use uavmeta_world::world::{Step, World};
 
 /// `argmax_a Q(s, a)` on the normalised observation, of a network borrowed (`&QNetwork`) or owned.
@@ -55,15 +56,23 @@ pub type StartEpisodes = Vec<((u16, u16), EpisodeMetrics)>;
 
 /// Evaluation of greedy Q-policies on one task, always over the same episodes
 /// ([`uavmeta_world::rollout::evaluation_worlds`]), and, once given the run's shots
-/// ([`Evaluator::judging_by`]), their judgement in the world the shots identify.
+/// ([`Evaluator::with_model`]), their rollouts in the world the shots identify.
 #[derive(Debug, Clone)]
 pub struct Evaluator {
     world: WorldConfig,
     task: TaskConfig,
     episodes: usize,
     seed: u64,
-    /// The identified world from every start cell.
-    model: Option<Vec<World>>,
+    /// The identified world, or why there is none.
+    model: Result<Model, Unidentified>,
+}
+
+/// The world a run's shots identify, and where its rollouts start: the shots' own states.
+#[derive(Debug, Clone)]
+struct Model {
+    world: World,
+    /// Each distinct (state, step) of the shots, in the order the shots first show it.
+    starts: Vec<(Vec<u16>, u32)>,
 }
 
 impl Evaluator {
@@ -73,24 +82,31 @@ impl Evaluator {
             task: task.clone(),
             episodes,
             seed,
-            model: None,
+            model: Err(Unidentified::NoShots),
         }
     }
 
-    /// This evaluator judging policies ([`EvaluatePolicy::judge`]) in the world `shots`
-    /// identify, from the same start cells as it evaluates them in the true world. Where the
-    /// shots identify nothing (rain, or shots of another world) it judges nothing.
-    pub fn judging_by(self, shots: &[Transition]) -> Self {
-        let template = World::new(&self.world, &self.task, self.seed);
-        let model = identify(&template, shots).map(|identified| {
+    /// This evaluator with the world `shots` identify under the config's world form
+    /// ([`uavmeta_world::identify`]: the task is never read), where its rollouts
+    /// ([`EvaluatePolicy::rollouts`]) start from the shots' states. Where the shots identify
+    /// nothing (they show rain, or are not steps of this world) it rolls out nothing.
+    pub fn with_model(self, shots: &[Transition]) -> Self {
+        let model = identify(&self.world, shots).map(|identified| {
             tracing::debug!(
-                task = %self.task.name,
                 devices_fitted = identified.devices_fitted,
                 "the shots identify the world"
             );
-            start_worlds(&identified.world)
+            Model::new(identified.world, shots)
         });
+        if let Err(why) = &model {
+            tracing::debug!(%why, "the shots identify no world");
+        }
         Self { model, ..self }
+    }
+
+    /// Why the shots given to [`Evaluator::with_model`] identify no world, if they do not.
+    pub fn unidentified(&self) -> Option<Unidentified> {
+        self.model.as_ref().err().copied()
     }
 
     /// The evaluator a config asks for: `learner.eval_episodes` episodes seeded
@@ -243,55 +259,78 @@ impl EvaluatePolicy for Evaluator {
         PolicyMetrics::from_episodes(&episodes)
     }
 
-    fn judge(&mut self, q: &QNetwork) -> Option<f64> {
-        let (episodes, _) = lockstep(self.model.clone()?, q);
-        let returns = episodes.iter().map(|(_, m)| m.ret);
-        Some(returns.sum::<f64>() / episodes.len().max(1) as f64)
-    }
-
-    fn rollouts(&mut self, q: &QNetwork, epsilon: f64, seed: u64) -> Option<Vec<Transition>> {
-        Some(epsilon_greedy_steps(self.model.clone()?, q, epsilon, seed))
+    fn rollouts(&mut self, q: &QNetwork, ask: Rollouts) -> Option<Vec<Transition>> {
+        let model = self.model.as_ref().ok()?;
+        Some(model.rollouts(q, ask))
     }
 }
 
-/// Every step of one episode from each of `worlds` (each reset first) under `q`, acting
-/// uniformly at random with probability `epsilon` and greedily otherwise (draws seeded
-/// `seed`), stepped in lockstep: one forward pass per step.
-fn epsilon_greedy_steps(
-    mut worlds: Vec<World>,
-    q: &QNetwork,
-    epsilon: f64,
-    seed: u64,
-) -> Vec<Transition> {
-    let Some(horizon) = worlds.first().map(|w| w.horizon() as usize) else {
-        return Vec::new();
-    };
-    worlds.iter_mut().for_each(World::reset);
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let (e, d, actions) = (worlds.len(), q.obs_len(), q.actions());
-    let mut steps = Vec::with_capacity(e * horizon);
-    let mut obs = vec![0f32; e * d];
-    let mut greedy = vec![0i64; e];
-    for _ in 0..horizon {
-        for (world, row) in worlds.iter().zip(obs.chunks_exact_mut(d)) {
-            world.write_normalised(row);
-        }
-        let batch = Tensor::from_slice(&obs).view([e as i64, d as i64]); // [e, D]
-        q.greedy(&batch).copy_data(&mut greedy, e); // [e]
-        for (w, (world, &g)) in worlds.iter_mut().zip(&greedy).enumerate() {
-            let action = match rng.random::<f64>() < epsilon {
-                true => rng.random_range(0..actions),
-                false => g as usize,
-            };
-            let seq = steps.len() as u64;
-            steps.push(Transition {
-                episode: w as u64,
-                seq,
-                ..record_step(world, action)
-            });
+impl Model {
+    fn new(world: World, shots: &[Transition]) -> Self {
+        let mut seen = std::collections::HashSet::new();
+        let aoi_max = world.aoi_max();
+        let starts = shots
+            .iter()
+            .filter(|t| t.step < world.horizon() && t.obs[2..].iter().all(|&a| a <= aoi_max))
+            .map(|t| (t.obs.clone(), t.step))
+            .filter(|start| seen.insert(start.clone()))
+            .collect();
+        Self { world, starts }
+    }
+
+    /// One branch from each start of `ceil(ask.rows / starts)` steps (fewer where the horizon
+    /// comes first) under `q`, acting uniformly at random with probability `ask.epsilon` and
+    /// greedily otherwise (draws seeded `ask.seed`), stepped in lockstep: one forward pass per
+    /// step.
+    fn rollouts(&self, q: &QNetwork, ask: Rollouts) -> Vec<Transition> {
+        let Rollouts { rows, epsilon, seed } = ask;
+        let length = rows.div_ceil(self.starts.len().max(1)) as u32;
+        let mut worlds: Vec<World> = self
+            .starts
+            .iter()
+            .map(|(obs, step)| {
+                let mut world = self.world.clone();
+                world.reset();
+                world.set_observation(obs);
+                world.set_t(*step);
+                world
+            })
+            .collect();
+        let ends: Vec<u32> = self
+            .starts
+            .iter()
+            .map(|(_, step)| (step + length).min(self.world.horizon()))
+            .collect();
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let (d, actions) = (q.obs_len(), q.actions());
+        let mut steps = Vec::with_capacity(rows);
+        let mut obs = Vec::with_capacity(worlds.len() * d);
+        let mut greedy = vec![0i64; worlds.len()];
+        loop {
+            let live: Vec<usize> = (0..worlds.len()).filter(|&w| worlds[w].t() < ends[w]).collect();
+            if live.is_empty() {
+                return steps;
+            }
+            obs.resize(live.len() * d, 0.0);
+            for (&w, row) in live.iter().zip(obs.chunks_exact_mut(d)) {
+                worlds[w].write_normalised(row);
+            }
+            let batch = Tensor::from_slice(&obs).view([live.len() as i64, d as i64]); // [n, D]
+            q.greedy(&batch).copy_data(&mut greedy, live.len()); // [n]
+            for (&w, &g) in live.iter().zip(&greedy) {
+                let action = match rng.random::<f64>() < epsilon {
+                    true => rng.random_range(0..actions),
+                    false => g as usize,
+                };
+                let seq = steps.len() as u64;
+                steps.push(Transition {
+                    episode: w as u64,
+                    seq,
+                    ..record_step(&mut worlds[w], action)
+                });
+            }
         }
     }
-    steps
 }
 
 #[cfg(test)]
@@ -417,75 +456,94 @@ mod tests {
         shots
     }
 
-    /// Shots that determine every device identify the world: the judge scores a policy as the
-    /// true world does, from every start cell. Where the task has rain it judges nothing.
-    #[test]
-    fn shots_that_determine_every_device_judge_as_the_true_world_scores() {
-        tch::set_num_threads(1);
-        let mut config = Config::default();
-        config.world.noise_dbm = -90.0;
-        let task = TaskConfig::one_off(2000.0, None);
-        let (obs_len, actions) = (config.world.observation_len(), config.world.action_count());
-        let mut evaluator =
-            Evaluator::from_config(&config, &task).judging_by(&random_shots(&config, &task, 2000));
-        for seed in 0..3 {
-            let q = QNetworkConfig::new(obs_len, actions, &config.learner.hidden).init(seed);
-            let truth = evaluator.evaluate(&q).ret.mean;
-            let judged = evaluator.judge(&q).unwrap();
-            assert!(
-                (judged - truth).abs() < 1e-4 * truth.abs(),
-                "judged {judged}, true {truth}"
-            );
+    /// Every (state, action) of `world` from a few AoI vectors: the reward and next state.
+    fn outcomes(world: &World) -> Vec<(f64, Vec<u16>)> {
+        let (grid, k) = (world.grid_cells() as u16, world.devices());
+        let mut out = Vec::new();
+        let mut next = vec![0u16; 2 + k];
+        for aoi in [1u16, 3, 7] {
+            for c in 0..grid * grid {
+                let obs: Vec<u16> = [c % grid, c / grid]
+                    .into_iter()
+                    .chain((0..k as u16).map(|j| 1 + (j * aoi) % world.aoi_max()))
+                    .collect();
+                for action in 0..world.action_count() {
+                    let reward = world.outcome(&obs, action, false, &mut next).unwrap();
+                    out.push((reward, next.clone()));
+                }
+            }
         }
-        let rain = TaskConfig::one_off(
-            2000.0,
-            Some(RainZone {
-                x0: 3,
-                y0: 3,
-                x1: 6,
-                y1: 6,
-            }),
-        );
-        let shots = random_shots(&config, &rain, 2000);
-        let q = QNetworkConfig::new(obs_len, actions, &config.learner.hidden).init(0);
-        assert!(Evaluator::from_config(&config, &rain)
-            .judging_by(&shots)
-            .judge(&q)
-            .is_none());
-        // Without shots, nothing is judged either.
-        assert!(Evaluator::from_config(&config, &task).judge(&q).is_none());
+        out
     }
 
-    /// The rollouts are episodes of the identified world from every start cell: greedy ones with
-    /// epsilon 0 score what the judge scores, and their rewards are the true world's where the
-    /// shots determine every device; epsilon 1 acts otherwise, and the seed fixes the draws.
+    /// The fit reads the shots alone: under configs whose task names lambda 0, lambda 2000 or
+    /// no rain, lambda-300's shots give the same fitted rewards for every state and action, the
+    /// true task's where the shots determine every device; a rain task's shots say it has rain
+    /// under a config that names none.
     #[test]
-    fn rollouts_are_steps_of_the_identified_world_from_every_start_cell() {
+    fn the_fitted_world_is_learnt_from_the_shots_alone() {
+        let mut config = Config::default();
+        config.world.noise_dbm = -90.0;
+        let truth = TaskConfig::one_off(300.0, None);
+        let shots = random_shots(&config, &truth, 2000);
+        let told = [0.0, 2000.0, 300.0].map(|lambda| TaskConfig::one_off(lambda, None));
+        let fitted: Vec<Vec<(f64, Vec<u16>)>> = told
+            .iter()
+            .map(|task| {
+                let evaluator = Evaluator::from_config(&config, task).with_model(&shots);
+                outcomes(&evaluator.model.unwrap().world)
+            })
+            .collect();
+        assert!(fitted.iter().all(|f| *f == fitted[0]));
+        let true_outcomes = outcomes(&World::new(&config.world, &truth, 0));
+        for ((model, next), (reward, true_next)) in fitted[0].iter().zip(&true_outcomes) {
+            assert_eq!(next, true_next);
+            assert!((model - reward).abs() < 1e-4 * reward.abs(), "{model} {reward}");
+        }
+        let zone = RainZone {
+            x0: 3,
+            y0: 3,
+            x1: 6,
+            y1: 6,
+        };
+        let rain = random_shots(&config, &TaskConfig::one_off(300.0, Some(zone)), 2000);
+        for task in &told {
+            let evaluator = Evaluator::from_config(&config, task).with_model(&rain);
+            assert!(
+                matches!(evaluator.unidentified(), Some(Unidentified::Rain(n)) if n > 0),
+                "{:?}",
+                evaluator.unidentified()
+            );
+        }
+    }
+
+    fn ask(rows: usize, epsilon: f64, seed: u64) -> Rollouts {
+        Rollouts { rows, epsilon, seed }
+    }
+
+    /// The rollouts branch from the shots' own states, one branch of ceil(rows / starts) steps
+    /// each, in the identified world: their rewards are the true world's where the shots
+    /// determine every device; epsilon 1 acts otherwise, and the seed fixes the draws. Where the
+    /// shots identify nothing there are none.
+    #[test]
+    fn rollouts_are_steps_of_the_identified_world_from_the_shots_states() {
         tch::set_num_threads(1);
         let config = Config::default();
         let task = TaskConfig::one_off(2000.0, None);
         let (obs_len, actions) = (config.world.observation_len(), config.world.action_count());
-        let mut evaluator =
-            Evaluator::from_config(&config, &task).judging_by(&random_shots(&config, &task, 2000));
+        let shots = random_shots(&config, &task, 2000);
+        let mut evaluator = Evaluator::from_config(&config, &task).with_model(&shots);
         let q = QNetworkConfig::new(obs_len, actions, &config.learner.hidden).init(1);
-        let greedy = evaluator.rollouts(&q, 0.0, 7).unwrap();
-        let (cells, horizon) = (
-            config.world.grid_cells.pow(2) as usize,
-            config.world.horizon,
-        );
-        assert_eq!(greedy.len(), cells * horizon as usize);
-        let starts: std::collections::HashSet<_> = greedy
+        let greedy = evaluator.rollouts(&q, ask(10_000, 0.0, 7)).unwrap();
+        let first: std::collections::HashSet<(Vec<u16>, u32)> = greedy
             .iter()
-            .filter(|t| t.step == 0)
-            .map(|t| (t.obs[0], t.obs[1]))
+            .filter(|t| t.seq == t.episode)
+            .map(|t| (t.obs.clone(), t.step))
             .collect();
-        assert_eq!(starts.len(), cells, "one episode from every start cell");
-        let mean_return = greedy.iter().map(|t| f64::from(t.reward)).sum::<f64>() / cells as f64;
-        let judged = evaluator.judge(&q).unwrap();
-        assert!(
-            (mean_return - judged).abs() < 1e-3 * judged.abs(),
-            "{mean_return} {judged}"
-        );
+        let shot_states: std::collections::HashSet<(Vec<u16>, u32)> =
+            shots.iter().map(|t| (t.obs.clone(), t.step)).collect();
+        assert_eq!(first, shot_states, "one branch from every state of the shots");
+        assert!(greedy.len() >= 10_000 - shots.len() * 5 && greedy.len() <= 10_000 + shots.len());
         let truth = World::new(&config.world, &task, 0);
         let mut next = vec![0u16; obs_len];
         for t in &greedy {
@@ -498,9 +556,24 @@ mod tests {
                 "{reward} {t:?}"
             );
         }
-        let random = evaluator.rollouts(&q, 1.0, 7).unwrap();
+        let random = evaluator.rollouts(&q, ask(10_000, 1.0, 7)).unwrap();
         assert_ne!(random, greedy);
-        assert_eq!(random, evaluator.rollouts(&q, 1.0, 7).unwrap());
-        assert_ne!(random, evaluator.rollouts(&q, 1.0, 8).unwrap());
+        assert_eq!(random, evaluator.rollouts(&q, ask(10_000, 1.0, 7)).unwrap());
+        assert_ne!(random, evaluator.rollouts(&q, ask(10_000, 1.0, 8)).unwrap());
+        let rain = TaskConfig::one_off(
+            2000.0,
+            Some(RainZone {
+                x0: 3,
+                y0: 3,
+                x1: 6,
+                y1: 6,
+            }),
+        );
+        let mut rainy = Evaluator::from_config(&config, &rain)
+            .with_model(&random_shots(&config, &rain, 2000));
+        assert!(rainy.rollouts(&q, ask(100, 0.0, 7)).is_none());
+        assert!(Evaluator::from_config(&config, &task)
+            .rollouts(&q, ask(100, 0.0, 7))
+            .is_none());
     }
 }

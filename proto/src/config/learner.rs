@@ -81,39 +81,30 @@ pub struct LearnerConfig {
     /// Guard against late collapse, from the offline data alone: training stops, keeping the
     /// previous epoch's network, once the mean Q of the data's own actions falls below
     /// `V_data - value_guard * |V_data|`, `V_data` = the shots' mean reward / (1 - gamma) (see
-    /// `learner/src/train.rs`). 0 = no guard.
-    #[default(0.5)]
+    /// `learner/src/train.rs`). 0 = no guard (the default: no algorithm's paper has one;
+    /// docs/MODEL.md's departures).
+    #[default(0.0)]
     #[garde(custom(finite(0.0.., "a finite margin >= 0 (0 = no guard)")))]
     pub value_guard: f64,
-    /// Averaging of the trained network's weights over epochs: the published network is the
-    /// exponential moving average of the networks after each epoch (that the value guard let
-    /// through), over about the last 1 / (1 - decay) epochs, bias-corrected so the init has no
-    /// weight (`learner/src/train.rs`, `Average`). Evaluations, the returned network and the
+    /// Averaging of the trained network's weights over epochs, per epoch: the published network
+    /// is the exponential moving average of the networks after each epoch (that the value guard
+    /// let through), over about the last 1 / (1 - decay) epochs, bias-corrected so the init has
+    /// no weight (`learner/src/train.rs`, `Average`). Evaluations, the returned network and the
     /// `final` checkpoint are the average; the gradient steps keep training Q itself. 0 = off
-    /// (the default): the last epoch's network, whose return moves by up to several percent between
-    /// epochs on 500 shots (docs/EXPERIMENTS.md, B3).
+    /// (the default): the last epoch's network, whose return moves by up to several percent
+    /// between epochs on 500 shots (docs/EXPERIMENTS.md, B3).
     #[default(0.0)]
     #[garde(custom(within(0.0..1.0, "a decay in [0, 1): 0 = no averaging")))]
     pub average_decay: f64,
-    /// Epochs between the candidates of the network a run keeps: its start, the network it
-    /// publishes every that many epochs and its last, scored by their greedy return in the world
-    /// the shots identify (the moves, the AoI update and the reward's form known, each device's
-    /// power fitted to the shots; `learner/src/train.rs`, `Selection`). The true world never
-    /// enters the choice. Keeps fine-tuning at or above its start where it first improves and
-    /// then falls (docs/EXPERIMENTS.md, D19); every epoch a candidate brings more runs within 2%
-    /// of their agent than every tenth (D20). 0 = keep the last network; tasks with rain always do.
-    #[default(1)]
-    pub select_every: usize,
-    /// The model twin's rows per epoch (`learner/src/model_rows.rs`): where the run chooses its
-    /// network (`select_every` > 0) and its shots identify the world, a second run from the same
-    /// start trains on the shots plus this many steps of its own policy rolled out in that world
-    /// before each epoch, read by the TD term alone; its networks are candidates too. 10 000 is
-    /// every step of the default world's rollouts (100 start cells x 100 steps); it brings every
-    /// CQL-MAML and CQL-pretrain run of D23 within 1.4% of its agent, where 2 000 left 3 of 24
-    /// more than 2% short (docs/EXPERIMENTS.md). 0 = no twin; tasks with rain never have one.
-    #[default(10000)]
+    /// Model rows per epoch of a model-based algorithm (`dyna-cql`; `learner/src/model_rows.rs`):
+    /// steps of its own policy rolled out in the world its shots identify, from the shots' own
+    /// states, added to the shots, read by the TD term and weighing 0 in the conservative term.
+    /// 2 000 is 4 model rows for each of the paper's 500 shots; at 10 000 its Q-values diverged
+    /// on every seed of lambda-300 (docs/EXPERIMENTS.md, D24). No other algorithm reads it.
+    #[default(2000)]
+    #[garde(custom(at_least(1)))]
     pub model_rows: usize,
-    /// How often the model rollouts act at random rather than greedily.
+    /// How often a model-based algorithm's rollouts act at random rather than greedily.
     #[default(0.1)]
     #[garde(custom(within(0.0..=1.0, "a probability in [0, 1]")))]
     pub model_epsilon: f64,

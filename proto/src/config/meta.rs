@@ -79,7 +79,7 @@ pub struct MetaConfig {
     /// through the inner and outer losses in between (see `meta/src/maml.rs`).
     #[default(1)]
     #[garde(custom(within(1.., "at least 1 meta-epoch")))]
-    pub target_update_every: usize,
+    pub target_update_meta_epochs: usize,
     /// Meta-epochs between evaluations of each task's adapted greedy policy on its environment
     /// (costly: `learner.eval_episodes` episodes per task); 0 evaluates only after the last.
     #[default(10)]
@@ -91,7 +91,7 @@ pub struct MetaConfig {
     /// up to 2.4k between neighbouring meta-epochs (docs/EXPERIMENTS.md, C7).
     #[default(0.0)]
     #[garde(custom(within(0.0..1.0, "a decay in [0, 1): 0 = no averaging")))]
-    pub average_decay: f64,
+    pub average_decay_per_outer_step: f64,
     /// beta: the meta-loss adds `beta * L(w0; query shots)` per task to eq. 15's
     /// `L(w_i; query shots)`, the loss of w0 before any inner step (the step-0 term of MAML++'s
     /// multi-step loss, Antoniou et al. 2019). Eq. 15 alone never asks w0's own greedy policy to

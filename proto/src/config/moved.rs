@@ -32,7 +32,9 @@ pub const MOVED: &[(&str, Fate)] = &[
     ("collect.dqn_target_update_every", Fate::Renamed("collect.dqn.target_update_every")),
     ("collect.dqn_select_every", Fate::Renamed("collect.dqn.select_every")),
     ("meta.shots", Fate::Renamed("meta.support_shots")),
-    ("meta.w0_average_decay", Fate::Renamed("meta.average_decay")),
+    ("meta.w0_average_decay", Fate::Renamed("meta.average_decay_per_outer_step")),
+    ("meta.average_decay", Fate::Renamed("meta.average_decay_per_outer_step")),
+    ("meta.target_update_every", Fate::Renamed("meta.target_update_meta_epochs")),
     ("learner.fqe_steps", Fate::Removed(FQE)),
     ("learner.fqe_target_update_every", Fate::Removed(FQE)),
     ("learner.fqe_lr", Fate::Removed(FQE)),
@@ -48,6 +50,7 @@ pub const MOVED: &[(&str, Fate)] = &[
     ("run.keep_until_stored", Fate::Removed("an actor always keeps its batches until the store acknowledges them; keeping them only until the store is proven connected saved 3 ns a transition (docs/EXPERIMENTS.md, T1)")),
     ("run.batch_size", Fate::Renamed("run.transitions_per_message")),
     ("learner.batch", Fate::Renamed("learner.batch_size")),
+    ("learner.select_every", Fate::Removed("a run's network was picked by its return in a world fitted to the shots and scored from the evaluation's start cells, which on lambda tasks is the evaluation itself; every algorithm reports its last epoch (docs/EXPERIMENTS.md, D24)")),
     ("collect.sample_newest", Fate::Removed("shots from the newest part of the buffer did worse than from all of it (docs/EXPERIMENTS.md, B and B4)")),
 ];
 

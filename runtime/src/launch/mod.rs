@@ -70,7 +70,7 @@ mod targets;
 
 use plan::{plan, Role, Supervised};
 use remote::{wait_for_remote_hosts, TUNNEL_PROCESS};
-use report::{latest_results, reference_rows};
+use report::{latest_results, model_planner_rows, reference_rows};
 pub use report::{results_table, LaunchReport};
 pub use reuse::Reuse;
 pub use seeds::{launch_seeds, SeedsReport};
@@ -229,7 +229,10 @@ pub fn launch(
         display.finish();
     }
     outcome?;
-    let results = latest_results(&run)?;
+    let mut results = latest_results(&run)?;
+    if let [seed] = config.run.seeds[..] {
+        results.extend(model_planner_rows(config, &run, seed));
+    }
     Ok(LaunchReport {
         run: run.root().to_path_buf(),
         restarts: children.iter().map(|c| c.failures).sum(),

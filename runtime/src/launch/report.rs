@@ -5,9 +5,13 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use uavmeta_proto::config::{Config, TaskRole};
-use uavmeta_proto::method::Method;
+use uavmeta_proto::method::{Method, MODEL_BASED};
 use uavmeta_proto::stats;
+use uavmeta_learner::transitions::load_shots;
 use uavmeta_world::heuristics::{reference_metrics, PolicySpec, REFERENCES};
+use uavmeta_world::identify::identify;
+use uavmeta_world::planner::PlannerPolicy;
+use uavmeta_world::rollout::evaluate;
 use uavmeta_world::world::World;
 
 use super::LaunchError;
@@ -29,13 +33,20 @@ pub struct LaunchReport {
     pub bounds: Vec<(String, f64)>,
 }
 
+/// The row of the planner run in the world a seed's shots identify
+/// (`PlannerPolicy::in_model`): the model-based section's reference for what planning in the
+/// fitted world reaches.
+pub const MODEL_PLANNER: &str = "model-planner";
+
 /// Where a row goes in its task's block: the references (random, the heuristics, the planner,
 /// then the online DQN agent)
-/// first, then the learners; `None` for a method the table does not know.
+/// first, then the learners, the model planner last; `None` for a method the table does not
+/// know.
 pub(super) fn row_rank(method: &str) -> Option<usize> {
     let references = REFERENCES.iter().map(ToString::to_string);
     let references = references.chain([Method::OnlineDqn.name()]);
-    let mut order = references.chain(Method::learners().map(Method::name));
+    let learners = Method::learners().map(Method::name);
+    let mut order = references.chain(learners).chain([MODEL_PLANNER.to_string()]);
     order.position(|name| name == method)
 }
 
@@ -43,6 +54,49 @@ pub(super) fn row_rank(method: &str) -> Option<usize> {
 /// rather than a learner.
 pub(super) fn is_reference(method: &str) -> bool {
     row_rank(method).is_some_and(|rank| rank <= REFERENCES.len())
+}
+
+/// Whether a row is a model-based method's, shown in a section of its own.
+fn is_model_based(method: &str) -> bool {
+    method == MODEL_PLANNER || Method::from_name(method).is_some_and(Method::model_based)
+}
+
+/// The planner in the world the run's shots identify, on each meta-test task: the shots the
+/// fine-tuning runs of `seed` read (`learner.shots` of the task's dataset), the fit told only the
+/// world's form (`uavmeta_world::identify`), the plan made in the fitted world from each state
+/// the true world shows and played there. No row where the shots identify no world (rain) or
+/// the dataset is missing.
+pub(super) fn model_planner_rows(config: &Config, run: &RunDir, seed: u64) -> Vec<EvaluationRow> {
+    let episodes = config.learner.eval_episodes;
+    config
+        .tasks_with_role(TaskRole::MetaTest)
+        .filter_map(|task| {
+            let dataset = run.dataset(task);
+            let shots = load_shots(config, task, &dataset, config.fine_tune_shots(), seed);
+            let fitted = match shots.map(|s| identify(&config.world, &s.rows)) {
+                Ok(Ok(fitted)) => fitted,
+                Ok(Err(why)) => {
+                    tracing::info!(task = %task.name, %why, "no model-planner row");
+                    return None;
+                }
+                Err(error) => {
+                    tracing::warn!(task = %task.name, %error, "no model-planner row");
+                    return None;
+                }
+            };
+            let mut policy = PlannerPolicy::in_model(&config.planner, fitted.world);
+            let metrics = evaluate(&config.world, task, &mut policy, episodes, config.learner.eval_seed);
+            Some(EvaluationRow::new(&task.name, MODEL_PLANNER, 0, &metrics))
+        })
+        .collect()
+}
+
+/// What the row's network number counts (`Method::network_label`), `-` for a reference.
+fn network(row: &EvaluationRow) -> String {
+    match Method::from_name(&row.method) {
+        Some(method) if !is_reference(&row.method) => method.network_label(row.epoch),
+        _ => "-".into(),
+    }
 }
 
 /// Each reference policy on each meta-test task, over the episodes the evaluator scores
@@ -84,7 +138,8 @@ pub(super) fn latest_results(run: &RunDir) -> Result<Vec<EvaluationRow>, LaunchE
 }
 
 /// The results table `uavmeta launch` ends with: per task, the references (heuristics, online
-/// DQN), a rule, then the learners at their last evaluated epoch. Power in mW, as everywhere.
+/// DQN), a rule, the learners that read the shots alone at their last evaluated network, then
+/// the model-based section under a line saying what it is told. Power in mW, as everywhere.
 pub fn results_table(report: &LaunchReport) -> String {
     let mut out = format!(
         "run {} ({} restarts)\n",
@@ -96,7 +151,7 @@ pub fn results_table(report: &LaunchReport) -> String {
         return out;
     }
     let header = format!(
-        "{:<14} {:<13} {:>6} {:>22} {:>12} {:>14} {:>18} {:>12}",
+        "{:<14} {:<15} {:>9} {:>22} {:>12} {:>14} {:>18} {:>12}",
         "task", "method", "epoch", "return", "vs planner", "AoI", "power (mW)", "outages"
     );
     out.push_str(&header);
@@ -120,15 +175,14 @@ pub fn results_table(report: &LaunchReport) -> String {
             if i > 0 && !reference && is_reference(&rows[i - 1].method) {
                 out.push_str(&format!("{}\n", "-".repeat(header.len())));
             }
+            if is_model_based(&r.method) && (i == 0 || !is_model_based(&rows[i - 1].method)) {
+                out.push_str(&format!("-- {MODEL_BASED}\n"));
+            }
             out.push_str(&format!(
-                "{:<14} {:<13} {:>6} {:>22} {:>12} {:>14} {:>18} {:>12}\n",
+                "{:<14} {:<15} {:>9} {:>22} {:>12} {:>14} {:>18} {:>12}\n",
                 r.task,
                 r.method,
-                if reference {
-                    "-".to_string()
-                } else {
-                    r.epoch.to_string()
-                },
+                network(r),
                 format!("{:.1}", r.policy.ret),
                 // Returns are costs: a row 3% below the planner reads -3.0%.
                 planner.map_or("-".to_string(), |p| stats::gap_to_planner(
@@ -196,6 +250,7 @@ mod tests {
                 row("cql-maml", -7100.0, 0.5),
                 row("online-dqn", -7000.0, 0.5),
                 row("cql", -16000.0, 0.5),
+                row("dyna-cql", -6900.0, 0.5),
             ],
             references: vec![
                 row("greedy", -7800.0, 0.325),
@@ -210,7 +265,10 @@ mod tests {
             .lines()
             .skip(2)
             .filter(|l| !l.starts_with("lambda-300:"))
-            .map(|l| l.split_whitespace().nth(1).unwrap_or(l))
+            .map(|l| match l.starts_with("-- ") {
+                true => "--",
+                false => l.split_whitespace().nth(1).unwrap_or(l),
+            })
             .collect();
         let rule = "-".repeat(10);
         let expected = [
@@ -222,6 +280,8 @@ mod tests {
             "cql",
             "cql-maml",
             "maml-init",
+            "--",
+            "dyna-cql",
         ];
         assert_eq!(methods.len(), expected.len(), "{table}");
         for (got, want) in methods.iter().zip(expected) {
@@ -241,13 +301,18 @@ mod tests {
         // Each row's distance to the planner: cql-maml's -7100 is 9.2% below its -6500.
         let cql_maml = table.lines().find(|l| l.contains(" cql-maml ")).unwrap();
         assert!(cql_maml.contains("-9.2%"), "{table}");
-        // References have no epoch.
+        // References have no network number; a fine-tuned row gives its epoch, w0 its
+        // meta-epoch; the model-based section says what it is told.
         assert!(
             table
                 .lines()
-                .any(|l| l.starts_with("lambda-300     greedy             -")),
+                .any(|l| l.starts_with("lambda-300     greedy                  -")),
             "{table}"
         );
+        let line = |m: &str| table.lines().find(|l| l.contains(&format!(" {m} "))).unwrap();
+        assert!(line("cql-maml").contains(" 40 "), "{table}");
+        assert!(line("maml-init").contains(" meta-40 "), "{table}");
+        assert!(table.contains(&format!("-- {MODEL_BASED}")), "{table}");
     }
 
     #[test]

@@ -43,7 +43,7 @@ use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::checkpoint::{self, CheckpointError};
 use uavmeta_learner::progress::OnStep;
 use uavmeta_learner::qnet::{QNetwork, QNetworkConfig};
-use uavmeta_learner::train::{EpochRow, EvaluatePolicy};
+use uavmeta_learner::train::{EpochRow, EvaluatePolicy, Rollouts};
 use uavmeta_learner::transitions::{load_shots, Shots, Transitions};
 use uavmeta_meta::context::{self, ContextModel};
 use uavmeta_meta::fine_tune::{fine_tune, FineTune};
@@ -427,7 +427,7 @@ impl MetaTest<'_> {
         shots: &Shots,
     ) -> Announcing<'t> {
         Announcing {
-            inner: Evaluator::from_config(self.config, task).judging_by(&shots.rows),
+            inner: Evaluator::from_config(self.config, task).with_model(&shots.rows),
             meta_test: self,
             task,
             task_id,
@@ -548,11 +548,7 @@ impl EvaluatePolicy for Announcing<'_> {
         self.inner.evaluate(q)
     }
 
-    fn judge(&mut self, q: &QNetwork) -> Option<f64> {
-        self.inner.judge(q)
-    }
-
-    fn rollouts(&mut self, q: &QNetwork, epsilon: f64, seed: u64) -> Option<Vec<Transition>> {
-        self.inner.rollouts(q, epsilon, seed)
+    fn rollouts(&mut self, q: &QNetwork, ask: Rollouts) -> Option<Vec<Transition>> {
+        self.inner.rollouts(q, ask)
     }
 }
