@@ -200,6 +200,41 @@ fn bad_input_is_an_error_naming_the_file_or_value() {
     assert!(!d.join("z.npz").exists());
 }
 
+/// A run's dataset (`RUN/datasets/TASK.uavds`) takes the run's `config.toml`, as `export --help`
+/// says, for `export` as for `inspect`; with neither config there, the error names the file to
+/// pass.
+#[test]
+fn a_runs_dataset_exports_with_the_runs_config() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let d = dir.path();
+    let file = collect(d);
+    std::fs::create_dir_all(d.join("run/datasets")).unwrap();
+    std::fs::rename(&file, d.join("run/datasets/lambda-300.uavds")).unwrap();
+    let beside = d.join("data/lambda-300.uavds.config.toml");
+    let args = |out: &'static str| {
+        [
+            "dataset",
+            "export",
+            "--dataset",
+            "run/datasets/lambda-300.uavds",
+            "--format",
+            "npz",
+            "--out",
+            out,
+        ]
+    };
+    let missing = failure(uavmeta(d, &args("a.npz")));
+    assert!(
+        missing.contains("run/datasets/lambda-300.uavds.config.toml: cannot read")
+            && missing.contains("pass --config FILE"),
+        "{missing}"
+    );
+    std::fs::rename(&beside, d.join("run/config.toml")).unwrap();
+    let text = stdout(uavmeta(d, &args("b.npz")));
+    assert!(text.contains("200 transitions of task `lambda-300`"), "{text}");
+    stdout(uavmeta(d, &["dataset", "inspect", "run/datasets/lambda-300.uavds"]));
+}
+
 #[test]
 fn exports_load_in_numpy_d3rlpy_and_minari_as_the_source() {
     let python = support::venv_python();

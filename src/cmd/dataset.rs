@@ -78,7 +78,10 @@ fn export(args: ExportArgs) -> Result<()> {
     }
     // The dataset first: a mistyped dataset path is reported as that, not as a missing config.
     let reader = DatasetReader::open(&args.dataset)?;
-    let config_file = args.config.unwrap_or_else(|| config_path(&args.dataset));
+    let config_file = args
+        .config
+        .or_else(|| saved_config_path(&args.dataset))
+        .unwrap_or_else(|| config_path(&args.dataset));
     let config = Config::load(&config_file, &[]).with_context(|| {
         format!(
             "{}: the dataset's config; pass --config FILE, the config it was collected with",
@@ -148,17 +151,22 @@ fn inspect(args: InspectArgs) -> Result<()> {
 /// The config `uavmeta collect` saved beside `dataset`, or the config of the run whose
 /// `datasets/` holds it, if there is one.
 fn saved_config(dataset: &Path) -> Result<Option<Config>> {
+    match saved_config_path(dataset) {
+        Some(file) => Ok(Some(Config::load(&file, &[])?)),
+        None => Ok(None),
+    }
+}
+
+/// Where [`saved_config`] finds the dataset's config: FILE.config.toml beside it, else the
+/// `config.toml` of the run whose `datasets/` holds it; `None` if neither exists.
+fn saved_config_path(dataset: &Path) -> Option<PathBuf> {
     let beside = config_path(dataset);
     let in_run = dataset
         .parent()
         .filter(|dir| dir.file_name().is_some_and(|name| name == "datasets"))
         .and_then(Path::parent)
         .map(|run| run.join("config.toml"));
-    match std::iter::once(beside)
+    std::iter::once(beside)
         .chain(in_run)
         .find(|file| file.exists())
-    {
-        Some(file) => Ok(Some(Config::load(&file, &[])?)),
-        None => Ok(None),
-    }
 }
