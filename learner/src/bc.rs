@@ -9,7 +9,8 @@
 //!
 //! The first term is the negative log-likelihood of the data's action; it is eq. 8's conservative
 //! term without its TD part. The second keeps the logits from growing without bound on actions
-//! the data always takes (beta = 0.5, d3rlpy's default). Rewards play no part: BC is the level
+//! the data always takes (beta = 0.5, d3rlpy's default; d3rlpy squares log_softmax f, not f:
+//! docs/MODEL.md section 5 says what that moves). Rewards play no part: BC is the level
 //! any offline RL method has to beat on its own data. It acts through the same greedy policy as
 //! the Q-learners (its most likely action), so every table and evaluation takes it as it is.
 
