@@ -25,7 +25,7 @@ use tch::Tensor;
 use uavmeta_proto::config::LearnerConfig;
 
 use crate::algorithm::{OfflineAlgorithm, Terms};
-use crate::bc::BETA;
+use crate::bc::{log_prob_size, BETA};
 use crate::cql::conservative_rows;
 use crate::dqn::TdConfig;
 use crate::qnet::{head, q_values, Acting};
@@ -47,8 +47,7 @@ impl OfflineAlgorithm for Bcq {
         let logits = imitation_logits(t.q);
         // -log G_w(a_data | s) of each transition [.., B].
         let nll = conservative_rows(&logits, t.batch);
-        let size = logits.square().mean_dim([-1i64].as_slice(), false, None);
-        t.td + (t.mean)(nll) + (t.mean)(size) * BETA
+        t.td + (t.mean)(nll) + (t.mean)(log_prob_size(&logits)) * BETA
     }
 
     /// `Qhat(s', a*(s'))`, `a*` the online network's best supported action.

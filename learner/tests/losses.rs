@@ -255,8 +255,14 @@ fn batch_rejects_transitions_of_another_world() {
 fn bc_loss_matches_d3rlpy_s_discrete_bc_by_hand() {
     let (q, _, batch) = fixture();
     // Cross-entropy of the logged actions: the conservative rows above, mean 2.216176.
-    // d3rlpy's penalty: beta * mean of the squared logits = 0.5 * (1 + 4 + 9 + 0 + 1 + 16) / 6.
-    let expected = 2.216176 + 0.5 * 31.0 / 6.0;
+    // d3rlpy's penalty: beta * the mean of the squared log-probabilities (log_softmax of each
+    // row: the row less its log-sum-exp, 3.407606 and 4.024744).
+    let log_probs = [
+        [1.0, 2.0, 3.0].map(|f: f64| f - 3.407606),
+        [0.0, -1.0, 4.0].map(|f: f64| f - 4.024744),
+    ];
+    let penalty = log_probs.iter().flatten().map(|l| l * l).sum::<f64>() / 6.0;
+    let expected = 2.216176 + 0.5 * penalty;
     let mean = |rows: Tensor| rows.mean(None);
     let td = Tensor::from(0.0f32);
     let terms = Terms {
