@@ -231,8 +231,14 @@ fn a_runs_dataset_exports_with_the_runs_config() {
     );
     std::fs::rename(&beside, d.join("run/config.toml")).unwrap();
     let text = stdout(uavmeta(d, &args("b.npz")));
-    assert!(text.contains("200 transitions of task `lambda-300`"), "{text}");
-    stdout(uavmeta(d, &["dataset", "inspect", "run/datasets/lambda-300.uavds"]));
+    assert!(
+        text.contains("200 transitions of task `lambda-300`"),
+        "{text}"
+    );
+    stdout(uavmeta(
+        d,
+        &["dataset", "inspect", "run/datasets/lambda-300.uavds"],
+    ));
 }
 
 #[test]

@@ -897,7 +897,11 @@ fn an_evaluator_restarted_after_the_meta_learner_exited_catches_up_from_the_run_
         .filter_map(|l| l.split_whitespace().nth(1))
         .take(3)
         .collect();
-    assert_eq!(methods, ["dyna-cql", "dyna-cql-w0", "model-planner"], "{table}");
+    assert_eq!(
+        methods,
+        ["dyna-cql", "dyna-cql-w0", "model-planner"],
+        "{table}"
+    );
     let csv = run.join("evaluations.csv");
     let complete = std::fs::read_to_string(&csv).expect("evaluations.csv");
     let lines: Vec<&str> = complete.lines().collect();

@@ -35,7 +35,6 @@ impl EvaluatePolicy for NoEvaluation {
         PolicyMetrics::default()
     }
 
-
     fn rollouts(&mut self, _q: &QNetwork, _ask: Rollouts) -> Option<Vec<Transition>> {
         None
     }

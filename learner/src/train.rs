@@ -336,8 +336,8 @@ pub fn train(
     let cfg = &opts.config.learner;
     algorithm::prepare(q, opts.algorithm, cfg);
     let mut model = ModelRows::new(opts, q, evaluator);
-    let rows = data.len() + model.as_ref().map_or(0, ModelRows::rows);
-    let steps_per_epoch = steps_per_epoch(cfg, rows);
+    let rows_per_epoch = data.len() + model.as_ref().map_or(0, ModelRows::rows);
+    let steps_per_epoch = steps_per_epoch(cfg, rows_per_epoch);
     let mut csv = match opts.out_dir {
         Some(dir) => Some(CsvLog::create(&dir.join("train.csv"), CSV_HEADER)?),
         None => None,
@@ -350,8 +350,9 @@ pub fn train(
     if opts.progress {
         bar.suspend(|| eprintln!("{}", EpochRow::table_header()));
     }
-    let mut trainer = OfflineTrainer::new(q, rows, opts.algorithm, opts.config, opts.seed)
-        .with_on_step(opts.on_step.clone());
+    let mut trainer =
+        OfflineTrainer::new(q, rows_per_epoch, opts.algorithm, opts.config, opts.seed)
+            .with_on_step(opts.on_step.clone());
     if model.is_some() {
         trainer = trainer.with_model_rows_from(data.len());
     }

@@ -72,7 +72,6 @@ impl EvaluatePolicy for Exact {
         PolicyMetrics::from_episodes(&episodes)
     }
 
-
     fn rollouts(&mut self, _q: &QNetwork, _ask: Rollouts) -> Option<Vec<Transition>> {
         None
     }
@@ -204,7 +203,6 @@ impl EvaluatePolicy for Recorder {
         Exact.evaluate(q)
     }
 
-
     fn rollouts(&mut self, _q: &QNetwork, _ask: Rollouts) -> Option<Vec<Transition>> {
         None
     }
@@ -305,8 +303,16 @@ fn the_value_guard_stops_a_run_and_keeps_its_last_good_network() {
             assert_eq!(row.network_epoch, tripped, "run {i}");
             assert_eq!(row.policy, rows[tripped - 1].policy, "run {i}");
         }
-        assert_eq!(recorder.0.len(), tripped, "run {i}: one evaluation per trained network");
-        assert_eq!(q.max_abs_difference(&recorder.0[tripped - 1]), 0.0, "run {i}");
+        assert_eq!(
+            recorder.0.len(),
+            tripped,
+            "run {i}: one evaluation per trained network"
+        );
+        assert_eq!(
+            q.max_abs_difference(&recorder.0[tripped - 1]),
+            0.0,
+            "run {i}"
+        );
     }
     assert!(
         stopped > 0,
@@ -422,13 +428,19 @@ fn named_algorithms_read_the_shots_alone_and_dyna_cql_adds_model_rows() {
             &mut evaluator,
         );
         let kept = checkpoint::load(&dir.path().join("final"), &cfg).unwrap().0;
-        assert!(kept.forward(&probe).allclose(&q.forward(&probe), 0.0, 0.0, false));
+        assert!(kept
+            .forward(&probe)
+            .allclose(&q.forward(&probe), 0.0, 0.0, false));
         (rows, q.forward(&probe), evaluator)
     };
     let epochs = cfg.learner.epochs;
     for algo in ["cql", "dqn", "bc", "bcq"] {
         let (rows, _, evaluator) = run(algo, true);
-        assert_eq!((evaluator.rollouts, evaluator.evaluations), (0, epochs), "{algo}");
+        assert_eq!(
+            (evaluator.rollouts, evaluator.evaluations),
+            (0, epochs),
+            "{algo}"
+        );
         for (i, row) in rows.iter().enumerate() {
             assert_eq!((row.epoch, row.network_epoch), (i + 1, i + 1), "{algo}");
         }
@@ -436,13 +448,25 @@ fn named_algorithms_read_the_shots_alone_and_dyna_cql_adds_model_rows() {
     }
     let (cql, cql_q, _) = run("cql", true);
     let (dyna, dyna_q, evaluator) = run("dyna-cql", true);
-    assert_eq!((evaluator.rollouts, evaluator.evaluations), (epochs, epochs));
-    assert!(dyna[0].steps > cql[0].steps, "model rows lengthen the epoch");
+    assert_eq!(
+        (evaluator.rollouts, evaluator.evaluations),
+        (epochs, epochs)
+    );
+    assert!(
+        dyna[0].steps > cql[0].steps,
+        "model rows lengthen the epoch"
+    );
     assert!(!dyna_q.allclose(&cql_q, 1e-6, 1e-6, false));
     let (alone, alone_q, evaluator) = run("dyna-cql", false);
-    assert_eq!(evaluator.rollouts, 1, "asked once, then trained on the shots alone");
+    assert_eq!(
+        evaluator.rollouts, 1,
+        "asked once, then trained on the shots alone"
+    );
     assert!(alone_q.allclose(&cql_q, 0.0, 0.0, false));
     for (a, b) in alone.iter().zip(&cql) {
-        assert_eq!((a.td_loss, a.policy, a.steps), (b.td_loss, b.policy, b.steps));
+        assert_eq!(
+            (a.td_loss, a.policy, a.steps),
+            (b.td_loss, b.policy, b.steps)
+        );
     }
 }

@@ -402,7 +402,12 @@ mod tests {
         let (clear, config) = world(-100.0, 300.0);
         let task = TaskConfig {
             lambda: 300.0,
-            rain: Some(RainZone { x0: 0, y0: 0, x1: 9, y1: 1 }),
+            rain: Some(RainZone {
+                x0: 0,
+                y0: 0,
+                x1: 9,
+                y1: 1,
+            }),
             ..config.tasks[0].clone()
         };
         let rainy = World::new(&config.world, &task, 0);

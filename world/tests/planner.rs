@@ -378,7 +378,10 @@ fn the_planner_in_the_identified_world_plans_as_the_planner_where_the_shots_fit_
         let mut shots = Vec::new();
         for &cell in cells {
             for device in 0..k {
-                shots.push(record_step(&mut world.clone().with_start(cell), hover + device));
+                shots.push(record_step(
+                    &mut world.clone().with_start(cell),
+                    hover + device,
+                ));
             }
         }
         shots

@@ -283,7 +283,11 @@ impl Model {
     /// greedily otherwise (draws seeded `ask.seed`), stepped in lockstep: one forward pass per
     /// step.
     fn rollouts(&self, q: &QNetwork, ask: Rollouts) -> Vec<Transition> {
-        let Rollouts { rows, epsilon, seed } = ask;
+        let Rollouts {
+            rows,
+            epsilon,
+            seed,
+        } = ask;
         let length = rows.div_ceil(self.starts.len().max(1)) as u32;
         let mut worlds: Vec<World> = self
             .starts
@@ -307,7 +311,9 @@ impl Model {
         let mut obs = Vec::with_capacity(worlds.len() * d);
         let mut greedy = vec![0i64; worlds.len()];
         loop {
-            let live: Vec<usize> = (0..worlds.len()).filter(|&w| worlds[w].t() < ends[w]).collect();
+            let live: Vec<usize> = (0..worlds.len())
+                .filter(|&w| worlds[w].t() < ends[w])
+                .collect();
             if live.is_empty() {
                 return steps;
             }
@@ -498,7 +504,10 @@ mod tests {
         let true_outcomes = outcomes(&World::new(&config.world, &truth, 0));
         for ((model, next), (reward, true_next)) in fitted[0].iter().zip(&true_outcomes) {
             assert_eq!(next, true_next);
-            assert!((model - reward).abs() < 1e-4 * reward.abs(), "{model} {reward}");
+            assert!(
+                (model - reward).abs() < 1e-4 * reward.abs(),
+                "{model} {reward}"
+            );
         }
         let zone = RainZone {
             x0: 3,
@@ -518,7 +527,11 @@ mod tests {
     }
 
     fn ask(rows: usize, epsilon: f64, seed: u64) -> Rollouts {
-        Rollouts { rows, epsilon, seed }
+        Rollouts {
+            rows,
+            epsilon,
+            seed,
+        }
     }
 
     /// The rollouts branch from the shots' own states, one branch of ceil(rows / starts) steps
@@ -542,7 +555,10 @@ mod tests {
             .collect();
         let shot_states: std::collections::HashSet<(Vec<u16>, u32)> =
             shots.iter().map(|t| (t.obs.clone(), t.step)).collect();
-        assert_eq!(first, shot_states, "one branch from every state of the shots");
+        assert_eq!(
+            first, shot_states,
+            "one branch from every state of the shots"
+        );
         assert!(greedy.len() >= 10_000 - shots.len() * 5 && greedy.len() <= 10_000 + shots.len());
         let truth = World::new(&config.world, &task, 0);
         let mut next = vec![0u16; obs_len];
@@ -569,8 +585,8 @@ mod tests {
                 y1: 6,
             }),
         );
-        let mut rainy = Evaluator::from_config(&config, &rain)
-            .with_model(&random_shots(&config, &rain, 2000));
+        let mut rainy =
+            Evaluator::from_config(&config, &rain).with_model(&random_shots(&config, &rain, 2000));
         assert!(rainy.rollouts(&q, ask(100, 0.0, 7)).is_none());
         assert!(Evaluator::from_config(&config, &task)
             .rollouts(&q, ask(100, 0.0, 7))

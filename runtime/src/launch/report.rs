@@ -4,10 +4,10 @@
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 
+use uavmeta_learner::transitions::load_shots;
 use uavmeta_proto::config::{Config, TaskRole};
 use uavmeta_proto::method::{Method, MODEL_BASED};
 use uavmeta_proto::stats;
-use uavmeta_learner::transitions::load_shots;
 use uavmeta_world::heuristics::{reference_metrics, PolicySpec, REFERENCES};
 use uavmeta_world::identify::identify;
 use uavmeta_world::planner::PlannerPolicy;
@@ -46,7 +46,9 @@ pub(super) fn row_rank(method: &str) -> Option<usize> {
     let references = REFERENCES.iter().map(ToString::to_string);
     let references = references.chain([Method::OnlineDqn.name()]);
     let learners = Method::learners().map(Method::name);
-    let mut order = references.chain(learners).chain([MODEL_PLANNER.to_string()]);
+    let mut order = references
+        .chain(learners)
+        .chain([MODEL_PLANNER.to_string()]);
     order.position(|name| name == method)
 }
 
@@ -85,7 +87,13 @@ pub(super) fn model_planner_rows(config: &Config, run: &RunDir, seed: u64) -> Ve
                 }
             };
             let mut policy = PlannerPolicy::in_model(&config.planner, fitted.world);
-            let metrics = evaluate(&config.world, task, &mut policy, episodes, config.learner.eval_seed);
+            let metrics = evaluate(
+                &config.world,
+                task,
+                &mut policy,
+                episodes,
+                config.learner.eval_seed,
+            );
             Some(EvaluationRow::new(&task.name, MODEL_PLANNER, 0, &metrics))
         })
         .collect()
@@ -309,7 +317,12 @@ mod tests {
                 .any(|l| l.starts_with("lambda-300     greedy                  -")),
             "{table}"
         );
-        let line = |m: &str| table.lines().find(|l| l.contains(&format!(" {m} "))).unwrap();
+        let line = |m: &str| {
+            table
+                .lines()
+                .find(|l| l.contains(&format!(" {m} ")))
+                .unwrap()
+        };
         assert!(line("cql-maml").contains(" 40 "), "{table}");
         assert!(line("maml-init").contains(" meta-40 "), "{table}");
         assert!(table.contains(&format!("-- {MODEL_BASED}")), "{table}");
