@@ -420,8 +420,8 @@ fn meta_train_writes_w0_that_meta_test_fine_tunes() {
         d,
         &[
             "meta.meta_epochs=4",
-            "meta.support_shots=16",
-            "meta.query_shots=16",
+            "meta.support_batch_size=16",
+            "meta.query_batch_size=16",
             "meta.eval_every=2",
             "meta.checkpoint_every=2",
         ],

@@ -20,7 +20,7 @@
 //! unseen lambda less well: its zero-shot policy on lambda-300 scored 0.9% lower
 //! (docs/EXPERIMENTS.md, F2). As in FOCAL, the Q-network learns from its own loss with the codes
 //! as fixed inputs; so the encoder trains first (`context.encoder_steps` Adam steps, each on two
-//! contexts of `context.context_shots` transitions per meta-train task), then the Q-network. The
+//! contexts of `context.transitions_per_context` transitions per meta-train task), then the Q-network. The
 //! Q-network trains exactly as CQL-pretrain's does ([`crate::pretrain::train_multi_task`]: the
 //! same algorithm, budget and minibatches on the union of the meta-train tasks' shots), each
 //! transition carrying the code of one of [`CODES_PER_TASK`] contexts of its task: the two inits
@@ -192,16 +192,16 @@ pub fn task_parameters(tasks: &[&TaskConfig], world: &WorldConfig) -> Tensor {
     Tensor::from_slice(&rows).view([tasks.len() as i64, 6])
 }
 
-/// `count` contexts of `context_shots` rows of `data` each, drawn without replacement within a
+/// `count` contexts of `transitions_per_context` rows of `data` each, drawn without replacement within a
 /// context: [count, C, input].
 fn contexts(
     data: &Transitions,
-    context_shots: usize,
+    transitions_per_context: usize,
     count: usize,
     actions: usize,
     rng: &mut ChaCha8Rng,
 ) -> Tensor {
-    let c = context_shots.min(data.len());
+    let c = transitions_per_context.min(data.len());
     let rows: Vec<i64> = (0..count)
         .flat_map(|_| {
             index::sample(rng, data.len(), c)
@@ -240,7 +240,7 @@ pub fn train_encoder(
             .map(|d| {
                 encode(
                     &encoder,
-                    &contexts(d, ctx.context_shots, 2, actions, &mut rng),
+                    &contexts(d, ctx.transitions_per_context, 2, actions, &mut rng),
                 )
             })
             .collect();
@@ -261,7 +261,7 @@ fn with_codes(
     let actions = config.world.action_count();
     let batch = contexts(
         data,
-        config.context.context_shots,
+        config.context.transitions_per_context,
         CODES_PER_TASK,
         actions,
         rng,

@@ -101,7 +101,7 @@ impl MamlConfig {
         match self.meta.outer_steps_per_meta_epoch {
             0 => tasks
                 .iter()
-                .map(|t| t.support.len().div_ceil(self.meta.support_shots))
+                .map(|t| t.support.len().div_ceil(self.meta.support_batch_size))
                 .max()
                 .unwrap_or(1),
             n => n,
@@ -330,12 +330,12 @@ pub struct TaskShots {
 }
 
 impl MetaTask {
-    /// `shots` support rows and `query_shots` query rows drawn without replacement (all rows of a
+    /// `shots` support rows and `query_batch_size` query rows drawn without replacement (all rows of a
     /// set smaller than asked for).
-    pub fn sample(&self, shots: usize, query_shots: usize, rng: &mut ChaCha8Rng) -> TaskShots {
+    pub fn sample(&self, shots: usize, query_batch_size: usize, rng: &mut ChaCha8Rng) -> TaskShots {
         TaskShots {
             support: sample_rows(&self.support, shots, rng),
-            query: sample_rows(&self.query, query_shots, rng),
+            query: sample_rows(&self.query, query_batch_size, rng),
         }
     }
 }
@@ -421,8 +421,8 @@ impl EpochDraws {
         let shots = picked
             .iter()
             .map(|&i| TaskShots {
-                support: self.passes[i].take(&tasks[i].support, meta.support_shots, rng),
-                query: sample_rows(&tasks[i].query, meta.query_shots, rng),
+                support: self.passes[i].take(&tasks[i].support, meta.support_batch_size, rng),
+                query: sample_rows(&tasks[i].query, meta.query_batch_size, rng),
             })
             .collect();
         (picked, shots)

@@ -343,7 +343,7 @@ fn adapted_return(
     let total: f64 = (0..adaptations as u64)
         .map(|a| {
             let mut rng = ChaCha8Rng::seed_from_u64(stream ^ (a << 48));
-            let shots = task.sample(meta.support_shots, meta.query_shots, &mut rng);
+            let shots = task.sample(meta.support_batch_size, meta.query_batch_size, &mut rng);
             evaluator.evaluate(&maml.adapted(&shots.support)).ret.mean
         })
         .sum();

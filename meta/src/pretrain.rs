@@ -4,8 +4,8 @@
 //! on the union of every meta-train task's shots (support and query sets alike), then fine-tuned
 //! on the unseen task exactly as `w0` is. It gets MAML's budget: as many gradient steps as
 //! meta-training makes outer steps (`meta.meta_epochs` times the outer steps of a meta-epoch), each
-//! on a minibatch as large as the shots one outer step reads (tasks x (`meta.support_shots` +
-//! `meta.query_shots`)). What separates the two inits is then only what they are optimised for: the
+//! on a minibatch as large as the shots one outer step reads (tasks x (`meta.support_batch_size` +
+//! `meta.query_batch_size`)). What separates the two inits is then only what they are optimised for: the
 //! tasks' average loss here, the loss after one adaptation step in MAML. If MAML adds nothing, the
 //! two score alike.
 
@@ -47,7 +47,7 @@ pub fn train_multi_task<E>(
 ) -> Result<Option<QNetwork>, E> {
     let maml = MamlConfig::from_config(config);
     let mut budget = config.clone();
-    budget.learner.batch_size = tasks.len() * (maml.meta.support_shots + maml.meta.query_shots);
+    budget.learner.batch_size = tasks.len() * (maml.meta.support_batch_size + maml.meta.query_batch_size);
     budget.learner.alpha = maml.meta.alpha;
     algorithm::prepare(&mut q, config.meta.inner_loss, &config.learner);
     let mut trainer = OfflineTrainer::new(&q, union.len(), config.meta.inner_loss, &budget, seed)

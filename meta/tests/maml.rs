@@ -28,8 +28,8 @@ fn config(inner_loss: Algo, inner_steps: usize, first_order: bool) -> MamlConfig
             inner_loss,
             alpha: 1.0,
             tasks_per_meta_epoch: 0,
-            support_shots: 8,
-            query_shots: 8,
+            support_batch_size: 8,
+            query_batch_size: 8,
             inner_steps,
             // Large enough that the second-order term is far above finite-difference noise.
             eta_inner: 0.3,

@@ -45,8 +45,8 @@ eval_episodes = 2
 [meta]
 meta_epochs = 4
 checkpoint_every = 2
-support_shots = 16
-query_shots = 16
+support_batch_size = 16
+query_batch_size = 16
 eval_every = 0
 
 [run]

@@ -26,7 +26,7 @@ pub struct ContextConfig {
     /// meta-test the code is pooled over every shot.
     #[default(64)]
     #[garde(custom(at_least(1)))]
-    pub context_shots: usize,
+    pub transitions_per_context: usize,
     /// Adam steps (`learner.lr`) of the encoder, learning to read the meta-train tasks'
     /// parameters from their contexts, before the Q-network trains.
     #[default(2000)]

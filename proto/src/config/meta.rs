@@ -19,22 +19,23 @@ pub struct MetaConfig {
     #[default(150)]
     pub meta_epochs: usize,
     /// Outer (eq. 16) steps per meta-epoch; 0 = one pass over the tasks' support sets, i.e.
-    /// ceil(support shots / `shots`) steps, each task's support shots drawn without replacement
-    /// within the pass (docs/MODEL.md section 5, "Epochs"). 1 = Algorithm 4 read literally.
+    /// ceil(support set / `support_batch_size`) steps, each task's support transitions drawn
+    /// without replacement within the pass (docs/MODEL.md section 5, "Epochs"). 1 = Algorithm 4 read literally.
     #[default(0)]
     pub outer_steps_per_meta_epoch: usize,
     /// Tasks sampled per meta-epoch; 0 means every meta-train task.
     #[default(0)]
     pub tasks_per_meta_epoch: usize,
-    /// k: transitions drawn from a task's support set each meta-epoch; every inner step uses the
-    /// same k, as in MAML.
+    /// k, the paper's "k shots": the minibatch of transitions drawn from a task's support set for
+    /// its inner steps (every inner step uses the same k, as in MAML). A minibatch, as
+    /// `learner.batch_size` is; `learner.shots` is the whole few-shot set N.
     #[default(64)]
     #[garde(custom(at_least(1)))]
-    pub support_shots: usize,
-    /// Transitions of a task's query set per meta-loss evaluation.
+    pub support_batch_size: usize,
+    /// The minibatch of transitions drawn from a task's query set per meta-loss evaluation.
     #[default(64)]
     #[garde(custom(at_least(1)))]
-    pub query_shots: usize,
+    pub query_batch_size: usize,
     /// Share of each task's dataset that forms its support set; the rest is its query set.
     #[default(0.5)]
     #[garde(custom(within((Excluded(0.0), Excluded(1.0)), "a share strictly between 0 and 1")))]
