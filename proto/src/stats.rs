@@ -78,6 +78,11 @@ pub fn percent_from(ret: f64, reference: f64) -> f64 {
 /// is a search, not the optimum (docs/MODEL.md section 9), and the table's note says by how much.
 pub const ABOVE_PLANNER: &str = "*";
 
+/// How a table marks a learned row whose return is below the greedy heuristic's: a policy that
+/// has not learnt the task from its shots, whatever its gap to the planner (the table's note
+/// names the rows and the heuristic's return).
+pub const BELOW_GREEDY: &str = "!";
+
 /// A return's gap to the planner as every table writes it: `-3.0%`, or `+1.0%*` where it is
 /// above the planner ([`ABOVE_PLANNER`]).
 pub fn gap_to_planner(ret: f64, planner: f64) -> String {

@@ -178,6 +178,15 @@ pub fn results_table(report: &LaunchReport) -> String {
         // Rows above the planner: there it is not the best achievable, and the column then
         // says how far below the best row found, not below the optimum.
         let above = |r: &EvaluationRow| planner.is_some_and(|p| r.policy.ret.mean > p);
+        let greedy = PolicySpec::Greedy.to_string();
+        let greedy = rows
+            .iter()
+            .find(|r| r.method == greedy)
+            .map(|r| r.policy.ret.mean);
+        // Learned rows below the greedy heuristic: they have not learnt the task from the shots.
+        let below = |r: &EvaluationRow| {
+            !is_reference(&r.method) && greedy.is_some_and(|g| r.policy.ret.mean < g)
+        };
         for (i, r) in rows.iter().enumerate() {
             let reference = is_reference(&r.method);
             if i > 0 && !reference && is_reference(&rows[i - 1].method) {
@@ -193,10 +202,10 @@ pub fn results_table(report: &LaunchReport) -> String {
                 network(r),
                 format!("{:.1}", r.policy.ret),
                 // Returns are costs: a row 3% below the planner reads -3.0%.
-                planner.map_or("-".to_string(), |p| stats::gap_to_planner(
-                    r.policy.ret.mean,
-                    p
-                )),
+                planner.map_or("-".to_string(), |p| {
+                    let mark = if below(r) { stats::BELOW_GREEDY } else { "" };
+                    format!("{}{mark}", stats::gap_to_planner(r.policy.ret.mean, p))
+                }),
                 format!("{:.2}", r.policy.aoi),
                 format!("{:.3}", r.policy.power_mw),
                 format!("{:.1}", r.policy.outages),
@@ -208,6 +217,18 @@ pub fn results_table(report: &LaunchReport) -> String {
             out.push_str(&format!(
                 "{task}: no policy can score above {bound:.1}, {:+.1}% vs planner (docs/MODEL.md section 9)\n",
                 stats::percent_from(*bound, p)
+            ));
+        }
+        let below_greedy: Vec<&str> = rows
+            .iter()
+            .filter(|r| below(r))
+            .map(|r| r.method.as_str())
+            .collect();
+        if let (Some(g), false) = (greedy, below_greedy.is_empty()) {
+            out.push_str(&format!(
+                "{task}: {} below the greedy heuristic's {g:.1}, not a policy learnt from these shots: {} (docs/EXPERIMENTS.md B9)\n",
+                stats::BELOW_GREEDY,
+                below_greedy.join(", ")
             ));
         }
         if let (Some(p), Some(best)) = (
@@ -309,6 +330,13 @@ mod tests {
         // Each row's distance to the planner: cql-maml's -7100 is 9.2% below its -6500.
         let cql_maml = table.lines().find(|l| l.contains(" cql-maml ")).unwrap();
         assert!(cql_maml.contains("-9.2%"), "{table}");
+        // cql's -16000 is below greedy's -7800: marked, and the note names it alone.
+        let below = stats::BELOW_GREEDY;
+        let cql = table.lines().find(|l| l.contains(" cql ")).unwrap();
+        assert!(cql.contains(&format!("-146.2%{below}")), "{table}");
+        assert!(!cql_maml.contains(below), "{table}");
+        let note = format!("lambda-300: {below} below the greedy heuristic's -7800.0, not a policy learnt from these shots: cql (");
+        assert!(table.contains(&note), "{table}");
         // References have no network number; a fine-tuned row gives its epoch, w0 its
         // meta-epoch; the model-based section says what it is told.
         assert!(
