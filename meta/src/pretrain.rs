@@ -47,7 +47,8 @@ pub fn train_multi_task<E>(
 ) -> Result<Option<QNetwork>, E> {
     let maml = MamlConfig::from_config(config);
     let mut budget = config.clone();
-    budget.learner.batch_size = tasks.len() * (maml.meta.support_batch_size + maml.meta.query_batch_size);
+    budget.learner.batch_size =
+        tasks.len() * (maml.meta.support_batch_size + maml.meta.query_batch_size);
     budget.learner.alpha = maml.meta.alpha;
     algorithm::prepare(&mut q, config.meta.inner_loss, &config.learner);
     let mut trainer = OfflineTrainer::new(&q, union.len(), config.meta.inner_loss, &budget, seed)
