@@ -17,6 +17,7 @@ use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use uavmeta_proto::config::{Config, TaskConfig};
+use uavmeta_proto::resources::{self, Job};
 use uavmeta_proto::stats::{EpisodeMetrics, Estimate, PolicyMetrics};
 use uavmeta_world::heuristics::PolicySpec;
 use uavmeta_world::rollout::{episode_worlds, evaluation_worlds, run_episode, EpisodeTally};
@@ -149,6 +150,11 @@ impl Evaluation {
     ) -> PyResult<Self> {
         check_episodes(episodes)?;
         let (config, task) = worlds.config_and_task_of(env)?;
+        let job = Job::Python {
+            worlds: episodes as u64,
+        };
+        resources::check_memory(config, job)
+            .map_err(|e| PyValueError::new_err(format!("episodes = {episodes}: {e}")))?;
         let mut evaluation = worlds_of(config, &task, episodes, seed, exact);
         evaluation.iter_mut().for_each(World::reset);
         let starts = evaluation.iter().map(World::uav).collect();

@@ -18,6 +18,7 @@
 //! ignores env i's action, resets it and reports reward 0, not truncated, and no info for it.
 
 use std::path::PathBuf;
+use uavmeta_proto::resources::{self, Job};
 
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1};
 use pyo3::exceptions::{PyIndexError, PyRuntimeError, PyValueError};
@@ -341,6 +342,13 @@ impl Worlds {
             }
         };
         let task = source.first().clone();
+        let job = Job::Python {
+            worlds: num_envs as u64,
+        };
+        for config in &layouts.configs {
+            resources::check_memory(config, job)
+                .map_err(|e| PyValueError::new_err(format!("num_envs = {num_envs}: {e}")))?;
+        }
         let layouts: Vec<(Config, World)> = (layouts.configs.into_iter())
             .map(|config| {
                 let world = World::new(&config.world, &task, 0);
