@@ -46,8 +46,14 @@ pub enum Job {
     Store,
     /// `uavmeta launch`: every process of the run on this host, and the planner reference.
     Launch,
-    /// The Python package's vector env of `worlds` worlds (0 for one env or `evaluate`).
-    Python { worlds: u64 },
+    /// The Python package's vector env of `worlds` worlds (0 for one env), or where `evaluation`
+    /// an evaluation of that many (with `learner.eval_episodes` the episodes it evaluates), with
+    /// the planner reference's search where `planner`.
+    Python {
+        worlds: u64,
+        evaluation: bool,
+        planner: bool,
+    },
 }
 
 /// Memory that one key of the config makes `count` processes (or worlds) hold, `bytes` each.
@@ -113,7 +119,7 @@ fn process_term(config: &Config, job: Job, processes: u64) -> Term {
         config.world.grid_cells, config.world.devices
     );
     match job {
-        Job::Python { worlds } => Term {
+        Job::Python { worlds, .. } => Term {
             key,
             what: "each world's power tables",
             bytes: tables,
@@ -240,8 +246,13 @@ impl Holders {
                 evaluation: 2 + online_actors,
                 planner: 1,
             },
-            Job::Python { .. } => Self {
-                evaluation: 1,
+            Job::Python {
+                evaluation,
+                planner,
+                ..
+            } => Self {
+                evaluation: u64::from(evaluation),
+                planner: u64::from(planner),
                 ..none
             },
         }
@@ -638,7 +649,11 @@ mod tests {
             Job::MetaTrain,
             Job::Eval,
             Job::Store,
-            Job::Python { worlds: 64 },
+            Job::Python {
+                worlds: 64,
+                evaluation: true,
+                planner: true,
+            },
         ] {
             let needs = Needs::of(&config, job);
             check_memory_against(&config, &needs, &on(2 << 30)).expect("the default fits");
