@@ -5,6 +5,7 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 use indicatif::MultiProgress;
+use uavmeta_proto::resources::Job;
 
 mod cmd;
 
@@ -133,9 +134,9 @@ fn main() -> ExitCode {
         Command::Reproduce(c) => cmd::reproduce::run(c),
         Command::Launch(c) => cmd::launch::run(c, terminal),
         Command::Actor(c) => cmd::actor::run(c),
-        Command::Store(c) => c.serve(uavmeta_runtime::store::run),
-        Command::MetaLearner(c) => c.serve(uavmeta_runtime::meta_learner::run),
-        Command::Evaluator(c) => c.serve(uavmeta_runtime::evaluator::run),
+        Command::Store(c) => c.serve(Job::Store, uavmeta_runtime::store::run),
+        Command::MetaLearner(c) => c.serve(Job::MetaTrain, uavmeta_runtime::meta_learner::run),
+        Command::Evaluator(c) => c.serve(Job::Eval, uavmeta_runtime::evaluator::run),
         Command::Tunnel(c) => cmd::tunnel::run(c),
     };
     match result {

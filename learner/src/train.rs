@@ -357,7 +357,7 @@ pub fn train(
         trainer = trainer.with_model_rows_from(data.len());
     }
     let started = Instant::now();
-    let mut rows: Vec<EpochRow> = Vec::with_capacity(cfg.epochs);
+    let mut rows: Vec<EpochRow> = Vec::new();
     let mut guard = Guarded::new(cfg, q, data, opts.algorithm);
     let mut average = Average::new(cfg);
     let mut stopped = false;

@@ -194,7 +194,7 @@ pub fn meta_train_with<H: MetaTrainHook>(
     );
     bar.set_position(start as u64);
     let started = Instant::now();
-    let mut rows = Vec::with_capacity(meta.meta_epochs - start);
+    let mut rows = Vec::new();
     for e in start + 1..=meta.meta_epochs {
         let epoch = maml.meta_epoch(&log.meta_tasks)?;
         let checkpoint = is_checkpoint_epoch(meta, e).then(|| hook.checkpoint_path(e));

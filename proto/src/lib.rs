@@ -10,6 +10,8 @@
 //! - [`stats`]: episode metrics (docs/MODEL.md section 1) and their Monte-Carlo summaries.
 //! - [`payload`]: the zero-copy payload types and iceoryx2 service names shared by the actor,
 //!   store, meta-learner and evaluator processes, with the schema version they must agree on.
+//! - [`resources`]: what a config will make a process allocate, checked against the memory and
+//!   disk it may use before anything is allocated.
 //! - [`metrics`]: every metric name and help text the processes export, so a renamed metric is a
 //!   compile error in every reader.
 //!
@@ -29,4 +31,5 @@ pub mod fs;
 pub mod method;
 pub mod metrics;
 pub mod payload;
+pub mod resources;
 pub mod stats;

@@ -17,12 +17,12 @@ use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use uavmeta_proto::config::{Config, TaskConfig};
+use uavmeta_proto::resources::{self, Job};
 use uavmeta_proto::stats::{EpisodeMetrics, Estimate, PolicyMetrics};
 use uavmeta_world::heuristics::PolicySpec;
 use uavmeta_world::rollout::{episode_worlds, evaluation_worlds, run_episode, EpisodeTally};
 use uavmeta_world::world::World;
 
-use crate::value_error;
 use crate::worlds::{write_observation, Worlds};
 
 /// The worlds of one evaluation: `exact` as `--exact` asks, else `episodes` Monte-Carlo ones.
@@ -39,13 +39,46 @@ fn worlds_of(
     }
 }
 
-fn check_episodes(episodes: usize) -> PyResult<()> {
+/// Refuses an evaluation of `episodes` episodes (`exact` as [`worlds_of`] takes it, with the
+/// planner's search where `planner`) that is empty, or that does not fit the memory the process
+/// may use by the one estimate of `uavmeta_proto::resources`: the worlds [`worlds_of`] would
+/// build, and their table of steps as `learner.eval_episodes` of that many; the error names
+/// `episodes` and the keys behind the estimate.
+fn check_evaluation(
+    config: &Config,
+    task: &TaskConfig,
+    episodes: usize,
+    exact: bool,
+    planner: bool,
+) -> PyResult<()> {
     if episodes == 0 {
         return Err(PyValueError::new_err(
             "episodes = 0: expected at least 1 episode",
         ));
     }
-    Ok(())
+    // As `evaluation_worlds`: one world per start cell (or the fixed start) where the world is
+    // deterministic, whatever `episodes`; else one per episode.
+    let deterministic = task.rain_moves_every.is_none() || task.rain.is_none();
+    let worlds = match (exact && deterministic, config.world.start_cell.is_some()) {
+        (true, true) => 1,
+        (true, false) => u64::from(config.world.grid_cells).pow(2),
+        (false, _) => episodes as u64,
+    };
+    let mut evaluated = config.clone();
+    evaluated.learner.eval_episodes = usize::try_from(worlds).unwrap_or(usize::MAX);
+    let job = Job::Python {
+        worlds,
+        evaluation: true,
+        planner,
+    };
+    resources::check_memory(&evaluated, job).map_err(|e| {
+        let planner = if planner {
+            "policy = \"planner\" with "
+        } else {
+            ""
+        };
+        PyValueError::new_err(format!("{planner}episodes = {episodes}: {e}"))
+    })
 }
 
 /// Evaluates the policy `spec` (a `--policy` spelling the world crate builds) on the task env
@@ -62,9 +95,12 @@ pub fn evaluate_spec<'py>(
     seed: u64,
     exact: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
-    check_episodes(episodes)?;
     let (config, task) = worlds.config_and_task_of(env)?;
-    let parsed: PolicySpec = spec.parse().map_err(value_error)?;
+    let parsed: PolicySpec = spec
+        .parse()
+        .map_err(|e| PyValueError::new_err(format!("policy = {spec:?}: {e}")))?;
+    let planner = matches!(parsed, PolicySpec::Planner);
+    check_evaluation(config, &task, episodes, exact, planner)?;
     let mut evaluation = worlds_of(config, &task, episodes, seed, exact);
     let steps = evaluation.len() * config.world.horizon as usize;
     let (starts, runs) = py
@@ -147,8 +183,8 @@ impl Evaluation {
         seed: u64,
         exact: bool,
     ) -> PyResult<Self> {
-        check_episodes(episodes)?;
         let (config, task) = worlds.config_and_task_of(env)?;
+        check_evaluation(config, &task, episodes, exact, false)?;
         let mut evaluation = worlds_of(config, &task, episodes, seed, exact);
         evaluation.iter_mut().for_each(World::reset);
         let starts = evaluation.iter().map(World::uav).collect();

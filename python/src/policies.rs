@@ -12,6 +12,7 @@
 use numpy::{IntoPyArray, PyArray1, PyReadonlyArray2};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
+use uavmeta_proto::resources::{self, Job};
 use uavmeta_world::heuristics::{GreedyPolicy, PolicySpec, RandomPolicy, StalestPolicy};
 use uavmeta_world::planner::PlannerPolicy;
 use uavmeta_world::rollout::Policy;
@@ -47,7 +48,17 @@ impl Heuristic {
             "random" => Box::new(RandomPolicy::new(seed)),
             "stalest" => Box::new(StalestPolicy),
             "greedy" => Box::new(GreedyPolicy),
-            "planner" => Box::new(PlannerPolicy::new(&config.planner)),
+            "planner" => {
+                // The planner's search, by the one estimate of the resources check.
+                let job = Job::Python {
+                    worlds: 1,
+                    evaluation: false,
+                    planner: true,
+                };
+                resources::check_memory(config, job)
+                    .map_err(|e| PyValueError::new_err(format!("policy = \"planner\": {e}")))?;
+                Box::new(PlannerPolicy::new(&config.planner))
+            }
             _ => {
                 return Err(PyValueError::new_err(format!(
                     "policy = {name:?}: expected random, stalest, greedy or planner"

@@ -19,6 +19,9 @@ use crate::tasks::Listed;
 /// The task of docs/MODEL.md section 2 that an env gets when no task is named: the paper's unseen one.
 pub const DEFAULT_LAMBDA: f64 = 300.0;
 
+/// The origin the config crate gives the defaults, when no `config` file is named.
+const DEFAULT_ORIGIN: &str = "the default config";
+
 /// What the Python caller asked for.
 #[derive(Debug, Clone, Default)]
 pub struct TaskArgs {
@@ -39,7 +42,7 @@ pub struct TaskArgs {
 pub fn resolve(args: &TaskArgs) -> Result<(Config, TaskConfig), PyErr> {
     let mut config = match &args.config {
         Some(path) => Config::load(path, &args.overrides),
-        None => Config::from_toml_str("", "the default config", &args.overrides),
+        None => Config::from_toml_str("", DEFAULT_ORIGIN, &args.overrides),
     }
     .map_err(config_error)?;
     match (&args.task, args.lam) {
@@ -54,7 +57,10 @@ pub fn resolve(args: &TaskArgs) -> Result<(Config, TaskConfig), PyErr> {
                      them with lam, or set them in the config's task"
                 )));
             }
-            let task = config.task(name).map_err(config_error)?.clone();
+            let task = config
+                .task(name)
+                .map_err(|e| PyValueError::new_err(format!("task = {name:?}: {e}")))?
+                .clone();
             Ok((config, task))
         }
         (None, lam) => {
@@ -92,7 +98,7 @@ fn one_off(lam: f64, args: &TaskArgs) -> TaskConfig {
 
 /// A config error as the Python exception that fits: a missing file is a `FileNotFoundError`
 /// naming the `config` argument, another unreadable one an `OSError`, the rest `ValueError`s,
-/// each with the config crate's message.
+/// each with the config crate's message, a file that is no config naming `config` too.
 pub fn config_error(e: ConfigError) -> PyErr {
     match &e {
         ConfigError::Read { origin, error } if error.kind() == std::io::ErrorKind::NotFound => {
@@ -100,7 +106,15 @@ pub fn config_error(e: ConfigError) -> PyErr {
                 "config = {origin:?}: no such file: expected a TOML config file (configs/default.toml, or one `uavmeta` saved beside a dataset or checkpoint)"
             ))
         }
-        ConfigError::Read { .. } => PyOSError::new_err(format!("config: {e}")),
+        ConfigError::Read { origin, error } => {
+            PyOSError::new_err(format!("config = {origin:?}: cannot read: {error}"))
+        }
+        // The file itself (an override's error names its key, and the defaults parse).
+        ConfigError::Parse { origin, message }
+            if origin != DEFAULT_ORIGIN && !origin.contains("(with --set") =>
+        {
+            PyValueError::new_err(format!("config = {origin:?}: {message}"))
+        }
         _ => PyValueError::new_err(e.to_string()),
     }
 }

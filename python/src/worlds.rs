@@ -18,6 +18,7 @@
 //! ignores env i's action, resets it and reports reward 0, not truncated, and no info for it.
 
 use std::path::PathBuf;
+use uavmeta_proto::resources::{self, Job};
 
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1};
 use pyo3::exceptions::{PyIndexError, PyRuntimeError, PyValueError};
@@ -284,10 +285,10 @@ impl Worlds {
         draw: bool,
         ranges: Option<RangesTuple>,
     ) -> PyResult<Self> {
-        if !(1..=MAX_ENVS).contains(&num_envs) {
-            return Err(PyValueError::new_err(format!(
-                "num_envs = {num_envs}: expected 1 to {MAX_ENVS} envs"
-            )));
+        if num_envs == 0 {
+            return Err(PyValueError::new_err(
+                "num_envs = 0: expected at least 1 env",
+            ));
         }
         let args = TaskArgs {
             config,
@@ -341,6 +342,22 @@ impl Worlds {
             }
         };
         let task = source.first().clone();
+        // The memory estimate first, so that a size beyond the machine is refused with the keys
+        // and bytes behind it; the cap then bounds a step's arrays where the machine does not say.
+        let job = Job::Python {
+            worlds: num_envs as u64,
+            evaluation: false,
+            planner: false,
+        };
+        for config in &layouts.configs {
+            resources::check_memory(config, job)
+                .map_err(|e| PyValueError::new_err(format!("num_envs = {num_envs}: {e}")))?;
+        }
+        if num_envs > MAX_ENVS {
+            return Err(PyValueError::new_err(format!(
+                "num_envs = {num_envs}: expected 1 to {MAX_ENVS} envs"
+            )));
+        }
         let layouts: Vec<(Config, World)> = (layouts.configs.into_iter())
             .map(|config| {
                 let world = World::new(&config.world, &task, 0);

@@ -77,7 +77,10 @@ def lam(value, key="lam"):
         value, (int, float, np.integer, np.floating)
     ):
         raise TypeError(f"{key} = {value!r}: expected a finite number >= 0")
-    return float(value)
+    try:
+        return float(value)
+    except OverflowError:
+        raise ValueError(f"{key} = {value!r}: expected a finite number >= 0") from None
 
 
 def rain(value, key="rain"):

@@ -121,11 +121,13 @@ def task_env(task=None, **kwargs):
     )
 
 
-def _episodes_and_seed(env, episodes, seed):
+def _episodes_and_seed(env, episodes, seed, exact):
+    if not isinstance(exact, (bool, np.bool_)):
+        raise TypeError(f"exact = {exact!r}: expected True or False")
     worlds = env._worlds
     episodes = worlds.eval_episodes if episodes is None else episodes
     seed = worlds.eval_seed if seed is None else seed
-    episodes = _args.natural("episodes", episodes)
+    episodes = _args.natural("episodes", episodes, upper=2**64)
     if episodes == 0:
         raise ValueError("episodes = 0: expected at least 1 episode")
     return episodes, _args.seed(seed)
@@ -183,18 +185,25 @@ def evaluate(policy, task=None, *, exact=True, episodes=None, seed=None, trapped
     falls below the random policy's mean.
     """
     env = task_env(task, **kwargs)
-    episodes, seed = _episodes_and_seed(env, episodes, seed)
+    episodes, seed = _episodes_and_seed(env, episodes, seed, exact)
     worlds = env._worlds
     spec = _spec_of(policy)
     if spec is not None and spec.startswith("q:"):  # a saved Q-network: numpy, in lockstep
         from .policies import make
 
-        policy, spec = make(spec, env), None
+        try:
+            policy, spec = make(spec, env), None
+        except (ValueError, TypeError, OSError) as e:  # named as the argument it came from
+            try:
+                named = type(e)(f"policy = {spec!r}: {e}")
+            except Exception:
+                raise e from None
+            raise named from e
     if spec is not None:
-        raw = _evaluate_spec(worlds, spec, episodes=episodes, seed=seed, exact=exact)
+        raw = _evaluate_spec(worlds, spec, episodes=episodes, seed=seed, exact=bool(exact))
     else:
         act = _actions_of(policy)
-        run = _Evaluation(worlds, episodes=episodes, seed=seed, exact=exact)
+        run = _Evaluation(worlds, episodes=episodes, seed=seed, exact=bool(exact))
         while run.t < run.horizon:
             obs = run.observations()
             actions = np.asarray(act(obs, run.t))
@@ -218,7 +227,7 @@ def evaluate(policy, task=None, *, exact=True, episodes=None, seed=None, trapped
         raw = run.results()
     cells = None
     if trapped:
-        floor = _evaluate_spec(worlds, "random", episodes=episodes, seed=seed, exact=exact)
+        floor = _evaluate_spec(worlds, "random", episodes=episodes, seed=seed, exact=bool(exact))
         below = raw["ret"] < floor["mean"]["ret"][0]
         cells = tuple(tuple(int(v) for v in c) for c in raw["start"][below])
     return _score(raw, env, exact, seed, cells)
@@ -233,7 +242,7 @@ def references(task=None, *, exact=True, episodes=None, seed=None, **kwargs):
     planner, a search that knows the world, is the measure of what is achievable). Cached per
     config, task, episodes and seed for the process."""
     env = task_env(task, **kwargs)
-    episodes, seed = _episodes_and_seed(env, episodes, seed)
+    episodes, seed = _episodes_and_seed(env, episodes, seed, exact)
     info = env.task_of(0)
     key = (env.config_toml, info["lam"], info["rain"], info["rain_moves_every"], exact, episodes, seed)
     if key not in _REFERENCE_CACHE:

@@ -60,7 +60,9 @@ class VectorEnv(WorldProperties, _GymVectorEnv):
         tasks=None,
         **world,
     ):
-        num_envs = _args.natural("num_envs", num_envs)
+        num_envs = _args.natural("num_envs", num_envs, upper=2**64)
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode = {render_mode!r}: expected 'rgb_array' or None")
         self._worlds = Worlds(
             num_envs,
             **_args.native_kwargs(

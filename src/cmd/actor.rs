@@ -3,6 +3,7 @@
 
 use anyhow::{Context, Result};
 use clap::Args;
+use uavmeta_proto::resources::{self, Job};
 use uavmeta_runtime::actor::{self, ActorOptions};
 use uavmeta_world::heuristics::PolicySpec;
 
@@ -32,6 +33,9 @@ pub fn run(args: ActorArgs) -> Result<()> {
     let (run, config) = args.run.open()?;
     let spec = args.policy.as_deref().unwrap_or(&config.collect.policy);
     let policy: PolicySpec = spec.parse().with_context(|| format!("--policy {spec}"))?;
+    let mut acting = config.clone();
+    acting.collect.policy = policy.to_string();
+    resources::check_memory(&acting, Job::Collect)?;
     let options = ActorOptions {
         task: args.task,
         policy,

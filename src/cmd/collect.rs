@@ -6,6 +6,7 @@ use anyhow::{Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use uavmeta_actors::collect::collect;
+use uavmeta_proto::resources::{self, Job};
 use uavmeta_world::heuristics::PolicySpec;
 
 use super::common::{ConfigArgs, TaskArgs};
@@ -44,6 +45,11 @@ pub fn run(args: CollectArgs) -> Result<()> {
     if let Some(seed) = args.seed {
         config.collect.seed = seed;
     }
+    resources::check_memory(&config, Job::Collect)?;
+    let key = format!("collect.transitions = {}", config.collect.transitions);
+    let dataset = resources::datasets_file_bytes(&config, 1);
+    let dir = args.out.parent().unwrap_or(std::path::Path::new("."));
+    resources::check_disk(&config, dir, &key, dataset)?;
     if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir)
             .with_context(|| format!("{}: cannot create the directory", dir.display()))?;

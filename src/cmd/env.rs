@@ -5,6 +5,7 @@ use std::io::{self, Write};
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use serde::Serialize;
+use uavmeta_proto::resources::{self, Job};
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 use uavmeta_world::heuristics::PolicySpec;
 use uavmeta_world::rollout::{episode_worlds, evaluation_worlds, run_worlds, StepRecord};
@@ -81,6 +82,11 @@ fn run_rollout(args: RolloutArgs) -> Result<()> {
     let mut config = args.config.load()?;
     let task = args.task.resolve(&mut config)?;
     let spec = &args.policy;
+    let job = match spec {
+        PolicySpec::Planner => Job::Plan,
+        _ => Job::Eval,
+    };
+    resources::check_memory(&config, job)?;
     let steps = args.episodes * config.world.horizon as usize;
     let mut policy = uavmeta_actors::policy::build(spec, &config, args.seed, Some(steps))?;
 

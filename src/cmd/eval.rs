@@ -8,6 +8,7 @@ use clap::Args;
 use uavmeta_actors::policy::q_policy::Evaluator;
 use uavmeta_learner::checkpoint;
 use uavmeta_proto::config::{Config, TaskConfig};
+use uavmeta_proto::resources::{self, Job};
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 use uavmeta_world::heuristics::PolicySpec;
 use uavmeta_world::rollout::evaluate;
@@ -38,6 +39,7 @@ pub struct EvalArgs {
 pub fn run(args: EvalArgs) -> Result<()> {
     let mut config = args.config.load()?;
     let task = args.task.resolve(&mut config)?;
+    resources::check_memory(&config, Job::Eval)?;
     let (q, meta) = checkpoint::load(&args.checkpoint, &config)?;
     let episodes = args.episodes.unwrap_or(config.learner.eval_episodes);
     let seed = args.seed.unwrap_or(config.learner.eval_seed);

@@ -8,6 +8,7 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use indicatif::MultiProgress;
 use uavmeta_proto::config::Config;
+use uavmeta_proto::resources::{self, Job};
 use uavmeta_runtime::launch::Reuse;
 use uavmeta_runtime::run_dir::RunDir;
 
@@ -41,11 +42,13 @@ impl RunArgs {
     }
 
     /// `process` (the store, the meta-learner, the evaluator) on the run directory and its config.
-    pub fn serve<T, E>(&self, process: fn(&RunDir, &Config) -> Result<T, E>) -> Result<()>
+    /// Runs `process`, the run's `job`, once its memory is checked.
+    pub fn serve<T, E>(&self, job: Job, process: fn(&RunDir, &Config) -> Result<T, E>) -> Result<()>
     where
         E: std::error::Error + Send + Sync + 'static,
     {
         let (run, config) = self.open()?;
+        resources::check_memory(&config, job)?;
         process(&run, &config)?;
         Ok(())
     }

@@ -8,6 +8,7 @@ use uavmeta_learner::progress::OnStep;
 use uavmeta_meta::context;
 use uavmeta_meta::fine_tune::{meta_test, FineTune, MetaTestOptions};
 use uavmeta_meta::meta_train::{meta_train, MetaTrainOptions};
+use uavmeta_proto::resources::{self, Job};
 
 use super::common::{ConfigArgs, ShotsArgs, TaskArgs};
 
@@ -62,6 +63,7 @@ pub struct MetaTestArgs {
 
 pub fn run_train(args: MetaTrainArgs) -> Result<()> {
     let config = args.config.load()?;
+    resources::check_memory(&config, Job::MetaTrain)?;
     let seed = args.seed.unwrap_or(config.run.seeds[0]);
     let opts = MetaTrainOptions {
         config: &config,
@@ -111,6 +113,7 @@ pub fn run_train(args: MetaTrainArgs) -> Result<()> {
 pub fn run_test(args: MetaTestArgs) -> Result<()> {
     let mut config = args.config.load()?;
     let task = args.task.resolve(&mut config)?;
+    resources::check_memory(&config, Job::Train)?;
     let seed = args.seed.unwrap_or(config.run.seeds[0]);
     let result = meta_test(&MetaTestOptions {
         fine_tune: FineTune {

@@ -12,6 +12,7 @@ use uavmeta_learner::qnet::QNetworkConfig;
 use uavmeta_learner::train::{train, TrainOptions};
 use uavmeta_learner::transitions::load_shots;
 use uavmeta_proto::method::Algo;
+use uavmeta_proto::resources::{self, Job};
 
 use super::common::{ConfigArgs, ShotsArgs, TaskArgs};
 
@@ -48,6 +49,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
     if let Some(epochs) = args.shots.epochs {
         config.learner.epochs = epochs;
     }
+    resources::check_memory(&config, Job::Train)?;
     let seed = args.seed.unwrap_or(config.run.seeds[0]);
     let shots = args.shots.shots;
     let mut q = match (args.init.as_str(), args.init_seed) {

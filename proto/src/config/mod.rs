@@ -168,17 +168,10 @@ impl Config {
             format!("{source} (with --set {})", overrides.join(" --set "))
         };
         moved::check(&doc, &source_desc)?;
-        let mut config: Config = toml::from_str(&doc.to_string()).map_err(|e| {
-            let mut message = e.to_string().trim_end().to_string();
-            if !overrides.is_empty() {
-                // The parser saw the file with the overrides merged in, not the file itself.
-                message
-                    .push_str("\n(line numbers count the file with the --set overrides applied)");
-            }
-            ConfigError::Parse {
-                origin: source_desc.clone(),
-                message,
-            }
+        let merged = doc.to_string();
+        let mut config: Config = toml::from_str(&merged).map_err(|e| ConfigError::Parse {
+            origin: source_desc.clone(),
+            message: type_error(&merged, &e),
         })?;
         config.origin = source_desc;
         config.validate()?;
@@ -251,6 +244,7 @@ impl Config {
         self.tunnel.check_hosts(&self.tasks)?;
         self.tunnel.check_security()?;
         self.check_limits()?;
+        self.check_power()?;
         self.planner.check_memory(&self.world)
     }
 
@@ -277,6 +271,35 @@ impl Config {
         }
     }
 
+    /// Every power the world can ask for, and the reward it weighs it into, is a finite number:
+    /// a rate, a noise or a distance at the edge of f64 makes `inf`, which no learner reads.
+    fn check_power(&self) -> Result<(), Broken> {
+        let w = &self.world;
+        let power = w.largest_power_mw();
+        let lambda = self.tasks.iter().map(|t| t.lambda).fold(0.0, f64::max);
+        if power.is_finite() && (lambda * power / w.devices as f64).is_finite() {
+            return Ok(());
+        }
+        let expected = format!(
+            "a world whose largest transmit power and reward are finite numbers; world.bits = \
+             {:?}, world.bandwidth_hz = {:?}, world.noise_dbm = {:?}, world.g0_db = {:?}, \
+             world.height_m = {:?}, world.cell_m = {:?}, world.grid_cells = {}, \
+             world.rain_mm_per_h = {:?}, world.rain_phi = {:?}, world.rain_varphi = {:?} and the \
+             largest tasks.lambda = {lambda:?} make it {power:?} mW",
+            w.bits,
+            w.bandwidth_hz,
+            w.noise_dbm,
+            w.g0_db,
+            w.height_m,
+            w.cell_m,
+            w.grid_cells,
+            w.rain_mm_per_h,
+            w.rain_phi,
+            w.rain_varphi
+        );
+        Err(Broken::new("world", &power, expected))
+    }
+
     /// Every task has a name of its own, and a rain zone inside the grid.
     fn check_tasks(&self) -> Result<(), Broken> {
         for (i, t) in self.tasks.iter().enumerate() {
@@ -288,6 +311,40 @@ impl Config {
         }
         Ok(())
     }
+}
+
+/// A value of the wrong type as one line naming its dotted key (`key `collect.dqn.steps` = -1:
+/// invalid value: integer `-1`, expected usize`), found from where the parser stopped in the
+/// file `text` (with any overrides merged in, so its line numbers would mislead).
+fn type_error(text: &str, error: &toml::de::Error) -> String {
+    let message = error.message().trim().replace('\n', " ");
+    let Some(span) = error.span() else {
+        return message;
+    };
+    match key_at(text, span.start) {
+        Some((key, value)) => format!("key `{key}` = {value}: {message}"),
+        None => message,
+    }
+}
+
+/// The dotted key whose line holds byte `at` of `text` (`tasks[1].lambda` in an array of
+/// tables), and the value that line gives it.
+fn key_at(text: &str, at: usize) -> Option<(String, String)> {
+    let before = text.get(..at)?;
+    let line_start = before.rfind('\n').map_or(0, |i| i + 1);
+    let line = text[line_start..].lines().next()?;
+    let (name, value) = line.split_once('=')?;
+    let (name, value) = (name.trim(), value.trim().to_string());
+    let headers = before[..line_start].lines().map(str::trim);
+    let Some(header) = headers.clone().rev().find(|l| l.starts_with('[')) else {
+        return Some((name.to_string(), value));
+    };
+    if let Some(table) = header.strip_prefix("[[").and_then(|h| h.strip_suffix("]]")) {
+        let index = headers.filter(|l| *l == header).count() - 1;
+        return Some((format!("{table}[{index}].{name}"), value));
+    }
+    let table = header.trim_start_matches('[').trim_end_matches(']');
+    Some((format!("{table}.{name}"), value))
 }
 
 /// Applies one `KEY=VALUE` override to the parsed document. `KEY` is dotted (`world.devices`);

@@ -129,6 +129,24 @@ impl WorldConfig {
         self.rain_phi * self.rain_mm_per_h.powf(self.rain_varphi)
     }
 
+    /// The largest transmit power any step can ask for, in mW: docs/MODEL.md section 1's
+    /// P = (2^(M/B) - 1) sigma^2 / g0 (h^2 + d^2) at the grid's longest distance, with rain's
+    /// attenuation, for every device where the power term sums them (as `uavmeta_world` builds
+    /// its tables).
+    pub fn largest_power_mw(&self) -> f64 {
+        let noise_w = 10f64.powf((self.noise_dbm - 30.0) / 10.0);
+        let g0 = 10f64.powf(self.g0_db / 10.0);
+        let watts_per_m2 = (2f64.powf(self.bits / self.bandwidth_hz) - 1.0) * noise_w / g0;
+        let side = f64::from(self.grid_cells) * self.cell_m;
+        let slant2 = self.height_m * self.height_m + 2.0 * side * side;
+        let rain = 10f64.powf(self.rain_attenuation_db_per_km() * slant2.sqrt() / 1e3 / 10.0);
+        let devices = match self.power_term {
+            PowerTerm::AllDevices => self.devices as f64,
+            _ => 1.0,
+        };
+        watts_per_m2 * slant2 * 1e3 * rain * devices
+    }
+
     /// Whether cell `c` is inside the grid.
     fn inside(&self, c: [u32; 2]) -> bool {
         c[0] < self.grid_cells && c[1] < self.grid_cells
