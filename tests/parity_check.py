@@ -1,8 +1,11 @@
-"""The d3rlpy side of tests/parity.rs: trains d3rlpy's DiscreteCQL and DiscreteBC on the shots
+"""The d3rlpy side of tests/parity.rs: trains d3rlpy's DiscreteCQL, DiscreteBC (and DiscreteBCQ
+for controlled runs) on the shots
 `uavmeta dataset export --format npz --shots N --seed S` wrote (the very transitions `uavmeta
 train --shots N --seed S` trained on), scores each greedy policy with the uavmeta package's exact
 evaluation (the one `uavmeta train` scores its own networks with) and compares the two sides.
-Run as `python parity_check.py DIR`; exits 1 when the criterion fails.
+Run as `python parity_check.py DIR`; or in N shares side by side, `python parity_check.py DIR
+--part K/N` for K = 0 .. N-1 (each trains every N-th run into DIR/runs-K.json), then `python
+parity_check.py DIR` to judge them. Exits 1 when the criterion fails.
 
 DIR/jobs.json names the tasks (the config and the task's name or lambda), the tolerance and the
 runs: for each, its task, algorithm, seed, the npz export and the project's run directory (its
@@ -33,12 +36,19 @@ How each setting is matched, from d3rlpy 2.8.1's source:
   Adam does not see (but through eps).
 - Target network: d3rlpy copies it after the update at grad_step % interval == 0 with grad_step
   counted from 0 (after the 1st, 101st, 201st, .. steps), the project after the 100th, 200th, ..
-- Minibatches: d3rlpy draws each row uniformly with replacement; the project takes consecutive
-  slices of a reshuffled permutation (one pass per epoch). The same batch size and step count:
-  epochs x ceil(N / batch), in epochs of ceil(N / batch) steps.
-- DiscreteBC: d3rlpy's loss is nll + beta * mean(log_softmax(f)^2) (torch's Categorical(logits=f)
-  .logits are the normalised log-probabilities); the project's `bc` penalises the raw outputs,
-  beta * mean(f^2). beta = 0.5 on both sides.
+- Minibatches: d3rlpy's ReplayBuffer draws each row uniformly with replacement, so its "epoch" is
+  not a pass over the shots; the project's epoch is one (docs/MODEL.md section 5): consecutive
+  slices of a reshuffled permutation. jobs.json's "sampling": "epochs", which tests/parity.rs
+  sets, draws d3rlpy's minibatches the project's way; the losses, networks, optimiser and
+  targets stay d3rlpy's own. The same batch size and step count: epochs x ceil(N / batch), in
+  epochs of ceil(N / batch) steps.
+- DiscreteBC: nll + beta * mean(log_softmax(f)^2) on both sides (torch's Categorical(logits=f)
+  .logits are the normalised log-probabilities), beta = 0.5.
+- DiscreteBCQ: the TD loss of DoubleDQNImpl with the bootstrap action the online network's best
+  among the actions the imitator supports (G(a|s') / max G > tau, tau = learner.bcq_threshold),
+  plus DiscreteBC's loss on the imitator, which shares the Q-function's encoder
+  (share_encoder=True): the project's `bcq` with `learner.huber = true` (its target is double
+  DQN's whatever `learner.double_dqn` says). The same factor on the whole loss: no alpha to match.
 - The network scored: the project publishes an exponential moving average of its epochs' networks
   (learner.average_decay, bias-corrected: after epoch t, avg <- (1 - w) avg + w q with
   w = (1 - decay) / (1 - decay^t)); d3rlpy has no such option and publishes its last network. The
@@ -46,16 +56,15 @@ How each setting is matched, from d3rlpy 2.8.1's source:
   training is untouched) and is what the criterion judges, with the project's decay (none when it
   is 0); d3rlpy's last network is scored too and printed beside it.
 
-Options of jobs.json for controlled runs (none is set by tests/parity.rs): "d3rlpy_alpha" (else
-twice the project's alpha), "d3rlpy_settings" (learner keys for d3rlpy's side only, such as
-{"epochs": 1}), "bc_penalty": "raw" (d3rlpy's BC patched to the project's penalty),
-"td": "project" (d3rlpy's CQL patched to the project's default TD form, eq. 7's max over the
-target network and the squared error, for project runs without double_dqn and huber),
-"average_decay" (the decay of d3rlpy's average instead of the project's; 0: none, the last
-network judged), "sampling": "epochs" (d3rlpy's minibatches drawn as the project's:
-consecutive slices of a reshuffled permutation), and a task's "references" (every reference
-return given instead of computed). A task's "planner" gives the planner's return alone (the
-others are computed): tests/parity.rs records it, the search being the slowest part of a run.
+Options of jobs.json for controlled runs (tests/parity.rs sets "sampling" alone): "d3rlpy_alpha"
+(else twice the project's alpha), "d3rlpy_settings" (learner keys for d3rlpy's side only, such as
+{"epochs": 1}), "td": "project" (d3rlpy's CQL patched to the project's default TD form, eq. 7's max
+over the target network and the squared error, for project runs without double_dqn and huber),
+"average_decay" (the decay of d3rlpy's average instead of the project's; 0: none, the last network
+judged), "sampling": "epochs" (d3rlpy's minibatches drawn as the project's: consecutive slices of a
+reshuffled permutation; else d3rlpy's own), and a task's "references" (every reference return given
+instead of computed). A task's "planner" gives the planner's return alone (the others are
+computed): tests/parity.rs records it, the search being the slowest part of a run.
 """
 
 import csv
@@ -85,7 +94,8 @@ with open(os.path.join(DIR, "jobs.json")) as f:
     JOBS = json.load(f)
 TD = JOBS.get("td", "d3rlpy")
 SETTINGS = ["epochs", "lr", "batch_size", "gamma", "target_update_every", "hidden",
-            "reward_scale", "alpha", "double_dqn", "huber", "steps_per_epoch", "average_decay"]
+            "reward_scale", "alpha", "double_dqn", "huber", "steps_per_epoch", "average_decay",
+            "bcq_threshold"]
 
 
 def project_run(out):
@@ -121,25 +131,6 @@ def load(npz, scale, action_count, reward_scale):
     return d3rlpy.dataset.MDPDataset(
         obs, d["actions"], rewards, d["terminals"], d["timeouts"], action_size=action_count
     )
-
-
-def raw_logit_penalty():
-    """Patches DiscreteBC to the project's penalty, beta * mean(f^2) of the raw outputs."""
-    from d3rlpy.algos.qlearning.torch import bc_impl
-    from d3rlpy.models.torch import imitators
-
-    def loss(policy, x, action, beta):
-        logits = policy._fc(policy._encoder(x))
-        log_probs = torch.nn.functional.log_softmax(logits, dim=1)
-        imitation = torch.nn.functional.nll_loss(log_probs, action.view(-1))
-        regularization = beta * (logits**2).mean()
-        return imitators.DiscreteImitationLoss(
-            loss=imitation + regularization,
-            imitation_loss=imitation,
-            regularization_loss=regularization,
-        )
-
-    bc_impl.compute_discrete_imitation_loss = loss
 
 
 def project_td_form():
@@ -219,8 +210,21 @@ def train(name, dataset, seed, learner):
             batch_size=batch,
             beta=0.5,
         )
+    elif name == "bcq":
+        config = d3rlpy.algos.DiscreteBCQConfig(
+            learning_rate=learner["lr"],
+            optim_factory=adam,
+            encoder_factory=encoder,
+            batch_size=batch,
+            gamma=learner["gamma"],
+            n_critics=1,
+            target_update_interval=learner["target_update_every"],
+            action_flexibility=learner["bcq_threshold"],
+            beta=0.5,
+            share_encoder=True,
+        )
     else:
-        raise ValueError(f"algorithm {name!r}: expected cql or bc")
+        raise ValueError(f"algorithm {name!r}: expected cql, bc or bcq")
     algo = config.create(device="cpu:0")
     # The project's epochs: one pass over the N shots each (learner.steps_per_epoch = 0), so the
     # last epoch's mean losses compare with the last row of the project's train.csv.
@@ -229,8 +233,13 @@ def train(name, dataset, seed, learner):
     steps = learner["epochs"] * per_epoch
     decay = JOBS.get("average_decay", learner["average_decay"])
     # The network that acts: the Q-function of DiscreteCQL, the imitator of DiscreteBC (whose
-    # impl has no public property for it in 2.8.1).
-    module = (lambda a: a.impl.q_function) if name == "cql" else (lambda a: a.impl._modules.imitator)
+    # impl has no public property for it in 2.8.1), both of DiscreteBCQ.
+    module = {
+        "cql": lambda a: a.impl.q_function,
+        "bc": lambda a: a.impl._modules.imitator,
+        # The Q-function and the imitator on its encoder (shared parameters are counted once).
+        "bcq": lambda a: torch.nn.ModuleList([a.impl._modules.q_funcs, a.impl._modules.imitator]),
+    }[name]
     average = Average(decay, module) if decay > 0 else None
     history = algo.fit(
         dataset,
@@ -286,42 +295,39 @@ def compare(results, tolerance):
     return failures
 
 
-if JOBS.get("bc_penalty", "d3rlpy") == "raw":
-    raw_logit_penalty()
-if TD == "project":
-    project_td_form()
-if JOBS.get("sampling") == "epochs":
-    epoch_sampling()
-
-started = time.time()
-TASKS = {t["key"]: t for t in JOBS["tasks"]}
-results = {"runs": [], "references": {}, "checkpoints": []}
-for key, task in TASKS.items():
+def reference_returns(task):
+    """The reference returns of a task: random, stalest, greedy, and the planner's (recorded by
+    the caller where it gives one: the search costs a minute or two a task)."""
     if "references" in task:
-        results["references"][key] = task["references"]
-        continue
+        return task["references"]
     env = env_of(task, normalised=False)
-    if "planner" in task:  # recorded by the caller: the search costs a minute or two a task
+    if "planner" in task:
         refs = {name: evaluate(name, env, exact=True, trapped=False).ret.mean
                 for name in ("random", "stalest", "greedy")}
         refs["planner"] = task["planner"]
     else:
         refs = {name: score.ret.mean for name, score in references(env, exact=True).items()}
-    assert refs["planner"] > refs["greedy"], (key, refs)
-    results["references"][key] = refs
-scales = {k: env_of(t, False).observation_space.high.astype(np.float32) for k, t in TASKS.items()}
-first = None
-for run in JOBS["runs"]:
+    assert refs["planner"] > refs["greedy"], (task["key"], refs)
+    return refs
+
+
+def settings_of(run):
+    """The project's run's settings, checked against the TD form d3rlpy is set to."""
     learner, project = project_run(run["out"])
     settings = {k: learner[k] for k in SETTINGS}
-    if run["algo"] == "cql":
+    if run["algo"] in ("cql", "bcq"):
+        # BCQ's target is double DQN's on both sides whatever learner.double_dqn says.
         form = TD == "project"
-        assert settings["double_dqn"] != form and settings["huber"] != form, (
+        double = settings["double_dqn"] if run["algo"] == "cql" else not form
+        assert double != form and settings["huber"] != form, (
             f"{run['out']}: double_dqn = {settings['double_dqn']}, huber = {settings['huber']}: "
             f"expected the TD form d3rlpy is set to ({TD})")
-    first = first or settings
-    same = {k: v for k, v in settings.items() if k not in ("double_dqn", "huber")}
-    assert same == {k: first[k] for k in same}, (run["out"], settings, first)
+    return learner, project, settings
+
+
+def d3rlpy_run(run, scales):
+    """d3rlpy trained and scored at the settings of the project's run `run`: its row."""
+    learner, project, _ = settings_of(run)
     env = env_of(TASKS[run["task"]], normalised=True)
     dataset = load(run["npz"], scales[run["task"]], int(env.action_space.n), learner["reward_scale"])
     t0 = time.time()
@@ -340,11 +346,49 @@ for run in JOBS["runs"]:
     row = dict(run, project=project, d3rlpy=published, d3rlpy_last=last,
                shots=dataset.transition_count, steps=steps, seconds=time.time() - t0,
                losses=losses)
-    results["runs"].append(row)
     print(f"{run['task']} {run['algo']} seed {run['seed']}: uavmeta {project:.1f}, d3rlpy "
           f"{published:.1f} (its last network {last:.1f}; {dataset.transition_count} shots, {steps} steps, "
           f"{row['seconds']:.1f} s; d3rlpy's last epoch: "
           + ", ".join(f"{k} {v:.4f}" for k, v in losses.items()) + ")", flush=True)
+    return row
+
+
+def train_part(part, parts):
+    """Every `parts`-th run from `part` on, written to DIR/runs-PART.json."""
+    scales = {k: env_of(t, False).observation_space.high.astype(np.float32)
+              for k, t in TASKS.items()}
+    rows = [d3rlpy_run(run, scales) for run in JOBS["runs"][part::parts]]
+    with open(os.path.join(DIR, f"runs-{part}.json"), "w") as f:
+        json.dump(rows, f)
+
+
+if TD == "project":
+    project_td_form()
+if JOBS.get("sampling") == "epochs":
+    epoch_sampling()
+
+started = time.time()
+TASKS = {t["key"]: t for t in JOBS["tasks"]}
+if len(sys.argv) > 2:
+    # `--part K/N`: train the K-th of N shares of the runs; a run without it compares them.
+    part, parts = (int(x) for x in sys.argv[3].split("/"))
+    train_part(part, parts)
+    sys.exit(0)
+parts = sorted(f for f in os.listdir(DIR) if f.startswith("runs-") and f.endswith(".json"))
+if not parts:
+    train_part(0, 1)
+    parts = ["runs-0.json"]
+results = {"runs": [], "checkpoints": [],
+           "references": {key: reference_returns(task) for key, task in TASKS.items()}}
+for name in parts:
+    with open(os.path.join(DIR, name)) as f:
+        results["runs"].extend(json.load(f))
+assert len(results["runs"]) == len(JOBS["runs"]), (parts, len(JOBS["runs"]))
+settings = [settings_of(run)[2] for run in JOBS["runs"]]
+first = settings[0]
+for run, s in zip(JOBS["runs"], settings):
+    same = {k: v for k, v in s.items() if k not in ("double_dqn", "huber")}
+    assert same == {k: first[k] for k in same}, (run["out"], s, first)
 for key in TASKS:
     out = next(r["out"] for r in JOBS["runs"] if r["task"] == key)
     score = evaluate(f"q:0:{os.path.join(out, 'final')}", env_of(TASKS[key], False),
@@ -362,6 +406,8 @@ with open(os.path.join(DIR, "results.json"), "w") as f:
     json.dump(results, f, indent=1)
 for failure in failures:
     print(f"FAILED: {failure}")
-print(f"d3rlpy {d3rlpy.__version__}: {len(results['runs'])} runs in {results['seconds']:.0f} s; "
+trained = sum(r["seconds"] for r in results["runs"])
+print(f"d3rlpy {d3rlpy.__version__}: {len(results['runs'])} runs, {trained:.0f} s of training "
+      f"and scoring; "
       + ("parity holds" if not failures else f"{len(failures)} failed"))
 sys.exit(1 if failures else 0)
