@@ -219,6 +219,15 @@ pub fn results_table(report: &LaunchReport) -> String {
                 stats::percent_from(*bound, p)
             ));
         }
+        // A model-based row with no model-planner beside it: the shots identified no world.
+        let learned_with_model = rows
+            .iter()
+            .any(|r| is_model_based(&r.method) && r.method != MODEL_PLANNER);
+        if learned_with_model && !rows.iter().any(|r| r.method == MODEL_PLANNER) {
+            out.push_str(&format!(
+                "{task}: the shots fit no world (they show rain, or steps of another world): its model-based rows trained on the shots alone, as their model-free algorithm does, and there is no {MODEL_PLANNER} row (docs/MODEL.md section 5)\n"
+            ));
+        }
         let below_greedy: Vec<&str> = rows
             .iter()
             .filter(|r| below(r))
@@ -337,6 +346,11 @@ mod tests {
         assert!(!cql_maml.contains(below), "{table}");
         let note = format!("lambda-300: {below} below the greedy heuristic's -7800.0, not a policy learnt from these shots: cql (");
         assert!(table.contains(&note), "{table}");
+        // dyna-cql without a model-planner row: the shots fitted no world, and the table says so.
+        assert!(
+            table.contains("lambda-300: the shots fit no world (they show rain"),
+            "{table}"
+        );
         // References have no network number; a fine-tuned row gives its epoch, w0 its
         // meta-epoch; the model-based section says what it is told.
         assert!(
@@ -354,6 +368,42 @@ mod tests {
         assert!(line("cql-maml").contains(" 40 "), "{table}");
         assert!(line("maml-init").contains(" meta-40 "), "{table}");
         assert!(table.contains(&format!("-- {MODEL_BASED}")), "{table}");
+    }
+
+    #[test]
+    fn the_fitted_worlds_note_appears_only_without_a_model_planner_row() {
+        let report = |results| LaunchReport {
+            run: PathBuf::from("runs/x"),
+            restarts: 0,
+            results,
+            references: vec![row("planner", -6500.0, 0.3)],
+            bounds: vec![],
+        };
+        let note = "lambda-300: the shots fit no world";
+        let fitted = report(vec![
+            row("dyna-cql", -6600.0, 0.4),
+            row(MODEL_PLANNER, -6500.0, 0.3),
+        ]);
+        assert!(
+            !results_table(&fitted).contains(note),
+            "{}",
+            results_table(&fitted)
+        );
+        let unfitted = report(vec![
+            row("dyna-cql", -6600.0, 0.4),
+            row("cql", -6600.0, 0.4),
+        ]);
+        assert!(
+            results_table(&unfitted).contains(note),
+            "{}",
+            results_table(&unfitted)
+        );
+        let model_free = report(vec![row("cql", -6600.0, 0.4)]);
+        assert!(
+            !results_table(&model_free).contains(note),
+            "{}",
+            results_table(&model_free)
+        );
     }
 
     #[test]
