@@ -10,7 +10,7 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::config::Config;
+use crate::config::{Config, TaskConfig};
 use crate::dataset::Transition;
 
 /// Replaces the memory available to the process, in bytes.
@@ -277,8 +277,10 @@ pub fn size_terms(config: &Config, job: Job) -> Vec<Term> {
         );
     let dqn_network = training_bytes(parameters(obs, &dqn.hidden, actions));
     let network = training_bytes(parameters(obs, &learner.hidden, actions));
-    let meta_rows = (meta.support_shots.saturating_add(meta.query_shots))
-        .saturating_mul(meta.inner_steps.saturating_add(1));
+    let meta_rows = (meta
+        .support_batch_size
+        .saturating_add(meta.query_batch_size))
+    .saturating_mul(meta.inner_steps.saturating_add(1));
     let encoder = parameters(2 * obs + 2, &context.encoder_hidden, context.latent);
     let conditioned = parameters(obs + context.latent, &learner.hidden, actions);
     // Each evaluated episode's table of visited steps and its states, over the exact
@@ -335,8 +337,8 @@ pub fn size_terms(config: &Config, job: Job) -> Vec<Term> {
         },
         Term {
             key: format!(
-                "meta.support_shots = {} with meta.query_shots = {} and meta.inner_steps = {}",
-                meta.support_shots, meta.query_shots, meta.inner_steps
+                "meta.support_batch_size = {} with meta.query_batch_size = {} and meta.inner_steps = {}",
+                meta.support_batch_size, meta.query_batch_size, meta.inner_steps
             ),
             what: "one task's MAML batches, kept through the inner steps",
             bytes: batch_bytes(config, &learner.hidden, meta_rows),
@@ -352,9 +354,9 @@ pub fn size_terms(config: &Config, job: Job) -> Vec<Term> {
             count: holders.context,
         },
         Term {
-            key: format!("context.context_shots = {}", context.context_shots),
+            key: format!("context.transitions_per_context = {}", context.transitions_per_context),
             what: "the context learner's batch of contexts",
-            bytes: batch_bytes(config, &context.encoder_hidden, context.context_shots)
+            bytes: batch_bytes(config, &context.encoder_hidden, context.transitions_per_context)
                 .saturating_mul(config.tasks.len() as u64),
             count: holders.context,
         },
@@ -450,6 +452,45 @@ pub fn check_memory(config: &Config, job: Job) -> Result<(), ResourceError> {
         return Ok(());
     };
     check_memory_against(config, &Needs::of(config, job), &available)
+}
+
+/// The worlds an evaluation of `episodes` builds: one per start cell (or the one fixed start)
+/// where it is `exact` and the task's world is deterministic (no moving rain), whatever
+/// `episodes`; else one per episode.
+pub fn evaluation_worlds(config: &Config, task: &TaskConfig, episodes: usize, exact: bool) -> u64 {
+    let deterministic = task.rain_moves_every.is_none() || task.rain.is_none();
+    match (exact && deterministic, config.world.start_cell.is_some()) {
+        (true, true) => 1,
+        (true, false) => u64::from(config.world.grid_cells).pow(2),
+        (false, _) => episodes as u64,
+    }
+}
+
+/// [`check_memory`] of `job` with `worlds` evaluated episodes that a command-line flag asks for
+/// beside the config's own sizes, the refusal naming the flag (`flag`, such as `--episodes =
+/// 1000000000`): each episode's world, its tables and its steps.
+pub fn check_memory_with_episodes(
+    config: &Config,
+    job: Job,
+    flag: String,
+    worlds: u64,
+) -> Result<(), ResourceError> {
+    let Some(available) = Available::memory()? else {
+        tracing::warn!("cannot read MemAvailable or the cgroup's memory.max; memory unchecked");
+        return Ok(());
+    };
+    let w = &config.world;
+    let cells = u64::from(w.grid_cells).pow(2);
+    let tables = (2 * 8 * cells).saturating_mul(w.devices as u64);
+    let steps = u64::from(w.horizon).saturating_mul(24 + 2 * w.observation_len() as u64 + 48);
+    let mut needs = Needs::of(config, job);
+    needs.sizes.push(Term {
+        key: flag,
+        what: "each episode's world, its tables and its steps",
+        bytes: tables.saturating_add(steps),
+        count: worlds,
+    });
+    check_memory_against(config, &needs, &available)
 }
 
 /// [`check_memory`] against a figure given.

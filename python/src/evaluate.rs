@@ -56,14 +56,7 @@ fn check_evaluation(
             "episodes = 0: expected at least 1 episode",
         ));
     }
-    // As `evaluation_worlds`: one world per start cell (or the fixed start) where the world is
-    // deterministic, whatever `episodes`; else one per episode.
-    let deterministic = task.rain_moves_every.is_none() || task.rain.is_none();
-    let worlds = match (exact && deterministic, config.world.start_cell.is_some()) {
-        (true, true) => 1,
-        (true, false) => u64::from(config.world.grid_cells).pow(2),
-        (false, _) => episodes as u64,
-    };
+    let worlds = resources::evaluation_worlds(config, task, episodes, exact);
     let mut evaluated = config.clone();
     evaluated.learner.eval_episodes = usize::try_from(worlds).unwrap_or(usize::MAX);
     let job = Job::Python {

@@ -86,8 +86,10 @@ fn run_rollout(args: RolloutArgs) -> Result<()> {
         PolicySpec::Planner => Job::Plan,
         _ => Job::Eval,
     };
-    resources::check_memory(&config, job)?;
-    let steps = args.episodes * config.world.horizon as usize;
+    let worlds = resources::evaluation_worlds(&config, &task, args.episodes, args.exact);
+    let flag = format!("--episodes = {}", args.episodes);
+    resources::check_memory_with_episodes(&config, job, flag, worlds)?;
+    let steps = args.episodes.saturating_mul(config.world.horizon as usize);
     let mut policy = uavmeta_actors::policy::build(spec, &config, args.seed, Some(steps))?;
 
     let stdout = io::stdout();

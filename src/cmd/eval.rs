@@ -39,9 +39,17 @@ pub struct EvalArgs {
 pub fn run(args: EvalArgs) -> Result<()> {
     let mut config = args.config.load()?;
     let task = args.task.resolve(&mut config)?;
-    resources::check_memory(&config, Job::Eval)?;
-    let (q, meta) = checkpoint::load(&args.checkpoint, &config)?;
     let episodes = args.episodes.unwrap_or(config.learner.eval_episodes);
+    match args.episodes {
+        Some(n) => resources::check_memory_with_episodes(
+            &config,
+            Job::Eval,
+            format!("--episodes = {n}"),
+            resources::evaluation_worlds(&config, &task, n, true),
+        )?,
+        None => resources::check_memory(&config, Job::Eval)?,
+    }
+    let (q, meta) = checkpoint::load(&args.checkpoint, &config)?;
     let seed = args.seed.unwrap_or(config.learner.eval_seed);
     // Every episode once: the summary below and, with --per-episode, the listing.
     let runs = Evaluator::new(&config.world, &task, episodes, seed).episodes(&q);
