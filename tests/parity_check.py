@@ -191,38 +191,20 @@ def train(name, dataset, seed, learner):
     encoder = d3rlpy.models.VectorEncoderFactory(hidden_units=learner["hidden"])
     adam = d3rlpy.optimizers.AdamFactory(betas=(0.9, 0.999), eps=1e-8, weight_decay=0.0)
     batch = learner["batch_size"]
+    common = dict(learning_rate=learner["lr"], optim_factory=adam, encoder_factory=encoder,
+                  batch_size=batch)
+    # The TD learners' target: gamma, one Q-function, the target network's period.
+    td = dict(gamma=learner["gamma"], n_critics=1,
+              target_update_interval=learner["target_update_every"])
     if name == "cql":
         config = d3rlpy.algos.DiscreteCQLConfig(
-            learning_rate=learner["lr"],
-            optim_factory=adam,
-            encoder_factory=encoder,
-            batch_size=batch,
-            gamma=learner["gamma"],
-            n_critics=1,
-            target_update_interval=learner["target_update_every"],
-            alpha=JOBS.get("d3rlpy_alpha", 2.0 * learner["alpha"]),
-        )
+            **common, **td, alpha=JOBS.get("d3rlpy_alpha", 2.0 * learner["alpha"]))
     elif name == "bc":
-        config = d3rlpy.algos.DiscreteBCConfig(
-            learning_rate=learner["lr"],
-            optim_factory=adam,
-            encoder_factory=encoder,
-            batch_size=batch,
-            beta=0.5,
-        )
+        config = d3rlpy.algos.DiscreteBCConfig(**common, beta=0.5)
     elif name == "bcq":
         config = d3rlpy.algos.DiscreteBCQConfig(
-            learning_rate=learner["lr"],
-            optim_factory=adam,
-            encoder_factory=encoder,
-            batch_size=batch,
-            gamma=learner["gamma"],
-            n_critics=1,
-            target_update_interval=learner["target_update_every"],
-            action_flexibility=learner["bcq_threshold"],
-            beta=0.5,
-            share_encoder=True,
-        )
+            **common, **td, action_flexibility=learner["bcq_threshold"], beta=0.5,
+            share_encoder=True)
     else:
         raise ValueError(f"algorithm {name!r}: expected cql, bc or bcq")
     algo = config.create(device="cpu:0")

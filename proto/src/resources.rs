@@ -702,16 +702,6 @@ mod tests {
     }
 
     #[test]
-    fn a_large_world_times_many_processes_is_refused_naming_the_world() {
-        let mut config = Config::default();
-        config.world.grid_cells = 500;
-        config.world.devices = 64;
-        config.collect.actors_per_task = 7;
-        let refused = refusal(&config, Job::Launch, 24 << 30);
-        assert!(refused.contains("world.grid_cells = 500"), "{refused}");
-    }
-
-    #[test]
     fn a_dataset_beyond_the_disk_is_refused_naming_the_key_and_the_disk() {
         let config = Config::default();
         let bytes = datasets_file_bytes(&config, 1);
