@@ -81,8 +81,10 @@ fn readers(key: &str) -> &'static [Sub] {
         "context" => &[Sub::Context],
         "planner" => &[Sub::Plan],
         "run" => &[Sub::Collect, Sub::Train],
-        // The tunnel's keys are read by a launch and the tunnel alone; tests/remote.rs and
-        // tests/hostile.rs run those.
+        // The tunnel's keys are used by a launch and the tunnel alone, which no case starts
+        // (tests/remote.rs and tests/hostile.rs run them); every subcommand checks their rules
+        // when it loads the config, and `collect` is the cheapest to load it.
+        "tunnel" => &[Sub::Collect],
         _ => &[],
     }
 }

@@ -8,11 +8,15 @@ use garde::Validate;
 use serde::{Deserialize, Serialize};
 use smart_default::SmartDefault;
 
-use super::rules::{positive, satisfies, within, Broken};
+use super::rules::{satisfies, within, Broken};
 use super::TaskConfig;
 
 /// Most remote hosts a run lists (`tunnel.max_hosts`).
 pub const MAX_HOSTS: usize = 64;
+
+/// The longest `wait_seconds`: a week, far past any launch's wait, and a deadline every clock
+/// can add.
+pub const MAX_WAIT_SECONDS: f64 = 7.0 * 24.0 * 3600.0;
 
 /// Remote actor hosts reach the run through iceoryx2's tunnel over Zenoh (`uavmeta tunnel`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, SmartDefault, Validate)]
@@ -46,9 +50,12 @@ pub struct TunnelConfig {
     #[default(8)]
     #[garde(custom(within(1..=MAX_HOSTS, format!("between 1 and {MAX_HOSTS} hosts"))))]
     pub max_hosts: usize,
-    /// How long the launcher waits for `wait_for_hosts` before it gives up.
+    /// How long the launcher waits for `wait_for_hosts` before it gives up, at most a week.
     #[default(120.0)]
-    #[garde(custom(positive("seconds > 0")))]
+    #[garde(custom(satisfies(
+        |s: &f64| *s > 0.0 && *s <= MAX_WAIT_SECONDS,
+        "seconds > 0 and at most a week (604800)"
+    )))]
     pub wait_seconds: f64,
     /// The run's CA certificate (PEM). With a `tls/` endpoint, which any address beyond loopback
     /// needs, a remote host is admitted only with a certificate this CA signed (mutual TLS).
