@@ -10,7 +10,7 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::config::{Config, TaskConfig};
+use crate::config::{Config, TaskConfig, WorldConfig};
 use crate::dataset::Transition;
 
 /// Replaces the memory available to the process, in bytes.
@@ -109,11 +109,19 @@ fn actors(config: &Config) -> u64 {
     (config.tasks.len() as u64).saturating_mul(config.collect.actors_per_task as u64)
 }
 
+/// A world's power tables: two (clear and rain) of one f64 per cell and device.
+fn world_table_bytes(w: &WorldConfig) -> u64 {
+    (2 * 8 * u64::from(w.grid_cells).pow(2)).saturating_mul(w.devices as u64)
+}
+
+/// One evaluated episode's table of visited steps and its states.
+fn episode_bytes(w: &WorldConfig) -> u64 {
+    u64::from(w.horizon).saturating_mul(24 + 2 * w.observation_len() as u64 + 48)
+}
+
 /// Every process's base and its world's tables; in Python, no process base but each world's.
 fn process_term(config: &Config, job: Job, processes: u64) -> Term {
-    let cells = u64::from(config.world.grid_cells).pow(2);
-    // Two tables (clear and rain) of one f64 per cell and device.
-    let tables = (2 * 8 * cells).saturating_mul(config.world.devices as u64);
+    let tables = world_table_bytes(&config.world);
     let key = format!(
         "world.grid_cells = {} with world.devices = {}",
         config.world.grid_cells, config.world.devices
@@ -286,9 +294,7 @@ pub fn size_terms(config: &Config, job: Job) -> Vec<Term> {
     // Each evaluated episode's table of visited steps and its states, over the exact
     // evaluation's start cells or the episodes asked for, whichever is more.
     let episodes = (learner.eval_episodes as u64).max(u64::from(w.grid_cells).pow(2));
-    let evaluation = episodes
-        .saturating_mul(u64::from(w.horizon))
-        .saturating_mul(24 + 2 * obs as u64 + 48);
+    let evaluation = episodes.saturating_mul(episode_bytes(w));
     let planner = u64::try_from(config.planner.memory_bytes(w)).unwrap_or(u64::MAX);
     vec![
         Term {
@@ -447,11 +453,7 @@ impl Available {
 /// Refuses `config` for `job` where its memory estimate exceeds what the process may use,
 /// naming the keys behind the estimate; passes where the machine does not say.
 pub fn check_memory(config: &Config, job: Job) -> Result<(), ResourceError> {
-    let Some(available) = Available::memory()? else {
-        tracing::warn!("cannot read MemAvailable or the cgroup's memory.max; memory unchecked");
-        return Ok(());
-    };
-    check_memory_against(config, &Needs::of(config, job), &available)
+    check_needs(config, &Needs::of(config, job))
 }
 
 /// The worlds an evaluation of `episodes` builds: one per start cell (or the one fixed start)
@@ -475,22 +477,23 @@ pub fn check_memory_with_episodes(
     flag: String,
     worlds: u64,
 ) -> Result<(), ResourceError> {
-    let Some(available) = Available::memory()? else {
-        tracing::warn!("cannot read MemAvailable or the cgroup's memory.max; memory unchecked");
-        return Ok(());
-    };
-    let w = &config.world;
-    let cells = u64::from(w.grid_cells).pow(2);
-    let tables = (2 * 8 * cells).saturating_mul(w.devices as u64);
-    let steps = u64::from(w.horizon).saturating_mul(24 + 2 * w.observation_len() as u64 + 48);
     let mut needs = Needs::of(config, job);
     needs.sizes.push(Term {
         key: flag,
         what: "each episode's world, its tables and its steps",
-        bytes: tables.saturating_add(steps),
+        bytes: world_table_bytes(&config.world).saturating_add(episode_bytes(&config.world)),
         count: worlds,
     });
-    check_memory_against(config, &needs, &available)
+    check_needs(config, &needs)
+}
+
+/// `needs` against the memory the process may use; passes where the machine does not say.
+fn check_needs(config: &Config, needs: &Needs) -> Result<(), ResourceError> {
+    let Some(available) = Available::memory()? else {
+        tracing::warn!("cannot read MemAvailable or the cgroup's memory.max; memory unchecked");
+        return Ok(());
+    };
+    check_memory_against(config, needs, &available)
 }
 
 /// [`check_memory`] against a figure given.
