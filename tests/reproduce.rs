@@ -6,6 +6,7 @@ use std::path::Path;
 use std::process::{Command, Output};
 
 use uavmeta_proto::config::{Config, TaskRole};
+use uavmeta_proto::method::{MODEL_BASED, MODEL_PLANNER, NO_FITTED_WORLD};
 use uavmeta_reproduce::{quick_config, ReproduceConfig};
 
 const CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/configs/reproduce.toml");
@@ -163,15 +164,25 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     check_csv(
         &out.join("aoi-power/bars.csv"),
         "method,seed,aoi,power_mw",
-        // The online agent and the 4 CQL inits, the baselines from w0 and from a random init;
-        // the 4 heuristics once.
-        (5 + 2 * baselines) * seeds + 4,
+        // The online agent and the 4 CQL inits, the baselines from w0 and from a random init,
+        // the planner in the world the shots fit; the 4 heuristics once.
+        (6 + 2 * baselines) * seeds + 4,
     );
     check_csv(
         &out.join("resilience/curves.csv"),
         &format!("method,task,{curve}"),
         (4 + 2 * baselines) * rain * seeds * r.resilience_epochs,
     );
+    // The planner in the world each seed's shots fit: once per task and shot count a figure reads.
+    let planner = "task,shots,seed,return,aoi,power_mw,outages,fitted_world";
+    for (figure, rows) in [
+        ("convergence", seeds),
+        ("shots", r.shots.len() * seeds),
+        ("tasks", seeds),
+        ("resilience", rain * seeds),
+    ] {
+        check_csv(&out.join(figure).join("model_planner.csv"), planner, rows);
+    }
     let meta_train = config
         .tasks
         .iter()
@@ -214,6 +225,32 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
         let summary = read(&out.join(experiment).join("summary.md"));
         assert!(summary.starts_with("# Figure"), "{experiment}: {summary}");
         check_header(experiment, &summary);
+        // Every figure that compares methods sets the model-based ones apart, under what they
+        // are told, with the planner in the fitted world where the shots fit one (the lambda
+        // task's do, the rain tasks' do not, and the summary says so).
+        if experiment != "meta-training" {
+            let section = format!("| *{MODEL_BASED}* |");
+            assert_eq!(
+                summary.matches(&section).count(),
+                1,
+                "{experiment}: {summary}"
+            );
+            let (before, after) = summary.split_once(&section).unwrap();
+            assert!(!before.contains("| Dyna-CQL"), "{experiment}: {summary}");
+            assert!(after.contains("| Dyna-CQL"), "{experiment}: {summary}");
+            let planner_row = after.contains(&format!("| {MODEL_PLANNER} |"));
+            assert_eq!(
+                planner_row,
+                experiment != "resilience",
+                "{experiment}: {summary}"
+            );
+            let no_world = summary.contains(NO_FITTED_WORLD);
+            assert_eq!(
+                no_world,
+                experiment == "resilience",
+                "{experiment}: {summary}"
+            );
+        }
     }
     let behaviour = read(&out.join("online-dqn/summary.md"));
     assert!(

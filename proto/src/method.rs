@@ -32,6 +32,16 @@ pub struct AlgoInfo {
 pub const MODEL_BASED: &str = "model-based: told the moves, the AoI update, the reward's form and \
      the channel law; each device's power cost and any rain learnt from the shots";
 
+/// The model-based section's reference row: the planner run in the world a seed's shots identify
+/// (`uavmeta_world::heuristics::model_planner_metrics`), what planning in the fitted world
+/// reaches.
+pub const MODEL_PLANNER: &str = "model-planner";
+
+/// What a table says of a task whose shots fit no world.
+pub const NO_FITTED_WORLD: &str = "the shots fit no world (they show rain, or steps of another \
+     world): the model-based rows trained on the shots alone, as their model-free algorithm does, \
+     and there is no model-planner row (docs/MODEL.md section 5)";
+
 /// Every offline algorithm, in wire order: one line each. Adding one here and its loss to
 /// `uavmeta_learner::algorithm::ALGORITHMS` (same name, same order) is the whole registration.
 #[rustfmt::skip]

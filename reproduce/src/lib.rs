@@ -346,6 +346,20 @@ fn plan(config: &Config, r: &ReproduceConfig, experiments: &[Experiment]) -> Pla
     let unseen =
         |method, shots, meta_tasks| figures::unseen_key(config, r, method, shots, meta_tasks);
     let episodes = config.learner.eval_episodes;
+    // The model-based section's reference line, beside every figure that compares methods.
+    let model_planner = |plan: &mut Plan, task: &str, shots, episodes, e| {
+        if figures::compared(config).iter().any(|m| m.model_based()) {
+            let task = task.to_string();
+            plan.model_planner(
+                runs::ModelPlannerKey {
+                    task,
+                    shots,
+                    episodes,
+                },
+                e,
+            );
+        }
+    };
     for &e in experiments {
         match e {
             Experiment::MetaTraining => {
@@ -365,6 +379,7 @@ fn plan(config: &Config, r: &ReproduceConfig, experiments: &[Experiment]) -> Pla
                     plan.run(config, key, r.convergence_epochs, false, e);
                 }
                 plan.reference(&r.unseen_task, episodes, e);
+                model_planner(&mut plan, &r.unseen_task, r.main_shots, episodes, e);
             }
             Experiment::Shots => {
                 for &shots in &r.shots {
@@ -372,6 +387,7 @@ fn plan(config: &Config, r: &ReproduceConfig, experiments: &[Experiment]) -> Pla
                         let key = unseen(method, shots, r.meta_tasks);
                         plan.run(config, key, r.convergence_epochs, false, e);
                     }
+                    model_planner(&mut plan, &r.unseen_task, shots, episodes, e);
                 }
             }
             Experiment::Tasks => {
@@ -383,6 +399,7 @@ fn plan(config: &Config, r: &ReproduceConfig, experiments: &[Experiment]) -> Pla
                     }
                 }
                 plan.reference(&r.unseen_task, episodes, e);
+                model_planner(&mut plan, &r.unseen_task, r.main_shots, episodes, e);
             }
             Experiment::AoiPower => {
                 for method in figures::compared(config) {
@@ -390,6 +407,7 @@ fn plan(config: &Config, r: &ReproduceConfig, experiments: &[Experiment]) -> Pla
                     plan.run(config, key, r.aoi_power_epoch, false, e);
                 }
                 plan.reference(&r.unseen_task, episodes, e);
+                model_planner(&mut plan, &r.unseen_task, r.main_shots, episodes, e);
             }
             Experiment::OnlineDqn => {
                 for (task, episodes) in agent_tasks(config, r) {
@@ -404,6 +422,8 @@ fn plan(config: &Config, r: &ReproduceConfig, experiments: &[Experiment]) -> Pla
                         plan.run(config, key, r.resilience_epochs, path, e);
                     }
                     plan.reference(&task.name, r.resilience_eval_episodes, e);
+                    let rain_episodes = r.resilience_eval_episodes;
+                    model_planner(&mut plan, &task.name, r.main_shots, rain_episodes, e);
                 }
             }
         }
@@ -474,7 +494,8 @@ fn run_seeds(
     results
 }
 
-/// The three stages of [`run_seeds`]: datasets and their agents' reference rows, inits, runs.
+/// The three stages of [`run_seeds`]: datasets with their agents' reference rows and the planner in
+/// the world their shots fit, inits, runs.
 fn stages(
     opts: &ReproduceOptions,
     r: &ReproduceConfig,
@@ -488,6 +509,11 @@ fn stages(
         let metrics = runs::reference(config, out, seed, &need.key)?;
         done(&need.users);
         Ok((need.key.clone(), metrics))
+    })?;
+    let model_planners = for_each_seed(seeds, &plan.model_planners, |seed, need| {
+        let planned = runs::model_planner(config, out, seed, &need.key)?;
+        done(&need.users);
+        Ok((need.key.clone(), planned))
     })?;
     // Only figure 4 draws a meta-training curve; every other init is evaluated once, at its last
     // meta-epoch. Evaluating never changes w0 (meta_train.rs), and the other inits' evaluations
@@ -517,14 +543,18 @@ fn stages(
     Ok(seeds
         .iter()
         .zip(references)
+        .zip(model_planners)
         .zip(inits)
         .zip(runs)
-        .map(|(((&seed, references), inits), runs)| SeedResult {
-            seed,
-            inits: inits.into_iter().map(|(k, (_, c))| (k, c)).collect(),
-            references,
-            runs,
-        })
+        .map(
+            |((((&seed, references), model_planners), inits), runs)| SeedResult {
+                seed,
+                model_planners,
+                inits: inits.into_iter().map(|(k, (_, c))| (k, c)).collect(),
+                references,
+                runs,
+            },
+        )
         .collect())
 }
 
@@ -669,6 +699,9 @@ mod tests {
             (6 + 2 * b) + (4 + 2 * b) * 2 + (4 + 2 * b) + (3 + b)
         );
         assert_eq!(plan.runs.iter().filter(|r| r.trajectory).count(), 2);
+        // Dyna-CQL is a baseline: the planner in the fitted world of each shot count of the
+        // unseen task (100, 300, 500) and of the rain task's shots.
+        assert_eq!(plan.model_planners.len(), 3 + 1);
     }
 
     #[test]

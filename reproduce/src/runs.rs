@@ -28,7 +28,8 @@ use uavmeta_proto::config::{Config, TaskConfig, TaskRole};
 use uavmeta_proto::dataset::DatasetReader;
 use uavmeta_proto::method::{Algo, Method, Start};
 use uavmeta_proto::stats::PolicyMetrics;
-use uavmeta_world::heuristics::PolicySpec;
+use uavmeta_world::heuristics::{model_planner_metrics, PolicySpec};
+use uavmeta_world::identify::Unidentified;
 use uavmeta_world::rollout::{record_trajectory, Trajectory};
 
 use crate::{Experiment, ReproduceError};
@@ -111,6 +112,18 @@ pub struct RefKey {
     pub episodes: usize,
 }
 
+/// The planner in the world a seed's `shots` shots of `task` fit, evaluated over `episodes`: the
+/// model-based section's reference line.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ModelPlannerKey {
+    pub task: String,
+    pub shots: usize,
+    pub episodes: usize,
+}
+
+/// What the planner in the fitted world scored, or why the shots fit no world (rain).
+pub type ModelPlanned = Result<PolicyMetrics, Unidentified>;
+
 /// Something a seed computes, with the experiments that use it (whose progress bars it moves).
 #[derive(Debug, Clone)]
 pub struct Need<K> {
@@ -144,6 +157,7 @@ pub struct Plan {
     /// Task names, collected in this order.
     pub datasets: Vec<Need<String>>,
     pub references: Vec<Need<RefKey>>,
+    pub model_planners: Vec<Need<ModelPlannerKey>>,
     pub inits: Vec<Need<InitKey>>,
     pub runs: Vec<RunNeed>,
 }
@@ -191,6 +205,12 @@ impl Plan {
         add(&mut self.references, key, user);
     }
 
+    /// The planner in the world the shots of `key` fit: wherever a model-based method runs.
+    pub fn model_planner(&mut self, key: ModelPlannerKey, user: Experiment) {
+        self.dataset(&key.task, user);
+        add(&mut self.model_planners, key, user);
+    }
+
     pub fn run(
         &mut self,
         config: &Config,
@@ -222,6 +242,11 @@ impl Plan {
         let uses = |users: &[Experiment]| users.contains(&experiment) as u64;
         self.datasets.iter().map(|n| uses(&n.users)).sum::<u64>()
             + self.references.iter().map(|n| uses(&n.users)).sum::<u64>()
+            + self
+                .model_planners
+                .iter()
+                .map(|n| uses(&n.users))
+                .sum::<u64>()
             + self.inits.iter().map(|n| uses(&n.users)).sum::<u64>()
             + self.runs.iter().map(|r| uses(&r.need.users)).sum::<u64>()
     }
@@ -266,6 +291,7 @@ pub struct SeedResult {
     pub inits: Vec<(InitKey, MetaCurve)>,
     /// The online DQN agent of each reference task.
     pub references: Vec<(RefKey, PolicyMetrics)>,
+    pub model_planners: Vec<(ModelPlannerKey, ModelPlanned)>,
     pub runs: Vec<(RunKey, RunResult)>,
 }
 
@@ -277,6 +303,10 @@ impl SeedResult {
     pub fn reference(&self, task: &str, episodes: usize) -> &PolicyMetrics {
         let of = |k: &RefKey| k.task == task && k.episodes == episodes;
         lookup(&self.references, of, "reference")
+    }
+
+    pub fn model_planner(&self, key: &ModelPlannerKey) -> &ModelPlanned {
+        lookup(&self.model_planners, |k| k == key, "model planner")
     }
 
     pub fn meta_curve(&self, key: InitKey) -> &MetaCurve {
@@ -466,6 +496,29 @@ fn multi_task_init(
     }
     .map_err(MetaError::from)?;
     Ok(())
+}
+
+/// Seed `seed`'s model planner `key`: on the shots its fine-tuning runs of the same task and
+/// shot count read.
+pub fn model_planner(
+    config: &Config,
+    out: &Path,
+    seed: u64,
+    key: &ModelPlannerKey,
+) -> Result<ModelPlanned, ReproduceError> {
+    let task = config.task(&key.task).map_err(MetaError::from)?;
+    let dataset = dataset_path(&datasets_dir(out, seed), &task.name);
+    let shots = load_shots(config, task, &dataset, key.shots, seed).map_err(MetaError::from)?;
+    let planned = model_planner_metrics(config, task, &shots.rows, key.episodes);
+    match &planned {
+        Ok(m) => {
+            tracing::info!(seed, task = %task.name, shots = key.shots, ret = %m.ret, "model planner")
+        }
+        Err(why) => {
+            tracing::info!(seed, task = %task.name, shots = key.shots, %why, "no model planner")
+        }
+    }
+    Ok(planned)
 }
 
 /// Seed `seed`'s fine-tuning run `run`, from the checkpoint `w0` (its init, `None` for a random

@@ -18,8 +18,10 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use uavmeta_proto::config::{Config, TaskConfig};
+use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::stats::PolicyMetrics;
 
+use crate::identify::{identify, Unidentified};
 use crate::planner::PlannerPolicy;
 use crate::rollout::{evaluate, Policy};
 use crate::world::{Move, World};
@@ -371,6 +373,22 @@ pub fn reference_metrics(
             (spec, metrics)
         })
         .collect()
+}
+
+/// The model-based section's reference on `task`: the planner run in the world `shots` identify
+/// (`crate::identify`, told the world's form only), the plan made in the fitted world from each
+/// state the true world shows and played there, evaluated as [`reference_metrics`] evaluates.
+/// Why not, where the shots fit no world (rain, or steps of another world).
+pub fn model_planner_metrics(
+    config: &Config,
+    task: &TaskConfig,
+    shots: &[Transition],
+    episodes: usize,
+) -> Result<PolicyMetrics, Unidentified> {
+    let fitted = identify(&config.world, shots)?;
+    let mut policy = PlannerPolicy::in_model(&config.planner, fitted.world);
+    let seed = config.learner.eval_seed;
+    Ok(evaluate(&config.world, task, &mut policy, episodes, seed))
 }
 
 /// The device with the largest delta_k A_k, ties to the lowest index.

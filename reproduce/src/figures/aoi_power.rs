@@ -43,12 +43,26 @@ pub(super) fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, ReproduceE
         (Method::OnlineDqn.label(), online),
         (Method::CQL.label(), at_epoch(Method::CQL)),
     ];
-    // Not in the paper: the other compared methods after its three, with no paper figures.
-    let others = (compared(c).into_iter())
-        .filter(|m| ![Method::CQL_MAML, Method::CQL].contains(m))
-        .map(|m| (m.label(), at_epoch(m)));
-    let learned: Vec<(String, Vec<PolicyMetrics>)> =
-        paper_three.into_iter().chain(others).collect();
+    // Not in the paper: the other compared methods after its three, with no paper figures, the
+    // model-based ones last, then the planner in the fitted world.
+    let others = (compared(c).into_iter()).filter(|m| ![Method::CQL_MAML, Method::CQL].contains(m));
+    let (model_free, model_based): (Vec<Method>, Vec<Method>) =
+        others.partition(|m| !m.model_based());
+    let mut learned: Vec<(String, Vec<PolicyMetrics>)> = (paper_three.into_iter())
+        .chain(model_free.into_iter().map(|m| (m.label(), at_epoch(m))))
+        .collect();
+    let model_free_rows = learned.len();
+    learned.extend(model_based.into_iter().map(|m| (m.label(), at_epoch(m))));
+    let planner = ModelPlannerKey {
+        task: r.unseen_task.clone(),
+        shots: r.main_shots,
+        episodes: c.learner.eval_episodes,
+    };
+    // Where every seed's shots fit a world (figure 5's table says where they do not).
+    let planned: Option<Vec<PolicyMetrics>> = (ctx.seeds.iter())
+        .map(|s| s.model_planner(&planner).as_ref().ok().copied())
+        .collect();
+    learned.extend(planned.map(|p| (MODEL_PLANNER.to_string(), p)));
     let heuristics = &ctx
         .heuristics(&r.unseen_task, c.learner.eval_episodes)
         .policies;
@@ -82,7 +96,7 @@ pub(super) fn aoi_power(ctx: &Context, dir: &Path) -> Result<Section, ReproduceE
         "mean power (mW)",
         &power_bars,
     )?;
-    let body = summary_table(ctx, &measured, heuristics, paper_scale);
+    let body = summary_table(ctx, &measured, model_free_rows, heuristics, paper_scale);
     finish(body, vec![order_claim(&measured)])
 }
 
@@ -135,10 +149,12 @@ fn bars(
     (aoi_bars, power_bars)
 }
 
-/// The summary's opening and its table, beside the paper's values.
+/// The summary's opening and its table, beside the paper's values; the rows of `measured` after
+/// the first `model_free` in the model-based section.
 fn summary_table(
     ctx: &Context,
     measured: &[Measured],
+    model_free: usize,
     heuristics: &[(&str, PolicyMetrics)],
     paper_scale: f64,
 ) -> String {
@@ -156,7 +172,13 @@ fn summary_table(
         ctx.seeds_note(),
         c.world.noise_dbm
     );
-    for (name, aoi, power, paper) in rows(measured, heuristics) {
+    for (i, (name, aoi, power, paper)) in rows(measured, heuristics).enumerate() {
+        if i == model_free && model_free < measured.len() {
+            body.push_str(&model_based_row(4));
+        }
+        if i == measured.len() && model_free < measured.len() {
+            body.push_str("| *references* | | | | |\n");
+        }
         let _ = match paper {
             Some((paper_aoi, paper_mw)) => writeln!(
                 body,

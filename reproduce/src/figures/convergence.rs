@@ -31,10 +31,13 @@ pub(super) fn convergence(ctx: &Context, dir: &Path) -> Result<Section, Reproduc
         .collect();
     write_file(&dir.join("curves.csv"), &csv)?;
     write_references_csv(ctx, dir, &r.unseen_task, c.learner.eval_episodes)?;
+    let planner = ctx.model_planner(&[&r.unseen_task], r.main_shots, c.learner.eval_episodes);
+    write_model_planner_csv(ctx, dir, &[&planner])?;
     let series: Vec<Series> = runs
         .iter()
-        .map(|(m, runs)| return_series(m.label(), runs))
+        .map(|(m, runs)| return_series(chart_label(*m), runs))
         .collect();
+    let lines: Vec<Reference> = refs.lines().into_iter().chain(planner.line()).collect();
     line_chart(
         &dir.join("fig5.png"),
         &format!(
@@ -42,10 +45,10 @@ pub(super) fn convergence(ctx: &Context, dir: &Path) -> Result<Section, Reproduc
             r.unseen_task, r.main_shots
         ),
         &series,
-        &refs.lines(),
+        &lines,
     )?;
 
-    let body = summary_table(ctx, &runs, &refs);
+    let body = summary_table(ctx, &runs, &refs, &planner);
     let runs_of = |m: Method| of_method(&runs, m);
     let (maml, cql) = (runs_of(Method::CQL_MAML), runs_of(Method::CQL));
     let mut found = vec![
@@ -68,8 +71,14 @@ fn curve_stats(runs: &[Vec<f64>]) -> (Estimate, Estimate, Estimate) {
     )
 }
 
-/// The summary's opening, its table of methods and the reference levels.
-fn summary_table(ctx: &Context, runs: &[(Method, Vec<Vec<f64>>)], refs: &Refs) -> String {
+/// The summary's opening, its table of methods (the model-based ones and the planner in the
+/// fitted world in a section of their own) and the reference levels.
+fn summary_table(
+    ctx: &Context,
+    runs: &[(Method, Vec<Vec<f64>>)],
+    refs: &Refs,
+    planner: &ModelPlanner,
+) -> String {
     let c = ctx.config;
     let r = ctx.reproduce;
     let mut body = format!(
@@ -90,7 +99,9 @@ fn summary_table(ctx: &Context, runs: &[(Method, Vec<Vec<f64>>)], refs: &Refs) -
         body,
         "| method | converged (seeds) | return at epoch {EPOCH_40} | final return (vs planner) | mean swing between epochs |\n| --- | --- | --- | --- | --- |"
     );
-    for (method, runs) in runs {
+    let (model_free, model_based): (Vec<_>, Vec<_>) =
+        runs.iter().partition(|(m, _)| !m.model_based());
+    let line = |body: &mut String, (method, runs): &(Method, Vec<Vec<f64>>)| {
         let (at40, last, swing) = curve_stats(runs);
         let converged = convergence_cells(runs, refs.random);
         let _ = writeln!(
@@ -99,7 +110,21 @@ fn summary_table(ctx: &Context, runs: &[(Method, Vec<Vec<f64>>)], refs: &Refs) -
             method.label(),
             refs.with_gap(last)
         );
+    };
+    model_free.into_iter().for_each(|run| line(&mut body, run));
+    let planned = planner.ret();
+    if !model_based.is_empty() || planned.is_some() {
+        body.push_str(&model_based_row(4));
     }
+    model_based.into_iter().for_each(|run| line(&mut body, run));
+    if let Some(ret) = planned {
+        let _ = writeln!(
+            body,
+            "| {MODEL_PLANNER} | - | - | {} | - |",
+            refs.with_gap(ret)
+        );
+    }
+    body.push_str(&planner.note());
     body.push('\n');
     body.push_str(&references_table(
         ctx,

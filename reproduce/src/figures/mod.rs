@@ -11,7 +11,7 @@ use uavmeta_learner::train::EpochRow;
 use uavmeta_meta::write_file;
 use uavmeta_plot::{self as plot, Band, Bar, LineChart, Reference, Series, TrajectoryChart};
 use uavmeta_proto::config::{Config, RainZone, TaskConfig};
-use uavmeta_proto::method::{Algo, Method, Start};
+use uavmeta_proto::method::{Algo, Method, Start, MODEL_BASED, MODEL_PLANNER, NO_FITTED_WORLD};
 use uavmeta_proto::stats::{self, Estimate, PolicyMetrics};
 use uavmeta_world::heuristics::PolicySpec;
 use uavmeta_world::world::World;
@@ -19,7 +19,7 @@ use uavmeta_world::world::World;
 use crate::claims::{
     self, converged_at, final_return, mean_swing, return_at, settle_epoch, Claim, Verdict,
 };
-use crate::runs::{Init, InitKey, MetaCurve, RunKey, SeedResult, W0};
+use crate::runs::{Init, InitKey, MetaCurve, ModelPlannerKey, RunKey, SeedResult, W0};
 use crate::{agent_tasks, rain_tasks, Experiment, HeuristicRef, ReproduceConfig, ReproduceError};
 
 mod aoi_power;
@@ -179,12 +179,140 @@ impl Context<'_> {
         )
     }
 
+    /// The planner in the world each seed's `shots` shots fit, over `tasks` (their mean per seed).
+    fn model_planner(&self, tasks: &[&str], shots: usize, episodes: usize) -> ModelPlanner {
+        let keys: Vec<ModelPlannerKey> = (tasks.iter())
+            .map(|&task| ModelPlannerKey {
+                task: task.to_string(),
+                shots,
+                episodes,
+            })
+            .collect();
+        let mut why = None;
+        let per_seed = (self.seeds.iter())
+            .map(|s| {
+                let planned = keys.iter().map(|k| s.model_planner(k).as_ref());
+                let planned: Result<Vec<&PolicyMetrics>, _> = planned.collect();
+                planned
+                    .map_err(|e| why = why.or(Some(*e)))
+                    .ok()
+                    .map(|ms| ModelPlanner::mean(&ms))
+            })
+            .collect();
+        ModelPlanner {
+            keys,
+            per_seed,
+            why,
+        }
+    }
+
     fn seeds_note(&self) -> String {
         match self.seeds.len() {
             1 => "1 seed".into(),
             n => format!("{n} seeds"),
         }
     }
+}
+
+/// A figure's model-based section's reference: the planner in the world each seed's shots fit.
+struct ModelPlanner {
+    keys: Vec<ModelPlannerKey>,
+    /// Per seed, (return, AoI, power, outages) averaged over the tasks; `None` where the seed's
+    /// shots of some task fit no world.
+    per_seed: Vec<Option<[f64; 4]>>,
+    /// The first reason a seed's shots fit no world.
+    why: Option<uavmeta_world::identify::Unidentified>,
+}
+
+impl ModelPlanner {
+    fn mean(metrics: &[&PolicyMetrics]) -> [f64; 4] {
+        let n = metrics.len() as f64;
+        let sum =
+            |pick: fn(&PolicyMetrics) -> f64| metrics.iter().map(|m| pick(m)).sum::<f64>() / n;
+        [
+            sum(|m| m.ret.mean),
+            sum(|m| m.aoi.mean),
+            sum(|m| m.power_mw.mean),
+            sum(|m| m.outages.mean),
+        ]
+    }
+
+    /// Over the seeds whose shots fit a world, metric `i` (0 return, 1 AoI, 2 power, 3
+    /// outages); `None` where no seed's did.
+    fn estimate(&self, i: usize) -> Option<Estimate> {
+        let fitted: Vec<f64> = self.per_seed.iter().flatten().map(|m| m[i]).collect();
+        (!fitted.is_empty()).then(|| est(fitted))
+    }
+
+    fn ret(&self) -> Option<Estimate> {
+        self.estimate(0)
+    }
+
+    /// Its dashed line in a chart of returns / 100.
+    fn line(&self) -> Option<Reference> {
+        self.ret().map(|r| Reference {
+            label: MODEL_PLANNER.into(),
+            value: r.mean / 100.0,
+        })
+    }
+
+    /// What the section says when some seed's shots fit no world; empty when every seed's did.
+    fn note(&self) -> String {
+        let unfitted = self.per_seed.iter().filter(|m| m.is_none()).count();
+        match self.why {
+            Some(why) if unfitted > 0 => format!(
+                "\n{}, {} shots: on {unfitted} of {} seeds {NO_FITTED_WORLD}; here: {why}.\n",
+                joined(self.keys.iter().map(|k| format!("`{}`", k.task)), ", "),
+                self.keys.first().map_or(0, |k| k.shots),
+                self.per_seed.len()
+            ),
+            _ => String::new(),
+        }
+    }
+
+    /// `model_planner.csv`'s lines: one per task and seed, its metrics or none where the seed's shots
+    /// fit no world.
+    fn csv_lines(&self, ctx: &Context, csv: &mut String) {
+        for key in &self.keys {
+            for seed in ctx.seeds {
+                let cells = match seed.model_planner(key) {
+                    Ok(m) => format!(
+                        "{},{},{},{},yes",
+                        m.ret.mean, m.aoi.mean, m.power_mw.mean, m.outages.mean
+                    ),
+                    // Why is in the summary's note.
+                    Err(_) => ",,,,no".to_string(),
+                };
+                let _ = writeln!(csv, "{},{},{},{cells}", key.task, key.shots, seed.seed);
+            }
+        }
+    }
+}
+
+/// Writes `model_planner.csv` of a figure's model planners.
+fn write_model_planner_csv(
+    ctx: &Context,
+    dir: &Path,
+    planners: &[&ModelPlanner],
+) -> Result<(), ReproduceError> {
+    let mut csv = String::from("task,shots,seed,return,aoi,power_mw,outages,fitted_world\n");
+    for planner in planners {
+        planner.csv_lines(ctx, &mut csv);
+    }
+    Ok(write_file(&dir.join("model_planner.csv"), &csv)?)
+}
+
+/// A method's label in a chart's legend, with its section where it is model-based.
+fn chart_label(method: Method) -> String {
+    match method.model_based() {
+        true => format!("{} (model-based)", method.label()),
+        false => method.label(),
+    }
+}
+
+/// The model-based section's title row of a table of `columns` cells after the method's.
+fn model_based_row(columns: usize) -> String {
+    format!("| *{MODEL_BASED}* |{}\n", " |".repeat(columns))
 }
 
 /// The planner's return among `heuristics`, if it was measured.
@@ -326,16 +454,49 @@ fn of_method<T>(rows: &[(Method, T)], method: Method) -> &T {
 }
 
 /// A markdown table: one row per method, one column per entry of `columns`, each return with its
-/// gap to the planner.
-fn method_table(columns: &[String], rows: &MethodValues, refs: &Refs) -> String {
+/// gap to the planner; the model-based methods in a section of their own, ending with
+/// `model_planner` (one value per column, `None` where no seed's shots fit a world).
+fn method_table(
+    columns: &[String],
+    rows: &MethodValues,
+    refs: &Refs,
+    model_planner: &[Option<Estimate>],
+) -> String {
     let mut table = format!(
         "| method | {} |\n| --- |{}\n",
         columns.join(" | "),
         " --- |".repeat(columns.len())
     );
-    for (method, values) in rows {
-        let cells = joined(values.iter().map(|&v| refs.with_gap(v)), " | ");
-        let _ = writeln!(table, "| {} | {cells} |", method.label());
+    let (model_free, model_based): (Vec<_>, Vec<_>) =
+        rows.iter().partition(|(m, _)| !m.model_based());
+    let line =
+        |table: &mut String, label: String, values: &mut dyn Iterator<Item = Option<Estimate>>| {
+            let cells = values.map(|v| v.map_or("-".into(), |v| refs.with_gap(v)));
+            let _ = writeln!(table, "| {label} | {} |", joined(cells, " | "));
+        };
+    for (method, values) in &model_free {
+        line(
+            &mut table,
+            method.label(),
+            &mut values.iter().map(|&v| Some(v)),
+        );
+    }
+    if !model_based.is_empty() || !model_planner.is_empty() {
+        table.push_str(&model_based_row(columns.len()));
+    }
+    for (method, values) in &model_based {
+        line(
+            &mut table,
+            method.label(),
+            &mut values.iter().map(|&v| Some(v)),
+        );
+    }
+    if !model_planner.is_empty() {
+        line(
+            &mut table,
+            MODEL_PLANNER.into(),
+            &mut model_planner.iter().copied(),
+        );
     }
     table
 }

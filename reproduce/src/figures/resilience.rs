@@ -44,7 +44,10 @@ pub(super) fn resilience(ctx: &Context, dir: &Path) -> Result<Section, Reproduce
     let refs = Refs::new(c, &online, &heuristics);
 
     let per_method = rain_runs(ctx, &tasks, &heuristics, dir)?;
-    plot_curves(ctx, tasks.len(), &per_method, &refs, dir)?;
+    let names: Vec<&str> = tasks.iter().map(|t| t.name.as_str()).collect();
+    let planner = ctx.model_planner(&names, ctx.reproduce.main_shots, episodes);
+    write_model_planner_csv(ctx, dir, &[&planner])?;
+    plot_curves(ctx, tasks.len(), &per_method, &refs, &planner, dir)?;
     let first = tasks[0];
     let (path, in_rain) = trajectories(ctx, first, dir)?;
 
@@ -53,7 +56,7 @@ pub(super) fn resilience(ctx: &Context, dir: &Path) -> Result<Section, Reproduce
         .iter()
         .map(|(_, runs)| RainSummary::new(runs, seeds))
         .collect();
-    let body = summary_table(ctx, &tasks, &per_method, &summaries, &refs);
+    let body = summary_table(ctx, &tasks, &per_method, &summaries, &refs, &planner);
     let of = |method: Method| {
         let i = per_method.iter().position(|(m, _)| *m == method);
         i.expect("figure 9 compares CQL-MAML and CQL")
@@ -130,22 +133,34 @@ fn plot_curves(
     tasks: usize,
     per_method: &[MethodRuns],
     refs: &Refs,
+    planner: &ModelPlanner,
     dir: &Path,
 ) -> Result<(), ReproduceError> {
     let seeds = ctx.seeds.len();
     let returns: Vec<Series> = per_method
         .iter()
-        .map(|(m, runs)| return_series(m.label(), &mean_over_tasks(runs, seeds, |r| &r.returns)))
+        .map(|(m, runs)| {
+            return_series(
+                chart_label(*m),
+                &mean_over_tasks(runs, seeds, |r| &r.returns),
+            )
+        })
         .collect();
+    let lines: Vec<Reference> = refs.lines().into_iter().chain(planner.line()).collect();
     line_chart(
         &dir.join("fig9a_return.png"),
         &format!("Figure 9a: {tasks} rain tasks, mean over tasks"),
         &returns,
-        &refs.lines(),
+        &lines,
     )?;
     let outages: Vec<Series> = per_method
         .iter()
-        .map(|(m, runs)| series(m.label(), &mean_over_tasks(runs, seeds, |r| &r.outages)))
+        .map(|(m, runs)| {
+            series(
+                chart_label(*m),
+                &mean_over_tasks(runs, seeds, |r| &r.outages),
+            )
+        })
         .collect();
     let chart = LineChart {
         title: &format!(
@@ -245,6 +260,7 @@ fn summary_table(
     per_method: &[MethodRuns],
     summaries: &[RainSummary],
     refs: &Refs,
+    planner: &ModelPlanner,
 ) -> String {
     let r = ctx.reproduce;
     let (epochs, episodes) = (r.resilience_epochs, r.resilience_eval_episodes);
@@ -263,7 +279,10 @@ fn summary_table(
         ctx.seeds_note(),
         tasks.len(),
     );
-    for ((method, _), s) in per_method.iter().zip(summaries) {
+    let rows = per_method.iter().zip(summaries);
+    let (model_free, model_based): (Vec<_>, Vec<_>) =
+        rows.partition(|((m, _), _)| !m.model_based());
+    let line = |body: &mut String, ((method, _), s): (&MethodRuns, &RainSummary)| {
         let _ = writeln!(
             body,
             "| {} | {} | {} | {:.1} |",
@@ -272,13 +291,27 @@ fn summary_table(
             refs.with_gap(s.finals),
             s.outages
         );
+    };
+    model_free.into_iter().for_each(|row| line(&mut body, row));
+    let planned = planner.ret().zip(planner.estimate(3));
+    if !model_based.is_empty() || planned.is_some() {
+        body.push_str(&model_based_row(3));
+    }
+    model_based.into_iter().for_each(|row| line(&mut body, row));
+    if let Some((ret, outages)) = planned {
+        let _ = writeln!(
+            body,
+            "| {MODEL_PLANNER} | | {} | {outages:.1} |",
+            refs.with_gap(ret)
+        );
     }
     let _ = writeln!(
         body,
-        "| online DQN | | {} | {:.1} |",
+        "| *references* | | | |\n| online DQN | | {} | {:.1} |",
         refs.with_gap(refs.online),
         refs.online_outages
     );
+    body.push_str(&planner.note());
     body
 }
 

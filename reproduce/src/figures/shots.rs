@@ -26,13 +26,18 @@ pub(super) fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
             let prefix = format!("{},{shots}", method.name());
             let runs = ctx.curves(&mut csv, &prefix, &key, epochs);
             series.push(return_series(
-                format!("{} {shots} shots", method.label()),
+                format!("{} {shots} shots", chart_label(*method)),
                 &runs,
             ));
             values.push(finals(&runs));
         }
     }
     write_file(&dir.join("curves.csv"), &csv)?;
+    let episodes = c.learner.eval_episodes;
+    let planners: Vec<ModelPlanner> = (r.shots.iter())
+        .map(|&shots| ctx.model_planner(&[&r.unseen_task], shots, episodes))
+        .collect();
+    write_model_planner_csv(ctx, dir, &planners.iter().collect::<Vec<_>>())?;
     line_chart(
         &dir.join("fig6.png"),
         &format!("Figure 6: shots of `{}`", r.unseen_task),
@@ -50,7 +55,14 @@ pub(super) fn shots(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
         claims::FINAL_EPOCHS
     );
     let columns: Vec<String> = r.shots.iter().map(|s| format!("{s} shots")).collect();
-    body.push_str(&method_table(&columns, &rows, &ctx.unseen_refs()));
+    let planned: Vec<Option<Estimate>> = planners.iter().map(ModelPlanner::ret).collect();
+    let planned = if planned.iter().any(Option::is_some) {
+        planned
+    } else {
+        vec![]
+    };
+    body.push_str(&method_table(&columns, &rows, &ctx.unseen_refs(), &planned));
+    planners.iter().for_each(|p| body.push_str(&p.note()));
     let (maml, cql) = (
         of_method(&rows, Method::CQL_MAML),
         of_method(&rows, Method::CQL),

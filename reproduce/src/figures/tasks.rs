@@ -30,8 +30,8 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
             let runs = ctx.curves(&mut csv, &format!("{method},{n}"), &key, epochs);
             if method == Method::CQL_MAML || method == Method::CQL {
                 let label = match n {
-                    0 => method.label(),
-                    n => format!("{} {n} tasks", method.label()),
+                    0 => chart_label(method),
+                    n => format!("{} {n} tasks", chart_label(method)),
                 };
                 curves.push(return_series(label, &runs));
             }
@@ -43,7 +43,7 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
         if trained {
             let x = counts.iter().map(|&n| n as f64).collect();
             by_tasks.push(Series {
-                label: method.label(),
+                label: chart_label(method),
                 band: Band::from_runs(x, &seeds_at),
             });
             rows.push((method, values));
@@ -52,6 +52,8 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
         }
     }
     write_file(&dir.join("curves.csv"), &csv)?;
+    let planner = ctx.model_planner(&[&r.unseen_task], r.main_shots, c.learner.eval_episodes);
+    write_model_planner_csv(ctx, dir, &[&planner])?;
     line_chart(
         &dir.join("fig7.png"),
         &format!("Figure 7: meta-training tasks, `{}`", r.unseen_task),
@@ -64,6 +66,7 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
         &by_tasks,
         &from_random,
         &refs,
+        &planner,
     )?;
 
     let mut body = format!(
@@ -80,18 +83,23 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
         at.saturating_sub(claims::FINAL_EPOCHS) + 1
     );
     let columns: Vec<String> = r.task_counts.iter().map(|n| format!("{n} tasks")).collect();
-    body.push_str(&method_table(&columns, &rows, &refs));
+    // The planner in the fitted world reads no meta-train task: one value for every count.
+    let planned = planner
+        .ret()
+        .map_or(vec![], |p| vec![Some(p); columns.len()]);
+    body.push_str(&method_table(&columns, &rows, &refs, &planned));
     let _ = writeln!(
         body,
         "\nFrom a random init (no meta-train tasks), at epoch {at}: {}; online DQN {}.",
         joined(
             from_random
                 .iter()
-                .map(|(m, v)| format!("{} {}", m.label(), refs.with_gap(v[0]))),
+                .map(|(m, v)| format!("{} {}", chart_label(*m), refs.with_gap(v[0]))),
             "; "
         ),
         refs.with_gap(refs.online)
     );
+    body.push_str(&planner.note());
     let maml: Vec<(usize, Estimate)> = (r.task_counts.iter().copied())
         .zip(of_method(&rows, Method::CQL_MAML).iter().copied())
         .collect();
@@ -102,20 +110,22 @@ pub(super) fn tasks(ctx: &Context, dir: &Path) -> Result<Section, ReproduceError
 }
 
 /// Figure 7b: each method's return at epoch `at` against the task count, the methods from a
-/// random init and online DQN as dashed lines.
+/// random init, online DQN and the planner in the fitted world as dashed lines.
 fn plot_by_tasks(
     path: &Path,
     at: usize,
     by_tasks: &[Series],
     from_random: &MethodValues,
     refs: &Refs,
+    planner: &ModelPlanner,
 ) -> Result<(), ReproduceError> {
     let random_lines = from_random.iter().map(|(m, v)| Reference {
-        label: format!("{} (random init)", m.label()),
+        label: format!("{} (random init)", chart_label(*m)),
         value: v[0].mean / 100.0,
     });
     let references: Vec<Reference> = (refs.lines().into_iter().take(1))
         .chain(random_lines)
+        .chain(planner.line())
         .collect();
     let chart = LineChart {
         title: &format!("Figure 7b: return at epoch {at} by meta-training tasks"),

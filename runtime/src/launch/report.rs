@@ -6,12 +6,9 @@ use std::path::PathBuf;
 
 use uavmeta_learner::transitions::load_shots;
 use uavmeta_proto::config::{Config, TaskRole};
-use uavmeta_proto::method::{Method, MODEL_BASED};
+use uavmeta_proto::method::{Method, MODEL_BASED, MODEL_PLANNER, NO_FITTED_WORLD};
 use uavmeta_proto::stats;
-use uavmeta_world::heuristics::{reference_metrics, PolicySpec, REFERENCES};
-use uavmeta_world::identify::identify;
-use uavmeta_world::planner::PlannerPolicy;
-use uavmeta_world::rollout::evaluate;
+use uavmeta_world::heuristics::{model_planner_metrics, reference_metrics, PolicySpec, REFERENCES};
 use uavmeta_world::world::World;
 
 use super::LaunchError;
@@ -32,11 +29,6 @@ pub struct LaunchReport {
     /// Each meta-test task's return bound (`World::return_bound`): no policy scores above it.
     pub bounds: Vec<(String, f64)>,
 }
-
-/// The row of the planner run in the world a seed's shots identify
-/// (`PlannerPolicy::in_model`): the model-based section's reference for what planning in the
-/// fitted world reaches.
-pub const MODEL_PLANNER: &str = "model-planner";
 
 /// Where a row goes in its task's block: the references (random, the heuristics, the planner,
 /// then the online DQN agent)
@@ -75,25 +67,18 @@ pub(super) fn model_planner_rows(config: &Config, run: &RunDir, seed: u64) -> Ve
         .filter_map(|task| {
             let dataset = run.dataset(task);
             let shots = load_shots(config, task, &dataset, config.fine_tune_shots(), seed);
-            let fitted = match shots.map(|s| identify(&config.world, &s.rows)) {
-                Ok(Ok(fitted)) => fitted,
-                Ok(Err(why)) => {
-                    tracing::info!(task = %task.name, %why, "no model-planner row");
-                    return None;
-                }
-                Err(error) => {
-                    tracing::warn!(task = %task.name, %error, "no model-planner row");
-                    return None;
-                }
-            };
-            let mut policy = PlannerPolicy::in_model(&config.planner, fitted.world);
-            let metrics = evaluate(
-                &config.world,
-                task,
-                &mut policy,
-                episodes,
-                config.learner.eval_seed,
-            );
+            let metrics =
+                match shots.map(|s| model_planner_metrics(config, task, &s.rows, episodes)) {
+                    Ok(Ok(metrics)) => metrics,
+                    Ok(Err(why)) => {
+                        tracing::info!(task = %task.name, %why, "no model-planner row");
+                        return None;
+                    }
+                    Err(error) => {
+                        tracing::warn!(task = %task.name, %error, "no model-planner row");
+                        return None;
+                    }
+                };
             Some(EvaluationRow::new(&task.name, MODEL_PLANNER, 0, &metrics))
         })
         .collect()
@@ -224,9 +209,7 @@ pub fn results_table(report: &LaunchReport) -> String {
             .iter()
             .any(|r| is_model_based(&r.method) && r.method != MODEL_PLANNER);
         if learned_with_model && !rows.iter().any(|r| r.method == MODEL_PLANNER) {
-            out.push_str(&format!(
-                "{task}: the shots fit no world (they show rain, or steps of another world): its model-based rows trained on the shots alone, as their model-free algorithm does, and there is no {MODEL_PLANNER} row (docs/MODEL.md section 5)\n"
-            ));
+            out.push_str(&format!("{task}: {NO_FITTED_WORLD}\n"));
         }
         let below_greedy: Vec<&str> = rows
             .iter()
