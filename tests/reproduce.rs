@@ -321,6 +321,19 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
     assert_eq!(read(&meta.join("fig4a_meta_loss.csv")), loss);
 }
 
+/// The figures are drawn from the data the main job's agents make: the reproduction's behaviour
+/// agents train as `make run`'s do.
+#[test]
+fn the_reproduction_trains_its_agents_as_the_main_job_does() {
+    let load = |name: &str| {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs").join(name);
+        Config::load(&path, &[]).unwrap()
+    };
+    let (reproduce, main) = (load("reproduce.toml"), load("default.toml"));
+    assert_eq!(reproduce.collect.dqn, main.collect.dqn);
+    assert_eq!(reproduce.collect.policy, main.collect.policy);
+}
+
 #[test]
 fn unknown_experiments_and_bad_sections_are_refused_by_name() {
     let output = uavmeta(&["--experiment", "bogus", "--quick"]);
