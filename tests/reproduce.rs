@@ -326,7 +326,9 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
 #[test]
 fn the_reproduction_trains_its_agents_as_the_main_job_does() {
     let load = |name: &str| {
-        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs").join(name);
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("configs")
+            .join(name);
         Config::load(&path, &[]).unwrap()
     };
     let (reproduce, main) = (load("reproduce.toml"), load("default.toml"));

@@ -49,9 +49,11 @@ use uavmeta_proto::stats::Estimate;
 const FONT: &str = "sans-serif";
 static DEJAVU_SANS: &[u8] = include_bytes!("../assets/DejaVuSans.ttf");
 
-/// Tableau's ten colours, in order: told apart in print and by most colour-blind readers. The
-/// n-th series of a chart is drawn in the n-th colour (cycling).
-pub const PALETTE: [RGBColor; 10] = [
+/// Tableau's ten colours, then ten of Kelly's colours of maximum contrast that differ from them:
+/// told apart in print and by most colour-blind readers. The n-th series of a chart is drawn in
+/// the n-th colour (cycling); a figure's methods and references together (up to 18 in figure 5)
+/// each get their own.
+pub const PALETTE: [RGBColor; 20] = [
     RGBColor(31, 119, 180),
     RGBColor(255, 127, 14),
     RGBColor(44, 160, 44),
@@ -62,6 +64,16 @@ pub const PALETTE: [RGBColor; 10] = [
     RGBColor(127, 127, 127),
     RGBColor(188, 189, 34),
     RGBColor(23, 190, 207),
+    RGBColor(0, 0, 0),
+    RGBColor(0, 0, 128),
+    RGBColor(128, 128, 0),
+    RGBColor(0, 128, 128),
+    RGBColor(128, 0, 0),
+    RGBColor(244, 200, 0),
+    RGBColor(147, 170, 0),
+    RGBColor(89, 51, 21),
+    RGBColor(83, 55, 122),
+    RGBColor(166, 189, 215),
 ];
 const BAND_ALPHA: f64 = 0.2;
 const RAIN: RGBColor = RGBColor(120, 170, 220);
@@ -774,6 +786,41 @@ mod tests {
         // The first series' band: its blue, pale over white. The second has one run, so no band.
         let pale_blue = |p: &[u8; 3]| p[0] > 180 && p[0] < 250 && p[2] > p[0] + 15;
         assert!(image.rgb.iter().filter(|p| pale_blue(p)).count() > 20_000);
+    }
+
+    /// Figure 5 draws 12 methods and 6 references: each in a colour no other entry has.
+    #[test]
+    fn a_chart_of_eighteen_entries_draws_each_in_its_own_colour() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("many.png");
+        let x: Vec<f64> = (1..=20).map(f64::from).collect();
+        let all: Vec<Series> = (0..12)
+            .map(|i| {
+                let run = vec![x.iter().map(|e| 30.0 * f64::from(i) + e).collect()];
+                series(&format!("method {i}"), &x, &run)
+            })
+            .collect();
+        let references: Vec<Reference> = (0..6)
+            .map(|j| Reference {
+                label: format!("reference {j}"),
+                value: -50.0 - 40.0 * f64::from(j),
+            })
+            .collect();
+        let chart = LineChart {
+            title: "eighteen",
+            x_label: "epoch",
+            y_label: "return",
+            series: &all,
+            references: &references,
+            floor: None,
+        };
+        line_chart(&path, &chart).unwrap();
+        let image = Image::read(&path);
+        let colours = &PALETTE[..all.len() + references.len()];
+        for (i, colour) in colours.iter().enumerate() {
+            assert!(!colours[..i].contains(colour), "{colour:?} twice");
+            assert!(image.count(*colour) > 50, "{colour:?}");
+        }
     }
 
     #[test]
