@@ -93,7 +93,7 @@ fn real_steps(config: &Config, task: usize, count: usize) -> Vec<Transition> {
     world.reset();
     (0..count)
         .map(|i| {
-            let action = i % world.action_count();
+            let action = i % world.layout().action_count();
             let t = Transition {
                 task: task as u32,
                 seq: i as u64,

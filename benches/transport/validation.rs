@@ -87,7 +87,7 @@ fn store_cpu_per_transition(bench: &BenchRun) -> f64 {
 fn checks_cpu_per_transition(config: &Config) -> f64 {
     let task = &config.tasks[0];
     let slots = random_policy_slots(config, 1 << 16);
-    let obs_len = config.world.observation_len();
+    let obs_len = config.world.layout().observation_len();
     let mut validator = Validator::new(&config.world, task);
     let mut best = f64::INFINITY;
     for _ in 0..RAW_REPEATS {
@@ -116,7 +116,7 @@ fn random_policy_slots(config: &Config, count: usize) -> Vec<TransitionSlot> {
             world.reset();
         }
         slot.set_state(0, world.t(), world.observation());
-        let action = rng.random_range(0..world.action_count());
+        let action = rng.random_range(0..world.layout().action_count());
         let step = world.step(action);
         slot.set_outcome(
             action as u16,

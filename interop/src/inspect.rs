@@ -104,7 +104,7 @@ impl Summary {
             .map_err(FileError::at(&path, "stat"))?
             .len();
         let transitions = reader.transitions();
-        let mut actions = vec![0; header.action_count()];
+        let mut actions = vec![0; header.layout().action_count()];
         for t in transitions {
             actions[usize::from(t.action)] += 1;
         }
@@ -212,8 +212,8 @@ impl fmt::Display for Summary {
             f,
             "world        K = {} devices: observations of {} values, {} actions; world hash {:#018x}",
             h.devices,
-            h.observation_len(),
-            h.action_count(),
+            h.layout().observation_len(),
+            h.layout().action_count(),
             h.world_hash
         )?;
         writeln!(

@@ -184,7 +184,7 @@ fn write_episode(
 /// `World::write_normalised` computes it.
 fn scale_of(world: &WorldConfig, observations: Observations) -> Vec<f32> {
     match observations {
-        Observations::Raw => vec![1.0; world.observation_len()],
+        Observations::Raw => vec![1.0; world.layout().observation_len()],
         Observations::Normalised => world.observation_scale().iter().map(|s| 1.0 / s).collect(),
     }
 }
@@ -226,7 +226,7 @@ fn episode_batch(run: &[Transition], inv_scale: &[f32]) -> Result<RecordBatch, A
 fn dataset_metadata(export: &Export, id: &str, bytes: u64, observations: Observations) -> Value {
     let world = &export.config.world;
     let action_space = json!({
-        "type": "Discrete", "dtype": "int64", "start": 0, "n": world.action_count(),
+        "type": "Discrete", "dtype": "int64", "start": 0, "n": world.layout().action_count(),
     });
     json!({
         "dataset_id": id,

@@ -83,7 +83,7 @@ pub fn write(export: &Export, out: &Path) -> Result<NpzSummary, InteropError> {
     let dir = prepare_output(out)?;
     let columns = Columns::from_runs(&export.runs);
     let rows = columns.actions.len();
-    let width = export.config.world.observation_len() as u64;
+    let width = export.config.world.layout().observation_len() as u64;
     let matrix = [rows as u64, width];
     let vector = [rows as u64];
 

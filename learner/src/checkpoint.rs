@@ -253,7 +253,7 @@ fn read_json<T: DeserializeOwned>(
 pub fn is_context_model(meta: &CheckpointMeta, config: &Config) -> bool {
     let method = Method::from_name(&meta.algorithm);
     method.and_then(Method::start) == Some(Start::Context)
-        && meta.obs_len != config.world.observation_len()
+        && meta.obs_len != config.world.layout().observation_len()
 }
 
 /// Loads checkpoint `path` into a new network sized by `config` (`world.devices`, and
@@ -285,14 +285,14 @@ pub fn load_conditioned(
         ),
     }
     };
-    let obs_len = config.world.observation_len() + code_len;
+    let obs_len = config.world.layout().observation_len() + code_len;
     if code_len == 0 && is_context_model(&meta, config) {
         return Err(CheckpointError::ContextModel {
             path: paths.meta.clone(),
             algorithm: meta.algorithm.clone(),
         });
     }
-    let actions = config.world.action_count();
+    let actions = config.world.layout().action_count();
     if meta.obs_len != obs_len {
         let what = match code_len {
             0 => "input size (2 + K)".to_string(),

@@ -38,7 +38,11 @@ impl QNetworkConfig {
     /// A network for `world`'s observations and actions with hidden layers of widths `hidden`
     /// (`learner.hidden`, or `collect.dqn.hidden` for the online DQN agent).
     pub fn for_world(world: &WorldConfig, hidden: &[usize]) -> Self {
-        Self::new(world.observation_len(), world.action_count(), hidden)
+        Self::new(
+            world.layout().observation_len(),
+            world.layout().action_count(),
+            hidden,
+        )
     }
 
     /// A network of this architecture, initialised from `seed` alone.

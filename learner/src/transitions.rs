@@ -106,8 +106,8 @@ impl Transitions {
         if transitions.is_empty() {
             return Err(TransitionsError::Empty);
         }
-        let d = world.observation_len();
-        let actions_n = world.action_count();
+        let d = world.layout().observation_len();
+        let actions_n = world.layout().action_count();
         let scale = world.observation_scale();
         let rows = transitions.len();
         let mut obs = Vec::with_capacity(rows * d);

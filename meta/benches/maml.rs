@@ -23,8 +23,8 @@ const MIN_EPOCHS: usize = 10;
 const MIN_TIME: Duration = Duration::from_secs(3);
 
 fn random_batch(config: &Config, rng: &mut ChaCha8Rng) -> Transitions {
-    let d = config.world.observation_len();
-    let a = config.world.action_count();
+    let d = config.world.layout().observation_len();
+    let a = config.world.layout().action_count();
     let mut uniform =
         |n: usize| -> Vec<f32> { (0..n).map(|_| rng.random_range(0.0..1.0)).collect() };
     let obs = uniform(ROWS * d);

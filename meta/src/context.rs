@@ -111,7 +111,10 @@ impl ContextModel {
         let (tensors, meta) = checkpoint::load_state::<EncoderMeta>(path)?;
         let (q, _) = checkpoint::load_conditioned(path, config, meta.latent)?;
         let world = &config.world;
-        let input = encoder_input_len(world.observation_len(), world.action_count());
+        let input = encoder_input_len(
+            world.layout().observation_len(),
+            world.layout().action_count(),
+        );
         let encoder = QNetworkConfig::new(input, meta.latent, &meta.hidden).init(0);
         let mut variables = encoder.vs.variables();
         let state = checkpoint::state_paths(path).0;
@@ -223,7 +226,10 @@ pub fn train_encoder(
     seed: u64,
 ) -> QNetwork {
     let ctx = &config.context;
-    let (obs_len, actions) = (config.world.observation_len(), config.world.action_count());
+    let (obs_len, actions) = (
+        config.world.layout().observation_len(),
+        config.world.layout().action_count(),
+    );
     let input = encoder_input_len(obs_len, actions);
     let encoder = QNetworkConfig::new(input, ctx.latent, &ctx.encoder_hidden).init(seed);
     let head = QNetworkConfig::new(ctx.latent, parameters.size()[1] as usize, &[])
@@ -258,7 +264,7 @@ fn with_codes(
     config: &Config,
     rng: &mut ChaCha8Rng,
 ) -> Transitions {
-    let actions = config.world.action_count();
+    let actions = config.world.layout().action_count();
     let batch = contexts(
         data,
         config.context.transitions_per_context,
@@ -311,8 +317,8 @@ pub fn meta_train<E>(
     let union = Transitions::concat(&coded);
     let w = &config.world;
     let q = QNetworkConfig::new(
-        w.observation_len() + config.context.latent,
-        w.action_count(),
+        w.layout().observation_len() + config.context.latent,
+        w.layout().action_count(),
         &config.learner.hidden,
     )
     .init(seed);

@@ -57,8 +57,9 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::config::{Config, ConfigError, MOVES};
+use crate::config::{Config, ConfigError};
 use crate::fs::FileError;
+use crate::layout::Layout;
 
 /// The format version this build reads and writes; bump it on any change to the layout above or
 /// to [`Transition`].
@@ -127,15 +128,9 @@ impl DatasetHeader {
         })
     }
 
-    /// Length of every `obs` and `next_obs`, 2 + K.
-    pub fn observation_len(&self) -> usize {
-        2 + self.devices as usize
-    }
-
-    /// Actions are `move * K + device` over docs/MODEL.md section 1's five moves, as in
-    /// `WorldConfig::action_count`.
-    pub fn action_count(&self) -> usize {
-        MOVES.len() * self.devices as usize
+    /// The observation and action layout of its world.
+    pub fn layout(&self) -> Layout {
+        Layout::new(self.devices as usize)
     }
 
     fn encode(&self) -> Vec<u8> {
@@ -792,7 +787,7 @@ fn check_transition(
     offset: u64,
     index: usize,
 ) -> Result<(), DatasetError> {
-    let expected = header.observation_len();
+    let expected = header.layout().observation_len();
     for (field, len) in [("obs", t.obs.len()), ("next_obs", t.next_obs.len())] {
         if len != expected {
             return Err(DatasetError::ObservationLength {
@@ -817,11 +812,11 @@ fn check_transition(
             t.task, header.task, header.task_name
         )));
     }
-    if t.action as usize >= header.action_count() {
+    if t.action as usize >= header.layout().action_count() {
         return Err(invalid(format!(
             "action {} is not below 5K = {}",
             t.action,
-            header.action_count()
+            header.layout().action_count()
         )));
     }
     if !t.reward.is_finite() {

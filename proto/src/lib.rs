@@ -4,6 +4,8 @@
 //! - [`config`]: the experiment configuration (docs/MODEL.md section 7), read from TOML with every
 //!   default, `--set` overrides and validation errors that name the file, key and value.
 //! - [`dataset`]: the on-disk dataset format that collectors and the store write and learners read.
+//! - [`layout`]: [`layout::Layout`], where the cell and each AoI sit in an observation and which
+//!   move and device an action index means.
 //! - [`fs`]: atomic file writes, for files other processes read while they change.
 //! - [`method`]: [`method::Method`], which method made a checkpoint or a row: its name, label,
 //!   loss and init.
@@ -21,13 +23,14 @@
 //! ```
 //! use uavmeta_proto::config::Config;
 //! let config = Config::from_toml_str("[world]\ndevices = 5", "example.toml", &["tasks.0.lambda=7".into()]).unwrap();
-//! assert_eq!(config.world.observation_len(), 7);
+//! assert_eq!(config.world.layout().observation_len(), 7);
 //! assert_eq!(config.tasks[0].lambda, 7.0);
 //! ```
 
 pub mod config;
 pub mod dataset;
 pub mod fs;
+pub mod layout;
 pub mod method;
 pub mod metrics;
 pub mod payload;

@@ -12,6 +12,7 @@ use std::path::{Path, PathBuf};
 
 use crate::config::{Config, TaskConfig, WorldConfig};
 use crate::dataset::Transition;
+use crate::layout::Layout;
 
 /// Replaces the memory available to the process, in bytes.
 pub const MEMORY_ENV: &str = "UAVMETA_MEMORY_BYTES";
@@ -116,7 +117,7 @@ fn world_table_bytes(w: &WorldConfig) -> u64 {
 
 /// One evaluated episode's table of visited steps and its states.
 fn episode_bytes(w: &WorldConfig) -> u64 {
-    u64::from(w.horizon).saturating_mul(24 + 2 * w.observation_len() as u64 + 48)
+    u64::from(w.horizon).saturating_mul(24 + 2 * w.layout().observation_len() as u64 + 48)
 }
 
 /// Every process's base and its world's tables; in Python, no process base but each world's.
@@ -146,7 +147,7 @@ fn process_term(config: &Config, job: Job, processes: u64) -> Term {
 /// observation arrays of 2 + K `u16`s on the heap, each with the allocator's 8-byte header,
 /// rounded up to its 16-byte granule.
 pub fn transition_bytes(devices: usize) -> u64 {
-    let array = (2 * (2 + devices) as u64 + 8).div_ceil(16) * 16;
+    let array = (2 * Layout::new(devices).observation_len() as u64 + 8).div_ceil(16) * 16;
     std::mem::size_of::<Transition>() as u64 + 2 * array
 }
 
@@ -154,7 +155,7 @@ pub fn transition_bytes(devices: usize) -> u64 {
 /// varints at their longest (5 bytes a u32, 10 a u64, 3 a u16 and a length), and the f32 and
 /// bool as they are.
 pub fn transition_file_bytes(devices: usize) -> u64 {
-    let observation = 3 + 3 * (2 + devices as u64);
+    let observation = 3 + 3 * Layout::new(devices).observation_len() as u64;
     5 + 5 + 10 + 5 + 10 + 3 + 4 + 1 + 2 * observation
 }
 
@@ -184,8 +185,11 @@ fn batch_bytes(config: &Config, hidden: &[usize], rows: usize) -> u64 {
     let w = &config.world;
     let widths = hidden
         .iter()
-        .fold(w.action_count() as u64, |s, &h| s.saturating_add(h as u64));
-    let per_row = (2 * w.observation_len() as u64 + 4).saturating_add(widths.saturating_mul(4));
+        .fold(w.layout().action_count() as u64, |s, &h| {
+            s.saturating_add(h as u64)
+        });
+    let per_row =
+        (2 * w.layout().observation_len() as u64 + 4).saturating_add(widths.saturating_mul(4));
     (rows as u64).saturating_mul(per_row).saturating_mul(4)
 }
 
@@ -274,7 +278,7 @@ pub fn size_terms(config: &Config, job: Job) -> Vec<Term> {
     let holders = Holders::of(config, job);
     let (collect, dqn, w) = (&config.collect, &config.collect.dqn, &config.world);
     let (learner, meta, context) = (&config.learner, &config.meta, &config.context);
-    let (obs, actions) = (w.observation_len(), w.action_count());
+    let (obs, actions) = (w.layout().observation_len(), w.layout().action_count());
     let transition = transition_bytes(w.devices);
     // A replay buffer reserves its capacity of structs at once and fills the arrays as it goes.
     let struct_bytes = std::mem::size_of::<Transition>() as u64;

@@ -61,7 +61,7 @@ pub fn load_dataset<'py>(
         py,
         &out,
         reader.transitions(),
-        reader.header().observation_len(),
+        reader.header().layout().observation_len(),
         scale.as_deref(),
     )?;
     let header = reader.header();

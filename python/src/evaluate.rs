@@ -188,7 +188,7 @@ impl Evaluation {
             normalised: worlds.normalised(),
             t: 0,
             horizon: config.world.horizon,
-            action_count: config.world.action_count(),
+            action_count: config.world.layout().action_count(),
         })
     }
 

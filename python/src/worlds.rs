@@ -106,11 +106,11 @@ impl Worlds {
     }
 
     fn obs_len(&self) -> usize {
-        self.config().world.observation_len()
+        self.config().world.layout().observation_len()
     }
 
     fn action_count(&self) -> usize {
-        self.config().world.action_count()
+        self.config().world.layout().action_count()
     }
 
     /// Starts env i's next episode: episode 0 of `seed` if given, else the episode after its

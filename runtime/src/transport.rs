@@ -512,7 +512,7 @@ impl<'s> TransitionPublisher<'s> {
             run: run_dir.hash(),
             world: config.world_hash(),
             actor,
-            obs_len: config.world.observation_len() as u32,
+            obs_len: config.world.layout().observation_len() as u32,
             ..BatchHeader::default()
         };
         Ok(Self {

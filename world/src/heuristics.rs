@@ -67,7 +67,7 @@ impl RandomPolicy {
 
 impl Policy for RandomPolicy {
     fn act(&mut self, world: &World) -> usize {
-        self.rng.random_range(0..world.action_count())
+        self.rng.random_range(0..world.layout().action_count())
     }
 }
 
@@ -78,7 +78,9 @@ pub struct StalestPolicy;
 impl Policy for StalestPolicy {
     fn act(&mut self, world: &World) -> usize {
         let device = stalest_device(world);
-        towards(world, device).index() * world.devices() + device
+        world
+            .layout()
+            .action(towards(world, device).index(), device)
     }
 }
 
@@ -96,7 +98,9 @@ impl Policy for GreedyPolicy {
                 |best, (k, c)| if c < best.1 { (k, c) } else { best },
             )
             .0;
-        towards(world, stalest_device(world)).index() * world.devices() + device
+        world
+            .layout()
+            .action(towards(world, stalest_device(world)).index(), device)
     }
 }
 
@@ -314,7 +318,7 @@ impl PolicySpec {
         seed: u64,
         steps: Option<usize>,
     ) -> Result<Box<dyn Policy>, PolicyError> {
-        let action_count = config.world.action_count();
+        let action_count = config.world.layout().action_count();
         Ok(match self {
             Self::Random => Box::new(RandomPolicy::new(seed)),
             Self::Stalest => Box::new(StalestPolicy),

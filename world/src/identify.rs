@@ -137,7 +137,7 @@ fn observed_costs(form: &World, shots: &[Transition]) -> Result<Costs, Unidentif
             .sum();
         let key = (
             (u32::from(t.obs[0]), u32::from(t.obs[1])),
-            action % form.devices(),
+            form.layout().device(action),
         );
         if !seen.iter().any(|(seen_key, _)| *seen_key == key) {
             seen.push((key, -f64::from(t.reward) - weighted));
@@ -291,7 +291,7 @@ mod tests {
                     (false, 0) => Move::East,
                     (false, _) => Move::West,
                 };
-                mv.index() * k + t % k
+                world.layout().action(mv.index(), t % k)
             })
             .collect();
         shots(world, (0, 0), &actions)
@@ -313,7 +313,9 @@ mod tests {
             let (world, config) = world(noise, lambda);
             let identified = identify(&config.world, &lap(&world)).unwrap();
             assert_eq!(identified.devices_fitted, world.devices());
-            let plan: Vec<usize> = (0..100).map(|t| (t * 7) % world.action_count()).collect();
+            let plan: Vec<usize> = (0..100)
+                .map(|t| (t * 7) % world.layout().action_count())
+                .collect();
             let truth = returns_from_every_cell(&world, &plan);
             let model = returns_from_every_cell(&identified.world, &plan);
             for (t, m) in truth.iter().zip(&model) {

@@ -188,7 +188,7 @@ fn expand(
                     g,
                     key: mix(aoi_key, ((next.0 as u64) << 32) | next.1 as u64),
                     parent: i as u32,
-                    action: (mv.index() * k + device) as u32,
+                    action: world.layout().action(mv.index(), device) as u32,
                     aged: slot as u32,
                     cell: next,
                 });

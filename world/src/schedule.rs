@@ -47,9 +47,10 @@ pub fn improve(world: &World, plan: Plan, patience: usize) -> Plan {
     if world.rain_schedule().iter().any(Option::is_some) || plan.actions.is_empty() {
         return plan;
     }
-    let k = world.devices();
+    let layout = world.layout();
     let grid = Grid::new(world);
-    let mut best = Schedule::new(&grid, plan.actions.iter().map(|a| a % k).collect());
+    let devices = plan.actions.iter().map(|&a| layout.device(a)).collect();
+    let mut best = Schedule::new(&grid, devices);
     best.descend();
     let mut rng = ChaCha8Rng::seed_from_u64(state_key(world));
     let steps = best.devices.len();
@@ -62,7 +63,7 @@ pub fn improve(world: &World, plan: Plan, patience: usize) -> Plan {
         let width = KICK_WIDTH.min(steps);
         let from = rng.random_range(0..=steps - width);
         for d in &mut devices[from..from + width] {
-            *d = rng.random_range(0..k);
+            *d = rng.random_range(0..layout.devices());
         }
         let mut trial = Schedule::new(&grid, devices);
         trial.descend();
@@ -346,7 +347,7 @@ impl<'g> Schedule<'g> {
 
     /// The schedule's actions along its cheapest path (the first cheapest move on a tie).
     fn actions(&self) -> Vec<usize> {
-        let (n, k) = (self.grid.cells, self.world().devices());
+        let (n, layout) = (self.grid.cells, self.world().layout());
         let next = &self.grid.next;
         let mut c = self.grid.start;
         let mut actions = Vec::with_capacity(self.devices.len());
@@ -357,7 +358,7 @@ impl<'g> Schedule<'g> {
                     cost(a).total_cmp(&cost(b))
                 })
                 .expect("five moves");
-            actions.push(m * k + device);
+            actions.push(layout.action(m, device));
             c = next[c][m];
         }
         actions

@@ -19,6 +19,7 @@ use std::fmt;
 
 use uavmeta_proto::config::{TaskConfig, WorldConfig};
 use uavmeta_proto::dataset::Transition;
+use uavmeta_proto::layout::Layout;
 use uavmeta_proto::metrics::store::{ACTION, AOI, NEXT_STATE, NON_FINITE, POSITION, REWARD, STEP};
 use uavmeta_proto::payload::TransitionSlot;
 
@@ -127,11 +128,11 @@ impl Validator {
         if !t.reward.is_finite() {
             return reject(NON_FINITE, format!("reward {}", t.reward));
         }
-        if usize::from(t.action) >= w.action_count() {
+        if usize::from(t.action) >= w.layout().action_count() {
             let detail = format!(
                 "action {}, expected below 5K = {}",
                 t.action,
-                w.action_count()
+                w.layout().action_count()
             );
             return reject(ACTION, detail);
         }
@@ -170,7 +171,8 @@ impl Validator {
                 return reject(POSITION, detail);
             }
         }
-        let at = (u32::from(t.obs[0]), u32::from(t.obs[1]));
+        let (x, y) = Layout::cell(t.obs);
+        let at = (u32::from(x), u32::from(y));
         match self.world.start_cell() {
             Some(start) if t.step == 0 && at != start => reject(
                 POSITION,
@@ -201,7 +203,8 @@ impl Validator {
     /// The world's step from s(t) under a, for every outage it allows, must give s(t+1) and the
     /// reward.
     fn check_outcome(&mut self, t: &Claimed<'_>) -> Result<(), Rejection> {
-        let (x, y) = (u32::from(t.obs[0]), u32::from(t.obs[1]));
+        let (x, y) = Layout::cell(t.obs);
+        let (x, y) = (u32::from(x), u32::from(y));
         let mut wrong_reward = None;
         for &outage in self.world.possible_outages(x, y, t.step) {
             let action = usize::from(t.action);
@@ -253,7 +256,7 @@ mod tests {
             loop {
                 let obs = world.observation().to_vec();
                 let step_index = world.t();
-                let action = rng.random_range(0..world.action_count());
+                let action = rng.random_range(0..world.layout().action_count());
                 let step = world.step(action);
                 out.push(Transition {
                     task: 0,

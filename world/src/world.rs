@@ -21,6 +21,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 use uavmeta_proto::config::{PowerTerm, RainZone, TaskConfig, WorldConfig};
+use uavmeta_proto::layout::Layout;
 
 /// The UAV's move in one step. An action index is `move * K + device`, moves in this order.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize)]
@@ -162,8 +163,10 @@ impl World {
         let inv_scale = world.observation_scale().iter().map(|s| 1.0 / s).collect();
         let delta = world.delta_per_device();
         let uniform_delta = delta.iter().all(|&d| d == delta[0]).then_some(delta[0]);
-        let action_parts = (0..5 * k)
-            .map(|a| (Move::from_index(a / k), (a % k) as u32))
+        let layout = world.layout();
+        let action_parts = (0..layout.action_count())
+            .map(|a| layout.split(a))
+            .map(|(mv, device)| (Move::from_index(mv), device as u32))
             .collect();
         let mut w = World {
             grid,
@@ -186,7 +189,7 @@ impl World {
             inv_scale,
             rng: ChaCha8Rng::seed_from_u64(seed),
             t: 0,
-            obs: vec![0; 2 + k],
+            obs: vec![0; layout.observation_len()],
         };
         w.reset();
         w
@@ -257,9 +260,8 @@ impl World {
                 self.rng.random_range(0..self.grid),
             ),
         };
-        self.obs[0] = x as u16;
-        self.obs[1] = y as u16;
-        self.obs[2..].fill(1);
+        Layout::set_cell(&mut self.obs, (x as u16, y as u16));
+        Layout::aoi_mut(&mut self.obs).fill(1);
         self.rain = self.task_rain;
         self.t = 0;
     }
@@ -296,7 +298,7 @@ impl World {
         (0..remaining)
             .map(|_| {
                 let zone = ahead.rain;
-                ahead.step(Move::Hover.index() * self.devices);
+                ahead.step(self.layout().action(Move::Hover.index(), 0));
                 zone
             })
             .collect()
@@ -358,14 +360,17 @@ impl World {
     /// heuristics) can then act on an observation alone, as the Python package's batched
     /// policies do.
     ///
-    /// Panics unless `obs` has 2 + K values, the cell is on the grid and every A_k is in
+    /// Panics unless `obs` has the layout's length, the cell is on the grid and every A_k is in
     /// 1..=aoi_max; callers check untrusted observations first.
     pub fn set_observation(&mut self, obs: &[u16]) {
         assert_eq!(obs.len(), self.obs.len(), "observation length");
         let grid = self.grid as u16;
-        assert!(obs[0] < grid && obs[1] < grid, "cell off the grid");
+        let (x, y) = Layout::cell(obs);
+        assert!(x < grid && y < grid, "cell off the grid");
         assert!(
-            obs[2..].iter().all(|&a| (1..=self.aoi_max).contains(&a)),
+            Layout::aoi(obs)
+                .iter()
+                .all(|&a| (1..=self.aoi_max).contains(&a)),
             "AoI outside 1..=aoi_max"
         );
         self.obs.copy_from_slice(obs);
@@ -385,7 +390,10 @@ impl World {
     /// One step of docs/MODEL.md section 1 with action `a = move * K + device`.
     pub fn step(&mut self, action: usize) -> Step {
         let Some(&(mv, device)) = self.action_parts.get(action) else {
-            panic!("action {action} is not below {}", self.action_count());
+            panic!(
+                "action {action} is not below {}",
+                self.layout().action_count()
+            );
         };
         let device = device as usize;
 
@@ -429,18 +437,19 @@ impl World {
         let cap = self.aoi_max;
         // At most 64 devices of at most 65535 each: the sum fits in u32.
         let mut total = 0u32;
-        for a in obs[2..].iter_mut() {
+        let aoi = Layout::aoi_mut(obs);
+        for a in aoi.iter_mut() {
             *a = a.saturating_add(1).min(cap);
             total += *a as u32;
         }
         if !outage {
-            let a = &mut obs[2 + device];
+            let a = &mut aoi[device];
             total -= (*a - 1) as u32;
             *a = 1;
         }
         let weighted = match self.uniform_delta {
             Some(d) => d * total as f64,
-            None => obs[2..]
+            None => Layout::aoi(obs)
                 .iter()
                 .zip(&self.delta)
                 .map(|(&a, &d)| d * a as f64)
@@ -451,9 +460,9 @@ impl World {
         let reward = -self.cost(weighted, power_mw);
 
         // 5. The move; one that would leave the grid leaves the UAV where it is (P1b).
-        let (x, y) = self.moved((obs[0] as u32, obs[1] as u32), mv);
-        obs[0] = x as u16;
-        obs[1] = y as u16;
+        let (x, y) = Layout::cell(obs);
+        let (x, y) = self.moved((x as u32, y as u32), mv);
+        Layout::set_cell(obs, (x as u16, y as u16));
         (reward, total)
     }
 
@@ -471,8 +480,8 @@ impl World {
     ) -> Option<f64> {
         let &(mv, device) = self.action_parts.get(action)?;
         let (x, y) = (*obs.first()? as u32, *obs.get(1)? as u32);
-        let in_state = obs.len() == 2 + self.devices && next.len() == obs.len();
-        if !in_state || x >= self.grid || y >= self.grid || obs[2..].contains(&0) {
+        let in_state = obs.len() == self.layout().observation_len() && next.len() == obs.len();
+        if !in_state || x >= self.grid || y >= self.grid || Layout::aoi(obs).contains(&0) {
             return None;
         }
         let device = device as usize;
@@ -526,13 +535,14 @@ impl World {
         let (power_mw, outage) = self.transmission(device);
         let cap = self.aoi_max;
         let aged = |a: u16| a.saturating_add(1).min(cap);
-        let mut weighted: f64 = self.obs[2..]
+        let mut weighted: f64 = self
+            .aoi()
             .iter()
             .zip(&self.delta)
             .map(|(&a, &d)| d * aged(a) as f64)
             .sum();
         if !outage {
-            weighted -= self.delta[device] * (aged(self.obs[2 + device]) - 1) as f64;
+            weighted -= self.delta[device] * (aged(self.aoi()[device]) - 1) as f64;
         }
         self.cost(weighted, power_mw)
     }
@@ -588,12 +598,13 @@ impl World {
 
     /// The UAV's cell (x, y).
     pub fn uav(&self) -> (u32, u32) {
-        (self.obs[0] as u32, self.obs[1] as u32)
+        let (x, y) = Layout::cell(&self.obs);
+        (x as u32, y as u32)
     }
 
     /// A_1..A_K.
     pub fn aoi(&self) -> &[u16] {
-        &self.obs[2..]
+        Layout::aoi(&self.obs)
     }
 
     /// delta_1..delta_K.
@@ -615,9 +626,9 @@ impl World {
         self.devices
     }
 
-    /// 5K.
-    pub fn action_count(&self) -> usize {
-        5 * self.devices
+    /// Its observation and action layout.
+    pub fn layout(&self) -> Layout {
+        Layout::new(self.devices)
     }
 
     /// Cells per side, L.

@@ -18,8 +18,8 @@ fn world(world_toml: &str, lambda: f64, rain: Option<RainZone>) -> World {
 /// (move, device) of an action index.
 fn split(world: &World, action: usize) -> (Move, usize) {
     (
-        Move::from_index(action / world.devices()),
-        action % world.devices(),
+        Move::from_index(world.layout().split(action).0),
+        world.layout().device(action),
     )
 }
 
@@ -116,7 +116,7 @@ fn random_and_epsilon_are_seeded() {
     let a = draw(&mut RandomPolicy::new(3));
     assert_eq!(a, draw(&mut RandomPolicy::new(3)));
     assert_ne!(a, draw(&mut RandomPolicy::new(4)));
-    assert!(a.iter().all(|&x| x < w.action_count()));
+    assert!(a.iter().all(|&x| x < w.layout().action_count()));
     let distinct: std::collections::BTreeSet<_> = a.iter().collect();
     assert!(
         distinct.len() > 40,

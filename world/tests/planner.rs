@@ -17,7 +17,7 @@ fn exhaustive(world: &World) -> f64 {
     if world.t() >= world.horizon() {
         return 0.0;
     }
-    (0..world.action_count())
+    (0..world.layout().action_count())
         .map(|a| {
             let mut next = world.clone();
             let step = next.step(a);

@@ -24,7 +24,7 @@ fn world(world_toml: &str, lambda: f64, rain: Option<RainZone>) -> World {
 }
 
 fn action(world: &World, mv: Move, device: usize) -> usize {
-    mv.index() * world.devices() + device
+    world.layout().action(mv.index(), device)
 }
 
 fn assert_close(got: f64, want: f64) {
@@ -436,7 +436,7 @@ proptest! {
         let grid = cfg.world.grid_cells;
         let cap = cfg.world.aoi_max as u16;
         for raw in raw_actions {
-            let a = raw % w.action_count();
+            let a = raw % w.layout().action_count();
             let before = w.aoi().to_vec();
             let step = w.step(a);
             let (x, y) = w.uav();

@@ -186,7 +186,7 @@ impl OnlineDqn {
     pub fn step(&mut self) -> Result<Option<f64>, TransitionsError> {
         // ALGO: epsilon-greedy behaviour.
         let action = match self.rng.random_bool(self.epsilon()) {
-            true => self.rng.random_range(0..self.world.action_count()),
+            true => self.rng.random_range(0..self.world.layout().action_count()),
             false => QPolicy::new(&self.q).act(&self.world),
         };
         let finished = self.advance(action);

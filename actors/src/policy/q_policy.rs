@@ -23,6 +23,7 @@ use uavmeta_learner::qnet::QNetwork;
 use uavmeta_learner::train::{EvaluatePolicy, Rollouts};
 use uavmeta_proto::config::{Config, TaskConfig, WorldConfig};
 use uavmeta_proto::dataset::Transition;
+use uavmeta_proto::layout::Layout;
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 
 use uavmeta_world::identify::{identify, Unidentified};
@@ -271,7 +272,9 @@ impl Model {
         let aoi_max = world.aoi_max();
         let starts = shots
             .iter()
-            .filter(|t| t.step < world.horizon() && t.obs[2..].iter().all(|&a| a <= aoi_max))
+            .filter(|t| {
+                t.step < world.horizon() && Layout::aoi(&t.obs).iter().all(|&a| a <= aoi_max)
+            })
             .map(|t| (t.obs.clone(), t.step))
             .filter(|start| seen.insert(start.clone()))
             .collect();
@@ -383,7 +386,10 @@ mod tests {
             )
         };
         let tasks = [TaskConfig::one_off(100.0, None), rain];
-        let (obs_len, actions) = (config.world.observation_len(), config.world.action_count());
+        let (obs_len, actions) = (
+            config.world.layout().observation_len(),
+            config.world.layout().action_count(),
+        );
         for (net_seed, task) in tasks.iter().enumerate() {
             let q =
                 QNetworkConfig::new(obs_len, actions, &config.learner.hidden).init(net_seed as u64);
@@ -416,11 +422,14 @@ mod tests {
         tch::set_num_threads(1);
         let config = Config::default();
         let task = TaskConfig::one_off(300.0, None);
-        let (obs_len, actions) = (config.world.observation_len(), config.world.action_count());
+        let (obs_len, actions) = (
+            config.world.layout().observation_len(),
+            config.world.layout().action_count(),
+        );
         let k = config.world.devices;
         let q = QNetworkConfig::new(obs_len, actions, &config.learner.hidden).init(3);
         let params = q.parameters();
-        let west = Move::West.index() * k;
+        let west = config.world.layout().action(Move::West.index(), 0);
         tch::no_grad(|| {
             for p in &params {
                 let _ = p.shallow_clone().zero_();
@@ -466,14 +475,14 @@ mod tests {
     fn outcomes(world: &World) -> Vec<(f64, Vec<u16>)> {
         let (grid, k) = (world.grid_cells() as u16, world.devices());
         let mut out = Vec::new();
-        let mut next = vec![0u16; 2 + k];
+        let mut next = vec![0u16; world.layout().observation_len()];
         for aoi in [1u16, 3, 7] {
             for c in 0..grid * grid {
                 let obs: Vec<u16> = [c % grid, c / grid]
                     .into_iter()
                     .chain((0..k as u16).map(|j| 1 + (j * aoi) % world.aoi_max()))
                     .collect();
-                for action in 0..world.action_count() {
+                for action in 0..world.layout().action_count() {
                     let reward = world.outcome(&obs, action, false, &mut next).unwrap();
                     out.push((reward, next.clone()));
                 }
@@ -543,7 +552,10 @@ mod tests {
         tch::set_num_threads(1);
         let config = Config::default();
         let task = TaskConfig::one_off(2000.0, None);
-        let (obs_len, actions) = (config.world.observation_len(), config.world.action_count());
+        let (obs_len, actions) = (
+            config.world.layout().observation_len(),
+            config.world.layout().action_count(),
+        );
         let shots = random_shots(&config, &task, 2000);
         let mut evaluator = Evaluator::from_config(&config, &task).with_model(&shots);
         let q = QNetworkConfig::new(obs_len, actions, &config.learner.hidden).init(1);

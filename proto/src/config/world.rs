@@ -6,6 +6,8 @@ use garde::Validate;
 use serde::{Deserialize, Serialize};
 use smart_default::SmartDefault;
 
+use crate::layout::Layout;
+
 use super::rules::{at_least, at_most, finite, is_weight, satisfies, toml_seed, within, Broken};
 
 /// The largest number of devices a world may have: the zero-copy transition slot of
@@ -98,21 +100,16 @@ pub struct WorldConfig {
 }
 
 impl WorldConfig {
-    /// Length of an observation, 2 + K.
-    pub fn observation_len(&self) -> usize {
-        2 + self.devices
-    }
-
-    /// Number of discrete actions, 5 moves x K devices.
-    pub fn action_count(&self) -> usize {
-        MOVES.len() * self.devices
+    /// The observation and action layout of this world.
+    pub fn layout(&self) -> Layout {
+        Layout::new(self.devices)
     }
 
     /// Divisors that normalise a raw observation for the networks: x/(L-1), y/(L-1), A/aoi_max.
     pub fn observation_scale(&self) -> Vec<f32> {
         let span = (self.grid_cells.max(2) - 1) as f32;
         let mut scale = vec![span, span];
-        scale.resize(self.observation_len(), self.aoi_max as f32);
+        scale.resize(self.layout().observation_len(), self.aoi_max as f32);
         scale
     }
 

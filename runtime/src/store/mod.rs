@@ -280,7 +280,7 @@ impl<'a> Store<'a> {
         let mut store = Store {
             run,
             target: config.collect.transitions as u64,
-            obs_len: config.world.observation_len(),
+            obs_len: config.world.layout().observation_len(),
             world_hash: config.world_hash(),
             metrics,
             ready,
