@@ -420,27 +420,57 @@ pub fn init(
 ) -> Result<(PathBuf, MetaCurve), ReproduceError> {
     let meta = meta_config(config, key, seed, eval_every);
     let datasets = &datasets_dir(out, seed);
-    let out = seed_dir(out, seed).join(format!("{}-tasks-{}", key.kind.name(), key.tasks));
-    let w0 = out.join("w0");
+    let w0 = w0_path(out, seed, key);
+    let out = w0.parent().expect("w0 is a file of its init's directory");
     if let Init::Pretrain(_) | Init::Context(_) = key.kind {
         if !saved_config_matches(&CheckpointPaths::new(&w0).config, &meta) {
             multi_task_init(&meta, datasets, seed, key.kind, &w0)?;
         }
         return Ok((w0, MetaCurve::default()));
     }
-    if let Some(cached) = cached_w0(&meta, key, &out) {
+    if let Some(cached) = cached_w0(&meta, key, out) {
         return Ok(cached);
     }
     let result = meta_train(&MetaTrainOptions {
         config: &meta,
         datasets,
-        out_dir: &out,
+        out_dir: out,
         seed,
         progress: false,
         resume: false,
         on_step: OnStep::default(),
     })?;
     Ok((result.w0, MetaCurve::of(&result.rows)))
+}
+
+/// Where seed `seed`'s init of `key` is saved: `SEED_DIR/<cql-maml|dqn-maml|..>-tasks-N/w0`.
+pub fn w0_path(out: &Path, seed: u64, key: InitKey) -> PathBuf {
+    let dir = format!("{}-tasks-{}", key.kind.name(), key.tasks);
+    seed_dir(out, seed).join(dir).join("w0")
+}
+
+/// The meta-train curve of seed `seed`'s init of `key`, made by [`init`] (empty for a pretrained
+/// or context init); an error when the cache holds no complete one.
+pub fn init_curve(
+    config: &Config,
+    out: &Path,
+    seed: u64,
+    key: InitKey,
+    eval_every: usize,
+) -> Result<MetaCurve, ReproduceError> {
+    if let Init::Pretrain(_) | Init::Context(_) = key.kind {
+        return Ok(MetaCurve::default());
+    }
+    let meta = meta_config(config, key, seed, eval_every);
+    let w0 = w0_path(out, seed, key);
+    let dir = w0.parent().expect("w0 is a file of its init's directory");
+    match cached_w0(&meta, key, dir) {
+        Some((_, curve)) => Ok(curve),
+        None => Err(ReproduceError::Cache {
+            path: dir.join("meta_train.csv"),
+            message: "no complete meta-training of this config".into(),
+        }),
+    }
 }
 
 /// Trains the pretrained or context init `kind` on `meta`'s tasks and saves it as `path`.
@@ -530,6 +560,12 @@ fn dataset_cached(collection: &Config, path: &Path) -> bool {
 fn cached_w0(meta: &Config, key: InitKey, out: &Path) -> Option<(PathBuf, MetaCurve)> {
     let w0 = out.join("w0");
     if !saved_config_matches(&CheckpointPaths::new(&w0).config, meta) {
+        return None;
+    }
+    // w0 is saved after every checkpointed meta-epoch, its CSV row first: the last meta-epoch's
+    // w0 marks the whole run complete, whatever a kill left of the CSV's last line.
+    let last = checkpoint::read_meta(&w0).is_ok_and(|m| m.epoch == meta.meta.meta_epochs);
+    if !last {
         return None;
     }
     let csv = out.join("meta_train.csv");
