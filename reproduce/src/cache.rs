@@ -4,20 +4,22 @@
 //! marker (`OUT/cache/jobs/ID.done`).
 //!
 //! Every file is written to a temporary file in its own directory and renamed into place
-//! (`uavmeta_proto::fs::write_atomic`), so a job killed mid-write leaves the old file or none,
+//! ([`write`]), so a job killed mid-write leaves the old file or none,
 //! never a torn one. A marker is written last, after everything its job makes, and holds the
 //! job's stamp (the config's fingerprint and the job's parameters): a job is done exactly when its
 //! marker holds the stamp the plan expects. Results are TOML: floats are written in Rust's
 //! shortest round-trip form and read back to the same bits, so the CSVs drawn from a cached result
 //! are the bytes of those drawn from the one in memory.
 
+use std::io::Write as _;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 use uavmeta_learner::train::EpochRow;
 use uavmeta_meta::{create_dir, MetaError};
-use uavmeta_proto::fs::{write_atomic, FileError};
+use uavmeta_proto::fs::FileError;
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 use uavmeta_world::heuristics::REFERENCES;
 use uavmeta_world::rollout::Trajectory;
@@ -40,12 +42,32 @@ pub fn mark_done(out: &Path, id: &str, stamp: &str) -> Result<(), ReproduceError
     write(&marker_path(out, id), stamp)
 }
 
-/// Writes `text` to `path` atomically, creating its directory.
+/// Writes `text` to `path` atomically, creating its directory: a temporary file beside it
+/// (`.NAME.tmp-PID-N`, a name no reader takes for a result), synced, then renamed into place.
+/// Unlike a `tempfile` the file gets the mode of any new file (0666 less the umask), since the
+/// figures and summaries are for whoever shares the output directory.
 pub fn write(path: &Path, text: &str) -> Result<(), ReproduceError> {
-    if let Some(dir) = path.parent() {
-        create_dir(dir)?;
+    static COUNT: AtomicUsize = AtomicUsize::new(0);
+    let dir = path.parent().unwrap_or(Path::new("."));
+    create_dir(dir)?;
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy())
+        .unwrap_or_default();
+    let n = COUNT.fetch_add(1, Ordering::Relaxed);
+    let tmp = dir.join(format!(".{name}.tmp-{}-{n}", std::process::id()));
+    let written = (|| {
+        let mut file = std::fs::File::create(&tmp)?;
+        file.write_all(text.as_bytes())?;
+        file.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    if written.is_err() {
+        let _ = std::fs::remove_file(&tmp);
     }
-    write_atomic(path, text.as_bytes()).map_err(MetaError::from)?;
+    written
+        .map_err(FileError::at(path, "write"))
+        .map_err(MetaError::from)?;
     Ok(())
 }
 
@@ -113,10 +135,12 @@ pub fn load_heuristics(path: &Path, key: &RefKey) -> Result<HeuristicRef, Reprod
     let file: Policies = load(path)?;
     let policies = file.policies.into_iter().map(|p| {
         let known = REFERENCES.iter().map(|s| s.name()).find(|&n| n == p.name);
-        known.map(|name| (name, p.metrics)).ok_or(ReproduceError::Cache {
-            path: path.to_path_buf(),
-            message: format!("`{}` is not one of the reference policies", p.name),
-        })
+        known
+            .map(|name| (name, p.metrics))
+            .ok_or(ReproduceError::Cache {
+                path: path.to_path_buf(),
+                message: format!("`{}` is not one of the reference policies", p.name),
+            })
     });
     Ok(HeuristicRef {
         task: key.task.clone(),
@@ -254,10 +278,18 @@ mod tests {
         save_run(&path, &result).unwrap();
         let back = load_run(&path).unwrap();
         assert_eq!(printed(&back), printed(&result));
-        let bits = |r: &RunResult| r.rows.iter().map(|r| r.mean_q.to_bits()).collect::<Vec<_>>();
+        let bits = |r: &RunResult| {
+            r.rows
+                .iter()
+                .map(|r| r.mean_q.to_bits())
+                .collect::<Vec<_>>()
+        };
         assert_eq!(bits(&back), bits(&result));
         // No temporary file is left beside it.
-        assert_eq!(std::fs::read_dir(path.parent().unwrap()).unwrap().count(), 1);
+        assert_eq!(
+            std::fs::read_dir(path.parent().unwrap()).unwrap().count(),
+            1
+        );
     }
 
     #[test]
@@ -275,7 +307,13 @@ mod tests {
             name: "bogus".into(),
             metrics: metrics(1.0),
         };
-        save(&path, &Policies { policies: vec![policy] }).unwrap();
+        save(
+            &path,
+            &Policies {
+                policies: vec![policy],
+            },
+        )
+        .unwrap();
         let error = load_heuristics(&path, &key).unwrap_err().to_string();
         assert!(error.contains("`bogus`"), "{error}");
     }

@@ -290,7 +290,10 @@ pub fn run(opts: &ReproduceOptions) -> Result<ReproduceReport, ReproduceError> {
     for (_, bar) in &bars {
         bar.finish_and_clear();
     }
-    let figures = graph.of(Kind::Figures).next().expect("every plan ends in figures");
+    let figures = graph
+        .of(Kind::Figures)
+        .next()
+        .expect("every plan ends in figures");
     let report = plan::run_job(&ctx, figures, || started.elapsed())?;
     Ok(report.expect("the figures job returns its report"))
 }

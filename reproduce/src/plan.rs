@@ -138,11 +138,24 @@ impl PlanFile {
 /// What a job does, with the plan's items it reads.
 #[derive(Debug, Clone, Copy)]
 enum Work<'p> {
-    Dataset { seed: u64, task: &'p str },
+    Dataset {
+        seed: u64,
+        task: &'p str,
+    },
     Heuristics(&'p RefKey),
-    Reference { seed: u64, key: &'p RefKey },
-    Init { seed: u64, key: InitKey, eval_every: usize },
-    Run { seed: u64, run: &'p RunNeed },
+    Reference {
+        seed: u64,
+        key: &'p RefKey,
+    },
+    Init {
+        seed: u64,
+        key: InitKey,
+        eval_every: usize,
+    },
+    Run {
+        seed: u64,
+        run: &'p RunNeed,
+    },
     Figures,
 }
 
@@ -199,7 +212,14 @@ impl<'p> Graph<'p> {
         let after = b.jobs.iter().map(|j| j.spec.id.clone()).collect();
         let users = experiments.to_vec();
         let params = format!("experiments {}", names.join(","));
-        b.add("figures".into(), None, Work::Figures, &users, after, &params);
+        b.add(
+            "figures".into(),
+            None,
+            Work::Figures,
+            &users,
+            after,
+            &params,
+        );
         let file = PlanFile {
             config: b.fingerprint,
             experiments: names,
@@ -306,11 +326,21 @@ impl<'p> Builder<'p> {
                 seed,
                 task: &need.key,
             };
-            self.add(dataset(&need.key), Some(seed), work, &need.users, vec![], "");
+            self.add(
+                dataset(&need.key),
+                Some(seed),
+                work,
+                &need.users,
+                vec![],
+                "",
+            );
         }
         for need in &plan.references {
             let key = &need.key;
-            let id = format!("reference/seed-{seed}/{}.episodes-{}", key.task, key.episodes);
+            let id = format!(
+                "reference/seed-{seed}/{}.episodes-{}",
+                key.task, key.episodes
+            );
             let work = Work::Reference { seed, key };
             let after = vec![dataset(&key.task)];
             self.add(id, Some(seed), work, &need.users, after, "");
@@ -332,7 +362,14 @@ impl<'p> Builder<'p> {
                 eval_every,
             };
             let params = format!("evaluated every {eval_every} meta-epochs");
-            self.add(init_id(seed, key), Some(seed), work, &need.users, after, &params);
+            self.add(
+                init_id(seed, key),
+                Some(seed),
+                work,
+                &need.users,
+                after,
+                &params,
+            );
         }
         for run in &plan.runs {
             let key = &run.need.key;
@@ -510,7 +547,10 @@ pub fn load_results(
                     true => ctx.r.meta_eval_every,
                     false => 0,
                 };
-                Ok((n.key, runs::init_curve(config, out, seed, n.key, eval_every)?))
+                Ok((
+                    n.key,
+                    runs::init_curve(config, out, seed, n.key, eval_every)?,
+                ))
             })
             .collect::<Result<_, ReproduceError>>()?;
         let runs = (plan.runs.iter())
@@ -555,5 +595,71 @@ mod tests {
             }
         }
         assert_eq!(Kind::parse("bogus"), None);
+    }
+
+    fn config() -> (Config, ReproduceConfig) {
+        let mut config = Config::default();
+        let rain = uavmeta_proto::config::RainZone {
+            x0: 1,
+            y0: 1,
+            x1: 2,
+            y1: 2,
+        };
+        let task = uavmeta_proto::config::TaskConfig::one_off(300.0, Some(rain));
+        config.tasks.push(task);
+        let r = ReproduceConfig {
+            seeds: 2,
+            ..ReproduceConfig::default()
+        };
+        r.write_into(&mut config);
+        (config, r)
+    }
+
+    #[test]
+    fn every_job_waits_on_existing_jobs_of_the_kinds_before_it() {
+        let (config, r) = config();
+        let plan = crate::plan(&config, &r, &Experiment::ALL);
+        let graph = Graph::new(&config, &r, &plan, &Experiment::ALL);
+        let jobs = &graph.file.jobs;
+        let mut ids: Vec<&str> = jobs.iter().map(|j| j.id.as_str()).collect();
+        ids.sort();
+        ids.dedup();
+        assert_eq!(ids.len(), jobs.len(), "job ids are unique");
+        for job in jobs {
+            for after in &job.after {
+                let found = jobs.iter().find(|j| j.id == *after).expect(after);
+                assert!(
+                    job.kind.after().contains(&found.kind),
+                    "{} after {after}",
+                    job.id
+                );
+            }
+            assert!(job
+                .stamp
+                .starts_with(&format!("config {}", graph.file.config)));
+        }
+        let count = |kind| graph.file.of(kind).count();
+        assert_eq!(count(Kind::Run), 2 * plan.runs.len());
+        assert_eq!(count(Kind::Heuristics), plan.references.len());
+        assert_eq!(count(Kind::Figures), 1);
+        assert_eq!(graph.file.jobs.last().unwrap().after.len(), jobs.len() - 1);
+    }
+
+    #[test]
+    fn the_fingerprint_ignores_where_jobs_run_only() {
+        let (config, r) = config();
+        let base = fingerprint(&config, &r);
+        let mut slurm = r.clone();
+        slurm.slurm.partition = "gpu".into();
+        slurm.slurm.cpus_per_task = 4;
+        assert_eq!(fingerprint(&config, &slurm), base);
+        let mut other = config.clone();
+        other.learner.alpha += 1.0;
+        assert_ne!(fingerprint(&other, &r), base);
+        let more = ReproduceConfig {
+            convergence_epochs: 7,
+            ..r
+        };
+        assert_ne!(fingerprint(&config, &more), base);
     }
 }

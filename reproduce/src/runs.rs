@@ -423,7 +423,11 @@ pub fn init(
     let w0 = w0_path(out, seed, key);
     let out = w0.parent().expect("w0 is a file of its init's directory");
     if let Init::Pretrain(_) | Init::Context(_) = key.kind {
-        if !saved_config_matches(&CheckpointPaths::new(&w0).config, &meta) {
+        let paths = CheckpointPaths::new(&w0);
+        let saved = saved_config_matches(&paths.config, &meta)
+            && checkpoint::read_meta(&w0).is_ok_and(|m| m.epoch == meta.meta.meta_epochs);
+        if !saved {
+            remove_checkpoint(&w0)?;
             multi_task_init(&meta, datasets, seed, key.kind, &w0)?;
         }
         return Ok((w0, MetaCurve::default()));
@@ -431,6 +435,7 @@ pub fn init(
     if let Some(cached) = cached_w0(&meta, key, out) {
         return Ok(cached);
     }
+    remove_checkpoint(&w0)?;
     let result = meta_train(&MetaTrainOptions {
         config: &meta,
         datasets,
@@ -441,6 +446,23 @@ pub fn init(
         on_step: OnStep::default(),
     })?;
     Ok((result.w0, MetaCurve::of(&result.rows)))
+}
+
+/// Removes the checkpoint `path` an earlier config left, its config first: a checkpoint's files
+/// are saved config, weights, then metadata, so a kill while the new one is saved must not find
+/// the old metadata and weights beside the new config.
+fn remove_checkpoint(path: &Path) -> Result<(), ReproduceError> {
+    let paths = CheckpointPaths::new(path);
+    for file in [&paths.config, &paths.meta, &paths.weights] {
+        match std::fs::remove_file(file) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                let error = uavmeta_proto::fs::FileError::at(file, "remove")(e);
+                return Err(MetaError::from(error).into());
+            }
+            _ => {}
+        }
+    }
+    Ok(())
 }
 
 /// Where seed `seed`'s init of `key` is saved: `SEED_DIR/<cql-maml|dqn-maml|..>-tasks-N/w0`.

@@ -30,10 +30,16 @@ use crate::ReproduceError;
 #[garde(allow_unvalidated)]
 pub struct SlurmConfig {
     /// `sbatch --partition`; empty: the cluster's default partition.
-    #[garde(custom(satisfies(is_word, "a partition name (no spaces), or \"\" for the cluster's default")))]
+    #[garde(custom(satisfies(
+        is_word,
+        "a partition name (no spaces), or \"\" for the cluster's default"
+    )))]
     pub partition: String,
     /// `sbatch --account`; empty: the user's default account.
-    #[garde(custom(satisfies(is_word, "an account name (no spaces), or \"\" for the user's default")))]
+    #[garde(custom(satisfies(
+        is_word,
+        "an account name (no spaces), or \"\" for the user's default"
+    )))]
     pub account: String,
     /// `sbatch --time` of every job: minutes, MM:SS, HH:MM:SS, D-HH, D-HH:MM or D-HH:MM:SS;
     /// empty: the partition's default.
@@ -161,7 +167,11 @@ impl Submitted {
         }
         let ids = self.ids();
         let _ = writeln!(s, "follow them with:");
-        let _ = writeln!(s, "  uavmeta reproduce --out {} --status --watch", out.display());
+        let _ = writeln!(
+            s,
+            "  uavmeta reproduce --out {} --status --watch",
+            out.display()
+        );
         let _ = writeln!(s, "  squeue -j {ids}");
         let _ = writeln!(
             s,
@@ -207,7 +217,12 @@ pub fn submit(
         let script = write_script(out, kind, job_command)?;
         let args = sbatch_args(out, kind, &indices, &after, settings, &script);
         let job_id = parse_job_id("sbatch", &args, &run("sbatch", &args)?)?;
-        tracing::info!(kind = kind.name(), job_id, jobs = indices.len(), "submitted");
+        tracing::info!(
+            kind = kind.name(),
+            job_id,
+            jobs = indices.len(),
+            "submitted"
+        );
         submitted.arrays.push(Array {
             kind,
             job_id,
@@ -228,7 +243,13 @@ fn refuse_if_queued(out: &Path) -> Result<(), ReproduceError> {
     if last.arrays.is_empty() {
         return Ok(());
     }
-    let args = vec!["-h".into(), "-o".into(), "%A".into(), "-j".into(), last.ids()];
+    let args = vec![
+        "-h".into(),
+        "-o".into(),
+        "%F".into(),
+        "-j".into(),
+        last.ids(),
+    ];
     let mut queued: Vec<String> = match run("squeue", &args) {
         Ok(text) => text.split_whitespace().map(String::from).collect(),
         // squeue refuses ids the controller has forgotten: none of them is queued.
@@ -387,7 +408,7 @@ fn squeue(submitted: &Submitted, plan: &PlanFile) -> Option<(usize, Vec<String>)
         "-h".into(),
         "-r".into(),
         "-o".into(),
-        "%A %a %T".into(),
+        "%F %K %T".into(),
         "-j".into(),
         submitted.ids(),
     ];
@@ -474,7 +495,15 @@ mod tests {
 
     #[test]
     fn time_limits_take_slurms_forms_only() {
-        for ok in ["", "30", "30:00", "1:00:00", "2-12", "2-12:30", "2-12:30:00"] {
+        for ok in [
+            "",
+            "30",
+            "30:00",
+            "1:00:00",
+            "2-12",
+            "2-12:30",
+            "2-12:30:00",
+        ] {
             assert!(is_time(ok), "{ok}");
         }
         for bad in ["1h", "-1", "1:2:3:4", "2-", "a-1", " 30", "1::2"] {
