@@ -83,17 +83,18 @@ $(TORCH_VENV)/.installed:
 
 # Tools the end-to-end tests run, from Debian: tests/runtime.rs lints every /metrics answer with
 # `promtool check metrics` and tests/dashboard.rs runs the `prometheus` server (both in the
-# prometheus package); tests/terminal.rs watches a launch in tmux. Installed here where apt-get
-# can (as root), and required when CI=true.
-TEST_TOOLS := promtool prometheus tmux
-APT_INSTALL := DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends prometheus tmux
-HAVE_TEST_TOOLS := for tool in $(TEST_TOOLS); do command -v $$tool >/dev/null || exit 1; done
+# prometheus package); tests/terminal.rs watches a launch in tmux; tests/slurm.rs runs a one-node
+# Slurm cluster (slurm-wlm: slurmctld, slurmd and the client commands; munge: munged, in sbin).
+# Installed here where apt-get can (as root), and required when CI=true.
+TEST_TOOLS := promtool prometheus tmux sbatch slurmctld slurmd munged
+APT_INSTALL := DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends prometheus tmux slurm-wlm munge
+HAVE_TEST_TOOLS := for tool in $(TEST_TOOLS); do PATH="$$PATH:/usr/sbin:/sbin" command -v $$tool >/dev/null || exit 1; done
 
 test-tools:
 	@( $(HAVE_TEST_TOOLS) ) || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
 	  { $(APT_INSTALL) || { apt-get update -q && $(APT_INSTALL); }; } >/dev/null 2>&1; }; \
 	( $(HAVE_TEST_TOOLS) ) || \
-	  echo "missing some of: $(TEST_TOOLS) (Debian: prometheus, tmux); the tests that need them skip"
+	  echo "missing some of: $(TEST_TOOLS) (Debian: prometheus, tmux, slurm-wlm, munge); the tests that need them skip"
 
 # tests/interop.rs loads exported datasets with minari, d3rlpy and numpy themselves, pinned in
 # tests/interop-requirements.txt and installed into the libtorch virtualenv; the constraint makes

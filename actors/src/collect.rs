@@ -44,6 +44,11 @@ pub enum CollectError {
         path: PathBuf,
         source: std::io::Error,
     },
+    #[error("{}: cannot remove the online agent of the collection before", path.display())]
+    RemoveAgent {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error("online DQN training: {0}")]
     Train(#[from] TransitionsError),
     #[error("saving the online DQN agent")]
@@ -246,13 +251,22 @@ pub fn collect(
         spec => Some(crate::policy::build(spec, config, seed, Some(wanted)).map_err(policy_error)?),
     };
 
-    let config_file = config_path(out);
-    std::fs::write(&config_file, config.to_toml_string()).map_err(|source| {
-        CollectError::WriteConfig {
-            path: config_file.clone(),
+    // The agent an earlier collection saved last marks that dataset complete: it goes first, so a
+    // kill from here on leaves nothing a reader takes for a finished dataset of this config.
+    let agent_dir = agent_path(out).parent().map(Path::to_path_buf);
+    if let Some(dir) = agent_dir.filter(|d| d.exists()) {
+        std::fs::remove_dir_all(&dir).map_err(|source| CollectError::RemoveAgent {
+            path: dir.clone(),
             source,
-        }
-    })?;
+        })?;
+    }
+    let config_file = config_path(out);
+    uavmeta_proto::fs::write_atomic(&config_file, config.to_toml_string().as_bytes()).map_err(
+        |e| CollectError::WriteConfig {
+            path: config_file.clone(),
+            source: e.source,
+        },
+    )?;
     let mut writer = DatasetWriter::create(out, header)?;
 
     let steps = match rollout_policy {

@@ -65,6 +65,10 @@ pub struct ReproduceConfig {
     /// the last. The inits no figure draws a curve of are evaluated only after the last.
     #[default(10)]
     pub meta_eval_every: usize,
+    /// `--engine slurm`'s submission settings (`crate::slurm`); they change where jobs run, not
+    /// what they make.
+    #[garde(dive)]
+    pub slurm: crate::slurm::SlurmConfig,
 }
 
 impl Section for ReproduceConfig {

@@ -12,46 +12,54 @@
 //! It owns the orchestration; the pieces are:
 //! - [`runs`]: one seed's pipeline and its cache under `OUT/cache/seed-S/` (datasets, online DQN
 //!   agents, meta-trained w0s), and the plan of fine-tuning runs shared between experiments;
+//! - [`plan`]: that plan as a graph of jobs over the cache (`OUT/plan.json`), the one function
+//!   that runs a job and the local engine; [`cache`]: the jobs' results and completion markers;
+//! - [`slurm`]: the same graph submitted to Slurm as one job array per kind of job, and the
+//!   progress of a plan read from the cache;
 //! - [`figures`]: per experiment, its CSV files, PNG charts ([`uavmeta_plot`]) and `summary.md`;
 //! - [`claims`]: curve statistics and the yes / partly / no rules;
 //! - [`ReproduceConfig`]: the `[reproduce]` section, which this crate alone reads and checks.
 //!
-//! Pipeline of [`run`]:
+//! Pipeline of [`run`] (the local engine; [`submit`] hands the same jobs to Slurm):
 //! 1. Check `[reproduce]` against the tasks, and build one [`runs::Plan`] for the selected
 //!    experiments: every dataset, reference agent, w0 and fine-tuning run they need, each once
 //!    (CQL-MAML on the first `meta_tasks` tasks is meta-trained once per seed and serves figures
-//!    4, 5, 6, 8 and 9).
+//!    4, 5, 6, 8 and 9); write its graph of jobs, `OUT/plan.json`.
 //! 2. The reference lines (random, stalest, greedy, the planner), which depend on no seed, and
 //!    beside them on the same pool of `jobs` threads:
-//! 3. Seeds 0..N-1, each item through the same code paths as the
+//! 3. Seeds 0..N-1, each job through the same code paths as the
 //!    runtime: `collect` with the online DQN behaviour policy (`collect.seed + s`), its agent as
 //!    the online reference, `meta_train`, and `fine_tune`'s `fine_tune` with the greedy policy
-//!    evaluated after every epoch. Results are kept in seed order, so they do not depend on
-//!    `jobs`.
-//! 4. Each experiment writes `OUT/<experiment>/` and returns its claims; `OUT/summary.md` gathers
-//!    every claim table.
+//!    evaluated after every epoch. Every result goes into the cache; a job already done is
+//!    skipped.
+//! 4. The figures job reads the results back from the cache in seed order (so they do not
+//!    depend on `jobs` or the engine): each experiment writes `OUT/<experiment>/` and returns its
+//!    claims; `OUT/summary.md` gathers every claim table.
 
+mod cache;
 mod claims;
 mod config;
 mod figures;
+pub mod plan;
 mod runs;
+pub mod slurm;
 
 pub use config::ReproduceConfig;
+pub use plan::{JobSelector, Kind};
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
-use rayon::prelude::*;
 use uavmeta_actors::collect::CollectError;
-use uavmeta_meta::{create_dir, write_file, MetaError};
+use uavmeta_meta::{create_dir, MetaError};
 use uavmeta_proto::config::{Config, ConfigError, TaskConfig, TaskRole};
 use uavmeta_proto::stats::PolicyMetrics;
-use uavmeta_world::heuristics::reference_metrics;
 
 use claims::Claim;
-use runs::{meta_train_tasks, InitKey, Plan, SeedResult};
+use plan::{Graph, JobContext};
+use runs::{meta_train_tasks, InitKey, Plan};
 
 /// Everything a reproduction can fail on.
 #[derive(Debug, thiserror::Error)]
@@ -68,6 +76,20 @@ pub enum ReproduceError {
     Meta(#[from] MetaError),
     #[error(transparent)]
     Collect(#[from] CollectError),
+    #[error("{}: {message}", path.display())]
+    Cache { path: PathBuf, message: String },
+    #[error("no {job} in the plan (`uavmeta reproduce --status --out OUT` lists its jobs)")]
+    NoSuchJob { job: String },
+    #[error("{} holds the plan of another config or choice of experiments: run a job with the --config, --set, --quick, --seeds and --experiment the plan was written with, or write the plan again", path.display())]
+    OtherPlan { path: PathBuf },
+    #[error("job `{job}` reads {count} jobs that are not done, the first `{first}`; run them first (`uavmeta reproduce --status` shows what is left)")]
+    Unfinished {
+        job: String,
+        count: usize,
+        first: String,
+    },
+    #[error(transparent)]
+    Slurm(#[from] slurm::SlurmError),
 }
 
 /// One of the paper's experiments.
@@ -234,29 +256,85 @@ impl HeuristicRef {
     }
 }
 
-/// Runs the selected experiments; see the module doc.
-pub fn run(opts: &ReproduceOptions) -> Result<ReproduceReport, ReproduceError> {
-    let started = Instant::now();
+/// Checks `[reproduce]` and builds the plan of the selected experiments.
+fn checked_plan(opts: &ReproduceOptions) -> Result<(ReproduceConfig, Plan), ReproduceError> {
     let config = opts.config;
-    let r = &ReproduceConfig::of(config).map_err(MetaError::from)?;
+    let r = ReproduceConfig::of(config).map_err(MetaError::from)?;
     if opts.experiments.contains(&Experiment::Resilience) && rain_tasks(config).next().is_none() {
         return Err(ReproduceError::NoRainTasks {
             origin: config.origin.clone(),
         });
     }
-    let plan = plan(config, r, opts.experiments);
-    // The reference rows need no seed's work and the seeds none of theirs: on one pool, each
-    // fills the cores the other's stage leaves idle at its end.
-    let (heuristics, seeds) = worker_pool(opts.jobs)?.install(|| {
-        rayon::join(
-            || heuristic_refs(config, &plan),
-            || run_seeds(opts, r, &plan),
-        )
-    });
-    let seeds = seeds?;
+    let plan = plan(config, &r, opts.experiments);
+    Ok((r, plan))
+}
 
-    let ctx = figures::Context {
-        config,
+/// Runs the selected experiments on the local pool; see the module doc.
+pub fn run(opts: &ReproduceOptions) -> Result<ReproduceReport, ReproduceError> {
+    let started = Instant::now();
+    let (r, plan) = checked_plan(opts)?;
+    let graph = Graph::new(opts.config, &r, &plan, opts.experiments);
+    create_dir(opts.out_dir)?;
+    graph.write(opts.out_dir)?;
+    let ctx = JobContext {
+        opts,
+        r: &r,
+        plan: &plan,
+    };
+    let bars = progress_bars(opts, &plan, r.seeds);
+    let done = |users: &[Experiment]| {
+        let used = bars.iter().filter(|(e, _)| users.contains(e));
+        used.for_each(|(_, bar)| bar.inc(1));
+    };
+    worker_pool(opts.jobs)?.install(|| plan::run_local(&ctx, &graph, &done))?;
+    for (_, bar) in &bars {
+        bar.finish_and_clear();
+    }
+    let figures = graph
+        .of(Kind::Figures)
+        .next()
+        .expect("every plan ends in figures");
+    let report = plan::run_job(&ctx, figures, || started.elapsed())?;
+    Ok(report.expect("the figures job returns its report"))
+}
+
+/// Runs one job of the plan `OUT/plan.json` holds (written by [`run`] or [`submit`] with the same
+/// options): a no-op when it is done; the figures job's report.
+pub fn run_job(
+    opts: &ReproduceOptions,
+    job: &JobSelector,
+) -> Result<Option<ReproduceReport>, ReproduceError> {
+    let (r, plan) = checked_plan(opts)?;
+    let graph = Graph::new(opts.config, &r, &plan, opts.experiments);
+    graph.check_written(opts.out_dir)?;
+    let job = graph.find(job)?;
+    let ctx = JobContext {
+        opts,
+        r: &r,
+        plan: &plan,
+    };
+    plan::run_job(&ctx, job, || plan::since_plan(opts.out_dir))
+}
+
+/// Writes the plan and submits every job not done to Slurm (`slurm::submit`, with
+/// `[reproduce.slurm]`); `job_command` runs one job when `--stage KIND --index N` follow it.
+pub fn submit(
+    opts: &ReproduceOptions,
+    job_command: &[String],
+) -> Result<slurm::Submitted, ReproduceError> {
+    let (r, plan) = checked_plan(opts)?;
+    let graph = Graph::new(opts.config, &r, &plan, opts.experiments);
+    create_dir(opts.out_dir)?;
+    graph.write(opts.out_dir)?;
+    slurm::submit(opts.out_dir, &graph.file, &r.slurm, job_command)
+}
+
+/// Every experiment's files, from the cache; `wall` is the reproduction's time so far.
+fn write_figures(ctx: &JobContext, wall: Duration) -> Result<ReproduceReport, ReproduceError> {
+    let (opts, r) = (ctx.opts, ctx.r);
+    let (heuristics, seeds) = plan::load_results(ctx)?;
+    let fig = figures::Context {
+        config: opts.config,
         reproduce: r,
         seeds: &seeds,
         heuristics: &heuristics,
@@ -265,16 +343,15 @@ pub fn run(opts: &ReproduceOptions) -> Result<ReproduceReport, ReproduceError> {
     for &experiment in opts.experiments {
         let dir = opts.out_dir.join(experiment.name());
         create_dir(&dir)?;
-        let section = figures::write(&ctx, experiment, &dir)?;
+        let section = figures::write(&fig, experiment, &dir)?;
         let text = format!(
             "{}\n{}",
-            header(opts, r, experiment.title(), started.elapsed()),
+            header(opts, r, experiment.title(), wall),
             section.body
         );
-        write_file(&dir.join("summary.md"), &text)?;
+        cache::write(&dir.join("summary.md"), &text)?;
         sections.push((experiment, section));
     }
-    let wall = started.elapsed();
     let mut summary = header(opts, r, "Reproduction of the paper's section V", wall);
     let claims: Vec<Claim> = sections
         .iter()
@@ -292,7 +369,7 @@ pub fn run(opts: &ReproduceOptions) -> Result<ReproduceReport, ReproduceError> {
     }
     summary.push('\n');
     let summary_path = opts.out_dir.join("summary.md");
-    write_file(&summary_path, &summary)?;
+    cache::write(&summary_path, &summary)?;
     Ok(ReproduceReport {
         summary,
         summary_path,
@@ -431,31 +508,6 @@ fn plan(config: &Config, r: &ReproduceConfig, experiments: &[Experiment]) -> Pla
     plan
 }
 
-/// The reference policies (random, the heuristics, the planner) on every reference task of the
-/// plan: seed-free, so computed once, the tasks spread over the current pool (the planner's four
-/// searches take about half a minute per task).
-fn heuristic_refs(config: &Config, plan: &Plan) -> Vec<HeuristicRef> {
-    plan.references
-        .par_iter()
-        .with_max_len(1)
-        .map(|need| {
-            let task = config
-                .task(&need.key.task)
-                .expect("ReproduceConfig::of and rain_tasks name existing tasks");
-            let episodes = need.key.episodes;
-            let policies = reference_metrics(config, task, episodes)
-                .into_iter()
-                .map(|(spec, metrics)| (spec.name(), metrics))
-                .collect();
-            HeuristicRef {
-                task: task.name.clone(),
-                episodes,
-                policies,
-            }
-        })
-        .collect()
-}
-
 /// The pool every stage of a reproduction runs on: `jobs` worker threads.
 ///
 /// libtorch's OpenMP thread count is a per-thread setting: a new thread starts with one per
@@ -467,95 +519,6 @@ fn worker_pool(jobs: usize) -> Result<rayon::ThreadPool, ReproduceError> {
         .num_threads(jobs.max(1))
         .start_handler(move |_| tch::set_num_threads(torch_threads))
         .build()?)
-}
-
-/// Every item of the plan for every seed, on the current pool; results in seed order, so they do
-/// not depend on `jobs`.
-///
-/// The items go in three stages (datasets, then the inits trained on them, then the fine-tuning
-/// runs from those inits), each stage one pool of (seed, item) pairs. Seed-sized units left one
-/// core idle while the last seed ran alone; items of a stage are at most a minute of work each.
-fn run_seeds(
-    opts: &ReproduceOptions,
-    r: &ReproduceConfig,
-    plan: &Plan,
-) -> Result<Vec<SeedResult>, ReproduceError> {
-    let seeds: Vec<u64> = (0..r.seeds as u64).collect();
-    let bars = progress_bars(opts, plan, seeds.len());
-    let done = |users: &[Experiment]| {
-        let used = bars.iter().filter(|(e, _)| users.contains(e));
-        used.for_each(|(_, bar)| bar.inc(1));
-    };
-
-    let results = stages(opts, r, plan, &seeds, &done);
-    for (_, bar) in &bars {
-        bar.finish_and_clear();
-    }
-    results
-}
-
-/// The three stages of [`run_seeds`]: datasets with their agents' reference rows and the planner in
-/// the world their shots fit, inits, runs.
-fn stages(
-    opts: &ReproduceOptions,
-    r: &ReproduceConfig,
-    plan: &Plan,
-    seeds: &[u64],
-    done: &(impl Fn(&[Experiment]) + Sync),
-) -> Result<Vec<SeedResult>, ReproduceError> {
-    let (config, out) = (opts.config, opts.out_dir);
-    collect_datasets(config, out, seeds, plan, done)?;
-    let references = for_each_seed(seeds, &plan.references, |seed, need| {
-        let metrics = runs::reference(config, out, seed, &need.key)?;
-        done(&need.users);
-        Ok((need.key.clone(), metrics))
-    })?;
-    let model_planners = for_each_seed(seeds, &plan.model_planners, |seed, need| {
-        let planned = runs::model_planner(config, out, seed, &need.key)?;
-        done(&need.users);
-        Ok((need.key.clone(), planned))
-    })?;
-    // Only figure 4 draws a meta-training curve; every other init is evaluated once, at its last
-    // meta-epoch. Evaluating never changes w0 (meta_train.rs), and the other inits' evaluations
-    // were a quarter of meta-training's time.
-    let inits = for_each_seed(seeds, &plan.inits, |seed, need| {
-        let eval_every = match need.users.contains(&Experiment::MetaTraining) {
-            true => r.meta_eval_every,
-            false => 0,
-        };
-        let init = runs::init(config, out, seed, need.key, eval_every)?;
-        done(&need.users);
-        Ok((need.key, init))
-    })?;
-    // Each run from the init `Plan::run` added for it, if any.
-    let runs = for_each_seed(seeds, &plan.runs, |seed, run| {
-        let w0 = run.need.key.init().map(|key| {
-            let (_, (w0, _)) = inits[seed as usize]
-                .iter()
-                .find(|(k, _)| *k == key)
-                .expect("Plan::run adds the init of every meta-trained run");
-            w0.as_path()
-        });
-        let result = runs::fine_tune_run(config, out, seed, run, w0)?;
-        done(&run.need.users);
-        Ok((run.need.key.clone(), result))
-    })?;
-    Ok(seeds
-        .iter()
-        .zip(references)
-        .zip(model_planners)
-        .zip(inits)
-        .zip(runs)
-        .map(
-            |((((&seed, references), model_planners), inits), runs)| SeedResult {
-                seed,
-                model_planners,
-                inits: inits.into_iter().map(|(k, (_, c))| (k, c)).collect(),
-                references,
-                runs,
-            },
-        )
-        .collect())
 }
 
 /// One progress bar per experiment, counting the items of the plan it uses over every seed.
@@ -580,60 +543,6 @@ fn progress_bars(
             (e, bar)
         })
         .collect()
-}
-
-/// Every seed's datasets of the plan that are not cached, on the current pool, one per worker at
-/// a time.
-fn collect_datasets(
-    config: &Config,
-    out: &Path,
-    seeds: &[u64],
-    plan: &Plan,
-    done: &(impl Fn(&[Experiment]) + Sync),
-) -> Result<(), ReproduceError> {
-    let mut missing = Vec::new();
-    for &seed in seeds {
-        for need in &plan.datasets {
-            let job = runs::DatasetJob::new(config, out, seed, &need.key)?;
-            if job.cached() {
-                tracing::debug!(seed, task = %need.key, "dataset cached");
-                done(&need.users);
-            } else {
-                missing.push((job, &need.users));
-            }
-        }
-    }
-    missing
-        .par_iter()
-        .with_max_len(1)
-        .try_for_each(|(job, users)| {
-            runs::collect_dataset(job)?;
-            done(users);
-            Ok(())
-        })
-}
-
-/// `work(seed, item)` for every seed and item, on the current pool, one pair per task; the
-/// results grouped by seed, each seed's in item order. Stops at the first error.
-fn for_each_seed<I: Sync, R: Send>(
-    seeds: &[u64],
-    items: &[I],
-    work: impl Fn(u64, &I) -> Result<R, ReproduceError> + Sync,
-) -> Result<Vec<Vec<R>>, ReproduceError> {
-    let pairs: Vec<(u64, &I)> = seeds
-        .iter()
-        .flat_map(|&seed| items.iter().map(move |item| (seed, item)))
-        .collect();
-    let mut results = pairs
-        .into_par_iter()
-        .with_max_len(1)
-        .map(|(seed, item)| work(seed, item))
-        .collect::<Result<Vec<R>, ReproduceError>>()?
-        .into_iter();
-    Ok(seeds
-        .iter()
-        .map(|_| results.by_ref().take(items.len()).collect())
-        .collect())
 }
 
 #[cfg(test)]

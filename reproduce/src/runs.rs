@@ -29,7 +29,6 @@ use uavmeta_proto::dataset::DatasetReader;
 use uavmeta_proto::method::{Algo, Method, Start};
 use uavmeta_proto::stats::PolicyMetrics;
 use uavmeta_world::heuristics::{model_planner_metrics, PolicySpec};
-use uavmeta_world::identify::Unidentified;
 use uavmeta_world::rollout::{record_trajectory, Trajectory};
 
 use crate::{Experiment, ReproduceError};
@@ -122,7 +121,7 @@ pub struct ModelPlannerKey {
 }
 
 /// What the planner in the fitted world scored, or why the shots fit no world (rain).
-pub type ModelPlanned = Result<PolicyMetrics, Unidentified>;
+pub type ModelPlanned = Result<PolicyMetrics, String>;
 
 /// Something a seed computes, with the experiments that use it (whose progress bars it moves).
 #[derive(Debug, Clone)]
@@ -450,27 +449,79 @@ pub fn init(
 ) -> Result<(PathBuf, MetaCurve), ReproduceError> {
     let meta = meta_config(config, key, seed, eval_every);
     let datasets = &datasets_dir(out, seed);
-    let out = seed_dir(out, seed).join(format!("{}-tasks-{}", key.kind.name(), key.tasks));
-    let w0 = out.join("w0");
+    let w0 = w0_path(out, seed, key);
+    let out = w0.parent().expect("w0 is a file of its init's directory");
     if let Init::Pretrain(_) | Init::Context(_) = key.kind {
-        if !saved_config_matches(&CheckpointPaths::new(&w0).config, &meta) {
+        let paths = CheckpointPaths::new(&w0);
+        let saved = saved_config_matches(&paths.config, &meta)
+            && checkpoint::read_meta(&w0).is_ok_and(|m| m.epoch == meta.meta.meta_epochs);
+        if !saved {
+            remove_checkpoint(&w0)?;
             multi_task_init(&meta, datasets, seed, key.kind, &w0)?;
         }
         return Ok((w0, MetaCurve::default()));
     }
-    if let Some(cached) = cached_w0(&meta, key, &out) {
+    if let Some(cached) = cached_w0(&meta, key, out) {
         return Ok(cached);
     }
+    remove_checkpoint(&w0)?;
     let result = meta_train(&MetaTrainOptions {
         config: &meta,
         datasets,
-        out_dir: &out,
+        out_dir: out,
         seed,
         progress: false,
         resume: false,
         on_step: OnStep::default(),
     })?;
     Ok((result.w0, MetaCurve::of(&result.rows)))
+}
+
+/// Removes the checkpoint `path` an earlier config left, its config first: a checkpoint's files
+/// are saved config, weights, then metadata, so a kill while the new one is saved must not find
+/// the old metadata and weights beside the new config.
+fn remove_checkpoint(path: &Path) -> Result<(), ReproduceError> {
+    let paths = CheckpointPaths::new(path);
+    for file in [&paths.config, &paths.meta, &paths.weights] {
+        match std::fs::remove_file(file) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                let error = uavmeta_proto::fs::FileError::at(file, "remove")(e);
+                return Err(MetaError::from(error).into());
+            }
+            _ => {}
+        }
+    }
+    Ok(())
+}
+
+/// Where seed `seed`'s init of `key` is saved: `SEED_DIR/<cql-maml|dqn-maml|..>-tasks-N/w0`.
+pub fn w0_path(out: &Path, seed: u64, key: InitKey) -> PathBuf {
+    let dir = format!("{}-tasks-{}", key.kind.name(), key.tasks);
+    seed_dir(out, seed).join(dir).join("w0")
+}
+
+/// The meta-train curve of seed `seed`'s init of `key`, made by [`init`] (empty for a pretrained
+/// or context init); an error when the cache holds no complete one.
+pub fn init_curve(
+    config: &Config,
+    out: &Path,
+    seed: u64,
+    key: InitKey,
+    eval_every: usize,
+) -> Result<MetaCurve, ReproduceError> {
+    if let Init::Pretrain(_) | Init::Context(_) = key.kind {
+        return Ok(MetaCurve::default());
+    }
+    let meta = meta_config(config, key, seed, eval_every);
+    let w0 = w0_path(out, seed, key);
+    let dir = w0.parent().expect("w0 is a file of its init's directory");
+    match cached_w0(&meta, key, dir) {
+        Some((_, curve)) => Ok(curve),
+        None => Err(ReproduceError::Cache {
+            path: dir.join("meta_train.csv"),
+            message: "no complete meta-training of this config".into(),
+        }),
+    }
 }
 
 /// Trains the pretrained or context init `kind` on `meta`'s tasks and saves it as `path`.
@@ -510,6 +561,7 @@ pub fn model_planner(
     let dataset = dataset_path(&datasets_dir(out, seed), &task.name);
     let shots = load_shots(config, task, &dataset, key.shots, seed).map_err(MetaError::from)?;
     let planned = model_planner_metrics(config, task, &shots.rows, key.episodes);
+    let planned = planned.map_err(|why| why.to_string());
     match &planned {
         Ok(m) => {
             tracing::info!(seed, task = %task.name, shots = key.shots, ret = %m.ret, "model planner")
@@ -583,6 +635,12 @@ fn dataset_cached(collection: &Config, path: &Path) -> bool {
 fn cached_w0(meta: &Config, key: InitKey, out: &Path) -> Option<(PathBuf, MetaCurve)> {
     let w0 = out.join("w0");
     if !saved_config_matches(&CheckpointPaths::new(&w0).config, meta) {
+        return None;
+    }
+    // w0 is saved after every checkpointed meta-epoch, its CSV row first: the last meta-epoch's
+    // w0 marks the whole run complete, whatever a kill left of the CSV's last line.
+    let last = checkpoint::read_meta(&w0).is_ok_and(|m| m.epoch == meta.meta.meta_epochs);
+    if !last {
         return None;
     }
     let csv = out.join("meta_train.csv");

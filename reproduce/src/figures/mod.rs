@@ -194,7 +194,7 @@ impl Context<'_> {
                 let planned = keys.iter().map(|k| s.model_planner(k).as_ref());
                 let planned: Result<Vec<&PolicyMetrics>, _> = planned.collect();
                 planned
-                    .map_err(|e| why = why.or(Some(*e)))
+                    .map_err(|e| why = why.clone().or(Some(e.clone())))
                     .ok()
                     .map(|ms| ModelPlanner::mean(&ms))
             })
@@ -221,7 +221,7 @@ struct ModelPlanner {
     /// shots of some task fit no world.
     per_seed: Vec<Option<[f64; 4]>>,
     /// The first reason a seed's shots fit no world.
-    why: Option<uavmeta_world::identify::Unidentified>,
+    why: Option<String>,
 }
 
 impl ModelPlanner {
@@ -259,7 +259,7 @@ impl ModelPlanner {
     /// What the section says when some seed's shots fit no world; empty when every seed's did.
     fn note(&self) -> String {
         let unfitted = self.per_seed.iter().filter(|m| m.is_none()).count();
-        match self.why {
+        match &self.why {
             Some(why) if unfitted > 0 => format!(
                 "\n{}, {} shots: on {unfitted} of {} seeds {NO_FITTED_WORLD}; here: {why}.\n",
                 joined(self.keys.iter().map(|k| format!("`{}`", k.task)), ", "),
