@@ -405,6 +405,16 @@ fn the_quick_plan_through_slurm_survives_a_kill_and_matches_a_local_run() {
         !again.contains("\n0 jobs of the plan were done already"),
         "{again}"
     );
+    // --status names the running jobs, from squeue.
+    let out_arg = remote.display().to_string();
+    let running = || {
+        let text = succeed(
+            "--status",
+            &cluster.uavmeta(&["--out", &out_arg, "--status"]),
+        );
+        text.lines().any(|l| l.starts_with("  running: "))
+    };
+    wait_until("--status to show a running job", within(120), running);
     let finished = || {
         // The queue first: once it is empty no job can still mark itself done.
         let queued = !cluster.queue().trim().is_empty();

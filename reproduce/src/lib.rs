@@ -78,7 +78,7 @@ pub enum ReproduceError {
     Collect(#[from] CollectError),
     #[error("{}: {message}", path.display())]
     Cache { path: PathBuf, message: String },
-    #[error("no {job} in the plan (`uavmeta reproduce --status --out OUT` lists its jobs)")]
+    #[error("no {job} in the plan (OUT/plan.json lists its jobs)")]
     NoSuchJob { job: String },
     #[error("{} holds the plan of another config or choice of experiments: run a job with the --config, --set, --quick, --seeds and --experiment the plan was written with, or write the plan again", path.display())]
     OtherPlan { path: PathBuf },

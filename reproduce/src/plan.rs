@@ -266,15 +266,17 @@ impl<'p> Graph<'p> {
         cache::write(&PlanFile::path(out), &(text + "\n"))
     }
 
-    /// Refuses to run a job of a plan other than the one `OUT/plan.json` holds: an array's index
-    /// means a job only in the plan it was submitted with.
+    /// Refuses to run a job of a plan other than the one `OUT/plan.json` holds (an array's index
+    /// means a job only in the plan it was submitted with); writes this plan where there is none.
     pub fn check_written(&self, out: &Path) -> Result<(), ReproduceError> {
-        match PlanFile::read(out) {
-            Ok(written) if written == self.file => Ok(()),
-            Ok(_) => Err(ReproduceError::OtherPlan {
+        if !PlanFile::path(out).exists() {
+            return self.write(out);
+        }
+        match PlanFile::read(out)? == self.file {
+            true => Ok(()),
+            false => Err(ReproduceError::OtherPlan {
                 path: PlanFile::path(out),
             }),
-            Err(e) => Err(e),
         }
     }
 }
@@ -537,7 +539,10 @@ pub fn run_local(
         let jobs: Vec<&Job> = kinds.iter().flat_map(|&k| graph.of(k)).collect();
         jobs.par_iter().with_max_len(1).try_for_each(|job| {
             run_job(ctx, job, Duration::default)?;
-            done(&job.users);
+            // The progress bars count each seed's items (`Plan::units`), not the seed-free rows.
+            if job.spec.kind != Kind::Heuristics {
+                done(&job.users);
+            }
             Ok(())
         })
     };

@@ -637,8 +637,9 @@ fn cached_w0(meta: &Config, key: InitKey, out: &Path) -> Option<(PathBuf, MetaCu
     if !saved_config_matches(&CheckpointPaths::new(&w0).config, meta) {
         return None;
     }
-    // w0 is saved after every checkpointed meta-epoch, its CSV row first: the last meta-epoch's
-    // w0 marks the whole run complete, whatever a kill left of the CSV's last line.
+    // `w0` is saved once, after the last meta-epoch's CSV row (the checkpoints before it are
+    // `w0-eNNNN`), its metadata last: that metadata marks the whole run complete, whatever a
+    // kill left of the CSV's last line.
     let last = checkpoint::read_meta(&w0).is_ok_and(|m| m.epoch == meta.meta.meta_epochs);
     if !last {
         return None;
