@@ -88,7 +88,7 @@ pub struct TrainOptions<'a> {
 }
 
 /// One epoch's figures.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct EpochRow {
     pub epoch: usize,
     /// Gradient steps so far.

@@ -17,12 +17,10 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
-use uavmeta_learner::train::EpochRow;
 use uavmeta_meta::{create_dir, MetaError};
 use uavmeta_proto::fs::FileError;
-use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
+use uavmeta_proto::stats::PolicyMetrics;
 use uavmeta_world::heuristics::REFERENCES;
-use uavmeta_world::rollout::Trajectory;
 
 use crate::runs::{seed_dir, ModelPlanned, ModelPlannerKey, RefKey, RunKey, RunResult};
 use crate::{HeuristicRef, ReproduceError};
@@ -202,76 +200,21 @@ pub fn load_model_planner(path: &Path) -> Result<ModelPlanned, ReproduceError> {
     }
 }
 
-/// [`RunResult`] as written: every field of every epoch's row, and the recorded path.
-#[derive(Serialize, Deserialize)]
-struct Run {
-    rows: Vec<Row>,
-    trajectory: Option<Flight>,
-}
-
-#[derive(Serialize, Deserialize)]
-struct Row {
-    epoch: usize,
-    steps: usize,
-    td_loss: f64,
-    conservative_loss: f64,
-    mean_q: f64,
-    policy: PolicyMetrics,
-    seconds: f64,
-    network_epoch: usize,
-}
-
-#[derive(Serialize, Deserialize)]
-struct Flight {
-    cells: Vec<(u32, u32)>,
-    metrics: EpisodeMetrics,
-}
-
 pub fn save_run(path: &Path, result: &RunResult) -> Result<(), ReproduceError> {
-    let rows = result.rows.iter().map(|r| Row {
-        epoch: r.epoch,
-        steps: r.steps,
-        td_loss: r.td_loss,
-        conservative_loss: r.conservative_loss,
-        mean_q: r.mean_q,
-        policy: r.policy,
-        seconds: r.seconds,
-        network_epoch: r.network_epoch,
-    });
-    let trajectory = result.trajectory.as_ref().map(|t| Flight {
-        cells: t.cells.clone(),
-        metrics: t.metrics,
-    });
-    let rows = rows.collect();
-    save(path, &Run { rows, trajectory })
+    save(path, result)
 }
 
 pub fn load_run(path: &Path) -> Result<RunResult, ReproduceError> {
-    let run: Run = load(path)?;
-    let rows = run.rows.into_iter().map(|r| EpochRow {
-        epoch: r.epoch,
-        steps: r.steps,
-        td_loss: r.td_loss,
-        conservative_loss: r.conservative_loss,
-        mean_q: r.mean_q,
-        policy: r.policy,
-        seconds: r.seconds,
-        network_epoch: r.network_epoch,
-    });
-    let trajectory = run.trajectory.map(|t| Trajectory {
-        cells: t.cells,
-        metrics: t.metrics,
-    });
-    Ok(RunResult {
-        rows: rows.collect(),
-        trajectory,
-    })
+    load(path)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use uavmeta_learner::train::EpochRow;
+    use uavmeta_proto::stats::EpisodeMetrics;
     use uavmeta_proto::stats::Estimate;
+    use uavmeta_world::rollout::Trajectory;
 
     fn metrics(x: f64) -> PolicyMetrics {
         let e = |mean, ci95| Estimate { mean, ci95 };

@@ -80,14 +80,8 @@ impl Kind {
             Kind::Dataset | Kind::Heuristics => &[],
             Kind::Reference | Kind::ModelPlanner | Kind::Init => &[Kind::Dataset],
             Kind::Run => &[Kind::Dataset, Kind::Init],
-            Kind::Figures => &[
-                Kind::Dataset,
-                Kind::Heuristics,
-                Kind::Reference,
-                Kind::ModelPlanner,
-                Kind::Init,
-                Kind::Run,
-            ],
+            // Every kind before it.
+            Kind::Figures => &Kind::ALL[..Kind::ALL.len() - 1],
         }
     }
 }

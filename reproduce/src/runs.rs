@@ -276,8 +276,8 @@ impl MetaCurve {
     }
 }
 
-/// A finished fine-tuning run.
-#[derive(Debug, Clone)]
+/// A finished fine-tuning run, as the cache writes it.
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct RunResult {
     pub rows: Vec<EpochRow>,
     pub trajectory: Option<Trajectory>,

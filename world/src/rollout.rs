@@ -238,7 +238,7 @@ pub fn evaluate_episodes(
 }
 
 /// One episode's path through the grid, for drawing.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Trajectory {
     /// The UAV's cell at t = 0..=horizon: the start cell, then the cell after every move.
     pub cells: Vec<(u32, u32)>,
