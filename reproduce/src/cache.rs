@@ -11,14 +11,12 @@
 //! shortest round-trip form and read back to the same bits, so the CSVs drawn from a cached result
 //! are the bytes of those drawn from the one in memory.
 
-use std::io::Write as _;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
 
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 use uavmeta_meta::{create_dir, MetaError};
-use uavmeta_proto::fs::FileError;
+use uavmeta_proto::fs::{write_atomic, FileError};
 use uavmeta_proto::stats::PolicyMetrics;
 use uavmeta_world::heuristics::REFERENCES;
 
@@ -40,32 +38,11 @@ pub fn mark_done(out: &Path, id: &str, stamp: &str) -> Result<(), ReproduceError
     write(&marker_path(out, id), stamp)
 }
 
-/// Writes `text` to `path` atomically, creating its directory: a temporary file beside it
-/// (`.NAME.tmp-PID-N`, a name no reader takes for a result), synced, then renamed into place.
-/// Unlike a `tempfile` the file gets the mode of any new file (0666 less the umask), since the
-/// figures and summaries are for whoever shares the output directory.
+/// Writes `text` to `path` atomically (`uavmeta_proto::fs::write_atomic`), creating its
+/// directory.
 pub fn write(path: &Path, text: &str) -> Result<(), ReproduceError> {
-    static COUNT: AtomicUsize = AtomicUsize::new(0);
-    let dir = path.parent().unwrap_or(Path::new("."));
-    create_dir(dir)?;
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy())
-        .unwrap_or_default();
-    let n = COUNT.fetch_add(1, Ordering::Relaxed);
-    let tmp = dir.join(format!(".{name}.tmp-{}-{n}", std::process::id()));
-    let written = (|| {
-        let mut file = std::fs::File::create(&tmp)?;
-        file.write_all(text.as_bytes())?;
-        file.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
-    if written.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    written
-        .map_err(FileError::at(path, "write"))
-        .map_err(MetaError::from)?;
+    create_dir(path.parent().unwrap_or(Path::new(".")))?;
+    write_atomic(path, text.as_bytes()).map_err(MetaError::from)?;
     Ok(())
 }
 
