@@ -82,7 +82,7 @@ fn check_png(path: &Path) {
 }
 
 /// The claims of docs/MODEL.md section 6, one table row each, and the behaviour agents' bar.
-const CLAIMS: [&str; 17] = [
+const CLAIMS: [&str; 18] = [
     "the behaviour agent is trained",
     "every seed within 2% of the planner reference",
     "DQN and DQN-MAML trained offline fail to converge",
@@ -100,6 +100,7 @@ const CLAIMS: [&str; 17] = [
     "CQL-MAML converges within 100 epochs and reaches about zero outages",
     "CQL does not converge in 200 epochs",
     "CQL-MAML flying around the rain zone",
+    "CQL-MAML adapts to rain better than CQL",
 ];
 
 #[test]
@@ -252,6 +253,19 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
             );
         }
     }
+    // Figure 9 judges CQL-MAML against CQL on return and on outages, each with the seeds'
+    // interval, beside the planner and the strongest other method.
+    let rain = read(&out.join("resilience/summary.md"));
+    let contrast = rain
+        .lines()
+        .find(|l| l.contains("CQL-MAML adapts to rain better than CQL"))
+        .unwrap_or_else(|| panic!("no return-and-outages claim in {rain}"));
+    assert_eq!(contrast.matches(" ± ").count(), 6, "{contrast}");
+    assert!(contrast.contains("; planner -"), "{contrast}");
+    assert!(
+        contrast.contains("the strongest other method"),
+        "{contrast}"
+    );
     let behaviour = read(&out.join("online-dqn/summary.md"));
     assert!(
         behaviour.starts_with("# The behaviour agents"),

@@ -5,6 +5,8 @@
 //! The rules, the same for every claim:
 //! - "A beats B" (higher is better): **yes** when A's 95% interval lies wholly above B's,
 //!   **partly** when only A's mean is higher, **no** otherwise.
+//! - "A is about x" (within a range): **yes** when A's 95% interval lies wholly in it, **partly**
+//!   when only its mean does, **no** otherwise.
 //! - A claim over several cases (every shot count, every seed): **yes** when every case holds,
 //!   **no** when none does, **partly** in between.
 //! - A claim the run was too short to test (fewer epochs than the claim's) is **untested**.
@@ -85,9 +87,13 @@ impl Verdict {
         }
     }
 
-    pub fn from_bool(held: bool) -> Verdict {
-        if held {
+    /// `value` lies in `lo..=hi`: **yes** when its whole 95% interval does, **partly** when only
+    /// its mean does, **no** otherwise.
+    pub fn within(value: Estimate, lo: f64, hi: f64) -> Verdict {
+        if value.mean - value.ci95 >= lo && value.mean + value.ci95 <= hi {
             Verdict::Yes
+        } else if (lo..=hi).contains(&value.mean) {
+            Verdict::Partly
         } else {
             Verdict::No
         }
@@ -220,6 +226,22 @@ mod tests {
         );
         assert_eq!(Verdict::beats(est(5.0, 0.0), est(5.0, 0.0)), Verdict::No);
         assert_eq!(Verdict::beats(est(-9.0, 0.1), est(-8.0, 0.1)), Verdict::No);
+    }
+
+    #[test]
+    fn a_range_holds_an_estimate_by_its_interval() {
+        let e = |mean, ci95| Estimate { mean, ci95 };
+        assert_eq!(Verdict::within(e(20.0, 5.0), 10.0, 40.0), Verdict::Yes);
+        assert_eq!(Verdict::within(e(12.0, 5.0), 10.0, 40.0), Verdict::Partly);
+        assert_eq!(Verdict::within(e(8.0, 1.0), 10.0, 40.0), Verdict::No);
+        assert_eq!(
+            Verdict::within(e(0.2, 0.5), f64::NEG_INFINITY, 1.0),
+            Verdict::Yes
+        );
+        assert_eq!(
+            Verdict::within(e(0.8, 0.5), f64::NEG_INFINITY, 1.0),
+            Verdict::Partly
+        );
     }
 
     #[test]
