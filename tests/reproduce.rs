@@ -317,6 +317,30 @@ fn quick_reproduction_writes_every_figure_table_and_claim() {
         assert_eq!(evaluated(init), vec![false, false, true], "{init}");
     }
 
+    // --status reads the finished plan: every kind's jobs done and timed, nothing running.
+    let status = uavmeta(&["--status", "--out", out_arg]);
+    succeed(&status);
+    let status = String::from_utf8_lossy(&status.stdout).into_owned();
+    let done = status
+        .lines()
+        .find(|l| l.starts_with("done "))
+        .expect(&status);
+    assert!(done.ends_with("running 0, left 0; finished"), "{status}");
+    for row in status
+        .lines()
+        .skip(1)
+        .take_while(|l| !l.starts_with("done "))
+    {
+        let cells: Vec<&str> = row.split_whitespace().collect();
+        assert_eq!(cells[2..4], ["0", "0"], "{status}");
+        let timed = cells[4].parse::<f64>().is_ok();
+        assert_eq!(
+            timed,
+            cells[1] != "0",
+            "a kind with jobs done untimed: {status}"
+        );
+    }
+
     // A second run reuses the seeds' datasets and w0s: same files, same figures.
     let dataset = out.join("cache/seed-0/datasets/lambda-0.uavds");
     let w0 = out.join("cache/seed-0/cql-maml-tasks-8/w0.safetensors");

@@ -14,8 +14,9 @@
 //!   agents, meta-trained w0s), and the plan of fine-tuning runs shared between experiments;
 //! - [`plan`]: that plan as a graph of jobs over the cache (`OUT/plan.json`), the one function
 //!   that runs a job and the local engine; [`cache`]: the jobs' results and completion markers;
-//! - [`slurm`]: the same graph submitted to Slurm as one job array per kind of job, and the
-//!   progress of a plan read from the cache;
+//! - [`slurm`]: the same graph submitted to Slurm as one job array per kind of job;
+//! - [`status`]: where a plan stands, whichever engine runs it: jobs done, running and left, their
+//!   times and the time left, read from the cache (and squeue);
 //! - [`figures`]: per experiment, its CSV files, PNG charts ([`uavmeta_plot`]) and `summary.md`;
 //! - [`claims`]: curve statistics and the yes / partly / no rules;
 //! - [`ReproduceConfig`]: the `[reproduce]` section, which this crate alone reads and checks.
@@ -43,6 +44,7 @@ mod figures;
 pub mod plan;
 mod runs;
 pub mod slurm;
+pub mod status;
 
 pub use config::ReproduceConfig;
 pub use plan::{JobSelector, Kind};

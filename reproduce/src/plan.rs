@@ -447,6 +447,7 @@ pub fn run_job(
         return Ok(None);
     }
     tracing::info!(job = %spec.id, "starting");
+    crate::status::Started::write(out, &spec.id)?;
     let mut report = None;
     match job.work {
         Work::Dataset { seed, task } => {

@@ -1,5 +1,5 @@
 //! `uavmeta reproduce --engine slurm`: the plan's graph (`OUT/plan.json`, `crate::plan`) handed
-//! to a Slurm cluster, and the progress of a plan read from the cache.
+//! to a Slurm cluster.
 //!
 //! One `sbatch` job array per kind of job, whose index selects the job among that kind's in plan
 //! order (`--stage KIND --index $SLURM_ARRAY_TASK_ID`), each array after the arrays of the kinds
@@ -12,7 +12,7 @@
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::process::Command;
-use std::time::{Duration, SystemTime};
+use std::time::SystemTime;
 
 use garde::Validate;
 use serde::{Deserialize, Serialize};
@@ -138,7 +138,7 @@ impl Submitted {
         out.join("slurm").join("submitted.json")
     }
 
-    fn read(out: &Path) -> Option<Self> {
+    pub(crate) fn read(out: &Path) -> Option<Self> {
         let text = std::fs::read_to_string(Self::path(out)).ok()?;
         serde_json::from_str(&text).ok()
     }
@@ -358,52 +358,9 @@ fn unix_now() -> u64 {
     now.map_or(0, |d| d.as_secs())
 }
 
-/// Where a plan stands: per kind, its jobs done, running (as squeue says) and left.
-#[derive(Debug, Clone)]
-pub struct Status {
-    pub kinds: Vec<(Kind, usize, usize)>,
-    pub done: usize,
-    pub total: usize,
-    /// The running jobs' ids; `None` when squeue did not answer (or nothing was submitted).
-    pub running: Option<Vec<String>>,
-    /// Whether the latest submission has jobs in the queue, if squeue answered.
-    pub queued: Option<usize>,
-    /// An estimate of the time left, from the jobs done since the latest submission.
-    pub eta: Option<Duration>,
-    /// Whether the plan was submitted to Slurm.
-    pub submitted: bool,
-}
-
-/// The status of the plan in `out`, from its markers and, when it was submitted, squeue.
-pub fn status(out: &Path) -> Result<Status, ReproduceError> {
-    let plan = PlanFile::read(out)?;
-    let kinds: Vec<(Kind, usize, usize)> = Kind::ALL
-        .into_iter()
-        .map(|kind| {
-            let jobs: Vec<_> = plan.of(kind).collect();
-            let done = jobs.iter().filter(|j| PlanFile::done(out, j)).count();
-            (kind, done, jobs.len())
-        })
-        .collect();
-    let done = kinds.iter().map(|k| k.1).sum();
-    let total = plan.jobs.len();
-    let submitted = Submitted::read(out);
-    let queue = submitted.as_ref().and_then(|s| squeue(s, &plan));
-    let eta = (submitted.as_ref()).and_then(|s| estimate(out, &plan, s, total - done));
-    Ok(Status {
-        submitted: submitted.is_some(),
-        kinds,
-        done,
-        total,
-        queued: queue.as_ref().map(|q| q.0),
-        running: queue.map(|q| q.1),
-        eta,
-    })
-}
-
 /// The number of the submission's jobs in the queue and the ids of those running, if squeue
 /// answers.
-fn squeue(submitted: &Submitted, plan: &PlanFile) -> Option<(usize, Vec<String>)> {
+pub(crate) fn squeue(submitted: &Submitted, plan: &PlanFile) -> Option<(usize, Vec<String>)> {
     let args = vec![
         "-h".into(),
         "-r".into(),
@@ -429,58 +386,6 @@ fn squeue(submitted: &Submitted, plan: &PlanFile) -> Option<(usize, Vec<String>)
         }
     }
     Some((queued, running))
-}
-
-/// Time left: the jobs left at the rate the jobs done since `submitted` were done.
-fn estimate(out: &Path, plan: &PlanFile, submitted: &Submitted, left: usize) -> Option<Duration> {
-    let since = SystemTime::UNIX_EPOCH + Duration::from_secs(submitted.at);
-    let recent = (plan.jobs.iter())
-        .filter(|j| PlanFile::done(out, j))
-        .filter_map(|j| std::fs::metadata(cache::marker_path(out, &j.id)).ok())
-        .filter_map(|m| m.modified().ok())
-        .filter(|&t| t >= since)
-        .count();
-    let elapsed = SystemTime::now().duration_since(since).ok()?;
-    (recent > 0).then(|| elapsed.mul_f64(left as f64 / recent as f64))
-}
-
-impl Status {
-    pub fn finished(&self) -> bool {
-        self.done == self.total
-    }
-
-    /// The status in lines: per kind, then the whole, the running jobs and the estimate.
-    pub fn describe(&self) -> String {
-        let mut s = String::new();
-        for &(kind, done, total) in &self.kinds {
-            let _ = writeln!(s, "{:>10} {done:>4} of {total:<4} done", kind.name());
-        }
-        let running = match (&self.running, self.submitted) {
-            (Some(ids), _) => ids.len().to_string(),
-            (None, true) => "unknown (squeue did not answer)".into(),
-            (None, false) => "0 (not submitted to Slurm)".into(),
-        };
-        let _ = writeln!(
-            s,
-            "done {} of {} jobs, running {running}, left {}; {}",
-            self.done,
-            self.total,
-            self.total - self.done,
-            self.eta_text()
-        );
-        for id in self.running.iter().flatten() {
-            let _ = writeln!(s, "  running: {id}");
-        }
-        s
-    }
-
-    pub fn eta_text(&self) -> String {
-        match (self.finished(), self.eta) {
-            (true, _) => "finished".into(),
-            (false, Some(eta)) => format!("about {:.1} min left", eta.as_secs_f64() / 60.0),
-            (false, None) => "time left unknown yet".into(),
-        }
-    }
 }
 
 #[cfg(test)]

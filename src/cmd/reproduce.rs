@@ -193,7 +193,7 @@ fn job_command(args: &ReproduceArgs, out: &Path) -> Result<Vec<String>> {
 
 /// `--status`: the plan in `out`, once or (`watch`) as a progress bar until it ends.
 fn status(out: &Path, watch: bool) -> Result<()> {
-    let status = reproduce::slurm::status(out)?;
+    let status = reproduce::status::status(out)?;
     if !watch {
         print!("{}", status.describe());
         return Ok(());
@@ -203,7 +203,7 @@ fn status(out: &Path, watch: bool) -> Result<()> {
             .expect("the template is valid"),
     );
     loop {
-        let status = reproduce::slurm::status(out)?;
+        let status = reproduce::status::status(out)?;
         bar.set_position(status.done as u64);
         let running = status.running.as_ref().map_or(0, Vec::len);
         bar.set_message(format!("({running} running; {})", status.eta_text()));
