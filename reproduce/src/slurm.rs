@@ -12,7 +12,6 @@
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::process::Command;
-use std::time::SystemTime;
 
 use garde::Validate;
 use serde::{Deserialize, Serialize};
@@ -126,8 +125,6 @@ pub struct Array {
 /// `OUT/slurm/submitted.json`: the latest submission of the plan.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Submitted {
-    /// Seconds since the Unix epoch.
-    pub at: u64,
     pub arrays: Vec<Array>,
     /// Jobs of the plan already done, not submitted.
     pub skipped: usize,
@@ -197,7 +194,6 @@ pub fn submit(
     refuse_if_queued(out)?;
     uavmeta_meta::create_dir(&logs_dir(out))?;
     let mut submitted = Submitted {
-        at: unix_now(),
         arrays: Vec::new(),
         skipped: 0,
     };
@@ -351,11 +347,6 @@ fn parse_job_id(program: &str, args: &[String], answer: &str) -> Result<String, 
             answer: answer.trim().to_string(),
         }),
     }
-}
-
-fn unix_now() -> u64 {
-    let now = SystemTime::now().duration_since(SystemTime::UNIX_EPOCH);
-    now.map_or(0, |d| d.as_secs())
 }
 
 /// The number of the submission's jobs in the queue and the ids of those running, if squeue

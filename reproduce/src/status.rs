@@ -12,6 +12,7 @@
 //! job less the time it has run), over the number of jobs running at once; kinds with no job
 //! done yet are named as not timed.
 
+use std::collections::HashSet;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, SystemTime};
@@ -53,9 +54,10 @@ impl Started {
         serde_json::from_str(&text).ok()
     }
 
-    /// Whether its process still runs: on this host its pid is alive; elsewhere it cannot be told.
-    fn alive(&self) -> bool {
-        if self.host != this_host() {
+    /// Whether its process still runs: on `host` (this one) its pid is alive; elsewhere it
+    /// cannot be told.
+    fn alive(&self, host: &str) -> bool {
+        if self.host != host {
             return true;
         }
         let Ok(pid) = i32::try_from(self.pid) else {
@@ -115,70 +117,59 @@ pub struct Status {
     pub queued: Option<usize>,
 }
 
+/// What the cache says of one job: whether it is done, its start record and its marker's time.
+struct JobRecord<'p> {
+    id: &'p str,
+    kind: Kind,
+    done: bool,
+    started: Option<Started>,
+    ended: Option<SystemTime>,
+}
+
 /// The status of the plan in `out`, from its markers and start records and, when it was
 /// submitted, squeue.
 pub fn status(out: &Path) -> Result<Status, ReproduceError> {
     let plan = PlanFile::read(out)?;
     let submitted = Submitted::read(out);
     let queue = submitted.as_ref().and_then(|s| slurm::squeue(s, &plan));
-    let now = SystemTime::now();
-    let records = |kind| {
-        plan.of(kind).map(move |job| {
+    let records: Vec<JobRecord> = (plan.jobs.iter())
+        .map(|job| {
             let done = PlanFile::done(out, job);
-            let started = Started::read(out, &job.id);
-            (job, done, started)
+            let marker = cache::marker_path(out, &job.id);
+            JobRecord {
+                id: &job.id,
+                kind: job.kind,
+                done,
+                started: Started::read(out, &job.id),
+                ended: (done.then(|| std::fs::metadata(marker).and_then(|m| m.modified()).ok()))
+                    .flatten(),
+            }
         })
-    };
+        .collect();
     let running: Option<Vec<String>> = match (&submitted, &queue) {
         (Some(_), Some((_, running))) => Some(running.clone()),
         (Some(_), None) => None,
-        (None, _) => Some(
-            (Kind::ALL.into_iter().flat_map(&records))
-                .filter(|(_, done, started)| !done && started.as_ref().is_some_and(Started::alive))
-                .map(|(job, _, _)| job.id.clone())
-                .collect(),
-        ),
+        (None, _) => {
+            let host = this_host();
+            let alive =
+                |r: &&JobRecord| !r.done && r.started.as_ref().is_some_and(|s| s.alive(&host));
+            Some(
+                records
+                    .iter()
+                    .filter(alive)
+                    .map(|r| r.id.to_string())
+                    .collect(),
+            )
+        }
     };
+    let ids = running
+        .iter()
+        .flatten()
+        .map(String::as_str)
+        .collect::<HashSet<_>>();
+    let now = unix_seconds(SystemTime::now());
     let kinds: Vec<KindStatus> = (Kind::ALL.into_iter())
-        .map(|kind| {
-            let mut k = KindStatus {
-                kind,
-                total: 0,
-                done: 0,
-                running: 0,
-                timed: 0,
-                busy: Duration::ZERO,
-                work_left: None,
-            };
-            let mut elapsed = Vec::new();
-            for (job, done, started) in records(kind) {
-                k.total += 1;
-                let is_running = (running.iter().flatten()).any(|id| *id == job.id);
-                if done {
-                    k.done += 1;
-                    let end = std::fs::metadata(cache::marker_path(out, &job.id))
-                        .and_then(|m| m.modified());
-                    if let (Some(s), Ok(end)) = (started, end) {
-                        k.timed += 1;
-                        k.busy += Duration::from_secs_f64((unix_seconds(end) - s.at).max(0.0));
-                    }
-                } else if is_running {
-                    k.running += 1;
-                    let ran = started.map_or(0.0, |s| unix_seconds(now) - s.at);
-                    elapsed.push(Duration::from_secs_f64(ran.max(0.0)));
-                }
-            }
-            let waiting = (k.total - k.done - k.running) as u32;
-            k.work_left = match (k.mean(), k.done == k.total) {
-                (_, true) => Some(Duration::ZERO),
-                (None, false) => None,
-                (Some(mean), false) => {
-                    let running_left = elapsed.iter().map(|&e| mean.saturating_sub(e));
-                    Some(mean * waiting + running_left.sum::<Duration>())
-                }
-            };
-            k
-        })
+        .map(|kind| kind_status(kind, records.iter().filter(|r| r.kind == kind), &ids, now))
         .collect();
     Ok(Status {
         done: kinds.iter().map(|k| k.done).sum(),
@@ -187,6 +178,50 @@ pub fn status(out: &Path) -> Result<Status, ReproduceError> {
         running,
         queued: queue.map(|q| q.0),
     })
+}
+
+/// One kind's counts, times and work left from its jobs' records; `running` holds the ids of the
+/// jobs running, `now` is in Unix seconds.
+fn kind_status<'r, 'p: 'r>(
+    kind: Kind,
+    records: impl Iterator<Item = &'r JobRecord<'p>>,
+    running: &HashSet<&str>,
+    now: f64,
+) -> KindStatus {
+    let seconds = |s: f64| Duration::from_secs_f64(s.max(0.0));
+    let mut k = KindStatus {
+        kind,
+        total: 0,
+        done: 0,
+        running: 0,
+        timed: 0,
+        busy: Duration::ZERO,
+        work_left: None,
+    };
+    let mut elapsed = Vec::new();
+    for r in records {
+        k.total += 1;
+        if r.done {
+            k.done += 1;
+            if let (Some(s), Some(end)) = (&r.started, r.ended) {
+                k.timed += 1;
+                k.busy += seconds(unix_seconds(end) - s.at);
+            }
+        } else if running.contains(r.id) {
+            k.running += 1;
+            elapsed.push(seconds(r.started.as_ref().map_or(0.0, |s| now - s.at)));
+        }
+    }
+    let waiting = (k.total - k.done - k.running) as u32;
+    k.work_left = match (k.mean(), k.done == k.total) {
+        (_, true) => Some(Duration::ZERO),
+        (None, false) => None,
+        (Some(mean), false) => {
+            let running_left = elapsed.iter().map(|&e| mean.saturating_sub(e));
+            Some(mean * waiting + running_left.sum::<Duration>())
+        }
+    };
+    k
 }
 
 impl Status {
@@ -270,7 +305,8 @@ mod tests {
             pid: std::process::id(),
             at: 0.0,
         };
-        assert!(mine.alive());
+        let host = this_host();
+        assert!(mine.alive(&host));
         let mut child = std::process::Command::new("true").spawn().unwrap();
         let pid = child.id();
         child.wait().unwrap();
@@ -278,11 +314,11 @@ mod tests {
             pid,
             ..mine.clone()
         };
-        assert!(!dead.alive());
+        assert!(!dead.alive(&host));
         let elsewhere = Started {
             host: format!("{}-elsewhere", this_host()),
             ..dead
         };
-        assert!(elsewhere.alive());
+        assert!(elsewhere.alive(&host));
     }
 }
