@@ -465,10 +465,9 @@ pub fn check_memory(config: &Config, job: Job) -> Result<(), ResourceError> {
 /// `episodes`; else one per episode.
 pub fn evaluation_worlds(config: &Config, task: &TaskConfig, episodes: usize, exact: bool) -> u64 {
     let deterministic = task.rain_moves_every.is_none() || task.rain.is_none();
-    match (exact && deterministic, config.world.start_cell.is_some()) {
-        (true, true) => 1,
-        (true, false) => u64::from(config.world.grid_cells).pow(2),
-        (false, _) => episodes as u64,
+    match exact && deterministic {
+        true => config.world.exact_starts() as u64,
+        false => episodes as u64,
     }
 }
 

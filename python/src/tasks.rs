@@ -159,6 +159,7 @@ impl TaskSource {
                     role: TaskRole::MetaTrain,
                     rain,
                     rain_moves_every: rain.and(moves),
+                    risky: None,
                 };
                 // Drawn last, and only among several, so a sampler without layouts draws as
                 // it did before layouts existed.

@@ -195,8 +195,8 @@ impl Worlds {
                 out.truncated[i] = step.truncated;
                 out.aoi[i] = step.aoi_mean;
                 out.power_mw[i] = step.power_mw;
-                out.outage[i] = step.outage;
-                out.device[i] = step.device as i64;
+                out.outage[i] = step.outages > 0;
+                out.device[i] = self.worlds[i].layout().device(action as usize) as i64;
                 out.stepped[i] = true;
                 self.pending_reset[i] = step.truncated;
             }
@@ -452,8 +452,8 @@ impl Worlds {
             step.truncated,
             step.aoi_mean,
             step.power_mw,
-            step.outage,
-            step.device,
+            step.outages > 0,
+            self.worlds[i].layout().device(action),
             self.worlds[i].uav(),
         ))
     }

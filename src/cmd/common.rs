@@ -19,7 +19,15 @@ pub struct ConfigArgs {
 }
 
 impl ConfigArgs {
+    /// The config of a command that flies one UAV: every command but `env rollout`.
     pub fn load(&self) -> Result<Config> {
+        let config = self.load_team()?;
+        config.require_one_uav("this command")?;
+        Ok(config)
+    }
+
+    /// The config, a team's too.
+    pub fn load_team(&self) -> Result<Config> {
         Ok(Config::load(&self.config, &self.overrides)?)
     }
 }

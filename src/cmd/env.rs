@@ -79,7 +79,7 @@ fn run_rollout(args: RolloutArgs) -> Result<()> {
         "--episodes {}: expected at least 1 episode",
         args.episodes
     );
-    let mut config = args.config.load()?;
+    let mut config = args.config.load_team()?;
     let task = args.task.resolve(&mut config)?;
     let spec = &args.policy;
     let job = match spec {

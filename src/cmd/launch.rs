@@ -38,6 +38,7 @@ impl RunArgs {
         }
         let config =
             run.load_or_init_config(|| Config::load(&self.config.config, &self.config.overrides))?;
+        config.require_one_uav("a launch")?;
         Ok((run, config))
     }
 

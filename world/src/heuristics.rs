@@ -1,11 +1,16 @@
 //! Heuristic behaviour policies: the baselines that calibrate every learning curve, and the
 //! `--policy` parser that names them.
 //!
-//! - [`RandomPolicy`]: uniform over the 5K actions.
+//! - [`RandomPolicy`]: uniform over the actions.
 //! - [`StalestPolicy`]: serve the device with the largest delta_k A_k, fly towards it.
 //! - [`GreedyPolicy`]: serve the device that makes this step cheapest, fly towards the stalest.
 //! - [`EpsilonPolicy`]: stalest (or another policy), with a uniform random action with probability P.
 //! - [`ReplayPolicy`]: a fixed list of action indices read from a file.
+//!
+//! In a team (docs/MODEL.md section 11) the UAVs decide in order, each with a claim: stalest and
+//! greedy give UAV u the best device no earlier UAV serves and fly it towards the stalest device
+//! no earlier UAV flies to; random and replayed policies draw or read one action per UAV. With
+//! one UAV every one of them is the paper's heuristic.
 //!
 //! `PolicySpec` also names the planner reference (`crate::planner`), which is no heuristic but is
 //! picked the same way.
@@ -69,6 +74,14 @@ impl Policy for RandomPolicy {
     fn act(&mut self, world: &World) -> usize {
         self.rng.random_range(0..world.layout().action_count())
     }
+
+    fn acts_for_teams(&self) -> bool {
+        true
+    }
+
+    fn act_team(&mut self, world: &World, actions: &mut [usize]) {
+        actions.iter_mut().for_each(|a| *a = self.act(world));
+    }
 }
 
 /// Serve the device with the largest delta_k A_k (ties to the lowest index) and fly towards it.
@@ -77,10 +90,21 @@ pub struct StalestPolicy;
 
 impl Policy for StalestPolicy {
     fn act(&mut self, world: &World) -> usize {
-        let device = stalest_device(world);
-        world
-            .layout()
-            .action(towards(world, device).index(), device)
+        one_uav(self, world)
+    }
+
+    fn acts_for_teams(&self) -> bool {
+        true
+    }
+
+    fn act_team(&mut self, world: &World, actions: &mut [usize]) {
+        let (mut served, mut flown) = (Claims::default(), Claims::default());
+        for (u, action) in actions.iter_mut().enumerate() {
+            let device = served.claim(stalest_device(world, &served));
+            let goal = flown.claim(stalest_device(world, &flown));
+            let mv = towards(world, world.uav_cell(u), goal);
+            *action = world.layout().action(mv.index(), device);
+        }
     }
 }
 
@@ -91,16 +115,55 @@ pub struct GreedyPolicy;
 
 impl Policy for GreedyPolicy {
     fn act(&mut self, world: &World) -> usize {
-        let device = (0..world.devices())
-            .map(|k| (k, world.cost_of(k)))
-            .fold(
-                (0, f64::INFINITY),
-                |best, (k, c)| if c < best.1 { (k, c) } else { best },
-            )
-            .0;
-        world
-            .layout()
-            .action(towards(world, stalest_device(world)).index(), device)
+        one_uav(self, world)
+    }
+
+    fn acts_for_teams(&self) -> bool {
+        true
+    }
+
+    fn act_team(&mut self, world: &World, actions: &mut [usize]) {
+        let (mut served, mut flown) = (Claims::default(), Claims::default());
+        // The targets a UAV weighs: every device, and "none" where the world has it.
+        let targets = world.layout().targets();
+        for (u, action) in actions.iter_mut().enumerate() {
+            let cell = world.uav_cell(u);
+            let target = (0..targets)
+                .filter(|&k| k == world.devices() || !served.has(k))
+                .map(|k| (k, world.cost_of_from(cell, k)))
+                .fold(
+                    (0, f64::INFINITY),
+                    |best, (k, c)| if c < best.1 { (k, c) } else { best },
+                )
+                .0;
+            served.claim(target);
+            let goal = flown.claim(stalest_device(world, &flown));
+            let mv = towards(world, cell, goal);
+            *action = world.layout().action(mv.index(), target);
+        }
+    }
+}
+
+/// A one-UAV world's action from a team policy.
+fn one_uav(policy: &mut impl Policy, world: &World) -> usize {
+    let mut action = [0];
+    policy.act_team(world, &mut action);
+    action[0]
+}
+
+/// Devices the earlier UAVs of a team step have claimed.
+#[derive(Debug, Clone, Copy, Default)]
+struct Claims(u128);
+
+impl Claims {
+    fn has(self, device: usize) -> bool {
+        self.0 >> device & 1 == 1
+    }
+
+    /// Claims `device` (K, "none", is never claimed) and returns it.
+    fn claim(&mut self, device: usize) -> usize {
+        self.0 |= 1 << device;
+        device
     }
 }
 
@@ -139,6 +202,19 @@ impl Policy for EpsilonPolicy {
             self.random.act(world)
         } else {
             self.inner.act(world)
+        }
+    }
+
+    fn acts_for_teams(&self) -> bool {
+        self.inner.acts_for_teams()
+    }
+
+    /// One coin a step for the whole team.
+    fn act_team(&mut self, world: &World, actions: &mut [usize]) {
+        if self.coin.random_bool(self.epsilon) {
+            self.random.act_team(world, actions)
+        } else {
+            self.inner.act_team(world, actions)
         }
     }
 }
@@ -201,6 +277,15 @@ impl Policy for ReplayPolicy {
         let action = self.actions[self.next % self.actions.len()];
         self.next += 1;
         action
+    }
+
+    fn acts_for_teams(&self) -> bool {
+        true
+    }
+
+    /// One action a UAV, in UAV order.
+    fn act_team(&mut self, world: &World, actions: &mut [usize]) {
+        actions.iter_mut().for_each(|a| *a = self.act(world));
     }
 }
 
@@ -319,6 +404,37 @@ impl PolicySpec {
         steps: Option<usize>,
     ) -> Result<Box<dyn Policy>, PolicyError> {
         let action_count = config.world.layout().action_count();
+        let policy = self.build_any(config, seed, steps, action_count)?;
+        self.for_world(config, policy)
+    }
+
+    /// `policy`, this spec's, if it can fly `config`'s world: a team's needs a team policy.
+    pub fn for_world(
+        &self,
+        config: &Config,
+        policy: Box<dyn Policy>,
+    ) -> Result<Box<dyn Policy>, PolicyError> {
+        let uavs = config.world.uavs;
+        if uavs == 1 || policy.acts_for_teams() {
+            return Ok(policy);
+        }
+        Err(PolicyError::Spec {
+            spec: self.to_string(),
+            expected: format!(
+                "a policy that acts for a team of world.uavs = {uavs}: random, stalest, greedy, \
+                 eps:P or actions:FILE (the planner and learned policies fly one UAV so far, \
+                 docs/MODEL.md section 11)"
+            ),
+        })
+    }
+
+    fn build_any(
+        &self,
+        config: &Config,
+        seed: u64,
+        steps: Option<usize>,
+        action_count: usize,
+    ) -> Result<Box<dyn Policy>, PolicyError> {
         Ok(match self {
             Self::Random => Box::new(RandomPolicy::new(seed)),
             Self::Stalest => Box::new(StalestPolicy),
@@ -395,14 +511,17 @@ pub fn model_planner_metrics(
     Ok(evaluate(&config.world, task, &mut policy, episodes, seed))
 }
 
-/// The device with the largest delta_k A_k, ties to the lowest index.
-fn stalest_device(world: &World) -> usize {
+/// The device with the largest delta_k A_k not in `claimed`, ties to the lowest index; if every
+/// device is claimed, the stalest of all.
+fn stalest_device(world: &World, claimed: &Claims) -> usize {
+    let all_claimed = (0..world.devices()).all(|k| claimed.has(k));
     world
         .aoi()
         .iter()
         .zip(world.delta())
         .map(|(&a, &d)| d * a as f64)
         .enumerate()
+        .filter(|&(k, _)| all_claimed || !claimed.has(k))
         .fold((0, f64::NEG_INFINITY), |best, (k, v)| {
             if v > best.1 {
                 (k, v)
@@ -413,15 +532,22 @@ fn stalest_device(world: &World) -> usize {
         .0
 }
 
-/// One step towards `device`'s cell, x first; hover above it.
-fn towards(world: &World, device: usize) -> Move {
-    let (ux, uy) = world.uav();
+/// One step from `cell` towards `device`'s cell, x first; hover above it. With moves of several
+/// cells, an axis at least a move away comes first, then one a move brings nearer; hover when
+/// no move brings the UAV nearer.
+fn towards(world: &World, (ux, uy): (u32, u32), device: usize) -> Move {
+    use std::cmp::Ordering::{Greater, Less};
     let (dx, dy) = world.device_cells()[device];
-    match (ux.cmp(&dx), uy.cmp(&dy)) {
-        (std::cmp::Ordering::Less, _) => Move::East,
-        (std::cmp::Ordering::Greater, _) => Move::West,
-        (_, std::cmp::Ordering::Less) => Move::North,
-        (_, std::cmp::Ordering::Greater) => Move::South,
+    let s = world.step_cells();
+    let axes = [
+        (ux.abs_diff(dx), ux.cmp(&dx), Move::East, Move::West),
+        (uy.abs_diff(dy), uy.cmp(&dy), Move::North, Move::South),
+    ];
+    let far = axes.iter().find(|a| a.0 >= s);
+    let near = || axes.iter().find(|a| 2 * a.0 > s);
+    match far.or_else(near) {
+        Some(&(_, Less, up, _)) => up,
+        Some(&(_, Greater, _, down)) => down,
         _ => Move::Hover,
     }
 }

@@ -70,6 +70,7 @@ pub fn template(world: &WorldConfig) -> World {
         role: TaskRole::MetaTest,
         rain: None,
         rain_moves_every: None,
+        risky: None,
     };
     World::new(world, &task, 0)
 }
@@ -121,7 +122,7 @@ fn observed_costs(form: &World, shots: &[Transition]) -> Result<Costs, Unidentif
     for (i, t) in shots.iter().enumerate() {
         let action = usize::from(t.action);
         let makes = |outage: bool, next: &mut Vec<u16>| {
-            form.outcome(&t.obs, action, outage, next).is_some() && *next == t.next_obs
+            form.outcome(&t.obs, action, outage, false, next).is_some() && *next == t.next_obs
         };
         if !makes(false, &mut next) {
             match makes(true, &mut next) {

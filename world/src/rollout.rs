@@ -9,20 +9,36 @@
 //! start cells and rain moves. [`rollout`] always runs Monte-Carlo episodes, as `uavmeta env
 //! rollout --episodes N --seed S` asks.
 
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
-use uavmeta_proto::config::{TaskConfig, WorldConfig};
+use uavmeta_proto::config::{TaskConfig, WorldConfig, MAX_JOINT_STARTS, MAX_UAVS};
 use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 
 use crate::world::{Move, Step, World};
 
-/// Chooses an action index `move * K + device` for the world's current state. Heuristics may read
-/// the whole world; learned policies read only `world.observation()`.
+/// Chooses an action index `move * targets + target` for the world's current state. Heuristics
+/// may read the whole world; learned policies read only `world.observation()`.
 pub trait Policy {
     fn act(&mut self, world: &World) -> usize;
+
+    /// Every UAV's action, UAV u's into `actions[u]` (docs/MODEL.md section 11). A policy of one
+    /// UAV acts for the one UAV there is; a team policy overrides this, and
+    /// [`Policy::acts_for_teams`] says so.
+    fn act_team(&mut self, world: &World, actions: &mut [usize]) {
+        assert_eq!(actions.len(), 1, "a policy of one UAV in a team");
+        actions[0] = self.act(world);
+    }
+
+    /// Whether [`Policy::act_team`] acts for a team of any size.
+    fn acts_for_teams(&self) -> bool {
+        false
+    }
 }
 
-/// One step as `--trace` prints it.
+/// One step as `--trace` prints it; in a team, UAV 0's cell, action, move and target beside the
+/// team's reward, power and outages.
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct StepRecord<'a> {
     /// Step index within the episode, from 0.
@@ -32,6 +48,7 @@ pub struct StepRecord<'a> {
     pub action: usize,
     #[serde(rename = "move")]
     pub mv: Move,
+    /// The target served: a device, or K for none.
     pub device: usize,
     pub reward: f64,
     pub power_mw: f64,
@@ -53,20 +70,24 @@ pub fn run_episode_observed(
 ) -> EpisodeMetrics {
     world.reset();
     let mut tally = EpisodeTally::default();
+    let mut team = [0usize; MAX_UAVS];
+    let actions = &mut team[..world.uavs()];
     loop {
         let t = world.t();
         let position = world.uav();
-        let action = policy.act(world);
-        let step = world.step(action);
+        policy.act_team(world, actions);
+        let step = world.step_team(actions);
+        let action = actions[0];
+        let (mv, device) = world.layout().split(action);
         observe(&StepRecord {
             t,
             position,
             action,
-            mv: step.mv,
-            device: step.device,
+            mv: Move::from_index(mv),
+            device,
             reward: step.reward,
             power_mw: step.power_mw,
-            outage: step.outage,
+            outage: step.outages > 0,
             aoi: world.aoi(),
         });
         tally.add(&step);
@@ -89,7 +110,7 @@ impl EpisodeTally {
         self.sums.ret += step.reward;
         self.sums.aoi += step.aoi_mean;
         self.sums.power_mw += step.power_mw;
-        self.sums.outages += step.outage as u32;
+        self.sums.outages += step.outages;
         self.steps += 1;
     }
 
@@ -183,32 +204,70 @@ pub fn episode_worlds(
 }
 
 /// The worlds of one evaluation, each ready for its episode (every path that scores a policy
-/// builds them here): on a deterministic world one per start cell, row by row (or the one fixed
-/// start), whatever `episodes`; where the rain moves, `episodes` Monte-Carlo worlds of
-/// [`episode_worlds`].
+/// builds them here), charging the risky region's expected penalty: on a deterministic world one
+/// per start ([`start_worlds`]), whatever `episodes`; where the rain moves, `episodes`
+/// Monte-Carlo worlds of [`episode_worlds`].
 pub fn evaluation_worlds(
     world_cfg: &WorldConfig,
     task: &TaskConfig,
     episodes: usize,
     seed: u64,
 ) -> Vec<World> {
-    let template = World::new(world_cfg, task, seed);
+    let template = World::new(world_cfg, task, seed).expecting_risk();
     if !template.is_deterministic() {
-        return episode_worlds(world_cfg, task, episodes, seed).collect();
+        let worlds = episode_worlds(world_cfg, task, episodes, seed);
+        return worlds.map(World::expecting_risk).collect();
     }
     start_worlds(&template)
 }
 
-/// A deterministic world `template` from each start cell: every cell of the grid, or its fixed
-/// start cell alone. Exact evaluation runs one episode in each.
+/// The seed of the fixed sample of joint start cells, the same for every method and task.
+pub const JOINT_START_SEED: u64 = 0x7ea3_5eed;
+
+/// A deterministic world `template` from each start: every cell of the grid (each of a team's
+/// joint start cells), or its fixed start cell alone. Exact evaluation runs one episode in each.
 pub fn start_worlds(template: &World) -> Vec<World> {
     if template.start_cell().is_some() {
         return vec![template.clone()];
     }
     let grid = template.grid_cells();
-    (0..grid * grid)
-        .map(|c| template.clone().with_start((c % grid, c / grid)))
+    if template.uavs() == 1 {
+        return (0..grid * grid)
+            .map(|c| template.clone().with_start((c % grid, c / grid)))
+            .collect();
+    }
+    joint_starts(grid, template.uavs())
+        .iter()
+        .map(|starts| template.clone().with_starts(starts))
         .collect()
+}
+
+/// Every joint start cell of `uavs` UAVs on a `grid` a side, UAV 0's cell slowest, or
+/// [`MAX_JOINT_STARTS`] of them drawn uniformly from [`JOINT_START_SEED`] where there are more.
+fn joint_starts(grid: u32, uavs: usize) -> Vec<Vec<(u32, u32)>> {
+    let cells = grid as usize * grid as usize;
+    let cell = |c: usize| ((c % grid as usize) as u32, (c / grid as usize) as u32);
+    match cells
+        .checked_pow(uavs as u32)
+        .filter(|&n| n <= MAX_JOINT_STARTS)
+    {
+        Some(n) => (0..n)
+            .map(|i| {
+                let digit = |u: usize| i / cells.pow((uavs - 1 - u) as u32) % cells;
+                (0..uavs).map(|u| cell(digit(u))).collect()
+            })
+            .collect(),
+        None => {
+            let mut rng = ChaCha8Rng::seed_from_u64(JOINT_START_SEED);
+            (0..MAX_JOINT_STARTS)
+                .map(|_| {
+                    (0..uavs)
+                        .map(|_| cell(rng.random_range(0..cells)))
+                        .collect()
+                })
+                .collect()
+        }
+    }
 }
 
 /// Evaluation of `policy` on `task` over [`evaluation_worlds`]: exact over every start cell where

@@ -4,14 +4,15 @@
 //! The checks, in order, each named by the `reason` label it counts under
 //! (`uavmeta_proto::metrics::store::REJECTION_REASONS`):
 //! - `non_finite`: the reward is a finite number;
-//! - `action`: a < 5K;
+//! - `action`: a below the action count (5K, or 5(K + 1) with the idle target);
 //! - `step`: the step index is below the horizon T, and `truncated` is set exactly on step T - 1;
 //! - `position`: both cells are on the grid, and at step 0 the UAV is at the fixed start cell if
 //!   the world has one;
 //! - `aoi`: every AoI of s(t) and s(t+1) is in [1, aoi_max], and in s(t) at most step + 1 (every
 //!   counter starts at 1 and ages by one a step);
 //! - `reward` and `next_state`: the world is deterministic given (s, a) and the task, except for
-//!   the outage, which is one of [`World::possible_outages`]; the transition must be the world's
+//!   the outage and the risky region's penalty, one of [`World::possible_outages`] and of
+//!   [`World::possible_penalties`]; the transition must be the world's
 //!   step from s(t) under a for one of them: the same s(t+1), and the same reward as the f32 the
 //!   actors write (`step.reward as f32`), exactly.
 
@@ -130,7 +131,7 @@ impl Validator {
         }
         if usize::from(t.action) >= w.layout().action_count() {
             let detail = format!(
-                "action {}, expected below 5K = {}",
+                "action {}, expected below the action count, 5 moves x targets = {}",
                 t.action,
                 w.layout().action_count()
             );
@@ -206,9 +207,13 @@ impl Validator {
         let (x, y) = Layout::cell(t.obs);
         let (x, y) = (u32::from(x), u32::from(y));
         let mut wrong_reward = None;
-        for &outage in self.world.possible_outages(x, y, t.step) {
-            let action = usize::from(t.action);
-            let Some(reward) = self.world.outcome(t.obs, action, outage, &mut self.next) else {
+        let action = usize::from(t.action);
+        let target = self.world.layout().device(action);
+        let penalties = self.world.possible_penalties(x, y, target);
+        let cases = self.world.possible_outages(x, y, t.step).iter();
+        for (&outage, &penalised) in cases.flat_map(|o| penalties.iter().map(move |p| (o, p))) {
+            let next = &mut self.next;
+            let Some(reward) = self.world.outcome(t.obs, action, outage, penalised, next) else {
                 return reject(
                     POSITION,
                     format!("s(t) = {:?} is no state of this world", t.obs),

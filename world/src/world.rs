@@ -14,16 +14,22 @@
 //! - A task with `rain_moves_every = N` starts every episode with its configured zone and moves
 //!   it after every N-th step of the episode to a uniformly random place of the same size, drawn
 //!   from the world's seeded RNG.
+//!
+//! A team (`world.uavs` > 1, docs/MODEL.md section 11) steps with [`World::step_team`]: every
+//! UAV transmits from its cell (in outage inside rain, at a penalty drawn from a stream of its own
+//! inside the task's risky region), every AoI ages, each device served without outage restarts at
+//! 1 once however many UAVs served it, each UAV pays its own power, and then every UAV moves.
+//! With one UAV this is the paper's step, to the bit.
 
 use std::sync::Arc;
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
-use uavmeta_proto::config::{PowerTerm, RainZone, TaskConfig, WorldConfig};
+use uavmeta_proto::config::{PowerTerm, RainZone, RiskyRegion, TaskConfig, WorldConfig, MAX_UAVS};
 use uavmeta_proto::layout::Layout;
 
-/// The UAV's move in one step. An action index is `move * K + device`, moves in this order.
+/// A UAV's move in one step. An action index is `move * targets + target`, moves in this order.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Move {
@@ -54,25 +60,25 @@ impl Move {
         Self::ALL[index]
     }
 
-    /// This move's block in the action index, `a = index * K + device`.
+    /// This move's block in the action index, `a = index * targets + target`.
     pub fn index(self) -> usize {
         self as usize
     }
 }
 
-/// What one step did.
+/// What one step did (the whole team's, where there are several UAVs).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Step {
-    /// r(t) = -( sum_j delta_j A_j + (lambda / K) * P_mW ).
+    /// r(t) = -( sum_j delta_j A_j + (lambda / K) * sum_u P_u,mW + risky penalties ).
     pub reward: f64,
-    /// The power charged in this step, in milliwatts (rain-attenuated in outage).
+    /// The power charged in this step, in milliwatts, summed over the UAVs (rain-attenuated in
+    /// outage).
     pub power_mw: f64,
-    /// The UAV was inside a rain zone, so the transmission failed.
-    pub outage: bool,
-    /// The scheduled device w(t).
-    pub device: usize,
-    /// The move made after the transmission.
-    pub mv: Move,
+    /// Transmissions that failed because their UAV was inside a rain zone.
+    pub outages: u32,
+    /// The risky region's penalties charged, in reward units (their expectation where the world
+    /// evaluates exactly).
+    pub penalty: f64,
     /// Mean over devices of A_j after the AoI update: an episode's AoI metric averages this.
     pub aoi_mean: f64,
     /// The step counter reached the horizon: the episode ends by time limit, not in a terminal
@@ -92,7 +98,12 @@ pub struct World {
     /// The one delta of every device, if they share it: the AoI cost is then delta times the
     /// integer sum of the AoI, a loop the compiler vectorises.
     uniform_delta: Option<f64>,
-    /// (move, device) of every action index, sparing the step an integer division.
+    /// U, and the cells a move covers.
+    uavs: usize,
+    step_cells: u32,
+    idle: bool,
+    /// (move, target) of every action index, sparing the step an integer division; target K is
+    /// "none".
     action_parts: Vec<(Move, u32)>,
     /// lambda / K: the reward's weight of one milliwatt.
     power_weight: f64,
@@ -101,6 +112,8 @@ pub struct World {
     /// 1 + (r / h)^2 d^2 (docs/MODEL.md section 1). `None` where the power term sums the devices.
     slant_per_cell2: Option<f64>,
     start_cell: Option<(u32, u32)>,
+    /// Every UAV's start cell, fixed for exact evaluation of a team ([`World::with_starts`]).
+    joint_start: Option<Arc<[(u32, u32)]>>,
     /// Milliwatts charged when device k is scheduled with the UAV above cell c, at `[c * K + k]`;
     /// with `power_term = "all_devices"` every k of a cell holds the cell's total. Shared by
     /// clones, so a batch of worlds of one task keeps one copy in cache.
@@ -110,12 +123,26 @@ pub struct World {
     task_rain: Option<RainZone>,
     rain: Option<RainZone>,
     rain_moves_every: Option<u32>,
+    risky: Option<RiskyRegion>,
+    /// Charge the risky region's expected penalty instead of drawing it: exact evaluation.
+    expected_risk: bool,
     /// 1 / (L-1), 1 / (L-1), 1 / aoi_max, ...: turns the raw observation into the network input.
     inv_scale: Vec<f32>,
     rng: ChaCha8Rng,
+    /// The risky region's draws, a stream apart from `rng`'s, so that they never shift the start
+    /// cells and rain moves other policies meet.
+    risk_rng: ChaCha8Rng,
     t: u32,
-    /// s(t) = [x_u, y_u, A_1..A_K].
+    /// s(t) = [x_1, y_1, .., x_U, y_U, A_1..A_K]: with one UAV, its observation.
     obs: Vec<u16>,
+}
+
+/// One UAV's transmission in a step.
+#[derive(Debug, Clone, Copy, Default)]
+struct Sent {
+    power_mw: f64,
+    outage: bool,
+    penalty: f64,
 }
 
 impl World {
@@ -160,10 +187,14 @@ impl World {
             }
         }
 
-        let inv_scale = world.observation_scale().iter().map(|s| 1.0 / s).collect();
+        let layout = world.layout();
+        let span = world.observation_scale()[0];
+        let mut inv_scale = vec![1.0 / span; layout.state_len()];
+        layout
+            .state_aoi_mut(&mut inv_scale)
+            .fill(1.0 / world.aoi_max as f32);
         let delta = world.delta_per_device();
         let uniform_delta = delta.iter().all(|&d| d == delta[0]).then_some(delta[0]);
-        let layout = world.layout();
         let action_parts = (0..layout.action_count())
             .map(|a| layout.split(a))
             .map(|(mv, device)| (Move::from_index(mv), device as u32))
@@ -175,21 +206,28 @@ impl World {
             aoi_max: world.aoi_max as u16,
             delta,
             uniform_delta,
+            uavs: layout.uavs(),
+            step_cells: world.step_cells,
+            idle: world.idle_action,
             action_parts,
             power_weight: task.lambda / k as f64,
             device_cells,
             slant_per_cell2: (world.power_term != PowerTerm::AllDevices)
                 .then(|| (world.cell_m / world.height_m).powi(2)),
             start_cell: world.start_cell.map(|c| (c[0], c[1])),
+            joint_start: None,
             clear_mw: clear_mw.into(),
             rain_mw: rain_mw.into(),
             task_rain: task.rain,
             rain: task.rain,
             rain_moves_every: task.rain_moves_every,
+            risky: task.risky,
+            expected_risk: false,
             inv_scale,
             rng: ChaCha8Rng::seed_from_u64(seed),
+            risk_rng: risk_stream(seed),
             t: 0,
-            obs: vec![0; layout.observation_len()],
+            obs: vec![0; layout.state_len()],
         };
         w.reset();
         w
@@ -203,6 +241,7 @@ impl World {
             task_rain: task.rain,
             rain: task.rain,
             rain_moves_every: task.rain_moves_every,
+            risky: task.risky,
             ..self.clone()
         };
         w.reset();
@@ -216,6 +255,7 @@ impl World {
         self.power_weight = task.lambda / self.devices as f64;
         self.task_rain = task.rain;
         self.rain_moves_every = task.rain_moves_every;
+        self.risky = task.risky;
     }
 
     /// Puts this world on the device layout of `other`, a world of the same config but for its
@@ -248,25 +288,37 @@ impl World {
     /// Restarts the world's random stream, so the next episodes are those of `seed`.
     pub fn reseed(&mut self, seed: u64) {
         self.rng = ChaCha8Rng::seed_from_u64(seed);
+        self.risk_rng = risk_stream(seed);
     }
 
-    /// A new episode: the start cell (fixed, or uniform at random), every A_k = 1, t = 0, and the
-    /// task's own rain zone.
+    /// This world charging the risky region's expected penalty, never a draw: with no moving
+    /// rain, every episode from given start cells is then the same, as exact evaluation needs.
+    pub fn expecting_risk(mut self) -> World {
+        self.expected_risk = true;
+        self
+    }
+
+    /// A new episode: every UAV's start cell (fixed, or uniform at random, UAV by UAV), every
+    /// A_k = 1, t = 0, and the task's own rain zone.
     pub fn reset(&mut self) {
-        let (x, y) = match self.start_cell {
-            Some(cell) => cell,
-            None => (
-                self.rng.random_range(0..self.grid),
-                self.rng.random_range(0..self.grid),
-            ),
-        };
-        Layout::set_cell(&mut self.obs, (x as u16, y as u16));
-        Layout::aoi_mut(&mut self.obs).fill(1);
+        let layout = self.layout();
+        for u in 0..self.uavs {
+            let (x, y) = match (&self.joint_start, self.start_cell) {
+                (Some(cells), _) => cells[u],
+                (None, Some(cell)) => cell,
+                (None, None) => (
+                    self.rng.random_range(0..self.grid),
+                    self.rng.random_range(0..self.grid),
+                ),
+            };
+            layout.set_uav_cell(&mut self.obs, u, (x as u16, y as u16));
+        }
+        layout.state_aoi_mut(&mut self.obs).fill(1);
         self.rain = self.task_rain;
         self.t = 0;
     }
 
-    /// This world with every episode starting from `cell`.
+    /// This world with every episode starting from `cell` (every UAV of a team there).
     pub fn with_start(mut self, cell: (u32, u32)) -> World {
         assert!(
             cell.0 < self.grid && cell.1 < self.grid,
@@ -278,15 +330,37 @@ impl World {
         self
     }
 
+    /// This world with every episode starting UAV u from `cells[u]`. Exact evaluation of a team
+    /// runs one episode from each joint start.
+    pub fn with_starts(mut self, cells: &[(u32, u32)]) -> World {
+        assert_eq!(cells.len(), self.uavs, "one start cell per UAV");
+        let grid = self.grid;
+        assert!(
+            cells.iter().all(|&(x, y)| x < grid && y < grid),
+            "start cells {cells:?} are not all on the {grid} x {grid} grid"
+        );
+        self.joint_start = Some(cells.into());
+        self.reset();
+        self
+    }
+
     /// Whether the task has rain, moving or not.
     pub fn has_rain(&self) -> bool {
         self.task_rain.is_some()
     }
 
-    /// Whether every episode from a given start cell is the same: no rain that moves. Exact
-    /// evaluation then needs one episode per start cell and no Monte-Carlo at all.
+    /// Whether every episode from given start cells is the same: no rain that moves, and no
+    /// risky penalty drawn. Exact evaluation then needs one episode per start and no Monte-Carlo
+    /// at all.
     pub fn is_deterministic(&self) -> bool {
-        self.rain_moves_every.is_none() || self.task_rain.is_none()
+        let moving_rain = self.rain_moves_every.is_some() && self.task_rain.is_some();
+        let drawn_risk = self.risky.is_some() && !self.expected_risk;
+        !moving_rain && !drawn_risk
+    }
+
+    /// The task's risky region, if it has one.
+    pub fn risky_region(&self) -> Option<RiskyRegion> {
+        self.risky
     }
 
     /// The rain zone of each remaining step t..T of this episode, as the simulator will place it:
@@ -298,20 +372,24 @@ impl World {
         (0..remaining)
             .map(|_| {
                 let zone = ahead.rain;
-                ahead.step(self.layout().action(Move::Hover.index(), 0));
+                ahead.move_rain_after_step();
                 zone
             })
             .collect()
     }
 
     /// Steps 1-2 for the UAV above `cell` under rain zone `zone`: the milliwatts charged for
-    /// scheduling `device`, and whether it is in outage. The planner's model of the world.
+    /// scheduling `device` (a device, or K for none: no power, no outage), and whether it is in
+    /// outage. The planner's model of the world.
     pub fn transmission_at(
         &self,
         cell: (u32, u32),
         device: usize,
         zone: Option<RainZone>,
     ) -> (f64, bool) {
+        if device >= self.devices {
+            return (0.0, false);
+        }
         let at = (cell.1 * self.grid + cell.0) as usize * self.devices + device;
         if zone.is_some_and(|z| z.contains(cell.0, cell.1)) {
             (self.rain_mw[at], true)
@@ -320,16 +398,17 @@ impl World {
         }
     }
 
-    /// The cell a move leads to from `cell` (P1b: a move off the grid stays).
+    /// The cell a move of `world.step_cells` leads to from `cell` (P1b: a move stops at the
+    /// grid's edge, so with one cell a move off the grid stays).
     pub fn moved(&self, cell: (u32, u32), mv: Move) -> (u32, u32) {
         let (x, y) = cell;
-        let last = self.grid - 1;
+        let (last, s) = (self.grid - 1, self.step_cells);
         match mv {
-            Move::North if y < last => (x, y + 1),
-            Move::South if y > 0 => (x, y - 1),
-            Move::East if x < last => (x + 1, y),
-            Move::West if x > 0 => (x - 1, y),
-            _ => (x, y),
+            Move::North => (x, y.saturating_add(s).min(last)),
+            Move::South => (x, y.saturating_sub(s)),
+            Move::East => (x.saturating_add(s).min(last), y),
+            Move::West => (x.saturating_sub(s), y),
+            Move::Hover => (x, y),
         }
     }
 
@@ -338,9 +417,15 @@ impl World {
         self.power_weight
     }
 
-    /// The raw observation s(t) = [x_u, y_u, A_1..A_K].
+    /// The raw state s(t) = [x_1, y_1, .., x_U, y_U, A_1..A_K]: with one UAV, its observation
+    /// [x_u, y_u, A_1..A_K].
     pub fn observation(&self) -> &[u16] {
         &self.obs
+    }
+
+    /// UAV u's raw observation [x_u, y_u, A_1..A_K], into `out`.
+    pub fn agent_observation(&self, u: usize, out: &mut [u16]) {
+        self.layout().write_observation(&self.obs, u, out);
     }
 
     /// The observation as the networks see it: x/(L-1), y/(L-1), A/aoi_max.
@@ -364,11 +449,14 @@ impl World {
     /// 1..=aoi_max; callers check untrusted observations first.
     pub fn set_observation(&mut self, obs: &[u16]) {
         assert_eq!(obs.len(), self.obs.len(), "observation length");
-        let grid = self.grid as u16;
-        let (x, y) = Layout::cell(obs);
-        assert!(x < grid && y < grid, "cell off the grid");
+        let (grid, layout) = (self.grid as u16, self.layout());
+        for u in 0..self.uavs {
+            let (x, y) = layout.uav_cell(obs, u);
+            assert!(x < grid && y < grid, "cell off the grid");
+        }
         assert!(
-            Layout::aoi(obs)
+            layout
+                .state_aoi(obs)
                 .iter()
                 .all(|&a| (1..=self.aoi_max).contains(&a)),
             "AoI outside 1..=aoi_max"
@@ -387,112 +475,210 @@ impl World {
         self.t = t;
     }
 
-    /// One step of docs/MODEL.md section 1 with action `a = move * K + device`.
+    /// One step of docs/MODEL.md section 1 with action `a = move * targets + target`: the
+    /// one-UAV world's step. A team steps with [`World::step_team`].
     pub fn step(&mut self, action: usize) -> Step {
-        let Some(&(mv, device)) = self.action_parts.get(action) else {
-            panic!(
-                "action {action} is not below {}",
-                self.layout().action_count()
-            );
-        };
-        let device = device as usize;
-
-        // 1-2. The scheduled device transmits; in rain it is in outage and spends more.
-        let (power_mw, outage) = self.transmission(device);
-
+        assert_eq!(self.uavs, 1, "a team steps with step_team");
+        let order = self.order(action);
+        // 1-2. The target transmits; in rain it is in outage and spends more.
+        let sent = self.send(0, order.1 as usize);
         // 3-5. AoI, reward and move, on the world's own observation.
         let mut obs = std::mem::take(&mut self.obs);
-        let (reward, total) = self.advance(&mut obs, mv, device, power_mw, outage);
+        let (reward, total) = self.advance(&mut obs, &[order], &[sent]);
         self.obs = obs;
+        self.move_rain_after_step();
+        Step {
+            reward,
+            power_mw: sent.power_mw,
+            outages: u32::from(sent.outage),
+            penalty: sent.penalty,
+            aoi_mean: total as f64 / self.devices as f64,
+            truncated: self.t >= self.horizon,
+        }
+    }
 
+    /// One step of the team (docs/MODEL.md section 11), UAV u taking `actions[u]`; with one UAV,
+    /// [`World::step`].
+    ///
+    /// Panics unless there is one action per UAV, each below the layout's action count.
+    pub fn step_team(&mut self, actions: &[usize]) -> Step {
+        assert_eq!(actions.len(), self.uavs, "one action per UAV");
+        if let [action] = *actions {
+            return self.step(action);
+        }
+        let mut orders = [(Move::Hover, 0u32); MAX_UAVS];
+        let mut sent = [Sent::default(); MAX_UAVS];
+        for (u, &action) in actions.iter().enumerate() {
+            orders[u] = self.order(action);
+            // 1-2. Each UAV's target transmits from its own cell.
+            sent[u] = self.send(u, orders[u].1 as usize);
+        }
+        let (orders, sent) = (&orders[..self.uavs], &sent[..self.uavs]);
+
+        // 3-5. AoI, reward and moves, on the world's own state.
+        let mut obs = std::mem::take(&mut self.obs);
+        let (reward, total) = self.advance(&mut obs, orders, sent);
+        self.obs = obs;
+        self.move_rain_after_step();
+        Step {
+            reward,
+            power_mw: sent.iter().map(|s| s.power_mw).sum(),
+            outages: sent.iter().map(|s| u32::from(s.outage)).sum(),
+            penalty: sent.iter().map(|s| s.penalty).sum(),
+            aoi_mean: total as f64 / self.devices as f64,
+            truncated: self.t >= self.horizon,
+        }
+    }
+
+    /// The (move, target) of `action`; panics past the action count.
+    fn order(&self, action: usize) -> (Move, u32) {
+        match self.action_parts.get(action) {
+            Some(&order) => order,
+            None => panic!(
+                "action {action} is not below {}",
+                self.layout().action_count()
+            ),
+        }
+    }
+
+    /// UAV u's transmission to `target` from its cell: power, outage, and the risky penalty.
+    fn send(&mut self, u: usize, target: usize) -> Sent {
+        let cell = self.uav_cell(u);
+        let (power_mw, outage) = self.transmission_at(cell, target, self.rain);
+        Sent {
+            power_mw,
+            outage,
+            penalty: self.draw_penalty(cell, target),
+        }
+    }
+
+    /// Counts the step and moves the rain if it is due.
+    fn move_rain_after_step(&mut self) {
         self.t += 1;
         if let Some(every) = self.rain_moves_every {
             if self.t.is_multiple_of(every) {
                 self.move_rain();
             }
         }
-        Step {
-            reward,
-            power_mw,
-            outage,
-            device,
-            mv,
-            aoi_mean: total as f64 / self.devices as f64,
-            truncated: self.t >= self.horizon,
+    }
+
+    /// The risky region's penalty for a transmission to `target` from `cell`: none outside it or
+    /// with no device served; inside, its expectation or a draw from the risk stream.
+    fn draw_penalty(&mut self, cell: (u32, u32), target: usize) -> f64 {
+        match self.risky {
+            Some(r) if target < self.devices && r.contains(cell.0, cell.1) => {
+                if self.expected_risk {
+                    r.expected_penalty()
+                } else if self.risk_rng.random_bool(r.probability) {
+                    r.penalty
+                } else {
+                    0.0
+                }
+            }
+            _ => 0.0,
         }
     }
 
-    /// Steps 3-5 of docs/MODEL.md section 1 on the raw observation `obs`, the transmission's power
-    /// and outage given: ages the AoI, computes the reward, makes the move. Returns the reward and
-    /// the sum of the AoI after the update.
-    fn advance(
-        &self,
-        obs: &mut [u16],
-        mv: Move,
-        device: usize,
-        power_mw: f64,
-        outage: bool,
-    ) -> (f64, u32) {
-        // 3. Every AoI ages by one, then the device heard from restarts at 1.
+    /// Steps 3-5 of docs/MODEL.md section 1 (section 11 for a team) on the raw state `obs`, each
+    /// UAV's (move, target) and transmission given: ages the AoI, restarts every device served
+    /// without outage, computes the reward, makes the moves. Returns the reward and the sum of
+    /// the AoI after the update.
+    fn advance(&self, obs: &mut [u16], orders: &[(Move, u32)], sent: &[Sent]) -> (f64, u32) {
+        let layout = self.layout();
+        // 3. Every AoI ages by one, then each device heard from restarts at 1, once.
         let cap = self.aoi_max;
         // At most 64 devices of at most 65535 each: the sum fits in u32.
         let mut total = 0u32;
-        let aoi = Layout::aoi_mut(obs);
+        let aoi = layout.state_aoi_mut(obs);
         for a in aoi.iter_mut() {
             *a = a.saturating_add(1).min(cap);
             total += *a as u32;
         }
-        if !outage {
-            let a = &mut aoi[device];
+        for (&(_, target), s) in orders.iter().zip(sent) {
+            let Some(a) = aoi.get_mut(target as usize).filter(|_| !s.outage) else {
+                continue;
+            };
             total -= (*a - 1) as u32;
             *a = 1;
         }
         let weighted = match self.uniform_delta {
             Some(d) => d * total as f64,
-            None => Layout::aoi(obs)
+            None => layout
+                .state_aoi(obs)
                 .iter()
                 .zip(&self.delta)
                 .map(|(&a, &d)| d * a as f64)
                 .sum(),
         };
 
-        // 4. Reward.
-        let reward = -self.cost(weighted, power_mw);
+        // 4. Reward: the AoI, every UAV's power, the risky penalties.
+        let power_mw: f64 = sent.iter().map(|s| s.power_mw).sum();
+        let penalty: f64 = sent.iter().map(|s| s.penalty).sum();
+        let reward = -(self.cost(weighted, power_mw) + penalty);
 
-        // 5. The move; one that would leave the grid leaves the UAV where it is (P1b).
-        let (x, y) = Layout::cell(obs);
-        let (x, y) = self.moved((x as u32, y as u32), mv);
-        Layout::set_cell(obs, (x as u16, y as u16));
+        // 5. The moves; one that would leave the grid stops at its edge (P1b).
+        for (u, &(mv, _)) in orders.iter().enumerate() {
+            let (x, y) = layout.uav_cell(obs, u);
+            let (x, y) = self.moved((x as u32, y as u32), mv);
+            layout.set_uav_cell(obs, u, (x as u16, y as u16));
+        }
         (reward, total)
     }
 
-    /// What taking `action` in the raw observation `obs` gives, with the transmission in outage
-    /// or not: the reward, with s(t+1) written into `next`. The world's own episode is untouched,
-    /// so this checks a transition someone claims this world made (`crate::validate`). `None`
-    /// when `obs` is not a state of this world (length, cell off the grid, an AoI of 0) or
-    /// `action` is not below 5K. Which outages are possible is [`World::possible_outages`].
+    /// What taking `action` in the one-UAV raw observation `obs` gives, with the transmission in
+    /// outage or not and charged the risky region's penalty or not: the reward, with s(t+1)
+    /// written into `next`. The world's own episode is untouched, so this checks a transition
+    /// someone claims this world made (`crate::validate`). `None` when `obs` is not a state of
+    /// this world (length, cell off the grid, an AoI of 0) or `action` is not below the action
+    /// count. Which outages and penalties are possible are [`World::possible_outages`] and
+    /// [`World::possible_penalties`].
     pub fn outcome(
         &self,
         obs: &[u16],
         action: usize,
         outage: bool,
+        penalised: bool,
         next: &mut [u16],
     ) -> Option<f64> {
-        let &(mv, device) = self.action_parts.get(action)?;
+        let &(mv, target) = self.action_parts.get(action)?;
         let (x, y) = (*obs.first()? as u32, *obs.get(1)? as u32);
-        let in_state = obs.len() == self.layout().observation_len() && next.len() == obs.len();
+        let in_state = self.uavs == 1 && obs.len() == self.layout().state_len();
+        let in_state = in_state && next.len() == obs.len();
         if !in_state || x >= self.grid || y >= self.grid || Layout::aoi(obs).contains(&0) {
             return None;
         }
-        let device = device as usize;
-        let at = (y * self.grid + x) as usize * self.devices + device;
-        let power_mw = if outage {
-            self.rain_mw[at]
-        } else {
-            self.clear_mw[at]
+        let target = target as usize;
+        let at = (y * self.grid + x) as usize * self.devices + target;
+        let power_mw = match (target < self.devices, outage) {
+            (false, _) => 0.0,
+            (true, true) => self.rain_mw[at],
+            (true, false) => self.clear_mw[at],
+        };
+        let penalty = match self.risky {
+            Some(r) if penalised => r.penalty,
+            _ => 0.0,
+        };
+        let sent = Sent {
+            power_mw,
+            outage,
+            penalty,
         };
         next.copy_from_slice(obs);
-        Some(self.advance(next, mv, device, power_mw, outage).0)
+        Some(self.advance(next, &[(mv, target as u32)], &[sent]).0)
+    }
+
+    /// Whether a transmission to `target` from cell (x, y) may have been charged the risky
+    /// region's penalty: never outside it or with no device served, always at probability 1,
+    /// either in between.
+    pub fn possible_penalties(&self, x: u32, y: u32, target: usize) -> &'static [bool] {
+        match self.risky {
+            Some(r) if target < self.devices && r.contains(x, y) => match r.probability {
+                p if p <= 0.0 => &[false],
+                p if p >= 1.0 => &[true],
+                _ => &[false, true],
+            },
+            _ => &[false],
+        }
     }
 
     /// The outage values a step with index `step` (0 at an episode's start) from cell (x, y) can
@@ -532,7 +718,13 @@ impl World {
     /// This step's cost -r(t) if `device` were scheduled now. The move happens after the
     /// transmission, so it does not enter; the greedy heuristic minimises this.
     pub fn cost_of(&self, device: usize) -> f64 {
-        let (power_mw, outage) = self.transmission(device);
+        self.cost_of_from(self.uav(), device)
+    }
+
+    /// As [`World::cost_of`], for a UAV above `cell` scheduling `device` (a device, or K for
+    /// none). The risky region's penalty does not enter.
+    pub fn cost_of_from(&self, cell: (u32, u32), device: usize) -> f64 {
+        let (power_mw, outage) = self.transmission_at(cell, device, self.rain);
         let cap = self.aoi_max;
         let aged = |a: u16| a.saturating_add(1).min(cap);
         let mut weighted: f64 = self
@@ -541,7 +733,7 @@ impl World {
             .zip(&self.delta)
             .map(|(&a, &d)| d * aged(a) as f64)
             .sum();
-        if !outage {
+        if !outage && device < self.devices {
             weighted -= self.delta[device] * (aged(self.aoi()[device]) - 1) as f64;
         }
         self.cost(weighted, power_mw)
@@ -550,12 +742,6 @@ impl World {
     /// sum_j delta_j A_j + (lambda / K) * P_mW: the negative reward (step 4).
     fn cost(&self, weighted_aoi: f64, power_mw: f64) -> f64 {
         weighted_aoi + self.power_weight * power_mw
-    }
-
-    /// Steps 1-2: the power charged for scheduling `device` from the current cell, and whether the
-    /// transmission is in outage.
-    fn transmission(&self, device: usize) -> (f64, bool) {
-        self.transmission_at(self.uav(), device, self.rain)
     }
 
     /// Places the rain zone uniformly at random, keeping its size.
@@ -596,15 +782,30 @@ impl World {
         self.t
     }
 
-    /// The UAV's cell (x, y).
+    /// The UAV's cell (x, y): UAV 0's in a team.
     pub fn uav(&self) -> (u32, u32) {
-        let (x, y) = Layout::cell(&self.obs);
+        self.uav_cell(0)
+    }
+
+    /// UAV u's cell (x, y).
+    pub fn uav_cell(&self, u: usize) -> (u32, u32) {
+        let (x, y) = self.layout().uav_cell(&self.obs, u);
         (x as u32, y as u32)
+    }
+
+    /// U.
+    pub fn uavs(&self) -> usize {
+        self.uavs
+    }
+
+    /// Cells a move covers.
+    pub fn step_cells(&self) -> u32 {
+        self.step_cells
     }
 
     /// A_1..A_K.
     pub fn aoi(&self) -> &[u16] {
-        Layout::aoi(&self.obs)
+        self.layout().state_aoi(&self.obs)
     }
 
     /// delta_1..delta_K.
@@ -628,7 +829,7 @@ impl World {
 
     /// Its observation and action layout.
     pub fn layout(&self) -> Layout {
-        Layout::new(self.devices)
+        Layout::team(self.devices, self.uavs, self.idle)
     }
 
     /// Cells per side, L.
@@ -644,6 +845,13 @@ impl World {
 
 /// K distinct cells from `layout_seed` alone (a partial Fisher-Yates shuffle of the cells), so
 /// every task of an experiment shares the layout whatever its own seed.
+/// The risky region's own stream of a world seeded `seed`.
+fn risk_stream(seed: u64) -> ChaCha8Rng {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    rng.set_stream(1);
+    rng
+}
+
 fn draw_layout(grid: u32, devices: usize, layout_seed: u64) -> Vec<(u32, u32)> {
     let mut rng = ChaCha8Rng::seed_from_u64(layout_seed);
     let mut cells: Vec<u32> = (0..grid * grid).collect();

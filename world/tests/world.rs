@@ -60,8 +60,9 @@ fn power_straight_above_a_device() {
     // h^2 = 100^2 m^2: 3.1e-9 * 1e4 W = 0.031 mW.
     assert_close(step.power_mw, 0.031);
     assert_close(step.power_mw, WATTS_PER_M2 * 100.0 * 100.0 * 1e3);
-    assert!(!step.outage);
-    assert_eq!((step.device, step.mv, w.uav()), (0, Move::Hover, (2, 3)));
+    assert_eq!(step.outages, 0);
+    assert_eq!(w.layout().split(a), (Move::Hover.index(), 0));
+    assert_eq!(w.uav(), (2, 3));
 }
 
 #[test]
@@ -157,7 +158,7 @@ fn outage_in_rain_spends_attenuated_power_and_keeps_the_aoi() {
     };
     let mut w = World::new(&cfg.world, &TaskConfig::one_off(300.0, Some(zone)), 0);
     let step = w.step(action(&w, Move::Hover, 0));
-    assert!(step.outage);
+    assert_eq!(step.outages, 1);
     // Slant distance 100 m = 0.1 km: 0.031 mW * 10^(2.364 * 0.1 / 10).
     assert_close(step.power_mw, 0.031 * 10f64.powf(gamma_r * 0.1 / 10.0));
     assert!((step.power_mw - 0.032737).abs() < 1e-5);
@@ -168,11 +169,11 @@ fn outage_in_rain_spends_attenuated_power_and_keeps_the_aoi() {
     let step = w.step(action(&w, Move::East, 1));
     let slant_km = 420_000f64.sqrt() / 1e3;
     assert_close(step.power_mw, 1.302 * 10f64.powf(gamma_r * slant_km / 10.0));
-    assert!(step.outage);
+    assert_eq!(step.outages, 1);
     // Now at (3, 3), still inside; one more step east leaves the zone.
     w.step(action(&w, Move::East, 1));
     let step = w.step(action(&w, Move::Hover, 1));
-    assert!(!step.outage);
+    assert_eq!(step.outages, 0);
     assert_eq!(w.aoi()[1], 1);
 }
 
@@ -204,7 +205,7 @@ fn all_devices_power_term_charges_every_device() {
     let attenuated = 0.031 * 10f64.powf(gamma_r * 0.1 / 10.0)
         + 0.806 * 10f64.powf(gamma_r * 260_000f64.sqrt() / 1e3 / 10.0);
     let step = w.step(action(&w, Move::Hover, 1));
-    assert!(step.outage);
+    assert_eq!(step.outages, 1);
     assert_close(step.power_mw, attenuated);
 }
 
@@ -444,8 +445,9 @@ proptest! {
             prop_assert!(w.aoi().iter().all(|&v| (1..=cap).contains(&v)));
             for (j, (&old, &new)) in before.iter().zip(w.aoi()).enumerate() {
                 let aged = (old + 1).min(cap);
-                let want = if j == step.device && !step.outage { 1 } else { aged };
-                prop_assert_eq!(new, want, "device {} (scheduled {}, outage {})", j, step.device, step.outage);
+                let device = w.layout().device(a);
+                let want = if j == device && step.outages == 0 { 1 } else { aged };
+                prop_assert_eq!(new, want, "device {} (scheduled {}, outages {})", j, device, step.outages);
             }
             if step.truncated {
                 w.reset();

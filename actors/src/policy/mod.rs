@@ -27,7 +27,10 @@ pub fn build(
                 expected: format!("a Q-network checkpoint: {}", chain(&error)),
             })?;
             let greedy = Box::new(QPolicy::new(q));
-            Ok(Box::new(EpsilonPolicy::around(greedy, *epsilon, seed)))
+            spec.for_world(
+                config,
+                Box::new(EpsilonPolicy::around(greedy, *epsilon, seed)),
+            )
         }
         spec => spec.build(config, seed, steps),
     }

@@ -483,7 +483,9 @@ mod tests {
                     .chain((0..k as u16).map(|j| 1 + (j * aoi) % world.aoi_max()))
                     .collect();
                 for action in 0..world.layout().action_count() {
-                    let reward = world.outcome(&obs, action, false, &mut next).unwrap();
+                    let reward = world
+                        .outcome(&obs, action, false, false, &mut next)
+                        .unwrap();
                     out.push((reward, next.clone()));
                 }
             }
@@ -575,7 +577,7 @@ mod tests {
         let truth = World::new(&config.world, &task, 0);
         let mut next = vec![0u16; obs_len];
         for t in &greedy {
-            let reward = truth.outcome(&t.obs, usize::from(t.action), false, &mut next);
+            let reward = truth.outcome(&t.obs, usize::from(t.action), false, false, &mut next);
             let reward = reward.unwrap();
             assert_eq!(next, t.next_obs);
             let logged = f64::from(t.reward);

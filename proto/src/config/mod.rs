@@ -38,11 +38,13 @@ pub use moved::{Fate, MOVED};
 pub use planner::PlannerConfig;
 pub use run::{RunConfig, MAX_DOMAIN_LEN, MAX_SUBSCRIBER_BUFFER, MAX_TRANSITIONS_PER_MESSAGE};
 pub use section::{OwnedSection, Section};
-pub use task::{RainZone, TaskConfig, TaskRole};
+pub use task::{RainZone, RiskyRegion, TaskConfig, TaskRole};
 pub use tunnel::{
     is_host_name, is_loopback_endpoint, TunnelConfig, ALL_TASKS, HOST_NAME_RULE, MAX_HOSTS,
 };
-pub use world::{Delta, PowerTerm, WorldConfig, MAX_DEVICES, MAX_GRID_CELLS, MOVES};
+pub use world::{
+    Delta, PowerTerm, WorldConfig, MAX_DEVICES, MAX_GRID_CELLS, MAX_JOINT_STARTS, MAX_UAVS, MOVES,
+};
 
 use rules::{first_broken, non_empty, Broken};
 use task::default_tasks;
@@ -246,6 +248,20 @@ impl Config {
         self.check_limits()?;
         self.check_power()?;
         self.planner.check_memory(&self.world)
+    }
+
+    /// Refuses a team (`world.uavs` > 1) where `what` flies one UAV so far: teams step, and are
+    /// evaluated with the fixed policies, in `uavmeta env rollout` (docs/MODEL.md section 11).
+    pub fn require_one_uav(&self, what: &str) -> Result<(), ConfigError> {
+        let uavs = self.world.uavs;
+        if uavs == 1 {
+            return Ok(());
+        }
+        let expected = format!(
+            "1: {what} flies one UAV so far; a team of UAVs runs in `uavmeta env rollout` with \
+             random, stalest, greedy, eps:P or actions:FILE (docs/MODEL.md section 11)"
+        );
+        Err(Broken::new("world.uavs", &uavs, expected).at(&self.origin))
     }
 
     /// What a launch needs beyond [`Config::validate`]: its fine-tuning shots fit in each task's

@@ -42,6 +42,34 @@ impl FromStr for RainZone {
     }
 }
 
+/// The authors' risky region (docs/MODEL.md section 11): a rectangle of cells, both corners
+/// inclusive, where each transmission costs `penalty` (in reward units) with probability
+/// `probability`, drawn from the world's seed; exact evaluation charges its expectation.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Validate)]
+#[serde(deny_unknown_fields)]
+#[garde(allow_unvalidated)]
+pub struct RiskyRegion {
+    pub x0: u32,
+    pub y0: u32,
+    pub x1: u32,
+    pub y1: u32,
+    #[garde(custom(finite(0.0.., "a finite penalty >= 0")))]
+    pub penalty: f64,
+    #[garde(custom(within(0.0..=1.0, "a probability in [0, 1]")))]
+    pub probability: f64,
+}
+
+impl RiskyRegion {
+    pub fn contains(&self, x: u32, y: u32) -> bool {
+        (self.x0..=self.x1).contains(&x) && (self.y0..=self.y1).contains(&y)
+    }
+
+    /// What a transmission from inside it costs on average: penalty times probability.
+    pub fn expected_penalty(&self) -> f64 {
+        self.penalty * self.probability
+    }
+}
+
 /// Whether a task is used for meta-training or held out for meta-testing.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -66,6 +94,10 @@ pub struct TaskConfig {
     #[serde(default)]
     #[garde(inner(custom(within(1.., "at least 1 step"))))]
     pub rain_moves_every: Option<u32>,
+    /// The authors' risky region, if the task has one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[garde(dive)]
+    pub risky: Option<RiskyRegion>,
 }
 
 impl TaskConfig {
@@ -92,6 +124,7 @@ impl TaskConfig {
             role: TaskRole::MetaTest,
             rain,
             rain_moves_every: None,
+            risky: None,
         }
     }
 }
@@ -107,6 +140,7 @@ pub(super) fn default_tasks() -> Vec<TaskConfig> {
             role: TaskRole::MetaTrain,
             rain: None,
             rain_moves_every: None,
+            risky: None,
         })
         .collect();
     tasks.push(TaskConfig::one_off(300.0, None));
@@ -114,14 +148,24 @@ pub(super) fn default_tasks() -> Vec<TaskConfig> {
 }
 
 impl TaskConfig {
-    /// The rain zone, task `index`'s, is inside a grid of `grid_cells` a side, and only a task
-    /// with rain moves it.
+    /// The rain zone and the risky region, task `index`'s, are inside a grid of `grid_cells` a
+    /// side, and only a task with rain moves it.
     pub(super) fn check_rain(&self, index: usize, grid_cells: u32) -> Result<(), Broken> {
         let n = grid_cells;
         let outside = |r: &RainZone| r.x0 > r.x1 || r.y0 > r.y1 || r.x1 >= n || r.y1 >= n;
         if let Some(r) = self.rain.filter(outside) {
             let expected = format!("a rectangle inside the grid: x0 <= x1 < {n}, y0 <= y1 < {n}");
             return Err(Broken::new(format!("tasks[{index}].rain"), &r, expected));
+        }
+        let off_grid = |r: &RiskyRegion| r.x0 > r.x1 || r.y0 > r.y1 || r.x1 >= n || r.y1 >= n;
+        if let Some(r) = self.risky.filter(off_grid) {
+            let expected = format!("a rectangle inside the grid: x0 <= x1 < {n}, y0 <= y1 < {n}");
+            let corners = [r.x0, r.y0, r.x1, r.y1];
+            return Err(Broken::new(
+                format!("tasks[{index}].risky"),
+                &corners,
+                expected,
+            ));
         }
         match (self.rain_moves_every, self.rain) {
             (Some(_), None) => Err(Broken::new(

@@ -19,6 +19,13 @@ pub const MAX_DEVICES: usize = 64;
 /// world's own enum in the same order.
 pub const MOVES: [&str; 5] = ["north", "south", "east", "west", "hover"];
 
+/// The largest team: a team step keeps its UAVs' orders on the stack, `MAX_UAVS` of them.
+pub const MAX_UAVS: usize = 8;
+
+/// The most joint start cells a team's exact evaluation runs: past it, a fixed sample of this
+/// many (docs/MODEL.md section 11; `uavmeta_world::rollout::start_worlds`).
+pub const MAX_JOINT_STARTS: usize = 10_000;
+
 /// The largest grid side: the world precomputes a power table of grid_cells^2 x K entries.
 pub const MAX_GRID_CELLS: u32 = 1024;
 
@@ -64,8 +71,24 @@ pub struct WorldConfig {
     #[default(100)]
     #[garde(custom(within(1..=u32::from(u16::MAX), "between 1 and 65535")))]
     pub aoi_max: u32,
-    /// Fixed start cell of the UAV; uniform at random each episode when absent.
+    /// Fixed start cell of the UAV (of every UAV of a team); uniform at random each episode when
+    /// absent.
     pub start_cell: Option<[u32; 2]>,
+    /// UAVs U over the same devices and grid (docs/MODEL.md section 11); 1 is the paper's world.
+    #[default(1)]
+    #[garde(custom(at_least(1)), custom(at_most(MAX_UAVS)))]
+    #[serde(skip_serializing_if = "is_one")]
+    pub uavs: usize,
+    /// Each UAV may also serve no device (target K, no power and no AoI reset), as the authors'
+    /// multi-UAV world allows; false keeps the paper's 5K actions.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub idle_action: bool,
+    /// Cells a move covers; a move that would leave the grid stops at its edge (docs/MODEL.md
+    /// section 1, P1b). The authors' multi-UAV world moves two.
+    #[default(1)]
+    #[garde(custom(at_least(1)))]
+    #[serde(skip_serializing_if = "is_one_u32")]
+    pub step_cells: u32,
     /// Channel gain at 1 m, g0, in dB.
     #[default(-30.0)]
     #[garde(custom(finite(.., "a finite number of dB")))]
@@ -102,10 +125,24 @@ pub struct WorldConfig {
 impl WorldConfig {
     /// The observation and action layout of this world.
     pub fn layout(&self) -> Layout {
-        Layout::new(self.devices)
+        Layout::team(self.devices, self.uavs, self.idle_action)
     }
 
-    /// Divisors that normalise a raw observation for the networks: x/(L-1), y/(L-1), A/aoi_max.
+    /// The episodes of an exact evaluation: one per start cell of the UAV, per joint start cell
+    /// of a team up to [`MAX_JOINT_STARTS`], or one where the start is fixed.
+    pub fn exact_starts(&self) -> usize {
+        if self.start_cell.is_some() {
+            return 1;
+        }
+        let cells = self.grid_cells as usize * self.grid_cells as usize;
+        match cells.checked_pow(self.uavs as u32) {
+            Some(n) if self.uavs == 1 || n <= MAX_JOINT_STARTS => n,
+            _ => MAX_JOINT_STARTS,
+        }
+    }
+
+    /// Divisors that normalise one UAV's raw observation for the networks: x/(L-1), y/(L-1),
+    /// A/aoi_max.
     pub fn observation_scale(&self) -> Vec<f32> {
         let span = (self.grid_cells.max(2) - 1) as f32;
         let mut scale = vec![span, span];
@@ -232,4 +269,14 @@ pub enum PowerTerm {
     Scheduled,
     /// The literal reading: the sum over all K devices of the power each would need.
     AllDevices,
+}
+
+// Keys a team adds are written out only where they leave the paper's world, so a one-UAV
+// config serialises, and hashes, as it did before teams.
+fn is_one(n: &usize) -> bool {
+    *n == 1
+}
+
+fn is_one_u32(n: &u32) -> bool {
+    *n == 1
 }
