@@ -145,6 +145,8 @@ def test_batched_heuristics_equal_one_row_at_a_time():
         (dict(colour="red"), "world.colour"),
         (dict(devices=0), "world.devices"),
         (dict(set=["learner.nonsense=1"]), "nonsense"),
+        (dict(set=["world.uavs=2"]), "world.uavs"),
+        (dict(set=["world.uavs=0"]), "world.uavs"),
         (dict(config=CONFIG, task="lambda-301"), "lambda-301"),
         (dict(config=CONFIG, task="lambda-300", lam=3.0), "task = 'lambda-300' and lam = 3.0"),
     ],

@@ -160,10 +160,16 @@ impl Claims {
         self.0 >> device & 1 == 1
     }
 
-    /// Claims `device` (K, "none", is never claimed) and returns it.
+    /// Claims `device` (or K, "none", which never bars another UAV) and returns it.
     fn claim(&mut self, device: usize) -> usize {
         self.0 |= 1 << device;
         device
+    }
+
+    /// Whether every one of `devices` devices is claimed.
+    fn all(self, devices: usize) -> bool {
+        let mask = (1u128 << devices) - 1;
+        self.0 & mask == mask
     }
 }
 
@@ -514,7 +520,7 @@ pub fn model_planner_metrics(
 /// The device with the largest delta_k A_k not in `claimed`, ties to the lowest index; if every
 /// device is claimed, the stalest of all.
 fn stalest_device(world: &World, claimed: &Claims) -> usize {
-    let all_claimed = (0..world.devices()).all(|k| claimed.has(k));
+    let all_claimed = claimed.all(world.devices());
     world
         .aoi()
         .iter()

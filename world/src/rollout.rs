@@ -12,7 +12,9 @@
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
-use uavmeta_proto::config::{TaskConfig, WorldConfig, MAX_JOINT_STARTS, MAX_UAVS};
+use uavmeta_proto::config::{
+    enumerated_starts, TaskConfig, WorldConfig, MAX_JOINT_STARTS, MAX_UAVS,
+};
 use uavmeta_proto::dataset::Transition;
 use uavmeta_proto::stats::{EpisodeMetrics, PolicyMetrics};
 
@@ -247,10 +249,7 @@ pub fn start_worlds(template: &World) -> Vec<World> {
 fn joint_starts(grid: u32, uavs: usize) -> Vec<Vec<(u32, u32)>> {
     let cells = grid as usize * grid as usize;
     let cell = |c: usize| ((c % grid as usize) as u32, (c / grid as usize) as u32);
-    match cells
-        .checked_pow(uavs as u32)
-        .filter(|&n| n <= MAX_JOINT_STARTS)
-    {
+    match enumerated_starts(cells, uavs) {
         Some(n) => (0..n)
             .map(|i| {
                 let digit = |u: usize| i / cells.pow((uavs - 1 - u) as u32) % cells;

@@ -91,17 +91,16 @@ pub struct Step {
 #[derive(Debug, Clone)]
 pub struct World {
     grid: u32,
-    devices: usize,
     horizon: u32,
     aoi_max: u16,
     delta: Vec<f64>,
     /// The one delta of every device, if they share it: the AoI cost is then delta times the
     /// integer sum of the AoI, a loop the compiler vectorises.
     uniform_delta: Option<f64>,
-    /// U, and the cells a move covers.
-    uavs: usize,
+    /// Its observation and action layout: K, U and the idle target.
+    layout: Layout,
+    /// Cells a move covers.
     step_cells: u32,
-    idle: bool,
     /// (move, target) of every action index, sparing the step an integer division; target K is
     /// "none".
     action_parts: Vec<(Move, u32)>,
@@ -143,6 +142,14 @@ struct Sent {
     power_mw: f64,
     outage: bool,
     penalty: f64,
+}
+
+impl Sent {
+    /// The team's power in milliwatts and its risky penalties.
+    fn totals(sent: &[Sent]) -> (f64, f64) {
+        let power_mw = sent.iter().map(|s| s.power_mw).sum();
+        (power_mw, sent.iter().map(|s| s.penalty).sum())
+    }
 }
 
 impl World {
@@ -201,14 +208,12 @@ impl World {
             .collect();
         let mut w = World {
             grid,
-            devices: k,
             horizon: world.horizon,
             aoi_max: world.aoi_max as u16,
             delta,
             uniform_delta,
-            uavs: layout.uavs(),
+            layout,
             step_cells: world.step_cells,
-            idle: world.idle_action,
             action_parts,
             power_weight: task.lambda / k as f64,
             device_cells,
@@ -237,7 +242,7 @@ impl World {
     /// not computed again (on a large grid they are most of a world's memory).
     pub fn with_task(&self, task: &TaskConfig) -> World {
         let mut w = World {
-            power_weight: task.lambda / self.devices as f64,
+            power_weight: task.lambda / self.layout.devices() as f64,
             task_rain: task.rain,
             rain: task.rain,
             rain_moves_every: task.rain_moves_every,
@@ -252,7 +257,7 @@ impl World {
     /// reset: as [`World::with_task`] without a clone, for batched envs that draw a new task
     /// at every reset. The current episode's rain zone is left as it is until then.
     pub fn set_task(&mut self, task: &TaskConfig) {
-        self.power_weight = task.lambda / self.devices as f64;
+        self.power_weight = task.lambda / self.layout.devices() as f64;
         self.task_rain = task.rain;
         self.rain_moves_every = task.rain_moves_every;
         self.risky = task.risky;
@@ -261,7 +266,10 @@ impl World {
     /// Puts this world on the device layout of `other`, a world of the same config but for its
     /// device cells, in place: the power tables are shared, not computed again.
     pub fn set_layout(&mut self, other: &World) {
-        debug_assert_eq!((self.grid, self.devices), (other.grid, other.devices));
+        debug_assert_eq!(
+            (self.grid, self.layout.devices()),
+            (other.grid, other.layout.devices())
+        );
         self.device_cells.clone_from(&other.device_cells);
         self.clear_mw = Arc::clone(&other.clear_mw);
         self.rain_mw = Arc::clone(&other.rain_mw);
@@ -302,7 +310,7 @@ impl World {
     /// A_k = 1, t = 0, and the task's own rain zone.
     pub fn reset(&mut self) {
         let layout = self.layout();
-        for u in 0..self.uavs {
+        for u in 0..self.layout.uavs() {
             let (x, y) = match (&self.joint_start, self.start_cell) {
                 (Some(cells), _) => cells[u],
                 (None, Some(cell)) => cell,
@@ -333,7 +341,7 @@ impl World {
     /// This world with every episode starting UAV u from `cells[u]`. Exact evaluation of a team
     /// runs one episode from each joint start.
     pub fn with_starts(mut self, cells: &[(u32, u32)]) -> World {
-        assert_eq!(cells.len(), self.uavs, "one start cell per UAV");
+        assert_eq!(cells.len(), self.layout.uavs(), "one start cell per UAV");
         let grid = self.grid;
         assert!(
             cells.iter().all(|&(x, y)| x < grid && y < grid),
@@ -356,11 +364,6 @@ impl World {
         let moving_rain = self.rain_moves_every.is_some() && self.task_rain.is_some();
         let drawn_risk = self.risky.is_some() && !self.expected_risk;
         !moving_rain && !drawn_risk
-    }
-
-    /// The task's risky region, if it has one.
-    pub fn risky_region(&self) -> Option<RiskyRegion> {
-        self.risky
     }
 
     /// The rain zone of each remaining step t..T of this episode, as the simulator will place it:
@@ -387,10 +390,10 @@ impl World {
         device: usize,
         zone: Option<RainZone>,
     ) -> (f64, bool) {
-        if device >= self.devices {
+        if device >= self.layout.devices() {
             return (0.0, false);
         }
-        let at = (cell.1 * self.grid + cell.0) as usize * self.devices + device;
+        let at = (cell.1 * self.grid + cell.0) as usize * self.layout.devices() + device;
         if zone.is_some_and(|z| z.contains(cell.0, cell.1)) {
             (self.rain_mw[at], true)
         } else {
@@ -450,7 +453,7 @@ impl World {
     pub fn set_observation(&mut self, obs: &[u16]) {
         assert_eq!(obs.len(), self.obs.len(), "observation length");
         let (grid, layout) = (self.grid as u16, self.layout());
-        for u in 0..self.uavs {
+        for u in 0..self.layout.uavs() {
             let (x, y) = layout.uav_cell(obs, u);
             assert!(x < grid && y < grid, "cell off the grid");
         }
@@ -478,23 +481,11 @@ impl World {
     /// One step of docs/MODEL.md section 1 with action `a = move * targets + target`: the
     /// one-UAV world's step. A team steps with [`World::step_team`].
     pub fn step(&mut self, action: usize) -> Step {
-        assert_eq!(self.uavs, 1, "a team steps with step_team");
+        assert_eq!(self.layout.uavs(), 1, "a team steps with step_team");
         let order = self.order(action);
         // 1-2. The target transmits; in rain it is in outage and spends more.
         let sent = self.send(0, order.1 as usize);
-        // 3-5. AoI, reward and move, on the world's own observation.
-        let mut obs = std::mem::take(&mut self.obs);
-        let (reward, total) = self.advance(&mut obs, &[order], &[sent]);
-        self.obs = obs;
-        self.move_rain_after_step();
-        Step {
-            reward,
-            power_mw: sent.power_mw,
-            outages: u32::from(sent.outage),
-            penalty: sent.penalty,
-            aoi_mean: total as f64 / self.devices as f64,
-            truncated: self.t >= self.horizon,
-        }
+        self.finish_step(&[order], &[sent])
     }
 
     /// One step of the team (docs/MODEL.md section 11), UAV u taking `actions[u]`; with one UAV,
@@ -502,7 +493,7 @@ impl World {
     ///
     /// Panics unless there is one action per UAV, each below the layout's action count.
     pub fn step_team(&mut self, actions: &[usize]) -> Step {
-        assert_eq!(actions.len(), self.uavs, "one action per UAV");
+        assert_eq!(actions.len(), self.layout.uavs(), "one action per UAV");
         if let [action] = *actions {
             return self.step(action);
         }
@@ -513,19 +504,23 @@ impl World {
             // 1-2. Each UAV's target transmits from its own cell.
             sent[u] = self.send(u, orders[u].1 as usize);
         }
-        let (orders, sent) = (&orders[..self.uavs], &sent[..self.uavs]);
+        let uavs = self.layout.uavs();
+        self.finish_step(&orders[..uavs], &sent[..uavs])
+    }
 
-        // 3-5. AoI, reward and moves, on the world's own state.
+    /// Steps 3-5 on the world's own state once every UAV has transmitted, and the step count.
+    fn finish_step(&mut self, orders: &[(Move, u32)], sent: &[Sent]) -> Step {
+        let (power_mw, penalty) = Sent::totals(sent);
         let mut obs = std::mem::take(&mut self.obs);
-        let (reward, total) = self.advance(&mut obs, orders, sent);
+        let (reward, total) = self.advance(&mut obs, orders, sent, power_mw, penalty);
         self.obs = obs;
         self.move_rain_after_step();
         Step {
             reward,
-            power_mw: sent.iter().map(|s| s.power_mw).sum(),
+            power_mw,
             outages: sent.iter().map(|s| u32::from(s.outage)).sum(),
-            penalty: sent.iter().map(|s| s.penalty).sum(),
-            aoi_mean: total as f64 / self.devices as f64,
+            penalty,
+            aoi_mean: total as f64 / self.layout.devices() as f64,
             truncated: self.t >= self.horizon,
         }
     }
@@ -566,7 +561,7 @@ impl World {
     /// with no device served; inside, its expectation or a draw from the risk stream.
     fn draw_penalty(&mut self, cell: (u32, u32), target: usize) -> f64 {
         match self.risky {
-            Some(r) if target < self.devices && r.contains(cell.0, cell.1) => {
+            Some(r) if target < self.layout.devices() && r.contains(cell.0, cell.1) => {
                 if self.expected_risk {
                     r.expected_penalty()
                 } else if self.risk_rng.random_bool(r.probability) {
@@ -580,10 +575,17 @@ impl World {
     }
 
     /// Steps 3-5 of docs/MODEL.md section 1 (section 11 for a team) on the raw state `obs`, each
-    /// UAV's (move, target) and transmission given: ages the AoI, restarts every device served
-    /// without outage, computes the reward, makes the moves. Returns the reward and the sum of
+    /// UAV's (move, target) and transmission, and the team's power and penalties, given: ages the
+    /// AoI, restarts every device served without outage, computes the reward, makes the moves. Returns the reward and the sum of
     /// the AoI after the update.
-    fn advance(&self, obs: &mut [u16], orders: &[(Move, u32)], sent: &[Sent]) -> (f64, u32) {
+    fn advance(
+        &self,
+        obs: &mut [u16],
+        orders: &[(Move, u32)],
+        sent: &[Sent],
+        power_mw: f64,
+        penalty: f64,
+    ) -> (f64, u32) {
         let layout = self.layout();
         // 3. Every AoI ages by one, then each device heard from restarts at 1, once.
         let cap = self.aoi_max;
@@ -612,8 +614,6 @@ impl World {
         };
 
         // 4. Reward: the AoI, every UAV's power, the risky penalties.
-        let power_mw: f64 = sent.iter().map(|s| s.power_mw).sum();
-        let penalty: f64 = sent.iter().map(|s| s.penalty).sum();
         let reward = -(self.cost(weighted, power_mw) + penalty);
 
         // 5. The moves; one that would leave the grid stops at its edge (P1b).
@@ -642,14 +642,14 @@ impl World {
     ) -> Option<f64> {
         let &(mv, target) = self.action_parts.get(action)?;
         let (x, y) = (*obs.first()? as u32, *obs.get(1)? as u32);
-        let in_state = self.uavs == 1 && obs.len() == self.layout().state_len();
+        let in_state = self.layout.uavs() == 1 && obs.len() == self.layout().state_len();
         let in_state = in_state && next.len() == obs.len();
         if !in_state || x >= self.grid || y >= self.grid || Layout::aoi(obs).contains(&0) {
             return None;
         }
         let target = target as usize;
-        let at = (y * self.grid + x) as usize * self.devices + target;
-        let power_mw = match (target < self.devices, outage) {
+        let at = (y * self.grid + x) as usize * self.layout.devices() + target;
+        let power_mw = match (target < self.layout.devices(), outage) {
             (false, _) => 0.0,
             (true, true) => self.rain_mw[at],
             (true, false) => self.clear_mw[at],
@@ -664,7 +664,10 @@ impl World {
             penalty,
         };
         next.copy_from_slice(obs);
-        Some(self.advance(next, &[(mv, target as u32)], &[sent]).0)
+        Some(
+            self.advance(next, &[(mv, target as u32)], &[sent], power_mw, penalty)
+                .0,
+        )
     }
 
     /// Whether a transmission to `target` from cell (x, y) may have been charged the risky
@@ -672,7 +675,7 @@ impl World {
     /// either in between.
     pub fn possible_penalties(&self, x: u32, y: u32, target: usize) -> &'static [bool] {
         match self.risky {
-            Some(r) if target < self.devices && r.contains(x, y) => match r.probability {
+            Some(r) if target < self.layout.devices() && r.contains(x, y) => match r.probability {
                 p if p <= 0.0 => &[false],
                 p if p >= 1.0 => &[true],
                 _ => &[false, true],
@@ -733,7 +736,7 @@ impl World {
             .zip(&self.delta)
             .map(|(&a, &d)| d * aged(a) as f64)
             .sum();
-        if !outage && device < self.devices {
+        if !outage && device < self.layout.devices() {
             weighted -= self.delta[device] * (aged(self.aoi()[device]) - 1) as f64;
         }
         self.cost(weighted, power_mw)
@@ -795,7 +798,7 @@ impl World {
 
     /// U.
     pub fn uavs(&self) -> usize {
-        self.uavs
+        self.layout.uavs()
     }
 
     /// Cells a move covers.
@@ -824,12 +827,12 @@ impl World {
 
     /// K.
     pub fn devices(&self) -> usize {
-        self.devices
+        self.layout.devices()
     }
 
     /// Its observation and action layout.
     pub fn layout(&self) -> Layout {
-        Layout::team(self.devices, self.uavs, self.idle)
+        self.layout
     }
 
     /// Cells per side, L.

@@ -48,6 +48,9 @@ fn two_uavs_on_one_device_restart_its_age_once_and_both_pay() {
     let step = w.step_team(&[hover, hover]);
     assert_eq!(step.power_mw, 2.0 * alone);
     assert_eq!(w.aoi(), &[1, 2]);
+    let mut seen = [0u16; 4];
+    w.agent_observation(1, &mut seen);
+    assert_eq!(seen, [2, 3, 1, 2]);
     // AoI 1 + 2, then 150 per milliwatt of the two transmissions.
     assert_eq!(step.reward, -(3.0 + 150.0 * 2.0 * alone));
     assert_eq!(step.outages, 0);

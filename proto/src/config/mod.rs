@@ -43,7 +43,8 @@ pub use tunnel::{
     is_host_name, is_loopback_endpoint, TunnelConfig, ALL_TASKS, HOST_NAME_RULE, MAX_HOSTS,
 };
 pub use world::{
-    Delta, PowerTerm, WorldConfig, MAX_DEVICES, MAX_GRID_CELLS, MAX_JOINT_STARTS, MAX_UAVS, MOVES,
+    enumerated_starts, Delta, PowerTerm, WorldConfig, MAX_DEVICES, MAX_GRID_CELLS,
+    MAX_JOINT_STARTS, MAX_UAVS, MOVES,
 };
 
 use rules::{first_broken, non_empty, Broken};

@@ -26,6 +26,14 @@ pub const MAX_UAVS: usize = 8;
 /// many (docs/MODEL.md section 11; `uavmeta_world::rollout::start_worlds`).
 pub const MAX_JOINT_STARTS: usize = 10_000;
 
+/// How many joint start cells `uavs` UAVs have on a grid of `cells` cells, where exact
+/// evaluation runs every one of them (a single UAV's always); `None` past [`MAX_JOINT_STARTS`],
+/// where it runs a fixed sample of that many.
+pub fn enumerated_starts(cells: usize, uavs: usize) -> Option<usize> {
+    let count = cells.checked_pow(uavs as u32);
+    count.filter(|&n| uavs == 1 || n <= MAX_JOINT_STARTS)
+}
+
 /// The largest grid side: the world precomputes a power table of grid_cells^2 x K entries.
 pub const MAX_GRID_CELLS: u32 = 1024;
 
@@ -135,10 +143,7 @@ impl WorldConfig {
             return 1;
         }
         let cells = self.grid_cells as usize * self.grid_cells as usize;
-        match cells.checked_pow(self.uavs as u32) {
-            Some(n) if self.uavs == 1 || n <= MAX_JOINT_STARTS => n,
-            _ => MAX_JOINT_STARTS,
-        }
+        enumerated_starts(cells, self.uavs).unwrap_or(MAX_JOINT_STARTS)
     }
 
     /// Divisors that normalise one UAV's raw observation for the networks: x/(L-1), y/(L-1),
