@@ -509,6 +509,7 @@ impl World {
     }
 
     /// Steps 3-5 on the world's own state once every UAV has transmitted, and the step count.
+    #[inline(always)]
     fn finish_step(&mut self, orders: &[(Move, u32)], sent: &[Sent]) -> Step {
         let (power_mw, penalty) = Sent::totals(sent);
         let mut obs = std::mem::take(&mut self.obs);
@@ -537,6 +538,7 @@ impl World {
     }
 
     /// UAV u's transmission to `target` from its cell: power, outage, and the risky penalty.
+    #[inline(always)]
     fn send(&mut self, u: usize, target: usize) -> Sent {
         let cell = self.uav_cell(u);
         let (power_mw, outage) = self.transmission_at(cell, target, self.rain);
@@ -578,6 +580,7 @@ impl World {
     /// UAV's (move, target) and transmission, and the team's power and penalties, given: ages the
     /// AoI, restarts every device served without outage, computes the reward, makes the moves. Returns the reward and the sum of
     /// the AoI after the update.
+    #[inline(always)]
     fn advance(
         &self,
         obs: &mut [u16],

@@ -20,6 +20,7 @@ pub struct RainZone {
 }
 
 impl RainZone {
+    #[inline]
     pub fn contains(&self, x: u32, y: u32) -> bool {
         (self.x0..=self.x1).contains(&x) && (self.y0..=self.y1).contains(&y)
     }
