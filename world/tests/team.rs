@@ -265,6 +265,21 @@ fn a_one_uav_world_serialises_and_hashes_as_before_teams() {
         .unwrap_err()
         .to_string();
     assert!(error.contains("tasks[0].risky"), "{error}");
+    let inside = off_grid.replace("x1 = 11", "x1 = 9");
+    let bad_values = [
+        ("probability = 0.1", "probability = 1.5", "probability"),
+        ("penalty = 300.0", "penalty = -1.0", "penalty"),
+    ];
+    for (good, bad, key) in bad_values {
+        let text = inside.replace(good, bad);
+        let error = Config::from_toml_str(&text, "bad.toml", &[])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("risky") && error.contains(key),
+            "{bad}: {error}"
+        );
+    }
 }
 
 #[test]
