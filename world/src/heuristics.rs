@@ -75,12 +75,9 @@ impl Policy for RandomPolicy {
         self.rng.random_range(0..world.layout().action_count())
     }
 
+    /// Each UAV's action drawn in turn.
     fn acts_for_teams(&self) -> bool {
         true
-    }
-
-    fn act_team(&mut self, world: &World, actions: &mut [usize]) {
-        actions.iter_mut().for_each(|a| *a = self.act(world));
     }
 }
 
@@ -285,13 +282,9 @@ impl Policy for ReplayPolicy {
         action
     }
 
+    /// One action a UAV, in UAV order.
     fn acts_for_teams(&self) -> bool {
         true
-    }
-
-    /// One action a UAV, in UAV order.
-    fn act_team(&mut self, world: &World, actions: &mut [usize]) {
-        actions.iter_mut().for_each(|a| *a = self.act(world));
     }
 }
 
@@ -409,8 +402,7 @@ impl PolicySpec {
         seed: u64,
         steps: Option<usize>,
     ) -> Result<Box<dyn Policy>, PolicyError> {
-        let action_count = config.world.layout().action_count();
-        let policy = self.build_any(config, seed, steps, action_count)?;
+        let policy = self.build_any(config, seed, steps)?;
         self.for_world(config, policy)
     }
 
@@ -439,8 +431,8 @@ impl PolicySpec {
         config: &Config,
         seed: u64,
         steps: Option<usize>,
-        action_count: usize,
     ) -> Result<Box<dyn Policy>, PolicyError> {
+        let action_count = config.world.layout().action_count();
         Ok(match self {
             Self::Random => Box::new(RandomPolicy::new(seed)),
             Self::Stalest => Box::new(StalestPolicy),

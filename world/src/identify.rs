@@ -60,6 +60,11 @@ pub enum Unidentified {
     Rain(usize),
     #[error("shot {0} is not a step of this world's moves and AoI update")]
     Foreign(usize),
+    #[error(
+        "shot {0} charges a cell and device another shot charged differently: the task's costs \
+         are drawn (a risky region), which the fitted world does not model"
+    )]
+    Drawn(usize),
 }
 
 /// The world's form under `world` with no task in it: no rain, and a power weight of 1.
@@ -112,9 +117,10 @@ pub fn identify(world: &WorldConfig, shots: &[Transition]) -> Result<Identified,
     })
 }
 
-/// Each (cell, device) pair the shots schedule and the power cost it had (the first shot's).
-/// Refused if a shot's next observation is not the one the form's moves and AoI update make:
-/// with its transmission failed (rain), or at all.
+/// Each (cell, device) pair the shots schedule and the power cost it had.
+/// Refused if a shot's next observation is not the one the form's moves and AoI update make
+/// (with its transmission failed: rain; or at all), or if two shots charge one pair different
+/// costs beyond the f32 rounding of their rewards (a risky region's drawn penalty).
 fn observed_costs(form: &World, shots: &[Transition]) -> Result<Costs, Unidentified> {
     let mut next = vec![0u16; 2 + form.devices()];
     let mut seen = Costs::new();
@@ -140,8 +146,13 @@ fn observed_costs(form: &World, shots: &[Transition]) -> Result<Costs, Unidentif
             (u32::from(t.obs[0]), u32::from(t.obs[1])),
             form.layout().device(action),
         );
-        if !seen.iter().any(|(seen_key, _)| *seen_key == key) {
-            seen.push((key, -f64::from(t.reward) - weighted));
+        let cost = -f64::from(t.reward) - weighted;
+        match seen.iter().find(|(seen_key, _)| *seen_key == key) {
+            None => seen.push((key, cost)),
+            Some(&(_, was)) if (cost - was).abs() > 1e-4 * f64::from(t.reward).abs().max(1.0) => {
+                return Err(Unidentified::Drawn(i))
+            }
+            Some(_) => {}
         }
     }
     match outages {
@@ -419,6 +430,30 @@ mod tests {
             other => panic!("expected rain, got {other:?}"),
         }
         assert!(identify(&config.world, &lap(&clear)).is_ok());
+    }
+
+    #[test]
+    fn shots_of_a_risky_region_identify_nothing() {
+        let (_, config) = world(-100.0, 300.0);
+        let risky = uavmeta_proto::config::RiskyRegion {
+            x0: 0,
+            y0: 0,
+            x1: 9,
+            y1: 9,
+            penalty: 300.0,
+            probability: 0.5,
+        };
+        let task = TaskConfig {
+            risky: Some(risky),
+            ..config.tasks[0].clone()
+        };
+        let world = World::new(&config.world, &task, 0);
+        let hover = world.layout().action(Move::Hover.index(), 0);
+        let shots = shots(&world, (4, 4), &[hover; 20]);
+        match identify(&config.world, &shots) {
+            Err(Unidentified::Drawn(i)) => assert!(i > 0),
+            other => panic!("expected drawn costs, got {other:?}"),
+        }
     }
 
     #[test]

@@ -25,15 +25,15 @@ use crate::world::{Move, Step, World};
 pub trait Policy {
     fn act(&mut self, world: &World) -> usize;
 
-    /// Every UAV's action, UAV u's into `actions[u]` (docs/MODEL.md section 11). A policy of one
-    /// UAV acts for the one UAV there is; a team policy overrides this, and
-    /// [`Policy::acts_for_teams`] says so.
+    /// Every UAV's action, UAV u's into `actions[u]` (docs/MODEL.md section 11): by default one
+    /// [`Policy::act`] a UAV, in UAV order, which is a team policy only for a policy whose
+    /// actions do not depend on which UAV asks (random, replayed); others override this.
     fn act_team(&mut self, world: &World, actions: &mut [usize]) {
-        assert_eq!(actions.len(), 1, "a policy of one UAV in a team");
-        actions[0] = self.act(world);
+        actions.iter_mut().for_each(|a| *a = self.act(world));
     }
 
-    /// Whether [`Policy::act_team`] acts for a team of any size.
+    /// Whether [`Policy::act_team`] acts for a team of any size; a policy of one UAV (a learned
+    /// network, the planner) acts for the one UAV there is.
     fn acts_for_teams(&self) -> bool {
         false
     }
