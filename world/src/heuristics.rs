@@ -420,7 +420,7 @@ impl PolicySpec {
             spec: self.to_string(),
             expected: format!(
                 "a policy that acts for a team of world.uavs = {uavs}: random, stalest, greedy, \
-                 eps:P or actions:FILE (the planner and learned policies fly one UAV so far, \
+                 planner, eps:P or actions:FILE (learned policies fly one UAV so far, \
                  docs/MODEL.md section 11)"
             ),
         })

@@ -21,5 +21,6 @@ pub mod identify;
 pub mod planner;
 pub mod rollout;
 pub mod schedule;
+mod team_planner;
 pub mod validate;
 pub mod world;

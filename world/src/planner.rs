@@ -19,7 +19,8 @@ use crate::world::{Move, World};
 /// A planned action sequence from a world's current state to its horizon.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Plan {
-    /// Action indices `move * K + device`, one per remaining step.
+    /// Action indices `move * targets + target`, one per UAV per remaining step, step by step
+    /// (UAV order within a step).
     pub actions: Vec<usize>,
     /// -sum of the rewards the world will give for `actions`.
     pub cost: f64,
@@ -59,7 +60,7 @@ struct Child {
 }
 
 /// Where each kept node came from, per step, for reading the plan backwards.
-type Trail = Vec<Vec<(u32, u32)>>;
+pub(crate) type Trail = Vec<Vec<(u32, u32)>>;
 
 impl Planner {
     /// A planner with `config`'s settings; the config must have passed `PlannerConfig::validate`.
@@ -78,12 +79,16 @@ impl Planner {
         crate::schedule::improve(world, self.beam(world), patience)
     }
 
-    /// The cheapest action sequence the beam searches find (the first weight's on a tie).
+    /// The cheapest action sequence the beam searches find (the first weight's on a tie); a
+    /// team's is [`crate::team_planner`]'s search over joint states.
     pub fn beam(&self, world: &World) -> Plan {
         let reach = Reach::new(world);
         self.h_power_weights
             .iter()
-            .map(|&b| self.search(world, &reach, b))
+            .map(|&b| match world.uavs() {
+                1 => self.search(world, &reach, b),
+                _ => crate::team_planner::search(world, &reach, self.beam_width, b),
+            })
             .reduce(|best, plan| if plan.cost < best.cost { plan } else { best })
             .expect("planner.h_power_weights is not empty (PlannerConfig::validate)")
     }
@@ -121,21 +126,13 @@ impl Planner {
         beam: &Beam,
         zone: Option<RainZone>,
     ) -> (Beam, Vec<(u32, u32)>) {
-        let (mut children, aged) = expand(world, reach, b, beam, zone);
-        // Copies of one state share h, so the best copy always ranks before the others: ranking
-        // the children first and merging only the best 2 x width spares the merge most of them.
-        let shortlist = 2 * self.beam_width;
-        if children.len() > shortlist {
-            children.select_nth_unstable_by(shortlist - 1, rank);
-            children.truncate(shortlist);
-        }
-        let mut kept = merge(children, &aged, world.devices());
-        if kept.len() > self.beam_width {
-            kept.select_nth_unstable_by(self.beam_width - 1, rank);
-            kept.truncate(self.beam_width);
-        }
-        kept.sort_unstable_by(rank);
+        let (children, aged) = expand(world, reach, b, beam, zone);
         let k = world.devices();
+        let same = |a: &Child, b: &Child| {
+            let (x, y) = (a.aged as usize * k, b.aged as usize * k);
+            a.cell == b.cell && aged[x..x + k] == aged[y..y + k]
+        };
+        let kept = keep_best(children, self.beam_width, same);
         let mut next = Beam::default();
         let mut from = Vec::with_capacity(kept.len());
         for c in &kept {
@@ -166,18 +163,22 @@ fn expand(
     let mut due = DueOrder::new(k);
     for (i, &cell) in beam.cells.iter().enumerate() {
         let aoi = &beam.aoi[i * k..(i + 1) * k];
-        for device in 0..k {
+        // The devices, and "none" where the layout has it.
+        for device in 0..world.layout().targets() {
             let slot = aged.len() / k;
             // docs/MODEL.md section 1, steps 1-4 for (cell, device).
             let (power_mw, outage) = world.transmission_at(cell, device, zone);
             aged.extend(aoi.iter().map(|&a| a.saturating_add(1).min(cap)));
             let vector = &mut aged[slot * k..];
-            if !outage {
+            if !outage && device < k {
                 vector[device] = 1;
             }
             let weighted: f64 = vector.iter().zip(delta).map(|(&a, &d)| d * a as f64).sum();
-            let g = beam.g[i] + weighted + world.power_weight() * power_mw;
-            let aoi_to_go = due.sort(vector, delta);
+            let g = beam.g[i]
+                + weighted
+                + world.power_weight() * power_mw
+                + world.expected_penalty_at(cell, device);
+            let aoi_to_go = due.sort(vector, delta, 1);
             let aoi_key = hash_aoi(vector);
             for mv in Move::ALL {
                 let next = world.moved(cell, mv);
@@ -199,13 +200,13 @@ fn expand(
 }
 
 /// The devices in the order stalest first would serve them, and the AoI part of h.
-struct DueOrder {
-    order: Vec<usize>,
+pub(crate) struct DueOrder {
+    pub(crate) order: Vec<usize>,
     weighted: Vec<f64>,
 }
 
 impl DueOrder {
-    fn new(k: usize) -> DueOrder {
+    pub(crate) fn new(k: usize) -> DueOrder {
         DueOrder {
             order: (0..k).collect(),
             weighted: vec![0.0; k],
@@ -213,9 +214,9 @@ impl DueOrder {
     }
 
     /// Orders the devices by delta A, largest first (ties to the lower index), and returns
-    /// sum_i i (delta A)_(i): the AoI cost of the next K steps under that order, up to a
-    /// constant.
-    fn sort(&mut self, aoi: &[u16], delta: &[f64]) -> f64 {
+    /// sum_i (i / U) (delta A)_(i), `uavs` = U devices served a step: the AoI cost of the next
+    /// K / U steps under that order, up to a constant.
+    pub(crate) fn sort(&mut self, aoi: &[u16], delta: &[f64], uavs: usize) -> f64 {
         for ((w, &a), &d) in self.weighted.iter_mut().zip(aoi).zip(delta) {
             *w = d * a as f64;
         }
@@ -225,21 +226,21 @@ impl DueOrder {
         self.order
             .iter()
             .enumerate()
-            .map(|(i, &j)| i as f64 * weighted[j])
+            .map(|(i, &j)| (i / uavs) as f64 * weighted[j])
             .sum()
     }
 }
 
 /// P_min: for every cell c, device j and distance d < K, the least clear-sky power of serving j
 /// from a cell within d moves of c, at `[(c * K + j) * K + d]`.
-struct Reach {
+pub(crate) struct Reach {
     grid: u32,
     k: usize,
     min_mw: Vec<f64>,
 }
 
 impl Reach {
-    fn new(world: &World) -> Reach {
+    pub(crate) fn new(world: &World) -> Reach {
         let (grid, k) = (world.grid_cells(), world.devices());
         let cells = (grid * grid) as usize;
         let mut min_mw = vec![f64::INFINITY; cells * k * k];
@@ -262,27 +263,81 @@ impl Reach {
 
     /// sum_i P_min(cell, order[i], i): the power part of h, in milliwatts.
     fn power_to_go(&self, cell: (u32, u32), order: &[usize]) -> f64 {
-        let c = (cell.1 * self.grid + cell.0) as usize;
         order
             .iter()
             .enumerate()
-            .map(|(d, &j)| self.min_mw[(c * self.k + j) * self.k + d])
+            .map(|(d, &j)| self.least_mw(cell, j, d))
             .sum()
+    }
+
+    /// P_min(cell, device, d).
+    pub(crate) fn least_mw(&self, cell: (u32, u32), device: usize, d: usize) -> f64 {
+        let c = (cell.1 * self.grid + cell.0) as usize;
+        self.min_mw[(c * self.k + device) * self.k + d]
     }
 }
 
+/// A child of an expansion as the merge and the ranking see it (one UAV's, or a team's).
+pub(crate) trait Candidate {
+    /// g + h, the ranking.
+    fn score(&self) -> f64;
+    /// Cost of the path to it.
+    fn g(&self) -> f64;
+    /// Hash of its state; ties in score are broken by it.
+    fn key(&self) -> u64;
+    fn parent(&self) -> u32;
+    fn action(&self) -> u32;
+}
+
+impl Candidate for Child {
+    fn score(&self) -> f64 {
+        self.score
+    }
+    fn g(&self) -> f64 {
+        self.g
+    }
+    fn key(&self) -> u64 {
+        self.key
+    }
+    fn parent(&self) -> u32 {
+        self.parent
+    }
+    fn action(&self) -> u32 {
+        self.action
+    }
+}
+
+/// The best `width` distinct states among `children` (`same` says whether two are one state),
+/// each by its cheapest path, best first.
+pub(crate) fn keep_best<C: Candidate>(
+    mut children: Vec<C>,
+    width: usize,
+    same: impl Fn(&C, &C) -> bool,
+) -> Vec<C> {
+    // Copies of one state share h, so the best copy always ranks before the others: ranking
+    // the children first and merging only the best 2 x width spares the merge most of them.
+    let shortlist = 2 * width;
+    if children.len() > shortlist {
+        children.select_nth_unstable_by(shortlist - 1, rank);
+        children.truncate(shortlist);
+    }
+    let mut kept = merge(children, same);
+    if kept.len() > width {
+        kept.select_nth_unstable_by(width - 1, rank);
+        kept.truncate(width);
+    }
+    kept.sort_unstable_by(rank);
+    kept
+}
+
 /// The children with one per state: the cheapest path to it (ties to the first expanded).
-fn merge(children: Vec<Child>, aged: &[u16], k: usize) -> Vec<Child> {
-    let same = |a: &Child, b: &Child| {
-        let (x, y) = (a.aged as usize * k, b.aged as usize * k);
-        a.cell == b.cell && aged[x..x + k] == aged[y..y + k]
-    };
+fn merge<C: Candidate>(children: Vec<C>, same: impl Fn(&C, &C) -> bool) -> Vec<C> {
     let mut index: HashMap<u64, u32, BuildHasherDefault<KeyHasher>> =
         HashMap::with_capacity_and_hasher(children.len(), Default::default());
-    let mut kept: Vec<Child> = Vec::with_capacity(children.len());
+    let mut kept: Vec<C> = Vec::with_capacity(children.len());
     for child in children {
         // Open addressing over the 64-bit key: a true hash collision probes on.
-        let mut key = child.key;
+        let mut key = child.key();
         loop {
             match index.get(&key) {
                 None => {
@@ -291,7 +346,7 @@ fn merge(children: Vec<Child>, aged: &[u16], k: usize) -> Vec<Child> {
                     break;
                 }
                 Some(&at) if same(&kept[at as usize], &child) => {
-                    if child.g < kept[at as usize].g {
+                    if child.g() < kept[at as usize].g() {
                         kept[at as usize] = child;
                     }
                     break;
@@ -305,16 +360,16 @@ fn merge(children: Vec<Child>, aged: &[u16], k: usize) -> Vec<Child> {
 
 /// The ranking: lower g + h first, then by state key and action, so the order is total and the
 /// search deterministic.
-fn rank(a: &Child, b: &Child) -> std::cmp::Ordering {
-    a.score
-        .total_cmp(&b.score)
-        .then(a.key.cmp(&b.key))
-        .then(a.parent.cmp(&b.parent))
-        .then(a.action.cmp(&b.action))
+fn rank<C: Candidate>(a: &C, b: &C) -> std::cmp::Ordering {
+    a.score()
+        .total_cmp(&b.score())
+        .then(a.key().cmp(&b.key()))
+        .then(a.parent().cmp(&b.parent()))
+        .then(a.action().cmp(&b.action()))
 }
 
-/// The actions from the root to node `last` of the final beam.
-fn read_back(trail: &Trail, last: usize) -> Vec<usize> {
+/// The actions from the root to node `last` of the final beam (a team's as joint codes).
+pub(crate) fn read_back(trail: &Trail, last: usize) -> Vec<usize> {
     let mut actions = vec![0; trail.len()];
     let mut node = last;
     for (t, from) in trail.iter().enumerate().rev() {
@@ -346,7 +401,7 @@ impl Hasher for KeyHasher {
 }
 
 /// FNV-1a over the AoI vector.
-fn hash_aoi(aoi: &[u16]) -> u64 {
+pub(crate) fn hash_aoi(aoi: &[u16]) -> u64 {
     fnv_words(aoi.iter().map(|&a| a as u64))
 }
 
@@ -358,7 +413,7 @@ pub(crate) fn fnv_words(words: impl IntoIterator<Item = u64>) -> u64 {
 }
 
 /// SplitMix64's finaliser over two words.
-fn mix(a: u64, b: u64) -> u64 {
+pub(crate) fn mix(a: u64, b: u64) -> u64 {
     let mut z = a ^ b.wrapping_mul(0x9e37_79b9_7f4a_7c15);
     z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
@@ -403,14 +458,14 @@ impl PlannerPolicy {
         }
     }
 
-    /// The observation the plan expects at step `t`, if it covers it.
+    /// The state the plan expects at step `t`, if it covers it.
     fn expected_at(&self, t: u32, len: usize) -> Option<&[u16]> {
         let i = t.checked_sub(self.from_t)? as usize;
-        (i < self.plan.len()).then(|| &self.expected[i * len..(i + 1) * len])
+        (i * len < self.expected.len()).then(|| &self.expected[i * len..(i + 1) * len])
     }
 
-    /// Plans from `world`'s state (in the model, if it has one) and records the observations the
-    /// plan will meet.
+    /// Plans from `world`'s state (in the model, if it has one) and records the states the plan
+    /// will meet.
     fn replan(&mut self, world: &World) {
         let mut ahead = match &self.model {
             Some(model) => {
@@ -423,22 +478,37 @@ impl PlannerPolicy {
         };
         let plan = self.planner.plan(&ahead);
         self.expected.clear();
-        for &a in &plan.actions {
+        for step in plan.actions.chunks(world.uavs()) {
             self.expected.extend_from_slice(ahead.observation());
-            ahead.step(a);
+            ahead.step_team(step);
         }
         self.plan = plan.actions;
         self.from_t = world.t();
+    }
+
+    /// Every UAV's action at the world's step, planning first at an episode's start (new start,
+    /// new rain draws) or where the world left the plan.
+    fn actions(&mut self, world: &World) -> &[usize] {
+        let len = world.observation().len();
+        if world.t() == 0 || self.expected_at(world.t(), len) != Some(world.observation()) {
+            self.replan(world);
+        }
+        let uavs = world.uavs();
+        let i = (world.t() - self.from_t) as usize * uavs;
+        &self.plan[i..i + uavs]
     }
 }
 
 impl Policy for PlannerPolicy {
     fn act(&mut self, world: &World) -> usize {
-        let len = world.observation().len();
-        // A new episode (new start, new rain draws) or a world that left the plan.
-        if world.t() == 0 || self.expected_at(world.t(), len) != Some(world.observation()) {
-            self.replan(world);
-        }
-        self.plan[(world.t() - self.from_t) as usize]
+        self.actions(world)[0]
+    }
+
+    fn act_team(&mut self, world: &World, actions: &mut [usize]) {
+        actions.copy_from_slice(self.actions(world));
+    }
+
+    fn acts_for_teams(&self) -> bool {
+        true
     }
 }

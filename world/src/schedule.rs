@@ -44,7 +44,12 @@ fn state_key(world: &World) -> u64 {
 /// in a row find nothing cheaper, if `world` (at its current state) has no rain ahead; otherwise,
 /// or if nothing improves, `plan` itself.
 pub fn improve(world: &World, plan: Plan, patience: usize) -> Plan {
-    if world.rain_schedule().iter().any(Option::is_some) || plan.actions.is_empty() {
+    // A schedule of devices only: "none" (`world.idle_action`) and teams keep the beam's plan.
+    let one_uav_of_devices = world.uavs() == 1 && world.layout().targets() == world.devices();
+    if world.rain_schedule().iter().any(Option::is_some)
+        || plan.actions.is_empty()
+        || !one_uav_of_devices
+    {
         return plan;
     }
     let layout = world.layout();
@@ -90,7 +95,8 @@ struct Grid<'w> {
     cells: usize,
     next: Vec<[usize; 5]>,
     start: usize,
-    /// lambda / K times the clear-sky power of serving device j from cell c, at `[j * cells + c]`.
+    /// lambda / K times the clear-sky power of serving device j from cell c, plus the risky
+    /// region's expected penalty there, at `[j * cells + c]`.
     power: Vec<f64>,
 }
 
@@ -106,6 +112,7 @@ impl<'w> Grid<'w> {
             .flat_map(|j| {
                 (0..cells).map(move |c| {
                     world.power_weight() * world.transmission_at(cell(l, c), j, None).0
+                        + world.expected_penalty_at(cell(l, c), j)
                 })
             })
             .collect();

@@ -401,6 +401,17 @@ impl World {
         }
     }
 
+    /// The risky region's expected penalty for a transmission to `target` from `cell`: what the
+    /// exact evaluation charges (0 outside the region, with no device served, or with no region).
+    pub fn expected_penalty_at(&self, cell: (u32, u32), target: usize) -> f64 {
+        match self.risky {
+            Some(r) if target < self.layout.devices() && r.contains(cell.0, cell.1) => {
+                r.expected_penalty()
+            }
+            _ => 0.0,
+        }
+    }
+
     /// The cell a move of `world.step_cells` leads to from `cell` (P1b: a move stops at the
     /// grid's edge, so with one cell a move off the grid stays).
     pub fn moved(&self, cell: (u32, u32), mv: Move) -> (u32, u32) {
@@ -765,20 +776,32 @@ impl World {
         }
     }
 
-    /// A return no policy of this task can exceed (docs/MODEL.md section 9): each step's cost at
-    /// its least. After step t the devices served at distinct steps have distinct ages and the
-    /// others t + 1, so the i-th youngest is at least min(i, t + 1, A_max), and the heaviest
-    /// weights take the youngest ages (rearrangement); each step's power is at least the least
-    /// power of any device from any cell, without rain. Outages only raise both.
+    /// A return no policy of this task can exceed (docs/MODEL.md sections 9 and 11): each step's
+    /// cost at its least. After step t, with n devices restarted at it, at most n ages are 1 and
+    /// at most U (the UAVs) any older age a <= t + 1, the others t + 1: the i-th youngest is at
+    /// least min(1 for i <= n, then 2, 3, .. U at a time; t + 1; A_max), and the heaviest
+    /// weights take the youngest ages (rearrangement). Each UAV that transmits pays at least the
+    /// least power of any device from any cell, without rain: all U of them, or with "none"
+    /// (`world.idle_action`) at least the n that restart an age, n the cheapest of 0..=U.
+    /// Outages and risky penalties only raise the cost.
     pub fn return_bound(&self) -> f64 {
         let mut delta = self.delta.clone();
         delta.sort_by(|a, b| b.total_cmp(a));
         let least_mw = self.clear_mw.iter().copied().fold(f64::INFINITY, f64::min);
         let cap = u32::from(self.aoi_max);
-        let step = |t: u32| {
-            let ages = (1..).map(|i: u32| f64::from(i.min(t + 1).min(cap)));
+        let uavs = self.layout.uavs() as u32;
+        let idle = self.layout.targets() > self.layout.devices();
+        let fewest_served = if idle { 0 } else { uavs };
+        let cost_serving = |t: u32, n: u32| {
+            let age = |i: u32| if i < n { 1 } else { 2 + (i - n) / uavs };
+            let ages = (0..).map(|i: u32| f64::from(age(i).min(t + 1).min(cap)));
             let aoi: f64 = delta.iter().zip(ages).map(|(d, a)| d * a).sum();
-            -self.cost(aoi, least_mw)
+            let paying = if idle { n } else { uavs };
+            self.cost(aoi, f64::from(paying) * least_mw)
+        };
+        let step = |t: u32| {
+            let least = (fewest_served..=uavs).map(|n| cost_serving(t, n));
+            -least.fold(f64::INFINITY, f64::min)
         };
         (1..=self.horizon).map(step).sum()
     }

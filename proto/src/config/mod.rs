@@ -260,7 +260,7 @@ impl Config {
         }
         let expected = format!(
             "1: {what} flies one UAV so far; a team of UAVs runs in `uavmeta env rollout` with \
-             random, stalest, greedy, eps:P or actions:FILE (docs/MODEL.md section 11)"
+             random, stalest, greedy, planner, eps:P or actions:FILE (docs/MODEL.md section 11)"
         );
         Err(Broken::new("world.uavs", &uavs, expected).at(&self.origin))
     }

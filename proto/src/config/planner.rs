@@ -6,7 +6,7 @@ use serde::{Deserialize, Serialize};
 use smart_default::SmartDefault;
 
 use super::rules::{is_weight, list_of, within, Broken};
-use super::WorldConfig;
+use super::{WorldConfig, MOVES};
 
 /// The planner reference (docs/MODEL.md section 5, `uavmeta_world::planner`): a beam search over
 /// the horizon that knows the world, the row every method's gap to "achievable" is read against.
@@ -38,14 +38,22 @@ pub struct PlannerConfig {
 
 impl PlannerConfig {
     /// Bytes one search holds at its peak: width x T back-pointers, the beam, and one step's
-    /// width x 5K children with their width x K aged AoI vectors of K entries.
+    /// width x (5 x targets)^U children with their width x targets^U aged AoI vectors of K
+    /// entries (one UAV of K targets: 5K children and K vectors).
     pub fn memory_bytes(&self, world: &WorldConfig) -> u128 {
-        let (w, t, k) = (
+        let (w, t, k, u) = (
             self.beam_width as u128,
             world.horizon as u128,
             world.devices as u128,
+            world.uavs as u32,
         );
-        w * (t * 8 + (2 * k + 24) + 5 * k * 64 + k * k * 2)
+        let targets = world.layout().targets() as u128;
+        let children = (MOVES.len() as u128 * targets).saturating_pow(u);
+        let aged = targets.saturating_pow(u).saturating_mul(k * 2);
+        let per_node = (t * 8 + 2 * k + 22 + 2 * u as u128)
+            .saturating_add(children.saturating_mul(64))
+            .saturating_add(aged);
+        w.saturating_mul(per_node)
     }
 }
 
@@ -57,11 +65,12 @@ impl PlannerConfig {
             return Ok(());
         }
         let expected = format!(
-            "a search that fits planner.max_memory_mib = {} MiB; with world.horizon = {} and \
-             world.devices = {} it needs {} MiB",
+            "a search that fits planner.max_memory_mib = {} MiB; with world.horizon = {}, \
+             world.devices = {} and world.uavs = {} it needs {} MiB",
             self.max_memory_mib,
             world.horizon,
             world.devices,
+            world.uavs,
             need >> 20
         );
         Err(Broken::new(
