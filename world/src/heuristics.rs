@@ -438,7 +438,14 @@ impl PolicySpec {
             Self::Stalest => Box::new(StalestPolicy),
             Self::Greedy => Box::new(GreedyPolicy),
             Self::Epsilon(p) => Box::new(EpsilonPolicy::new(*p, seed)),
-            Self::Planner => Box::new(PlannerPolicy::new(&config.planner)),
+            Self::Planner => {
+                let fits = config.planner.fits(&config.world);
+                fits.map_err(|expected| PolicyError::Spec {
+                    spec: self.to_string(),
+                    expected: format!("{expected} (lower planner.beam_width)"),
+                })?;
+                Box::new(PlannerPolicy::new(&config.planner))
+            }
             Self::Actions(path) => {
                 let replay = ReplayPolicy::from_file(path, action_count)?;
                 if let Some(need) = Some(steps.unwrap_or(1)).filter(|&need| replay.len() < need) {

@@ -233,14 +233,26 @@ fn a_team_beats_one_uav_with_the_same_heuristic() {
     assert!(pair > alone, "two UAVs {pair}, one {alone}");
 }
 
+/// A policy of one UAV, as a learned network is.
+struct OneUav;
+
+impl Policy for OneUav {
+    fn act(&mut self, _: &World) -> usize {
+        0
+    }
+}
+
 #[test]
 fn only_team_policies_fly_a_team() {
     let two = config("devices = 10\nuavs = 2");
-    for spec in ["random", "stalest", "greedy", "eps:0.3"] {
+    for spec in ["random", "stalest", "greedy", "planner", "eps:0.3"] {
         let spec: PolicySpec = spec.parse().unwrap();
         assert!(spec.build(&two, 0, None).is_ok(), "{spec}");
     }
-    let error = PolicySpec::Planner.build(&two, 0, None).err().unwrap();
+    let error = PolicySpec::Greedy
+        .for_world(&two, Box::new(OneUav))
+        .err()
+        .unwrap();
     assert!(error.to_string().contains("world.uavs = 2"), "{error}");
     let error = two.require_one_uav("`uavmeta collect`").unwrap_err();
     assert!(error.to_string().contains("world.uavs"), "{error}");

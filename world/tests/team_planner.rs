@@ -191,3 +191,23 @@ fn the_team_planner_beats_the_team_heuristics() {
         "planner {planned} above the bound {bound}"
     );
 }
+
+/// A team whose search would not fit `planner.max_memory_mib` still loads (its heuristics fly
+/// it), and asking it for the planner is refused with the memory it would need.
+#[test]
+fn a_team_too_large_to_search_is_refused_where_the_planner_is_asked_for() {
+    let three = config("devices = 10\nuavs = 3");
+    let error = uavmeta_world::heuristics::PolicySpec::Planner
+        .build(&three, 0, None)
+        .err()
+        .expect("a search of 125 000 children a node is refused");
+    let text = error.to_string();
+    assert!(
+        text.contains("planner.max_memory_mib") && text.contains("world.uavs = 3"),
+        "{text}"
+    );
+    let two = config("devices = 10\nuavs = 2");
+    assert!(uavmeta_world::heuristics::PolicySpec::Planner
+        .build(&two, 0, None)
+        .is_ok());
+}

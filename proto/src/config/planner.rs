@@ -58,13 +58,24 @@ impl PlannerConfig {
 }
 
 impl PlannerConfig {
-    /// The search on `world` fits `max_memory_mib`.
+    /// The search on a one-UAV `world` fits `max_memory_mib`: every table has a planner row, so
+    /// a config whose search would not fit is refused up front. A team's search grows as
+    /// (5 x targets)^U and is refused where the planner is asked for ([`PlannerConfig::fits`]).
     pub(super) fn check_memory(&self, world: &WorldConfig) -> Result<(), Broken> {
+        if world.uavs > 1 {
+            return Ok(());
+        }
+        self.fits(world)
+            .map_err(|expected| Broken::new("planner.beam_width", &self.beam_width, expected))
+    }
+
+    /// Whether one search on `world` fits `max_memory_mib`; if not, what was expected.
+    pub fn fits(&self, world: &WorldConfig) -> Result<(), String> {
         let need = self.memory_bytes(world);
         if need <= (self.max_memory_mib as u128) << 20 {
             return Ok(());
         }
-        let expected = format!(
+        Err(format!(
             "a search that fits planner.max_memory_mib = {} MiB; with world.horizon = {}, \
              world.devices = {} and world.uavs = {} it needs {} MiB",
             self.max_memory_mib,
@@ -72,11 +83,6 @@ impl PlannerConfig {
             world.devices,
             world.uavs,
             need >> 20
-        );
-        Err(Broken::new(
-            "planner.beam_width",
-            &self.beam_width,
-            expected,
         ))
     }
 }
