@@ -34,29 +34,30 @@ pub struct Planner {
     h_power_weights: Vec<f64>,
 }
 
-/// The nodes kept at one step, in structure-of-arrays form.
+/// The nodes kept at one step, in structure-of-arrays form (one UAV's, or a team's).
 #[derive(Debug, Default)]
-struct Beam {
-    cells: Vec<(u32, u32)>,
+pub(crate) struct Beam {
+    /// UAV u of node i at `[i * U + u]`.
+    pub(crate) cells: Vec<(u32, u32)>,
     /// A_1..A_K of node i at `[i * K..(i + 1) * K]`.
-    aoi: Vec<u16>,
+    pub(crate) aoi: Vec<u16>,
     /// Cost of the best path to each node.
-    g: Vec<f64>,
+    pub(crate) g: Vec<f64>,
 }
 
-/// One child of the expansion: node `parent` with action `move * K + device`.
+/// One child of the expansion: node `parent` with action `action` (`move * targets + target`,
+/// or a team's joint code); its cells are the parent's moved by the action.
 #[derive(Debug, Clone, Copy)]
-struct Child {
+pub(crate) struct Child {
     /// g + h, the ranking.
-    score: f64,
-    g: f64,
+    pub(crate) score: f64,
+    pub(crate) g: f64,
     /// Hash of the child's state; ties in score are broken by it.
-    key: u64,
-    parent: u32,
-    action: u32,
-    /// Index of (parent, device)'s aged AoI vector in the expansion's scratch arena.
-    aged: u32,
-    cell: (u32, u32),
+    pub(crate) key: u64,
+    pub(crate) parent: u32,
+    pub(crate) action: u32,
+    /// Index of the child's aged AoI vector in the expansion's scratch arena.
+    pub(crate) aged: u32,
 }
 
 /// Where each kept node came from, per step, for reading the plan backwards.
@@ -128,15 +129,19 @@ impl Planner {
     ) -> (Beam, Vec<(u32, u32)>) {
         let (children, aged) = expand(world, reach, b, beam, zone);
         let k = world.devices();
+        let cell_of = |c: &Child| {
+            let (mv, _) = world.layout().split(c.action as usize);
+            world.moved(beam.cells[c.parent as usize], Move::from_index(mv))
+        };
         let same = |a: &Child, b: &Child| {
             let (x, y) = (a.aged as usize * k, b.aged as usize * k);
-            a.cell == b.cell && aged[x..x + k] == aged[y..y + k]
+            cell_of(a) == cell_of(b) && aged[x..x + k] == aged[y..y + k]
         };
         let kept = keep_best(children, self.beam_width, same);
         let mut next = Beam::default();
         let mut from = Vec::with_capacity(kept.len());
         for c in &kept {
-            next.cells.push(c.cell);
+            next.cells.push(cell_of(c));
             let at = c.aged as usize * k;
             next.aoi.extend_from_slice(&aged[at..at + k]);
             next.g.push(c.g);
@@ -191,7 +196,6 @@ fn expand(
                     parent: i as u32,
                     action: world.layout().action(mv.index(), device) as u32,
                     aged: slot as u32,
-                    cell: next,
                 });
             }
         }
@@ -277,43 +281,13 @@ impl Reach {
     }
 }
 
-/// A child of an expansion as the merge and the ranking see it (one UAV's, or a team's).
-pub(crate) trait Candidate {
-    /// g + h, the ranking.
-    fn score(&self) -> f64;
-    /// Cost of the path to it.
-    fn g(&self) -> f64;
-    /// Hash of its state; ties in score are broken by it.
-    fn key(&self) -> u64;
-    fn parent(&self) -> u32;
-    fn action(&self) -> u32;
-}
-
-impl Candidate for Child {
-    fn score(&self) -> f64 {
-        self.score
-    }
-    fn g(&self) -> f64 {
-        self.g
-    }
-    fn key(&self) -> u64 {
-        self.key
-    }
-    fn parent(&self) -> u32 {
-        self.parent
-    }
-    fn action(&self) -> u32 {
-        self.action
-    }
-}
-
 /// The best `width` distinct states among `children` (`same` says whether two are one state),
 /// each by its cheapest path, best first.
-pub(crate) fn keep_best<C: Candidate>(
-    mut children: Vec<C>,
+pub(crate) fn keep_best(
+    mut children: Vec<Child>,
     width: usize,
-    same: impl Fn(&C, &C) -> bool,
-) -> Vec<C> {
+    same: impl Fn(&Child, &Child) -> bool,
+) -> Vec<Child> {
     // Copies of one state share h, so the best copy always ranks before the others: ranking
     // the children first and merging only the best 2 x width spares the merge most of them.
     let shortlist = 2 * width;
@@ -331,13 +305,13 @@ pub(crate) fn keep_best<C: Candidate>(
 }
 
 /// The children with one per state: the cheapest path to it (ties to the first expanded).
-fn merge<C: Candidate>(children: Vec<C>, same: impl Fn(&C, &C) -> bool) -> Vec<C> {
+fn merge(children: Vec<Child>, same: impl Fn(&Child, &Child) -> bool) -> Vec<Child> {
     let mut index: HashMap<u64, u32, BuildHasherDefault<KeyHasher>> =
         HashMap::with_capacity_and_hasher(children.len(), Default::default());
-    let mut kept: Vec<C> = Vec::with_capacity(children.len());
+    let mut kept: Vec<Child> = Vec::with_capacity(children.len());
     for child in children {
         // Open addressing over the 64-bit key: a true hash collision probes on.
-        let mut key = child.key();
+        let mut key = child.key;
         loop {
             match index.get(&key) {
                 None => {
@@ -346,7 +320,7 @@ fn merge<C: Candidate>(children: Vec<C>, same: impl Fn(&C, &C) -> bool) -> Vec<C
                     break;
                 }
                 Some(&at) if same(&kept[at as usize], &child) => {
-                    if child.g() < kept[at as usize].g() {
+                    if child.g < kept[at as usize].g {
                         kept[at as usize] = child;
                     }
                     break;
@@ -360,12 +334,12 @@ fn merge<C: Candidate>(children: Vec<C>, same: impl Fn(&C, &C) -> bool) -> Vec<C
 
 /// The ranking: lower g + h first, then by state key and action, so the order is total and the
 /// search deterministic.
-fn rank<C: Candidate>(a: &C, b: &C) -> std::cmp::Ordering {
-    a.score()
-        .total_cmp(&b.score())
-        .then(a.key().cmp(&b.key()))
-        .then(a.parent().cmp(&b.parent()))
-        .then(a.action().cmp(&b.action()))
+fn rank(a: &Child, b: &Child) -> std::cmp::Ordering {
+    a.score
+        .total_cmp(&b.score)
+        .then(a.key.cmp(&b.key))
+        .then(a.parent.cmp(&b.parent))
+        .then(a.action.cmp(&b.action))
 }
 
 /// The actions from the root to node `last` of the final beam (a team's as joint codes).

@@ -15,53 +15,11 @@
 
 use uavmeta_proto::config::{RainZone, MAX_UAVS};
 
-use crate::planner::{hash_aoi, keep_best, mix, read_back, Candidate, DueOrder, Plan, Reach};
+use crate::planner::{hash_aoi, keep_best, mix, read_back, Beam, Child, DueOrder, Plan, Reach};
 use crate::world::{Move, World};
 
 /// The moves of one UAV.
 const MOVE_COUNT: usize = Move::ALL.len();
-
-/// The nodes kept at one step, in structure-of-arrays form.
-#[derive(Debug, Default)]
-struct Beam {
-    /// UAV u of node i at `[i * U + u]`.
-    cells: Vec<(u32, u32)>,
-    /// A_1..A_K of node i at `[i * K..(i + 1) * K]`.
-    aoi: Vec<u16>,
-    /// Cost of the best path to each node.
-    g: Vec<f64>,
-}
-
-/// One child of the expansion: node `parent` with the joint action `action`.
-#[derive(Debug, Clone, Copy)]
-struct Child {
-    score: f64,
-    g: f64,
-    key: u64,
-    parent: u32,
-    /// `targets_code * 5^U + moves_code`, each code UAV 0's digit first ([`Joint`]).
-    action: u32,
-    /// Index of (parent, targets)'s aged AoI vector in the expansion's scratch arena.
-    aged: u32,
-}
-
-impl Candidate for Child {
-    fn score(&self) -> f64 {
-        self.score
-    }
-    fn g(&self) -> f64 {
-        self.g
-    }
-    fn key(&self) -> u64 {
-        self.key
-    }
-    fn parent(&self) -> u32 {
-        self.parent
-    }
-    fn action(&self) -> u32 {
-        self.action
-    }
-}
 
 /// The joint actions of a team as codes: U digits in base `targets` for the targets, U in base 5
 /// for the moves.
