@@ -8,7 +8,7 @@
 //! The paper gives no settings for this agent; docs/MODEL.md section 5 asks for what a practitioner
 //! would use. The defaults are the usual DQN stabilisers: Double DQN, the Huber loss, gradient-norm
 //! clipping at 10, a target network refreshed every 2 000 gradient steps, the paper's [256, 256]
-//! network and Adam at 1e-4. Without them the agent swings between heuristic level and far below
+//! network and Adam at 2e-4. Without them the agent swings between heuristic level and far below
 //! random from one evaluation to the next (docs/EXPERIMENTS.md).
 //!
 //! Loop, per environment step: epsilon-greedy action (uniform random during the first

@@ -71,8 +71,9 @@ pub struct OnlineDqnConfig {
     #[default(vec![256, 256])]
     #[garde(custom(widths()))]
     pub hidden: Vec<usize>,
-    /// Adam learning rate: lower than offline training's, as its buffer keeps changing.
-    #[default(1e-4)]
+    /// Adam learning rate (2e-4 brings every agent of the reproduction within 2% of the planner
+    /// on the mean, docs/EXPERIMENTS.md A11; offline training's is `learner.lr`).
+    #[default(2e-4)]
     #[garde(custom(positive("a finite rate > 0")))]
     pub lr: f64,
     /// The rate falls linearly from `lr` at `learning_starts` to `lr * lr_final_fraction` at
