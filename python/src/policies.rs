@@ -43,6 +43,7 @@ impl Heuristic {
     #[new]
     #[pyo3(signature = (name, worlds, *, normalised, seed=0))]
     fn new(name: &str, worlds: PyRef<'_, Worlds>, normalised: bool, seed: u64) -> PyResult<Self> {
+        worlds.one_uav("a heuristic of uavmeta.policies")?;
         let (config, task) = worlds.config_and_task();
         let policy: Box<dyn Policy + Send + Sync> = match name {
             "random" => Box::new(RandomPolicy::new(seed)),

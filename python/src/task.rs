@@ -45,9 +45,6 @@ pub fn resolve(args: &TaskArgs) -> Result<(Config, TaskConfig), PyErr> {
         None => Config::from_toml_str("", DEFAULT_ORIGIN, &args.overrides),
     }
     .map_err(config_error)?;
-    config
-        .require_one_uav("the Python env")
-        .map_err(config_error)?;
     match (&args.task, args.lam) {
         (Some(name), Some(lam)) => Err(PyValueError::new_err(format!(
             "task = {name:?} and lam = {lam:?}: name a task of the config, or define a one-off \

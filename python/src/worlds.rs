@@ -20,10 +20,13 @@
 use std::path::PathBuf;
 use uavmeta_proto::resources::{self, Job};
 
-use numpy::{IntoPyArray, PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1};
+use numpy::{
+    IntoPyArray, PyArray1, PyArray2, PyArray3, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2,
+    PyUntypedArrayMethods,
+};
 use pyo3::exceptions::{PyIndexError, PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
-use uavmeta_proto::config::{Config, TaskConfig};
+use uavmeta_proto::config::{Config, TaskConfig, MAX_UAVS};
 use uavmeta_world::rollout;
 use uavmeta_world::world::World;
 
@@ -90,8 +93,12 @@ struct StepOut {
     truncated: Vec<bool>,
     aoi: Vec<f64>,
     power_mw: Vec<f64>,
-    outage: Vec<bool>,
+    /// The step's outages, one a UAV at most.
+    outages: Vec<i64>,
+    /// Each UAV's target: a device, or K for none (N x U).
     device: Vec<i64>,
+    /// The team's state (N x (2U + K)), where asked for.
+    state: Vec<f32>,
     task_id: Vec<i64>,
     lam: Vec<f64>,
     layout: Vec<i64>,
@@ -108,6 +115,27 @@ impl Worlds {
     fn obs_len(&self) -> usize {
         self.config().world.layout().observation_len()
     }
+
+    fn uavs(&self) -> usize {
+        self.config().world.uavs
+    }
+
+    /// The length of the team's state, `2U + K`.
+    fn state_len(&self) -> usize {
+        self.config().world.layout().state_len()
+    }
+
+    /// An error unless the worlds fly one UAV, for the calls of one UAV's env.
+    pub fn one_uav(&self, call: &str) -> PyResult<()> {
+        match self.uavs() {
+            1 => Ok(()),
+            u => Err(PyValueError::new_err(format!(
+                "{call} on world.uavs = {u}: a team's envs reset and step with reset_team and \
+                 step_team (uavmeta.TeamVectorEnv, uavmeta.pettingzoo.parallel_env)"
+            ))),
+        }
+    }
+
 
     fn action_count(&self) -> usize {
         self.config().world.layout().action_count()
@@ -169,38 +197,68 @@ impl Worlds {
         write_observation(&self.worlds[i], self.normalised, out);
     }
 
-    /// Steps every env with its action (already checked), autoresetting those that reached
-    /// their horizon in the previous step.
-    fn step_all(&mut self, actions: &[i64]) -> StepOut {
-        let (n, d) = (self.worlds.len(), self.obs_len());
+    /// Env i's observations (each UAV's, U x (2 + K)) into `obs`, and the team's state into
+    /// `state` unless it is empty.
+    fn write_obs_and_state(&self, i: usize, obs: &mut [f32], state: &mut [f32]) {
+        if state.is_empty() {
+            return self.write_obs(i, obs);
+        }
+        self.write_obs(i, state);
+        let layout = self.worlds[i].layout();
+        for (u, out) in obs.chunks_exact_mut(layout.observation_len()).enumerate() {
+            layout.write_observation(state, u, out);
+        }
+    }
+
+    /// Steps every env with its U actions (already checked; env i's are
+    /// `actions[i * U..(i + 1) * U]`), autoresetting those that reached their horizon in the
+    /// previous step; writes the team's state too if `with_state`.
+    fn step_all(&mut self, actions: &[i64], with_state: bool) -> StepOut {
+        let (n, u, d) = (self.worlds.len(), self.uavs(), self.obs_len());
+        let s = if with_state { self.state_len() } else { 0 };
         let mut out = StepOut {
-            obs: vec![0.0; n * d],
+            obs: vec![0.0; n * u * d],
             reward: vec![0.0; n],
             truncated: vec![false; n],
             aoi: vec![0.0; n],
             power_mw: vec![0.0; n],
-            outage: vec![false; n],
-            device: vec![0; n],
+            outages: vec![0; n],
+            device: vec![0; n * u],
+            state: vec![0.0; n * s],
             task_id: vec![0; n],
             lam: vec![0.0; n],
             layout: vec![0; n],
             stepped: vec![false; n],
         };
-        for (i, &action) in actions.iter().enumerate() {
+        let mut team = [0usize; MAX_UAVS];
+        for (i, acts) in actions.chunks_exact(u).enumerate() {
             if self.pending_reset[i] {
                 self.reset_env(i, None);
             } else {
-                let step = self.worlds[i].step(action as usize);
+                let world = &mut self.worlds[i];
+                let step = match *acts {
+                    [action] => world.step(action as usize),
+                    _ => {
+                        for (t, &a) in team.iter_mut().zip(acts) {
+                            *t = a as usize;
+                        }
+                        world.step_team(&team[..u])
+                    }
+                };
                 out.reward[i] = step.reward;
                 out.truncated[i] = step.truncated;
                 out.aoi[i] = step.aoi_mean;
                 out.power_mw[i] = step.power_mw;
-                out.outage[i] = step.outages > 0;
-                out.device[i] = self.worlds[i].layout().device(action as usize) as i64;
+                out.outages[i] = step.outages as i64;
+                let layout = world.layout();
+                for (device, &a) in out.device[i * u..(i + 1) * u].iter_mut().zip(acts) {
+                    *device = layout.device(a as usize) as i64;
+                }
                 out.stepped[i] = true;
                 self.pending_reset[i] = step.truncated;
             }
-            self.write_obs(i, &mut out.obs[i * d..(i + 1) * d]);
+            let obs = &mut out.obs[i * u * d..(i + 1) * u * d];
+            self.write_obs_and_state(i, obs, &mut out.state[i * s..(i + 1) * s]);
             out.task_id[i] = self.current[i].id;
             out.lam[i] = self.current[i].lambda;
             out.layout[i] = self.current[i].layout as i64;
@@ -219,14 +277,33 @@ impl Worlds {
         }
     }
 
+    /// Every env reset once, and every action of a batch in range (the first bad one named).
+    fn check_batch(&self, actions: &[i64]) -> PyResult<()> {
+        if self.never_reset > 0 {
+            let i = self.reset_once.iter().position(|r| !r).unwrap_or(0);
+            return Err(PyRuntimeError::new_err(format!(
+                "env {i} was never reset: call reset() before step()"
+            )));
+        }
+        let count = self.action_count() as i64;
+        if let Some(i) = actions.iter().position(|a| !(0..count).contains(a)) {
+            let key = match self.uavs() {
+                1 => format!("actions[{i}]"),
+                u => format!("actions[{}, {}]", i / u, i % u),
+            };
+            self.check_action(&key, actions[i])?;
+        }
+        Ok(())
+    }
+
     fn check_action(&self, key: &str, action: i64) -> PyResult<usize> {
         let count = self.action_count();
         if (0..count as i64).contains(&action) {
             Ok(action as usize)
         } else {
             Err(PyValueError::new_err(format!(
-                "{key} = {action}: expected an action index in 0..{count} (a = move * K + device, K = {})",
-                self.config().world.devices
+                "{key} = {action}: expected an action index in 0..{count} (a = move * targets + target, {} targets)",
+                self.config().world.layout().targets()
             )))
         }
     }
@@ -255,6 +332,23 @@ type StepBatch<'py> = (
     Bound<'py, PyArray1<f64>>,
     Bound<'py, PyArray1<bool>>,
     Bound<'py, PyArray1<i64>>,
+    Bound<'py, PyArray1<bool>>,
+    Bound<'py, PyArray1<i64>>,
+    Bound<'py, PyArray1<f64>>,
+    Bound<'py, PyArray1<i64>>,
+);
+
+/// A batched team step: obs (N, U, 2 + K), state (N, 2U + K), reward, truncated, aoi,
+/// power_mw, outages, targets (N, U), stepped, task_id, lam, layout.
+type TeamBatch<'py> = (
+    Bound<'py, PyArray3<f32>>,
+    Bound<'py, PyArray2<f32>>,
+    Bound<'py, PyArray1<f64>>,
+    Bound<'py, PyArray1<bool>>,
+    Bound<'py, PyArray1<f64>>,
+    Bound<'py, PyArray1<f64>>,
+    Bound<'py, PyArray1<i64>>,
+    Bound<'py, PyArray2<i64>>,
     Bound<'py, PyArray1<bool>>,
     Bound<'py, PyArray1<i64>>,
     Bound<'py, PyArray1<f64>>,
@@ -397,6 +491,7 @@ impl Worlds {
         py: Python<'py>,
         seeds: Vec<Option<u64>>,
     ) -> PyResult<Bound<'py, PyArray2<f32>>> {
+        self.one_uav("reset")?;
         let (n, d) = (self.worlds.len(), self.obs_len());
         if seeds.len() != n {
             return Err(PyValueError::new_err(format!(
@@ -421,6 +516,7 @@ impl Worlds {
         seed: Option<u64>,
     ) -> PyResult<Bound<'py, PyArray1<f32>>> {
         self.check_env(i)?;
+        self.one_uav("reset_one")?;
         self.reset_env(i, seed);
         self.observation(py, i)
     }
@@ -428,6 +524,7 @@ impl Worlds {
     /// Env i's current observation, 2 + K values.
     fn observation<'py>(&self, py: Python<'py>, i: usize) -> PyResult<Bound<'py, PyArray1<f32>>> {
         self.check_env(i)?;
+        self.one_uav("observation")?;
         let mut obs = vec![0.0f32; self.obs_len()];
         self.write_obs(i, &mut obs);
         Ok(obs.into_pyarray(py))
@@ -437,6 +534,7 @@ impl Worlds {
     /// after the move). Env i must have been reset and not yet have reached its horizon.
     fn step_one<'py>(&mut self, py: Python<'py>, i: usize, action: i64) -> PyResult<StepOne<'py>> {
         self.check_env(i)?;
+        self.one_uav("step_one")?;
         let action = self.check_action("action", action)?;
         if self.pending_reset[i] {
             return Err(PyRuntimeError::new_err(
@@ -466,6 +564,7 @@ impl Worlds {
         py: Python<'py>,
         actions: PyReadonlyArray1<'py, i64>,
     ) -> PyResult<StepBatch<'py>> {
+        self.one_uav("step")?;
         let (n, d) = (self.worlds.len(), self.obs_len());
         let actions = actions.as_slice().map_err(|e| {
             PyValueError::new_err(format!("actions: {e}: expected a contiguous array"))
@@ -476,17 +575,9 @@ impl Worlds {
                 actions.len()
             )));
         }
-        if self.never_reset > 0 {
-            let i = self.reset_once.iter().position(|r| !r).unwrap_or(0);
-            return Err(PyRuntimeError::new_err(format!(
-                "env {i} was never reset: call reset() before step()"
-            )));
-        }
-        let count = self.action_count() as i64;
-        if let Some(i) = actions.iter().position(|a| !(0..count).contains(a)) {
-            self.check_action(&format!("actions[{i}]"), actions[i])?;
-        }
-        let out = py.detach(|| self.step_all(actions));
+        self.check_batch(actions)?;
+        let out = py.detach(|| self.step_all(actions, false));
+        let outage: Vec<bool> = out.outages.iter().map(|&o| o > 0).collect();
         Ok((
             out.obs.into_pyarray(py).reshape([n, d])?,
             out.reward.into_pyarray(py),
@@ -494,13 +585,104 @@ impl Worlds {
             out.truncated.into_pyarray(py),
             out.aoi.into_pyarray(py),
             out.power_mw.into_pyarray(py),
-            out.outage.into_pyarray(py),
+            outage.into_pyarray(py),
             out.device.into_pyarray(py),
             out.stepped.into_pyarray(py),
             out.task_id.into_pyarray(py),
             out.lam.into_pyarray(py),
             out.layout.into_pyarray(py),
         ))
+    }
+
+    /// The team's `reset`, for any U: starts a new episode in every env i (episode 0 of `seeds[i]`, or the
+    /// next one where None) and returns each UAV's observation (N, U, 2 + K) and the team's
+    /// state (N, 2U + K).
+    fn reset_team<'py>(
+        &mut self,
+        py: Python<'py>,
+        seeds: Vec<Option<u64>>,
+    ) -> PyResult<(Bound<'py, PyArray3<f32>>, Bound<'py, PyArray2<f32>>)> {
+        let (n, u, d, s) = (self.worlds.len(), self.uavs(), self.obs_len(), self.state_len());
+        if seeds.len() != n {
+            return Err(PyValueError::new_err(format!(
+                "seed has {} entries: expected one per env, num_envs = {n}",
+                seeds.len()
+            )));
+        }
+        let (mut obs, mut state) = (vec![0.0f32; n * u * d], vec![0.0f32; n * s]);
+        for (i, seed) in seeds.into_iter().enumerate() {
+            self.reset_env(i, seed);
+            let o = &mut obs[i * u * d..(i + 1) * u * d];
+            self.write_obs_and_state(i, o, &mut state[i * s..(i + 1) * s]);
+        }
+        Ok((
+            obs.into_pyarray(py).reshape([n, u, d])?,
+            state.into_pyarray(py).reshape([n, s])?,
+        ))
+    }
+
+    /// The team's `step`, for any U: every env i's UAVs take `actions[i]` (an (N, U) array of
+    /// action indices), in one call with the GIL released and next-step autoreset. Returns
+    /// (obs, state, reward, truncated, aoi, power_mw, outages, targets, stepped, task_id, lam,
+    /// layout): `reward` is the team's, `targets[i, u]` UAV u's device (K for none); no env
+    /// terminates.
+    fn step_team<'py>(
+        &mut self,
+        py: Python<'py>,
+        actions: PyReadonlyArray2<'py, i64>,
+    ) -> PyResult<TeamBatch<'py>> {
+        let (n, u, d, s) = (self.worlds.len(), self.uavs(), self.obs_len(), self.state_len());
+        if actions.shape() != [n, u] {
+            return Err(PyValueError::new_err(format!(
+                "actions of shape {:?}: expected ({n}, {u}), one action per env and UAV",
+                actions.shape()
+            )));
+        }
+        let actions = actions.as_slice().map_err(|e| {
+            PyValueError::new_err(format!("actions: {e}: expected a contiguous array"))
+        })?;
+        self.check_batch(actions)?;
+        let out = py.detach(|| self.step_all(actions, true));
+        Ok((
+            out.obs.into_pyarray(py).reshape([n, u, d])?,
+            out.state.into_pyarray(py).reshape([n, s])?,
+            out.reward.into_pyarray(py),
+            out.truncated.into_pyarray(py),
+            out.aoi.into_pyarray(py),
+            out.power_mw.into_pyarray(py),
+            out.outages.into_pyarray(py),
+            out.device.into_pyarray(py).reshape([n, u])?,
+            out.stepped.into_pyarray(py),
+            out.task_id.into_pyarray(py),
+            out.lam.into_pyarray(py),
+            out.layout.into_pyarray(py),
+        ))
+    }
+
+    /// U, the UAVs of each world (`world.uavs`).
+    #[getter(uavs)]
+    fn uavs_py(&self) -> usize {
+        self.uavs()
+    }
+
+    /// Each UAV's discrete actions: 5 moves times the targets (K devices, and "none" with
+    /// `world.idle_action`).
+    #[getter(action_count)]
+    fn action_count_py(&self) -> usize {
+        self.action_count()
+    }
+
+    /// Whether a UAV may serve no device (`world.idle_action`): target K.
+    #[getter]
+    fn idle_action(&self) -> bool {
+        self.config().world.idle_action
+    }
+
+    /// Every UAV's cell in env i, UAV 0 first.
+    fn uav_cells(&self, i: usize) -> PyResult<Vec<(u32, u32)>> {
+        self.check_env(i)?;
+        let w = &self.worlds[i];
+        Ok((0..w.uavs()).map(|u| w.uav_cell(u)).collect())
     }
 
     /// Env i's task now: (task id, lambda, rain zone or None, rain_moves_every or None, name,
@@ -688,6 +870,7 @@ impl Worlds {
     /// The resolved config of env `i`'s layout and the task it runs now.
     pub fn config_and_task_of(&self, i: usize) -> PyResult<(&Config, TaskConfig)> {
         self.check_env(i)?;
+        self.one_uav("uavmeta.evaluate")?;
         let layout = self.current[i].layout;
         Ok((&self.layouts[layout].0, self.task_of(i)))
     }

@@ -9,6 +9,9 @@ as the ``uavmeta`` command line, without libtorch:
   next-step autoreset), each of its own task (``tasks=[...]``) or drawing a new one at every
   reset (``tasks=TaskSampler(...)``), also reachable as ``gymnasium.make_vec("uavmeta/UAV-v0",
   n, vectorization_mode="vector_entry_point")``;
+- :class:`TeamVectorEnv`, N worlds of a UAV team (``uavs=2``, docs/MODEL.md section 11)
+  stepped in one call, and :mod:`uavmeta.pettingzoo`, one team's world as a PettingZoo
+  ``ParallelEnv`` (``pip install uavmeta[pettingzoo]``);
 - :func:`evaluate`, :func:`references` and :func:`normalised_score`: a policy scored as the
   tables and the command line score it, to the digit;
 - :mod:`uavmeta.policies`, the heuristics (random, stalest, greedy), the planner and any saved
@@ -16,7 +19,8 @@ as the ``uavmeta`` command line, without libtorch:
 - :func:`load_dataset`, a ``.uavds`` file as numpy arrays with its task's metadata;
 - :mod:`uavmeta.render`, RGB pictures of the world and of a trajectory.
 
-Actions are ``a = move * K + device`` with the moves in :data:`MOVES` order.
+Actions are ``a = move * K + device`` with the moves in :data:`MOVES` order (``move * (K + 1) +
+target`` with ``idle_action=True``, target K serving no device).
 """
 
 import gymnasium
@@ -27,6 +31,7 @@ from .dataset import Dataset, load_dataset
 from .env import ResetNeeded, UavEnv
 from .evaluate import REFERENCES, Estimate, Score, evaluate, normalised_score, references
 from .tasks import TaskSampler
+from .team import TeamVectorEnv
 from .vector import VectorEnv
 from . import policies, render
 
@@ -70,6 +75,7 @@ __all__ = [
     "ResetNeeded",
     "Score",
     "TaskSampler",
+    "TeamVectorEnv",
     "UavEnv",
     "VectorEnv",
     "action",

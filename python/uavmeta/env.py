@@ -24,6 +24,34 @@ def observation_space(worlds):
     return spaces.Box(low, high, dtype=np.float32)
 
 
+def one_uav(worlds, name):
+    """A ValueError unless ``worlds`` fly one UAV: a team has an env of its own."""
+    if worlds.uavs != 1:
+        raise ValueError(
+            f"world.uavs = {worlds.uavs}: {name} flies one UAV; a team's env is "
+            "uavmeta.pettingzoo.parallel_env(uavs=...) or uavmeta.TeamVectorEnv(n, uavs=...)"
+        )
+
+
+def episode_seeds(seed, n, started, fresh):
+    """The native seeds of a reset of ``n`` envs, as ``SyncVectorEnv`` seeds its sub-envs:
+    S + i for a seed S, ``seed[i]`` for a list (None: that env's next episode), and without a
+    seed each env's next episode, or ``fresh()`` draws on the first reset."""
+    if seed is None:
+        return [int(s) for s in fresh(n)] if not started else [None] * n
+    if isinstance(seed, (list, tuple, np.ndarray)):
+        if len(seed) != n:
+            raise ValueError(f"seed has {len(seed)} entries: expected one per env, num_envs = {n}")
+        seeds = [None if s is None else _args.seed(s, f"seed[{i}]") for i, s in enumerate(seed)]
+        if not started and None in seeds:
+            raise ValueError(
+                f"seed = {seed!r}: the first reset needs a seed for every env (or seed=None)"
+            )
+        return seeds
+    base = _args.seed(seed)
+    return [_args.seed(base + i, f"seed + {i}") for i in range(n)]
+
+
 class ResetNeeded(gymnasium.error.ResetNeeded, RuntimeError):
     """``step`` before the first ``reset`` (or after the episode ended, for ``UavEnv``)."""
 
@@ -169,8 +197,9 @@ class UavEnv(WorldProperties, gymnasium.Env):
             ),
         )
         self.render_mode = render_mode
+        one_uav(self._worlds, "UavEnv")
         self.observation_space = observation_space(self._worlds)
-        self.action_space = spaces.Discrete(5 * self._worlds.devices)
+        self.action_space = spaces.Discrete(self._worlds.action_count)
         self._started = False
         self._cells = []
         self._actions = []

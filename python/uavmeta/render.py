@@ -22,10 +22,11 @@ def cell_pixels(grid_cells):
     return max(2, min(32, 640 // grid_cells))
 
 
-def frame(worlds, i=0, trajectory=None):
-    """Env ``i`` of the native ``worlds`` as an RGB array, with ``trajectory`` (a list of
-    (x, y) cells) drawn under the UAV if given."""
-    (ux, uy), _t, rain, aoi = worlds.state(i)
+def frame(worlds, i=0, trajectory=None, trajectories=()):
+    """Env ``i`` of the native ``worlds`` as an RGB array, every UAV a disc, with
+    ``trajectory`` (a list of (x, y) cells) or ``trajectories`` (one such list a UAV) drawn
+    under them."""
+    _uav, _t, rain, aoi = worlds.state(i)
     n, px = worlds.grid_cells, cell_pixels(worlds.grid_cells)
     img = np.empty((n * px + 1, n * px + 1, 3), dtype=np.uint8)
     img[:] = BACKGROUND
@@ -41,9 +42,11 @@ def frame(worlds, i=0, trajectory=None):
         img[rows.start + inset : rows.stop - inset, cols.start + inset : cols.stop - inset] = (
             _aoi_colour(aoi[k], worlds.aoi_max)
         )
-    if trajectory:
-        _draw_path(img, n, px, trajectory)
-    _draw_disc(img, _centre(n, px, ux, uy), max(1.0, px * 0.3), UAV)
+    for path in [trajectory, *trajectories]:
+        if path:
+            _draw_path(img, n, px, path)
+    for ux, uy in worlds.uav_cells(i):
+        _draw_disc(img, _centre(n, px, ux, uy), max(1.0, px * 0.3), UAV)
     return img
 
 

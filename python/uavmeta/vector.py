@@ -9,7 +9,7 @@ from gymnasium import spaces
 from . import _args
 from ._uavmeta import Worlds
 from . import render as _render
-from .env import ResetNeeded, WorldProperties, observation_space
+from .env import ResetNeeded, WorldProperties, episode_seeds, observation_space, one_uav
 
 try:  # Gymnasium >= 1.1 names the autoreset modes.
     from gymnasium.vector import AutoresetMode
@@ -72,7 +72,8 @@ class VectorEnv(WorldProperties, _GymVectorEnv):
         self.num_envs = num_envs
         self.render_mode = render_mode
         self.single_observation_space = observation_space(self._worlds)
-        self.single_action_space = spaces.Discrete(5 * self._worlds.devices)
+        one_uav(self._worlds, "VectorEnv")
+        self.single_action_space = spaces.Discrete(self._worlds.action_count)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_space = batch_space(self.single_action_space, num_envs)
         self._started = False
@@ -82,33 +83,17 @@ class VectorEnv(WorldProperties, _GymVectorEnv):
         return cls(num_envs, config=path, task=task, **kwargs)
 
     def reset(self, *, seed=None, options=None):
-        n = self.num_envs
-        if seed is None:
-            super().reset()
-            # As SyncVectorEnv's unseeded sub-envs: each goes on to its next episode, or, on the
-            # first reset, starts from fresh entropy.
-            seeds = [None] * n
-            if not self._started:
-                seeds = [int(s) for s in self.np_random.integers(2**63, size=n)]
-        elif isinstance(seed, (list, tuple, np.ndarray)):
-            if len(seed) != n:
-                raise ValueError(
-                    f"seed has {len(seed)} entries: expected one per env, num_envs = {n}"
-                )
-            # None entries: that env goes on to its next episode, as in SyncVectorEnv.
-            seeds = [None if s is None else _args.seed(s, f"seed[{i}]") for i, s in enumerate(seed)]
-            if not self._started and None in seeds:
-                raise ValueError(
-                    f"seed = {seed!r}: the first reset needs a seed for every env (or seed=None)"
-                )
+        seeds = episode_seeds(seed, self.num_envs, self._started, self._fresh_seeds)
+        if seed is not None or self._started:
             super().reset(seed=seeds[0])
-        else:
-            base = _args.seed(seed)
-            seeds = [_args.seed(base + i, f"seed + {i}") for i in range(n)]
-            super().reset(seed=base)
         self._started = True
         obs = self._worlds.reset(seeds)
         return obs, self._task_infos(*self._worlds.task_arrays())
+
+    def _fresh_seeds(self, n):
+        """As SyncVectorEnv's unseeded sub-envs on a first reset: seeds from fresh entropy."""
+        super().reset()
+        return self.np_random.integers(2**63, size=n)
 
     def _task_infos(self, task_id, lam, layout):
         every = getattr(self, "_every", None)
