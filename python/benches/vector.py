@@ -9,9 +9,14 @@ same sampler, and NumpyWorld holds a fixed mix of lambdas, rain zones and layout
 (no redraws: the comparison is generous to it); the single-task VectorEnv runs beside them as the
 reference.
 
+With ``--team`` the envs are teams of two UAVs (``world.uavs = 2``, two cells a step, the "none"
+target, K = 10): uavmeta.TeamVectorEnv beside a loop over uavmeta.pettingzoo.UavTeamEnv (one
+PettingZoo ParallelEnv per env, dicts of actions, reset when done), with the one-UAV VectorEnv as
+the reference; a team-step is one step of every UAV of one env.
+
 Run on one core, in the virtualenv where the package is installed:
 
-    taskset -c 1 python python/benches/vector.py [--mixed]
+    taskset -c 1 python python/benches/vector.py [--mixed | --team]
 
 Every loop steps with actions drawn beforehand (a pool of up to 64 batches, cycled), so it times
 the env alone, for at least --seconds; the three envs take turns, --rounds loops each, and the
@@ -148,6 +153,31 @@ def numpy_mix(n, seed=0):
     return lam, zones
 
 
+TEAM = dict(lam=300.0, rain=(3, 3, 5, 5), uavs=2, step_cells=2, idle_action=True)
+
+
+class PettingZooLoop:
+    """N UavTeamEnvs stepped one after another with dicts of actions, each reset when its
+    agents are done: what a PettingZoo user without a vector env writes."""
+
+    def __init__(self, n):
+        from uavmeta.pettingzoo import UavTeamEnv
+
+        self.envs = [UavTeamEnv(**TEAM) for _ in range(n)]
+        self.agents = self.envs[0].possible_agents
+
+    def reset(self, seed=0):
+        for i, env in enumerate(self.envs):
+            env.reset(seed=seed + i)
+
+    def step(self, actions):
+        for env, acts in zip(self.envs, actions):
+            if not env.agents:
+                env.reset()
+            else:
+                env.step(dict(zip(self.agents, acts.tolist())))
+
+
 def rate(env, pool, seconds):
     """Env steps per second of one loop of at least ``seconds``."""
     n = pool.shape[1]
@@ -167,6 +197,7 @@ def main():
     parser.add_argument("--seconds", type=float, default=0.5, help="per loop")
     parser.add_argument("--rounds", type=int, default=7, help="loops per env, interleaved")
     parser.add_argument("--mixed", action="store_true", help="a task per env (module doc)")
+    parser.add_argument("--team", action="store_true", help="teams of two UAVs (module doc)")
     args = parser.parse_args()
     cells = uavmeta.UavEnv(lam=300.0).device_cells
     layouts = [
@@ -198,20 +229,37 @@ def main():
                 n, layouts, *numpy_mix(n), layout_of=np.arange(n) % len(LAYOUTS)
             ),
         }
+    shapes = {name: () for name in makers}
+    if args.team:
+        team_actions = uavmeta.TeamVectorEnv(1, **TEAM).single_action_space.n
+        makers = {
+            "uavmeta.TeamVectorEnv, 2 UAVs": lambda n: uavmeta.TeamVectorEnv(n, **TEAM),
+            "a loop of UavTeamEnv (PettingZoo), 2 UAVs": PettingZooLoop,
+            "uavmeta.VectorEnv, 1 UAV": makers["uavmeta.VectorEnv"],
+        }
+        shapes = {name: (2,) for name in makers}
+        shapes["uavmeta.VectorEnv, 1 UAV"] = ()
     results = {name: [] for name in makers}
     for n in args.sizes:
         envs = {name: make(n) for name, make in makers.items()}
         for env in envs.values():
             env.reset(seed=0) if not isinstance(env, NumpyWorld) else env.reset()
-        pool = np.random.default_rng(0).integers(0, 50, (max(1, min(64, 4096 // n)), n))
+        batches = max(1, min(64, 4096 // n))
+        pools = {
+            name: np.random.default_rng(0).integers(
+                0, team_actions if shapes[name] else 50, (batches, n, *shapes[name])
+            )
+            for name in makers
+        }
         rates = {name: [] for name in makers}
         # Interleaved, so that a burst of load elsewhere on the machine hits every env alike.
         for _ in range(args.rounds):
             for name, env in envs.items():
-                rates[name].append(rate(env, pool, args.seconds))
+                rates[name].append(rate(env, pools[name], args.seconds))
         for name in makers:
             results[name].append((max(rates[name]), float(np.median(rates[name]))))
-    print("best (median) of", args.rounds, "interleaved loops of", args.seconds, "s, env steps/s")
+    unit = "team-steps/s (one UAV's steps/s for VectorEnv)" if args.team else "env steps/s"
+    print("best (median) of", args.rounds, "interleaved loops of", args.seconds, "s,", unit)
     print("| env | " + " | ".join(f"N = {n}" for n in args.sizes) + " |")
     print("| --- |" + " ---: |" * len(args.sizes))
     for name, cells in results.items():
