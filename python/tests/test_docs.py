@@ -19,7 +19,7 @@ def blocks(kind):
 
 def test_the_page_has_commands_and_python_examples():
     commands = [line for b in blocks("sh") for line in b.splitlines() if line.startswith("uavmeta ")]
-    assert len(commands) == 2 and len(blocks("python")) == 5
+    assert len(commands) == 2 and len(blocks("python")) == 6
 
 
 def test_every_example_of_docs_python_runs_as_written(uavmeta_bin, tmp_path):
