@@ -74,7 +74,10 @@ impl Heuristic {
         };
         let last_cell = (config.world.grid_cells - 1) as u16;
         let mut max_raw = vec![last_cell, last_cell];
-        max_raw.resize(config.world.layout().observation_len(), config.world.aoi_max as u16);
+        max_raw.resize(
+            config.world.layout().observation_len(),
+            config.world.aoi_max as u16,
+        );
         Ok(Self {
             name: name.to_string(),
             policy,

@@ -136,7 +136,6 @@ impl Worlds {
         }
     }
 
-
     fn action_count(&self) -> usize {
         self.config().world.layout().action_count()
     }
@@ -277,6 +276,31 @@ impl Worlds {
         }
     }
 
+    /// Starts a new episode in every env i (episode 0 of `seeds[i]`, or the next one where
+    /// None); returns each UAV's observations (N x U x (2 + K)) and, if `with_state`, the
+    /// team's states (N x (2U + K)).
+    fn reset_all(
+        &mut self,
+        seeds: Vec<Option<u64>>,
+        with_state: bool,
+    ) -> PyResult<(Vec<f32>, Vec<f32>)> {
+        let (n, u, d) = (self.worlds.len(), self.uavs(), self.obs_len());
+        let s = if with_state { self.state_len() } else { 0 };
+        if seeds.len() != n {
+            return Err(PyValueError::new_err(format!(
+                "seed has {} entries: expected one per env, num_envs = {n}",
+                seeds.len()
+            )));
+        }
+        let (mut obs, mut state) = (vec![0.0f32; n * u * d], vec![0.0f32; n * s]);
+        for (i, seed) in seeds.into_iter().enumerate() {
+            self.reset_env(i, seed);
+            let o = &mut obs[i * u * d..(i + 1) * u * d];
+            self.write_obs_and_state(i, o, &mut state[i * s..(i + 1) * s]);
+        }
+        Ok((obs, state))
+    }
+
     /// Every env reset once, and every action of a batch in range (the first bad one named).
     fn check_batch(&self, actions: &[i64]) -> PyResult<()> {
         if self.never_reset > 0 {
@@ -337,6 +361,9 @@ type StepBatch<'py> = (
     Bound<'py, PyArray1<f64>>,
     Bound<'py, PyArray1<i64>>,
 );
+
+/// A team's reset: each UAV's observation (N, U, 2 + K) and the team's state (N, 2U + K).
+type TeamReset<'py> = (Bound<'py, PyArray3<f32>>, Bound<'py, PyArray2<f32>>);
 
 /// A batched team step: obs (N, U, 2 + K), state (N, 2U + K), reward, truncated, aoi,
 /// power_mw, outages, targets (N, U), stepped, task_id, lam, layout.
@@ -493,17 +520,7 @@ impl Worlds {
     ) -> PyResult<Bound<'py, PyArray2<f32>>> {
         self.one_uav("reset")?;
         let (n, d) = (self.worlds.len(), self.obs_len());
-        if seeds.len() != n {
-            return Err(PyValueError::new_err(format!(
-                "seed has {} entries: expected one per env, num_envs = {n}",
-                seeds.len()
-            )));
-        }
-        let mut obs = vec![0.0f32; n * d];
-        for (i, seed) in seeds.into_iter().enumerate() {
-            self.reset_env(i, seed);
-            self.write_obs(i, &mut obs[i * d..(i + 1) * d]);
-        }
+        let (obs, _) = self.reset_all(seeds, false)?;
         obs.into_pyarray(py).reshape([n, d])
     }
 
@@ -594,27 +611,21 @@ impl Worlds {
         ))
     }
 
-    /// The team's `reset`, for any U: starts a new episode in every env i (episode 0 of `seeds[i]`, or the
-    /// next one where None) and returns each UAV's observation (N, U, 2 + K) and the team's
-    /// state (N, 2U + K).
+    /// The team's `reset`, for any U: starts a new episode in every env i (episode 0 of
+    /// `seeds[i]`, or the next one where None) and returns each UAV's observation
+    /// (N, U, 2 + K) and the team's state (N, 2U + K).
     fn reset_team<'py>(
         &mut self,
         py: Python<'py>,
         seeds: Vec<Option<u64>>,
-    ) -> PyResult<(Bound<'py, PyArray3<f32>>, Bound<'py, PyArray2<f32>>)> {
-        let (n, u, d, s) = (self.worlds.len(), self.uavs(), self.obs_len(), self.state_len());
-        if seeds.len() != n {
-            return Err(PyValueError::new_err(format!(
-                "seed has {} entries: expected one per env, num_envs = {n}",
-                seeds.len()
-            )));
-        }
-        let (mut obs, mut state) = (vec![0.0f32; n * u * d], vec![0.0f32; n * s]);
-        for (i, seed) in seeds.into_iter().enumerate() {
-            self.reset_env(i, seed);
-            let o = &mut obs[i * u * d..(i + 1) * u * d];
-            self.write_obs_and_state(i, o, &mut state[i * s..(i + 1) * s]);
-        }
+    ) -> PyResult<TeamReset<'py>> {
+        let (n, u, d, s) = (
+            self.worlds.len(),
+            self.uavs(),
+            self.obs_len(),
+            self.state_len(),
+        );
+        let (obs, state) = self.reset_all(seeds, true)?;
         Ok((
             obs.into_pyarray(py).reshape([n, u, d])?,
             state.into_pyarray(py).reshape([n, s])?,
@@ -631,7 +642,12 @@ impl Worlds {
         py: Python<'py>,
         actions: PyReadonlyArray2<'py, i64>,
     ) -> PyResult<TeamBatch<'py>> {
-        let (n, u, d, s) = (self.worlds.len(), self.uavs(), self.obs_len(), self.state_len());
+        let (n, u, d, s) = (
+            self.worlds.len(),
+            self.uavs(),
+            self.obs_len(),
+            self.state_len(),
+        );
         if actions.shape() != [n, u] {
             return Err(PyValueError::new_err(format!(
                 "actions of shape {:?}: expected ({n}, {u}), one action per env and UAV",

@@ -18,7 +18,14 @@ from pettingzoo import ParallelEnv
 from . import _args
 from . import render as _render
 from ._uavmeta import Worlds
-from .env import ResetNeeded, WorldProperties, action_index, observation_space, task_info
+from .env import (
+    ResetNeeded,
+    WorldProperties,
+    action_index,
+    episode_seeds,
+    observation_space,
+    task_info,
+)
 from .team import state_space
 
 
@@ -79,10 +86,10 @@ class UavTeamEnv(WorldProperties, ParallelEnv):
             raise KeyError(f"agent {agent!r}: expected one of {', '.join(self.possible_agents)}")
 
     def reset(self, seed=None, options=None):
-        seed = None if seed is None else _args.seed(seed)
-        if seed is None and self._state is None:
-            seed = int(self._rng.integers(2**63))
-        obs, state = self._worlds.reset_team([seed])
+        fresh = lambda n: self._rng.integers(2**63, size=n)  # noqa: E731
+        seed = None if seed is None else _args.seed(seed)  # one int: no list, unlike a vector env
+        seeds = episode_seeds(seed, 1, self._state is not None, fresh)
+        obs, state = self._worlds.reset_team(seeds)
         self.agents = list(self.possible_agents)
         self._state = state[0]
         self._paths = [[cell] for cell in self._worlds.uav_cells(0)]
