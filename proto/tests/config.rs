@@ -70,6 +70,42 @@ fn device_cells_length_must_match_devices() {
     );
 }
 
+/// A task's own layout (docs/MODEL.md section 11) keeps the world's rules under its own key, is
+/// one of cells and a seed, and moves the world's hash; a config without one hashes as before.
+#[test]
+fn a_task_layout_is_checked_as_the_worlds_and_counts_in_the_world_hash() {
+    let task = "[[tasks]]\nname = \"moved\"\nlambda = 300.0\nrole = \"meta-test\"\n";
+    let world = "[world]\ndevices = 3\n";
+    error_of(
+        &format!("{world}{task}device_cells = [[0, 0], [4, 2], [4, 2]]\n"),
+        &[],
+        &["tasks[0].device_cells[2]", "[4, 2]", "no other device"],
+    );
+    error_of(
+        &format!("{world}{task}device_cells = [[0, 0], [4, 2]]\n"),
+        &[],
+        &["tasks[0].device_cells", "[[0, 0], [4, 2]]", "3 cells"],
+    );
+    error_of(
+        &format!("{world}{task}device_cells = [[0, 0], [4, 2], [1, 1]]\nlayout_seed = 4\n"),
+        &[],
+        &["tasks[0].layout_seed", "4", "device_cells"],
+    );
+    error_of(
+        &format!("{world}{task}layout_seed = -1\n"),
+        &[],
+        &["tasks[0].layout_seed", "-1"],
+    );
+
+    let hash = |text: &str| load(text, &[]).1.expect("a valid config").world_hash();
+    let plain = hash(&format!("{world}{task}"));
+    let world_only = Config::from_toml_str(world, "world.toml", &[]).expect("world");
+    assert_eq!(plain, world_only.world_hash(), "tasks without layouts leave the hash");
+    let seeded = hash(&format!("{world}{task}layout_seed = 4\n"));
+    let placed = hash(&format!("{world}{task}device_cells = [[0, 0], [4, 2], [1, 1]]\n"));
+    assert!(plain != seeded && plain != placed && seeded != placed);
+}
+
 #[test]
 fn rain_zone_outside_the_grid() {
     let text = "[[tasks]]\nname = \"wet\"\nlambda = 300.0\nrole = \"meta-test\"\nrain = { x0 = 8, y0 = 2, x1 = 10, y1 = 3 }\n";

@@ -159,6 +159,29 @@ pub enum Layout {
     Cells(Vec<(u32, u32)>),
 }
 
+impl Layout {
+    /// `config` with this as its world's layout.
+    fn put_in(&self, config: &mut Config) {
+        match self {
+            Layout::Seed(seed) => {
+                config.world.layout_seed = *seed;
+                config.world.device_cells = None;
+            }
+            Layout::Cells(cells) => {
+                config.world.device_cells = Some(cells.iter().map(|&(x, y)| [x, y]).collect());
+            }
+        }
+    }
+}
+
+/// A config's task with a layout of its own (`tasks[i].device_cells` or `layout_seed`) as the
+/// world's layout instead: an env's worlds share power tables only within one world layout.
+pub fn own_layout_in_world(config: &mut Config, task: &mut TaskConfig) {
+    if let Some(layout) = own_layout(task) {
+        layout.put_in(config);
+    }
+}
+
 /// As Python writes it: the seed, or the list of cells.
 impl std::fmt::Display for Layout {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -195,15 +218,7 @@ impl Layouts {
         }
         let layout = layout.expect("the config's layout is index 0");
         let mut config = self.configs[0].clone();
-        match layout {
-            Layout::Seed(seed) => {
-                config.world.layout_seed = *seed;
-                config.world.device_cells = None;
-            }
-            Layout::Cells(cells) => {
-                config.world.device_cells = Some(cells.iter().map(|&(x, y)| [x, y]).collect());
-            }
-        }
+        layout.put_in(&mut config);
         config.validate().map_err(|e| {
             PyValueError::new_err(format!(
                 "{argument} = {layout}: {e} (a layout is a world.layout_seed or one (x, y) \
@@ -213,6 +228,15 @@ impl Layouts {
         self.configs.push(config);
         self.named.push(Some(layout.clone()));
         Ok(self.configs.len() - 1)
+    }
+}
+
+/// The layout a config's task has of its own (`tasks[i].device_cells` or `layout_seed`), taken
+/// out of it into the env's layouts, whose worlds share power tables only within one layout.
+fn own_layout(task: &mut TaskConfig) -> Option<Layout> {
+    match (task.device_cells.take(), task.layout_seed.take()) {
+        (Some(cells), _) => Some(Layout::Cells(cells.iter().map(|c| (c[0], c[1])).collect())),
+        (None, seed) => seed.map(Layout::Seed),
     }
 }
 
@@ -245,9 +269,11 @@ pub fn resolve_list(
                 PyErr::from_type(e.get_type(py), message)
             })
         })?;
+        let mut task = task;
+        let own = own_layout(&mut task);
         let layouts = config.get_or_insert_with(|| Layouts::new(c));
         let key = format!("{argument}[{i}]['layout']");
-        let layout = layouts.index(spec.layout.as_ref(), &key)?;
+        let layout = layouts.index(spec.layout.as_ref().or(own.as_ref()), &key)?;
         tasks.push(Listed { task, layout });
     }
     Ok((config.expect("at least one task"), tasks))

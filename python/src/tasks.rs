@@ -160,6 +160,8 @@ impl TaskSource {
                     rain,
                     rain_moves_every: rain.and(moves),
                     risky: None,
+                    device_cells: None,
+                    layout_seed: None,
                 };
                 // Drawn last, and only among several, so a sampler without layouts draws as
                 // it did before layouts existed.

@@ -30,7 +30,9 @@ use uavmeta_proto::config::{Config, TaskConfig, MAX_UAVS};
 use uavmeta_world::rollout;
 use uavmeta_world::world::World;
 
-use crate::task::{resolve, resolve_list, Layout, Layouts, TaskArgs, TaskSpec};
+use crate::task::{
+    own_layout_in_world, resolve, resolve_list, Layout, Layouts, TaskArgs, TaskSpec,
+};
 use crate::tasks::{Current, Listed, Ranges, TaskSource};
 
 /// The world seed of episode `episode` of base seed `seed`: the one `uavmeta env rollout --seed`
@@ -445,7 +447,8 @@ impl Worlds {
             }
             (None, Some((lam, rain_probability, rain_size, moves, choices))) => {
                 // Until its first reset every env holds the base task of the other arguments.
-                let (config, task) = resolve(&args)?;
+                let (mut config, mut task) = resolve(&args)?;
+                own_layout_in_world(&mut config, &mut task);
                 let grid = config.world.grid_cells;
                 let mut layouts = Layouts::new(config);
                 let choices = choices
@@ -457,7 +460,8 @@ impl Worlds {
                 (layouts, TaskSource::Ranges(ranges, task))
             }
             (None, None) => {
-                let (config, task) = resolve(&args)?;
+                let (mut config, mut task) = resolve(&args)?;
+                own_layout_in_world(&mut config, &mut task);
                 let listed = Listed { task, layout: 0 };
                 (Layouts::new(config), TaskSource::Fixed(vec![listed]))
             }

@@ -218,3 +218,29 @@ def test_a_uav_env_pickles_and_deep_copies_with_its_state(tasks):
     wrapped = gymnasium.make(uavmeta.ENV_ID, lam=300.0)
     wrapped.reset(seed=1)
     assert pickle.loads(pickle.dumps(wrapped)).unwrapped.uav == wrapped.unwrapped.uav
+
+
+def test_a_config_task_with_a_layout_of_its_own_flies_that_layout(tmp_path):
+    path = tmp_path / "layouts.toml"
+    diagonal = ", ".join(f"[{x}, {y}]" for x, y in DIAGONAL)
+    path.write_text(
+        '[[tasks]]\nname = "plain"\nlambda = 300.0\nrole = "meta-train"\n\n'
+        '[[tasks]]\nname = "seeded"\nlambda = 300.0\nrole = "meta-train"\nlayout_seed = 7\n\n'
+        f'[[tasks]]\nname = "placed"\nlambda = 800.0\nrole = "meta-test"\ndevice_cells = [{diagonal}]\n'
+    )
+    ours = uavmeta.VectorEnv(3, config=str(path), tasks=["plain", "seeded", "placed"])
+    want = [uavmeta.UavEnv().device_cells, uavmeta.UavEnv(layout_seed=7).device_cells, DIAGONAL]
+    assert [ours.task_of(i)["device_cells"] for i in range(3)] == want
+    for name, cells in zip(["plain", "seeded", "placed"], want):
+        assert uavmeta.UavEnv(config=str(path), task=name).device_cells == cells
+    # Each steps as the world of its layout.
+    worlds = [dict(), dict(layout_seed=7), dict(device_cells=[list(c) for c in DIAGONAL])]
+    lams = [300.0, 300.0, 800.0]
+    theirs = gymnasium.vector.SyncVectorEnv(
+        [lambda j=j: uavmeta.UavEnv(lam=lams[j], **worlds[j]) for j in range(3)]
+    )
+    a, _ = ours.reset(seed=5)
+    b, _ = theirs.reset(seed=5)
+    np.testing.assert_array_equal(a, b)
+    ignore = ("task_id", "layout_id", "_layout_id")
+    assert same_steps(ours, theirs, np.random.default_rng(4), 230, 3, ignore=ignore) >= 3

@@ -76,6 +76,8 @@ pub fn template(world: &WorldConfig) -> World {
         rain: None,
         rain_moves_every: None,
         risky: None,
+        device_cells: None,
+        layout_seed: None,
     };
     World::new(world, &task, 0)
 }

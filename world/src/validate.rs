@@ -99,16 +99,18 @@ impl Validator {
         Self::of(World::new(world, task, 0))
     }
 
-    /// The checks of every task in `tasks`, in order, sharing one world's power tables.
+    /// The checks of every task in `tasks`, in order, the tasks on the world's layout sharing
+    /// one world's power tables (a task with a layout of its own has its own).
     pub fn for_tasks(world: &WorldConfig, tasks: &[TaskConfig]) -> Vec<Self> {
-        let Some(first) = tasks.first() else {
-            return Vec::new();
+        let mut shared: Option<World> = None;
+        let mut of_task = |task: &TaskConfig| {
+            if task.device_cells.is_some() || task.layout_seed.is_some() {
+                return World::new(world, task, 0);
+            }
+            let template = shared.get_or_insert_with(|| World::new(world, task, 0));
+            template.with_task(task)
         };
-        let shared = World::new(world, first, 0);
-        tasks
-            .iter()
-            .map(|task| Self::of(shared.with_task(task)))
-            .collect()
+        tasks.iter().map(|task| Self::of(of_task(task))).collect()
     }
 
     fn of(world: World) -> Self {
@@ -324,6 +326,8 @@ mod tests {
     fn validators_sharing_one_worlds_tables_check_each_task_as_its_own_world() {
         let mut config = rainy(None);
         config.tasks[1].rain = None;
+        // A task with a layout of its own is checked in its own world, not the shared one.
+        config.tasks[2].layout_seed = Some(99);
         let mut shared = Validator::for_tasks(&config.world, &config.tasks);
         for (i, task) in config.tasks.iter().enumerate().take(3) {
             let mut own = Validator::new(&config.world, task);

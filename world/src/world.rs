@@ -158,9 +158,14 @@ impl World {
     pub fn new(world: &WorldConfig, task: &TaskConfig, seed: u64) -> World {
         let k = world.devices;
         let grid = world.grid_cells;
-        let device_cells = match &world.device_cells {
+        // The task's own layout where it has one (docs/MODEL.md section 11), else the world's.
+        let cells = task.device_cells.as_ref().or(match task.layout_seed {
+            Some(_) => None,
+            None => world.device_cells.as_ref(),
+        });
+        let device_cells = match cells {
             Some(cells) => cells.iter().map(|c| (c[0], c[1])).collect(),
-            None => draw_layout(grid, k, world.layout_seed),
+            None => draw_layout(grid, k, task.layout_seed.unwrap_or(world.layout_seed)),
         };
 
         // docs/MODEL.md section 1, step 1: P = (2^(M/B) - 1) * sigma^2 / g0 * (h^2 + d^2), in
@@ -238,8 +243,9 @@ impl World {
         w
     }
 
-    /// This world under another task of the same world config: the power tables are shared,
-    /// not computed again (on a large grid they are most of a world's memory).
+    /// This world under another task of the same world config and device layout (a task's own
+    /// layout is not read here): the power tables are shared, not computed again (on a large
+    /// grid they are most of a world's memory).
     pub fn with_task(&self, task: &TaskConfig) -> World {
         let mut w = World {
             power_weight: task.lambda / self.layout.devices() as f64,
@@ -253,9 +259,9 @@ impl World {
         w
     }
 
-    /// Puts this world under another task of the same world config in place, for the next
-    /// reset: as [`World::with_task`] without a clone, for batched envs that draw a new task
-    /// at every reset. The current episode's rain zone is left as it is until then.
+    /// Puts this world under another task of the same world config and layout in place, for
+    /// the next reset: as [`World::with_task`] without a clone, for batched envs that draw a
+    /// new task at every reset. The current episode's rain zone is left as it is until then.
     pub fn set_task(&mut self, task: &TaskConfig) {
         self.power_weight = task.lambda / self.layout.devices() as f64;
         self.task_rain = task.rain;

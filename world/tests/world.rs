@@ -268,6 +268,33 @@ fn layout_comes_from_layout_seed_alone() {
     assert_ne!(a.device_cells(), other.device_cells());
 }
 
+/// A task's own layout replaces the world's, cells or seed alike (docs/MODEL.md section 11), and
+/// its power costs are those of a world with that layout.
+#[test]
+fn a_task_layout_replaces_the_worlds() {
+    let placed = "devices = 3\ndevice_cells = [[0, 0], [9, 9], [5, 0]]";
+    let cfg = config(placed);
+    let task = |cells: Option<Vec<[u32; 2]>>, seed: Option<u64>| TaskConfig {
+        device_cells: cells,
+        layout_seed: seed,
+        ..TaskConfig::one_off(300.0, None)
+    };
+    let own = World::new(&cfg.world, &task(Some(vec![[1, 2], [3, 4], [5, 6]]), None), 1);
+    assert_eq!(own.device_cells(), [(1, 2), (3, 4), (5, 6)]);
+    let same = world("devices = 3\ndevice_cells = [[1, 2], [3, 4], [5, 6]]", 300.0, None);
+    for (x, y) in [(0, 0), (4, 7), (9, 9)] {
+        for device in 0..3 {
+            let power = |w: &World| w.transmission_at((x, y), device, None);
+            assert_eq!(power(&own), power(&same));
+        }
+    }
+    let seeded = World::new(&cfg.world, &task(None, Some(5)), 1);
+    let drawn = world("devices = 3\nlayout_seed = 5", 300.0, None);
+    assert_eq!(seeded.device_cells(), drawn.device_cells());
+    let plain = World::new(&cfg.world, &task(None, None), 1);
+    assert_eq!(plain.device_cells(), [(0, 0), (9, 9), (5, 0)]);
+}
+
 #[test]
 fn start_cell_is_random_unless_fixed() {
     let cfg = config("");

@@ -189,7 +189,14 @@ impl Config {
     /// A stable 64-bit fingerprint (FNV-1a) of the world: checkpoints and datasets record it so a
     /// mismatched world is caught before a network or a file is used with it.
     pub fn world_hash(&self) -> u64 {
-        let text = toml::to_string(&self.world).expect("a world config always serialises");
+        let mut text = toml::to_string(&self.world).expect("a world config always serialises");
+        // Tasks with layouts of their own move devices, part of the world: their cells count.
+        for (i, t) in self.tasks.iter().enumerate() {
+            if t.device_cells.is_some() || t.layout_seed.is_some() {
+                let layout = (&t.device_cells, t.layout_seed);
+                text.push_str(&format!("tasks[{i}] layout = {layout:?}\n"));
+            }
+        }
         let mut hasher = fnv::FnvHasher::default();
         std::hash::Hasher::write(&mut hasher, text.as_bytes());
         std::hash::Hasher::finish(&hasher)
@@ -325,6 +332,7 @@ impl Config {
                 return Err(Broken::new(format!("tasks[{i}].name"), &t.name, expected));
             }
             t.check_rain(i, self.world.grid_cells)?;
+            t.check_layout(i, &self.world)?;
         }
         Ok(())
     }

@@ -7,7 +7,8 @@ use std::str::FromStr;
 use garde::Validate;
 use serde::{Deserialize, Serialize};
 
-use super::rules::{finite, within, Broken};
+use super::rules::{finite, toml_seed, within, Broken};
+use super::WorldConfig;
 
 /// A rectangle of cells, both corners inclusive.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -99,6 +100,14 @@ pub struct TaskConfig {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[garde(dive)]
     pub risky: Option<RiskyRegion>,
+    /// The task's own device cells, in place of the world's layout (docs/MODEL.md section 11):
+    /// tasks that also vary where the devices are, as the authors' follow-up meta-trains over.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub device_cells: Option<Vec<[u32; 2]>>,
+    /// The seed of the task's own device layout, when it has no `device_cells`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[garde(inner(custom(toml_seed())))]
+    pub layout_seed: Option<u64>,
 }
 
 impl TaskConfig {
@@ -126,6 +135,8 @@ impl TaskConfig {
             rain,
             rain_moves_every: None,
             risky: None,
+            device_cells: None,
+            layout_seed: None,
         }
     }
 }
@@ -142,6 +153,8 @@ pub(super) fn default_tasks() -> Vec<TaskConfig> {
             rain: None,
             rain_moves_every: None,
             risky: None,
+            device_cells: None,
+            layout_seed: None,
         })
         .collect();
     tasks.push(TaskConfig::one_off(300.0, None));
@@ -149,6 +162,22 @@ pub(super) fn default_tasks() -> Vec<TaskConfig> {
 }
 
 impl TaskConfig {
+    /// A task's own layout is one of `device_cells` and `layout_seed`, its cells the world's
+    /// rules for `world.device_cells`.
+    pub(super) fn check_layout(&self, index: usize, world: &WorldConfig) -> Result<(), Broken> {
+        match (&self.device_cells, self.layout_seed) {
+            (Some(_), Some(seed)) => Err(Broken::new(
+                format!("tasks[{index}].layout_seed"),
+                &seed,
+                "no layout_seed beside the task's device_cells (one layout a task)",
+            )),
+            (Some(cells), None) => {
+                world.check_device_cells(&format!("tasks[{index}].device_cells"), cells)
+            }
+            _ => Ok(()),
+        }
+    }
+
     /// The rain zone and the risky region, task `index`'s, are inside a grid of `grid_cells` a
     /// side, and only a task with rain moves it.
     pub(super) fn check_rain(&self, index: usize, grid_cells: u32) -> Result<(), Broken> {

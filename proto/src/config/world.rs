@@ -199,7 +199,7 @@ impl WorldConfig {
             return Err(Broken::new("world.devices", &self.devices, expected));
         }
         if let Some(device_cells) = &self.device_cells {
-            self.check_device_cells(device_cells)?;
+            self.check_device_cells("world.device_cells", device_cells)?;
         }
         if let Delta::PerDevice(d) = &self.delta {
             if d.len() != self.devices {
@@ -217,17 +217,17 @@ impl WorldConfig {
         }
     }
 
-    /// One distinct cell inside the grid per device.
-    fn check_device_cells(&self, cells: &[[u32; 2]]) -> Result<(), Broken> {
+    /// One distinct cell inside the grid per device, `cells` being the value of `key`.
+    pub(super) fn check_device_cells(&self, key: &str, cells: &[[u32; 2]]) -> Result<(), Broken> {
         if cells.len() != self.devices {
             let expected = format!(
                 "one cell per device: {} cells (world.devices)",
                 self.devices
             );
-            return Err(Broken::new("world.device_cells", &cells, expected));
+            return Err(Broken::new(key, &cells, expected));
         }
         for (i, c) in cells.iter().enumerate() {
-            let key = format!("world.device_cells[{i}]");
+            let key = format!("{key}[{i}]");
             if !self.inside(*c) {
                 let expected = format!(
                     "a cell inside the grid, each index below grid_cells = {}",
