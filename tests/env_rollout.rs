@@ -92,6 +92,7 @@ fn trace_has_one_object_per_step_and_agrees_with_the_summary() {
         );
         let action = step["action"].as_u64().expect("action");
         assert_eq!(step["device"], action % 3);
+        assert!(step.get("uavs").is_none(), "one UAV: no team part: {step}");
     }
 
     let summary: serde_json::Value = serde_json::from_str(&stdout(&rollout(
@@ -115,6 +116,62 @@ fn trace_has_one_object_per_step_and_agrees_with_the_summary() {
     }
     assert_eq!(summary["mean"]["episodes"], 4);
     assert_eq!(summary["policy"], "stalest");
+}
+
+/// In a team each trace line holds every UAV's cell, action, move and target, UAV 0's also at the
+/// top level; each UAV's next cell is its move from this one, two cells a move.
+#[test]
+fn a_team_trace_has_each_uavs_part_of_every_step() {
+    let config = config_file();
+    let team = [
+        "world.uavs=2",
+        "world.step_cells=2",
+        "world.idle_action=true",
+    ];
+    let mut args = vec!["--policy", "greedy", "--trace"];
+    team.iter().for_each(|s| args.extend(["--set", s]));
+    let steps: Vec<serde_json::Value> = stdout(&rollout(&config, &args))
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("each trace line is JSON"))
+        .collect();
+    assert_eq!(steps.len(), 4 * 7);
+    let cell = |v: &serde_json::Value| (v[0].as_i64().unwrap(), v[1].as_i64().unwrap());
+    let mut moved = 0;
+    for pair in steps.windows(2) {
+        let (now, next) = (&pair[0], &pair[1]);
+        let uavs = now["uavs"].as_array().expect("every UAV's part");
+        assert_eq!(uavs.len(), 2, "{now}");
+        for key in ["position", "action", "move", "device"] {
+            assert_eq!(uavs[0][key], now[key], "{key}: {now}");
+        }
+        for (u, part) in uavs.iter().enumerate() {
+            let action = part["action"].as_u64().expect("action");
+            assert_eq!(part["device"], action % 4, "targets: 3 devices and none");
+            if next["episode"] != now["episode"] {
+                continue;
+            }
+            let ((x, y), (nx, ny)) = (cell(&part["position"]), cell(&next["uavs"][u]["position"]));
+            let (dx, dy) = (nx - x, ny - y);
+            let step = match part["move"].as_str().expect("move") {
+                "hover" => (0, 0),
+                "east" => (2, 0),
+                "west" => (-2, 0),
+                "north" => (0, 2),
+                "south" => (0, -2),
+                other => panic!("move {other}"),
+            };
+            // A move stops at the grid's edge.
+            let within = |d: i64, s: i64, at: i64| {
+                d == s || (d.abs() < s.abs() && !(0..=9).contains(&(at + s)))
+            };
+            assert!(
+                within(dx, step.0, x) && within(dy, step.1, y),
+                "UAV {u}: {part} -> {next}"
+            );
+            moved += usize::from(dx != 0 || dy != 0);
+        }
+    }
+    assert!(moved > 0, "the UAVs moved");
 }
 
 #[test]

@@ -100,9 +100,15 @@ fn a_task_layout_is_checked_as_the_worlds_and_counts_in_the_world_hash() {
     let hash = |text: &str| load(text, &[]).1.expect("a valid config").world_hash();
     let plain = hash(&format!("{world}{task}"));
     let world_only = Config::from_toml_str(world, "world.toml", &[]).expect("world");
-    assert_eq!(plain, world_only.world_hash(), "tasks without layouts leave the hash");
+    assert_eq!(
+        plain,
+        world_only.world_hash(),
+        "tasks without layouts leave the hash"
+    );
     let seeded = hash(&format!("{world}{task}layout_seed = 4\n"));
-    let placed = hash(&format!("{world}{task}device_cells = [[0, 0], [4, 2], [1, 1]]\n"));
+    let placed = hash(&format!(
+        "{world}{task}device_cells = [[0, 0], [4, 2], [1, 1]]\n"
+    ));
     assert!(plain != seeded && plain != placed && seeded != placed);
 }
 

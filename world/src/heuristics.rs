@@ -105,8 +105,10 @@ impl Policy for StalestPolicy {
     }
 }
 
-/// Serve the device that minimises this step's cost from the current cell (ties to the lowest
-/// index); fly towards the stalest device, which the next steps will want to serve.
+/// Serve the device that minimises this step's cost from the current cell, a risky region's
+/// expected penalty included (ties to the lowest index); fly towards the stalest device, which
+/// the next steps will want to serve (in a task with a risky region, towards the nearest cell
+/// outside the region it can reach).
 #[derive(Debug, Clone, Copy, Default)]
 pub struct GreedyPolicy;
 
@@ -127,7 +129,12 @@ impl Policy for GreedyPolicy {
             let cell = world.uav_cell(u);
             let target = (0..targets)
                 .filter(|&k| k == world.devices() || !served.has(k))
-                .map(|k| (k, world.cost_of_from(cell, k)))
+                .map(|k| {
+                    (
+                        k,
+                        world.cost_of_from(cell, k) + world.expected_penalty_at(cell, k),
+                    )
+                })
                 .fold(
                     (0, f64::INFINITY),
                     |best, (k, c)| if c < best.1 { (k, c) } else { best },
@@ -135,7 +142,7 @@ impl Policy for GreedyPolicy {
                 .0;
             served.claim(target);
             let goal = flown.claim(stalest_device(world, &flown));
-            let mv = towards(world, cell, goal);
+            let mv = towards_cell(world, cell, safe_cell(world, cell, goal));
             *action = world.layout().action(mv.index(), target);
         }
     }
@@ -537,12 +544,35 @@ fn stalest_device(world: &World, claimed: &Claims) -> usize {
         .0
 }
 
-/// One step from `cell` towards `device`'s cell, x first; hover above it. With moves of several
+/// Where a UAV at `from` flies to serve `device`: the device's cell, or in a task with a risky
+/// region the cell nearest it outside the region that whole moves from `from` reach exactly
+/// (with moves of several cells not every cell is, and a UAV that stops short next to its goal
+/// must not stop inside the region; ties to the lowest y, then x).
+fn safe_cell(world: &World, from: (u32, u32), device: usize) -> (u32, u32) {
+    let at = world.device_cells()[device];
+    if world.risky_region().is_none() {
+        return at;
+    }
+    let (grid, s) = (world.grid_cells(), world.step_cells());
+    let reached = |(x, y): (u32, u32)| x.abs_diff(from.0) % s == 0 && y.abs_diff(from.1) % s == 0;
+    let distance2 = |(x, y): (u32, u32)| x.abs_diff(at.0).pow(2) + y.abs_diff(at.1).pow(2);
+    (0..grid)
+        .flat_map(|y| (0..grid).map(move |x| (x, y)))
+        .filter(|&c| reached(c) && world.expected_penalty_at(c, device) == 0.0)
+        .min_by_key(|&c| distance2(c))
+        .unwrap_or(at)
+}
+
+/// One step from `cell` towards `device`'s cell (see [`towards_cell`]).
+fn towards(world: &World, cell: (u32, u32), device: usize) -> Move {
+    towards_cell(world, cell, world.device_cells()[device])
+}
+
+/// One step from `(ux, uy)` towards `(dx, dy)`, x first; hover there. With moves of several
 /// cells, an axis at least a move away comes first, then one a move brings nearer; hover when
 /// no move brings the UAV nearer.
-fn towards(world: &World, (ux, uy): (u32, u32), device: usize) -> Move {
+fn towards_cell(world: &World, (ux, uy): (u32, u32), (dx, dy): (u32, u32)) -> Move {
     use std::cmp::Ordering::{Greater, Less};
-    let (dx, dy) = world.device_cells()[device];
     let s = world.step_cells();
     let axes = [
         (ux.abs_diff(dx), ux.cmp(&dx), Move::East, Move::West),

@@ -39,8 +39,31 @@ pub trait Policy {
     }
 }
 
+/// One UAV's part of a team's step: its cell before the move, its action, move and target.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct UavStepRecord {
+    pub position: (u32, u32),
+    pub action: usize,
+    #[serde(rename = "move")]
+    pub mv: Move,
+    pub device: usize,
+}
+
+impl UavStepRecord {
+    fn of(world: &World, position: (u32, u32), action: usize) -> Self {
+        let (mv, device) = world.layout().split(action);
+        let mv = Move::from_index(mv);
+        Self {
+            position,
+            action,
+            mv,
+            device,
+        }
+    }
+}
+
 /// One step as `--trace` prints it; in a team, UAV 0's cell, action, move and target beside the
-/// team's reward, power and outages.
+/// team's reward, power and outages, and every UAV's in `uavs`.
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct StepRecord<'a> {
     /// Step index within the episode, from 0.
@@ -57,6 +80,9 @@ pub struct StepRecord<'a> {
     pub outage: bool,
     /// A_1..A_K after the AoI update.
     pub aoi: &'a [u16],
+    /// In a team (`world.uavs` > 1), each UAV's part, UAV order; absent for one UAV.
+    #[serde(skip_serializing_if = "<[_]>::is_empty")]
+    pub uavs: &'a [UavStepRecord],
 }
 
 /// Resets the world and runs one episode to its horizon.
@@ -72,25 +98,31 @@ pub fn run_episode_observed(
 ) -> EpisodeMetrics {
     world.reset();
     let mut tally = EpisodeTally::default();
+    let uavs = world.uavs();
     let mut team = [0usize; MAX_UAVS];
-    let actions = &mut team[..world.uavs()];
+    let actions = &mut team[..uavs];
+    let mut cells = [(0, 0); MAX_UAVS];
+    let mut parts = [UavStepRecord::of(world, (0, 0), 0); MAX_UAVS];
     loop {
         let t = world.t();
-        let position = world.uav();
+        (0..uavs).for_each(|u| cells[u] = world.uav_cell(u));
         policy.act_team(world, actions);
         let step = world.step_team(actions);
-        let action = actions[0];
-        let (mv, device) = world.layout().split(action);
+        for u in 0..uavs {
+            parts[u] = UavStepRecord::of(world, cells[u], actions[u]);
+        }
+        let first = parts[0];
         observe(&StepRecord {
             t,
-            position,
-            action,
-            mv: Move::from_index(mv),
-            device,
+            position: first.position,
+            action: first.action,
+            mv: first.mv,
+            device: first.device,
             reward: step.reward,
             power_mw: step.power_mw,
             outage: step.outages > 0,
             aoi: world.aoi(),
+            uavs: if uavs > 1 { &parts[..uavs] } else { &[] },
         });
         tally.add(&step);
         if step.truncated {

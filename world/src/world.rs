@@ -407,6 +407,11 @@ impl World {
         }
     }
 
+    /// The task's risky region, if it has one.
+    pub fn risky_region(&self) -> Option<RiskyRegion> {
+        self.risky
+    }
+
     /// The risky region's expected penalty for a transmission to `target` from `cell`: what the
     /// exact evaluation charges (0 outside the region, with no device served, or with no region).
     pub fn expected_penalty_at(&self, cell: (u32, u32), target: usize) -> f64 {

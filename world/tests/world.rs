@@ -279,9 +279,17 @@ fn a_task_layout_replaces_the_worlds() {
         layout_seed: seed,
         ..TaskConfig::one_off(300.0, None)
     };
-    let own = World::new(&cfg.world, &task(Some(vec![[1, 2], [3, 4], [5, 6]]), None), 1);
+    let own = World::new(
+        &cfg.world,
+        &task(Some(vec![[1, 2], [3, 4], [5, 6]]), None),
+        1,
+    );
     assert_eq!(own.device_cells(), [(1, 2), (3, 4), (5, 6)]);
-    let same = world("devices = 3\ndevice_cells = [[1, 2], [3, 4], [5, 6]]", 300.0, None);
+    let same = world(
+        "devices = 3\ndevice_cells = [[1, 2], [3, 4], [5, 6]]",
+        300.0,
+        None,
+    );
     for (x, y) in [(0, 0), (4, 7), (9, 9)] {
         for device in 0..3 {
             let power = |w: &World| w.transmission_at((x, y), device, None);
