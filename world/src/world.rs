@@ -159,13 +159,11 @@ impl World {
         let k = world.devices;
         let grid = world.grid_cells;
         // The task's own layout where it has one (docs/MODEL.md section 11), else the world's.
-        let cells = task.device_cells.as_ref().or(match task.layout_seed {
-            Some(_) => None,
-            None => world.device_cells.as_ref(),
-        });
-        let device_cells = match cells {
-            Some(cells) => cells.iter().map(|c| (c[0], c[1])).collect(),
-            None => draw_layout(grid, k, task.layout_seed.unwrap_or(world.layout_seed)),
+        let device_cells = match (&task.device_cells, task.layout_seed, &world.device_cells) {
+            (Some(cells), _, _) | (None, None, Some(cells)) => {
+                cells.iter().map(|c| (c[0], c[1])).collect()
+            }
+            (None, seed, _) => draw_layout(grid, k, seed.unwrap_or(world.layout_seed)),
         };
 
         // docs/MODEL.md section 1, step 1: P = (2^(M/B) - 1) * sigma^2 / g0 * (h^2 + d^2), in
